@@ -1,0 +1,1 @@
+"""Command line of :mod:`rectify`: a thin click layer over the library."""

@@ -1,0 +1,24 @@
+"""``rectify``: the click group. Subcommands live one per module and are
+registered explicitly below."""
+
+from __future__ import annotations
+
+import click
+
+from .. import __version__
+from .options import setup_logging, verbosity_opts
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="rectify")
+@verbosity_opts
+@click.pass_context
+def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
+    """Rectify tilted aerial and space images: tie points, projective and
+    polynomial transforms (including the cotangent four-point method),
+    resampling and georeferenced GeoTIFF output."""
+    ctx.obj = {"verbose": verbose, "quiet": quiet}
+    setup_logging(verbose, quiet)
+
+
+# --- registered subcommands (one module each) ---

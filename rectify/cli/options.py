@@ -1,0 +1,93 @@
+"""Options and helpers shared by every command of ``rectify`` and ``stereo``.
+
+A command parses its arguments, calls one library function, prints a short
+summary and maps :class:`~rectify.errors.RectifyError` to a click error (exit 1).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import logging
+import sys
+from typing import Any, Callable, Iterator
+
+import click
+
+from ..errors import RectifyError
+
+__all__ = ["overwrite_opt", "verbosity_opts", "report_opt", "handle_errors", "progress", "setup_logging"]
+
+overwrite_opt = click.option("--overwrite", is_flag=True, default=False,
+                             help="Replace existing outputs (never done without it).")
+report_opt = click.option("--report", "report_dir", type=click.Path(file_okay=False), default=None,
+                          help="Write residual tables, plots and an HTML report into this folder.")
+
+
+def setup_logging(verbose: int, quiet: int) -> None:
+    """Set the root log level from -v/-q counts (default WARNING)."""
+    level = logging.WARNING - 10 * verbose + 10 * quiet
+    logging.basicConfig(level=max(level, logging.DEBUG), format="%(levelname)s %(name)s: %(message)s",
+                        stream=sys.stderr, force=True)
+
+
+def verbosity_opts(f: Callable) -> Callable:
+    """Add -v/--verbose and -q/--quiet (counted) to a click group."""
+    f = click.option("-q", "--quiet", count=True, help="Less output (repeatable).")(f)
+    f = click.option("-v", "--verbose", count=True, help="More output (repeatable).")(f)
+    return f
+
+
+def handle_errors(f: Callable) -> Callable:
+    """Map project errors to ``click.ClickException`` (message, exit code 1)."""
+
+    @functools.wraps(f)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return f(*args, **kwargs)
+        except RectifyError as err:
+            raise click.ClickException(f"{type(err).__name__}: {err}") from err
+
+    return wrapper
+
+
+@contextlib.contextmanager
+def progress(label: str, *, enabled: bool = True) -> Iterator[Callable[[int, int], None]]:
+    """Yield a ``callback(done, total)`` that drives a click progress bar on stderr.
+
+    Library functions take such callbacks as ``progress=``; the bar shows only
+    on a terminal and when ``enabled``.
+    """
+    show = enabled and sys.stderr.isatty()
+    bar = None
+    state = {"done": 0}
+
+    def cb(done: int, total: int) -> None:
+        nonlocal bar
+        if not show:
+            return
+        if bar is None:
+            bar = click.progressbar(length=total, label=label, file=sys.stderr)
+            bar.__enter__()
+        bar.update(done - state["done"])
+        state["done"] = done
+
+    try:
+        yield cb
+    finally:
+        if bar is not None:
+            bar.__exit__(None, None, None)
+
+
+def quiet_level() -> int:
+    """The -q count of the current click context's root (0 when outside click)."""
+    ctx = click.get_current_context(silent=True)
+    while ctx is not None and ctx.parent is not None:
+        ctx = ctx.parent
+    return int((ctx.obj or {}).get("quiet", 0)) if ctx is not None else 0
+
+
+def echo(msg: str = "", *, err: bool = False) -> None:
+    """Print unless -q was given."""
+    if quiet_level() == 0:
+        click.echo(msg, err=err)

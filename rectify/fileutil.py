@@ -1,0 +1,71 @@
+"""Outputs that appear whole or not at all.
+
+Every writer goes through :func:`atomic_output`: data are written to a
+temporary file in the destination folder and renamed over the destination
+only when the writer finished without error, so a failure never leaves a
+partial file and an existing output is replaced only with ``overwrite``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from pathlib import Path
+from typing import Iterator
+
+from .errors import InvalidInputError, RasterIOError
+
+__all__ = ["check_output", "atomic_output", "atomic_write_text"]
+
+
+def check_output(path: str | Path, *, overwrite: bool) -> Path:
+    """Validate an output path before any work is done.
+
+    Raises
+    ------
+    InvalidInputError
+        If ``path`` exists and ``overwrite`` is false, or is a directory.
+    RasterIOError
+        If its folder does not exist or is not writable.
+    """
+    p = Path(path)
+    if p.is_dir():
+        raise InvalidInputError(f"output {str(p)!r} is a directory")
+    if p.exists() and not overwrite:
+        raise InvalidInputError(f"output {str(p)!r} exists; pass --overwrite to replace it")
+    parent = p.parent if str(p.parent) else Path(".")
+    if not parent.is_dir():
+        raise RasterIOError(f"output folder {str(parent)!r} does not exist")
+    if not os.access(parent, os.W_OK):
+        raise RasterIOError(f"output folder {str(parent)!r} is not writable")
+    return p
+
+
+@contextlib.contextmanager
+def atomic_output(path: str | Path, *, overwrite: bool = False, suffix: str | None = None) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; rename it to ``path`` on success.
+
+    On any exception the temporary file is removed and ``path`` is untouched.
+    """
+    p = check_output(path, overwrite=overwrite)
+    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=suffix if suffix is not None else p.suffix + ".part",
+                               dir=p.parent if str(p.parent) else ".")
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        if p.exists() and not overwrite:
+            raise InvalidInputError(f"output {str(p)!r} appeared while writing; pass --overwrite")
+        os.replace(tmp_path, p)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp_path.unlink()
+        raise
+
+
+def atomic_write_text(path: str | Path, text: str, *, overwrite: bool = False) -> Path:
+    """Write ``text`` to ``path`` atomically; return the path."""
+    with atomic_output(path, overwrite=overwrite) as tmp:
+        tmp.write_text(text)
+    return Path(path)

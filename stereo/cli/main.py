@@ -1,0 +1,24 @@
+"""``stereo``: the click group. Subcommands are registered explicitly below."""
+
+from __future__ import annotations
+
+import click
+
+from rectify.cli.options import setup_logging, verbosity_opts
+
+from .. import __version__
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="stereo")
+@verbosity_opts
+@click.pass_context
+def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
+    """Stereo photogrammetry: relative orientation (three systems of
+    elements), intersection, absolute orientation, resection and stereo
+    models with full precision reports."""
+    ctx.obj = {"verbose": verbose, "quiet": quiet}
+    setup_logging(verbose, quiet)
+
+
+# --- registered subcommands (one module each) ---
