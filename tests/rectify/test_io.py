@@ -1,0 +1,79 @@
+"""Windowed raster reading on tiny GeoTIFFs made in tmp_path."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import rasterio
+from rasterio.transform import from_origin
+
+from rectify.errors import InvalidInputError, RasterIOError
+from rectify.io import iter_windows, raster_info, read_overview, read_window, to_uint8
+
+
+@pytest.fixture()
+def tif(tmp_path):
+    p = tmp_path / "a.tif"
+    data = np.arange(3 * 40 * 60, dtype=np.uint16).reshape(3, 40, 60)
+    data[:, :5, :] = 0  # nodata rows
+    with rasterio.open(p, "w", driver="GTiff", width=60, height=40, count=3, dtype="uint16", nodata=0,
+                       crs="EPSG:32618", transform=from_origin(1000, 2000, 10, 10)) as ds:
+        ds.write(data)
+    return p, data
+
+
+def test_info_and_window(tif):
+    p, data = tif
+    info = raster_info(p)
+    assert (info.width, info.height, info.count, info.crs) == (60, 40, 3, "EPSG:32618")
+    d, v = read_window(p, 10, 3, 20, 8)
+    assert d.shape == (8, 20, 3)
+    np.testing.assert_array_equal(d[..., 1], data[1, 3:11, 10:30])
+    assert not v[:2].any() and v[2:].all()
+
+
+def test_window_outside_is_invalid(tif):
+    p, _ = tif
+    d, v = read_window(p, 50, 30, 20, 20)
+    assert d.shape == (20, 20, 3)
+    assert v[:10, :10].all() and not v[10:, :].any() and not v[:, 10:].any()
+
+
+def test_overview(tif):
+    p, _ = tif
+    d, v, s = read_overview(p, 30)
+    assert max(d.shape[:2]) == 30 and s == pytest.approx(2.0)
+
+
+def test_errors(tif, tmp_path):
+    p, _ = tif
+    with pytest.raises(RasterIOError, match="not found"):
+        raster_info(tmp_path / "none.tif")
+    bad = tmp_path / "bad.tif"
+    bad.write_bytes(b"II*\x00garbage")
+    with pytest.raises(RasterIOError, match="cannot read raster"):
+        raster_info(bad)
+    with pytest.raises(InvalidInputError, match="band"):
+        read_window(p, 0, 0, 5, 5, bands=[4])
+    with pytest.raises(InvalidInputError, match="positive"):
+        read_window(p, 0, 0, 0, 5)
+
+
+def test_iter_windows_cover_once():
+    cover = np.zeros((70, 95), int)
+    for c, r, w, h in iter_windows(95, 70, 32, 0):
+        cover[r:r + h, c:c + w] += 1
+    assert (cover == 1).all()
+    for c, r, w, h in iter_windows(95, 70, 32, 8):
+        assert c >= 0 and r >= 0 and c + w <= 95 and r + h <= 70
+
+
+def test_to_uint8_stretch():
+    a = np.linspace(0, 4000, 100, dtype=np.float32).reshape(10, 10)
+    v = np.ones((10, 10), bool)
+    v[0, 0] = False
+    u = to_uint8(a, v)
+    assert u.dtype == np.uint8 and u[0, 0] == 0 and u.max() == 255
+    assert to_uint8(np.zeros((4, 4))).max() == 0
+    with pytest.raises(InvalidInputError):
+        to_uint8(np.zeros((2, 2, 2, 2)))
