@@ -1,0 +1,176 @@
+"""CRS handling: the one door to pyproj.
+
+Every coordinate transformation in the project goes through
+:func:`get_transformer`, which returns a cached
+``Transformer.from_crs(src, dst, always_xy=True)``, and every call uses
+``errcheck=True`` (:func:`transform_xy`, :func:`transform_xyz`), so a failed
+transformation raises instead of returning ``inf``. CRSs are stored as
+``"EPSG:nnnn"`` when they have a code, WKT2 otherwise (:func:`crs_to_string`).
+Axis order is always (x, y) = (easting, northing) or (lon, lat).
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .errors import CRSError
+
+__all__ = ["parse_crs", "crs_to_string", "get_transformer", "transform_xy", "transform_xyz",
+           "same_crs", "is_geographic"]
+
+logger = logging.getLogger(__name__)
+
+
+@functools.lru_cache(maxsize=128)
+def _parse(text: str):
+    import pyproj
+    from pyproj.exceptions import CRSError as ProjCRSError
+
+    try:
+        return pyproj.CRS.from_user_input(text)
+    except ProjCRSError as err:
+        raise CRSError(f"unknown CRS {text!r}: {err}") from err
+
+
+def parse_crs(crs) -> "pyproj.CRS":  # noqa: F821
+    """Parse ``"EPSG:nnnn"``, WKT, a ``pyproj.CRS`` or a ``rasterio.crs.CRS``.
+
+    Raises
+    ------
+    CRSError
+        If the CRS is missing, empty or unknown to PROJ; the message names it.
+
+    Examples
+    --------
+    >>> parse_crs("EPSG:32618").to_epsg()
+    32618
+    >>> parse_crs("EPSG:99999999")  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    rectify.errors.CRSError: unknown CRS 'EPSG:99999999': ...
+    """
+    import pyproj
+
+    if crs is None:
+        raise CRSError("CRS is missing (None)")
+    if isinstance(crs, pyproj.CRS):
+        return crs
+    if hasattr(crs, "to_wkt") and not isinstance(crs, str):  # rasterio CRS
+        crs = crs.to_wkt()
+    if not isinstance(crs, str) or not crs.strip():
+        raise CRSError(f"CRS must be a non-empty string like 'EPSG:32618' or WKT; got {crs!r}")
+    return _parse(crs.strip())
+
+
+def crs_to_string(crs) -> str:
+    """``"EPSG:nnnn"`` when the CRS matches a code exactly, WKT2 otherwise."""
+    c = parse_crs(crs)
+    epsg = c.to_epsg(min_confidence=100)
+    return f"EPSG:{epsg}" if epsg else c.to_wkt()
+
+
+def same_crs(a, b) -> bool:
+    """True when two CRSs describe the same system."""
+    return parse_crs(a).equals(parse_crs(b), ignore_axis_order=True)
+
+
+def is_geographic(crs) -> bool:
+    """True for longitude/latitude CRSs (degrees)."""
+    return bool(parse_crs(crs).is_geographic)
+
+
+@functools.lru_cache(maxsize=64)
+def _transformer(src_key: str, dst_key: str):
+    from pyproj import Transformer
+    from pyproj.exceptions import ProjError
+
+    try:
+        return Transformer.from_crs(_parse(src_key), _parse(dst_key), always_xy=True)
+    except ProjError as err:
+        raise CRSError(f"no transformation from {src_key!r} to {dst_key!r}: {err}") from err
+
+
+def get_transformer(src, dst) -> "pyproj.Transformer":  # noqa: F821
+    """Cached ``Transformer.from_crs(src, dst, always_xy=True)``.
+
+    Parameters
+    ----------
+    src, dst : str or CRS
+        ``"EPSG:nnnn"``, WKT or a CRS object.
+
+    Raises
+    ------
+    CRSError
+        If a CRS is unknown or no transformation exists.
+    """
+    return _transformer(parse_crs(src).to_wkt(), parse_crs(dst).to_wkt())
+
+
+def transform_xy(src, dst, xy: ArrayLike) -> NDArray[np.float64]:
+    """Transform (N, 2) points (x, y) from ``src`` to ``dst`` (always_xy, errcheck).
+
+    Parameters
+    ----------
+    xy : (N, 2) float64
+        Easting/northing or lon/lat (degrees), in that order.
+
+    Returns
+    -------
+    (N, 2) float64, a new array.
+
+    Raises
+    ------
+    CRSError
+        If a point cannot be transformed (the message names the first one).
+    """
+    from pyproj.exceptions import ProjError
+
+    from .points import as_points
+
+    p = as_points(xy, "xy", 2)
+    if len(p) == 0:
+        return p
+    t = get_transformer(src, dst)
+    try:
+        x, y = t.transform(p[:, 0], p[:, 1], errcheck=True)
+    except ProjError as err:
+        raise CRSError(f"cannot transform points from {crs_to_string(src)!r} to {crs_to_string(dst)!r} "
+                       f"(first point {p[0].tolist()}): {err}") from err
+    out = np.column_stack([np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)])
+    if not np.isfinite(out).all():
+        i = int(np.flatnonzero(~np.isfinite(out).all(axis=1))[0])
+        raise CRSError(f"point {p[i].tolist()} cannot be transformed from {crs_to_string(src)!r} "
+                       f"to {crs_to_string(dst)!r}")
+    return out
+
+
+def transform_xyz(src, dst, xyz: ArrayLike) -> NDArray[np.float64]:
+    """Transform (N, 3) points (x, y, z) from ``src`` to ``dst`` (always_xy, errcheck).
+
+    Returns
+    -------
+    (N, 3) float64, a new array.
+    """
+    from pyproj.exceptions import ProjError
+
+    from .points import as_points
+
+    p = as_points(xyz, "xyz", 3)
+    if len(p) == 0:
+        return p
+    t = get_transformer(src, dst)
+    try:
+        x, y, z = t.transform(p[:, 0], p[:, 1], p[:, 2], errcheck=True)
+    except ProjError as err:
+        raise CRSError(f"cannot transform points from {crs_to_string(src)!r} to {crs_to_string(dst)!r} "
+                       f"(first point {p[0].tolist()}): {err}") from err
+    out = np.column_stack([np.asarray(v, dtype=np.float64) for v in (x, y, z)])
+    if not np.isfinite(out).all():
+        i = int(np.flatnonzero(~np.isfinite(out).all(axis=1))[0])
+        raise CRSError(f"point {p[i].tolist()} cannot be transformed from {crs_to_string(src)!r} "
+                       f"to {crs_to_string(dst)!r}")
+    return out
