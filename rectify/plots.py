@@ -1,0 +1,522 @@
+"""Figures of residuals: vectors over the image, histogram + Q-Q, radial trend, heat maps, bars.
+
+Every function returns a new :class:`matplotlib.figure.Figure` built without
+:mod:`matplotlib.pyplot` (no global state, no GUI backend), so they are safe in
+libraries, threads and headless runs; save them with ``fig.savefig(...)`` or pass
+them to :func:`rectify.report.write_report` as ``figures``.
+
+Conventions: positions are in the pixel frame (x = column right, y = row down,
+pixel centres at integers), so image axes are drawn with y increasing downwards.
+Residuals are ``v = adjusted - observed`` in the table's ``units``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Sequence
+
+import numpy as np
+from matplotlib.colors import Normalize
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from numpy.typing import ArrayLike, NDArray
+from scipy import stats
+
+from .errors import InvalidInputError, ShapeError
+from .residuals import ResidualTable
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "residual_vector_figure",
+    "histogram_qq_figure",
+    "radial_figure",
+    "correlation_heatmap_figure",
+    "height_bars_figure",
+    "standardised_components",
+    "nice_number",
+]
+
+#: Largest background side (pixels) drawn; bigger images are subsampled for the plot only.
+MAX_BACKGROUND_PX = 1600
+#: Normalised residuals above this are drawn in the top colour (colour scale 0 .. NORM_CLIP).
+NORM_CLIP = 4.0
+_CMAP = "plasma"
+_OUTLIER_COLOUR = "#d62728"
+_CHECK_COLOUR = "#1f77b4"
+
+
+def nice_number(x: float) -> float:
+    """Round a positive number to 1, 2 or 5 times a power of ten (for scale bars).
+
+    >>> nice_number(0.37), nice_number(7.2), nice_number(180.0)
+    (0.5, 5.0, 200.0)
+    """
+    if not (x > 0 and math.isfinite(x)):
+        return 1.0
+    e = math.floor(math.log10(x))
+    f = x / 10.0 ** e
+    m = 1.0 if f < 1.5 else 2.0 if f < 3.5 else 5.0 if f < 7.5 else 10.0
+    return float(m * 10.0 ** e)
+
+
+def _new_figure(w: float, h: float) -> Figure:
+    fig = Figure(figsize=(w, h), dpi=100, layout="constrained")
+    return fig
+
+
+def _finite_or_nan(x: float | None) -> float:
+    return float(x) if x is not None and math.isfinite(float(x)) else float("nan")
+
+
+def standardised_components(table: ResidualTable) -> NDArray[np.float64]:
+    """Signed residual components divided by their standard deviation, (N, k), unitless.
+
+    With per-point ``std`` (standard deviation of |v|) each component is divided
+    by ``std / sqrt(k)``; otherwise by ``sigma0 / sqrt(weight)``. Under the model
+    each entry is approximately standard normal, so these feed the normal Q-Q plot.
+    NaN where the divisor is zero or undefined.
+    """
+    v = table.residual
+    k = v.shape[1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if table.std is not None:
+            s = table.std / math.sqrt(k)
+        else:
+            s0 = _finite_or_nan(table.sigma0)
+            s = np.where(table.weights > 0, s0 / np.sqrt(table.weights), np.nan)
+        s = np.where(s > 0, s, np.nan)
+        return v / s[:, None]
+
+
+def _masks(table: ResidualTable) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.bool_]]:
+    return table.fit_mask, table.check & ~table.outlier, table.outlier
+
+
+def _subsample_background(background: NDArray) -> tuple[NDArray, int]:
+    b = np.asarray(background)
+    if b.ndim not in (2, 3) or (b.ndim == 3 and b.shape[2] not in (1, 3, 4)):
+        raise ShapeError(f"`background` must have shape (H, W) or (H, W, 1|3|4); got {b.shape}",
+                         actual_shape=b.shape)
+    step = max(1, int(math.ceil(max(b.shape[:2]) / MAX_BACKGROUND_PX)))
+    b = b[::step, ::step]
+    if b.ndim == 3 and b.shape[2] == 1:
+        b = b[:, :, 0]
+    if b.dtype != np.uint8:
+        f = b.astype(np.float64)
+        finite = np.isfinite(f)
+        if finite.any():
+            lo, hi = np.percentile(f[finite], [1, 99])
+            hi = hi if hi > lo else lo + 1.0
+            f = np.clip((f - lo) / (hi - lo), 0.0, 1.0)
+        f[~finite] = 0.0
+        b = f
+    return b, step
+
+
+def residual_vector_figure(table: ResidualTable, image_shape: Sequence[int] | None = None,
+                           background: ArrayLike | None = None, *, positions: ArrayLike | None = None,
+                           position_units: str = "px", y_down: bool = True,
+                           components_y_up: bool = False, scale: float | None = None,
+                           title: str | None = None) -> Figure:
+    """Residual vectors drawn at their points, scaled, with a scale arrow, coloured by normalised residual.
+
+    Parameters
+    ----------
+    table : ResidualTable
+        Residuals; uses ``table.position_px`` unless ``positions`` is given.
+        With one component (e.g. vertical parallax q) the arrows are vertical;
+        with three or more (e.g. dX, dY, dZ) the first two are drawn (plan vectors).
+    image_shape : (H, W) or (H, W, C), optional
+        Image size in pixels; sets the axes limits to the image frame.
+    background : (H, W) or (H, W, C) array, optional
+        Image drawn under the vectors (subsampled to at most 1600 px a side for
+        the plot only; non-uint8 data stretched between the 1st and 99th percentile).
+    positions : (N, 2) array_like, optional
+        Where to draw the vectors instead of ``table.position_px`` (e.g. ground
+        X, Y for absolute orientation; then pass ``position_units="m"``, ``y_down=False``).
+    position_units : str
+        Units of the positions, for the axis labels.
+    y_down : bool
+        True for the image frame (y axis pointing down), False for map/ground axes.
+    components_y_up : bool
+        True when the second residual component points up (photo mm frame) while
+        the plot is in the image frame: the arrow's y is then negated.
+    scale : float, optional
+        Plot units per residual unit (arrow exaggeration); chosen automatically so
+        that the 95th-percentile arrow spans about 8 % of the plotted extent.
+    title : str, optional
+        Figure title; default names the step.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+
+    Raises
+    ------
+    InvalidInputError
+        If there are no positions or no points.
+    ShapeError
+        If ``positions``, ``image_shape`` or ``background`` has a wrong shape.
+    """
+    if positions is None:
+        if table.position_px is None:
+            raise InvalidInputError(f"table {table.step!r} has no position_px; pass `positions`")
+        pos = table.position_px
+    else:
+        pos = np.asarray(positions, dtype=np.float64)
+        if pos.shape != (table.n, 2):
+            raise ShapeError(f"`positions` must have shape ({table.n}, 2); got {pos.shape}",
+                             actual_shape=pos.shape, expected_shape=(table.n, 2))
+    if table.n == 0:
+        raise InvalidInputError(f"table {table.step!r} has no points to draw")
+    v = table.residual
+    if v.shape[1] == 1:
+        u = np.zeros(table.n)
+        w = v[:, 0].copy()
+        comp_label = f"{table.components[0]} drawn vertically"
+    else:
+        u, w = v[:, 0].copy(), v[:, 1].copy()
+        comp_label = f"({table.components[0]}, {table.components[1]})"
+    if components_y_up:
+        w = -w
+    # matplotlib's quiver takes directions in data coordinates with angles="xy": a positive
+    # w points towards increasing y, i.e. downwards on an inverted (image) axis, as wanted.
+    fig = _new_figure(8.0, 6.4)
+    ax = fig.add_subplot()
+    extent_xy = None
+    if background is not None:
+        bg, step = _subsample_background(np.asarray(background))
+        hh, ww = np.asarray(background).shape[:2]
+        ax.imshow(bg, cmap="gray" if bg.ndim == 2 else None, extent=(-0.5, ww - 0.5, hh - 0.5, -0.5),
+                  interpolation="nearest" if step == 1 else "antialiased", zorder=0)
+        extent_xy = (ww, hh)
+        if image_shape is None:
+            image_shape = (hh, ww)
+    if image_shape is not None:
+        shp = tuple(int(s) for s in image_shape)
+        if len(shp) not in (2, 3) or min(shp[:2]) <= 0:
+            raise ShapeError(f"`image_shape` must be (H, W) or (H, W, C) with positive sizes; got {shp}",
+                             actual_shape=shp)
+        extent_xy = (shp[1], shp[0])
+    finite = np.all(np.isfinite(pos), axis=1)
+    if extent_xy is not None:
+        x0, x1, y0, y1 = -0.5, extent_xy[0] - 0.5, -0.5, extent_xy[1] - 0.5
+    elif finite.any():
+        x0, x1 = float(pos[finite, 0].min()), float(pos[finite, 0].max())
+        y0, y1 = float(pos[finite, 1].min()), float(pos[finite, 1].max())
+        pad = 0.08 * max(x1 - x0, y1 - y0, 1e-9)
+        x0, x1, y0, y1 = x0 - pad, x1 + pad, y0 - pad, y1 + pad
+    else:
+        x0, x1, y0, y1 = 0.0, 1.0, 0.0, 1.0
+    span = max(x1 - x0, y1 - y0, 1e-12)
+    length = np.hypot(u, w)
+    good = np.isfinite(length)
+    ref = float(np.percentile(length[good], 95)) if good.any() else 0.0
+    if scale is None:
+        scale = 0.08 * span / ref if ref > 0 else 1.0
+    key_len = nice_number(ref if ref > 0 else 1.0)
+    nz = table.normalised
+    norm = Normalize(vmin=0.0, vmax=NORM_CLIP)
+    colour_vals = np.where(np.isfinite(nz), nz, 0.0)
+    q = ax.quiver(pos[:, 0], pos[:, 1], u * scale, w * scale, colour_vals, cmap=_CMAP, norm=norm,
+                  angles="xy", scale_units="xy", scale=1.0, width=0.003, headwidth=3.5, headlength=4.5,
+                  zorder=3)
+    fit, chk, out = _masks(table)
+    ax.scatter(pos[fit, 0], pos[fit, 1], s=6, c="k", linewidths=0, zorder=4, label="fit point")
+    if chk.any():
+        ax.scatter(pos[chk, 0], pos[chk, 1], s=40, marker="^", facecolors="none", edgecolors=_CHECK_COLOUR,
+                   linewidths=1.2, zorder=5, label="check point")
+    if out.any():
+        ax.scatter(pos[out, 0], pos[out, 1], s=55, marker="x", c=_OUTLIER_COLOUR, linewidths=1.4,
+                   zorder=6, label="outlier")
+    qk = ax.quiverkey(q, 0.80, 1.015, key_len * scale, f"{key_len:g} {table.units}", labelpos="E",
+                      coordinates="axes", color="k")
+    qk.set_zorder(7)
+    cb = fig.colorbar(q, ax=ax, shrink=0.85, extend="max")
+    cb.set_label("normalised residual |v| / \u03c3  (unitless)")
+    ax.set_xlim(x0, x1)
+    if y_down:
+        ax.set_ylim(y1, y0)
+    else:
+        ax.set_ylim(y0, y1)
+    ax.set_aspect("equal")
+    xl, yl = ("column x", "row y") if position_units == "px" else ("X", "Y")
+    ax.set_xlabel(f"{xl} ({position_units})")
+    ax.set_ylabel(f"{yl} ({position_units})")
+    ax.set_title(title or f"{table.step}: residual vectors {comp_label}, arrows \u00d7{scale:.3g}",
+                 fontsize=10, loc="left", pad=18)
+    ax.legend(loc="lower left", fontsize=8, framealpha=0.85)
+    ax.grid(True, alpha=0.25)
+    return fig
+
+
+def histogram_qq_figure(table: ResidualTable, *, title: str | None = None) -> Figure:
+    """Histogram of normalised residuals |v|/sigma and a normal Q-Q plot of standardised components.
+
+    The left panel is the histogram of the table's normalised residuals (the
+    ``normalised`` CSV column) for fit and check points, with the chi density
+    of k degrees of freedom that it follows under the model. The right panel is
+    the normal Q-Q plot of the signed standardised components
+    (:func:`standardised_components`) with the 1:1 line; outliers in red.
+
+    Raises
+    ------
+    InvalidInputError
+        If the table has no points.
+    """
+    if table.n == 0:
+        raise InvalidInputError(f"table {table.step!r} has no points to plot")
+    fig = _new_figure(10.0, 4.2)
+    ax1, ax2 = fig.subplots(1, 2)
+    nz = table.normalised
+    fit, chk, out = _masks(table)
+    k = table.residual.shape[1]
+    finite = np.isfinite(nz)
+    data = [nz[fit & finite], nz[chk & finite], nz[out & finite]]
+    labels = ["fit points", "check points", "outliers"]
+    colours = ["#7f7f7f", _CHECK_COLOUR, _OUTLIER_COLOUR]
+    allv = nz[finite]
+    if allv.size:
+        top = max(float(np.percentile(allv, 99.5)), 3.0)
+        bins = np.linspace(0.0, top, max(10, min(60, int(np.sqrt(allv.size)) + 5)))
+        keep = [(d, lab, c) for d, lab, c in zip(data, labels, colours) if d.size]
+        ax1.hist([np.clip(d, 0, top) for d, _, _ in keep], bins=bins, stacked=True, density=True,
+                 color=[c for _, _, c in keep], label=[f"{lab} ({d.size})" for d, lab, _ in keep],
+                 edgecolor="white", linewidth=0.5)
+        xs = np.linspace(0.0, top, 200)
+        ax1.plot(xs, stats.chi.pdf(xs, k), "k--", lw=1.2, label=f"\u03c7 density, {k} dof")
+        ax1.legend(fontsize=8)
+    else:
+        ax1.text(0.5, 0.5, "no finite normalised residuals\n(sigma undefined)", ha="center",
+                 va="center", transform=ax1.transAxes)
+    ax1.set_xlabel("normalised residual |v| / \u03c3  (unitless)")
+    ax1.set_ylabel("density (1 / unit)")
+    ax1.set_title("Histogram of normalised residuals", fontsize=10)
+    ax1.grid(True, alpha=0.25)
+
+    z = standardised_components(table)
+    groups = [(fit, "fit", "#444444", "o"), (chk, "check", _CHECK_COLOUR, "^"), (out, "outlier", _OUTLIER_COLOUR, "x")]
+    zall = z[np.isfinite(z)]
+    if zall.size:
+        order_vals = np.sort(zall)
+        n = order_vals.size
+        theo = stats.norm.ppf((np.arange(1, n + 1) - 0.5) / n)
+        # colour each sorted value by the group of the point it came from
+        flat_group = np.repeat(np.select([out, chk], [2, 1], 0), k)[np.isfinite(z).reshape(-1)]
+        idx = np.argsort(z[np.isfinite(z)], kind="stable")
+        g_sorted = flat_group[idx]
+        for gi, (_, lab, col, mk) in enumerate(groups):
+            m = g_sorted == gi
+            if m.any():
+                ax2.scatter(theo[m], order_vals[m], s=8 if mk != "x" else 20, c=col, marker=mk,
+                            linewidths=0.8 if mk == "x" else 0, label=f"{lab} ({int(m.sum())} comp.)")
+        lim = float(max(np.abs(theo).max(), np.abs(order_vals[np.isfinite(order_vals)]).max()))
+        lim = min(lim, 20.0) * 1.05
+        ax2.plot([-lim, lim], [-lim, lim], "k--", lw=1, label="1:1 (normal)")
+        ax2.set_xlim(-lim, lim)
+        ax2.set_ylim(-lim, lim)
+        ax2.legend(fontsize=8, loc="upper left")
+    else:
+        ax2.text(0.5, 0.5, "no finite standardised residuals", ha="center", va="center",
+                 transform=ax2.transAxes)
+    ax2.set_xlabel("standard normal quantile (unitless)")
+    ax2.set_ylabel("standardised residual component v\u00b7\u221aw / \u03c3\u2080  (unitless)")
+    ax2.set_title("Normal Q-Q plot of residual components", fontsize=10)
+    ax2.grid(True, alpha=0.25)
+    fig.suptitle(title or f"{table.step}: distribution of residuals", fontsize=11)
+    return fig
+
+
+def radial_figure(table: ResidualTable, principal_point_px: ArrayLike, *,
+                  components_y_up: bool = False, n_bins: int = 10, title: str | None = None) -> Figure:
+    """Residual against radial distance from the principal point.
+
+    Left: |v| against r with the RMS per radial bin. Right (two or more
+    components): the radial component v . r_hat (positive outwards), whose
+    systematic trend with r reveals uncorrected radial distortion.
+
+    Parameters
+    ----------
+    table : ResidualTable
+        Needs ``position_px``.
+    principal_point_px : (2,) array_like
+        Principal point (x, y) in the pixel frame.
+    components_y_up : bool
+        True when the second residual component points up (photo mm frame).
+    n_bins : int
+        Number of radial bins for the RMS / mean curves.
+
+    Raises
+    ------
+    InvalidInputError
+        If the table has no positions or no points, or ``n_bins`` < 1.
+    ShapeError
+        If ``principal_point_px`` is not two numbers.
+    """
+    if table.position_px is None:
+        raise InvalidInputError(f"table {table.step!r} has no position_px for a radial plot")
+    if table.n == 0:
+        raise InvalidInputError(f"table {table.step!r} has no points to plot")
+    if n_bins < 1:
+        raise InvalidInputError(f"`n_bins` must be >= 1; got {n_bins}")
+    pp = np.asarray(principal_point_px, dtype=np.float64).reshape(-1)
+    if pp.shape != (2,) or not np.all(np.isfinite(pp)):
+        raise ShapeError(f"`principal_point_px` must be two finite numbers (x, y); got {pp.tolist()}",
+                         actual_shape=pp.shape, expected_shape=(2,))
+    d = table.position_px - pp
+    r = np.hypot(d[:, 0], d[:, 1])
+    v = table.residual
+    k = v.shape[1]
+    fit, chk, out = _masks(table)
+    two = k >= 2
+    fig = _new_figure(10.0 if two else 6.0, 4.2)
+    axes = fig.subplots(1, 2) if two else [fig.add_subplot()]
+    series = [("|v|", table.norm, "RMS")]
+    if two:
+        vx, vy = v[:, 0], (-v[:, 1] if components_y_up else v[:, 1])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            vr = np.where(r > 0, (vx * d[:, 0] + vy * d[:, 1]) / r, 0.0)
+        series.append(("radial component v\u00b7r\u0302 (outwards +)", vr, "mean"))
+    rmax = float(np.nanmax(r)) if np.isfinite(r).any() else 1.0
+    edges = np.linspace(0.0, rmax if rmax > 0 else 1.0, n_bins + 1)
+    for ax, (lab, y, stat_name) in zip(axes, series):
+        ax.scatter(r[fit], y[fit], s=6, c="#555555", linewidths=0, alpha=0.6, label="fit point")
+        if chk.any():
+            ax.scatter(r[chk], y[chk], s=25, marker="^", facecolors="none", edgecolors=_CHECK_COLOUR,
+                       label="check point")
+        if out.any():
+            ax.scatter(r[out], y[out], s=25, marker="x", c=_OUTLIER_COLOUR, label="outlier")
+        which = np.clip(np.digitize(r, edges) - 1, 0, n_bins - 1)
+        centres, vals = [], []
+        for b in range(n_bins):
+            m = fit & (which == b) & np.isfinite(y)
+            if m.any():
+                centres.append(0.5 * (edges[b] + edges[b + 1]))
+                vals.append(float(np.sqrt(np.mean(y[m] ** 2))) if stat_name == "RMS" else float(np.mean(y[m])))
+        if centres:
+            ax.plot(centres, vals, "-o", color="#ff7f0e", lw=2, ms=4, label=f"{stat_name} per radial bin")
+        if stat_name == "mean":
+            ax.axhline(0.0, color="k", lw=0.8)
+        ax.set_xlim(left=0.0)
+        ax.set_xlabel("radial distance from principal point r (px)")
+        ax.set_ylabel(f"{lab} ({table.units})")
+        ax.grid(True, alpha=0.25)
+        ax.legend(fontsize=8)
+    axes[0].set_title("Residual length vs radius", fontsize=10)
+    if two:
+        axes[1].set_title("Radial component vs radius (distortion signature)", fontsize=10)
+    fig.suptitle(title or f"{table.step}: residuals vs distance from principal point "
+                 f"({pp[0]:.1f}, {pp[1]:.1f}) px", fontsize=11)
+    return fig
+
+
+def correlation_heatmap_figure(names: Sequence[str], matrix: ArrayLike, *,
+                               title: str = "Correlation of estimated elements") -> Figure:
+    """Correlation matrix as an annotated heat map (-1 blue .. +1 red).
+
+    Parameters
+    ----------
+    names : sequence of str, length m
+        Element names (e.g. the five relative-orientation elements).
+    matrix : (m, m) array_like
+        Correlation coefficients, unitless, in [-1, 1].
+
+    Raises
+    ------
+    ShapeError
+        If ``matrix`` is not (m, m) for m = len(names).
+    InvalidInputError
+        If it holds values outside [-1, 1] (beyond rounding) or NaN.
+    """
+    names = [str(n) for n in names]
+    c = np.asarray(matrix, dtype=np.float64)
+    m = len(names)
+    if c.shape != (m, m) or m == 0:
+        raise ShapeError(f"`matrix` must have shape ({m}, {m}) for {m} names; got {c.shape}",
+                         actual_shape=c.shape, expected_shape=(m, m))
+    if not np.all(np.isfinite(c)) or np.abs(c).max() > 1.0 + 1e-9:
+        bad = c[~np.isfinite(c) | (np.abs(c) > 1.0 + 1e-9)]
+        raise InvalidInputError(f"correlations must be finite and in [-1, 1]; got {bad[:3].tolist()}")
+    size = max(4.5, 0.8 * m + 2.0)
+    fig = _new_figure(size + 1.0, size)
+    ax = fig.add_subplot()
+    im = ax.imshow(c, cmap="RdBu_r", vmin=-1.0, vmax=1.0)
+    ax.set_xticks(range(m), names, rotation=45, ha="right")
+    ax.set_yticks(range(m), names)
+    ax.set_xlabel("element")
+    ax.set_ylabel("element")
+    for i in range(m):
+        for j in range(m):
+            ax.text(j, i, f"{c[i, j]:+.2f}", ha="center", va="center", fontsize=9,
+                    color="white" if abs(c[i, j]) > 0.6 else "black")
+    cb = fig.colorbar(im, ax=ax, shrink=0.85)
+    cb.set_label("correlation coefficient (unitless)")
+    ax.set_title(title, fontsize=11)
+    return fig
+
+
+def height_bars_figure(table: ResidualTable, *, component: int | str = -1,
+                       title: str | None = None) -> Figure:
+    """Bar chart of one residual component per point (e.g. the height residual dZ).
+
+    Bars are ordered as in the table, red for outliers, hatched for check points,
+    with +-RMSE of the fit points as dashed lines.
+
+    Parameters
+    ----------
+    table : ResidualTable
+    component : int or str
+        Index or name of the component (default the last, e.g. ``"dz"``).
+
+    Raises
+    ------
+    InvalidInputError
+        If the table is empty or the component is unknown.
+    """
+    if table.n == 0:
+        raise InvalidInputError(f"table {table.step!r} has no points to plot")
+    comps = list(table.components)
+    if isinstance(component, str):
+        if component not in comps:
+            raise InvalidInputError(f"unknown component {component!r}; table has {comps}")
+        j = comps.index(component)
+    else:
+        j = int(component)
+        if not -len(comps) <= j < len(comps):
+            raise InvalidInputError(f"component index {component} out of range for {comps}")
+        j %= len(comps)
+    y = table.residual[:, j]
+    fit, chk, out = _masks(table)
+    n = table.n
+    fig = _new_figure(min(14.0, max(6.0, 0.25 * n + 2.0)), 4.2)
+    ax = fig.add_subplot()
+    x = np.arange(n)
+    colours = np.where(out, _OUTLIER_COLOUR, np.where(chk, _CHECK_COLOUR, "#4c72b0"))
+    bars = ax.bar(x, y, color=colours, edgecolor="k", linewidth=0.4)
+    for b, c in zip(bars, chk):
+        if c:
+            b.set_hatch("//")
+    rmse = float(np.sqrt(np.mean(y[fit] ** 2))) if fit.any() else float("nan")
+    if math.isfinite(rmse):
+        ax.axhline(rmse, color="k", ls="--", lw=0.9)
+        ax.axhline(-rmse, color="k", ls="--", lw=0.9)
+    ax.axhline(0.0, color="k", lw=0.8)
+    if n <= 60:
+        ax.set_xticks(x, list(table.ids), rotation=90, fontsize=7)
+    else:
+        ax.set_xlabel("point index")
+    if n <= 60:
+        ax.set_xlabel("point id")
+    ax.set_ylabel(f"{comps[j]} ({table.units})")
+    handles = [Line2D([], [], color="#4c72b0", lw=6, label="fit point"),
+               Line2D([], [], color="k", ls="--", label=f"\u00b1RMSE {rmse:.3g} {table.units}")]
+    if chk.any():
+        handles.append(Line2D([], [], color=_CHECK_COLOUR, lw=6, label="check point"))
+    if out.any():
+        handles.append(Line2D([], [], color=_OUTLIER_COLOUR, lw=6, label="outlier"))
+    ax.legend(handles=handles, fontsize=8)
+    ax.grid(True, axis="y", alpha=0.25)
+    ax.set_title(title or f"{table.step}: {comps[j]} residual per point", fontsize=11)
+    return fig
