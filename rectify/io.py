@@ -248,3 +248,471 @@ def to_uint8(data: NDArray, valid: NDArray[np.bool_] | None = None, *,
     out = np.clip((a - lo) * (255.0 / (hi - lo)), 0, 255)
     out[~ok] = 0
     return out.astype(np.uint8)
+
+
+# =============================================================================
+# Writing, fast windowed reading for the warper, COG layout checks
+# (appended by the warp engine, issue 4)
+# =============================================================================
+
+@dataclass(frozen=True)
+class MaskPolicy:
+    """How validity is stored in a raster.
+
+    Attributes
+    ----------
+    kind : str
+        ``"nodata"`` (a nodata value), ``"mask"`` (a per-dataset internal
+        mask), ``"alpha"`` (an alpha band; invalid pixels get alpha 0) or
+        ``"none"`` (every pixel valid).
+    nodata : float or None
+        The nodata value when ``kind == "nodata"``.
+    alpha_band : int or None
+        0-based index of the alpha band when ``kind == "alpha"``.
+    """
+
+    kind: str
+    nodata: float | None = None
+    alpha_band: int | None = None
+
+
+def mask_policy(path: str | Path) -> MaskPolicy:
+    """How a raster on disk stores validity (nodata, internal mask, alpha or none)."""
+    from rasterio.enums import MaskFlags
+
+    with open_raster(path) as ds:
+        flags = ds.mask_flag_enums
+        if ds.nodata is not None:
+            return MaskPolicy("nodata", float(ds.nodata))
+        if any(MaskFlags.alpha in f for f in flags):
+            from rasterio.enums import ColorInterp
+            ci = list(ds.colorinterp)
+            idx = ci.index(ColorInterp.alpha) if ColorInterp.alpha in ci else ds.count - 1
+            return MaskPolicy("alpha", None, idx)
+        if any(MaskFlags.per_dataset in f for f in flags):
+            return MaskPolicy("mask")
+    return MaskPolicy("none")
+
+
+class WindowReader:
+    """Keep one dataset open and read windows inside it, as ``(h, w, C)``.
+
+    Not thread-safe: give each thread its own reader. Windows must lie inside
+    the raster (the warper clips them); use :func:`read_window` for boundless
+    reads.
+
+    Parameters
+    ----------
+    path : path of any raster rasterio reads
+    """
+
+    def __init__(self, path: str | Path):
+        import rasterio
+        from rasterio.errors import RasterioError
+
+        self.path = str(path)
+        if not Path(self.path).exists():
+            raise RasterIOError(f"raster not found: {self.path!r}")
+        try:
+            self._ds = rasterio.open(self.path)
+        except RasterioError as err:
+            raise RasterIOError(f"cannot read raster {self.path!r}: {err}") from err
+        self.policy = mask_policy(self.path)
+        self.width, self.height, self.count = self._ds.width, self._ds.height, self._ds.count
+
+    def close(self) -> None:
+        self._ds.close()
+
+    def __enter__(self) -> "WindowReader":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def read(self, col_off: int, row_off: int, width: int, height: int
+             ) -> tuple[NDArray, NDArray[np.bool_] | None]:
+        """Read a window inside the raster.
+
+        Returns
+        -------
+        data : (h, w, C) array of the raster's dtype (C-contiguous, pixel-interleaved)
+        valid : (h, w) bool, or None when every pixel of the window is valid.
+            Nodata: a pixel is invalid when all its bands equal nodata (as
+            rasterio's dataset mask); NaN counts as nodata for float rasters.
+        """
+        from rasterio.errors import RasterioError
+        from rasterio.windows import Window
+
+        if col_off < 0 or row_off < 0 or width <= 0 or height <= 0 or col_off + width > self.width \
+                or row_off + height > self.height:
+            raise InvalidInputError(f"window ({col_off}, {row_off}, {width}, {height}) is not inside the "
+                                    f"{self.width} x {self.height} raster {self.path!r}")
+        win = Window(col_off, row_off, width, height)
+        try:
+            data = self._ds.read(window=win)
+            pol = self.policy
+            valid = None
+            if pol.kind == "nodata":
+                nd = pol.nodata
+                if isinstance(nd, float) and math.isnan(nd):
+                    bad = np.isnan(data).all(axis=0)
+                else:
+                    bad = (data == np.asarray(nd).astype(data.dtype)).all(axis=0)
+                    if data.dtype.kind == "f":
+                        bad |= np.isnan(data).all(axis=0)
+                valid = None if not bad.any() else ~bad
+            elif pol.kind in ("mask", "alpha"):
+                m = self._ds.dataset_mask(window=win) > 0
+                valid = None if m.all() else m
+        except RasterioError as err:
+            raise RasterIOError(f"cannot read window {win} of {self.path!r}: {err}") from err
+        return np.ascontiguousarray(np.moveaxis(data, 0, -1)), valid
+
+
+def _gtiff_profile(width: int, height: int, count: int, dtype: str, transform, crs: str | None,
+                   nodata: float | None, *, tile: int, compress: str, threads: int,
+                   bigtiff: str = "IF_SAFER") -> dict:
+    prof = {"driver": "GTiff", "width": int(width), "height": int(height), "count": int(count),
+            "dtype": dtype, "transform": transform, "crs": crs, "nodata": nodata,
+            "tiled": True, "blockxsize": int(tile), "blockysize": int(tile),
+            "compress": compress, "interleave": "pixel", "BIGTIFF": bigtiff,
+            "NUM_THREADS": str(max(1, int(threads)))}
+    if compress.lower() in ("deflate", "lzw", "zstd") and np.dtype(dtype).kind in "ui":
+        prof["predictor"] = 2
+    return prof
+
+
+class TiledWriter:
+    """A tiled, compressed GeoTIFF opened for writing, fed tile by tile.
+
+    Parameters
+    ----------
+    path : path
+        The file to create (the caller handles atomic renaming).
+    width, height, count : int
+    dtype : str
+    transform : affine.Affine
+        rasterio geotransform.
+    crs : str or None
+    policy : MaskPolicy
+        How invalid pixels are stored (nodata value, internal mask, alpha band).
+    tile : int
+        Internal block size (multiple of 16).
+    compress : str
+        GDAL compression (``deflate``, ``lzw``, ``zstd``, ``none``).
+    threads : int
+        Compression threads.
+    colorinterp : sequence, optional
+        Band colour interpretation to record.
+    """
+
+    def __init__(self, path: str | Path, width: int, height: int, count: int, dtype: str, transform,
+                 crs: str | None, policy: MaskPolicy, *, tile: int = 512, compress: str = "deflate",
+                 threads: int = 1, colorinterp=None):
+        import rasterio
+        from rasterio.errors import RasterioError
+
+        if tile % 16:
+            raise InvalidInputError(f"tile size must be a multiple of 16; got {tile}")
+        self.policy = policy
+        self.path = str(path)
+        prof = _gtiff_profile(width, height, count, dtype, transform, crs,
+                              policy.nodata if policy.kind == "nodata" else None,
+                              tile=tile, compress=compress, threads=threads)
+        if policy.kind == "alpha" and count == 4 and dtype == "uint8":
+            prof["photometric"] = "RGB"
+        try:
+            with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True):
+                self._ds = rasterio.open(self.path, "w", **prof)
+            if colorinterp is not None and len(colorinterp) == count:
+                self._ds.colorinterp = list(colorinterp)
+        except (RasterioError, OSError) as err:
+            raise RasterIOError(f"cannot create {self.path!r}: {err}") from err
+
+    def write(self, data: NDArray, col_off: int, row_off: int, valid: NDArray[np.bool_] | None = None) -> None:
+        """Write a tile ``(h, w, C)`` at (col_off, row_off); ``valid`` (h, w) for masks.
+
+        With a nodata or alpha policy the caller has already filled invalid
+        pixels; with an internal mask ``valid`` becomes the mask (None = all valid).
+        """
+        from rasterio.errors import RasterioError
+        from rasterio.windows import Window
+
+        h, w = data.shape[:2]
+        win = Window(col_off, row_off, w, h)
+        try:
+            self._ds.write(np.moveaxis(data, -1, 0), window=win)
+            if self.policy.kind == "mask":
+                m = np.full((h, w), 255, np.uint8) if valid is None else valid.astype(np.uint8) * 255
+                self._ds.write_mask(m, window=win)
+        except RasterioError as err:
+            raise RasterIOError(f"cannot write window {win} of {self.path!r}: {err}") from err
+
+    def close(self) -> None:
+        from rasterio.errors import RasterioError
+
+        try:
+            self._ds.close()
+        except RasterioError as err:
+            raise RasterIOError(f"cannot finish {self.path!r}: {err}") from err
+
+    def __enter__(self) -> "TiledWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def write_raster(path: str | Path, data: NDArray, transform, crs: str | None, *,
+                 nodata: float | None = None, valid: NDArray[np.bool_] | None = None,
+                 overwrite: bool = False, compress: str = "deflate", tile: int = 256) -> Path:
+    """Write an in-memory ``(H, W)`` or ``(H, W, C)`` array as a tiled GeoTIFF, atomically.
+
+    Parameters
+    ----------
+    data : (H, W) or (H, W, C) array
+    transform : affine.Affine
+    crs : str or None
+    nodata : float, optional
+        Stored nodata value; with ``valid`` given, invalid pixels are set to it.
+    valid : (H, W) bool, optional
+        Without ``nodata``, stored as an internal mask.
+    overwrite : bool
+        Replace an existing file.
+    """
+    from .fileutil import atomic_output
+
+    a = np.asarray(data)
+    if a.ndim == 2:
+        a = a[:, :, None]
+    if a.ndim != 3:
+        raise InvalidInputError(f"`data` must be (H, W) or (H, W, C); got shape {np.shape(data)}")
+    if valid is not None and valid.shape != a.shape[:2]:
+        raise InvalidInputError(f"`valid` must have shape {a.shape[:2]}; got {valid.shape}")
+    policy = MaskPolicy("nodata", float(nodata)) if nodata is not None else \
+        (MaskPolicy("mask") if valid is not None else MaskPolicy("none"))
+    if nodata is not None and valid is not None:
+        a = a.copy()
+        a[~valid] = np.asarray(nodata).astype(a.dtype)
+    with atomic_output(path, overwrite=overwrite) as tmp:
+        with TiledWriter(tmp, a.shape[1], a.shape[0], a.shape[2], a.dtype.name, transform, crs, policy,
+                         tile=tile, compress=compress) as w:
+            w.write(a, 0, 0, valid)
+    return Path(path)
+
+
+def cog_driver_available() -> bool:
+    """True when GDAL's COG driver is registered (GDAL >= 3.1)."""
+    import rasterio
+
+    with rasterio.Env() as env:
+        return "COG" in env.drivers()
+
+
+def translate_to_cog(src: str | Path, dst: str | Path, *, compress: str = "deflate", threads: int = 1,
+                     tile: int = 512, resampling: str = "average") -> None:
+    """Copy a GeoTIFF into a Cloud Optimized GeoTIFF (tiled, overviews, COG IFD layout).
+
+    Uses GDAL's COG driver when available; otherwise builds overviews on a
+    copy and writes it with ``COPY_SRC_OVERVIEWS=YES``. ``dst`` is written in
+    place (wrap in :func:`rectify.fileutil.atomic_output`).
+    """
+    import rasterio
+    import rasterio.shutil
+    from rasterio.errors import RasterioError
+
+    try:
+        if cog_driver_available():
+            opts = {"COMPRESS": compress.upper(), "BLOCKSIZE": str(tile), "NUM_THREADS": str(max(1, threads)),
+                    "OVERVIEWS": "AUTO", "OVERVIEW_RESAMPLING": resampling.upper(), "BIGTIFF": "IF_SAFER"}
+            if compress.lower() in ("deflate", "lzw", "zstd"):
+                with rasterio.open(src) as ds:
+                    if np.dtype(ds.dtypes[0]).kind in "ui":
+                        opts["PREDICTOR"] = "YES"
+            rasterio.shutil.copy(str(src), str(dst), driver="COG", **opts)
+            return
+        from rasterio.enums import Resampling
+
+        with rasterio.open(src, "r+") as ds:
+            levels, n = [], 2
+            while max(ds.width, ds.height) / n >= tile:
+                levels.append(n)
+                n *= 2
+            if levels:
+                ds.build_overviews(levels, Resampling[resampling])
+        rasterio.shutil.copy(str(src), str(dst), driver="GTiff", COPY_SRC_OVERVIEWS="YES", TILED="YES",
+                             BLOCKXSIZE=str(tile), BLOCKYSIZE=str(tile), COMPRESS=compress.upper(),
+                             BIGTIFF="IF_SAFER")
+    except (RasterioError, OSError) as err:
+        raise RasterIOError(f"cannot write COG {str(dst)!r}: {err}") from err
+
+
+# ---------------------------------------------------------------- TIFF structure (COG checks)
+_TAG_TILE_OFFSETS, _TAG_STRIP_OFFSETS, _TAG_SUBFILE = 324, 273, 254
+_TAG_TILE_WIDTH, _TAG_IMAGE_WIDTH, _TAG_IMAGE_LENGTH = 322, 256, 257
+
+
+@dataclass(frozen=True)
+class TiffIfd:
+    """One image file directory of a TIFF: where it sits and what it describes."""
+
+    offset: int
+    width: int
+    height: int
+    tiled: bool
+    subfile_type: int
+    data_offsets: tuple[int, ...]
+
+
+def tiff_ifds(path: str | Path) -> list[TiffIfd]:
+    """Parse the IFD chain of a (Big)TIFF: offsets, sizes, tiling and data offsets.
+
+    Raises
+    ------
+    RasterIOError
+        If the file is not a TIFF.
+    """
+    import struct
+
+    p = Path(path)
+    with open(p, "rb") as f:
+        head = f.read(16)
+        if head[:2] not in (b"II", b"MM"):
+            raise RasterIOError(f"{str(p)!r} is not a TIFF file")
+        e = "<" if head[:2] == b"II" else ">"
+        magic = struct.unpack(e + "H", head[2:4])[0]
+        big = magic == 43
+        if magic not in (42, 43):
+            raise RasterIOError(f"{str(p)!r} has a bad TIFF magic number {magic}")
+        off = struct.unpack(e + ("Q" if big else "I"), head[8:16] if big else head[4:8])[0]
+        types = {1: 1, 2: 1, 3: 2, 4: 4, 5: 8, 6: 1, 7: 1, 8: 2, 9: 4, 10: 8, 11: 4, 12: 8, 16: 8, 17: 8, 18: 8}
+        fmt = {1: "B", 3: "H", 4: "I", 16: "Q", 6: "b", 8: "h", 9: "i", 17: "q", 18: "Q"}
+        out: list[TiffIfd] = []
+        seen = set()
+        while off and off not in seen:
+            seen.add(off)
+            f.seek(off)
+            n = struct.unpack(e + ("Q" if big else "H"), f.read(8 if big else 2))[0]
+            esz = 20 if big else 12
+            raw = f.read(n * esz)
+            tags: dict[int, tuple[int, ...]] = {}
+            for i in range(n):
+                ent = raw[i * esz:(i + 1) * esz]
+                tag, typ = struct.unpack(e + "HH", ent[:4])
+                cnt = struct.unpack(e + ("Q" if big else "I"), ent[4:12] if big else ent[4:8])[0]
+                val = ent[12:20] if big else ent[8:12]
+                if typ not in fmt or tag not in (_TAG_TILE_OFFSETS, _TAG_STRIP_OFFSETS, _TAG_SUBFILE,
+                                                 _TAG_TILE_WIDTH, _TAG_IMAGE_WIDTH, _TAG_IMAGE_LENGTH):
+                    continue
+                size = types[typ] * cnt
+                if size > len(val):
+                    pos = f.tell()
+                    f.seek(struct.unpack(e + ("Q" if big else "I"), val)[0])
+                    data = f.read(size)
+                    f.seek(pos)
+                else:
+                    data = val[:size]
+                tags[tag] = struct.unpack(e + fmt[typ] * cnt, data)
+            nxt = f.read(8 if big else 4)
+            tiled = _TAG_TILE_WIDTH in tags
+            out.append(TiffIfd(off, tags.get(_TAG_IMAGE_WIDTH, (0,))[0], tags.get(_TAG_IMAGE_LENGTH, (0,))[0],
+                               tiled, tags.get(_TAG_SUBFILE, (0,))[0],
+                               tags.get(_TAG_TILE_OFFSETS if tiled else _TAG_STRIP_OFFSETS, ())))
+            off = struct.unpack(e + ("Q" if big else "I"), nxt)[0] if len(nxt) == (8 if big else 4) else 0
+    return out
+
+
+def cog_problems(path: str | Path) -> list[str]:
+    """Check the Cloud Optimized GeoTIFF layout, as GDAL's ``validate_cloud_optimized_geotiff.py``.
+
+    Checks: the main image is tiled; overviews exist when the image is larger
+    than a tile (512 px); every overview and mask is tiled; the overviews come
+    in decreasing size; all IFDs precede the image data; the full-resolution
+    image's data come after the overviews' data (smallest overview first).
+
+    Returns
+    -------
+    list of str
+        Problems found (empty for a valid COG).
+    """
+    ifds = tiff_ifds(path)
+    errs: list[str] = []
+    if not ifds:
+        return ["no IFD"]
+    main = ifds[0]
+    if not main.tiled:
+        errs.append("the main image is not tiled")
+    images = [d for d in ifds if not d.subfile_type & 4]  # bit 2: transparency mask
+    ovr = images[1:]
+    if max(main.width, main.height) > 512 and not ovr:
+        errs.append(f"no overviews for a {main.width} x {main.height} image")
+    for i, d in enumerate(ifds[1:], 1):
+        if not d.tiled:
+            errs.append(f"IFD {i} ({d.width} x {d.height}) is not tiled")
+    for a, b in zip(images, images[1:]):
+        if not (b.width < a.width and b.height <= a.height):
+            errs.append(f"overviews are not in decreasing size: {a.width} then {b.width}")
+    first_data = min((min(o) for d in ifds for o in [[x for x in d.data_offsets if x > 0]] if o), default=None)
+    last_ifd = max(d.offset for d in ifds)
+    if first_data is not None and last_ifd > first_data:
+        errs.append(f"an IFD (at {last_ifd}) comes after image data (first at {first_data})")
+    main_data = [x for x in main.data_offsets if x > 0]
+    for d in ovr:
+        od = [x for x in d.data_offsets if x > 0]
+        if od and main_data and min(main_data) < max(od):
+            errs.append(f"full-resolution data (from {min(main_data)}) precede the data of the "
+                        f"{d.width} x {d.height} overview (up to {max(od)})")
+            break
+    for a, b in zip(ovr, ovr[1:]):
+        da, db = [x for x in a.data_offsets if x > 0], [x for x in b.data_offsets if x > 0]
+        if da and db and min(da) < max(db):
+            errs.append(f"overview {a.width} x {a.height} data precede those of the smaller {b.width} overview")
+    return errs
+
+
+def read_overview_average(path: str | Path, max_size: int, *, bands: list[int] | None = None,
+                          max_source_px: int = 16_000_000) -> tuple[NDArray[np.float32], NDArray[np.bool_], float]:
+    """Area-averaged overview of a whole raster, streamed by strips (bounded memory).
+
+    Like :func:`read_overview` but with average resampling (no aliasing, so it
+    suits feature detection) and reading at most about ``max_source_px``
+    source pixels at a time, whatever the raster size.
+
+    Returns
+    -------
+    data : (h, w, C) float32
+    valid : (h, w) bool
+        True where at least half of the averaged source pixels hold data.
+    scale : float
+        Mean full-resolution pixels per overview pixel; the exact per-axis
+        scales are ``width / w`` and ``height / h``.
+    """
+    from rasterio.enums import Resampling
+    from rasterio.errors import RasterioError
+    from rasterio.windows import Window
+
+    if max_size < 16:
+        raise InvalidInputError(f"max_size must be >= 16; got {max_size}")
+    with open_raster(path) as ds:
+        b = _check_bands(bands, ds.count, path)
+        scale = max(1.0, max(ds.width, ds.height) / max_size)
+        h = max(1, int(round(ds.height / scale)))
+        w = max(1, int(round(ds.width / scale)))
+        sy = ds.height / h
+        data = np.empty((h, w, len(b)), dtype=np.float32)
+        valid = np.empty((h, w), dtype=bool)
+        strip = max(1, int(max_source_px / max(ds.width * sy, 1)))
+        try:
+            for i0 in range(0, h, strip):
+                i1 = min(h, i0 + strip)
+                r0 = int(round(i0 * sy))
+                r1 = ds.height if i1 == h else int(round(i1 * sy))
+                win = Window(0, r0, ds.width, r1 - r0)
+                part = ds.read(b, window=win, out_shape=(len(b), i1 - i0, w), resampling=Resampling.average,
+                               out_dtype=np.float32)
+                m = ds.dataset_mask(window=win, out_shape=(i1 - i0, w), resampling=Resampling.average)
+                data[i0:i1] = np.moveaxis(part, 0, -1)
+                valid[i0:i1] = m >= 128
+        except RasterioError as err:
+            raise RasterIOError(f"cannot read overview of {str(path)!r}: {err}") from err
+    return data, valid, 0.5 * (ds.width / w + ds.height / h)

@@ -1,0 +1,764 @@
+"""The resampling engine: tile-by-tile inverse mapping into a GeoTIFF.
+
+For every output tile (512 x 512 by default) the engine computes where its
+pixels come from in the source, reads only the source window they need
+(through :mod:`rectify.io`), resamples it with OpenCV and writes the tile.
+Memory is bounded by the tile and window sizes, not by the image: rasters
+wider than OpenCV's 32767-pixel limit work because every OpenCV call sees
+only a tile and its window. Tiles are computed on a thread pool (OpenCV and
+GDAL release the GIL) and written by the calling thread.
+
+Mappings (output pixel -> source pixel):
+
+- a model with a ``(3, 3)`` ``matrix`` (affine, homography) is composed
+  analytically with the output grid and applied by ``cv2.warpAffine`` /
+  ``cv2.warpPerspective`` on the window -- no coordinate arrays at all;
+- any other callable (polynomials, the cotangent method, a change of CRS
+  through pyproj) is evaluated exactly on a sparse grid (every
+  ``WarpOptions.map_step_px`` output pixels) and interpolated bilinearly,
+  then applied by ``cv2.remap`` -- like GDAL's approximate transformer.
+
+Validity: an output pixel is valid when the source pixel nearest to its
+source position is valid (so the footprint reaches the outer pixel edges, as
+GDAL's); near invalid source pixels, bilinear weights are renormalised over
+the valid neighbours. Invalid pixels receive the nodata value, alpha 0 or an
+internal mask, following the source (:class:`rectify.io.MaskPolicy`).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import logging
+import math
+import os
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .errors import CRSError, EstimationError, InvalidInputError, RasterIOError
+from .georef import Grid, boundary_pixels, output_grid, world_from_pixel, world_from_pixel_matrix
+
+__all__ = ["RESAMPLING", "WarpOptions", "WarpResult", "warp_raster", "warp_array", "GeoRectification",
+           "georectify", "rectify_with_transform", "check_gcps_inside"]
+
+logger = logging.getLogger(__name__)
+
+#: resampling name -> (OpenCV flag, kernel radius in source pixels)
+RESAMPLING: dict[str, tuple[int, int]] = {}
+
+
+def _resampling_table() -> dict[str, tuple[int, int]]:
+    import cv2
+
+    if not RESAMPLING:
+        RESAMPLING.update({"nearest": (cv2.INTER_NEAREST, 1), "bilinear": (cv2.INTER_LINEAR, 1),
+                           "cubic": (cv2.INTER_CUBIC, 2), "lanczos": (cv2.INTER_LANCZOS4, 4)})
+    return RESAMPLING
+
+
+RESAMPLING_NAMES = ("nearest", "bilinear", "cubic", "lanczos")
+_CV_LIMIT = 32767  # OpenCV's SHRT_MAX limit on remap/warp sizes
+
+
+@dataclass(frozen=True)
+class WarpOptions:
+    """Options of the resampling engine.
+
+    Attributes
+    ----------
+    resampling : str
+        ``nearest``, ``bilinear``, ``cubic`` or ``lanczos``.
+    tile_px : int
+        Output tile (and GeoTIFF block) size, a multiple of 16.
+    threads : int or None
+        Worker threads; None = all cores (``os.cpu_count()``).
+    compress : str
+        GeoTIFF compression: ``deflate``, ``lzw``, ``zstd`` or ``none``.
+    cog : bool
+        Write a Cloud Optimized GeoTIFF (overviews, COG layout).
+    nodata : float or None
+        Force this nodata value for the output (default: follow the source:
+        its nodata, alpha band or mask; NaN for float rasters without any;
+        an internal mask for integer rasters without any).
+    map_step_px : int
+        Spacing of the exactly-evaluated points for non-matrix mappings.
+    max_window_px : int
+        Largest source window side read for one tile; bigger needs split the tile.
+    """
+
+    resampling: str = "bilinear"
+    tile_px: int = 512
+    threads: int | None = None
+    compress: str = "deflate"
+    cog: bool = False
+    nodata: float | None = None
+    map_step_px: int = 16
+    max_window_px: int = 8192
+
+    def __post_init__(self) -> None:
+        if self.resampling not in RESAMPLING_NAMES:
+            raise InvalidInputError(f"unknown resampling {self.resampling!r}; expected one of {list(RESAMPLING_NAMES)}")
+        if self.tile_px < 16 or self.tile_px % 16 or self.tile_px > 4096:
+            raise InvalidInputError(f"tile_px must be a multiple of 16 in 16..4096; got {self.tile_px}")
+        if self.threads is not None and self.threads < 1:
+            raise InvalidInputError(f"threads must be >= 1; got {self.threads}")
+        if self.compress.lower() not in ("deflate", "lzw", "zstd", "none", "packbits", "lzma"):
+            raise InvalidInputError(f"unknown compression {self.compress!r}")
+        if self.map_step_px < 1 or self.max_window_px < 64 or self.max_window_px > _CV_LIMIT:
+            raise InvalidInputError(f"bad map_step_px {self.map_step_px} or max_window_px {self.max_window_px}")
+
+    @property
+    def n_threads(self) -> int:
+        return self.threads or (os.cpu_count() or 1)
+
+
+@dataclass(frozen=True)
+class WarpResult:
+    """What :func:`warp_raster` wrote.
+
+    Attributes
+    ----------
+    path : Path
+    grid : Grid
+    n_tiles : int
+    n_empty_tiles : int
+        Tiles entirely outside the footprint.
+    seconds : float
+    policy : str
+        How invalid pixels are stored (``nodata``, ``mask``, ``alpha``).
+    nodata : float or None
+    """
+
+    path: Path
+    grid: Grid
+    n_tiles: int
+    n_empty_tiles: int
+    seconds: float
+    policy: str
+    nodata: float | None
+
+
+# --------------------------------------------------------------------------- mappings
+class _Mapping:
+    """Output pixel (col, row) -> source pixel, per tile."""
+
+    def __init__(self, grid: Grid, source_from_world: Callable, world_crs: str | None, step: int):
+        self.step = step
+        m = getattr(source_from_world, "matrix", None)
+        same = world_crs is None or grid.crs is None or _same_crs(world_crs, grid.crs)
+        self.matrix = None
+        if m is not None and same:
+            mm = np.asarray(m, dtype=np.float64)
+            if mm.shape == (3, 3):
+                self.matrix = mm @ world_from_pixel_matrix(grid.transform)
+                self.matrix = self.matrix / self.matrix[2, 2] if abs(self.matrix[2, 2]) > 1e-300 else self.matrix
+        self.affine = self.matrix is not None and np.allclose(self.matrix[2, :2], 0.0, atol=1e-15)
+        self._grid = grid
+        self._f = source_from_world
+        self._crs = (grid.crs, world_crs) if not same else None
+
+    def points(self, pix: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Exact source positions (N, 2) of output pixels (N, 2); NaN where undefined."""
+        if self.matrix is not None:
+            h = pix @ self.matrix[:, :2].T + self.matrix[:, 2]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                out = h[:, :2] / h[:, 2:3]
+            out[~(h[:, 2] > 0)] = np.nan  # behind the horizon
+            return out
+        world = world_from_pixel(self._grid.transform, pix)
+        if self._crs is not None:
+            from .crs import get_transformer
+            t = get_transformer(self._crs[0], self._crs[1])
+            x, y = t.transform(world[:, 0], world[:, 1])
+            world = np.column_stack([x, y])
+        ok = np.isfinite(world).all(axis=1)
+        out = np.full_like(world, np.nan)
+        if ok.any():
+            try:
+                out[ok] = np.asarray(self._f(world[ok]), dtype=np.float64)
+            except (EstimationError, InvalidInputError, FloatingPointError, ZeroDivisionError) as err:
+                raise InvalidInputError(f"the transform cannot map output pixels back to the source: {err}") \
+                    from err
+        return out
+
+    def dense(self, c0: int, r0: int, w: int, h: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Source x, y maps (h, w) float32 for a tile, by sparse exact points + bilinear interpolation."""
+        s = self.step
+        xs = np.unique(np.r_[np.arange(0, w, s), w - 1]).astype(np.float64)
+        ys = np.unique(np.r_[np.arange(0, h, s), h - 1]).astype(np.float64)
+        gx, gy = np.meshgrid(xs + c0, ys + r0)
+        src = self.points(np.column_stack([gx.ravel(), gy.ravel()])).reshape(len(ys), len(xs), 2)
+        # separable linear interpolation onto every pixel
+        out = []
+        for k in range(2):
+            v = src[:, :, k]
+            cols = np.arange(w, dtype=np.float64)
+            rows = np.arange(h, dtype=np.float64)
+            ix = np.clip(np.searchsorted(xs, cols, side="right") - 1, 0, max(len(xs) - 2, 0))
+            iy = np.clip(np.searchsorted(ys, rows, side="right") - 1, 0, max(len(ys) - 2, 0))
+            if len(xs) > 1:
+                fx = (cols - xs[ix]) / (xs[ix + 1] - xs[ix])
+                vx = v[:, ix] * (1 - fx) + v[:, np.minimum(ix + 1, len(xs) - 1)] * fx
+            else:
+                vx = np.repeat(v[:, :1], w, axis=1)
+            if len(ys) > 1:
+                fy = (rows - ys[iy]) / (ys[iy + 1] - ys[iy])
+                vv = vx[iy, :] * (1 - fy)[:, None] + vx[np.minimum(iy + 1, len(ys) - 1), :] * fy[:, None]
+            else:
+                vv = np.repeat(vx[:1, :], h, axis=0)
+            out.append(vv.astype(np.float32))
+        return out[0], out[1]
+
+
+def _same_crs(a, b) -> bool:
+    from .crs import same_crs
+    return same_crs(a, b)
+
+
+# --------------------------------------------------------------------------- tile kernel
+def _fill_value(policy_kind: str, nodata: float | None, dtype: np.dtype) -> Any:
+    if policy_kind == "nodata" and nodata is not None:
+        return np.asarray(nodata).astype(dtype)[()]
+    return np.zeros((), dtype=dtype)[()]
+
+
+def _cv_dtype(a: NDArray) -> NDArray:
+    """OpenCV warps uint8, uint16, int16, float32, float64; others go through float64."""
+    if a.dtype in (np.uint8, np.uint16, np.int16, np.float32, np.float64):
+        return a
+    return a.astype(np.float64)
+
+
+def _apply(img: NDArray, *, M: NDArray | None, affine: bool, maps, size: tuple[int, int], interp: int,
+           border: int) -> NDArray:
+    """Warp ``img`` (h, w[, C<=4]) to ``size`` (w, h) with a 3x3 inverse map M or maps."""
+    import cv2
+
+    if M is not None:
+        flags = interp | cv2.WARP_INVERSE_MAP
+        if affine:
+            return cv2.warpAffine(img, M[:2], size, flags=flags, borderMode=border, borderValue=0)
+        return cv2.warpPerspective(img, M, size, flags=flags, borderMode=border, borderValue=0)
+    return cv2.remap(img, maps[0], maps[1], interp, borderMode=border, borderValue=0)
+
+
+def _warp_channels(data: NDArray, **kw) -> NDArray:
+    """Warp (h, w, C) in chunks of at most 4 channels (OpenCV's limit for some kernels)."""
+    c = data.shape[2]
+    if c <= 4:
+        out = _apply(data if c > 1 else data[:, :, 0], **kw)
+        return out.reshape(out.shape[0], out.shape[1], c)
+    parts = [_apply(np.ascontiguousarray(data[:, :, i:i + 4]), **kw) for i in range(0, c, 4)]
+    parts = [p[:, :, None] if p.ndim == 2 else p for p in parts]
+    return np.concatenate(parts, axis=2)
+
+
+class _Engine:
+    def __init__(self, src: str, mapping: _Mapping, grid: Grid, opts: WarpOptions, out_dtype: np.dtype,
+                 count: int, fill: Any):
+        from .io import raster_info
+        info = raster_info(src)
+        self.src, self.mapping, self.grid, self.opts = src, mapping, grid, opts
+        self.W, self.H = info.width, info.height
+        self.interp, self.radius = _resampling_table()[opts.resampling]
+        self.dtype, self.count, self.fill = out_dtype, count, fill
+        self._local = threading.local()
+        self._readers: list = []
+        self._lock = threading.Lock()
+
+    def reader(self):
+        r = getattr(self._local, "reader", None)
+        if r is None:
+            from .io import WindowReader
+            r = WindowReader(self.src)
+            self._local.reader = r
+            with self._lock:
+                self._readers.append(r)
+        return r
+
+    def close(self) -> None:
+        for r in self._readers:
+            r.close()
+
+    # ----------------------------------------------------------------- one tile
+    def tile(self, c0: int, r0: int, w: int, h: int) -> tuple[NDArray, NDArray[np.bool_] | None, bool]:
+        """Compute one output tile -> (data (h, w, C), valid or None, empty)."""
+        m = self.mapping
+        if m.matrix is not None:
+            corners = np.array([[c0 - 0.5, r0 - 0.5], [c0 + w - 0.5, r0 - 0.5], [c0 - 0.5, r0 + h - 0.5],
+                                [c0 + w - 0.5, r0 + h - 0.5]])
+            sp = m.points(corners)
+            maps = None
+            if not np.isfinite(sp).all():  # tile crosses the horizon: fall back to exact maps
+                maps = self._exact_maps(c0, r0, w, h)
+                sp = np.column_stack([maps[0].ravel(), maps[1].ravel()])
+        else:
+            maps = m.dense(c0, r0, w, h)
+            sp = np.column_stack([maps[0].ravel(), maps[1].ravel()])
+        ok = np.isfinite(sp).all(axis=1)
+        ok &= (sp[:, 0] >= -0.5 - self.radius) & (sp[:, 0] <= self.W - 0.5 + self.radius) & \
+            (sp[:, 1] >= -0.5 - self.radius) & (sp[:, 1] <= self.H - 0.5 + self.radius)
+        if maps is not None and not ok.any():
+            return self._empty(w, h), np.zeros((h, w), bool), True
+        sel = sp[ok] if maps is not None else sp
+        lo = np.floor(np.nanmin(sel, axis=0)).astype(np.int64) - self.radius
+        hi = np.ceil(np.nanmax(sel, axis=0)).astype(np.int64) + self.radius
+        x0, y0 = max(int(lo[0]), 0), max(int(lo[1]), 0)
+        x1, y1 = min(int(hi[0]) + 1, self.W), min(int(hi[1]) + 1, self.H)
+        if x1 <= x0 or y1 <= y0:
+            return self._empty(w, h), np.zeros((h, w), bool), True
+        if (x1 - x0 > self.opts.max_window_px or y1 - y0 > self.opts.max_window_px) and max(w, h) > 16:
+            return self._split(c0, r0, w, h)
+        data, valid = self.reader().read(x0, y0, x1 - x0, y1 - y0)
+        return self._resample(data, valid, x0, y0, c0, r0, w, h, maps)
+
+    def _exact_maps(self, c0, r0, w, h):
+        gx, gy = np.meshgrid(np.arange(c0, c0 + w, dtype=np.float64), np.arange(r0, r0 + h, dtype=np.float64))
+        p = self.mapping.points(np.column_stack([gx.ravel(), gy.ravel()]))
+        return p[:, 0].reshape(h, w).astype(np.float32), p[:, 1].reshape(h, w).astype(np.float32)
+
+    def _empty(self, w: int, h: int) -> NDArray:
+        return np.full((h, w, self.count), self.fill, dtype=self.dtype)
+
+    def _split(self, c0, r0, w, h):
+        out = self._empty(w, h)
+        valid = np.zeros((h, w), bool)
+        hw, hh = max(w // 2, 1), max(h // 2, 1)
+        for cc, ww in ((c0, hw), (c0 + hw, w - hw)):
+            for rr, hgt in ((r0, hh), (r0 + hh, h - hh)):
+                if ww <= 0 or hgt <= 0:
+                    continue
+                d, v, empty = self.tile(cc, rr, ww, hgt)
+                out[rr - r0:rr - r0 + hgt, cc - c0:cc - c0 + ww] = d
+                valid[rr - r0:rr - r0 + hgt, cc - c0:cc - c0 + ww] = True if v is None else v
+        return out, (None if valid.all() else valid), not valid.any()
+
+    def _resample(self, data, valid, x0, y0, c0, r0, w, h, maps):
+        import cv2
+
+        m = self.mapping
+        if maps is None:
+            # shift: output tile pixel (i, j) -> window pixel
+            T_out = np.array([[1.0, 0, c0], [0, 1.0, r0], [0, 0, 1.0]])
+            T_src = np.array([[1.0, 0, -x0], [0, 1.0, -y0], [0, 0, 1.0]])
+            M = T_src @ m.matrix @ T_out
+            kw = dict(M=M, affine=m.affine, maps=None, size=(w, h))
+        else:
+            kw = dict(M=None, affine=False, maps=(maps[0] - np.float32(x0), maps[1] - np.float32(y0)), size=(w, h))
+        src = _cv_dtype(data)
+        out = _warp_channels(src, interp=self.interp, border=cv2.BORDER_REPLICATE, **kw)
+        # footprint: nearest source pixel inside the window and valid
+        win_h, win_w = data.shape[:2]
+        full_inside = self._tile_inside(kw, win_w, win_h, x0, y0)
+        if valid is None and full_inside:
+            out_valid = None
+        else:
+            vm = np.full((win_h, win_w), 255, np.uint8) if valid is None else valid.astype(np.uint8) * 255
+            near = _apply(vm, interp=cv2.INTER_NEAREST, border=cv2.BORDER_CONSTANT, **kw)
+            out_valid = near > 0
+            if valid is not None and self.opts.resampling != "nearest":
+                # renormalise the kernel over valid neighbours near invalid source pixels
+                lin = _apply(vm, interp=cv2.INTER_LINEAR, border=cv2.BORDER_CONSTANT, **kw)
+                edge = out_valid & (lin < 255)
+                if edge.any():
+                    src0 = src.copy()
+                    src0[~valid] = 0
+                    part = _warp_channels(src0, interp=self.interp, border=cv2.BORDER_CONSTANT, **kw)
+                    wgt = lin[edge].astype(np.float64)[:, None] / 255.0
+                    vals = part[edge].astype(np.float64) / np.maximum(wgt, 1e-6)
+                    out = out.copy() if not out.flags.writeable else out
+                    out[edge] = _cast(vals, out.dtype)
+            if not out_valid.any():
+                return self._empty(w, h), out_valid, True
+        if out.dtype != self.dtype:
+            out = _cast(out, self.dtype)
+        if out_valid is not None:
+            out[~out_valid] = self.fill
+            if out_valid.all():
+                out_valid = None
+        return out, out_valid, False
+
+    def _tile_inside(self, kw, win_w, win_h, x0, y0) -> bool:
+        """True when every output pixel of the tile maps inside the source raster (not just the window)."""
+        h_, w_ = kw["size"][1], kw["size"][0]
+        if kw["M"] is not None:
+            c = np.array([[-0.5, -0.5, 1], [w_ - 0.5, -0.5, 1], [-0.5, h_ - 0.5, 1], [w_ - 0.5, h_ - 0.5, 1]])
+            p = c @ kw["M"].T
+            p = p[:, :2] / p[:, 2:3]
+        else:
+            p = np.column_stack([kw["maps"][0].ravel(), kw["maps"][1].ravel()]).astype(np.float64)
+            p = np.array([p.min(axis=0), p.max(axis=0)])
+        gx, gy = p[:, 0] + x0, p[:, 1] + y0
+        return bool(np.isfinite(p).all() and gx.min() >= 0 and gy.min() >= 0 and gx.max() <= self.W - 1
+                    and gy.max() <= self.H - 1)
+
+
+def _cast(a: NDArray, dtype: np.dtype) -> NDArray:
+    dt = np.dtype(dtype)
+    if dt.kind in "ui":
+        info = np.iinfo(dt)
+        return np.clip(np.rint(a), info.min, info.max).astype(dt)
+    return a.astype(dt)
+
+
+# --------------------------------------------------------------------------- public API
+def _output_policy(src: str, opts: WarpOptions):
+    from .io import MaskPolicy, mask_policy, raster_info
+
+    info = raster_info(src)
+    dtype = np.dtype(info.dtype)
+    if opts.nodata is not None:
+        return MaskPolicy("nodata", float(opts.nodata)), dtype
+    pol = mask_policy(src)
+    if pol.kind != "none":
+        if pol.kind == "nodata" and pol.nodata is not None and dtype.kind in "ui":
+            ii = np.iinfo(dtype)
+            if not (ii.min <= pol.nodata <= ii.max):
+                return MaskPolicy("mask"), dtype
+        return pol, dtype
+    if dtype.kind == "f":
+        return MaskPolicy("nodata", float("nan")), dtype
+    return MaskPolicy("mask"), dtype
+
+
+def warp_raster(src: str | Path, dst: str | Path, source_from_world: Callable[[NDArray], NDArray],
+                grid: Grid, *, world_crs: str | None = None, options: WarpOptions | None = None,
+                overwrite: bool = False, progress: Callable[[int, int], None] | None = None) -> WarpResult:
+    """Resample a raster onto ``grid`` through an inverse mapping, tile by tile.
+
+    Parameters
+    ----------
+    src : path
+        Any raster rasterio reads (any band count; uint8, uint16, int16,
+        float32, ...). Never modified.
+    dst : path
+        Output GeoTIFF (tiled, compressed; COG with ``options.cog``). Written to
+        a temporary file renamed at the end: no partial file on error.
+    source_from_world : callable (N, 2) -> (N, 2)
+        Output world coordinates (x, y in ``world_crs``, or in the grid's CRS)
+        -> source pixels (col, row; centres at integers). A model with a
+        ``(3, 3)`` ``matrix`` attribute (affine, homography) is used
+        analytically.
+    grid : Grid
+        Output grid (size, geotransform, CRS).
+    world_crs : str, optional
+        CRS of the coordinates ``source_from_world`` expects, when it differs
+        from ``grid.crs`` (each output pixel then goes through pyproj).
+    options : WarpOptions
+    overwrite : bool
+        Replace an existing ``dst``.
+    progress : callable(done, total), optional
+        Called after each tile.
+
+    Returns
+    -------
+    WarpResult
+
+    Raises
+    ------
+    RasterIOError
+        Unreadable source, unwritable output.
+    InvalidInputError
+        Existing output without ``overwrite``, ``dst`` equal to ``src``, bad options.
+    """
+    from .fileutil import atomic_output, check_output
+    from .io import TiledWriter, open_raster, translate_to_cog
+
+    opts = options or WarpOptions()
+    t0 = time.perf_counter()
+    src = str(src)
+    if Path(dst).resolve() == Path(src).resolve():
+        raise InvalidInputError(f"output {str(dst)!r} is the input; the input is never modified")
+    check_output(dst, overwrite=overwrite)
+    with open_raster(src) as ds:
+        count, colorinterp = ds.count, list(ds.colorinterp)
+    policy, dtype = _output_policy(src, opts)
+    fill = _fill_value(policy.kind, policy.nodata, dtype)
+    mapping = _Mapping(grid, source_from_world, world_crs, opts.map_step_px)
+    engine = _Engine(src, mapping, grid, opts, dtype, count, fill)
+    tile = opts.tile_px
+    windows = [(c, r, min(tile, grid.width - c), min(tile, grid.height - r))
+               for r in range(0, grid.height, tile) for c in range(0, grid.width, tile)]
+    n_empty = 0
+    crs = grid.crs
+    try:
+        with atomic_output(dst, overwrite=overwrite) as tmp:
+            body = tmp.with_name(tmp.name + ".body.tif") if opts.cog else tmp
+            try:
+                with TiledWriter(body, grid.width, grid.height, count, dtype.name, grid.transform, crs, policy,
+                                 tile=tile, compress="none" if opts.cog else opts.compress,
+                                 threads=opts.n_threads, colorinterp=colorinterp) as writer:
+                    n_empty = _run_tiles(engine, writer, windows, opts.n_threads, progress)
+                if opts.cog:
+                    translate_to_cog(body, tmp, compress=opts.compress, threads=opts.n_threads, tile=tile)
+            finally:
+                if opts.cog and body.exists():
+                    body.unlink()
+    finally:
+        engine.close()
+    dt = time.perf_counter() - t0
+    logger.info("warped %s -> %s: %d x %d, %d tiles (%d empty) in %.2f s", src, dst, grid.width, grid.height,
+                len(windows), n_empty, dt)
+    return WarpResult(Path(dst), grid, len(windows), n_empty, dt, policy.kind, policy.nodata)
+
+
+def _run_tiles(engine: _Engine, writer, windows, threads: int, progress) -> int:
+    total, done, n_empty = len(windows), 0, 0
+    if progress:
+        progress(0, total)
+    max_inflight = 2 * threads + 1
+    with cf.ThreadPoolExecutor(max_workers=threads, thread_name_prefix="warp") as pool:
+        it = iter(windows)
+        pending: dict[cf.Future, tuple[int, int, int, int]] = {}
+        for win in it:
+            pending[pool.submit(engine.tile, *win)] = win
+            if len(pending) >= max_inflight:
+                break
+        try:
+            while pending:
+                finished, _ = cf.wait(pending, return_when=cf.FIRST_COMPLETED)
+                for fut in finished:
+                    c, r, w, h = pending.pop(fut)
+                    data, valid, empty = fut.result()
+                    n_empty += int(empty)
+                    writer.write(data, c, r, valid)
+                    done += 1
+                    if progress:
+                        progress(done, total)
+                    nxt = next(it, None)
+                    if nxt is not None:
+                        pending[pool.submit(engine.tile, *nxt)] = nxt
+        except BaseException:
+            for f in pending:
+                f.cancel()
+            raise
+    return n_empty
+
+
+def warp_array(image: ArrayLike, source_from_target: Callable[[NDArray], NDArray] | ArrayLike,
+               out_shape: tuple[int, int], *, resampling: str = "bilinear", fill: float = 0
+               ) -> NDArray:
+    """Warp an in-memory image (small; for demos and tests) by an inverse pixel mapping.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, C)
+    source_from_target : (3, 3) matrix or callable (N, 2) -> (N, 2)
+        Target pixel -> source pixel.
+    out_shape : (rows, cols)
+        At most 32767 each.
+
+    Returns
+    -------
+    (rows, cols[, C]) array of the image's dtype; ``fill`` outside the source.
+    """
+    import cv2
+
+    a = np.asarray(image)
+    if a.ndim not in (2, 3):
+        raise InvalidInputError(f"`image` must be (H, W) or (H, W, C); got {a.shape}")
+    h, w = int(out_shape[0]), int(out_shape[1])
+    if not (0 < h <= _CV_LIMIT and 0 < w <= _CV_LIMIT) or max(a.shape[:2]) > _CV_LIMIT:
+        raise InvalidInputError(f"warp_array handles images up to {_CV_LIMIT} px; use warp_raster")
+    interp = _resampling_table()[resampling][0] if resampling in RESAMPLING_NAMES else None
+    if interp is None:
+        raise InvalidInputError(f"unknown resampling {resampling!r}")
+    if callable(source_from_target) and not hasattr(source_from_target, "matrix"):
+        gx, gy = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+        p = np.asarray(source_from_target(np.column_stack([gx.ravel(), gy.ravel()])))
+        mx, my = p[:, 0].reshape(h, w).astype(np.float32), p[:, 1].reshape(h, w).astype(np.float32)
+        return cv2.remap(_cv_dtype(a), mx, my, interp, borderMode=cv2.BORDER_CONSTANT,
+                         borderValue=fill).astype(a.dtype)
+    M = np.asarray(getattr(source_from_target, "matrix", source_from_target), dtype=np.float64)
+    if M.shape != (3, 3):
+        raise InvalidInputError(f"matrix must be (3, 3); got {M.shape}")
+    return cv2.warpPerspective(_cv_dtype(a), M, (w, h), flags=interp | cv2.WARP_INVERSE_MAP,
+                               borderMode=cv2.BORDER_CONSTANT, borderValue=fill).astype(a.dtype)
+
+
+# --------------------------------------------------------------------------- GCP georectification
+@dataclass(frozen=True, eq=False)
+class GeoRectification:
+    """Result of :func:`georectify` / :func:`rectify_with_transform`.
+
+    Attributes
+    ----------
+    fit : rectify.projective.FitResult or None
+        The forward model (source pixels -> target) and its residual table.
+    warp : WarpResult
+    crs : str or None
+        Output CRS.
+    method : str
+    """
+
+    fit: Any
+    warp: WarpResult
+    crs: str | None
+    method: str
+
+
+def check_gcps_inside(pixel: NDArray[np.float64], ids, width: int, height: int) -> None:
+    """Raise InvalidInputError naming the first GCP outside the source image."""
+    out = (pixel[:, 0] < -0.5) | (pixel[:, 0] > width - 0.5) | (pixel[:, 1] < -0.5) | (pixel[:, 1] > height - 0.5)
+    if out.any():
+        i = int(np.flatnonzero(out)[0])
+        raise InvalidInputError(f"{int(out.sum())} GCP(s) outside the {width} x {height} image; first is "
+                                f"{ids[i]!r} at (col, row) = {pixel[i].tolist()}")
+
+
+class _Inverse:
+    """Callable wrapper exposing a model's inverse (and its matrix when it has one)."""
+
+    def __init__(self, model):
+        self._m = model
+        if hasattr(model, "matrix"):
+            self.matrix = np.asarray(model.matrix, dtype=np.float64)
+
+    def __call__(self, pts):
+        return self._m(pts)
+
+
+def georectify(src: str | Path, dst: str | Path, gcps, *, method: str = "homography",
+               gcp_crs: str | None = None, dst_crs: str | None = None, resolution: float | None = None,
+               options: WarpOptions | None = None, overwrite: bool = False,
+               progress: Callable[[int, int], None] | None = None) -> GeoRectification:
+    """Fit a transform to GCPs and warp the source into a georeferenced GeoTIFF.
+
+    Parameters
+    ----------
+    src, dst : path
+    gcps : rectify.tables.GcpTable
+        ``pixel`` = source (col, row), ``target`` = map coordinates in
+        ``gcp_crs`` (or the table's CRS), or target pixels without a CRS.
+    method : str
+        ``homography``, ``cotangent``, ``affine``, ``poly2`` or ``poly3``.
+    gcp_crs, dst_crs : str, optional
+        The GCP CRS (overrides the file's) and the output CRS (default: the GCP
+        CRS). When they differ the GCP coordinates are transformed with pyproj
+        and the model is fitted in the output CRS.
+    resolution : float, optional
+        Output pixel size (output CRS units); default as GDAL suggests.
+
+    Returns
+    -------
+    GeoRectification
+
+    Raises
+    ------
+    EstimationError
+        Too few or degenerate GCPs.
+    InvalidInputError
+        GCPs outside the image, unknown method, existing output.
+    CRSError
+        Unknown CRS, or an output CRS without a GCP CRS.
+    """
+    from .crs import crs_to_string, transform_xy
+    from .io import raster_info
+    from .projective import METHODS, FitResult, fit_gcps
+    from .residuals import ResidualTable
+    from .tables import GcpTable
+
+    if method not in METHODS:
+        raise InvalidInputError(f"unknown method {method!r}; expected one of {sorted(METHODS)}")
+    info = raster_info(src)
+    g_crs = gcp_crs or gcps.crs
+    g_crs = crs_to_string(g_crs) if g_crs else None
+    out_crs = crs_to_string(dst_crs) if dst_crs else g_crs
+    if out_crs is not None and g_crs is None:
+        raise CRSError("an output CRS needs the GCP CRS (a '# crs=' line in the GCP file or --gcp-crs)")
+    check_gcps_inside(gcps.pixel, gcps.ids, info.width, info.height)
+    table = gcps
+    if g_crs is not None and out_crs is not None and g_crs != out_crs:
+        tgt = transform_xy(g_crs, out_crs, gcps.target)
+        table = GcpTable(gcps.ids, gcps.pixel, tgt, gcps.z, gcps.check, out_crs)
+    elif g_crs is not None and table.crs != g_crs:
+        table = GcpTable(gcps.ids, gcps.pixel, gcps.target, gcps.z, gcps.check, g_crs)
+    # fit in a local frame (targets minus their rounded centroid): map coordinates of
+    # 1e5..1e7 m would otherwise dominate the conditioning of the normal equations
+    offset = np.round(table.target[~table.check].mean(axis=0)) if (~table.check).any() else np.zeros(2)
+    local = GcpTable(table.ids, table.pixel, table.target - offset, table.z, table.check, table.crs)
+    fit_local = fit_gcps(local, method)
+    if method in ("poly2", "poly3"):
+        m = fit_local.table.fit_mask
+        inverse_local = METHODS[method].from_points(local.target[m], local.pixel[m])
+    else:
+        inverse_local = fit_local.model.inverse
+    forward = _Shifted(fit_local.model, offset, after=True)
+    inverse = _Shifted(inverse_local, offset, after=False)
+    t = fit_local.table
+    table_out = ResidualTable(step=t.step, ids=t.ids, observed=t.observed + offset, adjusted=t.adjusted + offset,
+                              units="m" if out_crs is not None else "px", weights=t.weights, outlier=t.outlier,
+                              check=t.check, position_px=t.position_px, n_params=t.n_params,
+                              extra=dict(t.extra, fit_offset=offset.tolist()))
+    fit = FitResult(forward, table_out, method)
+    opts = options or WarpOptions()
+    grid = output_grid(forward, info.width, info.height, resolution=resolution, crs=out_crs,
+                       y_up=out_crs is not None)
+    res = warp_raster(src, dst, inverse, grid, options=opts, overwrite=overwrite, progress=progress)
+    return GeoRectification(fit, res, out_crs, method)
+
+
+class _Shifted:
+    """A model followed (``after``) or preceded by a translation of the target frame.
+
+    ``after=True``: p -> model(p) + offset (forward, source -> target).
+    ``after=False``: w -> model(w - offset) (inverse, target -> source).
+    Exposes ``matrix`` (3, 3) when the model has one, and ``model``/``offset``.
+    """
+
+    def __init__(self, model, offset: NDArray[np.float64], *, after: bool):
+        self.model, self.offset, self.after = model, np.asarray(offset, dtype=np.float64), after
+        m = getattr(model, "matrix", None)
+        if m is not None:
+            T = np.eye(3)
+            T[:2, 2] = self.offset if after else -self.offset
+            mm = T @ np.asarray(m) if after else np.asarray(m) @ T
+            self.matrix = mm / mm[2, 2] if abs(mm[2, 2]) > 1e-300 else mm
+
+    def __call__(self, pts):
+        p = np.asarray(pts, dtype=np.float64)
+        if self.after:
+            return np.asarray(self.model(p)) + self.offset
+        return np.asarray(self.model(p - self.offset))
+
+
+def rectify_with_transform(src: str | Path, dst: str | Path, model, *, model_crs: str | None = None,
+                           dst_crs: str | None = None, resolution: float | None = None,
+                           options: WarpOptions | None = None, overwrite: bool = False,
+                           progress: Callable[[int, int], None] | None = None) -> GeoRectification:
+    """Warp with a saved forward model (source pixels -> target in ``model_crs``).
+
+    With ``dst_crs`` different from ``model_crs`` the output grid is computed
+    from the footprint transformed through pyproj, and every output pixel is
+    mapped back through pyproj (sparse, interpolated) and the model's inverse.
+    """
+    from .crs import crs_to_string, get_transformer
+    from .io import raster_info
+    from .projective import method_of
+
+    info = raster_info(src)
+    m_crs = crs_to_string(model_crs) if model_crs else None
+    out_crs = crs_to_string(dst_crs) if dst_crs else m_crs
+    if out_crs is not None and m_crs is None:
+        raise CRSError("an output CRS needs the transform's CRS ('crs' in transform.json or --gcp-crs)")
+    inverse = model.inverse
+    if m_crs is not None and out_crs != m_crs:
+        t = get_transformer(m_crs, out_crs)
+
+        def forward(p):
+            w = np.asarray(model(p))
+            x, y = t.transform(w[:, 0], w[:, 1])
+            return np.column_stack([x, y])
+        world_crs = m_crs
+    else:
+        forward, world_crs = model, None
+    grid = output_grid(forward, info.width, info.height, resolution=resolution, crs=out_crs,
+                       y_up=out_crs is not None)
+    res = warp_raster(src, dst, _Inverse(inverse), grid, world_crs=world_crs, options=options,
+                      overwrite=overwrite, progress=progress)
+    return GeoRectification(None, res, out_crs, method_of(model))
