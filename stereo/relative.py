@@ -233,6 +233,12 @@ class System:
                 a = (a + math.pi) % (2 * math.pi) - math.pi
                 if math.cos(a) <= 0:
                     continue
+                for _ in range(3):  # polish: acos loses digits near +-1
+                    X, dX = np.array([math.cos(a), 0.0, math.sin(a)]), np.array([-math.sin(a), 0.0, math.cos(a)])
+                    g = (X @ bc) * (X @ z2) - bc @ z2
+                    dg = (dX @ bc) * (X @ z2) + (X @ bc) * (dX @ z2)
+                    if dg != 0:
+                        a -= g / dg
                 X = np.array([math.cos(a), 0.0, math.sin(a)])
                 Z = z2 - X * (X @ z2)
                 if np.linalg.norm(Z) < 1e-9:
