@@ -68,13 +68,15 @@ def _seed000(p, l, r, f):
     F = (Y1 * Z2 - Z1 * Y2) + (Z1 * X2 - X1 * Z2) * t
     a = (Z1 * X2 - X1 * Z2) / np.cos(tau) ** 2
     b = Y1 * (X2 * t - Y2) - Z1 * Z2
+    c = X1 * (Y2 * np.cos(w1) + Z2 * np.sin(w1)) + (Z2 * (x1 * np.sin(a1) + f * np.cos(a1)) - X1 * X2 * np.cos(w1)) * t
     d = (X1 * X2 + Z1 * Z2) * t - Y1 * X2
-    return F, np.column_stack([a, b, d])
+    e = Y1 * Y2 * np.sin(a2) - Z1 * (x2 * np.cos(c2) - y2 * np.sin(c2)) - (X1 * Y2 * np.sin(a2) + Z1 * Y2 * np.cos(a2)) * t
+    return F, np.column_stack([a, b, c, d, e])
 
 
 def test_seed000_equations_and_coefficients():
     """Our dobrynin-pimshina misclosure is seed 000's eq. (2) times cos(tau); the
-    printed coefficients a, b and d match finite differences of eq. (2)."""
+    printed coefficients a, b, c, d, e match finite differences of eq. (2)."""
     rng = np.random.default_rng(5)
     sp = simulate_pair("vertical", n=25, rng=rng)
     p = rng.uniform(-0.2, 0.2, 5)
@@ -82,14 +84,16 @@ def test_seed000_equations_and_coefficients():
     Fs, coef = _seed000(p, sp.left_mm, sp.right_mm, F_NGI)
     assert_allclose(F, Fs * math.cos(p[0]), rtol=1e-10)
     h = 1e-6
-    for col, k in zip(range(3), (0, 1, 3)):
+    for col, k in zip(range(5), range(5)):
         d = np.zeros(5)
         d[k] = h
         fd = (_seed000(p + d, sp.left_mm, sp.right_mm, F_NGI)[0] - _seed000(p - d, sp.left_mm, sp.right_mm, F_NGI)[0]) / (2 * h)
         assert_allclose(coef[:, col], fd, rtol=1e-6, atol=1e-6 * np.abs(fd).max())
-    # with the cos(tau) factor our analytic Jacobian is the seed's times cos(tau) for omega1, alpha2
-    assert_allclose(J[:, 1], coef[:, 1] * math.cos(p[0]), rtol=1e-8, atol=1e-8 * np.abs(J[:, 1]).max())
-    assert_allclose(J[:, 3], coef[:, 2] * math.cos(p[0]), rtol=1e-8, atol=1e-8 * np.abs(J[:, 3]).max())
+    # our analytic Jacobian is the seed's times cos(tau) (plus F * d cos(tau) / d tau for tau)
+    scale = math.cos(p[0])
+    assert_allclose(J[:, 0], coef[:, 0] * scale - Fs * math.sin(p[0]), rtol=1e-8, atol=1e-8 * np.abs(J).max())
+    for k in range(1, 5):
+        assert_allclose(J[:, k], coef[:, k] * scale, rtol=1e-8, atol=1e-8 * np.abs(J[:, k]).max())
 
 
 # ------------------------------------------------------- Dewitt known answer
