@@ -1,0 +1,591 @@
+"""Absolute orientation: the 7-parameter spatial similarity from model to ground.
+
+    G = s R m + T
+
+with ``m`` a model point, ``G`` its ground point (both (3,), right-handed
+frames), ``s`` the scale, ``R = Rx(omega) @ Ry(phi) @ Rz(kappa)`` (the
+omega-phi-kappa order of :mod:`rectify.rotation`, identical to Wolf & Dewitt's
+``M.T`` with ``M = R3(kappa) R2(phi) R1(omega)``) and ``T`` the translation.
+
+Control comes as full points (X, Y, Z known: three observation equations
+each) and height points (only Z known, X and Y NaN: one equation each). As in
+seed 002 (section 3.1.1) at least two full points and one height point are
+needed (7 equations for 7 unknowns), not all on one line. The parameters are
+estimated by Gauss-Newton least squares on centred coordinates, optionally
+robust (IRLS with the psi functions of :mod:`rectify.robust`), with their
+covariance ``sigma0^2 (A^T P A)^-1`` and a residual table (v = adjusted -
+observed, ground units).
+
+An optional polynomial correction of model deformation (seed 002, eqs.
+3.8-3.15) follows the similarity: each ground coordinate j gets
+``dG_j = D(X, Y) b_j`` with ``D = (1, X, Y, XY, X^2, Y^2)`` (order 2, 6
+coefficients per coordinate, at least 6 full control points) or the 10 terms
+of order 3, X and Y being the planimetric coordinates of the transformed
+(deformed) model, centred and scaled for conditioning.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from rectify.errors import EstimationError, InvalidInputError, ShapeError
+from rectify.points import as_points
+from rectify.residuals import ResidualTable
+from rectify.rotation import angles_from_matrix, matrix_from_angles, rot_x, rot_y, rot_z
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["AbsoluteOrientation", "PolynomialCorrection", "PARAM_NAMES", "ROBUST_CHOICES",
+           "similarity_from_points"]
+
+PARAM_NAMES = ("scale", "omega", "phi", "kappa", "tx", "ty", "tz")
+ROBUST_CHOICES = ("none", "huber", "tukey", "hampel", "andrews")
+_K = [np.array([[0.0, 0, 0], [0, 0, -1], [0, 1, 0]]),
+      np.array([[0.0, 0, 1], [0, 0, 0], [-1, 0, 0]]),
+      np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 0]])]
+
+
+def _poly_terms(xy: NDArray, order: int) -> NDArray:
+    x, y = xy[:, 0], xy[:, 1]
+    cols = [np.ones_like(x), x, y]
+    if order >= 2:
+        cols += [x * y, x * x, y * y]
+    if order >= 3:
+        cols += [x * x * y, x * y * y, x ** 3, y ** 3]
+    return np.column_stack(cols)
+
+
+@dataclass(frozen=True, eq=False)
+class PolynomialCorrection:
+    """Seed 002's polynomial correction of model deformation (applied after the similarity).
+
+    Attributes
+    ----------
+    order : int
+        2 (6 terms per coordinate) or 3 (10 terms).
+    centre, scale_xy : (2,) float64, float
+        Normalisation of the planimetric coordinates: (XY - centre) / scale_xy.
+    coefficients : (3, n_terms) float64
+        Coefficients b_j of dX, dY, dZ, ground units.
+    covariance : (3, n_terms, n_terms) float64
+        Their covariance.
+    """
+
+    order: int
+    centre: NDArray[np.float64]
+    scale_xy: float
+    coefficients: NDArray[np.float64]
+    covariance: NDArray[np.float64]
+
+    def terms(self, ground_xy: NDArray) -> NDArray:
+        return _poly_terms((np.asarray(ground_xy)[:, :2] - self.centre) / self.scale_xy, self.order)
+
+    def __call__(self, ground: NDArray) -> NDArray:
+        """Correction dG (N, 3) at points ``ground`` (N, 3) of the deformed model."""
+        D = self.terms(ground)
+        return D @ self.coefficients.T
+
+    def variance(self, ground: NDArray) -> NDArray:
+        """(N, 3) variance of the correction of each coordinate."""
+        D = self.terms(ground)
+        return np.stack([np.einsum("ni,ij,nj->n", D, self.covariance[j], D) for j in range(3)], axis=1)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"order": self.order, "centre": self.centre.tolist(), "scale_xy": self.scale_xy,
+                "coefficients": {"dx": self.coefficients[0].tolist(), "dy": self.coefficients[1].tolist(),
+                                 "dz": self.coefficients[2].tolist()}}
+
+
+def _umeyama(m: NDArray, g: NDArray, w: NDArray | None = None) -> tuple[float, NDArray, NDArray]:
+    """Closed-form similarity g ~ s R m + t (Umeyama 1991) on >= 3 non-collinear points."""
+    w = np.ones(len(m)) if w is None else w
+    W = w / w.sum()
+    mc = W @ m
+    gc = W @ g
+    A = (g - gc).T @ ((m - mc) * W[:, None])
+    U, S, Vt = np.linalg.svd(A)
+    D = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        D[2, 2] = -1
+    R = U @ D @ Vt
+    var_m = float(W @ ((m - mc) ** 2).sum(1))
+    s = float(np.trace(np.diag(S) @ D) / var_m)
+    return s, R, gc - s * R @ mc
+
+
+def similarity_from_points(model: ArrayLike, ground: ArrayLike) -> tuple[float, NDArray, NDArray]:
+    """Closed-form 7-parameter similarity from >= 3 full, non-collinear points.
+
+    Returns ``(scale, R (3, 3), T (3,))`` with ``ground ~ scale R model + T``.
+    """
+    m = as_points(model, "model", 3)
+    g = as_points(ground, "ground", 3)
+    if len(m) != len(g):
+        raise ShapeError(f"`model` and `ground` must have the same length; got {len(m)} and {len(g)}")
+    if len(m) < 3:
+        raise EstimationError(f"too few points for a closed-form similarity: {len(m)} given, 3 needed")
+    _check_not_collinear(m, "model points")
+    return _umeyama(m, g)
+
+
+def _check_not_collinear(pts: NDArray, what: str, rtol: float = 1e-6) -> None:
+    c = pts - pts.mean(0)
+    s = np.linalg.svd(c, compute_uv=False)
+    if s[0] == 0 or s[1] <= rtol * s[0]:
+        raise EstimationError(
+            f"{what} are collinear (singular values {np.round(s, 6).tolist()}): the rotation about "
+            f"their line is undetermined; add control off that line")
+
+
+def _initial(m: NDArray, g: NDArray, full: NDArray, zonly: NDArray) -> tuple[float, NDArray, NDArray]:
+    mf, gf = m[full], g[full]
+    if full.sum() >= 3:
+        c = mf - mf.mean(0)
+        sv = np.linalg.svd(c, compute_uv=False)
+        if sv[1] > 1e-6 * sv[0]:
+            return _umeyama(mf, gf)
+    # two full points (or collinear full points) + a height point: place the height point in
+    # plan from its model distances to two full points and its Z, then solve in closed form
+    i, j = 0, int(np.argmax(np.linalg.norm(mf - mf[0], axis=1)))
+    s = np.linalg.norm(gf[j] - gf[i]) / np.linalg.norm(mf[j] - mf[i])
+    best = None
+    for k in np.flatnonzero(zonly):
+        hm, hz = m[k], g[k, 2]
+        r1 = s * np.linalg.norm(hm - mf[i])
+        r2 = s * np.linalg.norm(hm - mf[j])
+        # horizontal radii
+        h1 = r1 * r1 - (hz - gf[i, 2]) ** 2
+        h2 = r2 * r2 - (hz - gf[j, 2]) ** 2
+        if h1 < 0 or h2 < 0:
+            continue
+        p1, p2 = gf[i, :2], gf[j, :2]
+        d = np.linalg.norm(p2 - p1)
+        a = (h1 - h2 + d * d) / (2 * d)
+        hh = h1 - a * a
+        if hh < 0:
+            continue
+        base = p1 + a * (p2 - p1) / d
+        perp = np.array([-(p2 - p1)[1], (p2 - p1)[0]]) / d
+        for sign in (1.0, -1.0):
+            xy = base + sign * math.sqrt(hh) * perp
+            mm = np.vstack([mf[i], mf[j], hm])
+            gg = np.vstack([gf[i], gf[j], [xy[0], xy[1], hz]])
+            sc, R, t = _umeyama(mm, gg)
+            pred = sc * m[full | zonly] @ R.T + t
+            obs = g[full | zonly]
+            r = np.concatenate([(pred - obs)[full[full | zonly]].ravel(),
+                                (pred - obs)[zonly[full | zonly], 2]])
+            cost = float(r @ r)
+            if best is None or cost < best[0]:
+                best = (cost, sc, R, t)
+        if best is not None:
+            break
+    if best is None:
+        raise EstimationError("cannot find initial values for the absolute orientation from two full "
+                              "control points and the height points (inconsistent distances)")
+    return best[1], best[2], best[3]
+
+
+def _design(m_c: NDArray, s: float, ang: NDArray) -> tuple[NDArray, NDArray]:
+    """Predicted (N, 3) and Jacobian (N, 3, 7) of G' = s R m_c + T' at (s, angles, T')."""
+    Rx, Ry, Rz = rot_x(ang[0]), rot_y(ang[1]), rot_z(ang[2])
+    R = Rx @ Ry @ Rz
+    dR = [Rx @ _K[0] @ Ry @ Rz, Rx @ Ry @ _K[1] @ Rz, R @ _K[2]]
+    Rm = m_c @ R.T
+    J = np.zeros((len(m_c), 3, 7))
+    J[:, :, 0] = Rm
+    for k in range(3):
+        J[:, :, 1 + k] = s * m_c @ dR[k].T
+    J[:, :, 4:7] = np.eye(3)
+    return s * Rm, J
+
+
+@dataclass(frozen=True, eq=False)
+class AbsoluteOrientation:
+    """Model -> ground similarity ``G = s R m + T`` (plus optional deformation correction).
+
+    Attributes
+    ----------
+    scale : float
+    rotation : (3, 3) float64
+        R = Rx(omega) Ry(phi) Rz(kappa), model axes -> ground axes.
+    translation : (3,) float64
+        T, ground units.
+    covariance : (7, 7) float64
+        Of (scale, omega, phi, kappa, tx, ty, tz); angles in rad.
+    sigma0 : float
+        A-posteriori standard deviation of unit weight, ground units.
+    residuals : ResidualTable
+        Per control point (v = adjusted - observed, ground units); check points
+        included with ``check`` set. For height points the X, Y rows are not
+        observed and show a zero residual.
+    deformation : PolynomialCorrection or None
+    iterations : int
+    converged : bool
+    robust : str
+    """
+
+    scale: float
+    rotation: NDArray[np.float64]
+    translation: NDArray[np.float64]
+    covariance: NDArray[np.float64]
+    sigma0: float
+    residuals: ResidualTable
+    deformation: PolynomialCorrection | None = None
+    iterations: int = 0
+    converged: bool = True
+    robust: str = "none"
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for name in ("rotation", "translation", "covariance"):
+            a = np.array(getattr(self, name), dtype=np.float64, copy=True)
+            a.flags.writeable = False
+            object.__setattr__(self, name, a)
+
+    # ------------------------------------------------------------------ derived
+    @property
+    def angles(self) -> NDArray[np.float64]:
+        """(omega, phi, kappa), rad."""
+        return angles_from_matrix(self.rotation, "omega-phi-kappa")
+
+    @property
+    def parameters(self) -> NDArray[np.float64]:
+        """(scale, omega, phi, kappa, tx, ty, tz)."""
+        return np.concatenate([[self.scale], self.angles, self.translation])
+
+    @property
+    def std_errors(self) -> NDArray[np.float64]:
+        """(7,) standard errors of :attr:`parameters`."""
+        return np.sqrt(np.diag(self.covariance))
+
+    @property
+    def matrix(self) -> NDArray[np.float64]:
+        """(4, 4) homogeneous similarity (without the deformation correction)."""
+        M = np.eye(4)
+        M[:3, :3] = self.scale * self.rotation
+        M[:3, 3] = self.translation
+        return M
+
+    def similarity(self, model: ArrayLike) -> NDArray[np.float64]:
+        """Similarity only: model (N, 3) -> ground (N, 3)."""
+        m = as_points(model, "model", 3)
+        return self.scale * m @ self.rotation.T + self.translation
+
+    def __call__(self, model: ArrayLike) -> NDArray[np.float64]:
+        """Model points (N, 3) -> ground points (N, 3), deformation corrected when fitted."""
+        g = self.similarity(model)
+        if self.deformation is not None:
+            g = g + self.deformation(g)
+        return g
+
+    def point_covariance(self, model: ArrayLike, model_covariance: ArrayLike | None = None
+                         ) -> NDArray[np.float64]:
+        """Covariance (N, 3, 3) of transformed points, ground units squared.
+
+        Propagates the parameter covariance and, when given, the covariance of
+        the model points themselves (N, 3, 3): ``J C J^T + s^2 R C_m R^T``.
+        """
+        m = as_points(model, "model", 3)
+        ang = self.angles
+        _, J = _design(m, self.scale, ang)
+        C = np.einsum("nik,kl,njl->nij", J, self.covariance, J)
+        if model_covariance is not None:
+            Cm = np.asarray(model_covariance, dtype=np.float64)
+            if Cm.shape != (len(m), 3, 3):
+                raise ShapeError(f"`model_covariance` must have shape ({len(m)}, 3, 3); got {Cm.shape}",
+                                 actual_shape=Cm.shape, expected_shape=(len(m), 3, 3))
+            sR = self.scale * self.rotation
+            C = C + np.einsum("ij,njk,lk->nil", sR, Cm, sR)
+        if self.deformation is not None:
+            var = self.deformation.variance(self.similarity(m))
+            C = C + np.einsum("ni,ij->nij", var, np.eye(3))
+        return C
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready description (angles in rad)."""
+        se = self.std_errors
+        d: dict[str, Any] = {
+            "model": "G = scale * R @ m + T, R = Rx(omega) @ Ry(phi) @ Rz(kappa)",
+            "scale": self.scale,
+            "angles": {"omega": float(self.angles[0]), "phi": float(self.angles[1]),
+                       "kappa": float(self.angles[2])},
+            "rotation": self.rotation.tolist(),
+            "translation": self.translation.tolist(),
+            "std_errors": dict(zip(PARAM_NAMES, map(float, se))),
+            "covariance": {"names": list(PARAM_NAMES), "matrix": self.covariance.tolist()},
+            "sigma0": self.sigma0,
+            "iterations": self.iterations,
+            "converged": self.converged,
+            "robust": self.robust,
+            "residuals": self.residuals.summary(),
+            "points": [{"id": r["id"], "residual": [r[c] for c in self.residuals.components],
+                        "weight": r["weight"], "outlier": bool(r["outlier"]), "check": bool(r["check"])}
+                       for r in self.residuals.rows()],
+        }
+        if self.deformation is not None:
+            d["deformation"] = self.deformation.to_dict()
+        d.update(self.extra)
+        return d
+
+    # -------------------------------------------------------------- estimation
+    @classmethod
+    def from_points(
+        cls,
+        model: ArrayLike,
+        ground: ArrayLike,
+        *,
+        ids: Sequence[str] | None = None,
+        check: ArrayLike | None = None,
+        weights: ArrayLike | None = None,
+        robust: str = "none",
+        deformation_order: int | None = None,
+        max_iterations: int = 50,
+        tol: float = 1e-10,
+    ) -> "AbsoluteOrientation":
+        """Estimate the similarity from control points.
+
+        Parameters
+        ----------
+        model : (N, 3) array_like
+            Model coordinates of the control points.
+        ground : (N, 3) array_like
+            Ground coordinates; a row with X and Y NaN and Z finite is a height
+            point; a row of three NaN is ignored (tie point).
+        ids : sequence of str, optional
+            Point names (default "1".."N").
+        check : (N,) bool, optional
+            Points withheld from the fit and only checked.
+        weights : (N,) float, optional
+            A-priori weights per point (all its coordinates).
+        robust : {"none", "huber", "tukey", "hampel", "andrews"}
+            IRLS M-estimation over the coordinate observations.
+        deformation_order : {None, 2, 3}
+            Fit seed 002's polynomial deformation correction after the
+            similarity (needs 6 or 10 full control points).
+        max_iterations, tol : int, float
+            Gauss-Newton limits (tol on the largest parameter correction:
+            relative for the scale, rad for the angles, relative to the
+            ground extent of the control for T).
+
+        Raises
+        ------
+        EstimationError
+            Too few control points (fewer than 2 full + 1 height point, or
+            fewer equations than parameters), control on one line, or no
+            convergence.
+        ShapeError, InvalidInputError
+            Malformed input or unknown option.
+        """
+        m = as_points(model, "model", 3)
+        g = np.array(ground, dtype=np.float64, copy=True)
+        if g.ndim != 2 or g.shape != (len(m), 3):
+            raise ShapeError(f"`ground` must have shape ({len(m)}, 3) like `model`; got {g.shape}",
+                             actual_shape=g.shape, expected_shape=(len(m), 3))
+        if robust not in ROBUST_CHOICES:
+            raise InvalidInputError(f"unknown robust option {robust!r}; expected one of {list(ROBUST_CHOICES)}")
+        if deformation_order not in (None, 2, 3):
+            raise InvalidInputError(f"`deformation_order` must be None, 2 or 3; got {deformation_order!r}")
+        n = len(m)
+        ids_t = tuple(str(i) for i in (ids if ids is not None else range(1, n + 1)))
+        if len(ids_t) != n:
+            raise ShapeError(f"`ids` must have {n} entries; got {len(ids_t)}")
+        chk = np.zeros(n, bool) if check is None else np.asarray(check, dtype=bool).reshape(-1)
+        if chk.shape != (n,):
+            raise ShapeError(f"`check` must have shape ({n},); got {chk.shape}")
+        w_pt = np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64).reshape(-1)
+        if w_pt.shape != (n,) or not np.isfinite(w_pt).all() or (w_pt < 0).any():
+            raise InvalidInputError(f"`weights` must be ({n},) finite and >= 0")
+        fin = np.isfinite(g)
+        full_all = fin.all(1)
+        zonly_all = ~fin[:, 0] & ~fin[:, 1] & fin[:, 2]
+        bad = ~(full_all | zonly_all | ~fin.any(1))
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise InvalidInputError(
+                f"ground point {ids_t[i]!r} has {g[i].tolist()}: give X, Y, Z (full point), only Z "
+                f"(height point) or nothing (tie point)")
+        used = ~chk & (w_pt > 0)
+        full = full_all & used
+        zonly = zonly_all & used
+        nf, nz = int(full.sum()), int(zonly.sum())
+        if nf < 2 or 3 * nf + nz < 7:
+            raise EstimationError(
+                f"too few control points: {nf} full and {nz} height point(s) give {3 * nf + nz} equations; "
+                f"at least 2 full points and 1 height point (7 equations) are needed")
+        _check_not_collinear(m[full | zonly], f"the {nf + nz} control points (model coordinates)")
+        if deformation_order is not None:
+            nt = 6 if deformation_order == 2 else 10
+            if nf < nt:
+                raise EstimationError(
+                    f"too few full control points for the order-{deformation_order} deformation "
+                    f"correction: {nf} given, {nt} needed (seed 002: 6 for order 2)")
+
+        # observation bookkeeping: rows (point, coordinate)
+        obs_pt = np.concatenate([np.repeat(np.flatnonzero(full), 3), np.flatnonzero(zonly)])
+        obs_c = np.concatenate([np.tile([0, 1, 2], nf), np.full(nz, 2)])
+        n_obs = len(obs_pt)
+        w_obs = w_pt[obs_pt]
+        # centring for conditioning
+        sel = full | zonly
+        mc = m[sel].mean(0)
+        gc_full = g[full].mean(0)
+        m_c = m - mc
+
+        s0, R0, t0 = _initial(m, g, full, zonly)
+        ang = angles_from_matrix(R0, "omega-phi-kappa")
+        # T' such that G = s R (m - mc) + T'
+        x = np.concatenate([[s0], ang, t0 + s0 * R0 @ mc - gc_full])
+        gobs = g - gc_full
+
+        extent = float(np.abs(m_c[sel]).max()) or 1.0
+
+        def conv_scale(xk: NDArray) -> NDArray:
+            # relative for the scale, rad for the angles, ground extent for the translation
+            ge = abs(xk[0]) * extent
+            return np.array([abs(xk[0]), 1.0, 1.0, 1.0, ge, ge, ge])
+
+        def solve(w: NDArray, x0: NDArray) -> tuple[NDArray, NDArray, int, bool]:
+            xk = x0.copy()
+            conv = False
+            it = 0
+            for it in range(1, max_iterations + 1):
+                pred, J = _design(m_c[obs_pt], xk[0], xk[1:4])
+                pred = pred + xk[4:7]
+                A = J[np.arange(n_obs), obs_c]
+                l = gobs[obs_pt, obs_c] - pred[np.arange(n_obs), obs_c]
+                N = (A * w[:, None]).T @ A
+                try:
+                    dx = np.linalg.solve(N, (A * w[:, None]).T @ l)
+                except np.linalg.LinAlgError as err:
+                    raise EstimationError(f"singular normal equations in the absolute orientation: {err}"
+                                          ) from err
+                xk = xk + dx
+                if np.all(np.abs(dx) <= tol * conv_scale(xk)):
+                    conv = True
+                    break
+            return xk, N, it, conv
+
+        def residual_fn(xk: NDArray) -> NDArray:
+            pred, _ = _design(m_c[obs_pt], xk[0], xk[1:4])
+            pred = pred + xk[4:7]
+            return pred[np.arange(n_obs), obs_c] - gobs[obs_pt, obs_c]
+
+        w_final = w_obs.copy()
+        outl_obs = np.zeros(n_obs, bool)
+        if robust == "none":
+            x, N, iters, conv = solve(w_obs, x)
+        else:
+            from rectify.robust import irls
+
+            state: dict[str, Any] = {}
+
+            def fit(w: NDArray, prev: Any) -> NDArray:
+                xs, Ns, its, cv = solve(w, x if prev is None else prev)
+                state.update(N=Ns, iters=its, conv=cv, w=w)
+                return xs
+
+            res = irls(fit, residual_fn, n_obs, psi=robust, prior_weights=w_obs, min_used=7)
+            x = res.model
+            w_final = res.weights
+            outl_obs = res.outlier_mask
+            # final covariance with the final weights
+            x, N, iters, conv = solve(np.maximum(w_final, 0.0), x)
+        if not conv:
+            raise EstimationError(f"absolute orientation did not converge in {max_iterations} iterations")
+        v = residual_fn(x)
+        dof = n_obs - 7
+        sigma0 = math.sqrt(float(np.sum(w_final * v * v)) / dof) if dof > 0 else float("nan")
+        try:
+            Qxx = np.linalg.inv(N)
+        except np.linalg.LinAlgError as err:
+            raise EstimationError(f"singular normal equations: {err}") from err
+        s, ang, tp = x[0], x[1:4], x[4:7]
+        R = matrix_from_angles(*ang, order="omega-phi-kappa")
+        T = tp + gc_full - s * R @ mc
+        # covariance of (s, ang, T) from that of (s, ang, T'): T = T' + gc - s R mc
+        Jt = np.eye(7)
+        Jt[4:7, 0] = -R @ mc
+        Rx, Ry, Rz = rot_x(ang[0]), rot_y(ang[1]), rot_z(ang[2])
+        dR = [Rx @ _K[0] @ Ry @ Rz, Rx @ Ry @ _K[1] @ Rz, R @ _K[2]]
+        for k in range(3):
+            Jt[4:7, 1 + k] = -s * dR[k] @ mc
+        s02 = sigma0 ** 2 if math.isfinite(sigma0) else 1.0
+        cov = s02 * Jt @ Qxx @ Jt.T
+
+        sim = s * m @ R.T + T
+        deformation = None
+        adjusted = sim.copy()
+        if deformation_order is not None:
+            deformation, sigma0 = _fit_deformation(sim, g, full, zonly, deformation_order,
+                                                   w_final, obs_pt, obs_c, n_obs)
+            adjusted = sim + deformation(sim)
+        # residual table: control and check points with ground coordinates
+        rows = np.flatnonzero(full_all | zonly_all)
+        observed = g[rows].copy()
+        adj = adjusted[rows]
+        zo = zonly_all[rows]
+        observed[zo, 0:2] = adj[zo, 0:2]  # X, Y not observed for height points
+        pw = np.ones(n)
+        po = np.zeros(n, bool)
+        for k in range(n_obs):
+            pw[obs_pt[k]] = min(pw[obs_pt[k]], w_final[k] / max(w_obs[k], 1e-300))
+            po[obs_pt[k]] |= bool(outl_obs[k])
+        n_params = 7 + (0 if deformation is None else 3 * deformation.coefficients.shape[1])
+        table = ResidualTable(
+            step="absolute orientation" + ("" if deformation is None else f" + order-{deformation_order} "
+                                           "deformation correction"),
+            ids=[ids_t[i] for i in rows], observed=observed, adjusted=adj, units="ground units",
+            components=("dX", "dY", "dZ"), weights=pw[rows], outlier=po[rows], check=chk[rows],
+            sigma0=sigma0, n_params=n_params,
+            extra={"n_full": nf, "n_height": nz, "n_equations": n_obs, "robust": robust})
+        logger.info("absolute orientation: %d full + %d height points, sigma0 %.4g, %d iterations",
+                    nf, nz, sigma0, iters)
+        return cls(scale=float(s), rotation=R, translation=T, covariance=cov, sigma0=float(sigma0),
+                   residuals=table, deformation=deformation, iterations=iters, converged=conv,
+                   robust=robust, extra={"height_points": [ids_t[i] for i in np.flatnonzero(zonly_all)]})
+
+
+def _fit_deformation(sim: NDArray, g: NDArray, full: NDArray, zonly: NDArray, order: int, w_obs: NDArray,
+                     obs_pt: NDArray, obs_c: NDArray, n_obs: int) -> tuple[PolynomialCorrection, float]:
+    """Least-squares polynomial corrections per coordinate on the similarity's residuals."""
+    centre = sim[full, :2].mean(0)
+    scale_xy = float(np.abs(sim[full, :2] - centre).max()) or 1.0
+    D_all = _poly_terms((sim[:, :2] - centre) / scale_xy, order)
+    nt = D_all.shape[1]
+    coef = np.zeros((3, nt))
+    covs = np.zeros((3, nt, nt))
+    vtpv = 0.0
+    Qs = []
+    for j in range(3):
+        k = obs_c == j
+        pts = obs_pt[k]
+        w = w_obs[k]
+        D = D_all[pts]
+        l = g[pts, j] - sim[pts, j]
+        if len(pts) < nt:
+            raise EstimationError(f"too few points for the deformation polynomial of coordinate {j}: "
+                                  f"{len(pts)} < {nt}")
+        Nj = (D * w[:, None]).T @ D
+        if np.linalg.matrix_rank(Nj) < nt:
+            raise EstimationError(f"the control points do not determine the order-{order} deformation "
+                                  f"polynomial (rank {np.linalg.matrix_rank(Nj)} < {nt})")
+        Q = np.linalg.inv(Nj)
+        b = Q @ (D * w[:, None]).T @ l
+        coef[j] = b
+        v = D @ b - l
+        vtpv += float(np.sum(w * v * v))
+        Qs.append(Q)
+    dof = n_obs - 7 - 3 * nt
+    sigma0 = math.sqrt(vtpv / dof) if dof > 0 else float("nan")
+    s02 = sigma0 ** 2 if math.isfinite(sigma0) else 1.0
+    for j in range(3):
+        covs[j] = s02 * Qs[j]
+    return PolynomialCorrection(order=order, centre=centre, scale_xy=scale_xy, coefficients=coef,
+                                covariance=covs), sigma0
