@@ -65,8 +65,13 @@ a -> b in the pixel frame (x right, y down) and in the geodetic frame
 Eq. (2) is singular for points on or near the base line (cot B -> inf).
 For every point, :class:`CotangentFourPoint` uses, among the six pairs of
 control points, the base pair whose source triangle (a, b, p) has the
-largest smaller base angle, ``min(|sin B|, |sin G|)``, and raises only when
-no pair reaches :data:`COT_MIN_SIN`.
+largest relative height ``|h| / b = |sin B sin G / sin(B + G)|`` (distance
+of p from the base line over the base length; eq. (2) divides by it), and
+raises only when no pair reaches :data:`COT_MIN_REL_HEIGHT`. The whole
+computation is vectorised in blocks of points: choose the pair (one small
+matrix product and a 6-way tournament), gather the pair's 13 constants,
+then cotangents, carriage and eq. (2) -- about 30 floating-point operations
+per point and no linear system.
 """
 
 from __future__ import annotations
@@ -94,17 +99,20 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "Transform2D", "Homography", "AffineTransform", "PolynomialTransform", "CotangentFourPoint",
     "METHODS", "N_PARAMS", "FitResult", "fit_gcps", "transform_to_dict", "transform_from_dict",
-    "save_transform", "load_transform", "COT_MIN_SIN", "TRANSFORM_FORMAT_VERSION",
+    "save_transform", "load_transform", "COT_MIN_REL_HEIGHT", "PAIRS", "TRANSFORM_FORMAT_VERSION",
 ]
 
-#: Smallest acceptable ``min(|sin B|, |sin G|)`` of the best base pair of the
-#: cotangent method; below it a point is reported as unmappable.
-COT_MIN_SIN = 1e-10
+#: Smallest acceptable relative height |h| / b (distance of the point from the
+#: base line over the base length) of the best base pair of the cotangent
+#: method; below it a point is reported as unmappable.
+COT_MIN_REL_HEIGHT = 1e-12
 
 #: Version of the transform JSON written by :func:`save_transform`.
 TRANSFORM_FORMAT_VERSION = 1
 
 F64 = NDArray[np.float64]
+
+_CHUNK = 1 << 15  # points per block: keeps the temporaries in cache
 
 
 @runtime_checkable
@@ -135,14 +143,21 @@ def _normalising_similarity(pts: F64, w: F64 | None = None) -> F64:
 
 
 def _apply_h(m: F64, pts: F64) -> F64:
-    """Apply a (3, 3) homography to validated (N, 2) points."""
-    x, y = pts[:, 0], pts[:, 1]
-    w = m[2, 0] * x + m[2, 1] * y + m[2, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv_w = 1.0 / w
+    """Apply a (3, 3) homography to validated (N, 2) points, in cache-sized blocks."""
     out = np.empty_like(pts)
-    out[:, 0] = (m[0, 0] * x + m[0, 1] * y + m[0, 2]) * inv_w
-    out[:, 1] = (m[1, 0] * x + m[1, 1] * y + m[1, 2]) * inv_w
+    a = m[:2, :2].T.copy()
+    t = m[:2, 2].copy()
+    h = m[2, :2].copy()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for s0 in range(0, len(pts), _CHUNK):
+            pc = pts[s0:s0 + _CHUNK]
+            w = pc @ h
+            w += m[2, 2]
+            np.divide(1.0, w, out=w)
+            o = out[s0:s0 + _CHUNK]
+            np.matmul(pc, a, out=o)
+            o += t
+            o *= w[:, None]
     return out
 
 
@@ -575,49 +590,90 @@ class PolynomialTransform:
 _PAIRS: tuple[tuple[int, int, int, int], ...] = tuple(
     (a, b, *[k for k in range(4) if k not in (a, b)]) for a, b in combinations(range(4), 2))
 
+#: The six base pairs (a, b) of the cotangent method, as indices of the control points.
+PAIRS: tuple[tuple[int, int], ...] = tuple((a, b) for a, b, _, _ in _PAIRS)
 
-def _cot_tables(src: F64, dst: F64) -> dict[str, F64]:
-    """Per base pair constants of the cotangent method (each entry shape (6,) or (6, k)).
 
-    For base pair k = (a, b) with carriers (c, e): the source line forms
-    (cross, dot at a, dot at b) as affine functions of p, and the affine
-    carriage cot0 = alpha * cot + beta for B and G.
+_CONST_NAMES = ("dx", "dy", "e1", "e2", "b2", "kB", "mB", "kG", "mG", "xa0", "ya0", "dx0", "dy0")
+
+
+def _cot_tables(src: F64, dst: F64) -> dict[str, Any]:
+    """Per-base-pair constants of the cotangent method.
+
+    Source coordinates are taken relative to ``centre`` (the centroid of the
+    four source control points) for numerical range. For base pair
+    k = (a, b) with carriers (c, e), d = b - a:
+
+    - ``cross(d, p - a) = dx*y - dy*x + e1`` and ``dot(d, p - a) = dx*x + dy*y + e2``;
+      ``dot(a - b, p - b) = b2 - dot(d, p - a)`` with ``b2 = |d|^2``, so
+      ``cot B = dot / cross`` and ``cot G = (b2 - dot) / cross``;
+    - the carriage ``cot0 = k * cot + m`` for B and G (through c and e);
+    - the target base ``xa0, ya0, dx0, dy0`` for eq. (2);
+    - ``sel_w`` (6, 2) and ``sel_c`` (6,): ``cross / b2`` as an affine form,
+      the signed relative height h / b of the triangle (a, b, p), in float32
+      (only used to choose the pair).
     """
-    n = len(_PAIRS)
-    t: dict[str, F64] = {k: np.empty(n) for k in (
-        "xa", "ya", "dx", "dy", "b2", "kB", "mB", "kG", "mG", "xa0", "ya0", "dx0", "dy0")}
-    t["lines"] = np.empty((n, 3, 3))  # rows: cross, dotA, dotB; cols: coef of x, y, 1
-
-    def cots(p: F64, a: F64, b: F64) -> tuple[float, float]:
-        dd = b - a
-        cr = dd[0] * (p[1] - a[1]) - dd[1] * (p[0] - a[0])
-        cb = (dd[0] * (p[0] - a[0]) + dd[1] * (p[1] - a[1])) / cr
-        cg = (-dd[0] * (p[0] - b[0]) - dd[1] * (p[1] - b[1])) / cr
-        return cb, cg
-
-    for k, (a, b, c, e) in enumerate(_PAIRS):
-        pa, pb = src[a], src[b]
+    centre = src.mean(axis=0)
+    sc = src - centre
+    consts = []
+    for a, b, c, e in _PAIRS:
+        pa, pb = sc[a], sc[b]
         dx, dy = pb - pa
-        # cross(d, p - a) = -dy x + dx y + (dy xa - dx ya)
-        t["lines"][k, 0] = (-dy, dx, dy * pa[0] - dx * pa[1])
-        # dot(d, p - a) = dx x + dy y - (dx xa + dy ya)
-        t["lines"][k, 1] = (dx, dy, -(dx * pa[0] + dy * pa[1]))
-        # dot(a - b, p - b) = -dx x - dy y + (dx xb + dy yb)
-        t["lines"][k, 2] = (-dx, -dy, dx * pb[0] + dy * pb[1])
-        t["xa"][k], t["ya"][k], t["dx"][k], t["dy"][k] = pa[0], pa[1], dx, dy
-        t["b2"][k] = dx * dx + dy * dy
-        bc, gc = cots(src[c], pa, pb)
-        be, ge = cots(src[e], pa, pb)
-        bc0, gc0 = cots(dst[c], dst[a], dst[b])
-        be0, ge0 = cots(dst[e], dst[a], dst[b])
-        # cot0 = cot0_c + (cot - cot_c) * (cot0_e - cot0_c) / (cot_e - cot_c)  ==  k * cot + m
-        t["kB"][k] = (be0 - bc0) / (be - bc)
-        t["mB"][k] = bc0 - t["kB"][k] * bc
-        t["kG"][k] = (ge0 - gc0) / (ge - gc)
-        t["mG"][k] = gc0 - t["kG"][k] * gc
-        t["xa0"][k], t["ya0"][k] = dst[a]
-        t["dx0"][k], t["dy0"][k] = dst[b] - dst[a]
-    return t
+        b2 = dx * dx + dy * dy
+        e1 = dy * pa[0] - dx * pa[1]
+        e2 = -(dx * pa[0] + dy * pa[1])
+        cot = {}
+        for j in (c, e):
+            cr = dx * sc[j, 1] - dy * sc[j, 0] + e1
+            da = dx * sc[j, 0] + dy * sc[j, 1] + e2
+            d0 = dst[b] - dst[a]
+            q0 = dst[j] - dst[a]
+            cr0 = d0[0] * q0[1] - d0[1] * q0[0]
+            da0 = d0[0] * q0[0] + d0[1] * q0[1]
+            b20 = d0[0] ** 2 + d0[1] ** 2
+            cot[j] = (da / cr, (b2 - da) / cr, da0 / cr0, (b20 - da0) / cr0)
+        (bc, gc, bc0, gc0), (be, ge, be0, ge0) = cot[c], cot[e]
+        # cot0 = cot0_c + (cot - cot_c) (cot0_e - cot0_c) / (cot_e - cot_c)  ==  k cot + m
+        kb = (be0 - bc0) / (be - bc)
+        kg = (ge0 - gc0) / (ge - gc)
+        consts.append((dx, dy, e1, e2, b2, kb, bc0 - kb * bc, kg, gc0 - kg * gc, dst[a, 0], dst[a, 1],
+                       dst[b, 0] - dst[a, 0], dst[b, 1] - dst[a, 1]))
+    arr = np.array(consts, dtype=np.float64)  # (6, 13)
+    dx, dy, e1, b2 = arr[:, 0], arr[:, 1], arr[:, 2], arr[:, 4]
+    return {
+        "centre": centre,
+        "consts": tuple(tuple(float(v) for v in row) for row in arr),
+        "packed": arr,
+        "sel_w": np.column_stack([-dy / b2, dx / b2]).astype(np.float32),
+        "sel_c": (e1 / b2).astype(np.float32),
+    }
+
+
+_ROWS = np.arange(len(_PAIRS), dtype=np.int32)[:, None]
+
+
+def _select_pairs(x: F64, y: F64, t: dict[str, Any]) -> NDArray[np.int32]:
+    """Per point, the index of the pair with the largest relative height |h| / b.
+
+    ``x, y`` (n,) are centred source coordinates. The six |h| / b are
+    evaluated in float32 (a (6, 2) @ (2, n) product); the pair index is
+    stored in the 3 lowest mantissa bits of each value, so one integer
+    maximum over the six rows yields the argmax (values are >= 0, whose
+    float32 bit patterns order like the values; the 3 bits change them by
+    < 1e-6 relative, irrelevant for choosing).
+    """
+    p32 = np.empty((2, len(x)), dtype=np.float32)
+    p32[0] = x
+    p32[1] = y
+    sel = t["sel_w"] @ p32
+    sel += t["sel_c"][:, None]
+    np.abs(sel, out=sel)
+    v = sel.view(np.int32)
+    v &= ~7
+    v |= _ROWS
+    best = v.max(axis=0)
+    best &= 7
+    return best
 
 
 @dataclass(frozen=True, eq=False)
@@ -661,15 +717,15 @@ class CotangentFourPoint:
         check_no_three_collinear(s, "src")
         check_no_three_collinear(d, "dst")
         tabs = _cot_tables(s, d)
-        bad = [k for k in ("kB", "mB", "kG", "mG") if not np.isfinite(tabs[k]).all()]
-        if bad:
+        if not np.isfinite(tabs["packed"]).all():
             raise EstimationError(f"cotangent carriage is undefined for control points src={s.tolist()} "
                                   f"dst={d.tolist()}")
         for name, a in (("src", s), ("dst", d)):
             a.flags.writeable = False
             object.__setattr__(self, name, a)
         for a in tabs.values():
-            a.flags.writeable = False
+            if isinstance(a, np.ndarray):
+                a.flags.writeable = False
         object.__setattr__(self, "_tables", tabs)
 
     @classmethod
@@ -716,8 +772,8 @@ class CotangentFourPoint:
         Raises
         ------
         EstimationError
-            If some point has no base pair with ``min(|sin B|, |sin G|) >=
-            COT_MIN_SIN`` (cannot happen for finite points and four control
+            If some point has no base pair with ``|h| / b >=
+            COT_MIN_REL_HEIGHT`` (cannot happen for finite points and four control
             points in general position; kept as a guard).
         """
         return self._map(as_points(points, "points"))
@@ -725,59 +781,101 @@ class CotangentFourPoint:
     def base_pairs(self, points: ArrayLike) -> tuple[NDArray[np.intp], F64]:
         """The base pair chosen for each point and its conditioning.
 
+        Parameters
+        ----------
+        points : (N, 2) array_like
+            Source points.
+
         Returns
         -------
         pair : (N,) int
-            Index into the six pairs ``(0,1), (0,2), (0,3), (1,2), (1,3), (2,3)``.
-        min_sin : (N,) float
-            ``min(|sin B|, |sin G|)`` of the chosen pair (1 = ideal, 0 = singular).
+            Index into :data:`PAIRS`, the six pairs ``(0,1), (0,2), (0,3),
+            (1,2), (1,3), (2,3)`` of control points.
+        rel_height : (N,) float
+            ``|h| / b`` of the triangle (a, b, p) of the chosen pair:
+            distance of the point from the base line over the base length,
+            ``|sin B sin G / sin(B + G)|``. Eq. (2) is singular where it is 0.
         """
         p = as_points(points, "points")
-        k, s2 = self._choose(p)
-        return k, np.sqrt(s2)
-
-    def _choose(self, p: F64) -> tuple[NDArray[np.intp], F64]:
         t = self._tables
-        x, y = p[:, 0], p[:, 1]
-        src = self.src
-        # squared distances to the four control points, (N, 4)
-        q2 = (x[:, None] - src[:, 0]) ** 2 + (y[:, None] - src[:, 1]) ** 2
-        ln = t["lines"][:, 0]  # (6, 3) cross forms
-        cr = x[:, None] * ln[:, 0] + y[:, None] * ln[:, 1] + ln[:, 2]  # (N, 6)
-        ia = np.array([pr[0] for pr in _PAIRS])
-        ib = np.array([pr[1] for pr in _PAIRS])
-        den = np.maximum(q2[:, ia], q2[:, ib]) * t["b2"]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            score = cr * cr / den  # min(sin^2 B, sin^2 G)
-        score = np.where(np.isfinite(score), score, 0.0)
-        k = np.argmax(score, axis=1)
-        return k, np.take_along_axis(score, k[:, None], axis=1)[:, 0]
+        x = p[:, 0] - t["centre"][0]
+        y = p[:, 1] - t["centre"][1]
+        k = _select_pairs(x, y, t).astype(np.intp)
+        c = t["packed"][k]
+        rel = np.abs(c[:, 0] * y - c[:, 1] * x + c[:, 2]) / c[:, 4]
+        return k, rel
 
     def _map(self, p: F64) -> F64:
-        t = self._tables
-        if len(p) == 0:
-            return np.empty((0, 2))
-        k, s2 = self._choose(p)
-        if (s2 < COT_MIN_SIN ** 2).any():
-            i = int(np.argmin(s2))
-            raise EstimationError(f"point {p[i].tolist()} (row {i}) has no well-conditioned base pair: "
-                                  f"best min(|sin B|, |sin G|) = {math.sqrt(s2[i]):.3g} < {COT_MIN_SIN}")
-        x, y = p[:, 0], p[:, 1]
-        ln = t["lines"][k]  # (N, 3, 3)
-        cr = ln[:, 0, 0] * x + ln[:, 0, 1] * y + ln[:, 0, 2]
-        da = ln[:, 1, 0] * x + ln[:, 1, 1] * y + ln[:, 1, 2]
-        db = ln[:, 2, 0] * x + ln[:, 2, 1] * y + ln[:, 2, 2]
-        cot_b = da / cr
-        cot_g = db / cr
-        cot_b0 = t["kB"][k] * cot_b + t["mB"][k]
-        cot_g0 = t["kG"][k] * cot_g + t["mG"][k]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            inv_s = 1.0 / (cot_b0 + cot_g0)
-        dx0, dy0 = t["dx0"][k], t["dy0"][k]
         out = np.empty_like(p)
-        out[:, 0] = t["xa0"][k] + (dx0 * cot_b0 - dy0) * inv_s
-        out[:, 1] = t["ya0"][k] + (dy0 * cot_b0 + dx0) * inv_s
+        for s0 in range(0, len(p), _CHUNK):
+            self._map_block(p[s0:s0 + _CHUNK], out[s0:s0 + _CHUNK])
         return out
+
+    def _map_block(self, pc: F64, out: F64) -> None:
+        """Eq. (2) with carried cotangents on one block; writes ``out`` (n, 2).
+
+        Points are grouped by their chosen base pair, so every group is
+        computed with scalar constants.
+        """
+        t = self._tables
+        x = pc[:, 0] - t["centre"][0]
+        y = pc[:, 1] - t["centre"][1]
+        k = _select_pairs(x, y, t)
+        ox = np.empty_like(x)
+        oy = np.empty_like(y)
+        single = None
+        for j, (dx, dy, e1, e2, b2, kb, mb, kg, mg, xa0, ya0, dx0, dy0) in enumerate(t["consts"]):
+            if single is None:
+                idx = np.flatnonzero(k == j)
+                if idx.size == 0:
+                    continue
+                if idx.size == len(x):
+                    single = True
+                    xs, ys = x, y
+                else:
+                    xs, ys = x[idx], y[idx]
+            else:
+                break
+            # signed cotangents of the base angles in the source plane
+            cr = dx * ys
+            cr -= dy * xs
+            cr += e1                                   # cross(d, p - a) = b * h
+            worst = float(np.abs(cr).min())
+            if worst < COT_MIN_REL_HEIGHT * b2:
+                i = int(np.argmin(np.abs(cr)))
+                raise EstimationError(
+                    f"point {[xs[i] + t['centre'][0], ys[i] + t['centre'][1]]} has no well-conditioned "
+                    f"base pair: largest relative height |h|/b = {worst / b2:.3g} < {COT_MIN_REL_HEIGHT}")
+            da = dx * xs
+            da += dy * ys
+            da += e2                                   # dot(d, p - a)
+            inv_cr = 1.0 / cr
+            cot_b = da * inv_cr                        # cot B
+            cot_g = b2 - da
+            cot_g *= inv_cr                            # cot G
+            # carriage through the cross-ratio of the pencil (affine in the cotangent)
+            cot_b *= kb
+            cot_b += mb                                # cot B0
+            cot_g *= kg
+            cot_g += mg                                # cot G0
+            # eq. (2), corrected y-line
+            with np.errstate(divide="ignore", invalid="ignore"):
+                inv_s = 1.0 / (cot_b + cot_g)
+            gx = dx0 * cot_b
+            gx -= dy0
+            gx *= inv_s
+            gx += xa0
+            gy = dy0 * cot_b
+            gy += dx0
+            gy *= inv_s
+            gy += ya0
+            if single:
+                ox, oy = gx, gy
+            else:
+                ox[idx] = gx
+                oy[idx] = gy
+        out[:, 0] = ox
+        out[:, 1] = oy
 
     def to_homography(self) -> Homography:
         """The equivalent :class:`Homography` (exact fit to the four points)."""
