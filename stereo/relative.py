@@ -57,6 +57,7 @@ the RANSAC first filter of robust estimation, followed by IRLS
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -619,10 +620,11 @@ class RelativeOrientation:
     scale_mm: float | None = None
     initial_method: str = "zero"
     elapsed_s: float = 0.0
+    left_px: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
         for name in ("elements", "covariance", "left_mm", "right_mm", "parallax_mm", "residual_mm", "weights",
-                     "outlier"):
+                     "outlier", "left_px"):
             a = getattr(self, name)
             if a is None:
                 continue
@@ -816,7 +818,8 @@ class RelativeOrientation:
         l = camera.photo_from_pixel(left_px)
         r = cam_r.photo_from_pixel(right_px)
         kwargs.setdefault("pixel_size_mm", camera.pixel_size_mm)
-        return cls.from_points(l, r, focal_length_mm=(camera.focal_length_mm, cam_r.focal_length_mm), **kwargs)
+        ro = cls.from_points(l, r, focal_length_mm=(camera.focal_length_mm, cam_r.focal_length_mm), **kwargs)
+        return dataclasses.replace(ro, left_px=np.asarray(left_px, dtype=np.float64))
 
     # --------------------------------------------------------------- geometry
     @property
@@ -929,24 +932,20 @@ class RelativeOrientation:
 
         Component ``py``: observed = residual parallax, adjusted = 0 (the
         oriented pair has none), so v = -parallax. Units are px when the pixel
-        size is known, mm otherwise (or as ``units`` says).
+        size is known, mm otherwise (or as ``units`` says). The table's sigma0
+        is that of the parallax (sqrt(sum w q^2 / (n - 5))); ``sigma0_mm`` of one
+        photo coordinate is in ``extra``. Positions are the left pixels when
+        the orientation was built by :meth:`from_pixels`.
         """
         if units is None:
             units = "px" if self.pixel_size_mm is not None else "mm"
         if units not in ("px", "mm"):
             raise InvalidInputError(f"`units` must be 'px' or 'mm'; got {units!r}")
         q = self.parallax_px if units == "px" else self.parallax_mm
-        sig = None
-        if self.sigma0_mm is not None:
-            sig = self.sigma0_mm / (self.pixel_size_mm if units == "px" else 1.0)
-        pos = None
-        if self.pixel_size_mm is not None:
-            pos = self.left_mm * [1.0, -1.0] / self.pixel_size_mm  # relative to the principal point
         return ResidualTable(
             step=f"relative orientation ({self.system})", ids=self.ids, observed=q.reshape(-1, 1),
             adjusted=np.zeros((self.n_points, 1)), units=units, components=("py",), weights=self.weights,
-            outlier=self.outlier, sigma0=None if sig is None else sig * math.sqrt(2.0), n_params=5,
-            position_px=pos,
+            outlier=self.outlier, n_params=5, position_px=self.left_px,
             extra={"iterations": self.iterations, "irls_iterations": self.irls_iterations,
                    "condition_number": self.condition_number, "system": self.system,
                    "sigma0_mm": self.sigma0_mm, "robust": self.robust},

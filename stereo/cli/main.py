@@ -22,3 +22,5 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
 
 
 # --- registered subcommands (one module each) ---
+from .orient import orient
+cli.add_command(orient)
