@@ -227,8 +227,10 @@ def output_grid(world_from_src: Callable[[NDArray], NDArray], width: int, height
         raise InvalidInputError("the source footprint does not transform to finite coordinates "
                                 "(is the horizon of the transform inside the image?)")
     res = float(resolution) if resolution is not None else suggest_resolution(world_from_src, width, height)
-    xmin, ymin = w.min(axis=0)
-    xmax, ymax = w.max(axis=0)
+    # map grids align pixel edges to multiples of res; pixel frames align pixel centres
+    half = 0.0 if y_up else 0.5 * res
+    xmin, ymin = w.min(axis=0) + half
+    xmax, ymax = w.max(axis=0) + half
     eps = 1e-9
     x0 = math.floor(xmin / res + eps) * res
     y0 = math.floor(ymin / res + eps) * res
@@ -241,5 +243,5 @@ def output_grid(world_from_src: Callable[[NDArray], NDArray], width: int, height
                                 f"check the transform or pass a coarser resolution")
     logger.debug("output grid %d x %d at %g, x0 %g, y %g..%g", nx, ny, res, x0, y0, y1)
     if not y_up:
-        return Grid(nx, ny, Affine(res, 0.0, x0, 0.0, res, y0), crs)
+        return Grid(nx, ny, Affine(res, 0.0, x0 - half, 0.0, res, y0 - half), crs)
     return Grid(nx, ny, Affine(res, 0.0, x0, 0.0, -res, y1), crs)

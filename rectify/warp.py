@@ -363,13 +363,13 @@ class _Engine:
             out_valid = near > 0
             if valid is not None and self.opts.resampling != "nearest":
                 # renormalise the kernel over valid neighbours near invalid source pixels
-                lin = _apply(vm, interp=cv2.INTER_LINEAR, border=cv2.BORDER_CONSTANT, **kw)
-                edge = out_valid & (lin < 255)
+                lin = _apply(valid.astype(np.float32), interp=self.interp, border=cv2.BORDER_CONSTANT, **kw)
+                edge = out_valid & (lin < 1.0 - 1e-6)
                 if edge.any():
-                    src0 = src.copy()
+                    src0 = src.astype(np.float32) if src.dtype.kind in "ui" else src.copy()
                     src0[~valid] = 0
                     part = _warp_channels(src0, interp=self.interp, border=cv2.BORDER_CONSTANT, **kw)
-                    wgt = lin[edge].astype(np.float64)[:, None] / 255.0
+                    wgt = lin[edge].astype(np.float64)[:, None]
                     vals = part[edge].astype(np.float64) / np.maximum(wgt, 1e-6)
                     out = out.copy() if not out.flags.writeable else out
                     out[edge] = _cast(vals, out.dtype)
@@ -761,4 +761,8 @@ def rectify_with_transform(src: str | Path, dst: str | Path, model, *, model_crs
                        y_up=out_crs is not None)
     res = warp_raster(src, dst, _Inverse(inverse), grid, world_crs=world_crs, options=options,
                       overwrite=overwrite, progress=progress)
-    return GeoRectification(None, res, out_crs, method_of(model))
+    try:
+        name = method_of(model)
+    except InvalidInputError:
+        name = type(model).__name__
+    return GeoRectification(None, res, out_crs, name)
