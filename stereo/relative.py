@@ -65,7 +65,7 @@ import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -81,7 +81,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "SYSTEMS", "ROBUST_METHODS", "System", "RelativeOptions", "RelativeOrientation", "WesternForm",
-    "coplanarity", "relative_from_essential", "simulate_pair", "SimulatedPair",
+    "coplanarity", "relative_from_essential", "precision_structure", "PrecisionStructure", "simulate_pair", "SimulatedPair",
 ]
 
 ROBUST_METHODS = ("none", *sorted(PSI_FUNCTIONS))
@@ -360,6 +360,57 @@ def _focals(focal_length_mm) -> tuple[float, float]:
     if f.size != 2 or not np.isfinite(f).all() or (f <= 0).any():
         raise InvalidInputError(f"`focal_length_mm` must be one or two finite numbers > 0; got {focal_length_mm!r}")
     return float(f[0]), float(f[1])
+
+
+class PrecisionStructure(NamedTuple):
+    """A-priori precision of the elements for given points (sigma0 = 1).
+
+    Attributes
+    ----------
+    cofactor : (5, 5) float64
+        (J^T W J)^-1, rad^2 per mm^2 of unit-weight variance.
+    correlation : (5, 5) float64
+    condition_number : float
+        Of the column-scaled normal matrix.
+    condition_number_raw : float
+        Of the normal matrix J^T W J.
+    """
+
+    cofactor: NDArray[np.float64]
+    correlation: NDArray[np.float64]
+    condition_number: float
+    condition_number_raw: float
+
+
+def precision_structure(system: str | System, elements: ArrayLike, left_mm: ArrayLike, right_mm: ArrayLike,
+                        focal_length_mm: float | tuple[float, float]) -> PrecisionStructure:
+    """Cofactor and correlation matrix of the elements at ``elements`` for these tie points.
+
+    Uses the same weighted normal equations as :meth:`RelativeOrientation.from_points`,
+    so it applies to exact (noise-free) point sets as well.
+
+    Raises
+    ------
+    EstimationError
+        When the normal matrix is singular (degenerate configuration).
+    """
+    s = _get_system(system)
+    p = np.asarray(elements, dtype=np.float64).reshape(5)
+    l, r = as_pair(left_mm, right_mm, names=("left_mm", "right_mm"))
+    f1, f2 = _focals(focal_length_mm)
+    e = _evaluate(s, p, _rays(l, f1), _rays(r, f2))
+    A = e.J / np.sqrt(e.gn2)[:, None]
+    N = A.T @ A
+    d = np.sqrt(np.diag(N))
+    if not (d > 0).all():
+        raise EstimationError("degenerate configuration: an element has no influence on the coplanarity")
+    Ns = N / np.outer(d, d)
+    cond = float(np.linalg.cond(Ns))
+    if not np.isfinite(cond) or cond > 1e14:
+        raise EstimationError(f"degenerate configuration: normal matrix condition number {cond:.3g}")
+    Q = np.linalg.inv(N)
+    q = np.sqrt(np.diag(Q))
+    return PrecisionStructure(Q, Q / np.outer(q, q), cond, float(np.linalg.cond(N)))
 
 
 # ------------------------------------------------------------ essential matrix
