@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import math
+import textwrap
 from typing import Sequence
 
 import numpy as np
@@ -64,6 +65,12 @@ def nice_number(x: float) -> float:
 def _new_figure(w: float, h: float) -> Figure:
     fig = Figure(figsize=(w, h), dpi=100, layout="constrained")
     return fig
+
+
+def _wrap(text: str, fig: Figure, fontsize: float) -> str:
+    """Wrap a title to the figure width (about 0.6 em per character)."""
+    width_chars = max(20, int(fig.get_figwidth() * 72.0 / (0.6 * fontsize)) - 4)
+    return "\n".join(textwrap.fill(part, width_chars) for part in text.split("\n"))
 
 
 def _finite_or_nan(x: float | None) -> float:
@@ -119,7 +126,7 @@ def residual_vector_figure(table: ResidualTable, image_shape: Sequence[int] | No
                            background: ArrayLike | None = None, *, positions: ArrayLike | None = None,
                            position_units: str = "px", y_down: bool = True,
                            components_y_up: bool = False, scale: float | None = None,
-                           title: str | None = None) -> Figure:
+                           max_arrows: int = 1500, title: str | None = None) -> Figure:
     """Residual vectors drawn at their points, scaled, with a scale arrow, coloured by normalised residual.
 
     Parameters
@@ -145,7 +152,13 @@ def residual_vector_figure(table: ResidualTable, image_shape: Sequence[int] | No
         the plot is in the image frame: the arrow's y is then negated.
     scale : float, optional
         Plot units per residual unit (arrow exaggeration); chosen automatically so
-        that the 95th-percentile arrow spans about 8 % of the plotted extent.
+        that the 95th-percentile arrow spans about 8 % of the plotted extent, or
+        0.8 of the mean point spacing when that is shorter.
+    max_arrows : int
+        With more points than this, the arrows show the mean residual of the
+        non-outlier points in each cell of a square grid (about max_arrows / 2
+        cells) and are coloured by the cell's RMS normalised residual; every point,
+        check point and outlier is still marked.
     title : str, optional
         Figure title; default names the step.
 
@@ -171,6 +184,8 @@ def residual_vector_figure(table: ResidualTable, image_shape: Sequence[int] | No
                              actual_shape=pos.shape, expected_shape=(table.n, 2))
     if table.n == 0:
         raise InvalidInputError(f"table {table.step!r} has no points to draw")
+    if max_arrows < 4:
+        raise InvalidInputError(f"`max_arrows` must be >= 4; got {max_arrows}")
     v = table.residual
     if v.shape[1] == 1:
         u = np.zeros(table.n)
@@ -183,14 +198,11 @@ def residual_vector_figure(table: ResidualTable, image_shape: Sequence[int] | No
         w = -w
     # matplotlib's quiver takes directions in data coordinates with angles="xy": a positive
     # w points towards increasing y, i.e. downwards on an inverted (image) axis, as wanted.
-    fig = _new_figure(8.0, 6.4)
-    ax = fig.add_subplot()
     extent_xy = None
+    bg = None
     if background is not None:
         bg, step = _subsample_background(np.asarray(background))
         hh, ww = np.asarray(background).shape[:2]
-        ax.imshow(bg, cmap="gray" if bg.ndim == 2 else None, extent=(-0.5, ww - 0.5, hh - 0.5, -0.5),
-                  interpolation="nearest" if step == 1 else "antialiased", zorder=0)
         extent_xy = (ww, hh)
         if image_shape is None:
             image_shape = (hh, ww)
@@ -211,31 +223,67 @@ def residual_vector_figure(table: ResidualTable, image_shape: Sequence[int] | No
     else:
         x0, x1, y0, y1 = 0.0, 1.0, 0.0, 1.0
     span = max(x1 - x0, y1 - y0, 1e-12)
-    length = np.hypot(u, w)
+    aspect = abs(y1 - y0) / max(abs(x1 - x0), 1e-12)
+    fig = _new_figure(8.0, 6.4) if aspect <= 1.1 else _new_figure(7.0, min(10.0, 1.6 + 5.4 * aspect))
+    ax = fig.add_subplot()
+    if bg is not None:
+        ax.imshow(bg, cmap="gray" if bg.ndim == 2 else None, extent=(-0.5, ww - 0.5, hh - 0.5, -0.5),
+                  interpolation="nearest" if step == 1 else "antialiased", zorder=0)
+    fit, chk, out = _masks(table)
+    nz = table.normalised
+    n_pts = table.n
+    gridded = n_pts > max_arrows
+    if gridded:
+        # too many arrows to read: mean residual of the non-outlier points per grid cell
+        g = max(2, int(math.sqrt(max_arrows / 2.0)))
+        use = ~table.outlier & finite & np.isfinite(u) & np.isfinite(w)
+        cx = np.clip(((pos[:, 0] - x0) / max(x1 - x0, 1e-12) * g).astype(np.int64), 0, g - 1)
+        cy = np.clip(((pos[:, 1] - y0) / max(y1 - y0, 1e-12) * g).astype(np.int64), 0, g - 1)
+        cell = (cy * g + cx)[use]
+        cnt = np.bincount(cell, minlength=g * g).astype(np.float64)
+        has = cnt > 0
+        c = cnt[has]
+
+        def mean_of(a: NDArray) -> NDArray:
+            return np.bincount(cell, weights=a[use], minlength=g * g)[has] / c
+
+        ax_pos = np.column_stack([mean_of(pos[:, 0]), mean_of(pos[:, 1])])
+        au, aw = mean_of(u), mean_of(w)
+        nzf = np.where(np.isfinite(nz), nz, 0.0)
+        acol = np.sqrt(mean_of(nzf * nzf))
+        cell_size = max(x1 - x0, y1 - y0) / g
+        arrow_cap = 0.9 * cell_size
+    else:
+        ax_pos, au, aw = pos, u, w
+        acol = np.where(np.isfinite(nz), nz, 0.0)
+        arrow_cap = 0.8 * span / math.sqrt(max(n_pts, 1))
+    length = np.hypot(au, aw)
     good = np.isfinite(length)
     ref = float(np.percentile(length[good], 95)) if good.any() else 0.0
     if scale is None:
-        scale = 0.08 * span / ref if ref > 0 else 1.0
+        scale = min(0.08 * span, arrow_cap) / ref if ref > 0 else 1.0
     key_len = nice_number(ref if ref > 0 else 1.0)
-    nz = table.normalised
     norm = Normalize(vmin=0.0, vmax=NORM_CLIP)
-    colour_vals = np.where(np.isfinite(nz), nz, 0.0)
-    q = ax.quiver(pos[:, 0], pos[:, 1], u * scale, w * scale, colour_vals, cmap=_CMAP, norm=norm,
-                  angles="xy", scale_units="xy", scale=1.0, width=0.003, headwidth=3.5, headlength=4.5,
-                  zorder=3)
-    fit, chk, out = _masks(table)
-    ax.scatter(pos[fit, 0], pos[fit, 1], s=6, c="k", linewidths=0, zorder=4, label="fit point")
+    dense = n_pts > 500
+    q = ax.quiver(ax_pos[:, 0], ax_pos[:, 1], au * scale, aw * scale, acol, cmap=_CMAP, norm=norm,
+                  angles="xy", scale_units="xy", scale=1.0, width=0.0025 if dense else 0.003,
+                  headwidth=3.5, headlength=4.5, zorder=3)
+    ax.scatter(pos[fit, 0], pos[fit, 1], s=1 if dense else 6, c="k", alpha=0.35 if dense else 1.0,
+               linewidths=0, zorder=2 if dense else 4, label="fit point")
     if chk.any():
-        ax.scatter(pos[chk, 0], pos[chk, 1], s=40, marker="^", facecolors="none", edgecolors=_CHECK_COLOUR,
-                   linewidths=1.2, zorder=5, label="check point")
+        ax.scatter(pos[chk, 0], pos[chk, 1], s=10 if dense else 40, marker="^", facecolors="none",
+                   edgecolors=_CHECK_COLOUR, linewidths=0.6 if dense else 1.2, zorder=5, label="check point")
     if out.any():
-        ax.scatter(pos[out, 0], pos[out, 1], s=55, marker="x", c=_OUTLIER_COLOUR, linewidths=1.4,
-                   zorder=6, label="outlier")
+        ax.scatter(pos[out, 0], pos[out, 1], s=14 if dense else 55, marker="x", c=_OUTLIER_COLOUR,
+                   linewidths=0.8 if dense else 1.4, zorder=6, label="outlier")
+    if gridded:
+        comp_label += f" mean per cell of a {g}\u00d7{g} grid ({n_pts} points, outliers excluded)"
     qk = ax.quiverkey(q, 0.80, 1.015, key_len * scale, f"{key_len:g} {table.units}", labelpos="E",
                       coordinates="axes", color="k")
     qk.set_zorder(7)
     cb = fig.colorbar(q, ax=ax, shrink=0.85, extend="max")
-    cb.set_label("normalised residual |v| / \u03c3  (unitless)")
+    cb.set_label("normalised residual |v| / \u03c3  (unitless)" if not gridded
+                 else "RMS normalised residual per cell (unitless)")
     ax.set_xlim(x0, x1)
     if y_down:
         ax.set_ylim(y1, y0)
@@ -245,9 +293,9 @@ def residual_vector_figure(table: ResidualTable, image_shape: Sequence[int] | No
     xl, yl = ("column x", "row y") if position_units == "px" else ("X", "Y")
     ax.set_xlabel(f"{xl} ({position_units})")
     ax.set_ylabel(f"{yl} ({position_units})")
-    ax.set_title(title or f"{table.step}: residual vectors {comp_label}, arrows \u00d7{scale:.3g}",
-                 fontsize=10, loc="left", pad=18)
-    ax.legend(loc="lower left", fontsize=8, framealpha=0.85)
+    ax.set_title(_wrap(title or f"{table.step}: residual vectors {comp_label}, arrows \u00d7{scale:.3g}",
+                       fig, 10), fontsize=10, loc="left", pad=18)
+    ax.legend(loc="lower left", fontsize=8, framealpha=0.85, markerscale=3.0 if dense else 1.0)
     ax.grid(True, alpha=0.25)
     return fig
 
@@ -279,7 +327,8 @@ def histogram_qq_figure(table: ResidualTable, *, title: str | None = None) -> Fi
     colours = ["#7f7f7f", _CHECK_COLOUR, _OUTLIER_COLOUR]
     allv = nz[finite]
     if allv.size:
-        top = max(float(np.percentile(allv, 99.5)), 3.0)
+        ref_vals = nz[fit & finite] if (fit & finite).any() else allv
+        top = max(1.2 * float(np.percentile(ref_vals, 99.5)), 3.0)
         bins = np.linspace(0.0, top, max(10, min(60, int(np.sqrt(allv.size)) + 5)))
         keep = [(d, lab, c) for d, lab, c in zip(data, labels, colours) if d.size]
         ax1.hist([np.clip(d, 0, top) for d, _, _ in keep], bins=bins, stacked=True, density=True,
@@ -291,7 +340,7 @@ def histogram_qq_figure(table: ResidualTable, *, title: str | None = None) -> Fi
     else:
         ax1.text(0.5, 0.5, "no finite normalised residuals\n(sigma undefined)", ha="center",
                  va="center", transform=ax1.transAxes)
-    ax1.set_xlabel("normalised residual |v| / \u03c3  (unitless)")
+    ax1.set_xlabel("normalised residual |v| / \u03c3  (unitless; larger values in the last bin)")
     ax1.set_ylabel("density (1 / unit)")
     ax1.set_title("Histogram of normalised residuals", fontsize=10)
     ax1.grid(True, alpha=0.25)
@@ -325,7 +374,7 @@ def histogram_qq_figure(table: ResidualTable, *, title: str | None = None) -> Fi
     ax2.set_ylabel("standardised residual component v\u00b7\u221aw / \u03c3\u2080  (unitless)")
     ax2.set_title("Normal Q-Q plot of residual components", fontsize=10)
     ax2.grid(True, alpha=0.25)
-    fig.suptitle(title or f"{table.step}: distribution of residuals", fontsize=11)
+    fig.suptitle(_wrap(title or f"{table.step}: distribution of residuals", fig, 11), fontsize=11)
     return fig
 
 
@@ -407,8 +456,8 @@ def radial_figure(table: ResidualTable, principal_point_px: ArrayLike, *,
     axes[0].set_title("Residual length vs radius", fontsize=10)
     if two:
         axes[1].set_title("Radial component vs radius (distortion signature)", fontsize=10)
-    fig.suptitle(title or f"{table.step}: residuals vs distance from principal point "
-                 f"({pp[0]:.1f}, {pp[1]:.1f}) px", fontsize=11)
+    fig.suptitle(_wrap(title or f"{table.step}: residuals vs distance from principal point "
+                       f"({pp[0]:.1f}, {pp[1]:.1f}) px", fig, 11), fontsize=11)
     return fig
 
 
@@ -453,7 +502,7 @@ def correlation_heatmap_figure(names: Sequence[str], matrix: ArrayLike, *,
                     color="white" if abs(c[i, j]) > 0.6 else "black")
     cb = fig.colorbar(im, ax=ax, shrink=0.85)
     cb.set_label("correlation coefficient (unitless)")
-    ax.set_title(title, fontsize=11)
+    ax.set_title(_wrap(title, fig, 11), fontsize=11)
     return fig
 
 
@@ -518,5 +567,5 @@ def height_bars_figure(table: ResidualTable, *, component: int | str = -1,
         handles.append(Line2D([], [], color=_OUTLIER_COLOUR, lw=6, label="outlier"))
     ax.legend(handles=handles, fontsize=8)
     ax.grid(True, axis="y", alpha=0.25)
-    ax.set_title(title or f"{table.step}: {comps[j]} residual per point", fontsize=11)
+    ax.set_title(_wrap(title or f"{table.step}: {comps[j]} residual per point", fig, 11), fontsize=11)
     return fig

@@ -510,3 +510,22 @@ def test_small_helpers():
     assert format_number(float("nan")) == "n/a"
     assert format_number(np.int64(7)) == "7"
     assert nice_number(0.0) == 1.0
+
+
+def test_vector_figure_grids_many_points():
+    rng = np.random.default_rng(2)
+    n = 3000
+    pos = rng.uniform(0, 1000, (n, 2))
+    out = np.zeros(n, bool)
+    out[:10] = True
+    adj = pos + [1.0, 2.0]
+    adj[:10] += 50.0  # outliers are excluded from the cell means
+    t = ResidualTable("many", [str(i) for i in range(n)], pos, adj, "px", outlier=out, position_px=pos)
+    fig = residual_vector_figure(t, image_shape=(1000, 1000), scale=3.0, max_arrows=200)
+    q = [c for c in fig.axes[0].collections if c.__class__.__name__ == "Quiver"][0]
+    assert 50 <= len(q.U) <= 100  # a 10 x 10 grid
+    np.testing.assert_allclose(q.U, 3.0)
+    np.testing.assert_allclose(q.V, 6.0)
+    assert "10\u00d710 grid" in fig.axes[0].get_title()
+    with pytest.raises(InvalidInputError, match="max_arrows"):
+        residual_vector_figure(t, max_arrows=0)

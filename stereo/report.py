@@ -1,0 +1,189 @@
+"""Stereo-specific QA figures, built on :mod:`rectify.report`.
+
+- relative orientation: vertical-parallax residuals over the left image and the
+  correlation matrix of the five elements as a heat map;
+- absolute orientation: plan residual vectors (dX, dY) at the ground positions of
+  the control points and the height residuals dZ as bars.
+
+:func:`write_stereo_report` gathers them and calls
+:func:`rectify.report.write_report`, so a stereo run writes the same CSV, JSON,
+PNG, GeoJSON and HTML files as every other command.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+from matplotlib.figure import Figure
+from numpy.typing import ArrayLike
+
+from rectify.errors import InvalidInputError, ShapeError
+from rectify.plots import correlation_heatmap_figure, height_bars_figure, residual_vector_figure
+from rectify.report import write_report
+from rectify.residuals import ResidualTable
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["relative_orientation_figures", "absolute_orientation_figures", "write_stereo_report"]
+
+
+def relative_orientation_figures(correlation_names: Sequence[str], correlation_matrix: ArrayLike, *,
+                                 table: ResidualTable | None = None, image_shape: Sequence[int] | None = None,
+                                 background: ArrayLike | None = None) -> dict[str, Figure]:
+    """Figures of a relative orientation.
+
+    Parameters
+    ----------
+    correlation_names : sequence of str, length m
+        Names of the estimated elements (e.g. ``["tau", "nu", "alpha2", "omega2", "kappa2"]``).
+    correlation_matrix : (m, m) array_like
+        Their correlation coefficients (unitless), as in the RO JSON ``correlation``.
+    table : ResidualTable, optional
+        Vertical-parallax residuals (one component, usually mm) with ``position_px``
+        on the left image; adds the "vertical parallax over the left image" figure.
+    image_shape, background : optional
+        Left image size / pixels for that figure.
+
+    Returns
+    -------
+    dict name -> Figure
+        ``"RO correlation of elements"`` and, with a table having positions,
+        ``"RO vertical parallax over the left image"``.
+
+    Raises
+    ------
+    ShapeError, InvalidInputError
+        From :func:`rectify.plots.correlation_heatmap_figure` for a bad matrix.
+    """
+    figs = {"RO correlation of elements": correlation_heatmap_figure(
+        correlation_names, correlation_matrix, title="Relative orientation: correlation of the elements")}
+    if table is not None and table.position_px is not None and table.n:
+        figs["RO vertical parallax over the left image"] = residual_vector_figure(
+            table, image_shape=image_shape, background=background,
+            title=f"{table.step}: residual vertical parallax {table.components[0]} ({table.units}), "
+                  "drawn vertically at the left-image points")
+    return figs
+
+
+def absolute_orientation_figures(table: ResidualTable, ground_xy: ArrayLike, *,
+                                 position_units: str | None = None) -> dict[str, Figure]:
+    """Plan residual vectors over the ground and height-residual bars of an absolute orientation.
+
+    Parameters
+    ----------
+    table : ResidualTable
+        Residuals with three components (dX, dY, dZ) in ground units.
+    ground_xy : (N, 2) array_like
+        Ground plan coordinates (X easting, Y northing) of the control points.
+    position_units : str, optional
+        Units of ``ground_xy`` for the axis labels (default the table's units).
+
+    Returns
+    -------
+    dict name -> Figure
+        ``"AO plan residuals"`` and ``"AO height residuals"``.
+
+    Raises
+    ------
+    InvalidInputError
+        If the table does not have three components.
+    ShapeError
+        If ``ground_xy`` is not (N, 2).
+    """
+    if table.residual.shape[1] != 3:
+        raise InvalidInputError(f"absolute orientation residuals need 3 components (dX, dY, dZ); "
+                                f"table {table.step!r} has {table.components}")
+    g = np.asarray(ground_xy, dtype=np.float64)
+    if g.shape != (table.n, 2):
+        raise ShapeError(f"`ground_xy` must have shape ({table.n}, 2); got {g.shape}",
+                         actual_shape=g.shape, expected_shape=(table.n, 2))
+    units = position_units or table.units
+    return {
+        "AO plan residuals": residual_vector_figure(
+            table, positions=g, position_units=units, y_down=False,
+            title=f"{table.step}: plan residuals ({table.components[0]}, {table.components[1]}) "
+                  f"at the control points"),
+        "AO height residuals": height_bars_figure(table, component=2),
+    }
+
+
+def write_stereo_report(out_dir: str | os.PathLike, *, title: str,
+                        relative: ResidualTable | None = None,
+                        correlation: tuple[Sequence[str], ArrayLike] | None = None,
+                        absolute: ResidualTable | None = None, absolute_ground_xy: ArrayLike | None = None,
+                        tables: Sequence[ResidualTable] = (), figures: dict[str, Figure] | None = None,
+                        summary: dict | None = None, crs: str | None = None,
+                        left_image_shape: Sequence[int] | None = None, left_image: ArrayLike | None = None,
+                        principal_point_px: ArrayLike | None = None, overwrite: bool = False) -> Path:
+    """Write the QA report of a stereo run (relative + absolute orientation) with :func:`write_report`.
+
+    Parameters
+    ----------
+    out_dir : path
+        Report folder.
+    title : str
+        Page title.
+    relative : ResidualTable, optional
+        Vertical-parallax residuals of the relative orientation (positions on the left image).
+    correlation : (names, matrix), optional
+        Correlation of the relative-orientation elements (heat map).
+    absolute : ResidualTable, optional
+        Control-point residuals (dX, dY, dZ) of the absolute orientation, ground units.
+    absolute_ground_xy : (N, 2) array_like, optional
+        Ground X, Y of those points; required with ``absolute``. With ``crs`` the
+        plan vectors are also written as GeoJSON.
+    tables : sequence of ResidualTable
+        Further tables (tie points, check points, resection, ...).
+    figures, summary, overwrite : as in :func:`rectify.report.write_report`.
+    crs : str, optional
+        Ground CRS of ``absolute_ground_xy``.
+    left_image_shape, left_image : optional
+        Left image size / pixels, drawn under the relative-orientation residuals.
+    principal_point_px : (2,), optional
+        Principal point of the left image (pixels) for the radial plot.
+
+    Returns
+    -------
+    pathlib.Path
+        Path of ``report.html``.
+
+    Raises
+    ------
+    InvalidInputError
+        If ``absolute`` is given without ``absolute_ground_xy``, or as in
+        :func:`write_report`.
+    """
+    all_tables: list[ResidualTable] = []
+    figs: dict[str, Figure] = {}
+    backgrounds: dict[str, Any] = {}
+    shapes: dict[str, Sequence[int]] = {}
+    pps: dict[str, Any] = {}
+    ground: dict[str, Any] | None = None
+    if relative is not None:
+        all_tables.append(relative)
+        if left_image is not None:
+            backgrounds[relative.step] = left_image
+        if left_image_shape is not None:
+            shapes[relative.step] = left_image_shape
+        if principal_point_px is not None:
+            pps[relative.step] = principal_point_px
+    if correlation is not None:
+        names, matrix = correlation
+        figs.update(relative_orientation_figures(names, matrix))
+    if absolute is not None:
+        if absolute_ground_xy is None:
+            raise InvalidInputError("`absolute_ground_xy` (N, 2) is required with `absolute`")
+        all_tables.append(absolute)
+        figs.update(absolute_orientation_figures(absolute, absolute_ground_xy))
+        if crs is not None:
+            ground = {absolute.step: np.asarray(absolute_ground_xy, dtype=np.float64)}
+    all_tables.extend(tables)
+    figs.update(figures or {})
+    return write_report(out_dir, title=title, tables=all_tables, figures=figs, summary=summary,
+                        crs=crs if ground else None, ground_xy=ground, overwrite=overwrite,
+                        backgrounds=backgrounds or None, image_shapes=shapes or None,
+                        principal_point_px=pps or None)
