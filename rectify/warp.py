@@ -766,3 +766,60 @@ def rectify_with_transform(src: str | Path, dst: str | Path, model, *, model_crs
     except InvalidInputError:
         name = type(model).__name__
     return GeoRectification(None, res, out_crs, name)
+
+
+# --------------------------------------------------------------------------- helpers for commands
+def transform_file_crs(path: str | Path) -> str | None:
+    """The ``crs`` recorded in a transform JSON (None when absent)."""
+    import json
+
+    from .errors import InvalidInputError as _IIE
+    try:
+        d = json.loads(Path(path).read_text())
+    except FileNotFoundError as err:
+        raise RasterIOError(f"transform file not found: {str(path)!r}") from err
+    except (OSError, ValueError) as err:
+        raise _IIE(f"cannot read transform JSON {str(path)!r}: {err}") from err
+    crs = d.get("crs") if isinstance(d, dict) else None
+    return str(crs) if crs else None
+
+
+def write_warp_report(report_dir: str | Path, result: GeoRectification, *, source_shape: tuple[int, int],
+                      title: str = "rectify warp", summary: dict | None = None, background=None,
+                      overwrite: bool = False) -> Path:
+    """Write the GCP residual table, residual vectors over the image, RMSE and sigma0.
+
+    Parameters
+    ----------
+    report_dir : path
+    result : GeoRectification
+        With a ``fit`` (GCP runs); check points are reported separately by the table.
+    source_shape : (H, W)
+        Source image size, for the residual-vector plot frame.
+    background : (H, W[, C]) array, optional
+        Image drawn under the vectors (e.g. a decimated source).
+
+    Returns
+    -------
+    Path of ``report.html``.
+    """
+    from .plots import residual_vector_figure
+    from .report import write_report
+
+    if result.fit is None:
+        raise InvalidInputError("a report needs a GCP fit (use --gcps)")
+    t = result.fit.table
+    fig = residual_vector_figure(t, source_shape, background,
+                                 title=f"GCP residuals ({result.method}), {t.units}")
+    info = {"method": result.method, "output": str(result.warp.path), "crs": result.crs,
+            "grid_width": result.warp.grid.width, "grid_height": result.warp.grid.height,
+            "resolution": result.warp.grid.resolution[0], "seconds": round(result.warp.seconds, 3),
+            "invalid_pixels_as": result.warp.policy}
+    info.update(summary or {})
+    try:
+        return write_report(report_dir, title=title, tables=[t], figures={"gcp_residual_vectors": fig},
+                            summary=info, crs=result.crs, ground_xy={t.step: t.observed} if result.crs else None,
+                            overwrite=overwrite)
+    finally:
+        import matplotlib.pyplot as plt
+        plt.close(fig)

@@ -22,3 +22,7 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
 
 
 # --- registered subcommands (one module each) ---
+from .warp import warp  # noqa: E402
+cli.add_command(warp)
+from .fit import fit  # noqa: E402
+cli.add_command(fit)
