@@ -526,6 +526,6 @@ def test_vector_figure_grids_many_points():
     assert 50 <= len(q.U) <= 100  # a 10 x 10 grid
     np.testing.assert_allclose(q.U, 3.0)
     np.testing.assert_allclose(q.V, 6.0)
-    assert "10\u00d710 grid" in fig.axes[0].get_title()
+    assert "10\u00d710 grid" in fig.axes[0].get_title(loc="left").replace("\n", " ")
     with pytest.raises(InvalidInputError, match="max_arrows"):
         residual_vector_figure(t, max_arrows=0)
