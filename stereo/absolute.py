@@ -362,8 +362,9 @@ class AbsoluteOrientation:
             Point names (default "1".."N").
         check : (N,) bool, optional
             Points withheld from the fit and only checked.
-        weights : (N,) float, optional
-            A-priori weights per point (all its coordinates).
+        weights : (N,) or (N, 3) float, optional
+            A-priori weights per point, or per coordinate (e.g. the inverse
+            variances of the model coordinates after rotation to ground).
         robust : {"none", "huber", "tukey", "hampel", "andrews"}
             IRLS M-estimation over the coordinate observations.
         deformation_order : {None, 2, 3}
@@ -399,9 +400,13 @@ class AbsoluteOrientation:
         chk = np.zeros(n, bool) if check is None else np.asarray(check, dtype=bool).reshape(-1)
         if chk.shape != (n,):
             raise ShapeError(f"`check` must have shape ({n},); got {chk.shape}")
-        w_pt = np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64).reshape(-1)
-        if w_pt.shape != (n,) or not np.isfinite(w_pt).all() or (w_pt < 0).any():
-            raise InvalidInputError(f"`weights` must be ({n},) finite and >= 0")
+        w_in = np.ones(n) if weights is None else np.array(weights, dtype=np.float64, copy=True)
+        if w_in.shape == (n,):
+            w_in = np.repeat(w_in[:, None], 3, axis=1)
+        if w_in.shape != (n, 3) or not np.isfinite(w_in).all() or (w_in < 0).any():
+            raise InvalidInputError(f"`weights` must be ({n},) or ({n}, 3), finite and >= 0; got shape "
+                                    f"{np.shape(weights)}")
+        w_pt = w_in.max(axis=1)
         fin = np.isfinite(g)
         full_all = fin.all(1)
         zonly_all = ~fin[:, 0] & ~fin[:, 1] & fin[:, 2]
@@ -431,7 +436,7 @@ class AbsoluteOrientation:
         obs_pt = np.concatenate([np.repeat(np.flatnonzero(full), 3), np.flatnonzero(zonly)])
         obs_c = np.concatenate([np.tile([0, 1, 2], nf), np.full(nz, 2)])
         n_obs = len(obs_pt)
-        w_obs = w_pt[obs_pt]
+        w_obs = w_in[obs_pt, obs_c]
         # centring for conditioning
         sel = full | zonly
         mc = m[sel].mean(0)

@@ -1,0 +1,569 @@
+"""The stereo model of a pair: seed 002's double resection in four stages.
+
+1. relative orientation (:mod:`stereo.relative`) from tie points;
+2. model points by intersection (:mod:`stereo.intersection`);
+3. absolute orientation of the model to ground control (:mod:`stereo.absolute`);
+4. ground coordinates of every point, with predicted standard errors.
+
+Absolute orientation happens by default in a local topocentric (ENU) frame
+at the middle of the block (seed 004): control map coordinates (E, N, h) go
+to geocentric and then to ENU at the control centroid (:mod:`rectify.geodesy`),
+the similarity is estimated there, and ground points come back to the map
+CRS. A map CRS is not a Cartesian frame (scale factor, Earth curvature), so
+a similarity fitted directly in map coordinates (``frame="map"``) absorbs
+part of the distortion; the pipeline runs both when the control has a CRS
+and reports the difference. Heights are treated as ellipsoidal in the
+conversion; for a geoid-referenced height the undulation, constant over a
+block, cancels on the way back.
+
+:class:`Workspace` owns the output folder layout; :func:`run_pair` and
+:func:`run_model` load, compute and save.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from rectify.camera import Camera
+from rectify.errors import CRSError, InvalidInputError, RasterIOError
+from rectify.fileutil import atomic_output, atomic_write_text, check_output
+from rectify.residuals import ResidualTable, rms
+from rectify.tables import ControlTable, Matches
+
+from .absolute import AbsoluteOrientation
+from .intersection import METHODS, Intersection, intersect
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["ModelOptions", "RelativeGeometry", "StereoModel", "Workspace", "build_model", "load_relative",
+           "match_control", "run_model", "run_pair", "write_ply", "write_points_csv", "FRAMES"]
+
+FRAMES = ("topocentric", "map")
+
+
+@dataclass(frozen=True)
+class ModelOptions:
+    """Options of the pair pipeline.
+
+    Attributes
+    ----------
+    intersection : str
+        Intersection method (see :data:`stereo.intersection.METHODS`).
+    frame : {"topocentric", "map"}
+        Where absolute orientation is estimated (see the module docstring).
+    robust : str
+        Robust absolute orientation: none, huber, tukey, hampel, andrews.
+    deformation_order : int or None
+        Seed 002's polynomial deformation correction (2 or 3).
+    ro_system : str
+        System of relative orientation elements for :func:`run_pair`.
+    ro_robust : str
+        Robust relative orientation for :func:`run_pair`.
+    check_ids : tuple of str
+        Control points used only as checks.
+    """
+
+    intersection: str = "least-squares"
+    frame: str = "topocentric"
+    robust: str = "none"
+    deformation_order: int | None = None
+    ro_system: str = "left-image"
+    ro_robust: str = "huber"
+    check_ids: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.intersection not in METHODS:
+            raise InvalidInputError(f"unknown intersection method {self.intersection!r}; expected {list(METHODS)}")
+        if self.frame not in FRAMES:
+            raise InvalidInputError(f"unknown frame {self.frame!r}; expected one of {list(FRAMES)}")
+
+
+@dataclass(frozen=True, eq=False)
+class RelativeGeometry:
+    """What intersection needs from a relative orientation (read from its JSON)."""
+
+    rotation_left: NDArray[np.float64]
+    rotation_right: NDArray[np.float64]
+    base: NDArray[np.float64]
+    focal_length_mm: tuple[float, float]
+    sigma0_mm: float | None = None
+    pixel_size_mm: float | None = None
+    system: str = ""
+    raw: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def from_relative(cls, ro: Any) -> "RelativeGeometry":
+        f = ro.focal_length_mm
+        f = (float(f[0]), float(f[1])) if np.ndim(f) else (float(f), float(f))
+        return cls(np.asarray(ro.rotation_left), np.asarray(ro.rotation_right), np.asarray(ro.base), f,
+                   getattr(ro, "sigma0_mm", None), getattr(ro, "pixel_size_mm", None),
+                   getattr(ro, "system", ""), ro.to_dict() if hasattr(ro, "to_dict") else {})
+
+
+def load_relative(path: str | Path) -> RelativeGeometry:
+    """Read a relative orientation JSON (DESIGN.md contract, written by ``stereo orient``)."""
+    p = Path(path)
+    try:
+        d = json.loads(p.read_text())
+    except OSError as err:
+        raise RasterIOError(f"cannot read relative orientation {str(p)!r}: {err}") from err
+    except json.JSONDecodeError as err:
+        raise InvalidInputError(f"{str(p)!r} is not valid JSON: {err}") from err
+    missing = [k for k in ("rotation_left", "rotation_right", "base", "focal_length_mm") if k not in d]
+    if missing:
+        raise InvalidInputError(f"{str(p)!r} is not a relative orientation JSON: missing {missing}")
+    f = d["focal_length_mm"]
+    f = (float(f[0]), float(f[1])) if isinstance(f, list) else (float(f), float(f))
+    return RelativeGeometry(np.array(d["rotation_left"], float), np.array(d["rotation_right"], float),
+                            np.array(d["base"], float), f, d.get("sigma0_mm"), d.get("pixel_size_mm"),
+                            d.get("system", ""), d)
+
+
+@dataclass(frozen=True, eq=False)
+class StereoModel:
+    """Result of the pair pipeline.
+
+    Attributes
+    ----------
+    ids : tuple of str
+        Tie points first, then control points not among them.
+    intersection : Intersection
+        Model points (model frame, arbitrary scale) and diagnostics.
+    ground : (N, 3) float64 or None
+        Ground coordinates in the control CRS (after absolute orientation).
+    ground_std : (N, 3) float64 or None
+        Their predicted standard errors (image noise of the intersection and
+        the absolute orientation's parameter covariance).
+    absolute : AbsoluteOrientation or None
+        Estimated in the frame named by ``frame``.
+    frame : dict
+        ``name`` and, for the topocentric frame, the ``origin`` (lon, lat, h).
+    frame_difference : dict or None
+        Ground points from the other frame minus these: RMS and max, m.
+    is_control, is_check : (N,) bool
+    crs : str or None
+    tables : list of ResidualTable
+    summary : dict
+    """
+
+    ids: tuple[str, ...]
+    intersection: Intersection
+    ground: NDArray[np.float64] | None
+    ground_std: NDArray[np.float64] | None
+    absolute: AbsoluteOrientation | None
+    frame: dict[str, Any]
+    frame_difference: dict[str, Any] | None
+    is_control: NDArray[np.bool_]
+    is_check: NDArray[np.bool_]
+    crs: str | None
+    tables: list[ResidualTable]
+    summary: dict[str, Any]
+
+    @property
+    def points(self) -> NDArray[np.float64]:
+        """Ground points when oriented, model points otherwise, (N, 3)."""
+        return self.intersection.points if self.ground is None else self.ground
+
+
+def _combine(ids_t: Sequence[str], left_mm: NDArray, right_mm: NDArray, control: ControlTable | None,
+             control_mm: tuple[NDArray, NDArray] | None
+             ) -> tuple[tuple[str, ...], NDArray, NDArray, NDArray, NDArray]:
+    """Tie points + control points (control rows replace ties of the same id)."""
+    xyz = np.full((len(ids_t), 3), np.nan)
+    if control is None:
+        return tuple(ids_t), left_mm, right_mm, xyz, np.zeros(len(ids_t), bool)
+    cl, cr = control_mm
+    pos = {i: k for k, i in enumerate(ids_t)}
+    L, R, X = [left_mm], [right_mm], [xyz]
+    ids = list(ids_t)
+    is_ctrl = np.zeros(len(ids_t), bool)
+    add_l, add_r, add_x, add_c = [], [], [], []
+    for k, cid in enumerate(control.ids):
+        if cid in pos:
+            j = pos[cid]
+            L[0][j], R[0][j] = cl[k], cr[k]
+            xyz[j] = control.xyz[k]
+            is_ctrl[j] = control.is_control[k]
+        else:
+            ids.append(cid)
+            add_l.append(cl[k])
+            add_r.append(cr[k])
+            add_x.append(control.xyz[k])
+            add_c.append(control.is_control[k])
+    if add_l:
+        left_mm = np.vstack([L[0], np.array(add_l)])
+        right_mm = np.vstack([R[0], np.array(add_r)])
+        xyz = np.vstack([xyz, np.array(add_x)])
+        is_ctrl = np.concatenate([is_ctrl, np.array(add_c, bool)])
+    else:
+        left_mm, right_mm = L[0], R[0]
+    return tuple(ids), left_mm, right_mm, xyz, is_ctrl
+
+
+def _enu_jacobian(crs: str, origin: NDArray) -> NDArray:
+    """d(map E, N, h) / d(ENU) at the ENU origin, (3, 3) (for covariances)."""
+    from rectify.geodesy import map_from_enu
+
+    e = 1.0
+    pts = np.array([[0, 0, 0], [e, 0, 0], [0, e, 0], [0, 0, e]], float)
+    m = map_from_enu(pts, crs, origin)
+    return (m[1:] - m[0]).T / e
+
+
+def _fit_ao(model_rows: NDArray, g_rows: NDArray, ids: list[str], chk: NDArray, opts: ModelOptions,
+            cov_rows: NDArray | None) -> AbsoluteOrientation:
+    """Similarity fit; with model covariances, a second pass weights every coordinate by the inverse
+    variance of the control point's intersection error rotated to ground (model heights are about
+    three times noisier than plan coordinates in aerial stereo), so sigma0 ~ 1 and the parameter
+    covariance reflects the real, anisotropic noise."""
+    ao = AbsoluteOrientation.from_points(model_rows, g_rows, ids=ids, check=chk, robust=opts.robust,
+                                         deformation_order=opts.deformation_order)
+    if cov_rows is None:
+        return ao
+    sR = ao.scale * ao.rotation
+    var = np.einsum("ij,njk,ik->ni", sR, cov_rows, sR)
+    w = 1.0 / np.maximum(var, 1e-30)
+    return AbsoluteOrientation.from_points(model_rows, g_rows, ids=ids, check=chk, robust=opts.robust,
+                                           deformation_order=opts.deformation_order, weights=w)
+
+
+def _orient(model_pts: NDArray, xyz: NDArray, use: NDArray, check: NDArray, ids: tuple[str, ...], crs: str | None,
+            frame: str, opts: ModelOptions, model_cov: NDArray | None
+            ) -> tuple[AbsoluteOrientation, NDArray, NDArray | None, dict[str, Any]]:
+    """Absolute orientation in ``frame``; returns (ao, ground (N, 3) map, std (N, 3), frame info)."""
+    rows = np.flatnonzero(use | check)
+    chk = check[rows]
+    cov_rows = None if model_cov is None else model_cov[rows]
+    rid = [ids[i] for i in rows]
+    if frame == "topocentric":
+        from rectify.geodesy import enu_from_map, geodetic_from_map, map_from_enu
+
+        ctrl = xyz[use]
+        mid = np.concatenate([ctrl[:, :2].mean(0), [ctrl[:, 2].mean()]])
+        origin = geodetic_from_map(mid[None], crs)[0]
+        g_frame = enu_from_map(xyz[rows], crs, origin)
+        ao = _fit_ao(model_pts[rows], g_frame, rid, chk, opts, cov_rows)
+        enu = ao(model_pts)
+        ground = map_from_enu(enu, crs, origin)
+        info = {"name": "topocentric", "origin_lon_lat_h": origin.tolist(),
+                "note": "absolute orientation in local ENU at the control centroid (seed 004)"}
+        Jm = _enu_jacobian(crs, origin)
+    else:
+        ao = _fit_ao(model_pts[rows], xyz[rows], rid, chk, opts, cov_rows)
+        ground = ao(model_pts)
+        info = {"name": "map", "note": "absolute orientation directly in map coordinates"}
+        Jm = np.eye(3)
+    std = None
+    if model_cov is not None:
+        C = ao.point_covariance(model_pts, model_cov)
+        C = np.einsum("ij,njk,lk->nil", Jm, C, Jm)
+        std = np.sqrt(np.einsum("nii->ni", C))
+    return ao, ground, std, info
+
+
+def build_model(
+    left_mm: ArrayLike,
+    right_mm: ArrayLike,
+    geometry: RelativeGeometry,
+    *,
+    ids: Sequence[str] | None = None,
+    control: ControlTable | None = None,
+    control_mm: tuple[ArrayLike, ArrayLike] | None = None,
+    options: ModelOptions | None = None,
+    pixel_size_mm: float | None = None,
+) -> StereoModel:
+    """Stages 2-4: intersect, orient to control, ground coordinates.
+
+    Parameters
+    ----------
+    left_mm, right_mm : (N, 2) array_like
+        Photo coordinates (mm) of the tie points.
+    geometry : RelativeGeometry
+        The relative orientation (``RelativeGeometry.from_relative(ro)`` or
+        :func:`load_relative`).
+    ids : sequence of str, optional
+    control : ControlTable, optional
+        Ground control (map coordinates in ``control.crs``); rows with NaN
+        x, y, z are extra tie points.
+    control_mm : ((M, 2), (M, 2)), optional
+        The control points' photo coordinates (mm), left and right; required
+        with ``control``.
+    options : ModelOptions, optional
+    pixel_size_mm : float, optional
+        For pixel figures in the summary.
+
+    Raises
+    ------
+    InvalidInputError
+        Control without photo coordinates, unknown check ids, a
+        topocentric frame without a CRS.
+    EstimationError, StereoError
+        From intersection and absolute orientation (too few or collinear
+        control, parallel rays).
+    """
+    t0 = time.perf_counter()
+    opts = options or ModelOptions()
+    l = np.array(left_mm, dtype=np.float64, copy=True).reshape(-1, 2)
+    r = np.array(right_mm, dtype=np.float64, copy=True).reshape(-1, 2)
+    ids_t = tuple(str(i) for i in (ids if ids is not None else range(1, len(l) + 1)))
+    if len(ids_t) != len(l):
+        raise InvalidInputError(f"`ids` has {len(ids_t)} entries for {len(l)} points")
+    cmm = None
+    if control is not None:
+        if control_mm is None:
+            raise InvalidInputError("`control_mm` (photo coordinates of the control points) is required with "
+                                    "`control`")
+        cmm = (np.asarray(control_mm[0], float).reshape(-1, 2), np.asarray(control_mm[1], float).reshape(-1, 2))
+    all_ids, L, R, xyz, is_ctrl = _combine(ids_t, l, r, control, cmm)
+    unknown = sorted(set(opts.check_ids) - set(all_ids))
+    if unknown:
+        raise InvalidInputError(f"check point id(s) {unknown} are not among the control points")
+    is_check = np.array([i in set(opts.check_ids) for i in all_ids]) & np.isfinite(xyz).all(1)
+    use = is_ctrl & ~is_check
+    sigma = geometry.sigma0_mm if geometry.sigma0_mm and math.isfinite(geometry.sigma0_mm) else None
+    inter = intersect(L, R, rotation_left=geometry.rotation_left, rotation_right=geometry.rotation_right,
+                      base=geometry.base, focal_length_mm=geometry.focal_length_mm, method=opts.intersection,
+                      sigma_mm=sigma)
+    obs = np.hstack([L, R])
+    tables = [ResidualTable(step="intersection", ids=all_ids, observed=obs, adjusted=obs + inter.residuals_mm,
+                            units="mm", components=("dx1", "dy1", "dx2", "dy2"), n_params=3 * len(L),
+                            extra={"method": opts.intersection,
+                                   "rms_vertical_parallax_mm": rms(inter.vertical_parallax_mm)})]
+    summary: dict[str, Any] = {
+        "n_points": len(all_ids), "intersection_method": opts.intersection,
+        "rms_vertical_parallax_mm": rms(inter.vertical_parallax_mm),
+        "median_miss_distance_model": float(np.median(inter.miss_distance)) if len(L) else None,
+        "n_behind_camera": int(np.sum((inter.scale_left <= 0) | (inter.scale_right <= 0))),
+    }
+    if pixel_size_mm:
+        summary["rms_vertical_parallax_px"] = summary["rms_vertical_parallax_mm"] / pixel_size_mm
+    ground = std = ao = None
+    frame_info: dict[str, Any] = {"name": "model"}
+    diff = None
+    crs = control.crs if control is not None else None
+    if control is not None:
+        frame = opts.frame
+        if frame == "topocentric" and not crs:
+            logger.warning("control has no CRS (# crs=...): absolute orientation in its own frame")
+            frame = "map"
+        ao, ground, std, frame_info = _orient(inter.points, xyz, use, is_check, all_ids, crs, frame, opts,
+                                              inter.covariance)
+        tables.append(ao.residuals)
+        if crs:
+            other = "map" if frame == "topocentric" else "topocentric"
+            try:
+                _, g2, _, _ = _orient(inter.points, xyz, use, is_check, all_ids, crs, other, opts,
+                                      inter.covariance)
+                d = g2 - ground
+                diff = {"other_frame": other, "rms_xyz_m": rms(np.linalg.norm(d, axis=1)),
+                        "max_xyz_m": float(np.abs(np.linalg.norm(d, axis=1)).max()),
+                        "rms_z_m": rms(d[:, 2]), "max_z_m": float(np.abs(d[:, 2]).max())}
+            except CRSError as err:
+                diff = {"other_frame": other, "error": str(err)}
+        s = ao.residuals.summary()
+        summary.update({"frame": frame_info["name"], "absolute_sigma0_m": ao.sigma0, "scale": ao.scale,
+                        "n_control": s["n_fit"], "n_check": s["n_check"], "rmse_control_m": s["rmse"],
+                        "rmse_check_m": s["rmse_check"]})
+        if is_check.any():
+            e = ground[is_check] - xyz[is_check]
+            summary["rmse_check_xyz_m"] = [rms(e[:, k]) for k in range(3)]
+            if std is not None:
+                summary["rms_normalised_check_error"] = rms(e / std[is_check])
+        if diff is not None:
+            summary["frame_difference"] = diff
+    summary["elapsed_s"] = time.perf_counter() - t0
+    return StereoModel(ids=all_ids, intersection=inter, ground=ground, ground_std=std, absolute=ao,
+                       frame=frame_info, frame_difference=diff, is_control=is_ctrl & ~is_check,
+                       is_check=is_check, crs=crs, tables=tables, summary=summary)
+
+
+def match_control(control: ControlTable, camera: Camera) -> tuple[NDArray, NDArray]:
+    """Photo coordinates (mm) of the control points in both images."""
+    return camera.photo_from_pixel(control.left), camera.photo_from_pixel(control.right)
+
+
+# ---------------------------------------------------------------------- output
+def write_ply(path: str | Path, xyz: ArrayLike, *, colors: ArrayLike | None = None, overwrite: bool = False,
+              comment: str | None = None) -> Path:
+    """Binary little-endian PLY with float64 x, y, z (and uchar red, green, blue)."""
+    p = np.asarray(xyz, dtype="<f8").reshape(-1, 3)
+    n = len(p)
+    dt = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
+    if colors is not None:
+        c = np.asarray(colors).reshape(n, -1)
+        dt += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    rec = np.empty(n, dtype=dt)
+    rec["x"], rec["y"], rec["z"] = p[:, 0], p[:, 1], p[:, 2]
+    if colors is not None:
+        for k, name in enumerate(("red", "green", "blue")):
+            rec[name] = np.clip(c[:, min(k, c.shape[1] - 1)], 0, 255).astype("u1")
+    head = ["ply", "format binary_little_endian 1.0"]
+    if comment:
+        head.append(f"comment {comment}")
+    head += [f"element vertex {n}", "property double x", "property double y", "property double z"]
+    if colors is not None:
+        head += ["property uchar red", "property uchar green", "property uchar blue"]
+    head.append("end_header")
+    with atomic_output(path, overwrite=overwrite) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(("\n".join(head) + "\n").encode("ascii"))
+            fh.write(rec.tobytes())
+    return Path(path)
+
+
+def read_ply_xyz(path: str | Path) -> NDArray[np.float64]:
+    """Read the x, y, z of a PLY written by :func:`write_ply` (for tests and checks)."""
+    data = Path(path).read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    head = data[:end].decode("ascii").splitlines()
+    n = int(next(h.split()[2] for h in head if h.startswith("element vertex")))
+    rgb = any("red" in h for h in head)
+    dt = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")] + ([("r", "u1"), ("g", "u1"), ("b", "u1")] if rgb else [])
+    rec = np.frombuffer(data[end:], dtype=dt, count=n)
+    return np.column_stack([rec["x"], rec["y"], rec["z"]])
+
+
+def write_points_csv(path: str | Path, ids: Sequence[str], xyz: ArrayLike, residual_mm: ArrayLike, *,
+                     std: ArrayLike | None = None, crs: str | None = None, overwrite: bool = False) -> Path:
+    """CSV ``id,x,y,z,residual_mm`` (plus ``std_x,std_y,std_z``), DESIGN.md point cloud contract."""
+    p = np.asarray(xyz, float).reshape(-1, 3)
+    rr = np.asarray(residual_mm, float).reshape(-1)
+    lines = []
+    if crs:
+        lines.append(f"# crs={crs}" if "\n" not in crs and len(crs) < 200 else "# crs=WKT (see orientation.json)")
+    head = "id,x,y,z,residual_mm" + (",std_x,std_y,std_z" if std is not None else "")
+    lines.append(head)
+    s = None if std is None else np.asarray(std, float).reshape(-1, 3)
+    for i, pid in enumerate(ids):
+        row = f"{pid},{p[i, 0]:.4f},{p[i, 1]:.4f},{p[i, 2]:.4f},{rr[i]:.5f}"
+        if s is not None:
+            row += f",{s[i, 0]:.4f},{s[i, 1]:.4f},{s[i, 2]:.4f}"
+        lines.append(row)
+    return atomic_write_text(path, "\n".join(lines) + "\n", overwrite=overwrite)
+
+
+class Workspace:
+    """Output folder of a pair run; owns the file layout.
+
+    ::
+
+        OUTDIR/matches.csv          tie points (pixels)
+        OUTDIR/relative.json        relative orientation (DESIGN.md contract)
+        OUTDIR/orientation.json     absolute orientation, frame, summary
+        OUTDIR/points.ply           ground (or model) points
+        OUTDIR/points.csv           id,x,y,z,residual_mm[,std_*]
+        OUTDIR/model_points.ply     model frame points
+        OUTDIR/report/              QA report (rectify.report)
+    """
+
+    def __init__(self, root: str | Path, *, overwrite: bool = False) -> None:
+        self.root = Path(root)
+        self.overwrite = overwrite
+
+    def prepare(self) -> None:
+        if self.root.exists() and not self.root.is_dir():
+            raise InvalidInputError(f"output {str(self.root)!r} exists and is not a folder")
+        self.root.mkdir(parents=True, exist_ok=True)
+        if not self.overwrite:
+            for name in ("matches.csv", "relative.json", "orientation.json", "points.ply", "points.csv"):
+                check_output(self.root / name, overwrite=False)
+
+    def path(self, name: str) -> Path:
+        return self.root / name
+
+    @property
+    def report_dir(self) -> Path:
+        return self.root / "report"
+
+
+def save_model(model: StereoModel, *, points_path: str | Path, csv_path: str | Path | None = None,
+               orientation_path: str | Path | None = None, model_ply_path: str | Path | None = None,
+               overwrite: bool = False, extra: dict[str, Any] | None = None) -> None:
+    """Write PLY, CSV and orientation JSON of a model."""
+    res = np.sqrt(np.mean(model.intersection.residuals_mm ** 2, axis=1))
+    write_ply(points_path, model.points, overwrite=overwrite,
+              comment="ground" if model.ground is not None else "model frame")
+    if csv_path is not None:
+        write_points_csv(csv_path, model.ids, model.points, res, std=model.ground_std, crs=model.crs,
+                         overwrite=overwrite)
+    if model_ply_path is not None:
+        write_ply(model_ply_path, model.intersection.points, overwrite=overwrite, comment="model frame")
+    if orientation_path is not None:
+        d: dict[str, Any] = {"frame": model.frame, "crs": model.crs, "summary": model.summary}
+        if model.absolute is not None:
+            d["absolute"] = model.absolute.to_dict()
+        if extra:
+            d.update(extra)
+        from rectify.report import json_safe
+
+        atomic_write_text(orientation_path, json.dumps(json_safe(d), indent=2), overwrite=overwrite)
+
+
+def run_model(geometry: RelativeGeometry, matches: Matches, camera: Camera, *, control: ControlTable | None = None,
+              options: ModelOptions | None = None) -> StereoModel:
+    """``stereo model``: matches (pixels) + relative orientation -> model (+ ground) points."""
+    l = camera.photo_from_pixel(matches.left)
+    r = camera.photo_from_pixel(matches.right)
+    cmm = match_control(control, camera) if control is not None else None
+    return build_model(l, r, geometry, ids=matches.ids, control=control, control_mm=cmm, options=options,
+                       pixel_size_mm=camera.pixel_size_mm)
+
+
+def run_pair(left: str | Path, right: str | Path, camera: Camera, out_dir: str | Path, *,
+             control: ControlTable | None = None, options: ModelOptions | None = None, overwrite: bool = False,
+             report: bool = True, title: str = "stereo run", extra_summary: dict[str, Any] | None = None,
+             progress: Callable[[int, int], None] | None = None) -> StereoModel:
+    """``stereo run``: match, orient, intersect, orient absolutely, write everything into ``out_dir``."""
+    from rectify.features import MatcherConfig, match_images
+    from rectify.tables import write_matches
+
+    from .relative import RelativeOrientation
+
+    opts = options or ModelOptions()
+    ws = Workspace(out_dir, overwrite=overwrite)
+    ws.prepare()
+    t0 = time.perf_counter()
+    mr = match_images(left, right, config=MatcherConfig(verify="fundamental"), progress=progress)
+    m = mr.matches
+    t_match = time.perf_counter() - t0
+    write_matches(ws.path("matches.csv"), m, overwrite=overwrite)
+    l_all, r_all, ids_all = m.left, m.right, list(m.ids)
+    if control is not None:  # control image points are tie points too
+        l_all = np.vstack([l_all, control.left])
+        r_all = np.vstack([r_all, control.right])
+        ids_all += list(control.ids)
+    ro = RelativeOrientation.from_pixels(l_all, r_all, camera, system=opts.ro_system, robust=opts.ro_robust,
+                                         ids=ids_all)
+    atomic_write_text(ws.path("relative.json"), ro.to_json(), overwrite=overwrite)
+    keep = ~np.asarray(ro.outlier)[:len(m)]
+    mk = Matches(tuple(np.asarray(m.ids)[keep]), m.left[keep], m.right[keep])
+    model = run_model(RelativeGeometry.from_relative(ro), mk, camera, control=control, options=opts)
+    summary = dict(model.summary)
+    summary.update({"n_matches": len(m), "match_rmse_px": mr.rmse_px, "t_match_s": t_match,
+                    "ro_sigma0_mm": ro.sigma0_mm, "ro_n_used": ro.n_used, "ro_system": ro.system})
+    if extra_summary:
+        summary.update(extra_summary)
+    model = StereoModel(**{**model.__dict__, "summary": summary, "tables": [ro.residual_table()] + model.tables})
+    save_model(model, points_path=ws.path("points.ply"), csv_path=ws.path("points.csv"),
+               orientation_path=ws.path("orientation.json"), model_ply_path=ws.path("model_points.ply"),
+               overwrite=overwrite)
+    if report:
+        from rectify.report import write_report
+
+        gxy = None
+        if model.ground is not None and model.absolute is not None:
+            rows = [model.ids.index(i) for i in model.absolute.residuals.ids]
+            gxy = {model.absolute.residuals.step: model.ground[rows, :2]}
+        write_report(ws.report_dir, title=title, tables=model.tables, summary=summary,
+                     crs=model.crs if model.crs and model.crs.startswith("EPSG") else None,
+                     ground_xy=gxy if model.crs and model.crs.startswith("EPSG") else None, overwrite=overwrite)
+    return model
