@@ -26,3 +26,7 @@ from .warp import warp  # noqa: E402
 cli.add_command(warp)
 from .fit import fit  # noqa: E402
 cli.add_command(fit)
+from .match import match  # noqa: E402
+cli.add_command(match)
+from .demo import demo  # noqa: E402
+cli.add_command(demo)
