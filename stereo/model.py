@@ -532,7 +532,13 @@ def run_pair(left: str | Path, right: str | Path, camera: Camera, out_dir: str |
     ws = Workspace(out_dir, overwrite=overwrite)
     ws.prepare()
     t0 = time.perf_counter()
-    mr = match_images(left, right, config=MatcherConfig(verify="fundamental"), progress=progress)
+    import warnings
+
+    from rasterio.errors import NotGeoreferencedWarning
+
+    with warnings.catch_warnings():  # plain photos have no geotransform, as expected
+        warnings.simplefilter("ignore", NotGeoreferencedWarning)
+        mr = match_images(left, right, config=MatcherConfig(verify="fundamental"), progress=progress)
     m = mr.matches
     t_match = time.perf_counter() - t0
     write_matches(ws.path("matches.csv"), m, overwrite=overwrite)

@@ -1,0 +1,91 @@
+"""``stereo model``: model (and ground) points from a relative orientation and matches."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from rectify.camera import Camera
+from rectify.cli.options import echo, handle_errors, overwrite_opt, report_opt
+from rectify.errors import InvalidInputError
+from rectify.fileutil import check_output
+from rectify.tables import read_control, read_matches
+
+from ..intersection import METHODS
+from ..model import FRAMES, ModelOptions, load_relative, run_model, save_model
+
+
+def outputs_for(points: str) -> tuple[Path, Path, Path]:
+    """points.ply -> (points.ply, points.csv, points.orientation.json)."""
+    p = Path(points)
+    return p, p.with_suffix(".csv"), p.with_suffix(".orientation.json")
+
+
+@click.command(short_help="Intersect matches into a model; orient it to ground control.")
+@click.argument("ro_json", type=click.Path(exists=True, dir_okay=False))
+@click.option("--matches", "matches_path", required=True, type=click.Path(exists=True, dir_okay=False),
+              help="Matches CSV (pixels).")
+@click.option("--camera", "camera_path", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="Camera JSON (pixels -> photo mm). Required: the RO JSON holds no image size.")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
+              help="PLY to write; a CSV and <name>.orientation.json are written beside it.")
+@click.option("--control", "control_path", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="Stereo control CSV (id,col_left,row_left,col_right,row_right,x,y,z; '# crs=...').")
+@click.option("--check", "check_ids", default="", help="Comma-separated control ids used only as checks.")
+@click.option("--frame", type=click.Choice(list(FRAMES)), default="topocentric", show_default=True,
+              help="Absolute orientation in a local topocentric frame or directly in map coordinates.")
+@click.option("--method", type=click.Choice(list(METHODS)), default="least-squares", show_default=True,
+              help="Intersection method.")
+@click.option("--robust", type=click.Choice(["none", "huber", "tukey", "hampel", "andrews"]), default="none",
+              show_default=True, help="Robust absolute orientation.")
+@click.option("--deformation", type=click.Choice(["none", "2", "3"]), default="none", show_default=True,
+              help="Polynomial correction of model deformation (order).")
+@report_opt
+@overwrite_opt
+@handle_errors
+def model(ro_json, matches_path, camera_path, output, control_path, check_ids, frame, method, robust, deformation,
+          report_dir, overwrite):
+    """Intersect the matches of RO_JSON's pair into model points and, with
+    --control, orient the model to the ground (7-parameter similarity)."""
+    ply, csv_path, orient_path = outputs_for(output)
+    for p in (ply, csv_path, orient_path):
+        check_output(p, overwrite=overwrite)
+    if camera_path is None:
+        raise InvalidInputError("--camera is required: pixels cannot be converted to photo mm without it")
+    cam = Camera.from_json(camera_path)
+    geom = load_relative(ro_json)
+    matches = read_matches(matches_path)
+    ro_ids = {str(p.get("id")) for p in geom.raw.get("points", []) if isinstance(p, dict)}
+    if ro_ids and not ro_ids & set(matches.ids):
+        raise InvalidInputError(
+            f"ids in {matches_path!r} do not match the points of {ro_json!r} (e.g. {sorted(matches.ids)[:3]} vs "
+            f"{sorted(ro_ids)[:3]}): the files belong to different pairs")
+    control = read_control(control_path) if control_path else None
+    checks = tuple(s.strip() for s in check_ids.split(",") if s.strip())
+    if checks and control is None:
+        raise InvalidInputError("--check needs --control")
+    opts = ModelOptions(intersection=method, frame=frame, robust=robust,
+                        deformation_order=None if deformation == "none" else int(deformation), check_ids=checks)
+    m = run_model(geom, matches, cam, control=control, options=opts)
+    save_model(m, points_path=ply, csv_path=csv_path, orientation_path=orient_path, overwrite=overwrite)
+    s = m.summary
+    echo(f"{len(m.ids)} points intersected ({method}); RMS vertical parallax "
+         f"{s['rms_vertical_parallax_mm'] * 1000:.2f} um ({s.get('rms_vertical_parallax_px', float('nan')):.3f} px)")
+    for t in m.tables:
+        echo(f"{t.step}: {t.summary_line()}")
+    if m.absolute is not None:
+        echo(f"absolute orientation ({m.frame['name']} frame): scale {m.absolute.scale:.6g}, "
+             f"sigma0 {m.absolute.sigma0:.4g}")
+        if m.frame_difference and "rms_xyz_m" in m.frame_difference:
+            d = m.frame_difference
+            echo(f"{d['other_frame']} frame instead: points differ by RMS {d['rms_xyz_m']:.3f} m "
+                 f"(max {d['max_xyz_m']:.3f} m; heights RMS {d['rms_z_m']:.3f} m)")
+        if "rms_normalised_check_error" in s:
+            echo(f"check points: RMS error / predicted std = {s['rms_normalised_check_error']:.3f}")
+    echo(f"wrote {ply}, {csv_path}, {orient_path}")
+    if report_dir:
+        from rectify.report import write_report
+
+        path = write_report(report_dir, title="stereo model", tables=m.tables, summary=s, overwrite=overwrite)
+        echo(f"report: {path}")
