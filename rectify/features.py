@@ -795,6 +795,10 @@ def _match_whole(L, lv, R, rv, cfg: MatcherConfig, progress, names) -> MatchResu
         inl = ver0.inliers
     cand_l, cand_r, cand_inl = pl, pr, inl
     vl, vr, vratio = pl[inl], pr[inl], ratio[inl]
+    pre = int(math.ceil(1.25 * cfg.max_matches))
+    if len(vl) > pre:       # refine only what can be returned (plus a reserve for failures)
+        keep = grid_select(vl, -vratio, L.shape[:2], pre, cell_cap=cfg.cell_cap)
+        vl, vr, vratio = vl[keep], vr[keep], vratio[keep]
     t3 = time.perf_counter()
     tick(3, 4)
     Lg = _grey_float(L, lv) if cfg.refine else None
@@ -1048,3 +1052,56 @@ def _cap_candidates(pl, pr, inl, cap):
         return pl, pr, inl
     idx = np.random.default_rng(0).choice(len(pl), cap, replace=False)
     return pl[idx], pr[idx], inl[idx]
+
+
+# --------------------------------------------------------------------------- report figures
+def match_figures(result: MatchResult, left_preview: tuple[NDArray, float] | None = None,
+                  right_preview: tuple[NDArray, float] | None = None) -> dict[str, Any]:
+    """Figures for the report: inliers/outliers side by side, and match density.
+
+    Parameters
+    ----------
+    result : MatchResult
+    left_preview, right_preview : (image (h, w[, C]), scale), optional
+        Downsampled images and their scale (full-resolution px per preview px),
+        e.g. from :func:`rectify.io.read_overview`.
+
+    Returns
+    -------
+    dict name -> matplotlib Figure (``"matches"``, ``"density"``)
+    """
+    from matplotlib.figure import Figure
+
+    (hl, wl), (hr, wr) = result.image_shapes
+    fig = Figure(figsize=(11, 6), layout="constrained")
+    axes = fig.subplots(1, 2)
+    pts = [result.candidates_left, result.candidates_right]
+    inl = result.candidate_inlier
+    for ax, prev, (h, w), p, name in zip(axes, (left_preview, right_preview), result.image_shapes, pts,
+                                         ("left", "right")):
+        if prev is not None:
+            img, s = prev
+            a = np.asarray(img, dtype=np.float64)
+            a = a.mean(axis=2) if a.ndim == 3 else a
+            ax.imshow(a, cmap="gray", extent=(-0.5, w - 0.5, h - 0.5, -0.5))
+        sub = np.random.default_rng(0).permutation(len(p))[:20000]
+        ax.scatter(p[sub][~inl[sub], 0], p[sub][~inl[sub], 1], s=2, c="tab:red", label="rejected")
+        ax.scatter(p[sub][inl[sub], 0], p[sub][inl[sub], 1], s=2, c="tab:green", label="verified")
+        ax.set_xlim(-0.5, w - 0.5)
+        ax.set_ylim(h - 0.5, -0.5)
+        ax.set_title(f"{name} image ({w} x {h} px)")
+        ax.set_aspect("equal")
+    axes[0].legend(loc="upper right", markerscale=4)
+    fig.suptitle(f"{int(inl.sum())} verified / {len(inl)} candidate matches ({result.verification.method})")
+    dens = Figure(figsize=(6, 6), layout="constrained")
+    ax = dens.subplots()
+    pl = result.matches.left
+    nb = 32
+    cell = max(hl, wl) / nb
+    hist, _, _ = np.histogram2d(pl[:, 1], pl[:, 0], bins=(max(1, int(np.ceil(hl / cell))),
+                                                         max(1, int(np.ceil(wl / cell)))),
+                                range=((-0.5, hl - 0.5), (-0.5, wl - 0.5)))
+    im = ax.imshow(hist, extent=(-0.5, wl - 0.5, hl - 0.5, -0.5), cmap="viridis", interpolation="nearest")
+    dens.colorbar(im, ax=ax, label=f"matches per {cell:.0f} x {cell:.0f} px cell")
+    ax.set_title(f"match density, left image ({len(pl)} matches)")
+    return {"matches": fig, "density": dens}

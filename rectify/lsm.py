@@ -175,19 +175,6 @@ def bicubic(img: NDArray, x: NDArray[np.float64], y: NDArray[np.float64]) -> NDA
     return np.where(inside, out, np.nan)
 
 
-def _gradients(img: NDArray[np.float32]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """Central-difference gradients (d/dx, d/dy); one-sided at the borders."""
-    gx = np.empty_like(img)
-    gy = np.empty_like(img)
-    gx[:, 1:-1] = 0.5 * (img[:, 2:] - img[:, :-2])
-    gx[:, 0] = img[:, 1] - img[:, 0]
-    gx[:, -1] = img[:, -1] - img[:, -2]
-    gy[1:-1] = 0.5 * (img[2:] - img[:-2])
-    gy[0] = img[1] - img[0]
-    gy[-1] = img[-1] - img[-2]
-    return gx, gy
-
-
 def _as_grey(img: ArrayLike, name: str) -> NDArray[np.float32]:
     a = np.asarray(img)
     if a.ndim == 3:
@@ -254,7 +241,6 @@ def refine_matches(left_img: ArrayLike, right_img: ArrayLike, left_xy: ArrayLike
         if A0.shape != (n, 2, 2) or not np.isfinite(A0).all():
             raise ShapeError(f"`affine` must be finite (N, 2, 2) or (2, 2) with N={n}; got {np.shape(affine)}",
                              actual_shape=np.shape(affine), expected_shape=(n, 2, 2))
-    gx, gy = _gradients(R)
     out_r = pr.copy()
     conv = np.zeros(n, dtype=bool)
     std = np.full(n, np.nan)
@@ -264,7 +250,7 @@ def refine_matches(left_img: ArrayLike, right_img: ArrayLike, left_xy: ArrayLike
     chunk = max(1, int(chunk))
     for s in range(0, n, chunk):
         e = min(n, s + chunk)
-        res = _refine_chunk(L, R, gx, gy, pl[s:e], pr[s:e], np.array(A0[s:e]), cfg)
+        res = _refine_chunk(L, R, pl[s:e], pr[s:e], np.array(A0[s:e]), cfg)
         out_r[s:e], conv[s:e], std[s:e], corr[s:e], iters[s:e], aff[s:e] = res
         if progress is not None:
             progress(e, n)
@@ -272,7 +258,7 @@ def refine_matches(left_img: ArrayLike, right_img: ArrayLike, left_xy: ArrayLike
     return LsmResult(out_r, conv, std, corr, iters, aff)
 
 
-def _refine_chunk(L, R, gx, gy, pl, pr, A, cfg: LsmConfig):
+def _refine_chunk(L, R, pl, pr, A, cfg: LsmConfig):
     r = int(cfg.radius_px)
     g = np.arange(-r, r + 1, dtype=np.float64)
     uy, ux = np.meshgrid(g, g, indexing="ij")
@@ -305,8 +291,13 @@ def _refine_chunk(L, R, gx, gy, pl, pr, A, cfg: LsmConfig):
         xs = ti[:, :1] + Ai[:, 0, :1] * ux + Ai[:, 0, 1:] * uy
         ys = ti[:, 1:] + Ai[:, 1, :1] * ux + Ai[:, 1, 1:] * uy
         Rv = bicubic(R, xs, ys)
-        Gx = bilinear(gx, xs, ys)
-        Gy = bilinear(gy, xs, ys)
+        # gradients of the resampled window (consistent with the resampling), back to image axes
+        W = Rv.reshape(-1, 2 * r + 1, 2 * r + 1)
+        du = np.gradient(W, axis=2).reshape(Rv.shape)
+        dv = np.gradient(W, axis=1).reshape(Rv.shape)
+        Ainv = np.linalg.inv(Ai)                                      # grad_x = A^-T grad_u
+        Gx = Ainv[:, 0, :1] * du + Ainv[:, 1, :1] * dv
+        Gy = Ainv[:, 0, 1:] * du + Ainv[:, 1, 1:] * dv
         gi = gain[idx][:, None]
         res = T[idx] - (gi * Rv + off[idx][:, None])
         J = np.stack([gi * Gx, gi * Gy, gi * Gx * ux, gi * Gx * uy, gi * Gy * ux, gi * Gy * uy,

@@ -30,3 +30,5 @@ from .match import match  # noqa: E402
 cli.add_command(match)
 from .demo import demo  # noqa: E402
 cli.add_command(demo)
+from .compare import compare  # noqa: E402
+cli.add_command(compare)
