@@ -303,20 +303,33 @@ class _Eval:
         return self.F * (self.g1 + self.g2) / self.gn2
 
 
+def _cross(a: NDArray, b: NDArray) -> NDArray:
+    """Row-wise cross product of (N, 3) arrays (or (N, 3) with (3,)), faster than np.cross."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
 def _evaluate(sys_: System, p: NDArray, u1: NDArray, u2: NDArray, *, jac: bool = True) -> _Eval:
     R1, R2, b, dR1, dR2, db = sys_._geometry_and_derivatives(p)
     r1 = u1 @ R1.T
     r2 = u2 @ R2.T
-    c = np.cross(r1, r2)
+    c = _cross(r1, r2)
     F = c @ b
-    w2 = np.cross(r2, b)   # dF/dr1
-    w1 = np.cross(b, r1)   # dF/dr2
-    g1 = np.hypot(*(w2 @ R1)[:, :2].T)
-    g2 = np.hypot(*(w1 @ R2)[:, :2].T)
-    J = np.empty((len(F), 5))
+    w2 = _cross(r2, b)   # dF/dr1
+    w1 = _cross(b, r1)   # dF/dr2
+    h1 = w2 @ R1         # dF/du1
+    h2 = w1 @ R2         # dF/du2
+    g1 = np.hypot(h1[:, 0], h1[:, 1])
+    g2 = np.hypot(h2[:, 0], h2[:, 1])
+    n = len(F)
     if jac:
-        for k in range(5):
-            J[:, k] = c @ db[k] + np.einsum("ij,ij->i", u1 @ dR1[k].T, w2) + np.einsum("ij,ij->i", u2 @ dR2[k].T, w1)
+        # dF/dp_k = c . db_k + w2 . (dR1_k u1) + w1 . (dR2_k u2)
+        J = c @ db.T
+        J += ((w2 @ dR1.transpose(1, 0, 2).reshape(3, 15)).reshape(n, 5, 3) * u1[:, None, :]).sum(axis=2)
+        J += ((w1 @ dR2.transpose(1, 0, 2).reshape(3, 15)).reshape(n, 5, 3) * u2[:, None, :]).sum(axis=2)
+    else:
+        J = np.empty((n, 0))
     return _Eval(F, J, g1, g2)
 
 
@@ -528,6 +541,9 @@ class RelativeOptions:
         EstimationError ("degenerate configuration") above this.
     rng_seed : int
         Seed of OpenCV's RANSAC.
+    zero_start_max_rotation : float
+        With ``initial="auto"``, go straight to the essential-matrix start when
+        the in-plane rotation between the two point sets exceeds this (rad).
     """
 
     max_iterations: int = 30
@@ -538,19 +554,25 @@ class RelativeOptions:
     weak_condition: float = 1e5
     singular_condition: float = 1e12
     rng_seed: int = 0
+    zero_start_max_rotation: float = 0.5
 
 
 _DEFAULT_PIXEL_MM = 0.144
 
 
-def _gauss_newton(sys_: System, p0: NDArray, u1: NDArray, u2: NDArray, w: NDArray, opts: RelativeOptions
-                  ) -> tuple[NDArray, int]:
+def _gauss_newton(sys_: System, p0: NDArray, u1: NDArray, u2: NDArray, w: NDArray, opts: RelativeOptions,
+                  *, steps: int | None = None, check: bool = True) -> tuple[NDArray, int]:
+    """Gauss-Newton on the weighted coplanarity equations.
+
+    ``steps``: take at most this many steps and return without a convergence
+    error (used inside IRLS). ``check``: test the conditioning at the first step.
+    """
     p = p0.copy()
     used = int(np.count_nonzero(w > 0))
     if used < 5:
         raise EstimationError(f"only {used} tie point(s) with positive weight; at least 5 needed")
     last = math.inf
-    for it in range(1, opts.max_iterations + 1):
+    for it in range(1, (steps or opts.max_iterations) + 1):
         e = _evaluate(sys_, p, u1, u2)
         ww = w / e.gn2
         if not np.isfinite(ww).all():
@@ -564,19 +586,23 @@ def _gauss_newton(sys_: System, p0: NDArray, u1: NDArray, u2: NDArray, w: NDArra
             raise EstimationError(
                 f"degenerate configuration: the tie points do not determine element {sys_.names[k]!r} "
                 "(no parallax, or all points on one line)")
-        Ns = N / np.outer(d, d)
-        cond = np.linalg.cond(Ns)
-        if not np.isfinite(cond) or cond > opts.singular_condition:
-            raise EstimationError(
-                f"degenerate configuration: normal matrix condition number {cond:.3g} "
-                f"(> {opts.singular_condition:.0e}); points collinear, coplanar with the base, or no parallax")
-        dp = -np.linalg.solve(N, A.T @ y)
+        if check and it == 1:
+            Ns = N / np.outer(d, d)
+            cond = np.linalg.cond(Ns)
+            if not np.isfinite(cond) or cond > opts.singular_condition:
+                raise EstimationError(
+                    f"degenerate configuration: normal matrix condition number {cond:.3g} "
+                    f"(> {opts.singular_condition:.0e}); points collinear, coplanar with the base, or no parallax")
+        try:
+            dp = -np.linalg.solve(N, A.T @ y)
+        except np.linalg.LinAlgError as err:
+            raise EstimationError(f"degenerate configuration: singular normal matrix at iteration {it}") from err
         if not np.isfinite(dp).all():
             raise ConvergenceError(f"iteration {it} produced non-finite corrections", iterations=it)
         p = p + dp
         step = float(np.max(np.abs(dp)))
         logger.debug("GN %s it %d: max |dp| = %.3g rad", sys_.name, it, step)
-        if step < opts.tol_rad:
+        if step < opts.tol_rad or (steps is not None and it == steps):
             return p, it
         if it > 5 and step > 1.0 and step >= last:
             raise ConvergenceError(
@@ -585,6 +611,13 @@ def _gauss_newton(sys_: System, p0: NDArray, u1: NDArray, u2: NDArray, w: NDArra
     raise ConvergenceError(
         f"relative orientation did not converge in {opts.max_iterations} iterations "
         f"(last correction {last:.3g} rad > {opts.tol_rad:g})", iterations=opts.max_iterations)
+
+
+def _inplane_rotation(l: NDArray, r: NDArray) -> float:
+    """|angle| (rad) of the 2D similarity that best maps left photo points onto the right ones."""
+    a = l - l.mean(axis=0)
+    b = r - r.mean(axis=0)
+    return abs(math.atan2(float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])), float(np.sum(a * b))))
 
 
 def _wrap(p: NDArray) -> NDArray:
@@ -794,6 +827,8 @@ class RelativeOrientation:
             starts.append(("zero", np.zeros(5)))
         elif init == "essential" or (init == "auto" and robust != "none"):
             starts.append(("essential", None))
+        elif _inplane_rotation(l, r) > opts.zero_start_max_rotation:
+            starts.append(("essential", None))  # e.g. relative kappa near 180 deg: zero angles cannot serve
         else:
             starts += [("zero", np.zeros(5)), ("essential", None)]
 
@@ -1085,20 +1120,19 @@ def _solve(sys_: System, p0, u1, u2, prior, robust: str, opts: RelativeOptions):
     if robust == "none":
         p, it = _gauss_newton(sys_, p0, u1, u2, prior, opts)
         return p, prior.copy(), it, 0, None, True
-    state = {"it": 0}
+    # IRLS: one Gauss-Newton step per reweighting, then a full adjustment with the final weights
+    p_start, _ = _gauss_newton(sys_, p0, u1, u2, prior, opts)
 
     def fit(w, prev):
-        p, it = _gauss_newton(sys_, p0 if prev is None else prev, u1, u2, w, opts)
-        state["it"] = it
-        return p
+        return _gauss_newton(sys_, prev, u1, u2, w, opts, steps=1, check=False)[0]
 
     def resid(p):
         return _evaluate(sys_, p, u1, u2, jac=False).normalised
 
-    p_start = fit(prior, None)
     res = irls(fit, resid, len(u1), psi=get_psi(robust), initial=p_start, prior_weights=prior, min_used=6,
-               max_iterations=opts.max_irls_iterations, tol=1e-4, outlier_threshold=opts.outlier_threshold)
-    return res.model, res.weights, state["it"], res.iterations, res.scale, res.converged
+               max_iterations=opts.max_irls_iterations, tol=1e-3, outlier_threshold=opts.outlier_threshold)
+    p, it = _gauss_newton(sys_, res.model, u1, u2, res.weights, opts)
+    return p, res.weights, it, res.iterations, res.scale, res.converged
 
 
 # ------------------------------------------------------------- simulation
