@@ -379,6 +379,8 @@ def _gtiff_profile(width: int, height: int, count: int, dtype: str, transform, c
             "NUM_THREADS": str(max(1, int(threads)))}
     if compress.lower() in ("deflate", "lzw", "zstd") and np.dtype(dtype).kind in "ui":
         prof["predictor"] = 2
+    if compress.lower() == "zstd":
+        prof["ZSTD_LEVEL"] = "1"
     return prof
 
 

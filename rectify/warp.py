@@ -78,7 +78,8 @@ class WarpOptions:
     threads : int or None
         Worker threads; None = all cores (``os.cpu_count()``).
     compress : str
-        GeoTIFF compression: ``deflate``, ``lzw``, ``zstd`` or ``none``.
+        GeoTIFF compression: ``zstd`` (default: fast, supported by GDAL >= 2.3
+        and so by QGIS), ``deflate``, ``lzw`` or ``none``.
     cog : bool
         Write a Cloud Optimized GeoTIFF (overviews, COG layout).
     nodata : float or None
@@ -94,7 +95,7 @@ class WarpOptions:
     resampling: str = "bilinear"
     tile_px: int = 512
     threads: int | None = None
-    compress: str = "deflate"
+    compress: str = "zstd"
     cog: bool = False
     nodata: float | None = None
     map_step_px: int = 16
