@@ -184,10 +184,16 @@ class _MatrixTransform:
                              expected_shape=(3, 3))
         if not np.isfinite(m).all():
             raise InvalidInputError(f"`matrix` has non-finite entries: {m.tolist()}")
-        det = np.linalg.det(m)
-        scale = float(np.abs(m).max())
-        if scale == 0 or abs(det) <= 1e-14 * scale ** 3:
-            raise EstimationError(f"`matrix` is singular (det = {det:.3g}): {m.tolist()}")
+        # scale-invariant singularity test: rows and columns equilibrated first (map
+        # coordinates make the translation column 1e6 times larger than the rest)
+        e = np.abs(m)
+        r = e.max(axis=1, keepdims=True)
+        eq = m / np.where(r > 0, r, 1.0)
+        c = np.abs(eq).max(axis=0, keepdims=True)
+        eq = eq / np.where(c > 0, c, 1.0)
+        det = np.linalg.det(eq)
+        if not (r > 0).all() or abs(det) <= 1e-13:
+            raise EstimationError(f"`matrix` is singular (equilibrated det = {det:.3g}): {m.tolist()}")
         self._validate_matrix(m)
         m.flags.writeable = False
         object.__setattr__(self, "matrix", m)
@@ -323,11 +329,11 @@ def _dlt(s: F64, d: F64, w: F64) -> F64:
         raise EstimationError(f"no unique homography: the points are degenerate (singular values "
                               f"{sv[6:].round(12).tolist()} relative to {sv[0]:.3g})")
     hn = vt[-1].reshape(3, 3)
-    m = np.linalg.inv(td) @ hn @ ts
-    det = np.linalg.det(m / np.abs(m).max())
-    if abs(det) < 1e-14:
-        raise EstimationError(f"the estimated homography is singular (det {det:.3g})")
-    return m
+    det = np.linalg.det(hn)  # normalised coordinates: well scaled, |hn| = 1
+    if abs(det) < 1e-12:
+        raise EstimationError(f"the estimated homography is singular (det {det:.3g} in normalised "
+                              "coordinates): the points are degenerate")
+    return np.linalg.inv(td) @ hn @ ts
 
 
 def _refine_transfer(m0: F64, s: F64, d: F64, w: F64) -> F64:

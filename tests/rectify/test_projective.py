@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
 from rectify.errors import EstimationError, InvalidInputError, RasterIOError, ShapeError
-from rectify.projective import (METHODS, AffineTransform, CotangentFourPoint, Homography,
+from rectify.projective import (METHODS, PAIRS, AffineTransform, CotangentFourPoint, Homography,
                                 PolynomialTransform, base_cotangents, corrected_eq2, fit_gcps,
                                 load_transform, printed_eq2, save_transform, transform_from_dict,
                                 transform_to_dict)
@@ -158,8 +158,35 @@ def test_cotangent_agrees_with_homography_on_grid_including_base_lines():
     H = Homography(H_TRUE)
     g = np.vstack([_grid(41), SRC, [[500.0, 0.0], [1000.0, 400.0], [500.0, 400.0], [0.0, 123.0]]])
     assert np.abs(C(g) - H(g)).max() < 1e-8 * SIZE
-    pair, min_sin = C.base_pairs(g)
-    assert pair.shape == (len(g),) and (min_sin > 0.05).all()
+    pair, rel_height = C.base_pairs(g)
+    assert pair.shape == (len(g),) and (rel_height > 0.05).all()
+
+
+def test_cotangent_base_pair_avoids_the_base_line():
+    """A point on the line through control points 0 and 1 must not use the pair (0, 1)."""
+    C = CotangentFourPoint(SRC, DST)
+    on_line = np.array([[500.0, 0.0], [-300.0, 0.0], [2000.0, 0.0]])
+    pair, rel = C.base_pairs(on_line)
+    assert (pair != PAIRS.index((0, 1))).all() and (rel > 0.1).all()
+    assert_allclose(C(on_line), Homography(H_TRUE)(on_line), atol=1e-8 * SIZE)
+
+
+def test_cotangent_raises_when_no_pair_is_conditioned(monkeypatch):
+    import rectify.projective as proj
+
+    monkeypatch.setattr(proj, "COT_MIN_REL_HEIGHT", 1e6)
+    with pytest.raises(EstimationError, match="no well-conditioned base pair"):
+        CotangentFourPoint(SRC, DST)([[400.0, 300.0]])
+
+
+def test_cotangent_map_coordinates_inverse():
+    """Target in UTM-like coordinates (5e6 m): the inverse (map -> pixel) stays exact."""
+    dst = DST * 0.5 + [500000.0, 5000000.0]
+    C = CotangentFourPoint(SRC, dst)
+    H = Homography.from_points(SRC, dst)
+    g = _grid(15, 0, 1000)
+    assert np.abs(C(g) - H(g)).max() < 1e-8 * SIZE
+    assert np.abs(C.inverse(C(g)) - g).max() < 1e-8 * SIZE
 
 
 def test_cotangent_inverse_swaps_roles():
@@ -341,3 +368,14 @@ def test_load_transform_errors(tmp_path):
     with pytest.raises(InvalidInputError, match=r"misses key\(s\) \['matrix'\]"):
         transform_from_dict({"method": "homography"})
     assert transform_to_dict(Homography(H_TRUE))["method"] == "homography"
+
+
+def test_matrix_validation():
+    H = Homography([[0.5, 0.0, 5e5], [0.0, 0.5, 5e6], [0.0, 0.0, 1.0]])  # map coordinates: not singular
+    assert_allclose(H.inverse(H([[10.0, 20.0]])), [[10.0, 20.0]], atol=1e-6)
+    with pytest.raises(EstimationError, match="singular"):
+        Homography(np.ones((3, 3)))
+    with pytest.raises(ShapeError, match=r"\(3, 3\); got \(2, 3\)"):
+        Homography(np.ones((2, 3)))
+    with pytest.raises(InvalidInputError, match="non-finite"):
+        Homography([[1.0, 0, 0], [0, np.nan, 0], [0, 0, 1]])
