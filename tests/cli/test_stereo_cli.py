@@ -1,0 +1,109 @@
+"""CLI end to end: stereo resect / model / run / demo on tiny files in tmp_path."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from rectify.tables import Matches, write_matches
+from stereo.cli.main import cli
+from stereo.relative import RelativeOrientation
+from stereo.synthetic import make_scene
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene(0, size_px=480)
+
+
+def _files(tmp_path, scene, n_tie=120, n_ctrl=8):
+    rng = np.random.default_rng(0)
+    g = scene.random_ground_points(n_tie + n_ctrl, rng)
+    cam = scene.camera
+    pl = scene.pixel_from_ground(scene.left, g) + rng.normal(0, 0.2, (len(g), 2))
+    pr = scene.pixel_from_ground(scene.right, g) + rng.normal(0, 0.2, (len(g), 2))
+    (tmp_path / "cam.json").write_text(json.dumps(cam.to_dict()))
+    ids = tuple(f"t{i}" for i in range(n_tie))
+    write_matches(tmp_path / "matches.csv", Matches(ids, pl[:n_tie], pr[:n_tie]))
+    ro = RelativeOrientation.from_pixels(pl[:n_tie], pr[:n_tie], cam, ids=ids)
+    (tmp_path / "ro.json").write_text(ro.to_json())
+    lines = [f"# crs={scene.crs}", "id,col_left,row_left,col_right,row_right,x,y,z"]
+    for i in range(n_tie, n_tie + n_ctrl):
+        lines.append(f"c{i},{pl[i, 0]},{pl[i, 1]},{pr[i, 0]},{pr[i, 1]},{g[i, 0]},{g[i, 1]},{g[i, 2]}")
+    (tmp_path / "control.csv").write_text("\n".join(lines) + "\n")
+    gl = ["id,col,row,x,y,z"] + [f"g{i},{pl[i, 0]},{pl[i, 1]},{g[i, 0]},{g[i, 1]},{g[i, 2]}" for i in range(10)]
+    (tmp_path / "gcps.csv").write_text("\n".join(gl) + "\n")
+    return tmp_path
+
+
+def test_resect_cli(tmp_path, scene):
+    d = _files(tmp_path, scene)
+    r = CliRunner().invoke(cli, ["resect", "--camera", str(d / "cam.json"), "--gcps", str(d / "gcps.csv"),
+                                 "-o", str(d / "eo.json"), "--report", str(d / "rep")])
+    assert r.exit_code == 0, r.output
+    assert "space resection: 10 fit points" in r.output
+    eo = json.loads((d / "eo.json").read_text())
+    assert np.allclose(eo["position"], scene.left.position, atol=5.0)
+    assert (d / "rep" / "report.html").is_file()
+    r = CliRunner().invoke(cli, ["resect", "--camera", str(d / "cam.json"), "--gcps", str(d / "gcps.csv"),
+                                 "-o", str(d / "eo.json")])
+    assert r.exit_code != 0 and "exists" in r.output
+
+
+def test_model_cli(tmp_path, scene):
+    d = _files(tmp_path, scene)
+    r = CliRunner().invoke(cli, ["model", str(d / "ro.json"), "--matches", str(d / "matches.csv"), "--camera",
+                                 str(d / "cam.json"), "-o", str(d / "pts.ply"), "--control", str(d / "control.csv"),
+                                 "--check", "c120,c121"])
+    assert r.exit_code == 0, r.output
+    assert "absolute orientation (topocentric frame)" in r.output and "map frame instead" in r.output
+    assert (d / "pts.csv").is_file() and (d / "pts.orientation.json").is_file()
+    o = json.loads((d / "pts.orientation.json").read_text())
+    assert o["summary"]["n_check"] == 2 and o["summary"]["rmse_check_m"] < 30.0  # B/H 0.3, 0.2 px: sigma_Z ~ 5 m
+
+
+@pytest.mark.parametrize("args, msg", [
+    (["--check", "nope"], "check point id(s) ['nope']"),
+    (["--frame", "map", "--check", "c120,c121,c122,c123,c124,c125,c126"], "too few control points"),
+])
+def test_model_cli_bad_control(tmp_path, scene, args, msg):
+    d = _files(tmp_path, scene)
+    r = CliRunner().invoke(cli, ["model", str(d / "ro.json"), "--matches", str(d / "matches.csv"), "--camera",
+                                 str(d / "cam.json"), "-o", str(d / "pts.ply"), "--control",
+                                 str(d / "control.csv")] + args)
+    assert r.exit_code == 1 and msg in r.output
+
+
+def test_model_cli_mismatched_ids(tmp_path, scene):
+    d = _files(tmp_path, scene)
+    txt = (d / "matches.csv").read_text().replace("\nt", "\nx")
+    (d / "other.csv").write_text(txt)
+    r = CliRunner().invoke(cli, ["model", str(d / "ro.json"), "--matches", str(d / "other.csv"), "--camera",
+                                 str(d / "cam.json"), "-o", str(d / "pts.ply")])
+    assert r.exit_code == 1 and "do not match the points" in r.output
+
+
+def test_model_cli_collinear_control(tmp_path, scene):
+    d = _files(tmp_path, scene)
+    lines = (d / "control.csv").read_text().splitlines()
+    rows = [l.split(",") for l in lines[2:]]
+    for k, row in enumerate(rows):  # put the ground coordinates on one line
+        row[5], row[6], row[7] = str(-55000 + 10 * k), str(-3727000 + 5 * k), str(400 + k)
+    (d / "line.csv").write_text("\n".join(lines[:2] + [",".join(r) for r in rows]) + "\n")
+    r = CliRunner().invoke(cli, ["model", str(d / "ro.json"), "--matches", str(d / "matches.csv"), "--camera",
+                                 str(d / "cam.json"), "-o", str(d / "pts.ply"), "--control", str(d / "line.csv"),
+                                 "--frame", "map"])
+    assert r.exit_code == 1 and "EstimationError" in r.output
+
+
+def test_demo_cli_small(tmp_path):
+    r = CliRunner().invoke(cli, ["demo", "--out", str(tmp_path / "demo"), "--size", "320"])
+    assert r.exit_code == 0, r.output
+    assert "accuracy against the truth" in r.output
+    t = json.loads((tmp_path / "demo" / "truth_comparison.json").read_text())
+    assert t["dem_rmse_m"] < 1.5 * t["ground_pixel_m"]
+    assert (tmp_path / "demo" / "report" / "report.html").is_file()
+    assert (tmp_path / "demo" / "points.ply").is_file()

@@ -1,0 +1,92 @@
+"""Pair pipeline on a synthetic scene with known truth (no image matching: projected points)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rectify.errors import EstimationError, InvalidInputError
+from rectify.residuals import rms
+from rectify.tables import ControlTable
+from stereo.model import (ModelOptions, RelativeGeometry, build_model, match_control, read_ply_xyz,
+                          save_model)
+from stereo.relative import RelativeOrientation
+from stereo.synthetic import make_scene
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene(0, size_px=480)
+
+
+def _run(scene, seed, frame="topocentric", n_tie=250, n_ctrl=10, n_chk=30, noise_px=0.3):
+    rng = np.random.default_rng(seed)
+    n = n_tie + n_ctrl + n_chk
+    g = scene.random_ground_points(n, rng)
+    cam = scene.camera
+    pl = scene.pixel_from_ground(scene.left, g) + rng.normal(0, noise_px, (n, 2))
+    pr = scene.pixel_from_ground(scene.right, g) + rng.normal(0, noise_px, (n, 2))
+    ids = [f"t{i}" for i in range(n_tie)]
+    ro = RelativeOrientation.from_pixels(pl[:n_tie], pr[:n_tie], cam, ids=ids)
+    cids = [f"c{i}" for i in range(n_ctrl + n_chk)]
+    ctrl = ControlTable(tuple(cids), pl[n_tie:], pr[n_tie:], g[n_tie:], crs=scene.crs)
+    m = build_model(cam.photo_from_pixel(pl[:n_tie]), cam.photo_from_pixel(pr[:n_tie]),
+                    RelativeGeometry.from_relative(ro), ids=ids, control=ctrl, control_mm=match_control(ctrl, cam),
+                    options=ModelOptions(frame=frame, check_ids=tuple(cids[n_ctrl:])))
+    return m, g[n_tie + n_ctrl:]
+
+
+def test_check_points_within_predicted_std(scene):
+    """Must show: RMS of normalised check errors (error / predicted std) in [0.67, 1.5]."""
+    z = []
+    for seed in range(4):
+        m, truth = _run(scene, seed)
+        z.append((m.ground[m.is_check] - truth) / m.ground_std[m.is_check])
+    z = np.concatenate(z)
+    r = rms(z)
+    assert 0.67 <= r <= 1.5, r
+    # and per axis
+    for k in range(3):
+        assert 0.6 <= rms(z[:, k]) <= 1.6, (k, rms(z[:, k]))
+
+
+def test_topocentric_vs_map_frame_reported(scene):
+    m, truth = _run(scene, 7)
+    d = m.frame_difference
+    assert d["other_frame"] == "map" and 0 < d["rms_xyz_m"] < 1.0
+    assert m.frame["name"] == "topocentric" and len(m.frame["origin_lon_lat_h"]) == 3
+    m2, _ = _run(scene, 7, frame="map")
+    assert m2.frame_difference["other_frame"] == "topocentric"
+    assert np.allclose(m2.frame_difference["rms_xyz_m"], d["rms_xyz_m"], rtol=1e-6)
+
+
+def test_outputs(tmp_path, scene):
+    m, _ = _run(scene, 8)
+    save_model(m, points_path=tmp_path / "p.ply", csv_path=tmp_path / "p.csv",
+               orientation_path=tmp_path / "o.json")
+    assert np.allclose(read_ply_xyz(tmp_path / "p.ply"), m.ground)
+    lines = (tmp_path / "p.csv").read_text().splitlines()
+    assert lines[1].startswith("id,x,y,z,residual_mm") and len(lines) == 2 + len(m.ids)
+    with pytest.raises(InvalidInputError, match="exists"):
+        save_model(m, points_path=tmp_path / "p.ply")
+
+
+def test_bad_control(scene):
+    rng = np.random.default_rng(9)
+    g = scene.random_ground_points(40, rng)
+    cam = scene.camera
+    pl, pr = scene.pixel_from_ground(scene.left, g), scene.pixel_from_ground(scene.right, g)
+    ro = RelativeOrientation.from_pixels(pl[:30], pr[:30], cam)
+    geo = RelativeGeometry.from_relative(ro)
+    l, r = cam.photo_from_pixel(pl[:30]), cam.photo_from_pixel(pr[:30])
+    two = ControlTable(("a", "b"), pl[30:32], pr[30:32], g[30:32], crs=scene.crs)
+    with pytest.raises(EstimationError, match="too few control points: 2 full"):
+        build_model(l, r, geo, control=two, control_mm=match_control(two, cam))
+    ctrl = ControlTable(tuple("abcdef"), pl[30:36], pr[30:36], g[30:36], crs=scene.crs)
+    with pytest.raises(InvalidInputError, match=r"check point id\(s\) \['zz'\]"):
+        build_model(l, r, geo, control=ctrl, control_mm=match_control(ctrl, cam),
+                    options=ModelOptions(check_ids=("zz",)))
+    with pytest.raises(InvalidInputError, match="control_mm"):
+        build_model(l, r, geo, control=ctrl)
+    with pytest.raises(InvalidInputError, match="unknown frame"):
+        ModelOptions(frame="ecef")
