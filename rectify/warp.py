@@ -90,6 +90,9 @@ class WarpOptions:
         Spacing of the exactly-evaluated points for non-matrix mappings.
     max_window_px : int
         Largest source window side read for one tile; bigger needs split the tile.
+    cache_mb : int
+        GDAL block cache limit while warping (effective when set before GDAL
+        first uses its cache; the CLI sets ``GDAL_CACHEMAX`` at start).
     """
 
     resampling: str = "bilinear"
@@ -100,6 +103,7 @@ class WarpOptions:
     nodata: float | None = None
     map_step_px: int = 16
     max_window_px: int = 8192
+    cache_mb: int = 64
 
     def __post_init__(self) -> None:
         if self.resampling not in RESAMPLING_NAMES:
@@ -487,8 +491,11 @@ def warp_raster(src: str | Path, dst: str | Path, source_from_world: Callable[[N
                for r in range(0, grid.height, tile) for c in range(0, grid.width, tile)]
     n_empty = 0
     crs = grid.crs
+    import rasterio
     try:
-        with atomic_output(dst, overwrite=overwrite) as tmp:
+        # bound GDAL's block cache (its default is 5% of RAM): tiles are written once, whole
+        with rasterio.Env(GDAL_CACHEMAX=int(opts.cache_mb) * 1024 * 1024), \
+                atomic_output(dst, overwrite=overwrite) as tmp:
             body = tmp.with_name(tmp.name + ".body.tif") if opts.cog else tmp
             try:
                 with TiledWriter(body, grid.width, grid.height, count, dtype.name, grid.transform, crs, policy,

@@ -39,6 +39,10 @@ def warp(src, dst, gcps_path, transform_path, method, gcp_crs, dst_crs, resoluti
     transformed footprint and is aligned to the resolution. Pixels outside
     the footprint are nodata (or masked / alpha 0, following the source).
     """
+    import os
+
+    # GDAL reads GDAL_CACHEMAX once, at its first block access: bound it before any pixel IO
+    os.environ.setdefault("GDAL_CACHEMAX", "64")
     from ..fileutil import check_output
     from ..io import raster_info
     from ..warp import WarpOptions, georectify, rectify_with_transform, transform_file_crs, write_warp_report
