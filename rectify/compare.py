@@ -244,7 +244,7 @@ class StudyResults:
         # 2. RMSE vs sigma
         fig = Figure(figsize=(7, 4))
         ax = fig.add_subplot()
-        for cam in {r["camera"] for r in self.noise}:
+        for cam in dict.fromkeys(r["camera"] for r in self.noise):
             rows = [r for r in self.noise if r["camera"] == cam]
             sg = [r["sigma_px"] for r in rows]
             short = cam.split(" (")[0]
