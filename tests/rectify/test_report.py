@@ -61,6 +61,12 @@ def make_ro_table(n: int = 25, seed: int = 3) -> ResidualTable:
                          position_px=pos, n_params=5)
 
 
+def make_tiny(step: str = "tiny fit") -> ResidualTable:
+    """A small table without positions: only the CSV and one distribution plot (fast)."""
+    return ResidualTable(step, ["a", "b", "c", "d"], np.zeros((4, 2)), [[0.1, 0.0], [0.0, -0.2], [0.3, 0.1],
+                                                                      [-0.1, 0.1]], "px", n_params=2)
+
+
 def ground_of(table: ResidualTable) -> np.ndarray:
     return table.position_px @ PX_TO_GROUND.T + GROUND_ORIGIN
 
@@ -134,8 +140,10 @@ def assert_cell_matches(cell: tuple[str | None, str], expected) -> None:
     assert text == format_number(int(value) if re.fullmatch(r"-?\d+", value) else float(value))
 
 
-@pytest.fixture()
-def report_dir(tmp_path: Path) -> Path:
+@pytest.fixture(scope="module")
+def report_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One report shared by the read-only tests of this module (tests must not modify it)."""
+    tmp_path = tmp_path_factory.mktemp("shared_report")
     gcp, ro = make_gcp_table(), make_ro_table()
     c = np.eye(5)
     c[0, 1] = c[1, 0] = -0.7
@@ -253,9 +261,9 @@ def test_html_max_rows_limits_rows_not_csv(tmp_path: Path):
 
 
 def test_refuses_overwrite_then_overwrites(tmp_path: Path):
-    t = make_gcp_table()
+    t = make_tiny()
     out = tmp_path / "r"
-    write_report(out, title="first", tables=[t, make_ro_table()])
+    write_report(out, title="first", tables=[t, make_tiny("second step")])
     before = (out / "report.html").read_text()
     with pytest.raises(InvalidInputError, match="overwrite"):
         write_report(out, title="second", tables=[t])
@@ -263,7 +271,7 @@ def test_refuses_overwrite_then_overwrites(tmp_path: Path):
     write_report(out, title="second", tables=[t], overwrite=True)
     assert "second" in (out / "report.html").read_text()
     # files of the previous report that the new one does not produce are removed
-    assert not (out / "relative_orientation.csv").exists()
+    assert not (out / "second_step.csv").exists()
     assert [p.name for p in tmp_path.iterdir()] == ["r"]
 
 
@@ -271,10 +279,10 @@ def test_existing_folder_with_other_files_is_fine(tmp_path: Path):
     out = tmp_path / "r"
     out.mkdir()
     (out / "notes.txt").write_text("keep me")
-    write_report(out, title="t", tables=[make_gcp_table()])
+    write_report(out, title="t", tables=[make_tiny()])
     assert (out / "notes.txt").read_text() == "keep me"
     assert (out / "report.html").is_file()
-    write_report(out, title="t", tables=[make_gcp_table()], overwrite=True)
+    write_report(out, title="t", tables=[make_tiny()], overwrite=True)
     assert (out / "notes.txt").read_text() == "keep me"
 
 
@@ -285,26 +293,26 @@ class ExplodingFigure(Figure):
 
 def test_error_leaves_nothing(tmp_path: Path):
     with pytest.raises(RuntimeError, match="simulated"):
-        write_report(tmp_path / "r", title="t", tables=[make_gcp_table()], figures={"boom": ExplodingFigure()})
+        write_report(tmp_path / "r", title="t", tables=[make_tiny()], figures={"boom": ExplodingFigure()})
     assert list(tmp_path.iterdir()) == []
 
 
 def test_error_keeps_previous_report(tmp_path: Path):
     out = tmp_path / "r"
-    write_report(out, title="old", tables=[make_gcp_table()])
+    write_report(out, title="old", tables=[make_tiny()])
     before = sorted((p.name, p.read_bytes()) for p in out.iterdir())
     with pytest.raises(RuntimeError, match="simulated"):
-        write_report(out, title="new", tables=[make_gcp_table()], figures={"boom": ExplodingFigure()},
+        write_report(out, title="new", tables=[make_tiny()], figures={"boom": ExplodingFigure()},
                      overwrite=True)
     assert sorted((p.name, p.read_bytes()) for p in out.iterdir()) == before
     assert [p.name for p in tmp_path.iterdir()] == ["r"]
 
 
 def test_duplicate_steps_get_unique_files(tmp_path: Path):
-    t = make_ro_table()
+    t = make_tiny()
     write_report(tmp_path / "r", title="t", tables=[t, t])
     doc = json.loads((tmp_path / "r" / "report.json").read_text())
-    assert [x["files"]["csv"] for x in doc["tables"]] == ["relative_orientation.csv", "relative_orientation_2.csv"]
+    assert [x["files"]["csv"] for x in doc["tables"]] == ["tiny_fit.csv", "tiny_fit_2.csv"]
 
 
 def test_table_without_positions_and_empty_table(tmp_path: Path):

@@ -188,9 +188,14 @@ def full_report(out: Path) -> Path:
     return p1, p2
 
 
-def test_reports_render_in_chromium(chromium: str, tmp_path: Path):
-    for page in full_report(tmp_path):
-        shot = page.with_name(f"screenshot_{page.parent.name}.png")
+@pytest.fixture(scope="module")
+def pages(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    return full_report(tmp_path_factory.mktemp("browser_reports"))
+
+
+def test_reports_render_in_chromium(chromium: str, pages, tmp_path: Path):
+    for page in pages:
+        shot = tmp_path / f"screenshot_{page.parent.name}.png"
         res = check_page(chromium, page, tmp_path / f"work_{page.parent.name}", screenshot=shot)
         assert res.problems == [], res.problems
         assert res.images_in_source >= 3
@@ -199,14 +204,14 @@ def test_reports_render_in_chromium(chromium: str, tmp_path: Path):
         assert_screenshot_shows_page(shot)
 
 
-def test_checker_catches_broken_page(chromium: str, tmp_path: Path):
+def test_checker_catches_broken_page(chromium: str, pages, tmp_path: Path):
     """The same check fails on a page with an undecodable image and a script error."""
-    page = full_report(tmp_path)[0]
+    page = pages[0]
     text = page.read_text(encoding="utf-8")
     first = text.index("data:image/png;base64,") + len("data:image/png;base64,")
     broken = text[:first] + "AAAA" + text[first + 40:]
     broken = broken.replace("</main>", "<script>notAFunction();</script></main>")
-    bad = page.with_name("broken.html")
+    bad = tmp_path / "broken.html"
     bad.write_text(broken, encoding="utf-8")
     res = check_page(chromium, bad, tmp_path / "work_bad")
     problems = "\n".join(res.problems)
