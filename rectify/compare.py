@@ -50,7 +50,8 @@ from .projective import CotangentFourPoint, Homography, base_cotangents, printed
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["CameraGeometry", "StudyConfig", "StudyResults", "run_study", "write_study", "CAMERAS"]
+__all__ = ["CameraGeometry", "StudyConfig", "StudyResults", "run_study", "write_study", "comparison_summary",
+           "CAMERAS"]
 
 F64 = NDArray[np.float64]
 Progress = Callable[[int, int], None] | None
@@ -545,3 +546,30 @@ def write_study(results: StudyResults, out_dir: str | Path, *, overwrite: bool =
             fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
     atomic_write_text(out / "study.json", json.dumps(results.to_dict(), indent=2) + "\n", overwrite=overwrite)
     return atomic_write_text(out / "study.md", md, overwrite=overwrite)
+
+
+def comparison_summary(*, n_configs: int = 200, n_trials: int = 20, n_speed_points: int = 100_000,
+                       seed: int = 0, progress: Progress = None) -> dict[str, Any]:
+    """A small run of the study, condensed to a flat dict of its key numbers (for ``rectify demo``).
+
+    Keys: ``agreement_max_rel`` (largest |cotangent - homography| / image size),
+    ``printed_eq2_median_rel``, per camera ``rmse_1px_<camera>_{cotangent,homography4,homography_lsq}``
+    (px at sigma = 1 px), ``propagation_ratio_min/max`` (predicted / Monte Carlo),
+    ``speed_ratio`` (cotangent / homography throughput) and the sizes used.
+    """
+    cfg = StudyConfig(n_configs=n_configs, n_trials=n_trials, noise_px=(1.0,), n_speed_points=n_speed_points,
+                      speed_repeats=3, seed=seed)
+    res = run_study(cfg, progress=progress)
+    out: dict[str, Any] = {"n_configs": res.agreement["n_configs"], "n_trials": n_trials,
+                           "agreement_max_rel": res.agreement["max_rel"],
+                           "printed_eq2_median_rel": res.agreement["printed_median_rel"]}
+    for r in res.noise:
+        key = r["camera"].split(" (")[0].lower().replace("-", "_")
+        out[f"rmse_1px_{key}_cotangent"] = r["rmse_cotangent"]
+        out[f"rmse_1px_{key}_homography4"] = r["rmse_homography4"]
+        out[f"rmse_1px_{key}_homography_lsq"] = r["rmse_homography_lsq"]
+    ratios = [r["ratio"] for r in res.propagation]
+    out["propagation_ratio_min"] = min(ratios)
+    out["propagation_ratio_max"] = max(ratios)
+    out["speed_ratio"] = res.speed["ratio"]
+    return out

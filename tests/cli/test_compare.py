@@ -60,3 +60,12 @@ def test_study_config_validation():
         StudyConfig(noise_px=(-1.0,))
     with pytest.raises(InvalidInputError, match="StudyConfig"):
         run_study({"n_trials": 3})  # type: ignore[arg-type]
+
+
+def test_comparison_summary_for_demo():
+    from rectify.compare import comparison_summary
+
+    d = comparison_summary(n_configs=10, n_trials=5, n_speed_points=1000)
+    assert d["agreement_max_rel"] < 1e-8 and d["printed_eq2_median_rel"] > 1e-2
+    assert d["rmse_1px_resurs_f_cotangent"] == pytest.approx(d["rmse_1px_resurs_f_homography4"], rel=1e-6)
+    assert {"rmse_1px_aerial_homography_lsq", "propagation_ratio_min", "speed_ratio"} <= set(d)
