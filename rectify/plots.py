@@ -378,6 +378,23 @@ def histogram_qq_figure(table: ResidualTable, *, title: str | None = None) -> Fi
     return fig
 
 
+def _limit_to_fit(ax, y: NDArray, keep: NDArray[np.bool_], *, zero_floor: bool) -> None:
+    """Scale the y axis to the non-outlier values; say how many points lie beyond."""
+    vals = y[keep & np.isfinite(y)]
+    if vals.size < 2:
+        return
+    lo, hi = np.percentile(vals, [0.0, 100.0])
+    pad = 0.1 * max(hi - lo, abs(hi), 1e-12)
+    lo = 0.0 if zero_floor else lo - pad
+    hi = hi + pad
+    beyond = int(np.sum(np.isfinite(y) & ((y > hi) | (y < lo))))
+    if beyond:
+        ax.set_ylim(lo, hi)
+        ax.text(0.99, 0.01, f"{beyond} outlier(s) beyond the plotted range", transform=ax.transAxes,
+                ha="right", va="bottom", fontsize=8, color=_OUTLIER_COLOUR,
+                bbox={"facecolor": "white", "alpha": 0.85, "edgecolor": "none", "pad": 2})
+
+
 def radial_figure(table: ResidualTable, principal_point_px: ArrayLike, *,
                   components_y_up: bool = False, n_bins: int = 10, title: str | None = None) -> Figure:
     """Residual against radial distance from the principal point.
@@ -448,6 +465,7 @@ def radial_figure(table: ResidualTable, principal_point_px: ArrayLike, *,
             ax.plot(centres, vals, "-o", color="#ff7f0e", lw=2, ms=4, label=f"{stat_name} per radial bin")
         if stat_name == "mean":
             ax.axhline(0.0, color="k", lw=0.8)
+        _limit_to_fit(ax, y, fit | chk, zero_floor=stat_name == "RMS")
         ax.set_xlim(left=0.0)
         ax.set_xlabel("radial distance from principal point r (px)")
         ax.set_ylabel(f"{lab} ({table.units})")

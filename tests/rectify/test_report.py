@@ -537,3 +537,19 @@ def test_vector_figure_grids_many_points():
     assert "10\u00d710 grid" in fig.axes[0].get_title(loc="left").replace("\n", " ")
     with pytest.raises(InvalidInputError, match="max_arrows"):
         residual_vector_figure(t, max_arrows=0)
+
+
+def test_radial_figure_scales_to_fit_points():
+    rng = np.random.default_rng(1)
+    n = 300
+    pos = rng.uniform(0, [640, 480], (n, 2))
+    v = rng.normal(0, 0.01, (n, 2))
+    out = np.zeros(n, bool)
+    out[:5] = True
+    v[:5] = 5.0
+    t = ResidualTable("ro", [str(i) for i in range(n)], np.zeros((n, 2)), v, "px", outlier=out, position_px=pos)
+    fig = radial_figure(t, (320, 240))
+    ax = fig.axes[0]
+    assert ax.get_ylim()[1] < 0.1  # not stretched by the 7 px outliers
+    assert any("5 outlier(s) beyond" in txt.get_text() for txt in ax.texts)
+    np.testing.assert_allclose(ax.collections[0].get_offsets()[:, 1], t.norm[~out])
