@@ -32,8 +32,9 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, Callable, Protocol, Sequence
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -43,9 +44,22 @@ from .errors import EstimationError, InvalidInputError, ShapeError
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "PsiFunction", "Huber", "Tukey", "Hampel", "Andrews", "PSI_FUNCTIONS", "get_psi",
-    "robust_scale", "efficiency", "IrlsResult", "irls", "irls_linear",
-    "RansacModel", "RansacResult", "ransac", "MAD_TO_SIGMA",
+    "MAD_TO_SIGMA",
+    "PSI_FUNCTIONS",
+    "Andrews",
+    "Hampel",
+    "Huber",
+    "IrlsResult",
+    "PsiFunction",
+    "RansacModel",
+    "RansacResult",
+    "Tukey",
+    "efficiency",
+    "get_psi",
+    "irls",
+    "irls_linear",
+    "ransac",
+    "robust_scale",
 ]
 
 #: median(|e|) / MAD_TO_SIGMA estimates sigma for zero-mean normal errors
@@ -429,7 +443,7 @@ class RansacModel(Protocol):
     """What :func:`ransac` needs from a model class."""
 
     @classmethod
-    def from_points(cls, *data: NDArray[np.float64]) -> "RansacModel": ...
+    def from_points(cls, *data: NDArray[np.float64]) -> RansacModel: ...
 
     def residuals(self, *data: NDArray[np.float64]) -> NDArray[np.float64]: ...
 

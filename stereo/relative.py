@@ -63,15 +63,20 @@ import logging
 import math
 import time
 import warnings
-from dataclasses import dataclass, field
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NamedTuple, Sequence
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from rectify.errors import (ConvergenceError, EstimationError, InvalidInputError, StereoError,
-                            WeakGeometryWarning)
+from rectify.errors import (
+    ConvergenceError,
+    EstimationError,
+    InvalidInputError,
+    WeakGeometryWarning,
+)
 from rectify.points import as_pair, as_weights
 from rectify.residuals import ResidualTable, rms
 from rectify.robust import PSI_FUNCTIONS, get_psi, irls
@@ -80,8 +85,18 @@ from rectify.rotation import angles_from_matrix, check_rotation
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "SYSTEMS", "ROBUST_METHODS", "System", "RelativeOptions", "RelativeOrientation", "WesternForm",
-    "coplanarity", "relative_from_essential", "precision_structure", "PrecisionStructure", "simulate_pair", "SimulatedPair",
+    "ROBUST_METHODS",
+    "SYSTEMS",
+    "PrecisionStructure",
+    "RelativeOptions",
+    "RelativeOrientation",
+    "SimulatedPair",
+    "System",
+    "WesternForm",
+    "coplanarity",
+    "precision_structure",
+    "relative_from_essential",
+    "simulate_pair",
 ]
 
 ROBUST_METHODS = ("none", *sorted(PSI_FUNCTIONS))
@@ -477,7 +492,7 @@ def relative_from_essential(left_mm: ArrayLike, right_mm: ArrayLike, focal_lengt
         raise EstimationError(f"OpenCV found no essential matrix for {len(l)} tie points (degenerate configuration?)")
     E = E[:3]
     try:
-        ninl, R, t, mask2 = cv2.recoverPose(E, n1, n2, np.eye(3), mask=mask.copy())
+        _ninl, R, t, mask2 = cv2.recoverPose(E, n1, n2, np.eye(3), mask=mask.copy())
     except cv2.error as err:
         raise EstimationError(f"OpenCV recoverPose failed: {err}") from err
     inl = (mask2.reshape(-1) > 0)
@@ -731,7 +746,7 @@ class RelativeOrientation:
         weights: ArrayLike | None = None,
         pixel_size_mm: float | None = None,
         options: RelativeOptions | None = None,
-    ) -> "RelativeOrientation":
+    ) -> RelativeOrientation:
         """Estimate the five elements of relative orientation by least squares.
 
         Parameters
@@ -850,9 +865,8 @@ class RelativeOrientation:
                 last_err = err
                 result = None
         if result is None:
-            assert last_err is not None
-            raise last_err
-        p, w, it, irls_it, scale, conv_irls = result
+            raise last_err if last_err is not None else EstimationError("relative orientation failed")
+        p, w, it, irls_it, scale, _irls_converged = result
         p = _wrap(p)
 
         # ---- precision
@@ -894,7 +908,7 @@ class RelativeOrientation:
 
     @classmethod
     def from_pixels(cls, left_px: ArrayLike, right_px: ArrayLike, camera, *, camera_right=None,
-                    **kwargs: Any) -> "RelativeOrientation":
+                    **kwargs: Any) -> RelativeOrientation:
         """Like :meth:`from_points` for pixel coordinates (N, 2) and :class:`rectify.camera.Camera` objects.
 
         Pixels go to photo mm through the camera (principal point, distortion);

@@ -11,8 +11,19 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
 from rectify.errors import EstimationError, InvalidInputError, ShapeError
-from rectify.robust import (PSI_FUNCTIONS, Andrews, Hampel, Huber, Tukey, efficiency, get_psi, irls,
-                            irls_linear, ransac, robust_scale)
+from rectify.robust import (
+    PSI_FUNCTIONS,
+    Andrews,
+    Hampel,
+    Huber,
+    Tukey,
+    efficiency,
+    get_psi,
+    irls,
+    irls_linear,
+    ransac,
+    robust_scale,
+)
 
 
 # ------------------------------------------------------------------ psi
