@@ -336,7 +336,7 @@ def histogram_qq_figure(table: ResidualTable, *, title: str | None = None) -> Fi
                  edgecolor="white", linewidth=0.5)
         xs = np.linspace(0.0, top, 200)
         ax1.plot(xs, stats.chi.pdf(xs, k), "k--", lw=1.2, label=f"\u03c7 density, {k} dof")
-        ax1.legend(fontsize=8)
+        ax1.legend(fontsize=8, loc="upper right")
     else:
         ax1.text(0.5, 0.5, "no finite normalised residuals\n(sigma undefined)", ha="center",
                  va="center", transform=ax1.transAxes)
@@ -470,7 +470,7 @@ def radial_figure(table: ResidualTable, principal_point_px: ArrayLike, *,
         ax.set_xlabel("radial distance from principal point r (px)")
         ax.set_ylabel(f"{lab} ({table.units})")
         ax.grid(True, alpha=0.25)
-        ax.legend(fontsize=8)
+        ax.legend(fontsize=8, loc="upper left")
     axes[0].set_title("Residual length vs radius", fontsize=10)
     if two:
         axes[1].set_title("Radial component vs radius (distortion signature)", fontsize=10)
@@ -583,7 +583,7 @@ def height_bars_figure(table: ResidualTable, *, component: int | str = -1,
         handles.append(Line2D([], [], color=_CHECK_COLOUR, lw=6, label="check point"))
     if out.any():
         handles.append(Line2D([], [], color=_OUTLIER_COLOUR, lw=6, label="outlier"))
-    ax.legend(handles=handles, fontsize=8)
+    ax.legend(handles=handles, fontsize=8, loc="upper right")
     ax.grid(True, axis="y", alpha=0.25)
     ax.set_title(_wrap(title or f"{table.step}: {comps[j]} residual per point", fig, 11), fontsize=11)
     return fig
