@@ -136,6 +136,10 @@ class MatcherConfig:
         Extra margin around the predicted right window (full-resolution px).
     max_candidates : int
         Candidate matches held at most in tiled mode (grid-thinned beyond).
+    max_tiles : int
+        Full-resolution tiles searched at most; beyond, an even sub-grid of
+        tiles is searched (every k-th tile in each direction), so the time
+        stays bounded too while matches still spread over the whole overlap.
     min_inliers : int
         Fewer verified matches than this means the images do not overlap.
     lsm : LsmConfig
@@ -161,6 +165,7 @@ class MatcherConfig:
     overview_px: int = 2048
     search_margin_px: float = 96.0
     max_candidates: int = 200000
+    max_tiles: int = 100
     min_inliers: int = 15
     lsm: LsmConfig = field(default_factory=LsmConfig)
     percentiles: tuple[float, float] = (0.5, 99.5)
@@ -172,7 +177,7 @@ class MatcherConfig:
         if self.verify not in VERIFY_METHODS:
             raise InvalidInputError(f"unknown verification {self.verify!r}; choose from {VERIFY_METHODS}")
         for name in ("max_matches", "max_keypoints", "cell_cap", "tile_px", "overview_px", "max_candidates",
-                     "tiled_above_px"):
+                     "tiled_above_px", "max_tiles"):
             v = getattr(self, name)
             if not isinstance(v, (int, np.integer)) or v < 1:
                 raise InvalidInputError(f"{name} must be a positive integer; got {v!r}")
@@ -926,9 +931,10 @@ def _match_tiled(left_path, right_path, il, ir, cfg: MatcherConfig, progress) ->
     t1 = time.perf_counter()
     margin = cfg.search_margin_px + 4.0 * err_full
     gate = margin
-    tiles = list(rio.iter_windows(il.width, il.height, cfg.tile_px, cfg.overlap_px))
+    tiles = _pick_tiles(il, cfg)
     n_tiles = len(tiles)
     per_tile_kp = max(500, min(cfg.max_keypoints, int(4 * cfg.max_candidates / max(n_tiles, 1))))
+    quota = max(50, int(math.ceil(2.0 * cfg.max_matches / max(n_tiles, 1))))
     store_l: list[NDArray] = []
     store_r: list[NDArray] = []
     store_raw: list[NDArray] = []
@@ -936,7 +942,7 @@ def _match_tiled(left_path, right_path, il, ir, cfg: MatcherConfig, progress) ->
     n_stored = 0
     n_det_l = n_det_r = n_matched = n_ref = n_fail = 0
     kw = dict(detector=cfg.detector, cell_cap=cfg.cell_cap, percentiles=cfg.percentiles)
-    max_right_px = 4 * (cfg.tile_px + 2 * cfg.overlap_px) ** 2 / 2
+    right = _RightTiles(right_path, ir, cfg, per_tile_kp, lim_r)
     for k, (c0, r0, w, h) in enumerate(tiles):
         if progress is not None:
             progress(k, n_tiles)
@@ -953,25 +959,19 @@ def _match_tiled(left_path, right_path, il, ir, cfg: MatcherConfig, progress) ->
         x1, y1 = min(x1, ir.width - 1), min(y1, ir.height - 1)
         if x1 - x0 < 32 or y1 - y0 < 32:
             continue
-        rw, rh = x1 - x0 + 1, y1 - y0 + 1
-        dec = max(1.0, math.sqrt(rw * rh / max_right_px))
+        fr = right.features(x0, y0, x1, y1)
+        if len(fr) < 4:
+            continue
         Ld, Lv = rio.read_window(left_path, c0, r0, w, h)
         if Lv.mean() < 0.02:
             continue
-        out_shape = None if dec == 1.0 else (max(8, int(round(rh / dec))), max(8, int(round(rw / dec))))
-        Rd, Rv = rio.read_window(right_path, x0, y0, rw, rh, out_shape=out_shape)
-        if Rv.mean() < 0.02:
-            continue
-        sx = rw / Rd.shape[1]
         fl = detect(Ld, valid=Lv, max_keypoints=per_tile_kp, limits=lim_l, **kw)
-        fr = detect(Rd, valid=Rv, max_keypoints=int(per_tile_kp * 1.5), limits=lim_r, **kw)
         n_det_l += len(fl)
-        n_det_r += len(fr)
-        if len(fl) < 4 or len(fr) < 4:
+        if len(fl) < 4:
             continue
         pairs = match_descriptors(fl, fr, ratio=cfg.ratio, mutual=cfg.mutual)
         pl = fl.xy[pairs.left] + [c0, r0]
-        pr = (fr.xy[pairs.right] + 0.5) * sx - 0.5 + [x0, y0]
+        pr = fr.xy[pairs.right]
         ratio = pairs.ratio
         inside = (pl[:, 0] >= core[0]) & (pl[:, 0] < core[2]) & (pl[:, 1] >= core[1]) & (pl[:, 1] < core[3])
         ok = inside & (np.linalg.norm(_apply_h(H, pl) - pr, axis=1) < gate)
@@ -979,20 +979,26 @@ def _match_tiled(left_path, right_path, il, ir, cfg: MatcherConfig, progress) ->
         n_matched += len(pl)
         if not len(pl):
             continue
+        if len(pl) > quota:     # keep what the output can use, evenly over the tile core
+            keep = grid_select(pl - [c0, r0], -ratio, (h, w), quota, cell_cap=cfg.cell_cap)
+            pl, pr, ratio = pl[keep], pr[keep], ratio[keep]
         raw = pr.copy()
         score = ratio
         if cfg.refine:
+            m = int(cfg.lsm.radius_px) + 4
+            bx0, by0 = np.floor(pr.min(axis=0)).astype(int) - m
+            bx1, by1 = np.ceil(pr.max(axis=0)).astype(int) + m
+            Rd, Rv = rio.read_window(right_path, bx0, by0, bx1 - bx0 + 1, by1 - by0 + 1)
             Lg = _grey_float(Ld, Lv)
             Rg = _grey_float(Rd, Rv)
-            pr_loc = (pr - [x0, y0] + 0.5) / sx - 0.5
-            A = _h_jacobian(H, pl) / sx
-            lr = refine_matches(Lg, Rg, pl - [c0, r0], pr_loc, affine=A, config=cfg.lsm)
+            A = _h_jacobian(H, pl)
+            lr = refine_matches(Lg, Rg, pl - [c0, r0], pr - [bx0, by0], affine=A, config=cfg.lsm)
             okr = lr.converged
             n_ref += int(okr.sum())
             n_fail += int((~okr).sum())
             pl, raw = pl[okr], raw[okr]
-            pr = (lr.right[okr] + 0.5) * sx - 0.5 + [x0, y0]
-            score = lr.std_px[okr] * sx
+            pr = lr.right[okr] + [bx0, by0]
+            score = lr.std_px[okr]
         store_l.append(pl)
         store_r.append(pr)
         store_raw.append(raw)
@@ -1003,6 +1009,7 @@ def _match_tiled(left_path, right_path, il, ir, cfg: MatcherConfig, progress) ->
             n_stored = len(store_l[0])
     if progress is not None:
         progress(n_tiles, n_tiles)
+    n_det_r = right.n_detected
     t2 = time.perf_counter()
     if n_stored > cfg.max_candidates:
         store_l, store_r, store_raw, store_s = _thin(store_l, store_r, store_raw, store_s, il, cfg)
@@ -1025,6 +1032,71 @@ def _match_tiled(left_path, right_path, il, ir, cfg: MatcherConfig, progress) ->
     timings = {"coarse": t1 - t0, "tiles": t2 - t1, "verify": t3 - t2, "total": t3 - t0}
     return _result(out_l, out_r, out_s, ver, cfg, (n_det_l, n_det_r), n_matched, n_verified, n_ref, n_fail,
                    out_raw, *cand, True, ((il.height, il.width), (ir.height, ir.width)), timings)
+
+
+class _RightTiles:
+    """Right-image features by tiles, each tile detected once (keypoints of its core only) and kept in
+    a least-recently-used cache bounded to ``cache_mb`` of descriptors."""
+
+    def __init__(self, path, info, cfg: MatcherConfig, per_tile_kp: int, limits, cache_mb: float = 256.0):
+        self.path, self.info, self.cfg = path, info, cfg
+        self.kp = per_tile_kp
+        self.limits = limits
+        self.tiles = list(rio.iter_windows(info.width, info.height, cfg.tile_px, cfg.overlap_px))
+        self.nx = math.ceil(info.width / cfg.tile_px)
+        self.cache: dict[int, Features] = {}
+        self.bytes = 0
+        self.max_bytes = cache_mb * 2 ** 20
+        self.n_detected = 0
+
+    def _tile(self, idx: int) -> Features:
+        f = self.cache.pop(idx, None)
+        if f is None:
+            c0, r0, w, h = self.tiles[idx]
+            data, valid = rio.read_window(self.path, c0, r0, w, h)
+            cfg = self.cfg
+            if valid.mean() < 0.02:
+                f = Features.concat([], 128 if cfg.detector == "sift" else 32,
+                                    np.float32 if cfg.detector == "sift" else np.uint8)
+            else:
+                f = detect(data, valid=valid, detector=cfg.detector, max_keypoints=self.kp, cell_cap=cfg.cell_cap,
+                           percentiles=cfg.percentiles, limits=self.limits).transformed(1.0, (c0, r0))
+                x0, y0, x1, y1 = _core(c0, r0, w, h, self.info, cfg)
+                inside = (f.xy[:, 0] >= x0) & (f.xy[:, 0] < x1) & (f.xy[:, 1] >= y0) & (f.xy[:, 1] < y1)
+                f = f.subset(np.flatnonzero(inside))
+            self.n_detected += len(f)
+            self.bytes += f.descriptors.nbytes
+            while self.cache and self.bytes > self.max_bytes:
+                old = next(iter(self.cache))
+                self.bytes -= self.cache.pop(old).descriptors.nbytes
+        self.cache[idx] = f           # most recently used last
+        return f
+
+    def features(self, x0: int, y0: int, x1: int, y1: int) -> Features:
+        """Keypoints inside [x0, x1] x [y0, y1] (full-resolution right pixels)."""
+        t = self.cfg.tile_px
+        items = []
+        for ty in range(max(y0, 0) // t, min(y1, self.info.height - 1) // t + 1):
+            for tx in range(max(x0, 0) // t, min(x1, self.info.width - 1) // t + 1):
+                f = self._tile(ty * self.nx + tx)
+                m = (f.xy[:, 0] >= x0) & (f.xy[:, 0] <= x1) & (f.xy[:, 1] >= y0) & (f.xy[:, 1] <= y1)
+                items.append(f.subset(np.flatnonzero(m)))
+        return Features.concat(items, 128 if self.cfg.detector == "sift" else 32,
+                               np.float32 if self.cfg.detector == "sift" else np.uint8)
+
+
+def _pick_tiles(info, cfg: MatcherConfig) -> list[tuple[int, int, int, int]]:
+    """Tile windows to search: all of them, or an even sub-grid of at most ``max_tiles``."""
+    tiles = list(rio.iter_windows(info.width, info.height, cfg.tile_px, cfg.overlap_px))
+    if len(tiles) <= cfg.max_tiles:
+        return tiles
+    nx = math.ceil(info.width / cfg.tile_px)
+    ny = math.ceil(info.height / cfg.tile_px)
+    k = math.ceil(math.sqrt(len(tiles) / cfg.max_tiles))
+    while math.ceil(nx / k) * math.ceil(ny / k) > cfg.max_tiles:
+        k += 1
+    ox, oy = (nx - 1) % k // 2, (ny - 1) % k // 2
+    return [t for i, t in enumerate(tiles) if (i // nx - oy) % k == 0 and (i % nx - ox) % k == 0]
 
 
 def _core(c0, r0, w, h, info, cfg):

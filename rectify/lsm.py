@@ -154,24 +154,31 @@ def bicubic(img: NDArray, x: NDArray[np.float64], y: NDArray[np.float64]) -> NDA
     Same contract as :func:`bilinear` (NaN outside the image and where a tap
     is NaN); borders are replicated for the outer taps.
     """
-    h, w = img.shape
+    a = np.asarray(img)
+    return _bicubic_padded(np.pad(a, 2, mode="edge"), a.shape[0], a.shape[1], x, y)
+
+
+def _bicubic_padded(pad: NDArray, h: int, w: int, x, y) -> NDArray[np.float64]:
+    """:func:`bicubic` on an image already padded by 2 px (edge mode); flat gathers, no clipping."""
     x = np.asarray(x, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
     inside = (x >= 0) & (y >= 0) & (x <= w - 1) & (y <= h - 1)
     xc = np.clip(x, 0, w - 1)
     yc = np.clip(y, 0, h - 1)
-    x0 = np.floor(xc).astype(np.int64)
-    y0 = np.floor(yc).astype(np.int64)
+    x0 = np.floor(xc)
+    y0 = np.floor(yc)
     wx = _keys(xc - x0)
     wy = _keys(yc - y0)
-    out = np.zeros(x.shape, dtype=np.float64)
+    stride = w + 4
+    base = (y0.astype(np.int64) + 1) * stride + x0.astype(np.int64) + 1
+    flat = pad.ravel()
+    out = None
     for j in range(4):
-        yy = np.clip(y0 + j - 1, 0, h - 1)
-        row = np.zeros(x.shape, dtype=np.float64)
+        row = None
         for i in range(4):
-            xx = np.clip(x0 + i - 1, 0, w - 1)
-            row += wx[i] * img[yy, xx]
-        out += wy[j] * row
+            v = wx[i] * flat.take(base + (j * stride + i))
+            row = v if row is None else row + v
+        out = wy[j] * row if out is None else out + wy[j] * row
     return np.where(inside, out, np.nan)
 
 
@@ -241,6 +248,8 @@ def refine_matches(left_img: ArrayLike, right_img: ArrayLike, left_xy: ArrayLike
         if A0.shape != (n, 2, 2) or not np.isfinite(A0).all():
             raise ShapeError(f"`affine` must be finite (N, 2, 2) or (2, 2) with N={n}; got {np.shape(affine)}",
                              actual_shape=np.shape(affine), expected_shape=(n, 2, 2))
+    Lp = (np.pad(L, 2, mode="edge"), L.shape[0], L.shape[1])
+    Rp = (np.pad(R, 2, mode="edge"), R.shape[0], R.shape[1])
     out_r = pr.copy()
     conv = np.zeros(n, dtype=bool)
     std = np.full(n, np.nan)
@@ -250,7 +259,7 @@ def refine_matches(left_img: ArrayLike, right_img: ArrayLike, left_xy: ArrayLike
     chunk = max(1, int(chunk))
     for s in range(0, n, chunk):
         e = min(n, s + chunk)
-        res = _refine_chunk(L, R, pl[s:e], pr[s:e], np.array(A0[s:e]), cfg)
+        res = _refine_chunk(Lp, Rp, pl[s:e], pr[s:e], np.array(A0[s:e]), cfg)
         out_r[s:e], conv[s:e], std[s:e], corr[s:e], iters[s:e], aff[s:e] = res
         if progress is not None:
             progress(e, n)
@@ -266,7 +275,7 @@ def _refine_chunk(L, R, pl, pr, A, cfg: LsmConfig):
     uy = uy.ravel()[None, :]
     m = len(pl)
     npx = ux.shape[1]
-    T = bicubic(L, pl[:, :1] + ux, pl[:, 1:] + uy)                    # (m, P)
+    T = _bicubic_padded(*L, pl[:, :1] + ux, pl[:, 1:] + uy)                    # (m, P)
     t = pr.copy()
     A = A.copy()
     # initial radiometry from window statistics
@@ -290,7 +299,7 @@ def _refine_chunk(L, R, pl, pr, A, cfg: LsmConfig):
         ti, Ai = t[idx], A[idx]
         xs = ti[:, :1] + Ai[:, 0, :1] * ux + Ai[:, 0, 1:] * uy
         ys = ti[:, 1:] + Ai[:, 1, :1] * ux + Ai[:, 1, 1:] * uy
-        Rv = bicubic(R, xs, ys)
+        Rv = _bicubic_padded(*R, xs, ys)
         # gradients of the resampled window (consistent with the resampling), back to image axes
         W = Rv.reshape(-1, 2 * r + 1, 2 * r + 1)
         du = np.gradient(W, axis=2).reshape(Rv.shape)
@@ -356,4 +365,4 @@ def _refine_chunk(L, R, pl, pr, A, cfg: LsmConfig):
 def _sample(R, t, A, ux, uy):
     xs = t[:, :1] + A[:, 0, :1] * ux + A[:, 0, 1:] * uy
     ys = t[:, 1:] + A[:, 1, :1] * ux + A[:, 1, 1:] * uy
-    return bicubic(R, xs, ys)
+    return _bicubic_padded(*R, xs, ys)
