@@ -326,3 +326,17 @@ def test_bad_options():
         verify_matches(np.zeros((5, 2)), np.zeros((5, 2)), method="fundamental")
     with pytest.raises(InvalidInputError, match="unknown verification"):
         verify_matches(np.zeros((5, 2)), np.zeros((5, 2)), method="x")
+
+
+@pytest.mark.shared
+def test_ngi_relative_orientation_parallax_lower_with_refined_matches(ngi_pair):
+    pytest.importorskip("stereo.relative")
+    sys.path.insert(0, str(ROOT / "scripts"))
+    import ngi_refinement
+
+    out = ngi_refinement.compare(ngi_pair)
+    assert out["refined"]["ro_converged"] and out["raw"]["ro_converged"]
+    assert out["refined"]["ro_rms_parallax_px"] < out["raw"]["ro_rms_parallax_px"]
+    # like for like: the same points with their raw positions
+    assert out["refined"]["ro_rms_parallax_px"] < out["raw_same_points"]["ro_rms_parallax_px"]
+    assert out["refined"]["sampson_median_px"] < out["raw_same_points"]["sampson_median_px"]
