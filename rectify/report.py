@@ -38,6 +38,7 @@ import os
 import re
 import shutil
 import tempfile
+from html.parser import HTMLParser
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -60,6 +61,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "write_report",
+    "verify_report",
     "residual_geojson",
     "json_safe",
     "slugify",
@@ -709,3 +711,131 @@ def _commit(tmp: Path, out: Path, files: list[str], previous: list[str], overwri
         tmp.rmdir()
     except OSError as err:
         raise RasterIOError(f"cannot move the report into {str(out)!r}: {err}") from err
+
+
+# --------------------------------------------------------------------------- verification
+class _Cells(HTMLParser):
+    """Collect every element with ``data-key``: (scope, key) -> list of (data-value, data-json, text)."""
+
+    def __init__(self) -> None:
+        super().__init__(convert_charrefs=True)
+        self.cells: dict[tuple[str, str], list[tuple[str | None, str | None, str]]] = {}
+        self._open: tuple[str, str, str | None, str | None] | None = None
+        self._text: list[str] = []
+
+    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+        a = dict(attrs)
+        if "data-key" in a:
+            self._open = (a.get("data-scope") or "", a["data-key"] or "", a.get("data-value"), a.get("data-json"))
+            self._text = []
+
+    def handle_data(self, data: str) -> None:
+        if self._open is not None:
+            self._text.append(data)
+
+    def handle_endtag(self, tag: str) -> None:
+        if tag == "td" and self._open is not None:
+            scope, key, value, js = self._open
+            self.cells.setdefault((scope, key), []).append((value, js, "".join(self._text).strip()))
+            self._open = None
+
+
+def _same_number(cell: tuple[str | None, str | None, str], expected: Any) -> bool:
+    value, _, text = cell
+    if expected is None or (isinstance(expected, float) and not math.isfinite(expected)):
+        return value in ("", None) and text == "n/a"
+    if value in ("", None):
+        return False
+    num: Any = int(value) if re.fullmatch(r"-?\d+", value) else float(value)
+    return float(num) == float(expected) and text == format_number(num)
+
+
+def verify_report(out_dir: str | os.PathLike) -> list[str]:
+    """Check that every number shown in ``report.html`` equals the CSV and ``report.json`` values.
+
+    Compares each summary cell with ``report.json``, each residual-row cell with
+    the table's CSV (exact value in ``data-value``, shown text = 4 significant
+    digits) and reports number-bearing cells that correspond to nothing.
+
+    Returns
+    -------
+    list of str
+        Discrepancies; empty when the page agrees with the files.
+
+    Raises
+    ------
+    RasterIOError
+        If the report files cannot be read.
+    """
+    import csv as _csv
+
+    root = Path(out_dir)
+    try:
+        doc = json.loads((root / "report.json").read_text())
+        page = (root / "report.html").read_text(encoding="utf-8")
+    except (OSError, ValueError) as err:
+        raise RasterIOError(f"cannot read the report in {str(root)!r}: {err}") from err
+    parser = _Cells()
+    parser.feed(page)
+    cells = parser.cells
+    problems: list[str] = []
+    seen: set[tuple[str, str]] = set()
+
+    def check(key: tuple[str, str], expected: Any) -> None:
+        seen.add(key)
+        if key not in cells:
+            problems.append(f"{key}: missing from the HTML (expected {expected!r})")
+            return
+        for cell in cells[key]:
+            if not _same_number(cell, expected):
+                problems.append(f"{key}: HTML shows {cell[2]!r} (data-value {cell[0]!r}), files say {expected!r}")
+
+    for t in doc.get("tables", []):
+        slug = t["slug"]
+        for key, val in t["summary"].items():
+            if key in ("step", "units"):
+                continue
+            if isinstance(val, str):
+                seen.add((slug, key))
+                if [c[2] for c in cells.get((slug, key), [])] != [val] * len(cells.get((slug, key), [1])):
+                    problems.append(f"{(slug, key)}: text differs from {val!r}")
+            elif isinstance(val, bool):
+                seen.add((slug, key))
+                if any(c[2] != format_number(val) for c in cells.get((slug, key), [])):
+                    problems.append(f"{(slug, key)}: HTML differs from {val!r}")
+            elif isinstance(val, (list, dict)):
+                seen.add((slug, key))
+            else:
+                check((slug, key), val)
+        seen.add((slug, "units"))
+        try:
+            lines = [ln for ln in (root / t["files"]["csv"]).read_text().splitlines() if not ln.startswith("#")]
+        except OSError as err:
+            raise RasterIOError(f"cannot read {t['files']['csv']!r}: {err}") from err
+        for i, row in enumerate(_csv.DictReader(lines)):
+            for col, val in row.items():
+                key = (f"{slug}#{i}", col)
+                if col == "id" or key not in cells:
+                    continue  # rows beyond html_max_rows are only in the CSV
+                num = None if val in ("nan", "") else (int(val) if re.fullmatch(r"-?\d+", val) else float(val))
+                check(key, num)
+    for key, val in _flatten(doc.get("summary") or {}):
+        k = ("summary", key)
+        seen.add(k)
+        got = cells.get(k)
+        if got is None:
+            problems.append(f"{k}: missing from the HTML")
+        elif isinstance(val, list):
+            if any(c[1] is None or json.loads(c[1]) != val for c in got):
+                problems.append(f"{k}: HTML list differs from {val!r}")
+        elif isinstance(val, str):
+            if any(c[2] != val for c in got):
+                problems.append(f"{k}: HTML text differs from {val!r}")
+        elif isinstance(val, bool):
+            if any(c[2] != format_number(val) for c in got):
+                problems.append(f"{k}: HTML shows {got[0][2]!r}, files say {val!r}")
+        else:
+            check(k, val)
+    extra = sorted(k for k in cells if k not in seen)
+    problems += [f"{k}: number in the HTML with no counterpart in the CSV/JSON" for k in extra]
+    return problems

@@ -553,3 +553,35 @@ def test_radial_figure_scales_to_fit_points():
     assert ax.get_ylim()[1] < 0.1  # not stretched by the 7 px outliers
     assert any("5 outlier(s) beyond" in txt.get_text() for txt in ax.texts)
     np.testing.assert_allclose(ax.collections[0].get_offsets()[:, 1], t.norm[~out])
+
+
+def test_verify_report_agrees_and_catches_tampering(tmp_path: Path):
+    from rectify.report import verify_report
+
+    t = ResidualTable("flags", ["a", "b", "c", "d"], np.zeros((4, 2)), [[0.1, 0.0], [0.0, -0.2], [0.3, 0.1],
+                                                                      [-0.1, 0.1]], "px", n_params=2,
+                      extra={"converged": True, "system": "basis"})
+    out = tmp_path / "r"
+    write_report(out, title="t", tables=[t], summary={"ok": False, "n": 3, "x": [1.5], "name": "q"})
+    assert verify_report(out) == []
+    html_text = (out / "report.html").read_text()
+    rmse = repr(t.summary()["rmse"])
+    # a shown value that disagrees with its data-value
+    bad = html_text.replace(f'data-value="{rmse}">{format_number(t.summary()["rmse"])}<',
+                            f'data-value="{rmse}">9.999<', 1)
+    assert bad != html_text
+    (out / "report.html").write_text(bad)
+    assert any("rmse" in p for p in verify_report(out))
+    # a CSV value that disagrees with the page
+    (out / "report.html").write_text(html_text)
+    csv_text = (out / "flags.csv").read_text()
+    (out / "flags.csv").write_text(csv_text.replace("0.30000000000000004", "0.4").replace(",0.3,", ",0.4,"))
+    assert any("flags#2" in p for p in verify_report(out))
+    with pytest.raises(RasterIOError, match="cannot read"):
+        verify_report(tmp_path / "nowhere")
+
+
+def test_verify_report_on_shared_report(report_dir: Path):
+    from rectify.report import verify_report
+
+    assert verify_report(report_dir) == []

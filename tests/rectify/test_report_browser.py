@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rectify.report import write_report
+from rectify.report import verify_report, write_report
 from rectify.residuals import ResidualTable
 from stereo.report import write_stereo_report
 
@@ -202,6 +202,7 @@ def test_reports_render_in_chromium(chromium: str, pages, tmp_path: Path):
         assert set(res.sections) >= {"overview", "files"}
         assert len([s for s in res.sections if s.startswith("table-")]) >= 1
         assert_screenshot_shows_page(shot)
+        assert verify_report(page.parent) == []
 
 
 def test_checker_catches_broken_page(chromium: str, pages, tmp_path: Path):
@@ -245,3 +246,5 @@ def test_demo_report_renders(chromium: str, tmp_path: Path, group: str):
     res = check_page(chromium, page, tmp_path / "work", screenshot=shot)
     assert res.problems == [], res.problems
     assert_screenshot_shows_page(shot)
+    # every number in the demo's HTML matches its CSV and JSON
+    assert verify_report(page.parent) == []
