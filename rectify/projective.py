@@ -100,6 +100,7 @@ __all__ = [
     "Transform2D", "Homography", "AffineTransform", "PolynomialTransform", "CotangentFourPoint",
     "METHODS", "N_PARAMS", "FitResult", "fit_gcps", "transform_to_dict", "transform_from_dict",
     "save_transform", "load_transform", "COT_MIN_REL_HEIGHT", "PAIRS", "TRANSFORM_FORMAT_VERSION",
+    "method_of", "base_cotangents", "printed_eq2", "corrected_eq2",
 ]
 
 #: Smallest acceptable relative height |h| / b (distance of the point from the
