@@ -290,6 +290,7 @@ def residual_vector_figure(table: ResidualTable, image_shape: Sequence[int] | No
     else:
         ax.set_ylim(y0, y1)
     ax.set_aspect("equal")
+    ax.ticklabel_format(axis="both", style="plain", useOffset=False)  # full map coordinates
     xl, yl = ("column x", "row y") if position_units == "px" else ("X", "Y")
     ax.set_xlabel(f"{xl} ({position_units})")
     ax.set_ylabel(f"{yl} ({position_units})")

@@ -368,6 +368,35 @@ def _principal_point(t: ResidualTable, pp: Any, shape: Sequence[int] | None) -> 
     return np.zeros(2), "origin"
 
 
+def _in_ground_units(t: ResidualTable) -> bool:
+    return t.units.strip().lower() in GROUND_UNITS and t.residual.shape[1] >= 2
+
+
+def _vector_figure(t: ResidualTable, shape: Sequence[int] | None, bg: Any, ground: Any, crs: Any) -> Figure:
+    """The standard vector plot: image frame, or map frame for ground-unit residuals with ground positions.
+
+    Residuals in ground units (m, ft) are map-frame components (x east, y north). With the points'
+    ground coordinates they are drawn at those positions on north-up map axes, which is exact;
+    without them they are drawn over the image with the second component pointing up
+    (an approximately north-up image is assumed, and the title says so).
+    """
+    if not _in_ground_units(t):
+        return residual_vector_figure(t, image_shape=shape, background=bg)
+    if ground is not None:
+        from .crs import parse_crs
+
+        axis = parse_crs(crs).axis_info
+        unit = axis[0].unit_name if axis else t.units
+        unit = {"metre": "m", "meter": "m", "US survey foot": "us-ft", "foot": "ft"}.get(unit, unit)
+        return residual_vector_figure(
+            t, positions=np.asarray(ground, dtype=np.float64), position_units=unit, y_down=False,
+            title=f"{t.step}: residual vectors ({t.components[0]}, {t.components[1]}) at the ground positions")
+    return residual_vector_figure(
+        t, image_shape=shape, background=bg, components_y_up=True,
+        title=f"{t.step}: map-frame residuals ({t.components[0]} east, {t.components[1]} north) over the image "
+              "(north assumed up)")
+
+
 def _save(fig: Figure, path: Path) -> None:
     fig.savefig(path, dpi=_DPI, format="png")
 
@@ -654,12 +683,12 @@ def write_report(out_dir: str | os.PathLike, *, title: str, tables: list[Residua
             if bg is not None and shape is None:
                 shape = np.asarray(bg).shape[:2]
             if "vectors" in p.files:
-                _save(residual_vector_figure(t, image_shape=shape, background=bg), tmp / p.files["vectors"])
+                _save(_vector_figure(t, shape, bg, ground.get(t.step), crs), tmp / p.files["vectors"])
             if "distribution" in p.files:
                 _save(histogram_qq_figure(t), tmp / p.files["distribution"])
             if "radial" in p.files:
                 pp, what = _principal_point(t, principal_point_px, shape)
-                _save(radial_figure(t, pp, title=f"{t.step}: residuals vs distance from the {what} "
+                _save(radial_figure(t, pp, components_y_up=_in_ground_units(t), title=f"{t.step}: residuals vs distance from the {what} "
                                                    f"({pp[0]:.1f}, {pp[1]:.1f}) px"), tmp / p.files["radial"])
             if "geojson" in p.files:
                 gj = residual_geojson(t, ground[t.step], crs)

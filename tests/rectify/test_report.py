@@ -585,3 +585,24 @@ def test_verify_report_on_shared_report(report_dir: Path):
     from rectify.report import verify_report
 
     assert verify_report(report_dir) == []
+
+
+def test_ground_unit_residuals_drawn_on_map_axes(tmp_path: Path):
+    """Residuals in metres are map-frame (north up): drawn at ground positions, or flipped over the image."""
+    import rectify.report as rep
+
+    t = make_gcp_table()
+    tm = ResidualTable("map fit", t.ids, t.observed, t.adjusted, "m", position_px=t.position_px)
+    g = ground_of(t)
+    fig = rep._vector_figure(tm, (800, 1000), None, g, "EPSG:32618")
+    ax = fig.axes[0]
+    assert not ax.yaxis_inverted() and ax.get_xlabel() == "X (m)"
+    q = [c for c in ax.collections if c.__class__.__name__ == "Quiver"][0]
+    np.testing.assert_allclose(q.get_offsets(), g)
+    assert np.all(q.V * tm.residual[:, 1] >= 0)  # north component drawn upwards on north-up axes
+    fig2 = rep._vector_figure(tm, (800, 1000), None, None, None)
+    q2 = [c for c in fig2.axes[0].collections if c.__class__.__name__ == "Quiver"][0]
+    assert fig2.axes[0].yaxis_inverted()
+    assert np.all(q2.V * tm.residual[:, 1] <= 0)  # image axes: north is up, i.e. negative row
+    write_report(tmp_path / "r", title="t", tables=[tm], crs="EPSG:32618", ground_xy={"map fit": g})
+    assert (tmp_path / "r" / "map_fit_vectors.png").is_file()
