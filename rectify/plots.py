@@ -15,7 +15,7 @@ from __future__ import annotations
 import logging
 import math
 import textwrap
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 from matplotlib.colors import Normalize
@@ -30,13 +30,13 @@ from .residuals import ResidualTable
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "residual_vector_figure",
-    "histogram_qq_figure",
-    "radial_figure",
     "correlation_heatmap_figure",
     "height_bars_figure",
-    "standardised_components",
+    "histogram_qq_figure",
     "nice_number",
+    "radial_figure",
+    "residual_vector_figure",
+    "standardised_components",
 ]
 
 #: Largest background side (pixels) drawn; bigger images are subsampled for the plot only.
@@ -106,7 +106,7 @@ def _subsample_background(background: NDArray) -> tuple[NDArray, int]:
     if b.ndim not in (2, 3) or (b.ndim == 3 and b.shape[2] not in (1, 3, 4)):
         raise ShapeError(f"`background` must have shape (H, W) or (H, W, 1|3|4); got {b.shape}",
                          actual_shape=b.shape)
-    step = max(1, int(math.ceil(max(b.shape[:2]) / MAX_BACKGROUND_PX)))
+    step = max(1, math.ceil(max(b.shape[:2]) / MAX_BACKGROUND_PX))
     b = b[::step, ::step]
     if b.ndim == 3 and b.shape[2] == 1:
         b = b[:, :, 0]

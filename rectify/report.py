@@ -38,10 +38,11 @@ import os
 import re
 import shutil
 import tempfile
-from html.parser import HTMLParser
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from html.parser import HTMLParser
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -60,18 +61,18 @@ from .residuals import ResidualTable
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "write_report",
-    "verify_report",
-    "residual_geojson",
-    "json_safe",
-    "slugify",
-    "format_number",
-    "residual_vector_figure",
-    "histogram_qq_figure",
-    "radial_figure",
-    "correlation_heatmap_figure",
-    "height_bars_figure",
     "REPORT_VERSION",
+    "correlation_heatmap_figure",
+    "format_number",
+    "height_bars_figure",
+    "histogram_qq_figure",
+    "json_safe",
+    "radial_figure",
+    "residual_geojson",
+    "residual_vector_figure",
+    "slugify",
+    "verify_report",
+    "write_report",
 ]
 
 #: Version of the report.json layout.
@@ -487,10 +488,10 @@ def _html(title: str, created: str, crs: str | None, plans: list[_TablePlan], su
           fig_files: dict[str, str], caller_summary: Mapping[str, Any] | None, tmp: Path,
           files: list[str], max_rows: int) -> str:
     e = html.escape
-    parts = [f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>"
-             f"<meta name='viewport' content='width=device-width, initial-scale=1'>"
-             f"<title>{e(title)}</title><style>{_CSS}</style></head>"
-             f"<body data-report-version='{REPORT_VERSION}'>"]
+    parts = [("<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>"
+              "<meta name='viewport' content='width=device-width, initial-scale=1'>"
+              f"<title>{e(title)}</title><style>{_CSS}</style></head>"
+              f"<body data-report-version='{REPORT_VERSION}'>")]
     parts.append(f"<header><h1>{e(title)}</h1><p>Residual QA report, created {e(created)} UTC"
                  + (f" &middot; ground CRS <code>{e(crs)}</code>" if crs else "") + "</p></header>")
     nav = ["<a href='#overview'>Overview</a>"]
@@ -821,7 +822,7 @@ def verify_report(out_dir: str | os.PathLike) -> list[str]:
 
     for t in doc.get("tables", []):
         slug = t["slug"]
-        for key, val in t["summary"].items():
+        for key, val in _flatten(t["summary"]):
             if key in ("step", "units"):
                 continue
             if isinstance(val, str):

@@ -20,11 +20,11 @@ import matplotlib
 
 matplotlib.use("Agg")
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from rectify.plots import histogram_qq_figure, radial_figure, residual_vector_figure  # noqa: E402
-from rectify.report import write_report  # noqa: E402
-from rectify.residuals import ResidualTable  # noqa: E402
+from rectify.plots import histogram_qq_figure, radial_figure, residual_vector_figure
+from rectify.report import write_report
+from rectify.residuals import ResidualTable
 
 DPI = 110
 

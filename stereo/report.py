@@ -14,8 +14,9 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -28,7 +29,7 @@ from rectify.residuals import ResidualTable
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["relative_orientation_figures", "absolute_orientation_figures", "write_stereo_report"]
+__all__ = ["absolute_orientation_figures", "relative_orientation_figures", "write_stereo_report"]
 
 
 def relative_orientation_figures(correlation_names: Sequence[str], correlation_matrix: ArrayLike, *,

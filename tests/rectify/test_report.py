@@ -353,25 +353,25 @@ def test_does_not_modify_inputs(tmp_path: Path):
 
 
 @pytest.mark.parametrize("kwargs, exc, msg", [
-    (dict(title=""), InvalidInputError, "title"),
-    (dict(title=3), InvalidInputError, "title"),
-    (dict(tables="x"), InvalidInputError, "list of ResidualTable"),
-    (dict(tables=[1]), InvalidInputError, r"tables\[0\]"),
-    (dict(tables=[]), InvalidInputError, "nothing to report"),
-    (dict(figures={"a": 1}), InvalidInputError, "matplotlib Figure"),
-    (dict(figures=[1]), InvalidInputError, "dict name"),
-    (dict(summary=[1]), InvalidInputError, "summary"),
-    (dict(crs="EPSG:32618"), InvalidInputError, "go together"),
-    (dict(ground_xy={GCP_STEP: np.zeros((30, 2))}), InvalidInputError, "go together"),
-    (dict(crs="EPSG:32618", ground_xy={"nope": np.zeros((30, 2))}), InvalidInputError, "unknown steps"),
-    (dict(crs="EPSG:32618", ground_xy={GCP_STEP: np.zeros((29, 2))}), ShapeError, r"\(30, 2\); got \(29, 2\)"),
-    (dict(crs="EPSG:99999999", ground_xy={GCP_STEP: np.zeros((30, 2))}), CRSError, "99999999"),
-    (dict(backgrounds={"nope": np.zeros((2, 2))}), InvalidInputError, "unknown steps"),
-    (dict(principal_point_px={"nope": (1, 2)}), InvalidInputError, "unknown steps"),
-    (dict(html_max_rows=-1), InvalidInputError, "html_max_rows"),
+    ({"title": ""}, InvalidInputError, "title"),
+    ({"title": 3}, InvalidInputError, "title"),
+    ({"tables": "x"}, InvalidInputError, "list of ResidualTable"),
+    ({"tables": [1]}, InvalidInputError, r"tables\[0\]"),
+    ({"tables": []}, InvalidInputError, "nothing to report"),
+    ({"figures": {"a": 1}}, InvalidInputError, "matplotlib Figure"),
+    ({"figures": [1]}, InvalidInputError, "dict name"),
+    ({"summary": [1]}, InvalidInputError, "summary"),
+    ({"crs": "EPSG:32618"}, InvalidInputError, "go together"),
+    ({"ground_xy": {GCP_STEP: np.zeros((30, 2))}}, InvalidInputError, "go together"),
+    ({"crs": "EPSG:32618", "ground_xy": {"nope": np.zeros((30, 2))}}, InvalidInputError, "unknown steps"),
+    ({"crs": "EPSG:32618", "ground_xy": {GCP_STEP: np.zeros((29, 2))}}, ShapeError, r"\(30, 2\); got \(29, 2\)"),
+    ({"crs": "EPSG:99999999", "ground_xy": {GCP_STEP: np.zeros((30, 2))}}, CRSError, "99999999"),
+    ({"backgrounds": {"nope": np.zeros((2, 2))}}, InvalidInputError, "unknown steps"),
+    ({"principal_point_px": {"nope": (1, 2)}}, InvalidInputError, "unknown steps"),
+    ({"html_max_rows": -1}, InvalidInputError, "html_max_rows"),
 ])
 def test_bad_input(tmp_path: Path, kwargs, exc, msg):
-    args = dict(title="t", tables=[make_gcp_table()])
+    args = {"title": "t", "tables": [make_gcp_table()]}
     args.update(kwargs)
     with pytest.raises(exc, match=msg):
         write_report(tmp_path / "r", **args)
@@ -450,12 +450,12 @@ def test_figure_helpers_return_figures():
 def test_vector_figure_arrows_follow_residuals():
     t = make_gcp_table()
     fig = residual_vector_figure(t, scale=10.0)
-    q = [c for c in fig.axes[0].collections if c.__class__.__name__ == "Quiver"][0]
+    q = next(c for c in fig.axes[0].collections if c.__class__.__name__ == "Quiver")
     np.testing.assert_allclose(q.U, t.residual[:, 0] * 10.0)
     np.testing.assert_allclose(q.V, t.residual[:, 1] * 10.0)
     assert fig.axes[0].yaxis_inverted()
     fig2 = residual_vector_figure(t, scale=10.0, components_y_up=True)
-    q2 = [c for c in fig2.axes[0].collections if c.__class__.__name__ == "Quiver"][0]
+    q2 = next(c for c in fig2.axes[0].collections if c.__class__.__name__ == "Quiver")
     np.testing.assert_allclose(q2.V, -t.residual[:, 1] * 10.0)
 
 
@@ -530,7 +530,7 @@ def test_vector_figure_grids_many_points():
     adj[:10] += 50.0  # outliers are excluded from the cell means
     t = ResidualTable("many", [str(i) for i in range(n)], pos, adj, "px", outlier=out, position_px=pos)
     fig = residual_vector_figure(t, image_shape=(1000, 1000), scale=3.0, max_arrows=200)
-    q = [c for c in fig.axes[0].collections if c.__class__.__name__ == "Quiver"][0]
+    q = next(c for c in fig.axes[0].collections if c.__class__.__name__ == "Quiver")
     assert 50 <= len(q.U) <= 100  # a 10 x 10 grid
     np.testing.assert_allclose(q.U, 3.0)
     np.testing.assert_allclose(q.V, 6.0)
@@ -597,11 +597,11 @@ def test_ground_unit_residuals_drawn_on_map_axes(tmp_path: Path):
     fig = rep._vector_figure(tm, (800, 1000), None, g, "EPSG:32618")
     ax = fig.axes[0]
     assert not ax.yaxis_inverted() and ax.get_xlabel() == "X (m)"
-    q = [c for c in ax.collections if c.__class__.__name__ == "Quiver"][0]
+    q = next(c for c in ax.collections if c.__class__.__name__ == "Quiver")
     np.testing.assert_allclose(q.get_offsets(), g)
     assert np.all(q.V * tm.residual[:, 1] >= 0)  # north component drawn upwards on north-up axes
     fig2 = rep._vector_figure(tm, (800, 1000), None, None, None)
-    q2 = [c for c in fig2.axes[0].collections if c.__class__.__name__ == "Quiver"][0]
+    q2 = next(c for c in fig2.axes[0].collections if c.__class__.__name__ == "Quiver")
     assert fig2.axes[0].yaxis_inverted()
     assert np.all(q2.V * tm.residual[:, 1] <= 0)  # image axes: north is up, i.e. negative row
     write_report(tmp_path / "r", title="t", tables=[tm], crs="EPSG:32618", ground_xy={"map fit": g})

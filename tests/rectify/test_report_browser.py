@@ -46,10 +46,11 @@ def _apt_install() -> tuple[bool, str]:
     for attempt in range(2):
         try:
             if attempt == 1:  # package lists may be missing or stale
-                r = subprocess.run(["apt-get", "update"], env=env, capture_output=True, text=True,
+                r = subprocess.run(["apt-get", "update"], env=env, capture_output=True, text=True, check=False,
                                    timeout=INSTALL_TIMEOUT_S // 3)
                 log += r.stdout[-500:] + r.stderr[-500:]
-            r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=INSTALL_TIMEOUT_S // 2)
+            r = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False,
+                               timeout=INSTALL_TIMEOUT_S // 2)
         except (OSError, subprocess.TimeoutExpired) as err:
             return False, f"{log}\n{type(err).__name__}: {err}"
         log += r.stdout[-500:] + r.stderr[-500:]

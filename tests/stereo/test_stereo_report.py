@@ -15,7 +15,11 @@ from matplotlib.figure import Figure
 
 from rectify.errors import InvalidInputError, ShapeError
 from rectify.residuals import ResidualTable
-from stereo.report import absolute_orientation_figures, relative_orientation_figures, write_stereo_report
+from stereo.report import (
+    absolute_orientation_figures,
+    relative_orientation_figures,
+    write_stereo_report,
+)
 
 NAMES = ["tau", "nu", "alpha2", "omega2", "kappa2"]
 
