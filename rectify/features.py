@@ -330,7 +330,9 @@ def _make_detector(name: str, nfeatures: int):
     import cv2
 
     if name == "sift":
-        return cv2.SIFT_create()
+        # OpenCV keeps the 2 * nfeatures strongest before computing descriptors (the costly part);
+        # grid_select then spreads the final max_keypoints evenly
+        return cv2.SIFT_create(nfeatures=2 * max(1, int(nfeatures)))
     if name == "orb":
         return cv2.ORB_create(nfeatures=max(500, int(nfeatures)))
     if name == "akaze":
@@ -373,8 +375,12 @@ def grid_select(xy: ArrayLike, response: ArrayLike, shape: tuple[int, int], budg
     """Indices of at most ``budget`` points spread evenly over an image.
 
     The image is cut into square cells sized so that ``budget / cell_cap``
-    cells cover it; each cell keeps its ``cell_cap`` strongest points (by
-    ``response``); if that still exceeds ``budget`` the weakest go.
+    cells cover it; points are ranked within their cell by ``response`` and
+    taken round by round (every cell's best, then every cell's second, ...),
+    strongest first within a round, until ``budget`` points are taken. So no
+    cell gets more than ``cell_cap`` points while another cell still has
+    untaken ones below that, and the budget is used whenever there are enough
+    points.
 
     Parameters
     ----------
@@ -402,10 +408,9 @@ def grid_select(xy: ArrayLike, response: ArrayLike, shape: tuple[int, int], budg
     order = np.lexsort((-r, key))
     ks = key[order]
     start = np.r_[0, np.flatnonzero(np.diff(ks)) + 1]
-    rank = np.arange(n) - np.repeat(start, np.diff(np.r_[start, n]))
-    keep = order[rank < cell_cap]
-    if len(keep) > budget:
-        keep = keep[np.argsort(-r[keep], kind="stable")[:budget]]
+    rank = np.empty(n, dtype=np.int64)
+    rank[order] = np.arange(n) - np.repeat(start, np.diff(np.r_[start, n]))
+    keep = np.lexsort((-r, rank))[:budget]
     return np.sort(keep)
 
 
@@ -933,8 +938,8 @@ def _match_tiled(left_path, right_path, il, ir, cfg: MatcherConfig, progress) ->
     gate = margin
     tiles = _pick_tiles(il, cfg)
     n_tiles = len(tiles)
-    per_tile_kp = max(500, min(cfg.max_keypoints, int(4 * cfg.max_candidates / max(n_tiles, 1))))
     quota = max(50, int(math.ceil(2.0 * cfg.max_matches / max(n_tiles, 1))))
+    per_tile_kp = max(1500, min(cfg.max_keypoints, 4 * quota, int(4 * cfg.max_candidates / max(n_tiles, 1))))
     store_l: list[NDArray] = []
     store_r: list[NDArray] = []
     store_raw: list[NDArray] = []
