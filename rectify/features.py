@@ -137,9 +137,10 @@ class MatcherConfig:
     max_candidates : int
         Candidate matches held at most in tiled mode (grid-thinned beyond).
     max_tiles : int
-        Full-resolution tiles searched at most; beyond, an even sub-grid of
-        tiles is searched (every k-th tile in each direction), so the time
-        stays bounded too while matches still spread over the whole overlap.
+        Full-resolution tiles searched at most. Beyond, the search is sparse:
+        tiles of half the side, at most 3 x ``max_tiles`` of them on an even
+        sub-grid (every k-th tile in each direction), so the time stays
+        bounded too while matches still spread over the whole overlap.
     min_inliers : int
         Fewer verified matches than this means the images do not overlap.
     lsm : LsmConfig
@@ -936,6 +937,12 @@ def _match_tiled(left_path, right_path, il, ir, cfg: MatcherConfig, progress) ->
     t1 = time.perf_counter()
     margin = cfg.search_margin_px + 4.0 * err_full
     gate = margin
+    n_all = math.ceil(il.width / cfg.tile_px) * math.ceil(il.height / cfg.tile_px)
+    sparse = n_all > cfg.max_tiles
+    if sparse:
+        # search a sparse, even sub-grid of smaller tiles (3x as many, half the side: less area,
+        # denser coverage); right windows are detected directly (little reuse between sparse tiles)
+        cfg = replace(cfg, tile_px=max(128, cfg.tile_px // 2), max_tiles=3 * cfg.max_tiles)
     tiles = _pick_tiles(il, cfg)
     n_tiles = len(tiles)
     quota = max(50, int(math.ceil(2.0 * cfg.max_matches / max(n_tiles, 1))))
@@ -964,7 +971,15 @@ def _match_tiled(left_path, right_path, il, ir, cfg: MatcherConfig, progress) ->
         x1, y1 = min(x1, ir.width - 1), min(y1, ir.height - 1)
         if x1 - x0 < 32 or y1 - y0 < 32:
             continue
-        fr = right.features(x0, y0, x1, y1)
+        if sparse:
+            Rd, Rv = rio.read_window(right_path, x0, y0, x1 - x0 + 1, y1 - y0 + 1)
+            if Rv.mean() < 0.02:
+                continue
+            fr = detect(Rd, valid=Rv, max_keypoints=3 * per_tile_kp, limits=lim_r,
+                        **kw).transformed(1.0, (x0, y0))
+            right.n_detected += len(fr)
+        else:
+            fr = right.features(x0, y0, x1, y1)
         if len(fr) < 4:
             continue
         Ld, Lv = rio.read_window(left_path, c0, r0, w, h)

@@ -340,3 +340,27 @@ def test_ngi_relative_orientation_parallax_lower_with_refined_matches(ngi_pair):
     # like for like: the same points with their raw positions
     assert out["refined"]["ro_rms_parallax_px"] < out["raw_same_points"]["ro_rms_parallax_px"]
     assert out["refined"]["sampson_median_px"] < out["raw_same_points"]["sampson_median_px"]
+
+
+def test_sparse_tiled_search_bounds_tiles_and_spreads(tmp_path):
+    h, w = 700, 900
+    img = _texture_image(h, w, seed=3)
+    H = np.array([[0.99, -0.08, 40.0], [0.08, 0.99, -20.0], [0, 0, 1.0]])
+    warped = cv2.warpPerspective(img, H, (w, h), flags=cv2.INTER_CUBIC)
+    valid_r = cv2.warpPerspective(np.ones((h, w), np.uint8), H, (w, h), flags=cv2.INTER_NEAREST) > 0
+    lp, rp = tmp_path / "l.tif", tmp_path / "r.tif"
+    rio.write_raster(lp, img, affine.Affine.identity(), None)
+    rio.write_raster(rp, warped, affine.Affine.identity(), None, nodata=0, valid=valid_r)
+    # 4 x 3 tiles of 256 > max_tiles = 3: sparse search with 128-px tiles, at most 9 of them
+    cfg = MatcherConfig(tiled_above_px=400, tile_px=256, overlap_px=24, overview_px=320, max_tiles=3,
+                        max_matches=400)
+    ticks = []
+    r = match_images(lp, rp, config=cfg, progress=lambda d, t: ticks.append(t))
+    assert r.tiled and ticks[-1] <= 9
+    assert len(r.matches) >= 100
+    e = np.linalg.norm(_apply(H, r.matches.left) - r.matches.right, axis=1)
+    assert np.sqrt(np.mean(e ** 2)) < 0.3
+    # the searched tiles are spread over the image: matches in every third of it, both axes
+    for ax, size in ((0, w), (1, h)):
+        thirds = np.bincount((r.matches.left[:, ax] * 3 // size).astype(int), minlength=3)
+        assert (thirds > 0).all(), thirds
