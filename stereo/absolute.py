@@ -220,7 +220,8 @@ class AbsoluteOrientation:
     covariance : (7, 7) float64
         Of (scale, omega, phi, kappa, tx, ty, tz); angles in rad.
     sigma0 : float
-        A-posteriori standard deviation of unit weight, ground units.
+        A-posteriori standard deviation of unit weight: ground units without
+        weights, unitless when the weights are inverse variances.
     residuals : ResidualTable
         Per control point (v = adjusted - observed, ground units); check points
         included with ``check`` set. For height points the X, Y rows are not
@@ -348,6 +349,7 @@ class AbsoluteOrientation:
         deformation_order: int | None = None,
         max_iterations: int = 50,
         tol: float = 1e-10,
+        units: str = "ground units",
     ) -> "AbsoluteOrientation":
         """Estimate the similarity from control points.
 
@@ -362,9 +364,13 @@ class AbsoluteOrientation:
             Point names (default "1".."N").
         check : (N,) bool, optional
             Points withheld from the fit and only checked.
-        weights : (N,) or (N, 3) float, optional
-            A-priori weights per point, or per coordinate (e.g. the inverse
-            variances of the model coordinates after rotation to ground).
+        weights : (N,) or (N, 3) or (N, 3, 3) float, optional
+            A-priori weights per point, per coordinate (e.g. the inverse
+            variances of the model coordinates after rotation to ground), or
+            full symmetric positive definite 3x3 weight matrices per point
+            (the inverse covariance of the control point's ground error:
+            X, Y and Z of an intersected point are correlated); for a height
+            point only the (Z, Z) element of its matrix is used.
         robust : {"none", "huber", "tukey", "hampel", "andrews"}
             IRLS M-estimation over the coordinate observations.
         deformation_order : {None, 2, 3}
@@ -374,6 +380,9 @@ class AbsoluteOrientation:
             Gauss-Newton limits (tol on the largest parameter correction:
             relative for the scale, rad for the angles, relative to the
             ground extent of the control for T).
+        units : str
+            Name of the ground unit for the residual table (e.g. ``"m"`` when
+            the ground frame is metric; default ``"ground units"``).
 
         Raises
         ------
@@ -401,6 +410,12 @@ class AbsoluteOrientation:
         if chk.shape != (n,):
             raise ShapeError(f"`check` must have shape ({n},); got {chk.shape}")
         w_in = np.ones(n) if weights is None else np.array(weights, dtype=np.float64, copy=True)
+        w_blk = None
+        if w_in.shape == (n, 3, 3):
+            if not np.isfinite(w_in).all():
+                raise InvalidInputError("`weights` (N, 3, 3) must be finite")
+            w_blk = 0.5 * (w_in + np.transpose(w_in, (0, 2, 1)))
+            w_in = np.einsum("nii->ni", w_blk).copy()
         if w_in.shape == (n,):
             w_in = np.repeat(w_in[:, None], 3, axis=1)
         if w_in.shape != (n, 3) or not np.isfinite(w_in).all() or (w_in < 0).any():
@@ -425,6 +440,8 @@ class AbsoluteOrientation:
                 f"too few control points: {nf} full and {nz} height point(s) give {3 * nf + nz} equations; "
                 f"at least 2 full points and 1 height point (7 equations) are needed")
         _check_not_collinear(m[full | zonly], f"the {nf + nz} control points (model coordinates)")
+        if nz == 0:
+            _check_not_collinear(g[full], f"the {nf} control points (ground coordinates)")
         if deformation_order is not None:
             nt = 6 if deformation_order == 2 else 10
             if nf < nt:
@@ -451,6 +468,30 @@ class AbsoluteOrientation:
 
         extent = float(np.abs(m_c[sel]).max()) or 1.0
 
+        # full weight matrices: whiten each full point's 3 rows with U (U^T U = P), then unit weights
+        U = None
+        if w_blk is not None:
+            fidx = np.flatnonzero(full)
+            try:
+                U = np.transpose(np.linalg.cholesky(w_blk[fidx]), (0, 2, 1))
+            except np.linalg.LinAlgError as err:
+                raise InvalidInputError("`weights` (N, 3, 3) must be positive definite for every full control "
+                                        f"point: {err}") from err
+            w_z = np.sqrt(w_blk[np.flatnonzero(zonly), 2, 2])
+
+        def whiten(X: NDArray) -> NDArray:
+            if U is None:
+                return X
+            X = np.asarray(X, dtype=np.float64)
+            k = 3 * nf
+            head = X[:k].reshape(nf, 3, -1)
+            out = np.empty_like(X)
+            out[:k] = np.einsum("nij,njk->nik", U, head).reshape(X[:k].shape)
+            out[k:] = X[k:] * (w_z if X.ndim == 1 else w_z[:, None])
+            return out
+
+        w_obs_fit = np.ones(n_obs) if U is not None else w_obs
+
         def conv_scale(xk: NDArray) -> NDArray:
             # relative for the scale, rad for the angles, ground extent for the translation
             ge = abs(xk[0]) * extent
@@ -463,8 +504,8 @@ class AbsoluteOrientation:
             for it in range(1, max_iterations + 1):
                 pred, J = _design(m_c[obs_pt], xk[0], xk[1:4])
                 pred = pred + xk[4:7]
-                A = J[np.arange(n_obs), obs_c]
-                l = gobs[obs_pt, obs_c] - pred[np.arange(n_obs), obs_c]
+                A = whiten(J[np.arange(n_obs), obs_c])
+                l = whiten(gobs[obs_pt, obs_c] - pred[np.arange(n_obs), obs_c])
                 N = (A * w[:, None]).T @ A
                 try:
                     dx = np.linalg.solve(N, (A * w[:, None]).T @ l)
@@ -480,12 +521,12 @@ class AbsoluteOrientation:
         def residual_fn(xk: NDArray) -> NDArray:
             pred, _ = _design(m_c[obs_pt], xk[0], xk[1:4])
             pred = pred + xk[4:7]
-            return pred[np.arange(n_obs), obs_c] - gobs[obs_pt, obs_c]
+            return whiten(pred[np.arange(n_obs), obs_c] - gobs[obs_pt, obs_c])
 
-        w_final = w_obs.copy()
+        w_final = w_obs_fit.copy()
         outl_obs = np.zeros(n_obs, bool)
         if robust == "none":
-            x, N, iters, conv = solve(w_obs, x)
+            x, N, iters, conv = solve(w_obs_fit, x)
         else:
             from rectify.robust import irls
 
@@ -496,7 +537,7 @@ class AbsoluteOrientation:
                 state.update(N=Ns, iters=its, conv=cv, w=w)
                 return xs
 
-            res = irls(fit, residual_fn, n_obs, psi=robust, prior_weights=w_obs, min_used=7)
+            res = irls(fit, residual_fn, n_obs, psi=robust, prior_weights=w_obs_fit, min_used=7)
             x = res.model
             w_final = res.weights
             outl_obs = res.outlier_mask
@@ -528,8 +569,9 @@ class AbsoluteOrientation:
         deformation = None
         adjusted = sim.copy()
         if deformation_order is not None:
+            w_def = w_final if U is None else w_final * w_obs  # full matrices: their diagonal here
             deformation, sigma0 = _fit_deformation(sim, g, full, zonly, deformation_order,
-                                                   w_final, obs_pt, obs_c, n_obs)
+                                                   w_def, obs_pt, obs_c, n_obs)
             adjusted = sim + deformation(sim)
         # residual table: control and check points with ground coordinates
         rows = np.flatnonzero(full_all | zonly_all)
@@ -540,13 +582,13 @@ class AbsoluteOrientation:
         pw = np.ones(n)
         po = np.zeros(n, bool)
         for k in range(n_obs):
-            pw[obs_pt[k]] = min(pw[obs_pt[k]], w_final[k] / max(w_obs[k], 1e-300))
+            pw[obs_pt[k]] = min(pw[obs_pt[k]], w_final[k] / max(w_obs_fit[k], 1e-300))
             po[obs_pt[k]] |= bool(outl_obs[k])
         n_params = 7 + (0 if deformation is None else 3 * deformation.coefficients.shape[1])
         table = ResidualTable(
             step="absolute orientation" + ("" if deformation is None else f" + order-{deformation_order} "
                                            "deformation correction"),
-            ids=[ids_t[i] for i in rows], observed=observed, adjusted=adj, units="ground units",
+            ids=[ids_t[i] for i in rows], observed=observed, adjusted=adj, units=units,
             components=("dX", "dY", "dZ"), weights=pw[rows], outlier=po[rows], check=chk[rows],
             sigma0=sigma0, n_params=n_params,
             extra={"n_full": nf, "n_height": nz, "n_equations": n_obs, "robust": robust})

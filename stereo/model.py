@@ -45,7 +45,8 @@ from .intersection import METHODS, Intersection, intersect
 logger = logging.getLogger(__name__)
 
 __all__ = ["ModelOptions", "RelativeGeometry", "StereoModel", "Workspace", "build_model", "load_relative",
-           "match_control", "run_model", "run_pair", "write_ply", "write_points_csv", "FRAMES"]
+           "match_control", "run_model", "run_pair", "write_ply", "write_points_csv", "FRAMES", "ground_unit",
+           "write_pair_report"]
 
 FRAMES = ("topocentric", "map")
 
@@ -70,6 +71,12 @@ class ModelOptions:
         Robust relative orientation for :func:`run_pair`.
     check_ids : tuple of str
         Control points used only as checks.
+    control_sigma_px : float or None
+        Standard error (pixels, per image coordinate) of the control and check
+        points' image measurements. None: estimated from the absolute
+        orientation (a variance component: the RO sigma0 times the sigma0 of the
+        absolute orientation weighted with it, at least the RO sigma0). Tie
+        points always use the relative orientation's sigma0.
     """
 
     intersection: str = "least-squares"
@@ -79,8 +86,12 @@ class ModelOptions:
     ro_system: str = "left-image"
     ro_robust: str = "huber"
     check_ids: tuple[str, ...] = ()
+    control_sigma_px: float | None = None
 
     def __post_init__(self) -> None:
+        if self.control_sigma_px is not None and not (math.isfinite(self.control_sigma_px)
+                                                      and self.control_sigma_px > 0):
+            raise InvalidInputError(f"`control_sigma_px` must be a finite number > 0; got {self.control_sigma_px!r}")
         if self.intersection not in METHODS:
             raise InvalidInputError(f"unknown intersection method {self.intersection!r}; expected {list(METHODS)}")
         if self.frame not in FRAMES:
@@ -219,21 +230,43 @@ def _enu_jacobian(crs: str, origin: NDArray) -> NDArray:
     return (m[1:] - m[0]).T / e
 
 
+def ground_unit(crs: str | None, frame: str = "map") -> str:
+    """Short name of the ground unit: "m" for the topocentric frame and for CRSs whose first axis is in
+    metres, the CRS's unit name for others, "ground units" without a CRS (or an unreadable one)."""
+    if frame == "topocentric":
+        return "m"
+    if not crs:
+        return "ground units"
+    try:
+        from pyproj import CRS
+
+        axes = CRS.from_user_input(crs).axis_info
+    except Exception:  # pyproj raises several types for a bad CRS; the unit is only a label
+        return "ground units"
+    if not axes:
+        return "ground units"
+    name = (axes[0].unit_name or "").lower()
+    if name in ("metre", "meter", "m"):
+        return "m"
+    return name or "ground units"
+
+
 def _fit_ao(model_rows: NDArray, g_rows: NDArray, ids: list[str], chk: NDArray, opts: ModelOptions,
-            cov_rows: NDArray | None) -> AbsoluteOrientation:
-    """Similarity fit; with model covariances, a second pass weights every coordinate by the inverse
-    variance of the control point's intersection error rotated to ground (model heights are about
-    three times noisier than plan coordinates in aerial stereo), so sigma0 ~ 1 and the parameter
-    covariance reflects the real, anisotropic noise."""
+            cov_rows: NDArray | None, units: str) -> AbsoluteOrientation:
+    """Similarity fit; with model covariances, a second pass weights every control point by the inverse
+    of its intersection covariance rotated to ground, a full 3x3 matrix (model heights are about three
+    times noisier than plan coordinates in aerial stereo, and X and Z are correlated through the
+    x-parallax), so sigma0 is unitless (~1 when the image precision assumed for the control points is
+    right) and the parameter covariance sigma0^2 (A^T P A)^-1 reflects the real, anisotropic noise."""
     ao = AbsoluteOrientation.from_points(model_rows, g_rows, ids=ids, check=chk, robust=opts.robust,
-                                         deformation_order=opts.deformation_order)
+                                         deformation_order=opts.deformation_order, units=units)
     if cov_rows is None:
         return ao
     sR = ao.scale * ao.rotation
-    var = np.einsum("ij,njk,ik->ni", sR, cov_rows, sR)
-    w = 1.0 / np.maximum(var, 1e-30)
+    cg = np.einsum("ij,njk,lk->nil", sR, cov_rows, sR)
+    w = np.linalg.inv(cg + 1e-30 * np.eye(3))
     return AbsoluteOrientation.from_points(model_rows, g_rows, ids=ids, check=chk, robust=opts.robust,
-                                           deformation_order=opts.deformation_order, weights=w)
+                                           deformation_order=opts.deformation_order, weights=w, units=units)
 
 
 def _orient(model_pts: NDArray, xyz: NDArray, use: NDArray, check: NDArray, ids: tuple[str, ...], crs: str | None,
@@ -251,14 +284,14 @@ def _orient(model_pts: NDArray, xyz: NDArray, use: NDArray, check: NDArray, ids:
         mid = np.concatenate([ctrl[:, :2].mean(0), [ctrl[:, 2].mean()]])
         origin = geodetic_from_map(mid[None], crs)[0]
         g_frame = enu_from_map(xyz[rows], crs, origin)
-        ao = _fit_ao(model_pts[rows], g_frame, rid, chk, opts, cov_rows)
+        ao = _fit_ao(model_pts[rows], g_frame, rid, chk, opts, cov_rows, "m")
         enu = ao(model_pts)
         ground = map_from_enu(enu, crs, origin)
         info = {"name": "topocentric", "origin_lon_lat_h": origin.tolist(),
                 "note": "absolute orientation in local ENU at the control centroid (seed 004)"}
         Jm = _enu_jacobian(crs, origin)
     else:
-        ao = _fit_ao(model_pts[rows], xyz[rows], rid, chk, opts, cov_rows)
+        ao = _fit_ao(model_pts[rows], xyz[rows], rid, chk, opts, cov_rows, ground_unit(crs, "map"))
         ground = ao(model_pts)
         info = {"name": "map", "note": "absolute orientation directly in map coordinates"}
         Jm = np.eye(3)
@@ -338,8 +371,12 @@ def build_model(
                             units="mm", components=("dx1", "dy1", "dx2", "dy2"), n_params=3 * len(L),
                             extra={"method": opts.intersection,
                                    "rms_vertical_parallax_mm": rms(inter.vertical_parallax_mm)})]
+    from_file = np.zeros(len(all_ids), bool) if control is None else np.isin(
+        np.array(all_ids, dtype=object), np.array(control.ids, dtype=object))
     summary: dict[str, Any] = {
-        "n_points": len(all_ids), "intersection_method": opts.intersection,
+        "n_points": len(all_ids), "n_tie_points": int((~from_file).sum()),
+        "n_control_file_points": int(from_file.sum()), "n_control_points": int(use.sum()),
+        "n_check_points": int(is_check.sum()), "intersection_method": opts.intersection,
         "rms_vertical_parallax_mm": rms(inter.vertical_parallax_mm),
         "median_miss_distance_model": float(np.median(inter.miss_distance)) if len(L) else None,
         "n_behind_camera": int(np.sum((inter.scale_left <= 0) | (inter.scale_right <= 0))),
@@ -355,14 +392,33 @@ def build_model(
         if frame == "topocentric" and not crs:
             logger.warning("control has no CRS (# crs=...): absolute orientation in its own frame")
             frame = "map"
+        model_cov = inter.covariance
+        if model_cov is not None:
+            # control and check points are measured apart from the matcher (by hand, or projected from
+            # a DEM), usually far less precisely than matched tie points: their own variance component
+            if opts.control_sigma_px is not None:
+                if not pixel_size_mm:
+                    raise InvalidInputError("`control_sigma_px` needs `pixel_size_mm`")
+                sigma_c = opts.control_sigma_px * pixel_size_mm
+                source = "given"
+            else:
+                ao0, _, _, _ = _orient(inter.points, xyz, use, is_check, all_ids, crs, frame, opts, model_cov)
+                s0 = ao0.sigma0 if math.isfinite(ao0.sigma0) else 1.0
+                sigma_c = sigma * max(1.0, s0)
+                source = "estimated"
+            model_cov = model_cov.copy()
+            model_cov[from_file] *= (sigma_c / sigma) ** 2
+            summary.update({"tie_sigma_mm": sigma, "control_sigma_mm": sigma_c, "control_sigma_source": source})
+            if pixel_size_mm:
+                summary.update({"tie_sigma_px": sigma / pixel_size_mm, "control_sigma_px": sigma_c / pixel_size_mm})
         ao, ground, std, frame_info = _orient(inter.points, xyz, use, is_check, all_ids, crs, frame, opts,
-                                              inter.covariance)
+                                              model_cov)
         tables.append(ao.residuals)
         if crs:
             other = "map" if frame == "topocentric" else "topocentric"
             try:
                 _, g2, _, _ = _orient(inter.points, xyz, use, is_check, all_ids, crs, other, opts,
-                                      inter.covariance)
+                                      model_cov)
                 d = g2 - ground
                 diff = {"other_frame": other, "rms_xyz_m": rms(np.linalg.norm(d, axis=1)),
                         "max_xyz_m": float(np.abs(np.linalg.norm(d, axis=1)).max()),
@@ -370,7 +426,9 @@ def build_model(
             except CRSError as err:
                 diff = {"other_frame": other, "error": str(err)}
         s = ao.residuals.summary()
-        summary.update({"frame": frame_info["name"], "absolute_sigma0_m": ao.sigma0, "scale": ao.scale,
+        summary.update({"frame": frame_info["name"], "ground_unit": ground_unit(crs, "map"),
+                        "absolute_unit": ao.residuals.units,
+                        "absolute_sigma0": ao.sigma0, "absolute_weighted": model_cov is not None, "scale": ao.scale,
                         "n_control": s["n_fit"], "n_check": s["n_check"], "rmse_control_m": s["rmse"],
                         "rmse_check_m": s["rmse_check"]})
         if is_check.any():
@@ -563,13 +621,48 @@ def run_pair(left: str | Path, right: str | Path, camera: Camera, out_dir: str |
                orientation_path=ws.path("orientation.json"), model_ply_path=ws.path("model_points.ply"),
                overwrite=overwrite)
     if report:
-        from rectify.report import write_report
-
-        gxy = None
-        if model.ground is not None and model.absolute is not None:
-            rows = [model.ids.index(i) for i in model.absolute.residuals.ids]
-            gxy = {model.absolute.residuals.step: model.ground[rows, :2]}
-        write_report(ws.report_dir, title=title, tables=model.tables, summary=summary,
-                     crs=model.crs if model.crs and model.crs.startswith("EPSG") else None,
-                     ground_xy=gxy if model.crs and model.crs.startswith("EPSG") else None, overwrite=overwrite)
+        write_pair_report(model, ws.report_dir, title=title, ro=ro, left_image=left, camera=camera,
+                          overwrite=overwrite)
     return model
+
+
+def write_pair_report(model: StereoModel, out_dir: str | Path, *, title: str, ro: Any = None,
+                      left_image: str | Path | None = None, camera: Camera | None = None,
+                      overwrite: bool = False) -> Path:
+    """QA report of a pair run with :func:`stereo.report.write_stereo_report`.
+
+    Relative orientation: vertical-parallax table over the left image (drawn on
+    the photo when ``left_image`` can be read) and the correlation heat map of
+    its elements; absolute orientation: residual table, plan vectors at the
+    control points' ground positions (GeoJSON too when the model has a CRS,
+    EPSG code or WKT) and height bars; the intersection table. ``model.tables``
+    must start with ``ro.residual_table()`` when ``ro`` is given.
+    """
+    from .report import write_stereo_report
+
+    tables = list(model.tables)
+    rel = corr = None
+    if ro is not None:
+        rel = tables.pop(0)
+        c = ro.correlation
+        if c is not None and np.isfinite(c).all():
+            corr = (list(ro.names), c)
+    absolute = gxy = None
+    if model.absolute is not None and model.ground is not None:
+        absolute = model.absolute.residuals
+        tables = [t for t in tables if t is not absolute]
+        rows = [model.ids.index(i) for i in absolute.ids]
+        gxy = model.ground[rows, :2]
+    img = shape = pp = None
+    if camera is not None:
+        shape = (camera.height, camera.width)
+        pp = camera.pixel_from_photo(np.zeros((1, 2)))[0]
+    if left_image is not None:
+        import cv2
+
+        a = cv2.imread(str(left_image), cv2.IMREAD_GRAYSCALE)
+        img = a if a is not None and a.size else None
+    return write_stereo_report(out_dir, title=title, relative=rel, correlation=corr, absolute=absolute,
+                               absolute_ground_xy=gxy, tables=tables, summary=model.summary,
+                               crs=model.crs or None, left_image_shape=shape, left_image=img,
+                               principal_point_px=pp, overwrite=overwrite)

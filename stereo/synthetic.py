@@ -236,7 +236,7 @@ def write_scene_inputs(scene: SyntheticScene, out_dir, *, n_control: int = 10, n
 
 
 def run_demo(out_dir, *, seed: int = 0, size_px: int = 480, overwrite: bool = False,
-             progress: Callable[[int, int], None] | None = None):
+             pixel_noise_px: float = 0.2, progress: Callable[[int, int], None] | None = None):
     """``stereo demo``: synthetic pair -> full chain -> accuracy against the truth.
 
     Returns
@@ -254,7 +254,8 @@ def run_demo(out_dir, *, seed: int = 0, size_px: int = 480, overwrite: bool = Fa
 
     out = Path(out_dir)
     scene = make_scene(seed, size_px=size_px)
-    inp = write_scene_inputs(scene, out / "input", seed=seed, overwrite=overwrite, progress=progress)
+    inp = write_scene_inputs(scene, out / "input", seed=seed, pixel_noise_px=pixel_noise_px, overwrite=overwrite,
+                             progress=progress)
     control = read_control(inp["control"])
     opts = ModelOptions(check_ids=inp["check_ids"])
     ground_px = scene.cell_m
@@ -266,8 +267,10 @@ def run_demo(out_dir, *, seed: int = 0, size_px: int = 480, overwrite: bool = Fa
     e = m.ground[chk] - truth
     dz = m.ground[:, 2] - scene.height(m.ground[:, :2])
     ok = np.isfinite(dz)
-    res = {"check_rmse_xyz_m": [rms(e[:, k]) for k in range(3)],
-           "check_normalised_rms": rms(e / m.ground_std[chk]) if m.ground_std is not None else float("nan"),
+    nrm = e / m.ground_std[chk] if m.ground_std is not None else np.full_like(e, np.nan)
+    res = {"n_check": int(chk.sum()), "check_rmse_xyz_m": [rms(e[:, k]) for k in range(3)],
+           "check_normalised_rms": rms(nrm), "check_normalised_rms_xyz": [rms(nrm[:, k]) for k in range(3)],
+           "pixel_noise_px": pixel_noise_px,
            "dem_rmse_m": rms(dz[ok]), "n_points": int(ok.sum()), "ground_pixel_m": ground_px}
     import json
 

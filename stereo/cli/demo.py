@@ -8,7 +8,7 @@ import click
 
 from rectify.cli.options import echo, handle_errors, overwrite_opt, progress
 
-from ..model import ModelOptions, Workspace
+from ..model import Workspace
 from .run import print_model_summary
 
 
@@ -28,9 +28,12 @@ def demo(out_dir, seed, size_px, overwrite):
         m, truth = run_demo(Path(out_dir), seed=seed, size_px=size_px, overwrite=overwrite, progress=cb)
     print_model_summary(m, Workspace(out_dir))
     echo("accuracy against the truth:")
-    echo(f"  check points: RMSE X {truth['check_rmse_xyz_m'][0]:.3f} m, Y {truth['check_rmse_xyz_m'][1]:.3f} m, "
-         f"Z {truth['check_rmse_xyz_m'][2]:.3f} m; RMS error / predicted std "
-         f"{truth['check_normalised_rms']:.3f}")
+    x, y, z = truth["check_rmse_xyz_m"]
+    echo(f"  {truth['n_check']} check points: RMSE X {x:.3f} m, Y {y:.3f} m, Z {z:.3f} m; RMS of error / "
+         f"predicted std {truth['check_normalised_rms']:.3f} (target 0.67-1.5); per axis "
+         + ", ".join(f"{v:.2f}" for v in truth["check_normalised_rms_xyz"]))
+    echo(f"  control/check image noise: simulated {truth['pixel_noise_px']:.3f} px, estimated "
+         f"{m.summary.get('control_sigma_px', float('nan')):.3f} px")
     echo(f"  all {truth['n_points']} points vs DEM height: RMSE {truth['dem_rmse_m']:.3f} m "
          f"({truth['dem_rmse_m'] / truth['ground_pixel_m']:.2f} ground pixels of {truth['ground_pixel_m']:.2f} m)")
     echo(f"report: {Path(out_dir) / 'report' / 'report.html'}")

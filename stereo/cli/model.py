@@ -14,6 +14,7 @@ from rectify.tables import read_control, read_matches
 
 from ..intersection import METHODS
 from ..model import FRAMES, ModelOptions, load_relative, run_model, save_model
+from .run import print_tables
 
 
 def outputs_for(points: str) -> tuple[Path, Path, Path]:
@@ -41,11 +42,14 @@ def outputs_for(points: str) -> tuple[Path, Path, Path]:
               show_default=True, help="Robust absolute orientation.")
 @click.option("--deformation", type=click.Choice(["none", "2", "3"]), default="none", show_default=True,
               help="Polynomial correction of model deformation (order).")
+@click.option("--control-sigma-px", type=float, default=None,
+              help="Image precision of the control/check points, pixels (default: estimated from the absolute "
+                   "orientation).")
 @report_opt
 @overwrite_opt
 @handle_errors
 def model(ro_json, matches_path, camera_path, output, control_path, check_ids, frame, method, robust, deformation,
-          report_dir, overwrite):
+          control_sigma_px, report_dir, overwrite):
     """Intersect the matches of RO_JSON's pair into model points and, with
     --control, orient the model to the ground (7-parameter similarity)."""
     ply, csv_path, orient_path = outputs_for(output)
@@ -66,26 +70,17 @@ def model(ro_json, matches_path, camera_path, output, control_path, check_ids, f
     if checks and control is None:
         raise InvalidInputError("--check needs --control")
     opts = ModelOptions(intersection=method, frame=frame, robust=robust,
-                        deformation_order=None if deformation == "none" else int(deformation), check_ids=checks)
+                        deformation_order=None if deformation == "none" else int(deformation), check_ids=checks,
+                        control_sigma_px=control_sigma_px)
     m = run_model(geom, matches, cam, control=control, options=opts)
     save_model(m, points_path=ply, csv_path=csv_path, orientation_path=orient_path, overwrite=overwrite)
     s = m.summary
     echo(f"{len(m.ids)} points intersected ({method}); RMS vertical parallax "
          f"{s['rms_vertical_parallax_mm'] * 1000:.2f} um ({s.get('rms_vertical_parallax_px', float('nan')):.3f} px)")
-    for t in m.tables:
-        echo(f"{t.step}: {t.summary_line()}")
-    if m.absolute is not None:
-        echo(f"absolute orientation ({m.frame['name']} frame): scale {m.absolute.scale:.6g}, "
-             f"sigma0 {m.absolute.sigma0:.4g}")
-        if m.frame_difference and "rms_xyz_m" in m.frame_difference:
-            d = m.frame_difference
-            echo(f"{d['other_frame']} frame instead: points differ by RMS {d['rms_xyz_m']:.3f} m "
-                 f"(max {d['max_xyz_m']:.3f} m; heights RMS {d['rms_z_m']:.3f} m)")
-        if "rms_normalised_check_error" in s:
-            echo(f"check points: RMS error / predicted std = {s['rms_normalised_check_error']:.3f}")
+    print_tables(m)
     echo(f"wrote {ply}, {csv_path}, {orient_path}")
     if report_dir:
-        from rectify.report import write_report
+        from ..model import write_pair_report
 
-        path = write_report(report_dir, title="stereo model", tables=m.tables, summary=s, overwrite=overwrite)
+        path = write_pair_report(m, report_dir, title="stereo model", camera=cam, overwrite=overwrite)
         echo(f"report: {path}")

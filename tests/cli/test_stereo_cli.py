@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -99,11 +100,36 @@ def test_model_cli_collinear_control(tmp_path, scene):
     assert r.exit_code == 1 and "EstimationError" in r.output
 
 
-def test_demo_cli_small(tmp_path):
-    r = CliRunner().invoke(cli, ["demo", "--out", str(tmp_path / "demo"), "--size", "320"])
+def test_demo_cli_default_configuration(tmp_path):
+    """The demo as a user runs it (seed 0, 480 px): calibrated check-point std, units, counts, full report."""
+    from rectify.report import verify_report
+
+    out = tmp_path / "demo"
+    r = CliRunner().invoke(cli, ["demo", "--out", str(out)])
     assert r.exit_code == 0, r.output
     assert "accuracy against the truth" in r.output
-    t = json.loads((tmp_path / "demo" / "truth_comparison.json").read_text())
+    t = json.loads((out / "truth_comparison.json").read_text())
     assert t["dem_rmse_m"] < 1.5 * t["ground_pixel_m"]
-    assert (tmp_path / "demo" / "report" / "report.html").is_file()
-    assert (tmp_path / "demo" / "points.ply").is_file()
+    # must show: check points within 1.5x their predicted standard errors
+    assert 0.67 <= t["check_normalised_rms"] <= 1.5, t
+    assert f"predicted std {t['check_normalised_rms']:.3f}" in r.output
+    # the synthetic scene is metric: no "ground units" anywhere
+    assert "ground units" not in r.output
+    assert re.search(r"check points: RMSE X [0-9.]+ m, Y [0-9.]+ m, Z [0-9.]+ m", r.output)
+    # the intersection count is explained: tie points kept by the RO + control-file points
+    mm = re.search(r"intersection: (\d+) points \((\d+) tie points kept by the relative orientation \+ "
+                   r"(\d+) control \+ (\d+) check points from the control file\)", r.output)
+    assert mm, r.output
+    n, n_tie, n_c, n_k = map(int, mm.groups())
+    assert n == n_tie + n_c + n_k and (n_c, n_k) == (10, 20)
+    n_matches = int(re.match(r"(\d+) matches", r.output).group(1))
+    assert n_tie <= n_matches
+    # complete stereo report: RO correlation heat map, AO plan vectors and height bars, GeoJSON (WKT CRS)
+    rep = out / "report"
+    assert verify_report(rep) == []
+    for name in ("fig_ro_correlation_of_elements.png", "fig_ao_plan_residuals.png", "fig_ao_height_residuals.png",
+                 "absolute_orientation.geojson"):
+        assert (rep / name).is_file(), name
+    gj = json.loads((rep / "absolute_orientation.geojson").read_text())
+    assert len(gj["features"]) == 30
+    assert (out / "points.ply").is_file()

@@ -158,3 +158,46 @@ def test_bad_arguments():
     gb[0, 0] = np.nan
     with pytest.raises(InvalidInputError, match="ground point '1'"):
         AbsoluteOrientation.from_points(m, gb)
+
+
+def _correlated_scene(seed=3, n=40):
+    """Control with correlated (X, Z) noise, as intersected points have (x-parallax couples X and Z)."""
+    rng = np.random.default_rng(seed)
+    m = rng.uniform(-1, 1, (n, 3)) * [1.0, 1.0, 0.1]
+    R = matrix_from_angles(0.02, -0.03, 1.1)
+    g0 = 900.0 * m @ R.T + [5e5, 4e6, 300.0]
+    C = np.array([[0.25, 0.0, 0.55], [0.0, 0.25, 0.0], [0.55, 0.0, 1.6]])  # m^2, corr(X, Z) = 0.87
+    L = np.linalg.cholesky(C)
+    g = g0 + rng.standard_normal((n, 3)) @ L.T
+    return m, g, C
+
+
+def test_full_weight_matrices():
+    """(N, 3, 3) weights: diagonal matrices reproduce (N, 3) weights; full ones give sigma0 ~ 1 with
+    correlated noise (the diagonal alone misjudges it) and are invariant to a common factor."""
+    m, g, C = _correlated_scene()
+    n = len(m)
+    d = np.tile(1.0 / np.diag(C), (n, 1))
+    a = AbsoluteOrientation.from_points(m, g, weights=d)
+    b = AbsoluteOrientation.from_points(m, g, weights=np.einsum("ni,ij->nij", d, np.eye(3)))
+    assert_allclose(b.parameters, a.parameters, rtol=1e-9, atol=1e-9)
+    assert_allclose(b.sigma0, a.sigma0, rtol=1e-9)
+    P = np.tile(np.linalg.inv(C), (n, 1, 1))
+    s0 = [AbsoluteOrientation.from_points(*_correlated_scene(seed)[:2], weights=P).sigma0 for seed in range(20)]
+    assert 0.85 < np.sqrt(np.mean(np.square(s0))) < 1.15, s0
+    f = AbsoluteOrientation.from_points(m, g, weights=P)
+    f4 = AbsoluteOrientation.from_points(m, g, weights=4.0 * P)
+    assert_allclose(f4.parameters, f.parameters, rtol=1e-9, atol=1e-9)
+    assert_allclose(f4.covariance, f.covariance, rtol=1e-6, atol=1e-15)
+    assert_allclose(f4.sigma0, 2.0 * f.sigma0, rtol=1e-9)  # v^T (4P) v
+
+
+def test_full_weight_matrices_bad():
+    m, g, C = _correlated_scene()
+    P = np.tile(np.linalg.inv(C), (len(m), 1, 1))
+    P[3] = [[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]]  # positive diagonal, indefinite
+    with pytest.raises(InvalidInputError, match="positive definite"):
+        AbsoluteOrientation.from_points(m, g, weights=P)
+    P[3, 0, 0] = np.nan
+    with pytest.raises(InvalidInputError, match="finite"):
+        AbsoluteOrientation.from_points(m, g, weights=P)

@@ -8,8 +8,15 @@ import pytest
 from rectify.errors import EstimationError, InvalidInputError
 from rectify.residuals import rms
 from rectify.tables import ControlTable
-from stereo.model import (ModelOptions, RelativeGeometry, build_model, match_control, read_ply_xyz,
-                          save_model)
+from stereo.model import (
+    ModelOptions,
+    RelativeGeometry,
+    build_model,
+    ground_unit,
+    match_control,
+    read_ply_xyz,
+    save_model,
+)
 from stereo.relative import RelativeOrientation
 from stereo.synthetic import make_scene
 
@@ -19,20 +26,26 @@ def scene():
     return make_scene(0, size_px=480)
 
 
-def _run(scene, seed, frame="topocentric", n_tie=250, n_ctrl=10, n_chk=30, noise_px=0.3):
+def _run(scene, seed, frame="topocentric", n_tie=250, n_ctrl=10, n_chk=30, noise_px=0.3, control_noise_px=None,
+         control_sigma_px=None):
     rng = np.random.default_rng(seed)
     n = n_tie + n_ctrl + n_chk
     g = scene.random_ground_points(n, rng)
     cam = scene.camera
-    pl = scene.pixel_from_ground(scene.left, g) + rng.normal(0, noise_px, (n, 2))
-    pr = scene.pixel_from_ground(scene.right, g) + rng.normal(0, noise_px, (n, 2))
+    sd = np.full((n, 1), noise_px)
+    if control_noise_px is not None:
+        sd[n_tie:] = control_noise_px
+    pl = scene.pixel_from_ground(scene.left, g) + rng.normal(0, 1, (n, 2)) * sd
+    pr = scene.pixel_from_ground(scene.right, g) + rng.normal(0, 1, (n, 2)) * sd
     ids = [f"t{i}" for i in range(n_tie)]
     ro = RelativeOrientation.from_pixels(pl[:n_tie], pr[:n_tie], cam, ids=ids)
     cids = [f"c{i}" for i in range(n_ctrl + n_chk)]
     ctrl = ControlTable(tuple(cids), pl[n_tie:], pr[n_tie:], g[n_tie:], crs=scene.crs)
     m = build_model(cam.photo_from_pixel(pl[:n_tie]), cam.photo_from_pixel(pr[:n_tie]),
                     RelativeGeometry.from_relative(ro), ids=ids, control=ctrl, control_mm=match_control(ctrl, cam),
-                    options=ModelOptions(frame=frame, check_ids=tuple(cids[n_ctrl:])))
+                    options=ModelOptions(frame=frame, check_ids=tuple(cids[n_ctrl:]),
+                                         control_sigma_px=control_sigma_px),
+                    pixel_size_mm=cam.pixel_size_mm)
     return m, g[n_tie + n_ctrl:]
 
 
@@ -50,8 +63,29 @@ def test_check_points_within_predicted_std(scene):
         assert 0.6 <= rms(z[:, k]) <= 1.6, (k, rms(z[:, k]))
 
 
+@pytest.mark.parametrize("given", [False, True])
+def test_control_noisier_than_ties(scene, given):
+    """Issue 6's demo defect: matched ties at 0.02 px, control and checks measured at 0.3 px. The check
+    points' own image noise and the control noise (through the absolute orientation's covariance) must
+    enter the predicted std; the control precision is estimated from the absolute orientation when not
+    given. Before the fix (HEAD ab0b569) the ratio here was 2.26."""
+    z, est = [], []
+    for seed in range(4):
+        m, truth = _run(scene, 20 + seed, noise_px=0.02, control_noise_px=0.3,
+                        control_sigma_px=0.3 if given else None)
+        z.append((m.ground[m.is_check] - truth) / m.ground_std[m.is_check])
+        est.append(m.summary["control_sigma_px"])
+        assert m.summary["control_sigma_source"] == ("given" if given else "estimated")
+        assert m.summary["tie_sigma_px"] < 0.05
+        assert m.summary["ground_unit"] == "m" and m.absolute.residuals.units == "m"
+    r = rms(np.concatenate(z))
+    assert 0.67 <= r <= 1.5, (r, est)
+    if not given:
+        assert 0.2 <= np.sqrt(np.mean(np.square(est))) <= 0.4, est
+
+
 def test_topocentric_vs_map_frame_reported(scene):
-    m, truth = _run(scene, 7)
+    m, _truth = _run(scene, 7)
     d = m.frame_difference
     assert d["other_frame"] == "map" and 0 < d["rms_xyz_m"] < 1.0
     assert m.frame["name"] == "topocentric" and len(m.frame["origin_lon_lat_h"]) == 3
@@ -90,3 +124,19 @@ def test_bad_control(scene):
         build_model(l, r, geo, control=ctrl)
     with pytest.raises(InvalidInputError, match="unknown frame"):
         ModelOptions(frame="ecef")
+
+
+def test_ground_unit_names():
+    from stereo.synthetic import LO25_CRS
+
+    assert ground_unit(None) == "ground units"
+    assert ground_unit(None, "topocentric") == "m"
+    assert ground_unit("EPSG:32618") == "m"
+    assert ground_unit(LO25_CRS) == "m"  # WKT
+    assert "foot" in ground_unit("EPSG:2263")  # NY Long Island, US survey feet
+    assert ground_unit("not a crs") == "ground units"
+
+
+def test_control_sigma_px_validation():
+    with pytest.raises(InvalidInputError, match="control_sigma_px.*-1"):
+        ModelOptions(control_sigma_px=-1.0)
