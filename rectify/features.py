@@ -16,12 +16,14 @@ tile only the right window where the coarse homography predicts the partner
 (plus ``search_margin_px``) is read and searched. Candidates are thinned by a
 global grid cap, so the memory held does not grow with the image size.
 
-Memory bound (defaults, any image size, uint8 or uint16 with up to 4 bands):
-one left tile (1120 x 1120) and one right window (at most about 2.1 Mpx, larger
-predicted windows are read decimated) with their SIFT scale spaces (about
-0.35 and 0.6 GB), two overviews of at most 2048 px per side (grey float32,
-16 MB each) and at most ``max_candidates`` candidate matches (about 60 bytes
-each, 12 MB for 200 000): under 1.2 GB in total. The benchmark measures it.
+Memory bound (defaults, any image size): one left tile (1120 x 1120 px) and
+one right tile or window being detected, with their SIFT scale spaces (about
+0.35 GB each), the right-tile feature cache (at most 256 MB of descriptors),
+two overviews of at most 2048 px per side (float32, 16 MB per band), overview
+strips of at most 16 Mpx of source, the right pixels under one tile's matches
+for refinement, and at most ``max_candidates`` candidate matches (about 60
+bytes each): about 1.3 GB. Measured peak RSS: 1.10 GB on an 8000^2 pair and
+1.28 GB on a 33 000^2 pair (``scripts/bench_match.py``).
 
 Positions
 ---------
