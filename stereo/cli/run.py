@@ -52,6 +52,8 @@ def print_tables(m, tie_note: str = "from the matches") -> None:
             if ts["n_outliers"]:
                 line += f"; {ts['n_outliers']} outliers"
             line += f"; sigma0 {m.absolute.sigma0:.3f}" + ("" if s.get("absolute_weighted") else f" {u}")
+            if s.get("control_sigma_source") == "estimated":
+                line += " (1 by construction: the control image precision is scaled to it)"
             echo(line)
         else:
             echo(f"{t.step}: {t.summary_line()}")
