@@ -55,22 +55,38 @@ import enum
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import io as rio
-from .errors import EstimationError, InvalidInputError, RasterIOError
+from .errors import EstimationError, InvalidInputError
 from .lsm import LsmConfig, refine_matches
 from .residuals import ResidualTable, rms
 from .tables import Matches
 
-__all__ = ["Detector", "Verify", "MatcherConfig", "Features", "Verification", "MatchResult",
-           "detect", "match_descriptors", "verify_matches", "match_arrays", "match_images",
-           "grid_select", "akaze_available", "DETECTORS", "VERIFY_METHODS"]
+__all__ = [
+    "DETECTORS",
+    "VERIFY_METHODS",
+    "Detector",
+    "Features",
+    "MatchResult",
+    "MatcherConfig",
+    "Verification",
+    "Verify",
+    "akaze_available",
+    "detect",
+    "grid_select",
+    "match_arrays",
+    "match_descriptors",
+    "match_figures",
+    "match_images",
+    "verify_matches",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -224,19 +240,19 @@ class Features:
     def __len__(self) -> int:
         return len(self.xy)
 
-    def subset(self, idx: ArrayLike) -> "Features":
+    def subset(self, idx: ArrayLike) -> Features:
         i = np.asarray(idx)
         return Features(self.xy[i], self.size[i], self.angle[i], self.response[i], self.level[i],
                         self.descriptors[i])
 
-    def transformed(self, scale: float, origin: tuple[float, float]) -> "Features":
+    def transformed(self, scale: float, origin: tuple[float, float]) -> Features:
         """Positions mapped from a (decimated, offset) window to the full image:
         ``x_full = (x + 0.5) * scale - 0.5 + origin``."""
         xy = (self.xy + 0.5) * scale - 0.5 + np.asarray(origin, dtype=np.float64)
         return Features(xy, self.size * scale, self.angle, self.response, self.level, self.descriptors)
 
     @staticmethod
-    def concat(items: list["Features"], dim: int, dtype) -> "Features":
+    def concat(items: list[Features], dim: int, dtype) -> Features:
         if not items:
             return Features(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0, np.int64),
                             np.zeros((0, dim), dtype=dtype))
@@ -1166,7 +1182,7 @@ def match_figures(result: MatchResult, left_preview: tuple[NDArray, float] | Non
     """
     from matplotlib.figure import Figure
 
-    (hl, wl), (hr, wr) = result.image_shapes
+    (hl, wl), _ = result.image_shapes
     fig = Figure(figsize=(11, 6), layout="constrained")
     axes = fig.subplots(1, 2)
     pts = [result.candidates_left, result.candidates_right]
@@ -1174,7 +1190,7 @@ def match_figures(result: MatchResult, left_preview: tuple[NDArray, float] | Non
     for ax, prev, (h, w), p, name in zip(axes, (left_preview, right_preview), result.image_shapes, pts,
                                          ("left", "right")):
         if prev is not None:
-            img, s = prev
+            img, _scale = prev
             a = np.asarray(img, dtype=np.float64)
             a = a.mean(axis=2) if a.ndim == 3 else a
             ax.imshow(a, cmap="gray", extent=(-0.5, w - 0.5, h - 0.5, -0.5))

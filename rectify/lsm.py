@@ -20,8 +20,9 @@ All coordinates follow the project's pixel convention: the centre of pixel
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -29,7 +30,7 @@ from numpy.typing import ArrayLike, NDArray
 from .errors import InvalidInputError, ShapeError
 from .points import as_pair
 
-__all__ = ["LsmConfig", "LsmResult", "refine_matches", "bilinear", "bicubic"]
+__all__ = ["LsmConfig", "LsmResult", "bicubic", "bilinear", "refine_matches"]
 
 logger = logging.getLogger(__name__)
 

@@ -74,13 +74,14 @@ def score(left: np.ndarray, right: np.ndarray, H: np.ndarray, size: int, cell: i
     ij = np.clip((left[ok] // cell).astype(int), 0, n - 1)
     np.add.at(counts, ij[:, 1] * n + ij[:, 0], 1)
     cov = counts[overlap]
-    return {"verified": int(len(left)), "correct": int(ok.sum()),
+    return {"verified": len(left), "correct": int(ok.sum()),
             "rms_error_px": float(np.sqrt(np.mean(e[ok] ** 2))) if ok.any() else None,
             "cells_covered": float((cov > 0).mean()), "cells_cv": float(cov.std() / max(cov.mean(), 1e-9))}
 
 
 def run_pair(work: Path, size: int, skip_peer: bool) -> dict:
     from make_large_scene import generate
+
     from rectify.tables import read_matches
 
     d = work / f"pair{size}"
@@ -113,8 +114,8 @@ def run_pair(work: Path, size: int, skip_peer: bool) -> dict:
 
 def run_large(work: Path, size: int) -> dict:
     import cv2
-
     from make_large_scene import generate
+
     from rectify.tables import read_matches
 
     d = work / f"large{size}"

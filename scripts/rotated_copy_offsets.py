@@ -7,6 +7,7 @@ import numpy as np
 import skimage.data as skd
 
 from rectify.features import MatcherConfig, match_arrays
+
 g = cv2.cvtColor(skd.astronaut(), cv2.COLOR_RGB2GRAY)
 IM = {"uint8 grey": g[50:450, 30:487], "uint8 RGB": skd.astronaut()[10:401, 20:500],
       "uint16": skd.camera()[:411, :397].astype(np.uint16) * 200 + 1000}

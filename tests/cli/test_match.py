@@ -48,7 +48,7 @@ def test_match_end_to_end_with_report(tmp_path):
 
 
 def test_unreadable_file(tmp_path):
-    lp, rp, _ = _pair(tmp_path)
+    _, rp, _ = _pair(tmp_path)
     bad = tmp_path / "bad.tif"
     bad.write_bytes(b"\x00garbage")
     out = tmp_path / "m.csv"
