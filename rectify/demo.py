@@ -55,6 +55,8 @@ class DemoResult:
     geolocation_max_m: float
     pixel_size_m: float
     compare_summary: dict | None
+    #: the comparison as readable labelled lines (``rectify.compare.summary_lines``), for the CLI to echo
+    compare_lines: tuple[str, ...] = ()
 
 
 def _pick(valid: np.ndarray, n_x: int, n_y: int, margin: int = 40) -> np.ndarray:
@@ -130,7 +132,7 @@ def run_demo(out_dir: str | Path, *, overwrite: bool = False, pick_sigma_px: flo
     rep = write_warp_report(out / "report", res, source_shape=FRAME_SHAPE, title="rectify demo: Landsat tilted frame",
                             summary=summary, background=frame, overwrite=overwrite)
     return DemoResult(out, frame_path, gcp_path, res.warp.path, rep, res.fit.table.summary(), rmse,
-                      float(err.max()), pix_m, compare)
+                      float(err.max()), pix_m, compare, _compare_lines(compare))
 
 
 def _compare_summary() -> dict | None:
@@ -148,3 +150,14 @@ def _compare_summary() -> dict | None:
         logger.warning("projective comparison failed: %s", err)
         return None
     return out if isinstance(out, dict) else {"result": str(out)}
+
+
+def _compare_lines(summary: dict | None) -> tuple[str, ...]:
+    """Readable lines of the projective comparison (empty when there is none)."""
+    if not summary:
+        return ()
+    try:
+        from .compare import summary_lines
+    except ImportError:
+        return tuple(f"{k}: {v}" for k, v in summary.items())
+    return tuple(summary_lines(summary)) or tuple(f"{k}: {v}" for k, v in summary.items())

@@ -27,6 +27,6 @@ def demo(out_dir, overwrite):
     echo(f"rectified: {r.rectified}")
     echo(f"geolocation RMSE against the truth: {r.geolocation_rmse_m:.2f} m = "
          f"{r.geolocation_rmse_m / r.pixel_size_m:.4f} Landsat px (max {r.geolocation_max_m:.2f} m)")
-    if r.compare_summary:
-        echo(f"projective comparison: {r.compare_summary}")
+    for line in r.compare_lines:
+        echo(f"projective comparison: {line}")
     echo(f"report: {r.report}")

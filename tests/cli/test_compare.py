@@ -69,3 +69,22 @@ def test_comparison_summary_for_demo():
     assert d["agreement_max_rel"] < 1e-8 and d["printed_eq2_median_rel"] > 1e-2
     assert d["rmse_1px_resurs_f_cotangent"] == pytest.approx(d["rmse_1px_resurs_f_homography4"], rel=1e-6)
     assert {"rmse_1px_aerial_homography_lsq", "propagation_ratio_min", "speed_ratio"} <= set(d)
+
+
+def test_summary_lines_are_labelled_with_units():
+    from rectify.compare import comparison_summary, summary_lines
+    from rectify.demo import _compare_lines
+
+    d = comparison_summary(n_configs=10, n_trials=5, n_speed_points=1000)
+    lines = summary_lines(d)
+    assert lines[0].startswith("cotangent vs homography on exact data: max difference ")
+    assert lines[0].endswith("of the image size (10 configurations)")
+    cams = [s for s in lines if s.startswith("check-point RMSE at 1 px noise, ")]
+    assert len(cams) == 2 and any("Resurs-F: cotangent " in s for s in cams)
+    assert all(" px, homography (4 pts) " in s and " px, homography LSQ (all pts) " in s for s in cams)
+    assert lines[-1] == f"throughput cotangent/homography: {d['speed_ratio']:.2f}"
+    assert not any("{" in s for s in lines)
+    # partial / empty summaries give fewer lines, never an error
+    assert summary_lines({"speed_ratio": 0.8}) == ["throughput cotangent/homography: 0.80"]
+    assert summary_lines({}) == [] and _compare_lines(None) == ()
+    assert _compare_lines(d) == tuple(lines)
