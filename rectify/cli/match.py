@@ -49,9 +49,17 @@ def match(left, right, output, detector, verify, refine, max_matches, threshold_
     echo(f"detected: {s['n_detected_left']} left, {s['n_detected_right']} right keypoints "
          f"({detector}{', tiled' if res.tiled else ''})")
     echo(f"matched: {s['n_matched']} (ratio test + mutual check)")
+    refined = (f"refined: {s['n_refined']} converged, {s['n_refine_failed']} dropped (least-squares matching"
+               f"{', per tile, before verification' if res.tiled else ''})")
+    if refine and res.tiled:  # tiled path: candidates are refined in their tile, then verified together
+        echo(refined)
     echo(f"verified: {s['n_verified']} ({verify})")
-    if refine:
-        echo(f"refined: {s['n_refined']} converged, {s['n_refine_failed']} dropped (least-squares matching)")
+    if refine and not res.tiled:
+        echo(refined)
+    expected = s["n_verified"] - (s["n_refine_failed"] if refine and not res.tiled else 0)
+    if len(res.matches) != expected:
+        echo(f"kept: {len(res.matches)} of the verified matches (evenly spread, --max-matches "
+             f"{cfg.max_matches}, re-verified)")
     if verify != "none":
         metric = "transfer error" if verify == "homography" else "Sampson distance"
         line = f"verification RMSE: {res.rmse_px:.3f} px ({metric}, n={len(res.matches)})"
