@@ -658,10 +658,11 @@ def write_pair_report(model: StereoModel, out_dir: str | Path, *, title: str, ro
         shape = (camera.height, camera.width)
         pp = camera.pixel_from_photo(np.zeros((1, 2)))[0]
     if left_image is not None:
-        import cv2
+        from rectify import io as rio
 
-        a = cv2.imread(str(left_image), cv2.IMREAD_GRAYSCALE)
-        img = a if a is not None and a.size else None
+        # a bounded overview for the plot background (drawn over the full-resolution extent)
+        data, valid, _ = rio.read_overview(left_image, 2048)
+        img = rio.to_uint8(data, valid)
     return write_stereo_report(out_dir, title=title, relative=rel, correlation=corr, absolute=absolute,
                                absolute_ground_xy=gxy, tables=tables, summary=model.summary,
                                crs=model.crs or None, left_image_shape=shape, left_image=img,
