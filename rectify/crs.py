@@ -19,7 +19,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .errors import CRSError
 
-__all__ = ["parse_crs", "crs_to_string", "get_transformer", "transform_xy", "transform_xyz",
+__all__ = ["unit_label", "parse_crs", "crs_to_string", "get_transformer", "transform_xy", "transform_xyz",
            "same_crs", "is_geographic"]
 
 logger = logging.getLogger(__name__)
@@ -174,3 +174,19 @@ def transform_xyz(src, dst, xyz: ArrayLike) -> NDArray[np.float64]:
         raise CRSError(f"point {p[i].tolist()} cannot be transformed from {crs_to_string(src)!r} "
                        f"to {crs_to_string(dst)!r}")
     return out
+
+
+def unit_label(crs, *, default: str = "map units") -> str:
+    """Short name of a CRS's first-axis unit, for labels: ``"m"`` for metres,
+    the CRS's own unit name otherwise (``"degree"``, ``"us survey foot"``), and
+    ``default`` when ``crs`` is None or unreadable (the unit is only a label)."""
+    if not crs:
+        return default
+    try:
+        axes = parse_crs(crs).axis_info
+    except CRSError:
+        return default
+    name = (axes[0].unit_name or "").lower() if axes else ""
+    if name in ("metre", "meter", "m"):
+        return "m"
+    return name or default

@@ -90,6 +90,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import EstimationError, InvalidInputError, RasterIOError, ShapeError
+from .crs import unit_label
 from .fileutil import atomic_write_text
 from .points import (as_pair, as_points, as_weights, check_distinct, check_min_points,
                      check_no_three_collinear, check_not_collinear)
@@ -1253,7 +1254,7 @@ def fit_gcps(gcps: GcpTable, method: str = "homography", *, weights: ArrayLike |
         extra["control_ids"] = [gcps.ids[i] for i in fit_idx]
     model = m.from_points(s, d, weights=None if weights is None else w_all[fit])
     adjusted = model(gcps.pixel)
-    units = "px" if gcps.crs is None else "map units"
+    units = "px" if gcps.crs is None else unit_label(gcps.crs)
     table = ResidualTable(step=f"GCP fit ({method})", ids=gcps.ids, observed=gcps.target,
                           adjusted=adjusted, units=units, weights=w_all, check=check,
                           position_px=gcps.pixel, n_params=m.n_params, extra=extra)

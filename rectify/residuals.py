@@ -248,8 +248,13 @@ class ResidualTable:
 
     def summary_line(self) -> str:
         s = self.summary()
-        txt = (f"{s['n_fit']} fit points, RMSE {s['rmse']:.4g} {self.units}, "
-               f"sigma0 {s['sigma0']:.4g} {self.units}")
+        sig = s["sigma0"]
+        if sig is not None and math.isfinite(sig):
+            sig_txt = f"sigma0 {sig:.4g} {self.units}"
+        else:  # zero redundancy: sigma0 = sqrt(v'Pv / (n - u)) is undefined
+            sig_txt = (f"sigma0 undefined (no redundancy: {s['n_fit'] * len(self.components)} "
+                       f"observations, {s['n_params']} parameters)")
+        txt = f"{s['n_fit']} fit points, RMSE {s['rmse']:.4g} {self.units}, {sig_txt}"
         if s["n_check"]:
             txt += f"; {s['n_check']} check points, RMSE {s['rmse_check']:.4g} {self.units}"
         if s["n_outliers"]:

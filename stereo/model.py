@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from rectify.camera import Camera
+from rectify.crs import unit_label
 from rectify.errors import CRSError, InvalidInputError, RasterIOError
 from rectify.fileutil import atomic_output, atomic_write_text, check_output
 from rectify.residuals import ResidualTable, rms
@@ -235,20 +236,7 @@ def ground_unit(crs: str | None, frame: str = "map") -> str:
     metres, the CRS's unit name for others, "ground units" without a CRS (or an unreadable one)."""
     if frame == "topocentric":
         return "m"
-    if not crs:
-        return "ground units"
-    try:
-        from pyproj import CRS
-
-        axes = CRS.from_user_input(crs).axis_info
-    except Exception:  # pyproj raises several types for a bad CRS; the unit is only a label
-        return "ground units"
-    if not axes:
-        return "ground units"
-    name = (axes[0].unit_name or "").lower()
-    if name in ("metre", "meter", "m"):
-        return "m"
-    return name or "ground units"
+    return unit_label(crs, default="ground units")
 
 
 def _fit_ao(model_rows: NDArray, g_rows: NDArray, ids: list[str], chk: NDArray, opts: ModelOptions,

@@ -71,4 +71,4 @@ def test_fit_report(tmp_path):
     assert r.exit_code == 0, r.output
     assert (rep / "report.html").is_file() and (rep / "report.json").is_file()
     assert list(rep.glob("*.csv"))
-    assert "map units" in r.output
+    assert "RMSE" in r.output and " m," in r.output  # EPSG:32633 is in metres

@@ -65,3 +65,13 @@ def test_xyz_gk():
     out = transform_xyz("EPSG:4284", "EPSG:28404", [[21.0, 50.0, 100.0]])
     assert_allclose(out[0, 0], 4500000.0, atol=1e-3)
     assert_allclose(out[0, 2], 100.0)
+
+
+def test_unit_label():
+    from rectify.crs import unit_label
+
+    assert unit_label("EPSG:32618") == "m"
+    assert unit_label("EPSG:4326") == "degree"
+    assert "foot" in unit_label("EPSG:2263")
+    assert unit_label(None) == "map units"
+    assert unit_label("not a crs", default="ground units") == "ground units"

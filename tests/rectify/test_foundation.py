@@ -221,6 +221,14 @@ def test_residual_table_summary():
         ResidualTable("x", ["a"], np.zeros((2, 2)), np.zeros((2, 2)), "px")
 
 
+def test_residual_table_without_redundancy_says_so():
+    t = ResidualTable("exact", ["a", "b"], np.zeros((2, 2)), np.zeros((2, 2)), "m", n_params=4)
+    assert np.isnan(t.sigma0)
+    line = t.summary_line()
+    assert "sigma0 undefined (no redundancy: 4 observations, 4 parameters)" in line
+    assert "nan" not in line
+
+
 # ------------------------------------------------------------------- tables
 def test_gcp_csv_round_trip(tmp_path):
     p = tmp_path / "g.csv"
