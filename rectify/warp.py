@@ -29,11 +29,10 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import logging
-import math
 import os
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
@@ -41,7 +40,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import CRSError, EstimationError, InvalidInputError, RasterIOError
-from .georef import Grid, boundary_pixels, output_grid, world_from_pixel, world_from_pixel_matrix
+from .georef import Grid, output_grid, world_from_pixel, world_from_pixel_matrix
 
 __all__ = ["RESAMPLING", "WarpOptions", "WarpResult", "warp_raster", "warp_array", "GeoRectification",
            "georectify", "rectify_with_transform", "check_gcps_inside"]

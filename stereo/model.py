@@ -195,7 +195,7 @@ def _combine(ids_t: Sequence[str], left_mm: NDArray, right_mm: NDArray, control:
         return tuple(ids_t), left_mm, right_mm, xyz, np.zeros(len(ids_t), bool)
     cl, cr = control_mm
     pos = {i: k for k, i in enumerate(ids_t)}
-    L, R, X = [left_mm], [right_mm], [xyz]
+    L, R = [left_mm.copy()], [right_mm.copy()]  # control rows replace ties: never write into the inputs
     ids = list(ids_t)
     is_ctrl = np.zeros(len(ids_t), bool)
     add_l, add_r, add_x, add_c = [], [], [], []

@@ -1,6 +1,5 @@
 """``rectify warp`` end to end on tiny GeoTIFFs."""
 
-import json
 
 import numpy as np
 import pytest
