@@ -1105,9 +1105,11 @@ class RelativeOrientation:
             "points": pts,
         }
 
-    def to_json(self, path: str | Path | None = None, *, overwrite: bool = False) -> str:
-        """JSON text of :meth:`to_dict`; written atomically to ``path`` when given."""
-        text = json.dumps(self.to_dict(), indent=2)
+    def to_json(self, path: str | Path | None = None, *, overwrite: bool = False,
+                extra: dict[str, Any] | None = None) -> str:
+        """JSON text of :meth:`to_dict` (plus the ``extra`` keys, e.g. the camera); written
+        atomically to ``path`` when given."""
+        text = json.dumps({**self.to_dict(), **(extra or {})}, indent=2)
         if path is not None:
             from rectify.fileutil import atomic_write_text
 

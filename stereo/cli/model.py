@@ -28,7 +28,7 @@ def outputs_for(points: str) -> tuple[Path, Path, Path]:
 @click.option("--matches", "matches_path", required=True, type=click.Path(exists=True, dir_okay=False),
               help="Matches CSV (pixels).")
 @click.option("--camera", "camera_path", type=click.Path(exists=True, dir_okay=False), default=None,
-              help="Camera JSON (pixels -> photo mm). Required: the RO JSON holds no image size.")
+              help="Camera JSON (pixels -> photo mm); default: the camera stored in RO_JSON by `stereo orient`.")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
               help="PLY to write; a CSV and <name>.orientation.json are written beside it.")
 @click.option("--control", "control_path", type=click.Path(exists=True, dir_okay=False), default=None,
@@ -55,10 +55,14 @@ def model(ro_json, matches_path, camera_path, output, control_path, check_ids, f
     ply, csv_path, orient_path = outputs_for(output)
     for p in (ply, csv_path, orient_path):
         check_output(p, overwrite=overwrite)
-    if camera_path is None:
-        raise InvalidInputError("--camera is required: pixels cannot be converted to photo mm without it")
-    cam = Camera.from_json(camera_path)
     geom = load_relative(ro_json)
+    if camera_path is not None:
+        cam = Camera.from_json(camera_path)
+    elif isinstance(geom.raw.get("camera"), dict):  # written by `stereo orient`
+        cam = Camera.from_dict(geom.raw["camera"])
+    else:
+        raise InvalidInputError(f"{ro_json!r} holds no camera (it was not written by `stereo orient`): pass "
+                                "--camera CAM.json, pixels cannot be converted to photo mm without it")
     matches = read_matches(matches_path)
     ro_ids = {str(p.get("id")) for p in geom.raw.get("points", []) if isinstance(p, dict)}
     if ro_ids and not ro_ids & set(matches.ids):

@@ -72,7 +72,9 @@ def orient(images, camera_path, camera_right_path, matches_path, output, system,
         raise InvalidInputError("no tie points")
     ro = RelativeOrientation.from_pixels(matches.left, matches.right, cam, camera_right=cam_r, system=system,
                                          robust=robust, initial=initial, ids=matches.ids)
-    ro.to_json(output, overwrite=overwrite)
+    # the cameras travel with the orientation, so `stereo model` needs no --camera
+    cams = {"camera": cam.to_dict(), **({"camera_right": cam_r.to_dict()} if cam_r else {})}
+    ro.to_json(output, overwrite=overwrite, extra=cams)
     s = ro.summary()
     echo(f"relative orientation ({system}), {s['n_used']} of {s['n_points']} points used, "
          f"{s['n_outliers']} outliers, {s['iterations']} iterations"

@@ -133,3 +133,23 @@ def test_demo_cli_default_configuration(tmp_path):
     gj = json.loads((rep / "absolute_orientation.geojson").read_text())
     assert len(gj["features"]) == 30
     assert (out / "points.ply").is_file()
+
+
+def test_orient_then_model_without_camera_option(tmp_path, scene):
+    """DESIGN.md's chain: `stereo orient --camera ...` stores the camera in ro.json, so
+    `stereo model RO.json --matches ... -o points.ply --control ...` needs no --camera."""
+    d = _files(tmp_path, scene)
+    r = CliRunner().invoke(cli, ["orient", "--camera", str(d / "cam.json"), "--matches", str(d / "matches.csv"),
+                                 "-o", str(d / "ro2.json")])
+    assert r.exit_code == 0, r.output
+    stored = json.loads((d / "ro2.json").read_text())["camera"]
+    assert stored == json.loads((d / "cam.json").read_text())
+    r = CliRunner().invoke(cli, ["model", str(d / "ro2.json"), "--matches", str(d / "matches.csv"),
+                                 "-o", str(d / "pts.ply"), "--control", str(d / "control.csv")])
+    assert r.exit_code == 0, r.output
+    assert (d / "pts.ply").is_file() and "absolute orientation" in r.output
+    # an RO JSON without a camera (written by the library) needs --camera, and says so
+    r = CliRunner().invoke(cli, ["model", str(d / "ro.json"), "--matches", str(d / "matches.csv"),
+                                 "-o", str(d / "q.ply")])
+    assert r.exit_code == 1 and "holds no camera" in r.output and "--camera" in r.output
+    assert not (d / "q.ply").exists()
