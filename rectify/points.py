@@ -147,3 +147,33 @@ def check_no_three_collinear(pts: NDArray[np.float64], name: str = "points", *, 
                 f"three of `{name}` are collinear: rows {i}, {j}, {k} = "
                 f"{a.tolist()}, {b.tolist()}, {c.tolist()}"
             )
+
+
+def as_ids(ids, n: int, name: str = "ids") -> tuple[str, ...]:
+    """Point identifiers as a tuple of n strings; ``None`` gives "1".."n".
+
+    Raises
+    ------
+    ShapeError
+        If ``ids`` does not have n entries.
+    """
+    out = tuple(str(i) for i in (ids if ids is not None else range(1, n + 1)))
+    if len(out) != n:
+        raise ShapeError(f"`{name}` must have {n} entries (one per point); got {len(out)}",
+                         actual_shape=(len(out),), expected_shape=(n,))
+    return out
+
+
+def as_mask(mask, n: int, name: str = "mask") -> NDArray[np.bool_]:
+    """A per-point flag array (n,) bool (a new array); ``None`` gives all False.
+
+    Raises
+    ------
+    ShapeError
+        If ``mask`` does not have shape (n,).
+    """
+    out = np.zeros(n, bool) if mask is None else np.array(mask, dtype=bool, copy=True).reshape(-1)
+    if out.shape != (n,):
+        raise ShapeError(f"`{name}` must have shape ({n},); got {out.shape}", actual_shape=out.shape,
+                         expected_shape=(n,))
+    return out

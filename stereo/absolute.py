@@ -35,7 +35,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from rectify.errors import EstimationError, InvalidInputError, ShapeError
-from rectify.points import as_points
+from rectify.points import as_ids, as_mask, as_points
 from rectify.residuals import ResidualTable
 from rectify.rotation import angles_from_matrix, matrix_from_angles, rot_x, rot_y, rot_z
 
@@ -403,12 +403,8 @@ class AbsoluteOrientation:
         if deformation_order not in (None, 2, 3):
             raise InvalidInputError(f"`deformation_order` must be None, 2 or 3; got {deformation_order!r}")
         n = len(m)
-        ids_t = tuple(str(i) for i in (ids if ids is not None else range(1, n + 1)))
-        if len(ids_t) != n:
-            raise ShapeError(f"`ids` must have {n} entries; got {len(ids_t)}")
-        chk = np.zeros(n, bool) if check is None else np.asarray(check, dtype=bool).reshape(-1)
-        if chk.shape != (n,):
-            raise ShapeError(f"`check` must have shape ({n},); got {chk.shape}")
+        ids_t = as_ids(ids, n)
+        chk = as_mask(check, n, "check")
         w_in = np.ones(n) if weights is None else np.array(weights, dtype=np.float64, copy=True)
         w_blk = None
         if w_in.shape == (n, 3, 3):

@@ -37,6 +37,7 @@ from rectify.camera import Camera
 from rectify.crs import unit_label
 from rectify.errors import CRSError, InvalidInputError, RasterIOError
 from rectify.fileutil import atomic_output, atomic_write_text, check_output
+from rectify.points import as_ids
 from rectify.residuals import ResidualTable, rms
 from rectify.tables import ControlTable, Matches
 
@@ -335,9 +336,7 @@ def build_model(
     opts = options or ModelOptions()
     l = np.array(left_mm, dtype=np.float64, copy=True).reshape(-1, 2)
     r = np.array(right_mm, dtype=np.float64, copy=True).reshape(-1, 2)
-    ids_t = tuple(str(i) for i in (ids if ids is not None else range(1, len(l) + 1)))
-    if len(ids_t) != len(l):
-        raise InvalidInputError(f"`ids` has {len(ids_t)} entries for {len(l)} points")
+    ids_t = as_ids(ids, len(l))
     cmm = None
     if control is not None:
         if control_mm is None:

@@ -77,7 +77,7 @@ from rectify.errors import (
     InvalidInputError,
     WeakGeometryWarning,
 )
-from rectify.points import as_pair, as_weights
+from rectify.points import as_ids, as_pair, as_weights
 from rectify.residuals import ResidualTable, rms
 from rectify.robust import PSI_FUNCTIONS, get_psi, irls
 from rectify.rotation import angles_from_matrix, check_rotation
@@ -804,9 +804,7 @@ class RelativeOrientation:
         if pixel_size_mm is not None and not (math.isfinite(pixel_size_mm) and pixel_size_mm > 0):
             raise InvalidInputError(f"`pixel_size_mm` must be finite and > 0; got {pixel_size_mm!r}")
         w0 = as_weights(weights, n)
-        id_list = tuple(str(i) for i in (ids if ids is not None else range(1, n + 1)))
-        if len(id_list) != n:
-            raise InvalidInputError(f"`ids` has {len(id_list)} entries for {n} points")
+        id_list = as_ids(ids, n)
         u1, u2 = _rays(l, f1), _rays(r, f2)
         pix = pixel_size_mm or _DEFAULT_PIXEL_MM
 

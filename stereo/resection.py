@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from rectify.errors import EstimationError, InvalidInputError, RasterIOError, ShapeError
-from rectify.points import as_pair
+from rectify.points import as_ids, as_mask, as_pair
 from rectify.residuals import ResidualTable
 from rectify.rotation import angles_from_matrix, check_rotation, matrix_from_angles, rot_x, rot_y, rot_z
 
@@ -298,12 +298,8 @@ def resect(
     if not (math.isfinite(focal_length_mm) and focal_length_mm > 0):
         raise InvalidInputError(f"`focal_length_mm` must be > 0; got {focal_length_mm!r}")
     n = len(x)
-    ids_t = tuple(str(i) for i in (ids if ids is not None else range(1, n + 1)))
-    if len(ids_t) != n:
-        raise ShapeError(f"`ids` must have {n} entries; got {len(ids_t)}")
-    chk = np.zeros(n, bool) if check is None else np.asarray(check, dtype=bool).reshape(-1)
-    if chk.shape != (n,):
-        raise ShapeError(f"`check` must have shape ({n},); got {chk.shape}")
+    ids_t = as_ids(ids, n)
+    chk = as_mask(check, n, "check")
     fit = ~chk
     nf = int(fit.sum())
     k = 9 if free_interior else 6

@@ -308,3 +308,19 @@ def test_atomic_output_leaves_nothing_on_error(tmp_path):
     assert dst.read_text() == "again"
     with pytest.raises(errors.RasterIOError, match="does not exist"):
         check_output(tmp_path / "no" / "x.txt", overwrite=False)
+
+
+def test_ids_and_masks():
+    from rectify.points import as_ids, as_mask
+
+    assert as_ids(None, 3) == ("1", "2", "3")
+    assert as_ids([7, "a"], 2) == ("7", "a")
+    with pytest.raises(errors.ShapeError, match="must have 3 entries .*got 2"):
+        as_ids(["a", "b"], 3)
+    src = [True, False]
+    m = as_mask(src, 2, "check")
+    m[1] = True
+    assert src == [True, False]  # a copy
+    assert not as_mask(None, 4).any()
+    with pytest.raises(errors.ShapeError, match=r"`check` must have shape \(3,\); got \(2,\)"):
+        as_mask([1, 0], 3, "check")
