@@ -18,7 +18,6 @@ distortion (returns ideal coordinates); ``pixel_from_photo`` applies it.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,7 +26,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .errors import CalibrationError, InvalidInputError, RasterIOError
+from .errors import CalibrationError
+from .fileutil import read_json
 from .points import as_points
 
 __all__ = ["Camera", "DISTORTION_KEYS"]
@@ -210,11 +210,4 @@ class Camera:
     @classmethod
     def from_json(cls, path: str | Path) -> "Camera":
         """Read a camera JSON file."""
-        p = Path(path)
-        try:
-            d = json.loads(p.read_text())
-        except OSError as err:
-            raise RasterIOError(f"cannot read camera file {str(p)!r}: {err.strerror}") from err
-        except json.JSONDecodeError as err:
-            raise InvalidInputError(f"camera file {str(p)!r} is not valid JSON: {err}") from err
-        return cls.from_dict(d)
+        return cls.from_dict(read_json(path, "camera file"))

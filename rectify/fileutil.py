@@ -16,7 +16,7 @@ from typing import Iterator
 
 from .errors import InvalidInputError, RasterIOError
 
-__all__ = ["check_output", "atomic_output", "atomic_write_text"]
+__all__ = ["check_output", "atomic_output", "atomic_write_text", "read_json"]
 
 
 def check_output(path: str | Path, *, overwrite: bool) -> Path:
@@ -69,3 +69,28 @@ def atomic_write_text(path: str | Path, text: str, *, overwrite: bool = False) -
     with atomic_output(path, overwrite=overwrite) as tmp:
         tmp.write_text(text)
     return Path(path)
+
+
+def read_json(path: str | Path, what: str = "JSON file"):
+    """Parse a JSON file; ``what`` names it in errors ("camera file", ...).
+
+    Raises
+    ------
+    RasterIOError
+        If the file is missing or unreadable.
+    InvalidInputError
+        If it is not valid JSON.
+    """
+    import json
+
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except FileNotFoundError as err:
+        raise RasterIOError(f"cannot read {what} {str(p)!r}: file not found") from err
+    except (OSError, UnicodeDecodeError) as err:
+        raise RasterIOError(f"cannot read {what} {str(p)!r}: {err}") from err
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as err:
+        raise InvalidInputError(f"{what} {str(p)!r} is not valid JSON: {err}") from err

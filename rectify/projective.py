@@ -89,11 +89,18 @@ from typing import Any, ClassVar, Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .errors import EstimationError, InvalidInputError, RasterIOError, ShapeError
 from .crs import unit_label
-from .fileutil import atomic_write_text
-from .points import (as_pair, as_points, as_weights, check_distinct, check_min_points,
-                     check_no_three_collinear, check_not_collinear)
+from .errors import EstimationError, InvalidInputError, ShapeError
+from .fileutil import atomic_write_text, read_json
+from .points import (
+    as_pair,
+    as_points,
+    as_weights,
+    check_distinct,
+    check_min_points,
+    check_no_three_collinear,
+    check_not_collinear,
+)
 from .residuals import ResidualTable
 from .tables import GcpTable
 
@@ -1357,15 +1364,4 @@ def load_transform(path: str | Path) -> Any:
     InvalidInputError
         Not JSON, or not a valid transform.
     """
-    p = Path(path)
-    try:
-        text = p.read_text()
-    except FileNotFoundError as err:
-        raise RasterIOError(f"transform file not found: {str(p)!r}") from err
-    except OSError as err:
-        raise RasterIOError(f"cannot read {str(p)!r}: {err}") from err
-    try:
-        d = json.loads(text)
-    except json.JSONDecodeError as err:
-        raise InvalidInputError(f"{str(p)!r} is not valid JSON: {err}") from err
-    return transform_from_dict(d)
+    return transform_from_dict(read_json(path, "transform file"))

@@ -39,7 +39,8 @@ from typing import Any, Callable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .errors import CRSError, EstimationError, InvalidInputError, RasterIOError
+from .errors import CRSError, EstimationError, InvalidInputError
+from .fileutil import read_json
 from .georef import Grid, output_grid, world_from_pixel, world_from_pixel_matrix
 
 __all__ = ["RESAMPLING", "WarpOptions", "WarpResult", "warp_raster", "warp_array", "GeoRectification",
@@ -778,15 +779,7 @@ def rectify_with_transform(src: str | Path, dst: str | Path, model, *, model_crs
 # --------------------------------------------------------------------------- helpers for commands
 def transform_file_crs(path: str | Path) -> str | None:
     """The ``crs`` recorded in a transform JSON (None when absent)."""
-    import json
-
-    from .errors import InvalidInputError as _IIE
-    try:
-        d = json.loads(Path(path).read_text())
-    except FileNotFoundError as err:
-        raise RasterIOError(f"transform file not found: {str(path)!r}") from err
-    except (OSError, ValueError) as err:
-        raise _IIE(f"cannot read transform JSON {str(path)!r}: {err}") from err
+    d = read_json(path, "transform file")
     crs = d.get("crs") if isinstance(d, dict) else None
     return str(crs) if crs else None
 

@@ -35,8 +35,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from rectify.camera import Camera
 from rectify.crs import unit_label
-from rectify.errors import CRSError, InvalidInputError, RasterIOError
-from rectify.fileutil import atomic_output, atomic_write_text, check_output
+from rectify.errors import CRSError, InvalidInputError
+from rectify.fileutil import atomic_output, atomic_write_text, check_output, read_json
 from rectify.points import as_ids
 from rectify.residuals import ResidualTable, rms
 from rectify.tables import ControlTable, Matches
@@ -125,12 +125,7 @@ class RelativeGeometry:
 def load_relative(path: str | Path) -> RelativeGeometry:
     """Read a relative orientation JSON (DESIGN.md contract, written by ``stereo orient``)."""
     p = Path(path)
-    try:
-        d = json.loads(p.read_text())
-    except OSError as err:
-        raise RasterIOError(f"cannot read relative orientation {str(p)!r}: {err}") from err
-    except json.JSONDecodeError as err:
-        raise InvalidInputError(f"{str(p)!r} is not valid JSON: {err}") from err
+    d = read_json(p, "relative orientation")
     missing = [k for k in ("rotation_left", "rotation_right", "base", "focal_length_mm") if k not in d]
     if missing:
         raise InvalidInputError(f"{str(p)!r} is not a relative orientation JSON: missing {missing}")

@@ -27,10 +27,18 @@ from typing import Any, Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from rectify.errors import EstimationError, InvalidInputError, RasterIOError, ShapeError
+from rectify.errors import EstimationError, InvalidInputError, ShapeError
+from rectify.fileutil import read_json
 from rectify.points import as_ids, as_mask, as_pair
 from rectify.residuals import ResidualTable
-from rectify.rotation import angles_from_matrix, check_rotation, matrix_from_angles, rot_x, rot_y, rot_z
+from rectify.rotation import (
+    angles_from_matrix,
+    check_rotation,
+    matrix_from_angles,
+    rot_x,
+    rot_y,
+    rot_z,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -157,15 +165,7 @@ class ExteriorOrientation:
 
     @classmethod
     def from_json(cls, path: str | Path) -> "ExteriorOrientation":
-        import json
-
-        p = Path(path)
-        try:
-            return cls.from_dict(json.loads(p.read_text()))
-        except OSError as err:
-            raise RasterIOError(f"cannot read {str(p)!r}: {err}") from err
-        except json.JSONDecodeError as err:
-            raise InvalidInputError(f"{str(p)!r} is not valid JSON: {err}") from err
+        return cls.from_dict(read_json(path, "exterior orientation file"))
 
 
 def _corr(c: NDArray) -> NDArray:

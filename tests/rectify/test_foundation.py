@@ -324,3 +324,16 @@ def test_ids_and_masks():
     assert not as_mask(None, 4).any()
     with pytest.raises(errors.ShapeError, match=r"`check` must have shape \(3,\); got \(2,\)"):
         as_mask([1, 0], 3, "check")
+
+
+def test_read_json_errors(tmp_path):
+    from rectify.fileutil import read_json
+
+    p = tmp_path / "a.json"
+    p.write_text('{"k": [1, 2]}')
+    assert read_json(p) == {"k": [1, 2]}
+    with pytest.raises(errors.RasterIOError, match="cannot read camera file .*file not found"):
+        read_json(tmp_path / "missing.json", "camera file")
+    p.write_text("{oops")
+    with pytest.raises(errors.InvalidInputError, match="transform file .* is not valid JSON"):
+        read_json(p, "transform file")
