@@ -138,6 +138,15 @@ def _rows(text: str, path: str | Path) -> tuple[list[dict[str, str]], list[int],
     return rows, [no for no, _ in data_lines[1:]], crs
 
 
+def _load(path: str | Path, what: str) -> tuple[list[dict[str, str]], list[int], str | None, list[str]]:
+    """Read a point table: its rows, their line numbers, the ``# crs=`` value and the header;
+    raise when the file has a header but no ``what``."""
+    rows, lines, crs = _rows(_read_text(path), path)
+    if not rows:
+        raise InvalidInputError(f"{str(path)!r} has a header but no {what}")
+    return rows, lines, crs, list(rows[0].keys())
+
+
 def _need(fields: list[str], required: tuple[str, ...], path) -> None:
     missing = [f for f in required if f not in fields]
     if missing:
@@ -164,11 +173,7 @@ def read_gcps(path: str | Path) -> GcpTable:
     negative) are converted to the project's convention; disabled rows become
     check points.
     """
-    text = _read_text(path)
-    rows, lines, crs = _rows(text, path)
-    fields = list(rows[0].keys()) if rows else []
-    if not rows:
-        raise InvalidInputError(f"{str(path)!r} has a header but no GCP rows")
+    rows, lines, crs, fields = _load(path, "GCP rows")
     ids, pix, tgt, zs, chk = [], [], [], [], []
     if "mapX" in fields:
         sx = "sourceX" if "sourceX" in fields else "pixelX"
@@ -220,11 +225,7 @@ def write_gcps(path: str | Path, gcps: GcpTable, *, overwrite: bool = False) -> 
 
 def read_matches(path: str | Path) -> Matches:
     """Read a matches CSV (``id,col_left,row_left,col_right,row_right[,score]``)."""
-    text = _read_text(path)
-    rows, lines, _ = _rows(text, path)
-    fields = list(rows[0].keys()) if rows else []
-    if not rows:
-        raise InvalidInputError(f"{str(path)!r} has a header but no matches")
+    rows, lines, _, fields = _load(path, "matches")
     _need(fields, ("id", "col_left", "row_left", "col_right", "row_right"), path)
     has_score = "score" in fields
     ids, left, right, score = [], [], [], []
@@ -255,11 +256,7 @@ def write_matches(path: str | Path, matches: Matches, *, overwrite: bool = False
 
 def read_control(path: str | Path) -> ControlTable:
     """Read a stereo control CSV (``id,col_left,row_left,col_right,row_right,x,y,z``)."""
-    text = _read_text(path)
-    rows, lines, crs = _rows(text, path)
-    fields = list(rows[0].keys()) if rows else []
-    if not rows:
-        raise InvalidInputError(f"{str(path)!r} has a header but no rows")
+    rows, lines, crs, fields = _load(path, "rows")
     _need(fields, ("id", "col_left", "row_left", "col_right", "row_right", "x", "y", "z"), path)
     ids, left, right, xyz = [], [], [], []
     for r, ln in zip(rows, lines):
