@@ -482,14 +482,28 @@ def _conditioning(cfg: StudyConfig) -> list[dict[str, Any]]:
     return rows
 
 
-def _speed(cfg: StudyConfig, rng: np.random.Generator) -> dict[str, Any]:
-    size = 10_000.0
+#: Side of the speed scene's frame, px.
+SPEED_FRAME_PX = 10_000.0
+
+
+def speed_scene(n_points: int, rng: np.random.Generator
+                ) -> tuple[Homography, CotangentFourPoint, NDArray[np.float64]]:
+    """The throughput scene shared by the study and ``scripts/bench_projective.py``.
+
+    A mild perspective map of a 10 000 px frame, fitted to four control points
+    by both methods, and ``n_points`` source points (N, 2) spread over the
+    frame and 10 % beyond it.
+    """
+    size = SPEED_FRAME_PX
     src4 = np.array([[500.0, 700.0], [9300.0, 400.0], [9600.0, 9100.0], [300.0, 9500.0]])
     H0 = np.array([[1.02, 0.04, 120.0], [-0.03, 0.97, -80.0], [2e-6, -1.5e-6, 1.0]])
     dst4 = Homography(H0)(src4)
-    H = Homography.from_points(src4, dst4)
-    C = CotangentFourPoint.from_points(src4, dst4)
-    pts = rng.uniform(-0.1 * size, 1.1 * size, (cfg.n_speed_points, 2))
+    pts = rng.uniform(-0.1 * size, 1.1 * size, (n_points, 2))
+    return Homography.from_points(src4, dst4), CotangentFourPoint.from_points(src4, dst4), pts
+
+
+def _speed(cfg: StudyConfig, rng: np.random.Generator) -> dict[str, Any]:
+    H, C, pts = speed_scene(cfg.n_speed_points, rng)
     th, tc = [], []
     H(pts[:1000])
     C(pts[:1000])

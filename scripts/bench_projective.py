@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-from rectify.projective import CotangentFourPoint, Homography
+from rectify.compare import SPEED_FRAME_PX, speed_scene
 
 
 def main() -> None:
@@ -32,13 +32,8 @@ def main() -> None:
     args = ap.parse_args()
 
     rng = np.random.default_rng(args.seed)
-    size = 10_000.0
-    src4 = np.array([[500.0, 700.0], [9300.0, 400.0], [9600.0, 9100.0], [300.0, 9500.0]])
-    H_true = np.array([[1.02, 0.04, 120.0], [-0.03, 0.97, -80.0], [2e-6, -1.5e-6, 1.0]])
-    dst4 = Homography(H_true)(src4)
-    H = Homography.from_points(src4, dst4)
-    C = CotangentFourPoint.from_points(src4, dst4)
-    pts = rng.uniform(-0.1 * size, 1.1 * size, (args.points, 2))
+    size = SPEED_FRAME_PX
+    H, C, pts = speed_scene(args.points, rng)
 
     # agreement on the benchmark points
     diff = np.abs(C(pts) - H(pts)).max()
