@@ -63,9 +63,8 @@ class RasterInfo:
         return (self.height, self.width, self.count)
 
 
-@contextlib.contextmanager
-def open_raster(path: str | Path) -> Iterator["rasterio.io.DatasetReader"]:  # noqa: F821
-    """Open a raster for reading; rasterio errors become :class:`RasterIOError`."""
+def _open(path: str | Path):
+    """rasterio dataset opened for reading; missing or unreadable files raise RasterIOError."""
     import rasterio
     from rasterio.errors import RasterioError
 
@@ -73,9 +72,15 @@ def open_raster(path: str | Path) -> Iterator["rasterio.io.DatasetReader"]:  # n
     if not Path(p).exists():
         raise RasterIOError(f"raster not found: {p!r}")
     try:
-        ds = rasterio.open(p)
+        return rasterio.open(p)
     except RasterioError as err:
         raise RasterIOError(f"cannot read raster {p!r}: {err}") from err
+
+
+@contextlib.contextmanager
+def open_raster(path: str | Path) -> Iterator["rasterio.io.DatasetReader"]:  # noqa: F821
+    """Open a raster for reading; rasterio errors become :class:`RasterIOError`."""
+    ds = _open(path)
     try:
         yield ds
     finally:
@@ -307,16 +312,8 @@ class WindowReader:
     """
 
     def __init__(self, path: str | Path):
-        import rasterio
-        from rasterio.errors import RasterioError
-
         self.path = str(path)
-        if not Path(self.path).exists():
-            raise RasterIOError(f"raster not found: {self.path!r}")
-        try:
-            self._ds = rasterio.open(self.path)
-        except RasterioError as err:
-            raise RasterIOError(f"cannot read raster {self.path!r}: {err}") from err
+        self._ds = _open(self.path)
         self.policy = mask_policy(self.path)
         self.width, self.height, self.count = self._ds.width, self._ds.height, self._ds.count
 
