@@ -108,7 +108,7 @@ class TiltedFrame:
     @classmethod
     def from_angles(cls, focal_length_mm: float, a1: float, a2: float, a3: float, *,
                     order: str = "omega-phi-kappa", principal_point_mm: tuple[float, float] = (0.0, 0.0),
-                    f_out_mm: float | None = None) -> "TiltedFrame":
+                    f_out_mm: float | None = None) -> TiltedFrame:
         """Build from three angles (rad) in a named order of :mod:`rectify.rotation`
         (``omega-phi-kappa``, ``phi-omega-kappa`` = ``alpha-omega-kappa``,
         ``omega-alpha-chi``)."""

@@ -186,7 +186,7 @@ class Camera:
         return out
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "Camera":
+    def from_dict(cls, d: dict[str, Any]) -> Camera:
         """Build from the camera JSON contract; unknown keys are rejected by name."""
         if not isinstance(d, dict):
             raise CalibrationError(f"camera JSON must be an object; got {type(d).__name__}")
@@ -208,6 +208,6 @@ class Camera:
         )
 
     @classmethod
-    def from_json(cls, path: str | Path) -> "Camera":
+    def from_json(cls, path: str | Path) -> Camera:
         """Read a camera JSON file."""
         return cls.from_dict(read_json(path, "camera file"))

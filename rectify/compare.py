@@ -36,9 +36,10 @@ import logging
 import math
 import statistics
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -137,7 +138,7 @@ class StudyConfig:
     seed: int = 0
 
     @classmethod
-    def quick(cls, **overrides: Any) -> "StudyConfig":
+    def quick(cls, **overrides: Any) -> StudyConfig:
         """The small preset of ``rectify compare`` (about a minute on a busy 2-core machine)."""
         base = dict(n_configs=500, n_trials=60, n_speed_points=200_000, speed_repeats=5)
         base.update({k: v for k, v in overrides.items() if v is not None})

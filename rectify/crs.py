@@ -36,7 +36,7 @@ def _parse(text: str):
         raise CRSError(f"unknown CRS {text!r}: {err}") from err
 
 
-def parse_crs(crs) -> "pyproj.CRS":  # noqa: F821
+def parse_crs(crs) -> pyproj.CRS:  # noqa: F821
     """Parse ``"EPSG:nnnn"``, WKT, a ``pyproj.CRS`` or a ``rasterio.crs.CRS``.
 
     Raises
@@ -94,7 +94,7 @@ def _transformer(src_key: str, dst_key: str):
         raise CRSError(f"no transformation from {src_key!r} to {dst_key!r}: {err}") from err
 
 
-def get_transformer(src, dst) -> "pyproj.Transformer":  # noqa: F821
+def get_transformer(src, dst) -> pyproj.Transformer:  # noqa: F821
     """Cached ``Transformer.from_crs(src, dst, always_xy=True)``.
 
     Parameters

@@ -15,10 +15,10 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from importlib.resources import files
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -145,7 +145,7 @@ def _compare_summary() -> dict | None:
     if fn is None:
         return None
     try:
-        out = fn(n_trials=5) if "n_trials" in getattr(fn, "__code__").co_varnames else fn()
+        out = fn(n_trials=5) if "n_trials" in fn.__code__.co_varnames else fn()
     except Exception as err:  # a peer module: never let it break the demo
         logger.warning("projective comparison failed: %s", err)
         return None

@@ -12,9 +12,9 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 from numpy.typing import NDArray
@@ -78,7 +78,7 @@ def _open(path: str | Path):
 
 
 @contextlib.contextmanager
-def open_raster(path: str | Path) -> Iterator["rasterio.io.DatasetReader"]:  # noqa: F821
+def open_raster(path: str | Path) -> Iterator[rasterio.io.DatasetReader]:  # noqa: F821
     """Open a raster for reading; rasterio errors become :class:`RasterIOError`."""
     ds = _open(path)
     try:
@@ -320,7 +320,7 @@ class WindowReader:
     def close(self) -> None:
         self._ds.close()
 
-    def __enter__(self) -> "WindowReader":
+    def __enter__(self) -> WindowReader:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -455,7 +455,7 @@ class TiledWriter:
         except RasterioError as err:
             raise RasterIOError(f"cannot finish {self.path!r}: {err}") from err
 
-    def __enter__(self) -> "TiledWriter":
+    def __enter__(self) -> TiledWriter:
         return self
 
     def __exit__(self, *exc) -> None:

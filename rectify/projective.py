@@ -232,7 +232,7 @@ class _MatrixTransform:
         s, d = as_pair(src, dst)
         return np.linalg.norm(_apply_h(self.matrix, s) - d, axis=1)
 
-    def __matmul__(self, other: Any) -> "_MatrixTransform":
+    def __matmul__(self, other: Any) -> _MatrixTransform:
         if not isinstance(other, _MatrixTransform):
             return NotImplemented
         m = self.matrix @ other.matrix
@@ -271,12 +271,12 @@ class Homography(_MatrixTransform):
     min_points: ClassVar[int] = 4
 
     @classmethod
-    def identity(cls) -> "Homography":
+    def identity(cls) -> Homography:
         return cls(np.eye(3))
 
     @classmethod
     def from_points(cls, src: ArrayLike, dst: ArrayLike, *, weights: ArrayLike | None = None,
-                    refine: bool = True) -> "Homography":
+                    refine: bool = True) -> Homography:
         """Estimate the homography mapping ``src`` onto ``dst``.
 
         Parameters
@@ -321,7 +321,7 @@ class Homography(_MatrixTransform):
         return cls(m / m[2, 2] if abs(m[2, 2]) > 1e-12 * np.abs(m).max() else m / np.abs(m).max())
 
     @property
-    def inverse(self) -> "Homography":
+    def inverse(self) -> Homography:
         """The target -> source homography (exact)."""
         m = np.linalg.inv(self.matrix)
         return Homography(m / m[2, 2] if abs(m[2, 2]) > 1e-12 * np.abs(m).max() else m)
@@ -420,12 +420,12 @@ class AffineTransform(_MatrixTransform):
             raise InvalidInputError(f"an affine matrix must end with the row (0, 0, 1); got {m[2].tolist()}")
 
     @classmethod
-    def identity(cls) -> "AffineTransform":
+    def identity(cls) -> AffineTransform:
         return cls(np.eye(3))
 
     @classmethod
     def from_points(cls, src: ArrayLike, dst: ArrayLike, *, weights: ArrayLike | None = None
-                    ) -> "AffineTransform":
+                    ) -> AffineTransform:
         """Weighted least-squares affine fit (exact for 3 non-collinear points).
 
         Raises
@@ -450,7 +450,7 @@ class AffineTransform(_MatrixTransform):
         return cls(m)
 
     @property
-    def inverse(self) -> "AffineTransform":
+    def inverse(self) -> AffineTransform:
         m = np.linalg.inv(self.matrix)
         m[2] = (0.0, 0.0, 1.0)
         return AffineTransform(m)
@@ -539,7 +539,7 @@ class PolynomialTransform:
 
     @classmethod
     def from_points(cls, src: ArrayLike, dst: ArrayLike, *, weights: ArrayLike | None = None,
-                    order: int = 2) -> "PolynomialTransform":
+                    order: int = 2) -> PolynomialTransform:
         """Weighted least-squares polynomial fit.
 
         Parameters
@@ -576,12 +576,12 @@ class PolynomialTransform:
 
     @classmethod
     def order2(cls, src: ArrayLike, dst: ArrayLike, *, weights: ArrayLike | None = None
-               ) -> "PolynomialTransform":
+               ) -> PolynomialTransform:
         return cls.from_points(src, dst, weights=weights, order=2)
 
     @classmethod
     def order3(cls, src: ArrayLike, dst: ArrayLike, *, weights: ArrayLike | None = None
-               ) -> "PolynomialTransform":
+               ) -> PolynomialTransform:
         return cls.from_points(src, dst, weights=weights, order=3)
 
     def __call__(self, points: ArrayLike) -> F64:
@@ -594,7 +594,7 @@ class PolynomialTransform:
         return np.linalg.norm(self(s) - d, axis=1)
 
     @property
-    def inverse(self) -> "PolynomialTransform":
+    def inverse(self) -> PolynomialTransform:
         """Approximate inverse polynomial (see Notes of the class)."""
         g = np.linspace(0.0, 1.0, 41)
         gx, gy = np.meshgrid(g, g)
@@ -829,7 +829,7 @@ class CotangentFourPoint:
 
     @classmethod
     def from_points(cls, src: ArrayLike, dst: ArrayLike, *, weights: ArrayLike | None = None
-                    ) -> "CotangentFourPoint":
+                    ) -> CotangentFourPoint:
         """Build the method from exactly four control points.
 
         ``weights`` is accepted for interface compatibility; four points
@@ -853,7 +853,7 @@ class CotangentFourPoint:
         return cls(s, d)
 
     @property
-    def inverse(self) -> "CotangentFourPoint":
+    def inverse(self) -> CotangentFourPoint:
         """The same method with the roles of the planes swapped (target -> source)."""
         return CotangentFourPoint(self.dst, self.src)
 

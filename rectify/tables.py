@@ -54,11 +54,11 @@ class GcpTable:
         return len(self.ids)
 
     @property
-    def fit(self) -> "GcpTable":
+    def fit(self) -> GcpTable:
         """The rows used for fitting (not check points)."""
         return self.subset(~self.check)
 
-    def subset(self, mask: NDArray[np.bool_]) -> "GcpTable":
+    def subset(self, mask: NDArray[np.bool_]) -> GcpTable:
         m = np.asarray(mask, dtype=bool)
         return GcpTable(tuple(i for i, k in zip(self.ids, m) if k), self.pixel[m], self.target[m],
                         None if self.z is None else self.z[m], self.check[m], self.crs)

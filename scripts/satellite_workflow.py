@@ -31,9 +31,17 @@ import math
 import numpy as np
 
 from rectify.demo import demo_raster_path
-from rectify.geodesy import (blh_from_geocentric_formula, ecef_from_enu, ecef_from_geodetic, ellipsoid_of,
-                             enu_from_ecef, geocentric_from_blh_formula, geodetic_from_ecef, geodetic_from_map,
-                             map_from_geodetic)
+from rectify.geodesy import (
+    blh_from_geocentric_formula,
+    ecef_from_enu,
+    ecef_from_geodetic,
+    ellipsoid_of,
+    enu_from_ecef,
+    geocentric_from_blh_formula,
+    geodetic_from_ecef,
+    geodetic_from_map,
+    map_from_geodetic,
+)
 from rectify.georef import pixel_from_world, world_from_pixel
 from rectify.io import raster_info
 from rectify.projective import CotangentFourPoint

@@ -28,8 +28,9 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -350,7 +351,7 @@ class AbsoluteOrientation:
         max_iterations: int = 50,
         tol: float = 1e-10,
         units: str = "ground units",
-    ) -> "AbsoluteOrientation":
+    ) -> AbsoluteOrientation:
         """Estimate the similarity from control points.
 
         Parameters

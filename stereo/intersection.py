@@ -45,8 +45,9 @@ in the normal case (R1 = R2 = I, B along +X) ``q = y2 - y1``.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray

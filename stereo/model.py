@@ -26,9 +26,10 @@ import json
 import logging
 import math
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -114,7 +115,7 @@ class RelativeGeometry:
     raw: dict[str, Any] = field(default_factory=dict)
 
     @classmethod
-    def from_relative(cls, ro: Any) -> "RelativeGeometry":
+    def from_relative(cls, ro: Any) -> RelativeGeometry:
         f = ro.focal_length_mm
         f = (float(f[0]), float(f[1])) if np.ndim(f) else (float(f), float(f))
         return cls(np.asarray(ro.rotation_left), np.asarray(ro.rotation_right), np.asarray(ro.base), f,

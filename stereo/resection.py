@@ -20,9 +20,10 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -149,7 +150,7 @@ class ExteriorOrientation:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "ExteriorOrientation":
+    def from_dict(cls, d: dict[str, Any]) -> ExteriorOrientation:
         """Rebuild from :meth:`to_dict` output (position + rotation or angles)."""
         try:
             pos = d["position"]
@@ -164,7 +165,7 @@ class ExteriorOrientation:
             raise InvalidInputError(f"exterior orientation JSON lacks or has a bad key: {err}") from err
 
     @classmethod
-    def from_json(cls, path: str | Path) -> "ExteriorOrientation":
+    def from_json(cls, path: str | Path) -> ExteriorOrientation:
         return cls.from_dict(read_json(path, "exterior orientation file"))
 
 

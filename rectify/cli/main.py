@@ -23,12 +23,17 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
 
 # --- registered subcommands (one module each) ---
 from .warp import warp  # noqa: E402
+
 cli.add_command(warp)
 from .fit import fit  # noqa: E402
+
 cli.add_command(fit)
 from .match import match  # noqa: E402
+
 cli.add_command(match)
 from .demo import demo  # noqa: E402
+
 cli.add_command(demo)
 from .compare import compare  # noqa: E402
+
 cli.add_command(compare)

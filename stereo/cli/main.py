@@ -23,12 +23,17 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
 
 # --- registered subcommands (one module each) ---
 from .orient import orient
+
 cli.add_command(orient)
 from .model import model
+
 cli.add_command(model)
 from .resect import resect
+
 cli.add_command(resect)
 from .run import run
+
 cli.add_command(run)
 from .demo import demo
+
 cli.add_command(demo)

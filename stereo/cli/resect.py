@@ -13,7 +13,8 @@ from rectify.errors import InvalidInputError
 from rectify.fileutil import atomic_write_text, check_output
 from rectify.tables import read_gcps
 
-from ..resection import INITIAL_METHODS, resect as resect_fn
+from ..resection import INITIAL_METHODS
+from ..resection import resect as resect_fn
 
 
 @click.command(short_help="Space resection (exterior orientation) from GCPs with z.")

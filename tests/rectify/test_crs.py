@@ -4,8 +4,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from rectify.crs import (crs_to_string, get_transformer, is_geographic, parse_crs, same_crs,
-                         transform_xy, transform_xyz)
+from rectify.crs import crs_to_string, get_transformer, is_geographic, parse_crs, same_crs, transform_xy, transform_xyz
 from rectify.errors import CRSError, ShapeError
 
 

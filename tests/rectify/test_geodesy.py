@@ -9,11 +9,25 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
 from rectify.errors import CRSError, InvalidInputError, ShapeError
-from rectify.geodesy import (Ellipsoid, blh_from_geocentric_formula, ecef_from_enu, ecef_from_geodetic,
-                             ecef_from_map, ellipsoid_of, enu_from_body, enu_from_ecef, enu_from_map,
-                             enu_rotation, geocentric_from_blh_formula, geodetic_from_ecef,
-                             geodetic_from_map, map_from_enu, map_from_geodetic, navigation_matrix,
-                             neu_from_enu)
+from rectify.geodesy import (
+    Ellipsoid,
+    blh_from_geocentric_formula,
+    ecef_from_enu,
+    ecef_from_geodetic,
+    ecef_from_map,
+    ellipsoid_of,
+    enu_from_body,
+    enu_from_ecef,
+    enu_from_map,
+    enu_rotation,
+    geocentric_from_blh_formula,
+    geodetic_from_ecef,
+    geodetic_from_map,
+    map_from_enu,
+    map_from_geodetic,
+    navigation_matrix,
+    neu_from_enu,
+)
 
 WGS84 = Ellipsoid(6378137.0, 6.69437999014e-3)
 KRASS = ellipsoid_of("EPSG:28404")  # Krassowsky 1940 (Pulkovo 1942, Gauss-Krueger)

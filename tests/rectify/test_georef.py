@@ -8,8 +8,15 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
 from rectify.errors import InvalidInputError, ShapeError
-from rectify.georef import (Grid, boundary_pixels, output_grid, pixel_from_world, suggest_resolution,
-                            world_from_pixel, world_from_pixel_matrix)
+from rectify.georef import (
+    Grid,
+    boundary_pixels,
+    output_grid,
+    pixel_from_world,
+    suggest_resolution,
+    world_from_pixel,
+    world_from_pixel_matrix,
+)
 
 T = Affine(300.0, 0.0, 101985.0, 0.0, -300.0, 2826915.0)
 

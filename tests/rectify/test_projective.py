@@ -13,10 +13,22 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
 from rectify.errors import EstimationError, InvalidInputError, RasterIOError, ShapeError
-from rectify.projective import (METHODS, PAIRS, AffineTransform, CotangentFourPoint, Homography,
-                                PolynomialTransform, base_cotangents, corrected_eq2, fit_gcps,
-                                load_transform, printed_eq2, save_transform, transform_from_dict,
-                                transform_to_dict)
+from rectify.projective import (
+    METHODS,
+    PAIRS,
+    AffineTransform,
+    CotangentFourPoint,
+    Homography,
+    PolynomialTransform,
+    base_cotangents,
+    corrected_eq2,
+    fit_gcps,
+    load_transform,
+    printed_eq2,
+    save_transform,
+    transform_from_dict,
+    transform_to_dict,
+)
 from rectify.tables import GcpTable
 
 # A known homography (source pixels of a 1000 x 800 image -> target)
