@@ -240,7 +240,8 @@ def test_gcp_csv_round_trip(tmp_path):
     assert len(g.fit) == 2
     out = write_gcps(tmp_path / "h.csv", g)
     g2 = read_gcps(out)
-    assert_allclose(g2.pixel, g.pixel) and g2.crs == g.crs
+    assert_allclose(g2.pixel, g.pixel)
+    assert g2.crs == g.crs == "EPSG:32618"
     with pytest.raises(errors.InvalidInputError, match="exists"):
         write_gcps(out, g)
 
@@ -282,7 +283,9 @@ def test_matches_and_control(tmp_path):
     m = Matches(("1", "2"), np.array([[1.0, 2], [3, 4]]), np.array([[5.0, 6], [7, 8]]), np.array([0.5, 0.9]))
     p = write_matches(tmp_path / "m.csv", m)
     back = read_matches(p)
-    assert_allclose(back.right, m.right) and back.score is not None
+    assert_allclose(back.right, m.right)
+    assert back.score is not None
+    assert_allclose(back.score, m.score)
     c = tmp_path / "c.csv"
     c.write_text("id,col_left,row_left,col_right,row_right,x,y,z\n1,1,2,3,4,10,20,30\n2,1,2,3,4,,,\n")
     ct = read_control(c)

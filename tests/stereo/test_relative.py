@@ -267,7 +267,8 @@ def test_to_dict_contract_and_json(tmp_path):
     assert list(d["elements"]) == ["tau", "omega1", "alpha1", "alpha2", "chi2"]
     assert d["correlation"]["names"] == list(d["elements"])
     C = np.array(d["correlation"]["matrix"])
-    assert_allclose(np.diag(C), 1.0) and np.all(np.abs(C) <= 1 + 1e-12)
+    assert_allclose(np.diag(C), 1.0)
+    assert np.all(np.abs(C) <= 1 + 1e-12)
     assert set(d["points"][0]) >= {"id", "residual_mm", "weight", "outlier"}
     text = ro.to_json(tmp_path / "ro.json")
     back = json.loads((tmp_path / "ro.json").read_text())
