@@ -1,0 +1,218 @@
+"""The files of one job: inputs, planned outputs, atomic all-or-nothing writes, the report folder.
+
+A :class:`Workspace` is made by an action (``rectify.actions``, ``stereo.actions``) before any work
+starts. It checks every planned output at once (exists without ``overwrite``, folder missing or not
+writable, equal to an input), so that bad paths fail in seconds, not after minutes of matching.
+Outputs written inside :meth:`Workspace.transaction` are staged as hidden temporary files beside
+their destinations and renamed into place together when the block ends without error; on any error
+(including ``KeyboardInterrupt`` or ``SystemExit`` from a signal handler) every staged file is
+removed, so a command that writes several files writes them all or none.
+
+Readers and writers of the artefacts themselves live in ``rectify.formats`` and
+``stereo.formats``; the ``load_*``/``save_*`` methods of a workspace call them with the workspace's
+paths and overwrite policy.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+from .errors import InvalidInputError, RasterIOError
+from .fileutil import check_output
+
+__all__ = ["Workspace", "same_file"]
+
+StrPath = str | os.PathLike[str]
+
+
+def same_file(a: StrPath, b: StrPath) -> bool:
+    """True when two paths name the same file (resolved, or the same inode when both exist)."""
+    pa, pb = Path(a), Path(b)
+    try:
+        if pa.exists() and pb.exists():
+            return os.path.samefile(pa, pb)
+    except OSError:
+        pass
+    return pa.resolve() == pb.resolve()
+
+
+class Workspace:
+    """The files of one job.
+
+    Parameters
+    ----------
+    root : path, optional
+        Output folder of a job that writes a fixed set of files (``stereo run``, the demos);
+        ``None`` for commands whose outputs are named one by one.
+    overwrite : bool
+        Replace existing outputs (never done without it).
+    inputs : iterable of paths
+        Files the job reads. An output equal to any of them is refused, even with ``overwrite``.
+    report_dir : path, optional
+        Folder for the QA report (``--report DIR``), checked for writability before work.
+    """
+
+    def __init__(self, root: StrPath | None = None, *, overwrite: bool = False, inputs: Iterable[StrPath] = (),
+                 report_dir: StrPath | None = None) -> None:
+        self.root = Path(root) if root is not None else None
+        self.overwrite = bool(overwrite)
+        self.inputs: tuple[Path, ...] = tuple(Path(p) for p in inputs if p is not None)
+        self.report_dir = Path(report_dir) if report_dir is not None else None
+        self._staged: list[tuple[Path, Path]] | None = None
+        self._created_root = False
+
+    # ------------------------------------------------------------------ paths
+    def path(self, name: str) -> Path:
+        """Path of ``name`` inside the output folder."""
+        if self.root is None:
+            raise InvalidInputError(f"this job has no output folder to hold {name!r}")
+        return self.root / name
+
+    def add_inputs(self, *paths: StrPath | None) -> None:
+        """Record more input files (outputs equal to them are refused)."""
+        self.inputs = self.inputs + tuple(Path(p) for p in paths if p is not None)
+
+    def check_output(self, path: StrPath) -> Path:
+        """Check one planned output before work: not an input, overwrite policy, folder writable."""
+        p = Path(path)
+        for i in self.inputs:
+            if same_file(p, i):
+                raise InvalidInputError(f"output {str(p)!r} is also an input; choose another output path")
+        return check_output(p, overwrite=self.overwrite)
+
+    def plan(self, *paths: StrPath | None) -> list[Path]:
+        """Check every planned output at once; return them as paths (``None`` entries are skipped)."""
+        out = [Path(p) for p in paths if p is not None]
+        seen: list[Path] = []
+        for p in out:
+            if any(same_file(p, q) for q in seen):
+                raise InvalidInputError(f"output {str(p)!r} is named twice")
+            seen.append(p)
+            if self.root is not None and not self.root.exists() and self.root in p.parents:
+                # the folder is created by prepare(); check only the policy for now
+                for i in self.inputs:
+                    if same_file(p, i):
+                        raise InvalidInputError(f"output {str(p)!r} is also an input; choose another output path")
+                continue
+            self.check_output(p)
+        return out
+
+    def prepare(self, *names: str) -> None:
+        """Create the output folder (if any) and check ``names`` inside it and the report folder."""
+        if self.root is not None:
+            if self.root.exists() and not self.root.is_dir():
+                raise InvalidInputError(f"output {str(self.root)!r} exists and is not a folder")
+            if not self.root.exists():
+                parent = self.root.parent if str(self.root.parent) else Path(".")
+                if not parent.is_dir():
+                    raise RasterIOError(f"output folder {str(parent)!r} does not exist")
+                try:
+                    self.root.mkdir()
+                except OSError as err:
+                    raise RasterIOError(f"cannot create output folder {str(self.root)!r}: {err.strerror}") from err
+                self._created_root = True
+            for n in names:
+                self.check_output(self.root / n)
+        self.check_report_dir()
+
+    def check_report_dir(self) -> None:
+        """Fail early when the report folder cannot be written."""
+        d = self.report_dir
+        if d is None:
+            return
+        if d.exists() and not d.is_dir():
+            raise InvalidInputError(f"report folder {str(d)!r} exists and is not a folder")
+        probe = d if d.exists() else next((p for p in d.parents if p.exists()), Path("."))
+        if not os.access(probe, os.W_OK):
+            raise RasterIOError(f"report folder {str(d)!r} is not writable")
+
+    def discard_root(self) -> None:
+        """Remove the output folder if this workspace created it and it is empty (after a failure)."""
+        if self._created_root and self.root is not None:
+            with contextlib.suppress(OSError):
+                self.root.rmdir()
+
+    # ------------------------------------------------------------------ writing
+    @contextlib.contextmanager
+    def transaction(self) -> Iterator[Workspace]:
+        """Stage every output written inside the block; rename them all into place at its end.
+
+        On any exception every staged file is removed and the destinations are left as they were;
+        an output folder created by :meth:`prepare` is removed again when it is left empty.
+        """
+        if self._staged is not None:
+            yield self  # nested: the outer transaction commits
+            return
+        self._staged = []
+        try:
+            yield self
+            for _tmp, dst in self._staged:
+                if dst.exists() and not self.overwrite:
+                    raise InvalidInputError(f"output {str(dst)!r} appeared while writing; pass --overwrite")
+            for tmp, dst in self._staged:
+                os.replace(tmp, dst)
+        except BaseException:
+            for tmp, _ in self._staged:
+                with contextlib.suppress(OSError):
+                    tmp.unlink()
+            self.discard_root()
+            raise
+        finally:
+            self._staged = None
+
+    @contextlib.contextmanager
+    def output(self, path: StrPath, *, suffix: str | None = None) -> Iterator[Path]:
+        """Yield a temporary path to write ``path`` through.
+
+        Inside :meth:`transaction` the file is committed with the others at the end of the block;
+        outside it, it is renamed into place as soon as the writer returns without error.
+        """
+        p = self.check_output(path)
+        parent = p.parent if str(p.parent) else Path(".")
+        fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=suffix if suffix is not None else p.suffix + ".part",
+                                   dir=parent)
+        os.close(fd)
+        tmp_path = Path(tmp)
+        try:
+            yield tmp_path
+        except BaseException:
+            with contextlib.suppress(OSError):
+                tmp_path.unlink()
+            raise
+        if self._staged is not None:
+            self._staged.append((tmp_path, p))
+            return
+        try:
+            if p.exists() and not self.overwrite:
+                raise InvalidInputError(f"output {str(p)!r} appeared while writing; pass --overwrite")
+            os.replace(tmp_path, p)
+        except BaseException:
+            with contextlib.suppress(OSError):
+                tmp_path.unlink()
+            raise
+
+    def write_text(self, path: StrPath, text: str) -> Path:
+        """Write ``text`` to ``path`` through :meth:`output`; return the path."""
+        with self.output(path) as tmp:
+            _write(tmp, text)
+        return Path(path)
+
+    def write_json(self, path: StrPath, obj: Any) -> Path:
+        """Write ``obj`` as indented JSON through :meth:`output`; return the path."""
+        return self.write_text(path, json.dumps(obj, indent=2, allow_nan=False) + "\n")
+
+
+def _write(tmp: Path, text: str) -> None:
+    try:
+        with open(tmp, "w", encoding="utf-8") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+    except OSError as err:
+        raise RasterIOError(f"cannot write {str(tmp)!r}: {err.strerror or err}") from err
