@@ -46,6 +46,7 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "MAD_TO_SIGMA",
     "PSI_FUNCTIONS",
+    "ROBUST_METHODS",
     "Andrews",
     "Hampel",
     "Huber",
@@ -191,6 +192,9 @@ class Andrews:
 PSI_FUNCTIONS: dict[str, PsiFunction] = {
     "huber": Huber(), "tukey": Tukey(), "hampel": Hampel(), "andrews": Andrews(),
 }
+
+#: the choice list of every ``--robust`` option: "none" (plain least squares) or a psi function
+ROBUST_METHODS: tuple[str, ...] = ("none", *PSI_FUNCTIONS)
 
 
 def get_psi(psi: str | PsiFunction) -> PsiFunction:
