@@ -11,4 +11,5 @@ tables      CSV/JSON contracts (GCPs, matches, control points)
 fileutil    atomic output files
 """
 
-__version__ = "0.1.0"
+#: the project version (the only place it is written; pyproject.toml reads it from here)
+__version__ = "0.2.0.dev0"
