@@ -27,7 +27,6 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import CalibrationError
-from .fileutil import read_json
 from .points import as_points
 
 __all__ = ["Camera", "DISTORTION_KEYS"]
@@ -172,7 +171,7 @@ class Camera:
 
     # -------------------------------------------------------------------- JSON
     def to_dict(self) -> dict[str, Any]:
-        """The camera JSON contract of DESIGN.md."""
+        """The camera JSON object (``docs/formats.md``) without the format stamp (it is embedded in other files)."""
         out: dict[str, Any] = {
             "focal_length_mm": self.focal_length_mm,
             "pixel_size_mm": self.pixel_size_mm,
@@ -187,14 +186,18 @@ class Camera:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Camera:
-        """Build from the camera JSON contract; unknown keys are rejected by name."""
+        """Build from the camera JSON object (``docs/formats.md``); unknown keys are rejected by name.
+
+        The ``format``/``version`` stamp of a camera file is accepted and not checked here
+        (:func:`rectify.formats.read_camera` checks it).
+        """
         if not isinstance(d, dict):
             raise CalibrationError(f"camera JSON must be an object; got {type(d).__name__}")
         required = ("focal_length_mm", "pixel_size_mm", "width", "height")
         missing = [k for k in required if k not in d]
         if missing:
             raise CalibrationError(f"camera JSON lacks required key(s) {missing}")
-        allowed = set(required) | {"principal_point_mm", "distortion", "name", "comment"}
+        allowed = set(required) | {"principal_point_mm", "distortion", "name", "comment", "format", "version"}
         unknown = sorted(set(d) - allowed)
         if unknown:
             raise CalibrationError(f"camera JSON has unknown key(s) {unknown}")
@@ -209,5 +212,7 @@ class Camera:
 
     @classmethod
     def from_json(cls, path: str | Path) -> Camera:
-        """Read a camera JSON file."""
-        return cls.from_dict(read_json(path, "camera file"))
+        """Read a camera JSON file (:func:`rectify.formats.read_camera`)."""
+        from .formats import read_camera  # import cycle: rectify.formats builds cameras
+
+        return read_camera(path)

@@ -49,6 +49,7 @@ from matplotlib.figure import Figure
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import InvalidInputError, RasterIOError, ShapeError
+from .formats import REPORT_VERSION, report_json_text
 from .plots import (
     correlation_heatmap_figure,
     height_bars_figure,
@@ -75,8 +76,6 @@ __all__ = [
     "write_report",
 ]
 
-#: Version of the report.json layout.
-REPORT_VERSION = 1
 #: Linear units in which residual components can be taken as ground-frame vectors.
 GROUND_UNITS = {"m", "metre", "meter", "metres", "meters", "ft", "us-ft", "foot", "feet", "km"}
 _DPI = 110
@@ -699,7 +698,6 @@ def write_report(out_dir: str | os.PathLike, *, title: str, tables: list[Residua
             _save(figures[name], tmp / fn)
         caller = json_safe(summary) if summary else {}
         doc = {
-            "report_version": REPORT_VERSION,
             "title": title,
             "created_utc": created,
             "crs": crs_text,
@@ -710,7 +708,7 @@ def write_report(out_dir: str | os.PathLike, *, title: str, tables: list[Residua
             "summary": caller,
             "files": files,
         }
-        (tmp / "report.json").write_text(json.dumps(doc, indent=2, allow_nan=False))
+        (tmp / "report.json").write_text(report_json_text(doc))
         (tmp / "report.html").write_text(_html(title, created, crs_text, plans, summaries, fig_files,
                                                caller, tmp, files, int(html_max_rows)), encoding="utf-8")
         _commit(tmp, out, files, previous, overwrite)
