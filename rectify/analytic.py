@@ -40,8 +40,8 @@ from numpy.typing import ArrayLike, NDArray
 from .camera import Camera
 from .errors import InvalidInputError
 from .points import as_points
-from .projective import AffineTransform, Homography
 from .rotation import check_rotation, matrix_from_angles
+from .transforms import AffineTransform, Homography
 
 logger = logging.getLogger(__name__)
 

@@ -47,7 +47,7 @@ from numpy.typing import NDArray
 from .analytic import TiltedFrame
 from .errors import EstimationError, InvalidInputError
 from .fileutil import atomic_write_text
-from .projective import CotangentFourPoint, Homography, base_cotangents, printed_eq2
+from .transforms import CotangentFourPoint, Homography, base_cotangents, printed_eq2
 
 logger = logging.getLogger(__name__)
 
@@ -377,7 +377,7 @@ def _agreement(cfg: StudyConfig, rng: np.random.Generator, progress: Progress, d
             off = np.abs(cb) < 1e6
             p = printed_eq2(src[0], src[1], cb[off], cg[off])
             printed.append(np.median(np.linalg.norm(p - check[off], axis=1)) / size)
-            from .projective import corrected_eq2
+            from .transforms import corrected_eq2
 
             q = corrected_eq2(src[0], src[1], cb[off], cg[off])
             corrected.append(np.abs(q - check[off]).max() / size)
@@ -465,7 +465,7 @@ def _conditioning(cfg: StudyConfig) -> list[dict[str, Any]]:
         err_c = float(np.abs(c_check - truth).max()) / size
         err_h = float(np.abs(H(check) - truth).max()) / size
         step = min(1e-3, 1e-2 * eps * size)  # finite-difference step well inside the degeneracy scale
-        from .projective import _normalising_similarity
+        from .transforms.base import _normalising_similarity
 
         ts, td = _normalising_similarity(src), _normalising_similarity(dst)
         sn = src @ ts[:2, :2].T + ts[:2, 2]

@@ -597,7 +597,7 @@ class GeoRectification:
 
     Attributes
     ----------
-    fit : rectify.projective.FitResult or None
+    fit : rectify.transforms.FitResult or None
         The forward model (source pixels -> target) and its residual table.
     warp : WarpResult
     crs : str or None
@@ -668,9 +668,9 @@ def georectify(src: str | Path, dst: str | Path, gcps, *, method: str = "homogra
     """
     from .crs import crs_to_string, transform_xy
     from .io import raster_info
-    from .projective import METHODS, FitResult, fit_gcps
     from .residuals import ResidualTable
     from .tables import GcpTable
+    from .transforms import METHODS, FitResult, fit_gcps
 
     if method not in METHODS:
         raise InvalidInputError(f"unknown method {method!r}; expected one of {sorted(METHODS)}")
@@ -748,7 +748,7 @@ def rectify_with_transform(src: str | Path, dst: str | Path, model, *, model_crs
     """
     from .crs import crs_to_string, get_transformer
     from .io import raster_info
-    from .projective import method_of
+    from .transforms import method_of
 
     info = raster_info(src)
     m_crs = crs_to_string(model_crs) if model_crs else None

@@ -94,7 +94,7 @@ def main() -> None:
 
     from rectify.georef import world_from_pixel_matrix
     from rectify.io import raster_info
-    from rectify.projective import AffineTransform, Homography, save_transform
+    from rectify.transforms import AffineTransform, Homography, save_transform
 
     work = Path(a.workdir or tempfile.mkdtemp(prefix="bench_warp_"))
     work.mkdir(parents=True, exist_ok=True)

@@ -15,7 +15,7 @@ seed's closed formulas are evaluated beside it.
    x0 = f (X - XS) / (ZS - Z), y0 = f (Y - YS) / (ZS - Z)   (mm);
    and their pixels in the embedded GeoTIFF (rectify.georef).
 3. Coordinates of determined points from the image by the cotangent four-point
-   method (rectify.projective) fitted on four control points (a plane: the mean height).
+   method (rectify.transforms) fitted on four control points (a plane: the mean height).
 4. Stereo intersection with the seed's factor N = (Bx + x2 Bz / f) / (x1 - x2):
    X = N x1, Y = N y1, Z = -N f (from the left projection centre).
 5. X, Y, Z -> B, L, H by the seed's formulas (iterated tg B) and by pyproj.
@@ -44,7 +44,7 @@ from rectify.geodesy import (
 )
 from rectify.georef import pixel_from_world, world_from_pixel
 from rectify.io import raster_info
-from rectify.projective import CotangentFourPoint
+from rectify.transforms import CotangentFourPoint
 
 F_MM = 1000.0
 FLYING_HEIGHT_M = 700_000.0

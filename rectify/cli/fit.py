@@ -28,8 +28,8 @@ def fit(gcps_path, output, method, max_rows, report_dir, overwrite):
     the per-point residuals dx, dy, |v| (target units) and the RMSE.
     """
     from ..fileutil import check_output
-    from ..projective import METHODS, fit_gcps, save_transform
     from ..tables import read_gcps
+    from ..transforms import METHODS, fit_gcps, save_transform
 
     model_info = METHODS[method]  # the click Choice guarantees the key
     check_output(output, overwrite=overwrite)

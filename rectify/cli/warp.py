@@ -62,7 +62,7 @@ def warp(src, dst, gcps_path, transform_path, method, gcp_crs, dst_crs, resoluti
             result = georectify(src, dst, gcps, method=method, gcp_crs=gcp_crs, dst_crs=dst_crs,
                                 resolution=resolution, options=opts, overwrite=overwrite, progress=cb)
         else:
-            from ..projective import load_transform
+            from ..transforms import load_transform
 
             model = load_transform(transform_path)
             m_crs = gcp_crs or transform_file_crs(transform_path)

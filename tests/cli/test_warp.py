@@ -65,7 +65,7 @@ def test_warp_gcps_report_and_cog(scene):
 
 def test_warp_transform_json(scene):
     d, src, gcps, A = scene
-    from rectify.projective import AffineTransform, save_transform
+    from rectify.transforms import AffineTransform, save_transform
 
     # small coordinates keep the matrix well scaled
     m = np.vstack([A, [0, 0, 1]])

@@ -13,8 +13,8 @@ from numpy.testing import assert_allclose
 from rectify.analytic import TiltedFrame, rectify_tilted
 from rectify.camera import Camera
 from rectify.errors import InvalidInputError
-from rectify.projective import CotangentFourPoint, Homography
 from rectify.rotation import matrix_from_angles
+from rectify.transforms import CotangentFourPoint, Homography
 
 F = 1000.0  # Resurs-F: f = 1000 mm, 300 x 300 mm frame
 FRAME = np.array([[-150.0, -150.0], [150.0, -150.0], [150.0, 150.0], [-150.0, 150.0]])

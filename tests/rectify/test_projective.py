@@ -1,4 +1,4 @@
-"""Tests of rectify.projective: homography, cotangent four-point method, affine,
+"""Tests of rectify.transforms: homography, cotangent four-point method, affine,
 polynomials, the registry, GCP fitting and transform JSON."""
 
 from __future__ import annotations
@@ -13,7 +13,8 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
 from rectify.errors import EstimationError, InvalidInputError, RasterIOError, ShapeError
-from rectify.projective import (
+from rectify.tables import GcpTable
+from rectify.transforms import (
     METHODS,
     PAIRS,
     AffineTransform,
@@ -29,7 +30,6 @@ from rectify.projective import (
     transform_from_dict,
     transform_to_dict,
 )
-from rectify.tables import GcpTable
 
 # A known homography (source pixels of a 1000 x 800 image -> target)
 H_TRUE = np.array([[1.1, 0.05, 10.0], [-0.02, 0.95, 20.0], [1e-4, -5e-5, 1.0]])
@@ -202,7 +202,7 @@ def test_cotangent_near_base_line_is_stable_with_any_pair():
 
 
 def test_cotangent_raises_when_no_pair_is_conditioned(monkeypatch):
-    import rectify.projective as proj
+    import rectify.transforms.cotangent as proj
 
     monkeypatch.setattr(proj, "COT_MAX_REL_ERROR", 1e-20)
     with pytest.raises(EstimationError, match=r"no well-conditioned base pair: the best \(pair"):
