@@ -23,8 +23,11 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
+from . import formats
+from .camera import Camera
 from .errors import InvalidInputError, RasterIOError
 from .fileutil import check_output
+from .residuals import ResidualTable
 
 __all__ = ["Workspace", "same_file"]
 
@@ -206,6 +209,53 @@ class Workspace:
     def write_json(self, path: StrPath, obj: Any) -> Path:
         """Write ``obj`` as indented JSON through :meth:`output`; return the path."""
         return self.write_text(path, json.dumps(obj, indent=2, allow_nan=False) + "\n")
+
+    # ------------------------------------------------------------------ artefacts (rectify.formats)
+    def load_gcps(self, path: StrPath) -> formats.GcpTable:
+        """Read a GCP CSV or QGIS ``.points`` file (an input of the job)."""
+        self.add_inputs(path)
+        return formats.read_gcps(path)
+
+    def save_gcps(self, path: StrPath, gcps: formats.GcpTable) -> Path:
+        """Write a GCP CSV through :meth:`output`."""
+        return self.write_text(path, formats.gcps_text(gcps))
+
+    def load_matches(self, path: StrPath) -> formats.Matches:
+        """Read a matches CSV (an input of the job)."""
+        self.add_inputs(path)
+        return formats.read_matches(path)
+
+    def save_matches(self, path: StrPath, matches: formats.Matches) -> Path:
+        """Write a matches CSV through :meth:`output`."""
+        return self.write_text(path, formats.matches_text(matches))
+
+    def load_control(self, path: StrPath) -> formats.ControlTable:
+        """Read a stereo control CSV (an input of the job)."""
+        self.add_inputs(path)
+        return formats.read_control(path)
+
+    def save_control(self, path: StrPath, control: formats.ControlTable) -> Path:
+        """Write a stereo control CSV through :meth:`output`."""
+        return self.write_text(path, formats.control_text(control))
+
+    def load_camera(self, path: StrPath) -> Camera:
+        """Read a camera JSON file (an input of the job)."""
+        self.add_inputs(path)
+        return formats.read_camera(path)
+
+    def save_camera(self, path: StrPath, camera: Camera) -> Path:
+        """Write a camera JSON file through :meth:`output`."""
+        return self.write_json(path, formats.camera_document(camera))
+
+    def load_transform(self, path: StrPath) -> formats.TransformFile:
+        """Read a transform JSON file (an input of the job): the model, its CRS and residuals."""
+        self.add_inputs(path)
+        return formats.read_transform(path)
+
+    def save_transform(self, path: StrPath, model: Any, *, table: ResidualTable | None = None,
+                       crs: str | None = None, extra: dict[str, Any] | None = None) -> Path:
+        """Write a transform JSON file through :meth:`output` (:func:`rectify.formats.transform_document`)."""
+        return self.write_text(path, formats.transform_text(model, table=table, crs=crs, extra=extra))
 
 
 def _write(tmp: Path, text: str) -> None:

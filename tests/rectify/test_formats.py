@@ -224,3 +224,31 @@ def test_reads_release_0_1_0_report():
     assert r.step == "GCP fit (homography)" and r.units == "m" and r.n == 16
     assert int(r.check.sum()) == 4 and r.ids[0] == "gcp1"
     assert r.summary()["rmse"] == pytest.approx(t["summary"]["rmse"], rel=1e-12)
+
+
+# ------------------------------------------------------------------ through a workspace
+def test_workspace_load_save_round_trips(tmp_path):
+    from rectify.workspace import Workspace
+
+    g = gcp_table()
+    cam = Camera(120.0, 0.144, 640, 1152)
+    r = fit_gcps(g, "affine")
+    m = Matches(("1", "2"), np.array([[1.0, 2], [3, 4]]), np.array([[5.0, 6], [7, 8]]))
+    c = ControlTable(("a",), np.array([[1.0, 2]]), np.array([[3.0, 4]]), np.array([[5.0, 6, 7]]), EPSG)
+    ws = Workspace(tmp_path)
+    with ws.transaction():
+        ws.save_gcps(tmp_path / "g.csv", g)
+        ws.save_matches(tmp_path / "m.csv", m)
+        ws.save_control(tmp_path / "c.csv", c)
+        ws.save_camera(tmp_path / "cam.json", cam)
+        ws.save_transform(tmp_path / "t.json", r.model, table=r.table, crs=g.crs)
+        assert not (tmp_path / "g.csv").exists()  # staged until the block ends
+    assert_array_equal(ws.load_gcps(tmp_path / "g.csv").target, g.target)
+    assert ws.load_matches(tmp_path / "m.csv").ids == m.ids
+    assert_array_equal(ws.load_control(tmp_path / "c.csv").xyz, c.xyz)
+    assert ws.load_camera(tmp_path / "cam.json").to_dict() == cam.to_dict()
+    assert ws.load_transform(tmp_path / "t.json").crs == EPSG
+    with pytest.raises(errors.InvalidInputError, match="also an input"):
+        ws.check_output(tmp_path / "g.csv")
+    with pytest.raises(errors.InvalidInputError, match="exists"):
+        Workspace().save_gcps(tmp_path / "g.csv", g)
