@@ -8,7 +8,7 @@ and each trial, the same noisy matches (0.3 px per coordinate, optionally 20 %
 gross errors) go to every method; we report the median rotation error and
 base-direction error (degrees) against the truth and the median wall time.
 Ours: ``robust="none"`` on clean data, ``robust="tukey"`` (its RANSAC filter
-is OpenCV's five-point USAC, then IRLS) with outliers. Targets (DESIGN.md):
+is OpenCV's five-point USAC, then IRLS) with outliers. Targets (README, benchmarks):
 error <= OpenCV's; time <= 3x OpenCV's.
 
 Usage::
@@ -20,12 +20,17 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
 
-from stereo.relative import SYSTEMS, RelativeOrientation, simulate_pair
+from stereo.relative import SYSTEMS, RelativeOrientation
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, for tests.support
+from tests.support.stereo_support import simulate_pair  # noqa: E402
 
 
 def rot_err_deg(Ra, Rb):

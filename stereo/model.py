@@ -22,12 +22,11 @@ block, cancels on the way back.
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -37,19 +36,20 @@ from numpy.typing import ArrayLike, NDArray
 from rectify.camera import Camera
 from rectify.crs import unit_label
 from rectify.errors import CRSError, InvalidInputError
-from rectify.fileutil import atomic_output, atomic_write_text, check_output, read_json
+from rectify.fileutil import check_output
 from rectify.points import as_ids
 from rectify.residuals import ResidualTable, rms
 from rectify.tables import ControlTable, Matches
 
 from .absolute import AbsoluteOrientation
+from .formats import orientation_dict, write_orientation, write_ply, write_points_csv, write_relative
 from .intersection import METHODS, Intersection, intersect
+from .relative import RelativeGeometry, RelativeOrientation
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ModelOptions", "RelativeGeometry", "StereoModel", "Workspace", "build_model", "load_relative",
-           "match_control", "run_model", "run_pair", "write_ply", "write_points_csv", "FRAMES", "ground_unit",
-           "write_pair_report"]
+__all__ = ["ModelOptions", "StereoModel", "Workspace", "build_model", "match_control", "run_model", "run_pair",
+           "FRAMES", "ground_unit", "write_pair_report"]
 
 FRAMES = ("topocentric", "map")
 
@@ -99,42 +99,6 @@ class ModelOptions:
             raise InvalidInputError(f"unknown intersection method {self.intersection!r}; expected {list(METHODS)}")
         if self.frame not in FRAMES:
             raise InvalidInputError(f"unknown frame {self.frame!r}; expected one of {list(FRAMES)}")
-
-
-@dataclass(frozen=True, eq=False)
-class RelativeGeometry:
-    """What intersection needs from a relative orientation (read from its JSON)."""
-
-    rotation_left: NDArray[np.float64]
-    rotation_right: NDArray[np.float64]
-    base: NDArray[np.float64]
-    focal_length_mm: tuple[float, float]
-    sigma0_mm: float | None = None
-    pixel_size_mm: float | None = None
-    system: str = ""
-    raw: dict[str, Any] = field(default_factory=dict)
-
-    @classmethod
-    def from_relative(cls, ro: Any) -> RelativeGeometry:
-        f = ro.focal_length_mm
-        f = (float(f[0]), float(f[1])) if np.ndim(f) else (float(f), float(f))
-        return cls(np.asarray(ro.rotation_left), np.asarray(ro.rotation_right), np.asarray(ro.base), f,
-                   getattr(ro, "sigma0_mm", None), getattr(ro, "pixel_size_mm", None),
-                   getattr(ro, "system", ""), ro.to_dict() if hasattr(ro, "to_dict") else {})
-
-
-def load_relative(path: str | Path) -> RelativeGeometry:
-    """Read a relative orientation JSON (DESIGN.md contract, written by ``stereo orient``)."""
-    p = Path(path)
-    d = read_json(p, "relative orientation")
-    missing = [k for k in ("rotation_left", "rotation_right", "base", "focal_length_mm") if k not in d]
-    if missing:
-        raise InvalidInputError(f"{str(p)!r} is not a relative orientation JSON: missing {missing}")
-    f = d["focal_length_mm"]
-    f = (float(f[0]), float(f[1])) if isinstance(f, list) else (float(f), float(f))
-    return RelativeGeometry(np.array(d["rotation_left"], float), np.array(d["rotation_right"], float),
-                            np.array(d["base"], float), f, d.get("sigma0_mm"), d.get("pixel_size_mm"),
-                            d.get("system", ""), d)
 
 
 @dataclass(frozen=True, eq=False)
@@ -432,66 +396,6 @@ def match_control(control: ControlTable, camera: Camera) -> tuple[NDArray, NDArr
     return camera.photo_from_pixel(control.left), camera.photo_from_pixel(control.right)
 
 
-# ---------------------------------------------------------------------- output
-def write_ply(path: str | Path, xyz: ArrayLike, *, colors: ArrayLike | None = None, overwrite: bool = False,
-              comment: str | None = None) -> Path:
-    """Binary little-endian PLY with float64 x, y, z (and uchar red, green, blue)."""
-    p = np.asarray(xyz, dtype="<f8").reshape(-1, 3)
-    n = len(p)
-    dt = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
-    if colors is not None:
-        c = np.asarray(colors).reshape(n, -1)
-        dt += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
-    rec = np.empty(n, dtype=dt)
-    rec["x"], rec["y"], rec["z"] = p[:, 0], p[:, 1], p[:, 2]
-    if colors is not None:
-        for k, name in enumerate(("red", "green", "blue")):
-            rec[name] = np.clip(c[:, min(k, c.shape[1] - 1)], 0, 255).astype("u1")
-    head = ["ply", "format binary_little_endian 1.0"]
-    if comment:
-        head.append(f"comment {comment}")
-    head += [f"element vertex {n}", "property double x", "property double y", "property double z"]
-    if colors is not None:
-        head += ["property uchar red", "property uchar green", "property uchar blue"]
-    head.append("end_header")
-    with atomic_output(path, overwrite=overwrite) as tmp:
-        with open(tmp, "wb") as fh:
-            fh.write(("\n".join(head) + "\n").encode("ascii"))
-            fh.write(rec.tobytes())
-    return Path(path)
-
-
-def read_ply_xyz(path: str | Path) -> NDArray[np.float64]:
-    """Read the x, y, z of a PLY written by :func:`write_ply` (for tests and checks)."""
-    data = Path(path).read_bytes()
-    end = data.index(b"end_header\n") + len(b"end_header\n")
-    head = data[:end].decode("ascii").splitlines()
-    n = int(next(h.split()[2] for h in head if h.startswith("element vertex")))
-    rgb = any("red" in h for h in head)
-    dt = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")] + ([("r", "u1"), ("g", "u1"), ("b", "u1")] if rgb else [])
-    rec = np.frombuffer(data[end:], dtype=dt, count=n)
-    return np.column_stack([rec["x"], rec["y"], rec["z"]])
-
-
-def write_points_csv(path: str | Path, ids: Sequence[str], xyz: ArrayLike, residual_mm: ArrayLike, *,
-                     std: ArrayLike | None = None, crs: str | None = None, overwrite: bool = False) -> Path:
-    """CSV ``id,x,y,z,residual_mm`` (plus ``std_x,std_y,std_z``), DESIGN.md point cloud contract."""
-    p = np.asarray(xyz, float).reshape(-1, 3)
-    rr = np.asarray(residual_mm, float).reshape(-1)
-    lines = []
-    if crs:
-        lines.append(f"# crs={crs}" if "\n" not in crs and len(crs) < 200 else "# crs=WKT (see orientation.json)")
-    head = "id,x,y,z,residual_mm" + (",std_x,std_y,std_z" if std is not None else "")
-    lines.append(head)
-    s = None if std is None else np.asarray(std, float).reshape(-1, 3)
-    for i, pid in enumerate(ids):
-        row = f"{pid},{p[i, 0]:.4f},{p[i, 1]:.4f},{p[i, 2]:.4f},{rr[i]:.5f}"
-        if s is not None:
-            row += f",{s[i, 0]:.4f},{s[i, 1]:.4f},{s[i, 2]:.4f}"
-        lines.append(row)
-    return atomic_write_text(path, "\n".join(lines) + "\n", overwrite=overwrite)
-
-
 class Workspace:
     """Output folder of a pair run; owns the file layout.
 
@@ -539,14 +443,7 @@ def save_model(model: StereoModel, *, points_path: str | Path, csv_path: str | P
     if model_ply_path is not None:
         write_ply(model_ply_path, model.intersection.points, overwrite=overwrite, comment="model frame")
     if orientation_path is not None:
-        d: dict[str, Any] = {"frame": model.frame, "crs": model.crs, "summary": model.summary}
-        if model.absolute is not None:
-            d["absolute"] = model.absolute.to_dict()
-        if extra:
-            d.update(extra)
-        from rectify.report import json_safe
-
-        atomic_write_text(orientation_path, json.dumps(json_safe(d), indent=2), overwrite=overwrite)
+        write_orientation(orientation_path, orientation_dict(model, extra=extra), overwrite=overwrite)
 
 
 def run_model(geometry: RelativeGeometry, matches: Matches, camera: Camera, *, control: ControlTable | None = None,
@@ -566,9 +463,6 @@ def run_pair(left: str | Path, right: str | Path, camera: Camera, out_dir: str |
     """``stereo run``: match, orient, intersect, orient absolutely, write everything into ``out_dir``."""
     from rectify.features import MatcherConfig, match_images
     from rectify.tables import write_matches
-
-    from .relative import RelativeOrientation
-
     opts = options or ModelOptions()
     ws = Workspace(out_dir, overwrite=overwrite)
     ws.prepare()
@@ -590,7 +484,7 @@ def run_pair(left: str | Path, right: str | Path, camera: Camera, out_dir: str |
         ids_all += list(control.ids)
     ro = RelativeOrientation.from_pixels(l_all, r_all, camera, system=opts.ro_system, robust=opts.ro_robust,
                                          ids=ids_all)
-    atomic_write_text(ws.path("relative.json"), ro.to_json(), overwrite=overwrite)
+    write_relative(ws.path("relative.json"), ro, overwrite=overwrite)
     keep = ~np.asarray(ro.outlier)[:len(m)]
     mk = Matches(tuple(np.asarray(m.ids)[keep]), m.left[keep], m.right[keep])
     model = run_model(RelativeGeometry.from_relative(ro), mk, camera, control=control, options=opts)

@@ -22,14 +22,12 @@ import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from rectify.errors import EstimationError, InvalidInputError, ShapeError
-from rectify.fileutil import read_json
 from rectify.points import as_ids, as_mask, as_pair
 from rectify.residuals import ResidualTable
 from rectify.rotation import (
@@ -125,7 +123,7 @@ class ExteriorOrientation:
                                 self.principal_point_mm[1] - f * p[:, 1] / p[:, 2]])
 
     def to_dict(self) -> dict[str, Any]:
-        """The EO JSON of DESIGN.md (``stereo resect``)."""
+        """The dict form of the exterior orientation JSON (``stereo resect``; see :mod:`stereo.formats`)."""
         om, ph, ka = map(float, self.angles)
         d: dict[str, Any] = {
             "position": self.position.tolist(),
@@ -163,10 +161,6 @@ class ExteriorOrientation:
                        principal_point_mm=d.get("principal_point_mm", (0.0, 0.0)), crs=d.get("crs"))
         except (KeyError, TypeError) as err:
             raise InvalidInputError(f"exterior orientation JSON lacks or has a bad key: {err}") from err
-
-    @classmethod
-    def from_json(cls, path: str | Path) -> ExteriorOrientation:
-        return cls.from_dict(read_json(path, "exterior orientation file"))
 
 
 def _corr(c: NDArray) -> NDArray:

@@ -12,8 +12,9 @@ from rectify.errors import InvalidInputError
 from rectify.fileutil import check_output
 from rectify.tables import read_control, read_matches
 
+from ..formats import read_relative
 from ..intersection import METHODS
-from ..model import FRAMES, ModelOptions, load_relative, run_model, save_model
+from ..model import FRAMES, ModelOptions, run_model, save_model
 from .run import print_tables
 
 
@@ -55,7 +56,7 @@ def model(ro_json, matches_path, camera_path, output, control_path, check_ids, f
     ply, csv_path, orient_path = outputs_for(output)
     for p in (ply, csv_path, orient_path):
         check_output(p, overwrite=overwrite)
-    geom = load_relative(ro_json)
+    geom = read_relative(ro_json)
     if camera_path is not None:
         cam = Camera.from_json(camera_path)
     elif isinstance(geom.raw.get("camera"), dict):  # written by `stereo orient`

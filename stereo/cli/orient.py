@@ -11,6 +11,7 @@ from rectify.cli.options import echo, handle_errors, overwrite_opt, report_opt
 from rectify.errors import InvalidInputError
 from rectify.fileutil import check_output
 
+from ..formats import write_relative
 from ..relative import ROBUST_METHODS, SYSTEMS, RelativeOrientation
 
 
@@ -74,7 +75,7 @@ def orient(images, camera_path, camera_right_path, matches_path, output, system,
                                          robust=robust, initial=initial, ids=matches.ids)
     # the cameras travel with the orientation, so `stereo model` needs no --camera
     cams = {"camera": cam.to_dict(), **({"camera_right": cam_r.to_dict()} if cam_r else {})}
-    ro.to_json(output, overwrite=overwrite, extra=cams)
+    write_relative(output, ro, extra=cams, overwrite=overwrite)
     s = ro.summary()
     echo(f"relative orientation ({system}), {s['n_used']} of {s['n_points']} points used, "
          f"{s['n_outliers']} outliers, {s['iterations']} iterations"

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 
 import click
@@ -10,9 +9,10 @@ import click
 from rectify.camera import Camera
 from rectify.cli.options import echo, handle_errors, overwrite_opt, report_opt
 from rectify.errors import InvalidInputError
-from rectify.fileutil import atomic_write_text, check_output
+from rectify.fileutil import check_output
 from rectify.tables import read_gcps
 
+from ..formats import exterior_dict, write_exterior
 from ..resection import INITIAL_METHODS
 from ..resection import resect as resect_fn
 
@@ -43,9 +43,8 @@ def resect(camera_path, gcps_path, output, initial, free_interior, report_dir, o
     eo = resect_fn(cam.photo_from_pixel(g.pixel), ground, focal_length_mm=cam.focal_length_mm,
                    principal_point_mm=(0.0, 0.0), ids=g.ids, check=g.check, free_interior=free_interior,
                    initial=initial, crs=g.crs)
-    d = eo.to_dict()
-    d["camera"] = cam.to_dict()
-    atomic_write_text(output, json.dumps(d, indent=2), overwrite=overwrite)
+    d = exterior_dict(eo, camera=cam.to_dict())
+    write_exterior(output, eo, camera=cam.to_dict(), overwrite=overwrite)
     om, ph, ka = (math.degrees(a) for a in eo.angles)
     se = eo.std_errors
     echo(f"omega {om:.4f} deg +- {math.degrees(se['omega']):.4f}, phi {ph:.4f} +- {math.degrees(se['phi']):.4f}, "

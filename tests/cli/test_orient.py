@@ -12,7 +12,7 @@ from click.testing import CliRunner
 from rectify.camera import Camera
 from rectify.tables import Matches, write_matches
 from stereo.cli.main import cli
-from stereo.relative import simulate_pair
+from tests.support.stereo_support import simulate_pair
 
 CAM = {"focal_length_mm": 120.0, "pixel_size_mm": 0.144, "width": 640, "height": 1152}
 

@@ -11,6 +11,7 @@ from click.testing import CliRunner
 
 from rectify.tables import Matches, write_matches
 from stereo.cli.main import cli
+from stereo.formats import relative_json_text
 from stereo.relative import RelativeOrientation
 from stereo.synthetic import make_scene
 
@@ -30,7 +31,7 @@ def _files(tmp_path, scene, n_tie=120, n_ctrl=8):
     ids = tuple(f"t{i}" for i in range(n_tie))
     write_matches(tmp_path / "matches.csv", Matches(ids, pl[:n_tie], pr[:n_tie]))
     ro = RelativeOrientation.from_pixels(pl[:n_tie], pr[:n_tie], cam, ids=ids)
-    (tmp_path / "ro.json").write_text(ro.to_json())
+    (tmp_path / "ro.json").write_text(relative_json_text(ro))
     lines = [f"# crs={scene.crs}", "id,col_left,row_left,col_right,row_right,x,y,z"]
     for i in range(n_tie, n_tie + n_ctrl):
         lines.append(f"c{i},{pl[i, 0]},{pl[i, 1]},{pr[i, 0]},{pr[i, 1]},{g[i, 0]},{g[i, 1]},{g[i, 2]}")

@@ -8,16 +8,15 @@ import pytest
 from rectify.errors import EstimationError, InvalidInputError
 from rectify.residuals import rms
 from rectify.tables import ControlTable
+from stereo.formats import read_ply_xyz
 from stereo.model import (
     ModelOptions,
-    RelativeGeometry,
     build_model,
     ground_unit,
     match_control,
-    read_ply_xyz,
     save_model,
 )
-from stereo.relative import RelativeOrientation
+from stereo.relative import RelativeGeometry, RelativeOrientation
 from stereo.synthetic import make_scene
 
 

@@ -27,8 +27,9 @@ import numpy as np
 from rectify.rotation import angles_from_matrix, matrix_from_angles
 from stereo.absolute import AbsoluteOrientation
 from stereo.intersection import intersect
-from stereo.relative import RelativeOrientation, simulate_pair
+from stereo.relative import RelativeOrientation
 from stereo.resection import ExteriorOrientation, resect
+from tests.support.stereo_support import simulate_pair
 
 
 def _rms(a) -> float:

@@ -21,14 +21,15 @@ from rectify.errors import (
 )
 from rectify.residuals import ResidualTable
 from rectify.rotation import matrix_from_angles
+from stereo.formats import relative_json_text, write_relative
 from stereo.relative import (
     SYSTEMS,
     RelativeOptions,
     RelativeOrientation,
     coplanarity,
     relative_from_essential,
-    simulate_pair,
 )
+from tests.support.stereo_support import simulate_pair
 
 DEG = math.pi / 180
 F_NGI, PIX = 120.0, 0.144
@@ -270,12 +271,12 @@ def test_to_dict_contract_and_json(tmp_path):
     assert_allclose(np.diag(C), 1.0)
     assert np.all(np.abs(C) <= 1 + 1e-12)
     assert set(d["points"][0]) >= {"id", "residual_mm", "weight", "outlier"}
-    text = ro.to_json(tmp_path / "ro.json")
+    write_relative(tmp_path / "ro.json", ro)
     back = json.loads((tmp_path / "ro.json").read_text())
-    assert back == json.loads(text)
+    assert back == json.loads(relative_json_text(ro))
     json.dumps(d, allow_nan=False)  # never NaN
     with pytest.raises(Exception, match="exists"):
-        ro.to_json(tmp_path / "ro.json")
+        write_relative(tmp_path / "ro.json", ro)
     R = np.array(back["rotation_left"])
     assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
     t = ro.residual_table()

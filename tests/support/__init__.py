@@ -1,0 +1,1 @@
+"""Test and script support code that is not part of the library (one module per side)."""
