@@ -37,3 +37,6 @@ cli.add_command(run)
 from .demo import demo
 
 cli.add_command(demo)
+from .calibrate import calibrate
+
+cli.add_command(calibrate)

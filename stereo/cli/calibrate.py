@@ -1,0 +1,57 @@
+"""``stereo calibrate``: camera calibration from chessboard images or measured target points."""
+
+from __future__ import annotations
+
+import click
+
+from rectify.cli.options import echo, handle_errors, overwrite_opt, report_opt
+from rectify.errors import InvalidInputError
+
+
+@click.command(short_help="Camera calibration: chessboard images or measured points of a plane/3D target.")
+@click.argument("images", nargs=-1, type=click.Path(exists=True, dir_okay=False))
+@click.option("--chessboard", "pattern", default=None, help="Inner corners of the chessboard, e.g. 9x6.")
+@click.option("--square", default="1", show_default=True, help="Chessboard square size, e.g. 25mm (object units).")
+@click.option("--points", "points_path", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="Observation CSV view,point,col,row[,x,y,z] (instead of images).")
+@click.option("--field", "field_path", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="Field CSV point,x,y,z: object coordinates of the target points (plane or 3D).")
+@click.option("--size", default=None, help="Image size WxH in pixels (with --points), e.g. 640x480.")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Camera JSON to write.")
+@click.option("--pixel-size", "pixel_size_mm", type=float, default=None,
+              help="Pixel size in mm: write a millimetre camera (one focal length).")
+@click.option("--equal-focal", is_flag=True, default=False, help="One principal distance (square pixels).")
+@click.option("--distortion", default="k1,k2,k3,p1,p2", show_default=True,
+              help="Free distortion coefficients (comma separated; 'none' for none).")
+@click.option("--symmetry", is_flag=True, default=False,
+              help="Estimate the point of symmetry of distortion separately from the principal point.")
+@click.option("--robust", type=click.Choice(["none", "huber", "tukey", "hampel", "andrews"]), default="none",
+              show_default=True, help="Robust weights (M-estimator).")
+@report_opt
+@overwrite_opt
+@handle_errors
+def calibrate(images, pattern, square, points_path, field_path, size, output, pixel_size_mm, equal_focal, distortion,
+              symmetry, robust, report_dir, overwrite):
+    """Calibrate a camera: interior orientation (f or fx/fy, principal point, Brown k1..k3, p1, p2) with standard
+    errors, by a least-squares adjustment of all views. IMAGES with --chessboard, or --points [--field] --size."""
+    from ..calibration.workflow import calibrate_images, calibrate_points
+
+    dist = () if distortion.strip().lower() == "none" else tuple(d.strip() for d in distortion.split(",") if d.strip())
+    model = {"equal_focal": equal_focal, "distortion": dist, "symmetry": symmetry,
+             "robust": None if robust == "none" else robust}
+    if points_path:
+        if images or pattern:
+            raise InvalidInputError("give either IMAGES with --chessboard or --points, not both")
+        if not size:
+            raise InvalidInputError("--points needs --size WxH (the image size in pixels)")
+        run = calibrate_points(points_path, field=field_path, size=size, output=output, report_dir=report_dir,
+                               overwrite=overwrite, pixel_size_mm=pixel_size_mm, **model)
+    else:
+        if not images:
+            raise InvalidInputError("no input: give IMAGES with --chessboard 9x6, or --points obs.csv")
+        if not pattern:
+            raise InvalidInputError("IMAGES need --chessboard COLSxROWS (inner corners, e.g. 9x6)")
+        run = calibrate_images(images, pattern=pattern, square=square, output=output, report_dir=report_dir,
+                               overwrite=overwrite, pixel_size_mm=pixel_size_mm, **model)
+    for line in run.summary_lines():
+        echo(line)
