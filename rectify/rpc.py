@@ -181,10 +181,10 @@ class RPC:
         names = {"line_off": "LINE_OFF", "samp_off": "SAMP_OFF", "lat_off": "LAT_OFF", "long_off": "LONG_OFF",
                  "height_off": "HEIGHT_OFF", "line_scale": "LINE_SCALE", "samp_scale": "SAMP_SCALE",
                  "lat_scale": "LAT_SCALE", "long_scale": "LONG_SCALE", "height_scale": "HEIGHT_SCALE"}
-        lines = [f"{v}: {getattr(self, k)!r}" for k, v in names.items()]
+        lines = [f"{v}: {float(getattr(self, k))!r}" for k, v in names.items()]
         for k in _COEFFS:
             key = k.upper()
-            lines += [f"{key}_{i + 1}: {c!r}" for i, c in enumerate(getattr(self, k))]
+            lines += [f"{key}_{i + 1}: {float(c)!r}" for i, c in enumerate(getattr(self, k))]
         return "\n".join(lines) + "\n"
 
     # -------------------------------------------------------------- geometry
@@ -277,10 +277,11 @@ class RPC:
         g = np.column_stack([self._initial_guess(p, h), h])
         done = bad.copy()
         it = 0
-        for it in range(1, max_iter + 1):
+        while it < max_iter:
             act = ~done
             if not act.any():
                 break
+            it += 1
             ga = g[act]
             r = p[act] - self._project(ga)
             J = self._jacobian(ga)
@@ -529,7 +530,7 @@ _RPB_KEYS = {"lineoffset": "line_off", "sampoffset": "samp_off", "latoffset": "l
 def _from_rpb(text: str, source: str) -> RPC:
     """DigitalGlobe / Maxar ``.RPB`` (``key = value;``, coefficient lists in parentheses)."""
     d: dict[str, Any] = {}
-    for m in re.finditer(r"(\w+)\s*=\s*(\([^)]*\)|[^;]*);", text):
+    for m in re.finditer(r"(\w+)\s*=\s*(\([^)]*\)|[^;\n]*);", text):
         key = _RPB_KEYS.get(m.group(1).lower())
         if key is None:
             continue
