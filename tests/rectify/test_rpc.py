@@ -43,11 +43,10 @@ def gdal_rowcol(rpc: RPC, g: np.ndarray, **opts) -> np.ndarray:
 
 
 def gdal_lonlat(rpc: RPC, gdal_px: np.ndarray, h: np.ndarray, **opts) -> np.ndarray:
-    from rasterio.transform import TransformDirection
-
     import warnings
 
     from rasterio.errors import TransformWarning
+    from rasterio.transform import TransformDirection
 
     with gdal_transformer(rpc, **opts) as t, warnings.catch_warnings():
         warnings.simplefilter("ignore", TransformWarning)  # GDAL gives up on some points (counted by the caller)
