@@ -1,4 +1,5 @@
-"""Figures of residuals: vectors over the image, histogram + Q-Q, radial trend, heat maps, bars.
+"""Figures of residuals: vectors over the image, histogram + Q-Q, radial trend, heat maps, bars;
+and the figures of a tie-point match (:func:`match_figures`).
 
 Every function returns a new :class:`matplotlib.figure.Figure` built without
 :mod:`matplotlib.pyplot` (no global state, no GUI backend), so they are safe in
@@ -16,6 +17,7 @@ import logging
 import math
 import textwrap
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.colors import Normalize
@@ -27,12 +29,16 @@ from scipy import stats
 from .errors import InvalidInputError, ShapeError
 from .residuals import ResidualTable
 
+if TYPE_CHECKING:  # annotation only: importing the matcher (OpenCV) is not needed to draw
+    from .features import MatchResult
+
 logger = logging.getLogger(__name__)
 
 __all__ = [
     "correlation_heatmap_figure",
     "height_bars_figure",
     "histogram_qq_figure",
+    "match_figures",
     "nice_number",
     "radial_figure",
     "residual_vector_figure",
@@ -331,7 +337,7 @@ def histogram_qq_figure(table: ResidualTable, *, title: str | None = None) -> Fi
         ref_vals = nz[fit & finite] if (fit & finite).any() else allv
         top = max(1.2 * float(np.percentile(ref_vals, 99.5)), 3.0)
         bins = np.linspace(0.0, top, max(10, min(60, int(np.sqrt(allv.size)) + 5)))
-        keep = [(d, lab, c) for d, lab, c in zip(data, labels, colours) if d.size]
+        keep = [(d, lab, c) for d, lab, c in zip(data, labels, colours, strict=True) if d.size]
         ax1.hist([np.clip(d, 0, top) for d, _, _ in keep], bins=bins, stacked=True, density=True,
                  color=[c for _, _, c in keep], label=[f"{lab} ({d.size})" for d, lab, _ in keep],
                  edgecolor="white", linewidth=0.5)
@@ -448,7 +454,7 @@ def radial_figure(table: ResidualTable, principal_point_px: ArrayLike, *,
         series.append(("radial component v\u00b7r\u0302 (outwards +)", vr, "mean"))
     rmax = float(np.nanmax(r)) if np.isfinite(r).any() else 1.0
     edges = np.linspace(0.0, rmax if rmax > 0 else 1.0, n_bins + 1)
-    for ax, (lab, y, stat_name) in zip(axes, series):
+    for ax, (lab, y, stat_name) in zip(axes, series, strict=True):
         ax.scatter(r[fit], y[fit], s=6, c="#555555", linewidths=0, alpha=0.6, label="fit point")
         if chk.any():
             ax.scatter(r[chk], y[chk], s=25, marker="^", facecolors="none", edgecolors=_CHECK_COLOUR,
@@ -563,7 +569,7 @@ def height_bars_figure(table: ResidualTable, *, component: int | str = -1,
     x = np.arange(n)
     colours = np.where(out, _OUTLIER_COLOUR, np.where(chk, _CHECK_COLOUR, "#4c72b0"))
     bars = ax.bar(x, y, color=colours, edgecolor="k", linewidth=0.4)
-    for b, c in zip(bars, chk):
+    for b, c in zip(bars, chk, strict=True):
         if c:
             b.set_hatch("//")
     rmse = float(np.sqrt(np.mean(y[fit] ** 2))) if fit.any() else float("nan")
@@ -588,3 +594,54 @@ def height_bars_figure(table: ResidualTable, *, component: int | str = -1,
     ax.grid(True, axis="y", alpha=0.25)
     ax.set_title(_wrap(title or f"{table.step}: {comps[j]} residual per point", fig, 11), fontsize=11)
     return fig
+
+
+# --------------------------------------------------------------------------- tie points
+def match_figures(result: MatchResult, left_preview: tuple[NDArray, float] | None = None,
+                  right_preview: tuple[NDArray, float] | None = None) -> dict[str, Figure]:
+    """Figures for the report: inliers/outliers side by side, and match density.
+
+    Parameters
+    ----------
+    result : MatchResult
+    left_preview, right_preview : (image (h, w[, C]), scale), optional
+        Downsampled images and their scale (full-resolution px per preview px),
+        e.g. from :func:`rectify.io.read_overview`.
+
+    Returns
+    -------
+    dict name -> matplotlib Figure (``"matches"``, ``"density"``)
+    """
+    (hl, wl), _ = result.image_shapes
+    fig = Figure(figsize=(11, 6), layout="constrained")
+    axes = fig.subplots(1, 2)
+    pts = [result.candidates_left, result.candidates_right]
+    inl = result.candidate_inlier
+    for ax, prev, (h, w), p, name in zip(axes, (left_preview, right_preview), result.image_shapes, pts,
+                                         ("left", "right"), strict=True):
+        if prev is not None:
+            img, _scale = prev
+            a = np.asarray(img, dtype=np.float64)
+            a = a.mean(axis=2) if a.ndim == 3 else a
+            ax.imshow(a, cmap="gray", extent=(-0.5, w - 0.5, h - 0.5, -0.5))
+        sub = np.random.default_rng(0).permutation(len(p))[:20000]
+        ax.scatter(p[sub][~inl[sub], 0], p[sub][~inl[sub], 1], s=2, c="tab:red", label="rejected")
+        ax.scatter(p[sub][inl[sub], 0], p[sub][inl[sub], 1], s=2, c="tab:green", label="verified")
+        ax.set_xlim(-0.5, w - 0.5)
+        ax.set_ylim(h - 0.5, -0.5)
+        ax.set_title(f"{name} image ({w} x {h} px)")
+        ax.set_aspect("equal")
+    axes[0].legend(loc="upper right", markerscale=4)
+    fig.suptitle(f"{int(inl.sum())} verified / {len(inl)} candidate matches ({result.verification.method})")
+    dens = Figure(figsize=(6, 6), layout="constrained")
+    ax = dens.subplots()
+    pl = result.matches.left
+    nb = 32
+    cell = max(hl, wl) / nb
+    hist, _, _ = np.histogram2d(pl[:, 1], pl[:, 0], bins=(max(1, int(np.ceil(hl / cell))),
+                                                         max(1, int(np.ceil(wl / cell)))),
+                                range=((-0.5, hl - 0.5), (-0.5, wl - 0.5)))
+    im = ax.imshow(hist, extent=(-0.5, wl - 0.5, hl - 0.5, -0.5), cmap="viridis", interpolation="nearest")
+    dens.colorbar(im, ax=ax, label=f"matches per {cell:.0f} x {cell:.0f} px cell")
+    ax.set_title(f"match density, left image ({len(pl)} matches)")
+    return {"matches": fig, "density": dens}

@@ -71,7 +71,7 @@ def match(left, right, output, detector, verify, refine, max_matches, threshold_
     echo(f"wrote {len(res.matches)} matches to {output}")
     if report_dir is not None:
         from .. import io as rio
-        from ..features import match_figures
+        from ..plots import match_figures
         from ..report import write_report
 
         prev = []

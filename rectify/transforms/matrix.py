@@ -15,7 +15,6 @@ from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.optimize import least_squares
 
 from ..errors import EstimationError, InvalidInputError, ShapeError
 from ..points import as_pair, as_points, as_weights, check_no_three_collinear, check_not_collinear
@@ -221,6 +220,10 @@ def _dlt(s: F64, d: F64, w: F64) -> F64:
 
 def _refine_transfer(m0: F64, s: F64, d: F64, w: F64) -> F64:
     """Minimise sum w |H(s) - d|^2 over the 8 degrees of freedom of H."""
+    # local import: scipy.optimize takes about 1 s to import and only the refinement needs it
+    # (the CLIs import this module for the list of methods)
+    from scipy.optimize import least_squares
+
     ts, td = _normalising_similarity(s), _normalising_similarity(d)
     sn = s @ ts[:2, :2].T + ts[:2, 2]
     dn = d @ td[:2, :2].T + td[:2, 2]

@@ -1,0 +1,591 @@
+"""Descriptor matching, geometric verification and whole-image matching.
+
+:class:`MatcherConfig` holds every option of the matcher (defaults live
+there only); :func:`match_arrays` matches two in-memory images; the helpers
+here (verification with the overlap checks, refinement, final even
+selection, the result) are shared with the tiled path (:mod:`.tiled`).
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..errors import EstimationError, InvalidInputError
+from ..lsm import LsmConfig, refine_matches
+from ..points import as_pair
+from ..residuals import ResidualTable, rms
+from ..tables import Matches
+from .detect import DETECTORS, Features, detect, grid_select
+
+__all__ = ["VERIFY_METHODS", "MatcherConfig", "MatchResult", "ProgressFn", "Verification", "Verify", "match_arrays",
+           "match_descriptors", "verify_matches"]
+
+ProgressFn = Callable[[int, int], None]
+
+
+class Verify(str, enum.Enum):
+    HOMOGRAPHY = "homography"
+    FUNDAMENTAL = "fundamental"
+    NONE = "none"
+
+
+VERIFY_METHODS = tuple(v.value for v in Verify)
+
+
+@dataclass(frozen=True)
+class MatcherConfig:
+    """Options of the matcher. Defaults live here only (the CLI reuses them).
+
+    Attributes
+    ----------
+    detector : {"sift", "orb", "akaze"}
+    verify : {"homography", "fundamental", "none"}
+    refine : bool
+        Least-squares matching refinement of the right positions.
+    max_matches : int
+        At most this many matches are returned, chosen evenly over the left image.
+    ratio : float
+        Lowe's ratio test threshold (best / second best descriptor distance).
+    mutual : bool
+        Keep only matches that are each other's best (mutual check).
+    threshold_px : float
+        USAC inlier threshold: transfer error (homography) or distance to
+        the epipolar line (fundamental), px.
+    max_keypoints : int
+        Keypoints kept per image (whole-image mode) or per tile (tiled mode),
+        chosen evenly with a cap per grid cell.
+    cell_cap : int
+        Keypoints kept per grid cell (the cell size follows from
+        ``max_keypoints``).
+    tiled_above_px : int
+        Images with a side larger than this are matched coarse-to-fine by tiles.
+    tile_px, overlap_px : int
+        Tile core size and the overlap added on each side (px).
+    overview_px : int
+        Longer side of the overviews used for the coarse match (px).
+    search_margin_px : float
+        Extra margin around the predicted right window (full-resolution px).
+    max_candidates : int
+        Candidate matches held at most in tiled mode (grid-thinned beyond).
+    max_tiles : int
+        Full-resolution tiles searched at most. Beyond, the search is sparse:
+        tiles of half the side, at most 3 x ``max_tiles`` of them on an even
+        sub-grid (every k-th tile in each direction), so the time stays
+        bounded too while matches still spread over the whole overlap.
+    min_inliers : int
+        Fewer verified matches than this means the images do not overlap.
+    lsm : LsmConfig
+        Refinement options.
+    percentiles : (float, float)
+        Stretch to 8 bits between these percentiles (detection only).
+    seed : int
+        Seed of OpenCV's RNG (USAC sampling), for reproducible runs.
+    """
+
+    detector: str = "sift"
+    verify: str = "homography"
+    refine: bool = True
+    max_matches: int = 20000
+    ratio: float = 0.8
+    mutual: bool = True
+    threshold_px: float = 1.5
+    max_keypoints: int = 40000
+    cell_cap: int = 4
+    tiled_above_px: int = 4096
+    tile_px: int = 1024
+    overlap_px: int = 48
+    overview_px: int = 2048
+    search_margin_px: float = 96.0
+    max_candidates: int = 200000
+    max_tiles: int = 100
+    min_inliers: int = 15
+    lsm: LsmConfig = field(default_factory=LsmConfig)
+    percentiles: tuple[float, float] = (0.5, 99.5)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.detector not in DETECTORS:
+            raise InvalidInputError(f"unknown detector {self.detector!r}; choose from {DETECTORS}")
+        if self.verify not in VERIFY_METHODS:
+            raise InvalidInputError(f"unknown verification {self.verify!r}; choose from {VERIFY_METHODS}")
+        for name in ("max_matches", "max_keypoints", "cell_cap", "tile_px", "overview_px", "max_candidates",
+                     "tiled_above_px", "max_tiles"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, np.integer)) or v < 1:
+                raise InvalidInputError(f"{name} must be a positive integer; got {v!r}")
+        if self.overlap_px < 0:
+            raise InvalidInputError(f"overlap_px must be >= 0; got {self.overlap_px!r}")
+        if not (0 < self.ratio <= 1):
+            raise InvalidInputError(f"ratio must be in (0, 1]; got {self.ratio!r}")
+        if not (math.isfinite(self.threshold_px) and self.threshold_px > 0):
+            raise InvalidInputError(f"threshold_px must be > 0; got {self.threshold_px!r}")
+        if self.min_inliers < 4:
+            raise InvalidInputError(f"min_inliers must be >= 4; got {self.min_inliers!r}")
+        if self.overview_px < 64:
+            raise InvalidInputError(f"overview_px must be >= 64; got {self.overview_px!r}")
+
+
+@dataclass(frozen=True, eq=False)
+class Verification:
+    """Result of geometric verification.
+
+    Attributes
+    ----------
+    method : str
+    matrix : (3, 3) float64 or None
+        H_right_from_left (homography) or F with x_r^T F x_l = 0 (fundamental).
+    inliers : (N,) bool
+    errors_px : (N,) float64
+        Transfer error |H x_l - x_r| (homography) or Sampson distance
+        (fundamental), px; NaN for ``none``.
+    table : ResidualTable or None
+    """
+
+    method: str
+    matrix: NDArray[np.float64] | None
+    inliers: NDArray[np.bool_]
+    errors_px: NDArray[np.float64]
+    table: ResidualTable | None
+
+    @property
+    def rmse_px(self) -> float:
+        e = self.errors_px[self.inliers]
+        return rms(e) if e.size and np.isfinite(e).all() else float("nan")
+
+
+@dataclass(frozen=True, eq=False)
+class MatchResult:
+    """What :func:`match_images` / :func:`match_arrays` found.
+
+    Attributes
+    ----------
+    matches : Matches
+        Verified (and refined) tie points; ``score`` is the LSM position
+        standard deviation (px) when refined, the descriptor ratio otherwise.
+    n_detected : (int, int)
+        Keypoints kept in the left and right image (summed over tiles).
+    n_matched : int
+        Matches after ratio test and mutual check (and the coarse gate when tiled).
+    n_verified : int
+        Matches consistent with the verification model (before the final cap).
+    n_refined, n_refine_failed : int
+        Matches refined by LSM, and dropped because refinement did not converge.
+    rmse_px : float
+        Verification residual RMSE of the returned matches, px.
+    rmse_raw_px : float
+        The same for the raw (unrefined) positions of the same matches.
+    verification : Verification
+        Model and residual table of the returned matches.
+    candidates_left, candidates_right, candidate_inlier : arrays
+        All candidate matches (up to a cap) and their verification status,
+        for plots.
+    tiled : bool
+    image_shapes : ((H, W), (H, W))
+    timings_s : dict
+    """
+
+    matches: Matches
+    n_detected: tuple[int, int]
+    n_matched: int
+    n_verified: int
+    n_refined: int
+    n_refine_failed: int
+    rmse_px: float
+    rmse_raw_px: float
+    verification: Verification
+    candidates_left: NDArray[np.float64]
+    candidates_right: NDArray[np.float64]
+    candidate_inlier: NDArray[np.bool_]
+    tiled: bool
+    image_shapes: tuple[tuple[int, int], tuple[int, int]]
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    def summary(self) -> dict[str, Any]:
+        return {"n_detected_left": self.n_detected[0], "n_detected_right": self.n_detected[1],
+                "n_matched": self.n_matched, "n_verified": self.n_verified, "n_output": len(self.matches),
+                "n_refined": self.n_refined, "n_refine_failed": self.n_refine_failed,
+                "verification": self.verification.method, "rmse_px": self.rmse_px,
+                "rmse_raw_px": self.rmse_raw_px, "tiled": self.tiled,
+                **{f"time_{k}_s": v for k, v in self.timings_s.items()}}
+
+
+# --------------------------------------------------------------------------- matching
+class _Pairs(NamedTuple):
+    left: NDArray[np.int64]
+    right: NDArray[np.int64]
+    ratio: NDArray[np.float64]
+
+
+def match_descriptors(left: Features, right: Features, *, ratio: float = 0.8, mutual: bool = True
+                      ) -> _Pairs:
+    """Match descriptors: nearest neighbour with Lowe's ratio test and mutual check.
+
+    Float descriptors (SIFT) use FLANN (randomised kd-trees); binary ones
+    (ORB, AKAZE) use brute force with the Hamming norm.
+
+    Returns
+    -------
+    (left_idx, right_idx, ratio) : three (M,) arrays
+        Indices into ``left`` and ``right`` and the distance ratio.
+    """
+    empty = _Pairs(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+    if len(left) < 2 or len(right) < 2:
+        return empty
+    if left.descriptors.dtype == np.float32:
+        index = dict(algorithm=1, trees=4)
+        matcher = cv2.FlannBasedMatcher(index, dict(checks=64))
+    else:
+        matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+    dl = np.ascontiguousarray(left.descriptors)
+    dr = np.ascontiguousarray(right.descriptors)
+    knn = matcher.knnMatch(dl, dr, k=2)
+    li, ri, rat = [], [], []
+    for m in knn:
+        if len(m) < 2:
+            continue
+        a, b = m
+        r = a.distance / b.distance if b.distance > 0 else (0.0 if a.distance == 0 else 1.0)
+        if r < ratio:
+            li.append(a.queryIdx)
+            ri.append(a.trainIdx)
+            rat.append(r)
+    li, ri, rat = np.array(li, np.int64), np.array(ri, np.int64), np.array(rat, np.float64)
+    if mutual and li.size:
+        back = matcher.knnMatch(dr, dl, k=1)
+        best = np.full(len(right), -1, dtype=np.int64)
+        for m in back:
+            if m:
+                best[m[0].queryIdx] = m[0].trainIdx
+        ok = best[ri] == li
+        li, ri, rat = li[ok], ri[ok], rat[ok]
+    # one right point per left point and vice versa (keep the best ratio)
+    if li.size:
+        order = np.argsort(rat, kind="stable")
+        _, first = np.unique(ri[order], return_index=True)
+        sel = order[first]
+        li, ri, rat = li[sel], ri[sel], rat[sel]
+    return _Pairs(li, ri, rat)
+
+
+# --------------------------------------------------------------------------- verification
+def _sampson_vectors(F: NDArray[np.float64], pl: NDArray[np.float64], pr: NDArray[np.float64]
+                     ) -> NDArray[np.float64]:
+    """First-order (Sampson) corrections (N, 4) to (xl, yl, xr, yr); their norm is the Sampson distance."""
+    xl = np.c_[pl, np.ones(len(pl))]
+    xr = np.c_[pr, np.ones(len(pr))]
+    Fx = xl @ F.T          # F x_l
+    Ftx = xr @ F           # F^T x_r
+    e = np.sum(xr * Fx, axis=1)
+    den = Fx[:, 0] ** 2 + Fx[:, 1] ** 2 + Ftx[:, 0] ** 2 + Ftx[:, 1] ** 2
+    k = -e / np.where(den > 0, den, np.nan)
+    return k[:, None] * np.c_[Ftx[:, 0], Ftx[:, 1], Fx[:, 0], Fx[:, 1]]
+
+
+def _apply_h(H: NDArray[np.float64], p: NDArray[np.float64]) -> NDArray[np.float64]:
+    q = np.c_[p, np.ones(len(p))] @ H.T
+    return q[:, :2] / q[:, 2:]
+
+
+def verify_matches(left_xy: ArrayLike, right_xy: ArrayLike, *, method: str = "homography",
+                   threshold_px: float = 1.5, ids: list[str] | None = None, seed: int = 0,
+                   max_iters: int = 10000, confidence: float = 0.9999) -> Verification:
+    """Geometric verification with OpenCV USAC (MAGSAC++).
+
+    Parameters
+    ----------
+    left_xy, right_xy : (N, 2) array_like
+        Matched positions, px.
+    method : {"homography", "fundamental", "none"}
+    threshold_px : float
+        USAC threshold, px.
+    ids : list of str, optional
+        Point ids for the residual table (default "1".."N").
+
+    Returns
+    -------
+    Verification
+        For ``homography`` the residual table holds the transfer error in the
+        right image (observed x_r, adjusted H x_l); for ``fundamental`` the
+        Sampson correction of (x_l, y_l, x_r, y_r), whose norm is the Sampson
+        distance. Non-inliers are flagged as outliers.
+
+    Raises
+    ------
+    EstimationError
+        Fewer than the minimal number of matches, or USAC finds no model.
+    """
+    if method not in VERIFY_METHODS:
+        raise InvalidInputError(f"unknown verification {method!r}; choose from {VERIFY_METHODS}")
+    pl, pr = as_pair(left_xy, right_xy, names=("left_xy", "right_xy"))
+    n = len(pl)
+    ids = [str(i + 1) for i in range(n)] if ids is None else list(ids)
+    if method == "none":
+        return Verification("none", None, np.ones(n, dtype=bool), np.full(n, np.nan), None)
+    need = 4 if method == "homography" else 8
+    if n < need:
+        raise EstimationError(f"{method} verification needs at least {need} matches; got {n}")
+    cv2.setRNGSeed(int(seed))
+    params_thr = float(threshold_px)
+    try:
+        if method == "homography":
+            M, mask = cv2.findHomography(pl, pr, cv2.USAC_MAGSAC, params_thr, maxIters=max_iters,
+                                         confidence=confidence)
+        else:
+            M, mask = cv2.findFundamentalMat(pl, pr, cv2.USAC_MAGSAC, params_thr, confidence, max_iters)
+    except cv2.error as err:
+        raise EstimationError(f"USAC {method} estimation failed on {n} matches: {err}") from err
+    if M is None or mask is None or M.shape != (3, 3):
+        raise EstimationError(f"USAC found no {method} consistent with {n} matches")
+    M = np.asarray(M, dtype=np.float64)
+    if method == "homography":
+        pred = _apply_h(M, pl)
+        err = np.linalg.norm(pred - pr, axis=1)
+        inl = mask.ravel().astype(bool) & (err <= max(2.5 * threshold_px, threshold_px + 1))
+        table = ResidualTable(f"match verification ({method})", ids, pr, pred, "px", ("dx", "dy"),
+                              outlier=~inl, position_px=pl, n_params=8,
+                              extra={"threshold_px": float(threshold_px)})
+    else:
+        d = _sampson_vectors(M, pl, pr)
+        err = np.linalg.norm(d, axis=1)
+        err = np.where(np.isfinite(err), err, np.inf)
+        inl = mask.ravel().astype(bool) & (err <= max(2.5 * threshold_px, threshold_px + 1))
+        obs = np.c_[pl, pr]
+        table = ResidualTable(f"match verification ({method})", ids, obs, obs + np.nan_to_num(d), "px",
+                              ("dx_left", "dy_left", "dx_right", "dy_right"), outlier=~inl,
+                              position_px=pl, n_params=7, extra={"threshold_px": float(threshold_px)})
+    return Verification(method, M, inl, err, table)
+
+
+# --------------------------------------------------------------------------- helpers
+def _local_affine(pl: NDArray[np.float64], pr: NDArray[np.float64], ver: Verification | None,
+                  k: int = 12) -> NDArray[np.float64]:
+    """Initial local shape d(right)/d(left) at every match, (N, 2, 2).
+
+    Homography: its Jacobian. Otherwise an affine fit to the k nearest
+    matches (identity when fewer than 6 matches).
+    """
+    n = len(pl)
+    if ver is not None and ver.method == "homography" and ver.matrix is not None:
+        return _h_jacobian(ver.matrix, pl)
+    if n < 6:
+        return np.broadcast_to(np.eye(2), (n, 2, 2)).copy()
+    # local import: scipy.spatial takes about 0.6 s to import and only this fallback needs it
+    from scipy.spatial import cKDTree
+
+    kk = min(k, n)
+    _, nb = cKDTree(pl).query(pl, k=kk)
+    X = pl[nb] - pl[nb].mean(axis=1, keepdims=True)      # (n, k, 2)
+    Y = pr[nb] - pr[nb].mean(axis=1, keepdims=True)
+    XtX = np.einsum("nki,nkj->nij", X, X) + 1e-9 * np.eye(2)
+    XtY = np.einsum("nki,nkj->nij", X, Y)
+    B = np.linalg.solve(XtX, XtY)                          # Y ~ X @ B -> A = B^T
+    A = np.transpose(B, (0, 2, 1))
+    bad = ~np.isfinite(A).all(axis=(1, 2)) | (np.abs(np.linalg.det(A)) < 0.05)
+    A[bad] = np.eye(2)
+    return A
+
+
+def _h_jacobian(H: NDArray[np.float64], p: NDArray[np.float64]) -> NDArray[np.float64]:
+    q = np.c_[p, np.ones(len(p))] @ H.T
+    w = q[:, 2]
+    J = np.empty((len(p), 2, 2))
+    for i in range(2):
+        for j in range(2):
+            J[:, i, j] = (H[i, j] * w - q[:, i] * H[2, j]) / (w * w)
+    return J
+
+
+def _grey_float(data: NDArray, valid: NDArray[np.bool_]) -> NDArray[np.float32]:
+    g = data.astype(np.float32).mean(axis=2) if data.ndim == 3 else data.astype(np.float32)
+    g[~valid] = np.nan
+    return g
+
+
+def _check_blank(feat: Features, name: str, path) -> None:
+    if len(feat) < 8:
+        raise EstimationError(f"only {len(feat)} keypoints found in the {name} image {str(path)!r}: "
+                              "is it blank or without texture?")
+
+
+def _no_overlap(n_ok: int, n_cand: int, cfg: MatcherConfig, what: str = "") -> EstimationError:
+    return EstimationError(
+        f"images do not overlap (or are too different): only {n_ok} of {n_cand} candidate matches are "
+        f"geometrically consistent{what}; at least {cfg.min_inliers} are needed")
+
+
+def _verify_checked(pl, pr, cfg: MatcherConfig, method: str) -> Verification:
+    if len(pl) < cfg.min_inliers:
+        raise _no_overlap(len(pl), len(pl), cfg)
+    try:
+        ver = verify_matches(pl, pr, method=method, threshold_px=cfg.threshold_px, seed=cfg.seed)
+    except EstimationError as err:
+        raise _no_overlap(0, len(pl), cfg, f" ({err})") from err
+    n_ok = int(ver.inliers.sum())
+    if n_ok < cfg.min_inliers:
+        raise _no_overlap(n_ok, len(pl), cfg)
+    if method == "homography":
+        _check_homography_sane(ver.matrix, pl[ver.inliers], cfg)
+    return ver
+
+
+def _check_homography_sane(H, pl, cfg: MatcherConfig) -> None:
+    """Reject degenerate homographies (all inliers on a tiny patch or a line)."""
+    span = np.ptp(pl, axis=0) if len(pl) else np.zeros(2)
+    if min(span) < 8:
+        raise _no_overlap(len(pl), len(pl), cfg, f" (inliers span only {span.round(1).tolist()} px)")
+
+
+def _refine(Lg, Rg, pl, pr, ver: Verification | None, cfg: MatcherConfig, progress=None):
+    A = _local_affine(pl, pr, ver)
+    return refine_matches(Lg, Rg, pl, pr, affine=A, config=cfg.lsm, progress=progress)
+
+
+def _final_select(pl, pr, score, shape_left, budget, cap):
+    if len(pl) <= budget:
+        return np.arange(len(pl))
+    # prefer the best scores (lower is better) within each cell
+    return grid_select(pl, -score, shape_left, budget, cell_cap=cap)
+
+
+def _result(pl, pr, score, ver, cfg, n_det, n_matched, n_verified, n_ref, n_fail, raw_pr, cand_l, cand_r,
+            cand_inl, tiled, shapes, timings) -> MatchResult:
+    ids = tuple(str(i + 1) for i in range(len(pl)))
+    rmse = ver.rmse_px
+    rmse_raw = float("nan")
+    if cfg.verify != "none" and len(pl) >= 8:
+        if ver.method == "homography":
+            rmse_raw = rms(np.linalg.norm(_apply_h(ver.matrix, pl) - raw_pr, axis=1))
+        else:
+            rmse_raw = rms(np.linalg.norm(_sampson_vectors(ver.matrix, pl, raw_pr), axis=1))
+    return MatchResult(Matches(ids, pl, pr, score), n_det, n_matched, n_verified, n_ref, n_fail, rmse,
+                       rmse_raw, ver, cand_l, cand_r, cand_inl, tiled, shapes, timings)
+
+
+def _finish(pl, pr, ratio, Lg, Rg, cfg: MatcherConfig, ver0: Verification | None, progress=None):
+    """Refine (optional), drop failures, re-verify, cap evenly. Returns pieces for _result."""
+    raw_pr = pr.copy()
+    n_ref = n_fail = 0
+    score = ratio.copy()
+    if cfg.refine and len(pl):
+        lr = _refine(Lg, Rg, pl, pr, ver0, cfg, progress)
+        ok = lr.converged
+        n_ref, n_fail = int(ok.sum()), int((~ok).sum())
+        pl, pr, raw_pr, score = pl[ok], lr.right[ok], raw_pr[ok], lr.std_px[ok]
+    return pl, pr, raw_pr, score, n_ref, n_fail
+
+
+# --------------------------------------------------------------------------- in-memory matching
+def match_arrays(left: ArrayLike, right: ArrayLike, *, left_valid: ArrayLike | None = None,
+                 right_valid: ArrayLike | None = None, config: MatcherConfig | None = None,
+                 progress: ProgressFn | None = None) -> MatchResult:
+    """Match two in-memory images (whole-image mode).
+
+    Parameters
+    ----------
+    left, right : (H, W) or (H, W, C) arrays, any dtype
+    left_valid, right_valid : (H, W) bool, optional
+        Validity masks (nodata = False).
+    config : MatcherConfig, optional
+    progress : callable(done, total), optional
+
+    Returns
+    -------
+    MatchResult
+
+    Raises
+    ------
+    EstimationError
+        Blank images (too few keypoints) or images that do not overlap.
+    """
+    cfg = config or MatcherConfig()
+    L = np.asarray(left)
+    R = np.asarray(right)
+    lv = np.ones(L.shape[:2], bool) if left_valid is None else np.asarray(left_valid, dtype=bool)
+    rv = np.ones(R.shape[:2], bool) if right_valid is None else np.asarray(right_valid, dtype=bool)
+    return _match_whole(L, lv, R, rv, cfg, progress, ("left", "right"))
+
+
+def _match_whole(L, lv, R, rv, cfg: MatcherConfig, progress, names) -> MatchResult:
+    t0 = time.perf_counter()
+    tick = progress or (lambda d, t: None)
+    tick(0, 4)
+    fl = detect(L, valid=lv, detector=cfg.detector, max_keypoints=cfg.max_keypoints, cell_cap=cfg.cell_cap,
+                percentiles=cfg.percentiles)
+    _check_blank(fl, "left", names[0])
+    fr = detect(R, valid=rv, detector=cfg.detector, max_keypoints=cfg.max_keypoints, cell_cap=cfg.cell_cap,
+                percentiles=cfg.percentiles)
+    _check_blank(fr, "right", names[1])
+    t1 = time.perf_counter()
+    tick(1, 4)
+    pairs = match_descriptors(fl, fr, ratio=cfg.ratio, mutual=cfg.mutual)
+    pl, pr = fl.xy[pairs.left], fr.xy[pairs.right]
+    ratio = pairs.ratio
+    t2 = time.perf_counter()
+    tick(2, 4)
+    if cfg.verify == "none":
+        if len(pl) < cfg.min_inliers:
+            raise _no_overlap(len(pl), len(pl), cfg)
+        ver0 = None
+        inl = np.ones(len(pl), bool)
+    else:
+        ver0 = _verify_checked(pl, pr, cfg, cfg.verify)
+        inl = ver0.inliers
+    cand_l, cand_r, cand_inl = pl, pr, inl
+    vl, vr, vratio = pl[inl], pr[inl], ratio[inl]
+    pre = int(math.ceil(1.25 * cfg.max_matches))
+    if len(vl) > pre:       # refine only what can be returned (plus a reserve for failures)
+        keep = grid_select(vl, -vratio, L.shape[:2], pre, cell_cap=cfg.cell_cap)
+        vl, vr, vratio = vl[keep], vr[keep], vratio[keep]
+    t3 = time.perf_counter()
+    tick(3, 4)
+    Lg = _grey_float(L, lv) if cfg.refine else None
+    Rg = _grey_float(R, rv) if cfg.refine else None
+    fl_, fr_, raw_pr, score, n_ref, n_fail = _finish(vl, vr, vratio, Lg, Rg, cfg, ver0)
+    out_l, out_r, raw, sc, ver = _reverify_and_cap(fl_, fr_, raw_pr, score, cfg, L.shape[:2])
+    t4 = time.perf_counter()
+    tick(4, 4)
+    timings = {"detect": t1 - t0, "match": t2 - t1, "verify": t3 - t2, "refine": t4 - t3, "total": t4 - t0}
+    return _result(out_l, out_r, sc, ver, cfg, (len(fl), len(fr)), len(pairs.left), int(inl.sum()), n_ref,
+                   n_fail, raw, cand_l, cand_r, cand_inl, False, (L.shape[:2], R.shape[:2]), timings)
+
+
+def _reverify_and_cap(pl, pr, raw_pr, score, cfg: MatcherConfig, shape_left):
+    if cfg.verify == "none":
+        keep = _final_select(pl, pr, score, shape_left, cfg.max_matches, cfg.cell_cap)
+        pl, pr, raw_pr, score = pl[keep], pr[keep], raw_pr[keep], score[keep]
+        return pl, pr, raw_pr, score, verify_matches(pl, pr, method="none")
+    ver = _verify_checked(pl, pr, cfg, cfg.verify)
+    m = ver.inliers
+    pl, pr, raw_pr, score = pl[m], pr[m], raw_pr[m], score[m]
+    keep = _final_select(pl, pr, score, shape_left, cfg.max_matches, cfg.cell_cap)
+    pl, pr, raw_pr, score = pl[keep], pr[keep], raw_pr[keep], score[keep]
+    # the residual table of exactly the returned matches, with the same model
+    ver = _table_for(ver, pl, pr, cfg)
+    return pl, pr, raw_pr, score, ver
+
+
+def _table_for(ver: Verification, pl, pr, cfg: MatcherConfig) -> Verification:
+    ids = [str(i + 1) for i in range(len(pl))]
+    M = ver.matrix
+    if ver.method == "homography":
+        pred = _apply_h(M, pl)
+        err = np.linalg.norm(pred - pr, axis=1)
+        table = ResidualTable("match verification (homography)", ids, pr, pred, "px", ("dx", "dy"),
+                              position_px=pl, n_params=8, extra={"threshold_px": cfg.threshold_px})
+    else:
+        d = _sampson_vectors(M, pl, pr)
+        err = np.linalg.norm(d, axis=1)
+        obs = np.c_[pl, pr]
+        table = ResidualTable("match verification (fundamental)", ids, obs, obs + d, "px",
+                              ("dx_left", "dy_left", "dx_right", "dy_right"), position_px=pl, n_params=7,
+                              extra={"threshold_px": cfg.threshold_px})
+    return Verification(ver.method, M, np.ones(len(pl), bool), err, table)

@@ -1,0 +1,289 @@
+"""Coarse-to-fine matching of large rasters by tiles, with bounded memory.
+
+Both images are read as area-averaged overviews, matched and verified with a
+homography; then the left image is processed tile by tile and, for each
+tile, only the right window where the coarse homography predicts the partner
+is read and searched (see :mod:`rectify.features` for the memory bound).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .. import io as rio
+from ..lsm import refine_matches
+from .detect import Features, detect, grid_select
+from .match import (
+    MatcherConfig,
+    MatchResult,
+    _apply_h,
+    _check_blank,
+    _grey_float,
+    _h_jacobian,
+    _no_overlap,
+    _result,
+    _reverify_and_cap,
+    _verify_checked,
+    match_descriptors,
+)
+
+logger = logging.getLogger(__name__)
+
+
+def _overview(path, info, cfg: MatcherConfig):
+    data, valid, _ = rio.read_overview_average(path, cfg.overview_px)
+    scale = (info.width / data.shape[1], info.height / data.shape[0])
+    g = data.astype(np.float32).mean(axis=2) if data.ndim == 3 else data.astype(np.float32)
+    ok = valid & np.isfinite(g)
+    if ok.any():
+        sample = g[ok]
+        lo, hi = np.percentile(sample, cfg.percentiles)
+    else:
+        lo, hi = 0.0, 1.0
+    return g, valid, scale, (float(lo), float(hi))
+
+
+def _scale_mat(s: tuple[float, float]) -> NDArray[np.float64]:
+    """Full-resolution pixel -> overview pixel, u = (x + 0.5) / sx - 0.5 (rows alike)."""
+    sx, sy = s
+    return np.array([[1 / sx, 0, 0.5 / sx - 0.5], [0, 1 / sy, 0.5 / sy - 0.5], [0, 0, 1]])
+
+
+def _coarse(left_path, right_path, il, ir, cfg: MatcherConfig):
+    gl, vl, sl, lim_l = _overview(left_path, il, cfg)
+    gr, vr, sr, lim_r = _overview(right_path, ir, cfg)
+    kw = dict(detector="sift", max_keypoints=cfg.max_keypoints, cell_cap=cfg.cell_cap, percentiles=cfg.percentiles)
+    fl = detect(gl, valid=vl, **kw)
+    _check_blank(fl, "left", left_path)
+    fr = detect(gr, valid=vr, **kw)
+    _check_blank(fr, "right", right_path)
+    pairs = match_descriptors(fl, fr, ratio=cfg.ratio, mutual=True)
+    pl, pr = fl.xy[pairs.left], fr.xy[pairs.right]
+    ver = _verify_checked(pl, pr, replace(cfg, threshold_px=max(cfg.threshold_px, 2.0)), "homography")
+    H = np.linalg.inv(_scale_mat(sr)) @ ver.matrix @ _scale_mat(sl)
+    H /= H[2, 2]
+    err_full = ver.rmse_px * max(sr)
+    logger.info("coarse match: %d of %d verified, RMSE %.2f overview px (scales %.2f, %.2f)",
+                int(ver.inliers.sum()), len(pl), ver.rmse_px, sl[0], sr[0])
+    return H, err_full, lim_l, lim_r, vl, sl
+
+
+def _match_tiled(left_path, right_path, il, ir, cfg: MatcherConfig, progress) -> MatchResult:
+    t0 = time.perf_counter()
+    H, err_full, lim_l, lim_r, ov_valid_l, sl = _coarse(left_path, right_path, il, ir, cfg)
+    t1 = time.perf_counter()
+    margin = cfg.search_margin_px + 4.0 * err_full
+    gate = margin
+    n_all = math.ceil(il.width / cfg.tile_px) * math.ceil(il.height / cfg.tile_px)
+    sparse = n_all > cfg.max_tiles
+    if sparse:
+        # search a sparse, even sub-grid of smaller tiles (3x as many, half the side: less area,
+        # denser coverage); right windows are detected directly (little reuse between sparse tiles)
+        cfg = replace(cfg, tile_px=max(128, cfg.tile_px // 2), max_tiles=3 * cfg.max_tiles)
+    tiles = _pick_tiles(il, cfg)
+    n_tiles = len(tiles)
+    quota = max(50, int(math.ceil(2.0 * cfg.max_matches / max(n_tiles, 1))))
+    per_tile_kp = max(1500, min(cfg.max_keypoints, 4 * quota, int(4 * cfg.max_candidates / max(n_tiles, 1))))
+    store_l: list[NDArray] = []
+    store_r: list[NDArray] = []
+    store_raw: list[NDArray] = []
+    store_s: list[NDArray] = []
+    n_stored = 0
+    n_det_l = n_det_r = n_matched = n_ref = n_fail = 0
+    kw = dict(detector=cfg.detector, cell_cap=cfg.cell_cap, percentiles=cfg.percentiles)
+    right = _RightTiles(right_path, ir, cfg, per_tile_kp, lim_r)
+    for k, (c0, r0, w, h) in enumerate(tiles):
+        if progress is not None:
+            progress(k, n_tiles)
+        core = _core(c0, r0, w, h, il, cfg)
+        if not _tile_has_data(ov_valid_l, sl, c0, r0, w, h):
+            continue
+        corners = np.array([[c0, r0], [c0 + w - 1, r0], [c0, r0 + h - 1], [c0 + w - 1, r0 + h - 1]], float)
+        pc = _apply_h(H, corners)
+        if not np.isfinite(pc).all():
+            continue
+        x0, y0 = np.floor(pc.min(axis=0) - margin).astype(int)
+        x1, y1 = np.ceil(pc.max(axis=0) + margin).astype(int)
+        x0, y0 = max(x0, 0), max(y0, 0)
+        x1, y1 = min(x1, ir.width - 1), min(y1, ir.height - 1)
+        if x1 - x0 < 32 or y1 - y0 < 32:
+            continue
+        if sparse:
+            Rd, Rv = rio.read_window(right_path, x0, y0, x1 - x0 + 1, y1 - y0 + 1)
+            if Rv.mean() < 0.02:
+                continue
+            fr = detect(Rd, valid=Rv, max_keypoints=3 * per_tile_kp, limits=lim_r,
+                        **kw).transformed(1.0, (x0, y0))
+            right.n_detected += len(fr)
+        else:
+            fr = right.features(x0, y0, x1, y1)
+        if len(fr) < 4:
+            continue
+        Ld, Lv = rio.read_window(left_path, c0, r0, w, h)
+        if Lv.mean() < 0.02:
+            continue
+        fl = detect(Ld, valid=Lv, max_keypoints=per_tile_kp, limits=lim_l, **kw)
+        n_det_l += len(fl)
+        if len(fl) < 4:
+            continue
+        pairs = match_descriptors(fl, fr, ratio=cfg.ratio, mutual=cfg.mutual)
+        pl = fl.xy[pairs.left] + [c0, r0]
+        pr = fr.xy[pairs.right]
+        ratio = pairs.ratio
+        inside = (pl[:, 0] >= core[0]) & (pl[:, 0] < core[2]) & (pl[:, 1] >= core[1]) & (pl[:, 1] < core[3])
+        ok = inside & (np.linalg.norm(_apply_h(H, pl) - pr, axis=1) < gate)
+        pl, pr, ratio = pl[ok], pr[ok], ratio[ok]
+        n_matched += len(pl)
+        if not len(pl):
+            continue
+        if len(pl) > quota:     # keep what the output can use, evenly over the tile core
+            keep = grid_select(pl - [c0, r0], -ratio, (h, w), quota, cell_cap=cfg.cell_cap)
+            pl, pr, ratio = pl[keep], pr[keep], ratio[keep]
+        raw = pr.copy()
+        score = ratio
+        if cfg.refine:
+            m = int(cfg.lsm.radius_px) + 4
+            bx0, by0 = np.floor(pr.min(axis=0)).astype(int) - m
+            bx1, by1 = np.ceil(pr.max(axis=0)).astype(int) + m
+            Rd, Rv = rio.read_window(right_path, bx0, by0, bx1 - bx0 + 1, by1 - by0 + 1)
+            Lg = _grey_float(Ld, Lv)
+            Rg = _grey_float(Rd, Rv)
+            A = _h_jacobian(H, pl)
+            lr = refine_matches(Lg, Rg, pl - [c0, r0], pr - [bx0, by0], affine=A, config=cfg.lsm)
+            okr = lr.converged
+            n_ref += int(okr.sum())
+            n_fail += int((~okr).sum())
+            pl, raw = pl[okr], raw[okr]
+            pr = lr.right[okr] + [bx0, by0]
+            score = lr.std_px[okr]
+        store_l.append(pl)
+        store_r.append(pr)
+        store_raw.append(raw)
+        store_s.append(score)
+        n_stored += len(pl)
+        if n_stored > 2 * cfg.max_candidates:
+            store_l, store_r, store_raw, store_s = _thin(store_l, store_r, store_raw, store_s, il, cfg)
+            n_stored = len(store_l[0])
+    if progress is not None:
+        progress(n_tiles, n_tiles)
+    n_det_r = right.n_detected
+    t2 = time.perf_counter()
+    if n_stored > cfg.max_candidates:
+        store_l, store_r, store_raw, store_s = _thin(store_l, store_r, store_raw, store_s, il, cfg)
+    pl = np.concatenate(store_l) if store_l else np.zeros((0, 2))
+    pr = np.concatenate(store_r) if store_r else np.zeros((0, 2))
+    raw = np.concatenate(store_raw) if store_raw else np.zeros((0, 2))
+    sc = np.concatenate(store_s) if store_s else np.zeros(0)
+    if cfg.verify == "none":
+        if len(pl) < cfg.min_inliers:
+            raise _no_overlap(len(pl), len(pl), cfg)
+        inl = np.ones(len(pl), bool)
+    else:
+        ver0 = _verify_checked(pl, pr, cfg, cfg.verify)
+        inl = ver0.inliers
+    cand = _cap_candidates(pl, pr, inl, 200000)
+    n_verified = int(inl.sum())
+    out_l, out_r, out_raw, out_s, ver = _reverify_and_cap(pl[inl], pr[inl], raw[inl], sc[inl], cfg,
+                                                          (il.height, il.width))
+    t3 = time.perf_counter()
+    timings = {"coarse": t1 - t0, "tiles": t2 - t1, "verify": t3 - t2, "total": t3 - t0}
+    return _result(out_l, out_r, out_s, ver, cfg, (n_det_l, n_det_r), n_matched, n_verified, n_ref, n_fail,
+                   out_raw, *cand, True, ((il.height, il.width), (ir.height, ir.width)), timings)
+
+
+class _RightTiles:
+    """Right-image features by tiles, each tile detected once (keypoints of its core only) and kept in
+    a least-recently-used cache bounded to ``cache_mb`` of descriptors."""
+
+    def __init__(self, path, info, cfg: MatcherConfig, per_tile_kp: int, limits, cache_mb: float = 256.0):
+        self.path, self.info, self.cfg = path, info, cfg
+        self.kp = per_tile_kp
+        self.limits = limits
+        self.tiles = list(rio.iter_windows(info.width, info.height, cfg.tile_px, cfg.overlap_px))
+        self.nx = math.ceil(info.width / cfg.tile_px)
+        self.cache: dict[int, Features] = {}
+        self.bytes = 0
+        self.max_bytes = cache_mb * 2 ** 20
+        self.n_detected = 0
+
+    def _tile(self, idx: int) -> Features:
+        f = self.cache.pop(idx, None)
+        if f is None:
+            c0, r0, w, h = self.tiles[idx]
+            data, valid = rio.read_window(self.path, c0, r0, w, h)
+            cfg = self.cfg
+            if valid.mean() < 0.02:
+                f = Features.concat([], 128 if cfg.detector == "sift" else 32,
+                                    np.float32 if cfg.detector == "sift" else np.uint8)
+            else:
+                f = detect(data, valid=valid, detector=cfg.detector, max_keypoints=self.kp, cell_cap=cfg.cell_cap,
+                           percentiles=cfg.percentiles, limits=self.limits).transformed(1.0, (c0, r0))
+                x0, y0, x1, y1 = _core(c0, r0, w, h, self.info, cfg)
+                inside = (f.xy[:, 0] >= x0) & (f.xy[:, 0] < x1) & (f.xy[:, 1] >= y0) & (f.xy[:, 1] < y1)
+                f = f.subset(np.flatnonzero(inside))
+            self.n_detected += len(f)
+            self.bytes += f.descriptors.nbytes
+            while self.cache and self.bytes > self.max_bytes:
+                old = next(iter(self.cache))
+                self.bytes -= self.cache.pop(old).descriptors.nbytes
+        self.cache[idx] = f           # most recently used last
+        return f
+
+    def features(self, x0: int, y0: int, x1: int, y1: int) -> Features:
+        """Keypoints inside [x0, x1] x [y0, y1] (full-resolution right pixels)."""
+        t = self.cfg.tile_px
+        items = []
+        for ty in range(max(y0, 0) // t, min(y1, self.info.height - 1) // t + 1):
+            for tx in range(max(x0, 0) // t, min(x1, self.info.width - 1) // t + 1):
+                f = self._tile(ty * self.nx + tx)
+                m = (f.xy[:, 0] >= x0) & (f.xy[:, 0] <= x1) & (f.xy[:, 1] >= y0) & (f.xy[:, 1] <= y1)
+                items.append(f.subset(np.flatnonzero(m)))
+        return Features.concat(items, 128 if self.cfg.detector == "sift" else 32,
+                               np.float32 if self.cfg.detector == "sift" else np.uint8)
+
+
+def _pick_tiles(info, cfg: MatcherConfig) -> list[tuple[int, int, int, int]]:
+    """Tile windows to search: all of them, or an even sub-grid of at most ``max_tiles``."""
+    tiles = list(rio.iter_windows(info.width, info.height, cfg.tile_px, cfg.overlap_px))
+    if len(tiles) <= cfg.max_tiles:
+        return tiles
+    nx = math.ceil(info.width / cfg.tile_px)
+    ny = math.ceil(info.height / cfg.tile_px)
+    k = math.ceil(math.sqrt(len(tiles) / cfg.max_tiles))
+    while math.ceil(nx / k) * math.ceil(ny / k) > cfg.max_tiles:
+        k += 1
+    ox, oy = (nx - 1) % k // 2, (ny - 1) % k // 2
+    return [t for i, t in enumerate(tiles) if (i // nx - oy) % k == 0 and (i % nx - ox) % k == 0]
+
+
+def _core(c0, r0, w, h, info, cfg):
+    """Core (no-overlap) rectangle [x0, y0, x1, y1) of a window from :func:`rectify.io.iter_windows`."""
+    cx = 0 if c0 == 0 else c0 + cfg.overlap_px
+    cy = 0 if r0 == 0 else r0 + cfg.overlap_px
+    return cx - 0.5, cy - 0.5, min(cx + cfg.tile_px, info.width) - 0.5, min(cy + cfg.tile_px, info.height) - 0.5
+
+
+def _tile_has_data(ov_valid, s, c0, r0, w, h) -> bool:
+    a0, b0 = int(c0 / s[0]), int(r0 / s[1])
+    a1, b1 = int(math.ceil((c0 + w) / s[0])), int(math.ceil((r0 + h) / s[1]))
+    sub = ov_valid[b0:max(b1, b0 + 1), a0:max(a1, a0 + 1)]
+    return bool(sub.size and sub.any())
+
+
+def _thin(sl, sr, sraw, ss, info, cfg: MatcherConfig):
+    pl, pr, raw, sc = (np.concatenate(x) for x in (sl, sr, sraw, ss))
+    keep = grid_select(pl, -sc, (info.height, info.width), cfg.max_candidates, cell_cap=max(cfg.cell_cap, 8))
+    return [pl[keep]], [pr[keep]], [raw[keep]], [sc[keep]]
+
+
+def _cap_candidates(pl, pr, inl, cap):
+    if len(pl) <= cap:
+        return pl, pr, inl
+    idx = np.random.default_rng(0).choice(len(pl), cap, replace=False)
+    return pl[idx], pr[idx], inl[idx]
