@@ -22,9 +22,9 @@ from numpy.testing import assert_allclose
 
 from rectify.analytic import TiltedFrame
 from rectify.camera import Camera
+from rectify.formats import GcpTable, read_gcps, write_gcps
 from rectify.georef import Grid, pixel_from_world, world_from_pixel, world_from_pixel_matrix
 from rectify.io import write_raster
-from rectify.tables import GcpTable, read_gcps, write_gcps
 from rectify.transforms import AffineTransform, Homography, PolynomialTransform, fit_gcps
 from rectify.warp import WarpOptions, warp_raster
 
