@@ -42,12 +42,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
 from .analytic import TiltedFrame
 from .errors import EstimationError, InvalidInputError
-from .fileutil import atomic_write_text
-from .transforms import CotangentFourPoint, Homography, base_cotangents, printed_eq2
+from .fileutil import atomic_output, atomic_write_text
+from .plots import study_figures
+from .transforms import CotangentFourPoint, Homography, base_cotangents, corrected_eq2, printed_eq2
+from .transforms.base import _normalising_similarity
 
 logger = logging.getLogger(__name__)
 
@@ -166,7 +169,8 @@ class StudyResults:
     conditioning: list[dict[str, Any]] = field(default_factory=list)
     speed: dict[str, Any] = field(default_factory=dict)
     cameras: list[dict[str, Any]] = field(default_factory=list)
-    _raw: dict[str, Any] = field(default_factory=dict, repr=False)
+    #: per-configuration arrays behind the figures (``agreement_rel``: (n,) largest difference / image size)
+    raw: dict[str, Any] = field(default_factory=dict, repr=False)
 
     def to_dict(self) -> dict[str, Any]:
         return {"config": asdict(self.config), "cameras": self.cameras, "agreement": self.agreement,
@@ -219,91 +223,17 @@ class StudyResults:
         s = self.speed
         L += ["## 5. Speed (same run, interleaved, median)", "",
               "| method | points | time [ms] | points/s |", "|---|---|---|---|",
-              f"| homography (ours) | {s['n_points']} | {s['homography_s'] * 1e3:.1f} | {s['homography_pts_per_s']:,.0f} |",
+              f"| homography (ours) | {s['n_points']} | {s['homography_s'] * 1e3:.1f} | "
+              f"{s['homography_pts_per_s']:,.0f} |",
               f"| cotangent four-point | {s['n_points']} | {s['cotangent_s'] * 1e3:.1f} | "
               f"{s['cotangent_pts_per_s']:,.0f} |",
               f"| ratio cotangent / homography | | | {s['ratio']:.2f} |", ""]
         return "\n".join(L)
 
     # ------------------------------------------------------------------ figures
-    def figures(self) -> dict[str, Any]:
-        """Matplotlib figures (name -> Figure) for the five parts."""
-        from matplotlib.figure import Figure
-
-        figs: dict[str, Any] = {}
-        raw = self._raw
-        # 1. agreement histogram
-        fig = Figure(figsize=(6, 4))
-        ax = fig.add_subplot()
-        d = np.asarray(raw.get("agreement_rel", []))
-        d = d[d > 0]
-        if d.size:
-            ax.hist(np.log10(d), bins=40, color="tab:blue")
-        ax.axvline(-8, color="r", ls="--", label="1e-8 of image size")
-        ax.set_xlabel("log10(max |cotangent - homography| / image size)")
-        ax.set_ylabel("configurations")
-        ax.set_title("1. Agreement on exact data")
-        ax.legend()
-        figs["agreement"] = fig
-        # 2. RMSE vs sigma
-        fig = Figure(figsize=(7, 4))
-        ax = fig.add_subplot()
-        for cam in dict.fromkeys(r["camera"] for r in self.noise):
-            rows = [r for r in self.noise if r["camera"] == cam]
-            sg = [r["sigma_px"] for r in rows]
-            short = cam.split(" (")[0]
-            ax.plot(sg, [r["rmse_cotangent"] for r in rows], "o-", label=f"{short}: cotangent (4)")
-            ax.plot(sg, [r["rmse_homography4"] for r in rows], "x--", label=f"{short}: homography (4)")
-            ax.plot(sg, [r["rmse_homography_lsq"] for r in rows], "s-", label=f"{short}: homography LSQ")
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        ax.set_xlabel("control-point noise sigma [px]")
-        ax.set_ylabel("RMSE at check points [px]")
-        ax.set_title("2. Accuracy under noise (Monte Carlo)")
-        ax.legend(fontsize=7)
-        figs["noise"] = fig
-        # 3. predicted vs MC
-        fig = Figure(figsize=(5, 5))
-        ax = fig.add_subplot()
-        for m, mk in (("cotangent (4)", "o"), ("homography (4)", "x"), ("homography LSQ", "s")):
-            rows = [r for r in self.propagation if r["method"] == m]
-            ax.plot([r["monte_carlo"] for r in rows], [r["predicted"] for r in rows], mk, label=m)
-        allv = [r["monte_carlo"] for r in self.propagation] + [r["predicted"] for r in self.propagation]
-        if allv:
-            lo, hi = min(allv), max(allv)
-            ax.plot([lo, hi], [lo, hi], "k:", label="y = x")
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        ax.set_xlabel("Monte Carlo RMSE [px]")
-        ax.set_ylabel("first-order predicted RMSE [px]")
-        ax.set_title("3. Error propagation vs Monte Carlo")
-        ax.legend(fontsize=8)
-        figs["propagation"] = fig
-        # 4. conditioning
-        fig = Figure(figsize=(7, 4))
-        ax = fig.add_subplot()
-        cond = [r for r in self.conditioning if "error" not in r]
-        eps = [r["eps"] for r in cond]
-        ax.plot(eps, [r["gain_cotangent"] for r in cond], "o-", label="noise gain, cotangent (4)")
-        ax.plot(eps, [r["gain_homography"] for r in cond], "x--", label="noise gain, homography (4)")
-        ax.plot(eps, [max(r["max_diff_rel"], 1e-17) for r in cond], "s-",
-                label="max |cot - H| / size (exact)")
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        ax.set_xlabel("eps (distance of point 3 from line 2-4 / side)")
-        ax.set_title("4. Conditioning near degeneracy")
-        ax.legend(fontsize=8)
-        figs["conditioning"] = fig
-        # 5. speed
-        fig = Figure(figsize=(5, 3.5))
-        ax = fig.add_subplot()
-        s = self.speed
-        ax.bar(["homography", "cotangent"], [s["homography_pts_per_s"] / 1e6, s["cotangent_pts_per_s"] / 1e6],
-               color=["tab:gray", "tab:blue"])
-        ax.set_ylabel("million points / s")
-        ax.set_title(f"5. Speed ({s['n_points']:,} points, ratio {s['ratio']:.2f})")
-        figs["speed"] = fig
-        return figs
+    def figures(self) -> dict[str, Figure]:
+        """Matplotlib figures (name -> Figure) for the five parts (:func:`rectify.plots.study_figures`)."""
+        return study_figures(self)
 
 
 # ---------------------------------------------------------------------------- helpers
@@ -377,8 +307,6 @@ def _agreement(cfg: StudyConfig, rng: np.random.Generator, progress: Progress, d
             off = np.abs(cb) < 1e6
             p = printed_eq2(src[0], src[1], cb[off], cg[off])
             printed.append(np.median(np.linalg.norm(p - check[off], axis=1)) / size)
-            from .transforms import corrected_eq2
-
             q = corrected_eq2(src[0], src[1], cb[off], cg[off])
             corrected.append(np.abs(q - check[off]).max() / size)
         done[0] += 1
@@ -465,13 +393,11 @@ def _conditioning(cfg: StudyConfig) -> list[dict[str, Any]]:
         err_c = float(np.abs(c_check - truth).max()) / size
         err_h = float(np.abs(H(check) - truth).max()) / size
         step = min(1e-3, 1e-2 * eps * size)  # finite-difference step well inside the degeneracy scale
-        from .transforms.base import _normalising_similarity
-
         ts, td = _normalising_similarity(src), _normalising_similarity(dst)
         sn = src @ ts[:2, :2].T + ts[:2, 2]
         dn = dst @ td[:2, :2].T + td[:2, 2]
         A = []
-        for (x, y), (u, v) in zip(sn, dn):
+        for (x, y), (u, v) in zip(sn, dn, strict=True):
             A.append([x, y, 1, 0, 0, 0, -u * x, -u * y, -u])
             A.append([0, 0, 0, x, y, 1, -v * x, -v * y, -v])
         sv = np.linalg.svd(np.array(A), compute_uv=False)
@@ -543,7 +469,7 @@ def run_study(config: StudyConfig | None = None, *, progress: Progress = None) -
     res = StudyResults(cfg)
     t0 = time.perf_counter()
     res.agreement, rel = _agreement(cfg, rng, progress, done, total)
-    res._raw["agreement_rel"] = rel
+    res.raw["agreement_rel"] = rel
     logger.info("agreement: %d configs, max %.3g of image size", res.agreement["n_configs"],
                 res.agreement["max_rel"])
     res.noise, res.propagation, res.cameras = _noise_and_propagation(cfg, rng, progress, done, total)
@@ -563,8 +489,6 @@ def write_study(results: StudyResults, out_dir: str | Path, *, overwrite: bool =
     figs = results.figures()
     names = [f"fig_{k}.png" for k in figs]
     md += "\n## Figures\n\n" + "\n".join(f"![{n}]({n})" for n in names) + "\n"
-    from .fileutil import atomic_output
-
     for name, fig in figs.items():
         with atomic_output(out / f"fig_{name}.png", overwrite=overwrite) as tmp:
             fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")

@@ -1,5 +1,6 @@
 """Figures of residuals: vectors over the image, histogram + Q-Q, radial trend, heat maps, bars;
-and the figures of a tie-point match (:func:`match_figures`).
+the figures of a tie-point match (:func:`match_figures`) and of the cotangent vs homography study
+(:func:`study_figures`).
 
 Every function returns a new :class:`matplotlib.figure.Figure` built without
 :mod:`matplotlib.pyplot` (no global state, no GUI backend), so they are safe in
@@ -29,7 +30,8 @@ from scipy import stats
 from .errors import InvalidInputError, ShapeError
 from .residuals import ResidualTable
 
-if TYPE_CHECKING:  # annotation only: importing the matcher (OpenCV) is not needed to draw
+if TYPE_CHECKING:  # annotations only: drawing needs neither the matcher (OpenCV) nor the study
+    from .compare import StudyResults
     from .features import MatchResult
 
 logger = logging.getLogger(__name__)
@@ -43,6 +45,7 @@ __all__ = [
     "radial_figure",
     "residual_vector_figure",
     "standardised_components",
+    "study_figures",
 ]
 
 #: Largest background side (pixels) drawn; bigger images are subsampled for the plot only.
@@ -645,3 +648,92 @@ def match_figures(result: MatchResult, left_preview: tuple[NDArray, float] | Non
     dens.colorbar(im, ax=ax, label=f"matches per {cell:.0f} x {cell:.0f} px cell")
     ax.set_title(f"match density, left image ({len(pl)} matches)")
     return {"matches": fig, "density": dens}
+
+
+# --------------------------------------------------------------------------- projective study
+def study_figures(results: StudyResults) -> dict[str, Figure]:
+    """Figures of the cotangent vs homography study (:func:`rectify.compare.run_study`), one per part.
+
+    Returns
+    -------
+    dict name -> Figure: ``agreement`` (histogram of the largest difference on
+    exact data, log10 of the image size), ``noise`` (check-point RMSE against
+    the control-point noise, px), ``propagation`` (predicted against Monte
+    Carlo RMSE, px), ``conditioning`` (noise gain near degeneracy) and
+    ``speed`` (million points per second).
+    """
+
+    figs: dict[str, Figure] = {}
+    raw = results.raw
+    # 1. agreement histogram
+    fig = Figure(figsize=(6, 4))
+    ax = fig.add_subplot()
+    d = np.asarray(raw.get("agreement_rel", []))
+    d = d[d > 0]
+    if d.size:
+        ax.hist(np.log10(d), bins=40, color="tab:blue")
+    ax.axvline(-8, color="r", ls="--", label="1e-8 of image size")
+    ax.set_xlabel("log10(max |cotangent - homography| / image size)")
+    ax.set_ylabel("configurations")
+    ax.set_title("1. Agreement on exact data")
+    ax.legend()
+    figs["agreement"] = fig
+    # 2. RMSE vs sigma
+    fig = Figure(figsize=(7, 4))
+    ax = fig.add_subplot()
+    for cam in dict.fromkeys(r["camera"] for r in results.noise):
+        rows = [r for r in results.noise if r["camera"] == cam]
+        sg = [r["sigma_px"] for r in rows]
+        short = cam.split(" (")[0]
+        ax.plot(sg, [r["rmse_cotangent"] for r in rows], "o-", label=f"{short}: cotangent (4)")
+        ax.plot(sg, [r["rmse_homography4"] for r in rows], "x--", label=f"{short}: homography (4)")
+        ax.plot(sg, [r["rmse_homography_lsq"] for r in rows], "s-", label=f"{short}: homography LSQ")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("control-point noise sigma [px]")
+    ax.set_ylabel("RMSE at check points [px]")
+    ax.set_title("2. Accuracy under noise (Monte Carlo)")
+    ax.legend(fontsize=7)
+    figs["noise"] = fig
+    # 3. predicted vs MC
+    fig = Figure(figsize=(5, 5))
+    ax = fig.add_subplot()
+    for m, mk in (("cotangent (4)", "o"), ("homography (4)", "x"), ("homography LSQ", "s")):
+        rows = [r for r in results.propagation if r["method"] == m]
+        ax.plot([r["monte_carlo"] for r in rows], [r["predicted"] for r in rows], mk, label=m)
+    allv = [r["monte_carlo"] for r in results.propagation] + [r["predicted"] for r in results.propagation]
+    if allv:
+        lo, hi = min(allv), max(allv)
+        ax.plot([lo, hi], [lo, hi], "k:", label="y = x")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("Monte Carlo RMSE [px]")
+    ax.set_ylabel("first-order predicted RMSE [px]")
+    ax.set_title("3. Error propagation vs Monte Carlo")
+    ax.legend(fontsize=8)
+    figs["propagation"] = fig
+    # 4. conditioning
+    fig = Figure(figsize=(7, 4))
+    ax = fig.add_subplot()
+    cond = [r for r in results.conditioning if "error" not in r]
+    eps = [r["eps"] for r in cond]
+    ax.plot(eps, [r["gain_cotangent"] for r in cond], "o-", label="noise gain, cotangent (4)")
+    ax.plot(eps, [r["gain_homography"] for r in cond], "x--", label="noise gain, homography (4)")
+    ax.plot(eps, [max(r["max_diff_rel"], 1e-17) for r in cond], "s-",
+            label="max |cot - H| / size (exact)")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("eps (distance of point 3 from line 2-4 / side)")
+    ax.set_title("4. Conditioning near degeneracy")
+    ax.legend(fontsize=8)
+    figs["conditioning"] = fig
+    # 5. speed
+    fig = Figure(figsize=(5, 3.5))
+    ax = fig.add_subplot()
+    s = results.speed
+    ax.bar(["homography", "cotangent"], [s["homography_pts_per_s"] / 1e6, s["cotangent_pts_per_s"] / 1e6],
+           color=["tab:gray", "tab:blue"])
+    ax.set_ylabel("million points / s")
+    ax.set_title(f"5. Speed ({s['n_points']:,} points, ratio {s['ratio']:.2f})")
+    figs["speed"] = fig
+    return figs
