@@ -17,7 +17,6 @@ __all__ = [
     "StereoError",
     "CalibrationError",
     "RectifyWarning",
-    "LowInlierRatioWarning",
     "WeakGeometryWarning",
     "NotGeoreferencedWarning",
 ]
@@ -82,10 +81,6 @@ class CalibrationError(StereoError):
 
 class RectifyWarning(UserWarning):
     """Base of the project's warnings."""
-
-
-class LowInlierRatioWarning(RectifyWarning):
-    """Few inliers survived robust estimation."""
 
 
 class WeakGeometryWarning(RectifyWarning):
