@@ -45,7 +45,7 @@ from .transforms import AffineTransform, Homography
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["TiltedFrame", "rectify_tilted"]
+__all__ = ["TiltedFrame"]
 
 F64 = NDArray[np.float64]
 
@@ -171,14 +171,3 @@ class TiltedFrame:
         px = np.array([[0.0, 0.0], [camera.width - 1.0, 0.0], [0.0, camera.height - 1.0]])
         A = AffineTransform.from_points(px, camera.photo_from_pixel(px))
         return self.homography @ A
-
-
-def rectify_tilted(photo_mm: ArrayLike, *, focal_length_mm: float, angles: tuple[float, float, float],
-                   order: str = "omega-phi-kappa", principal_point_mm: tuple[float, float] = (0.0, 0.0),
-                   f_out_mm: float | None = None) -> F64:
-    """Functional form of eq. (1): tilted photo mm (N, 2) -> horizontal image mm (N, 2).
-
-    ``angles`` are radians in the named ``order``.
-    """
-    return TiltedFrame.from_angles(focal_length_mm, *angles, order=order,
-                                   principal_point_mm=principal_point_mm, f_out_mm=f_out_mm)(photo_mm)

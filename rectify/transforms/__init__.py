@@ -18,7 +18,6 @@ from .base import Transform
 from .cotangent import COT_MAX_REL_ERROR, PAIRS, CotangentFourPoint, base_cotangents, corrected_eq2, printed_eq2
 from .gcp import (
     METHODS,
-    N_PARAMS,
     TRANSFORM_FORMAT_VERSION,
     FitResult,
     fit_gcps,
@@ -33,7 +32,7 @@ from .polynomial import PolynomialTransform
 
 __all__ = [
     "Transform", "Homography", "AffineTransform", "PolynomialTransform", "CotangentFourPoint",
-    "METHODS", "N_PARAMS", "FitResult", "fit_gcps", "method_of", "transform_to_dict", "transform_from_dict",
+    "METHODS", "FitResult", "fit_gcps", "method_of", "transform_to_dict", "transform_from_dict",
     "save_transform", "load_transform", "COT_MAX_REL_ERROR", "PAIRS", "TRANSFORM_FORMAT_VERSION",
     "base_cotangents", "printed_eq2", "corrected_eq2",
 ]

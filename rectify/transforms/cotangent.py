@@ -65,7 +65,6 @@ from numpy.typing import ArrayLike, NDArray
 from ..errors import EstimationError
 from ..points import as_pair, as_points, as_weights, check_distinct, check_no_three_collinear
 from .base import _CHUNK, F64, Transform
-from .matrix import Homography
 
 __all__ = ["CotangentFourPoint", "COT_MAX_REL_ERROR", "PAIRS", "base_cotangents", "printed_eq2", "corrected_eq2"]
 
@@ -86,9 +85,6 @@ _PAIRS: tuple[tuple[int, int, int, int], ...] = tuple(
 
 #: The six base pairs (a, b) of the cotangent method, as indices of the control points.
 PAIRS: tuple[tuple[int, int], ...] = tuple((a, b) for a, b, _, _ in _PAIRS)
-
-
-_CONST_NAMES = ("dx", "dy", "e1", "e2", "b2", "kB", "mB", "kG", "mG", "xa0", "ya0", "dx0", "dy0")
 
 
 def _cot_tables(src: F64, dst: F64) -> dict[str, Any]:
@@ -268,6 +264,7 @@ class CotangentFourPoint(Transform):
     >>> dst = [[10, 12], [215, 5], [190, 170], [3, 160]]
     >>> C = CotangentFourPoint.from_points(src, dst)
     >>> p = [[50, 40], [0, 40], [120, -30]]
+    >>> from rectify.transforms import Homography
     >>> np.allclose(C(p), Homography.from_points(src, dst)(p))
     True
     """
@@ -548,10 +545,6 @@ class CotangentFourPoint(Transform):
             gy *= inv_s
             gy += ya0
         return gx, gy
-
-    def to_homography(self) -> Homography:
-        """The equivalent :class:`Homography` (exact fit to the four points)."""
-        return Homography.from_points(self.src, self.dst)
 
 
 def printed_eq2(p1: ArrayLike, p2: ArrayLike, cot_b: ArrayLike, cot_g: ArrayLike) -> F64:

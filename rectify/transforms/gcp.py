@@ -34,7 +34,7 @@ from .polynomial import PolynomialTransform
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["METHODS", "N_PARAMS", "FitResult", "fit_gcps", "method_of", "transform_to_dict", "transform_from_dict",
+__all__ = ["METHODS", "FitResult", "fit_gcps", "method_of", "transform_to_dict", "transform_from_dict",
            "save_transform", "load_transform", "TRANSFORM_FORMAT_VERSION"]
 
 #: Version of the transform JSON written by :func:`save_transform`.
@@ -74,9 +74,6 @@ METHODS: dict[str, _Method] = {
     "poly2": _Method("poly2", PolynomialTransform, 12, 6, _poly2),
     "poly3": _Method("poly3", PolynomialTransform, 20, 10, _poly3),
 }
-
-#: name -> number of parameters (for redundancy / sigma0)
-N_PARAMS: dict[str, int] = {k: m.n_params for k, m in METHODS.items()}
 
 
 def method_of(model: Any) -> str:

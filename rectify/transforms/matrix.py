@@ -137,10 +137,6 @@ class Homography(_MatrixTransform):
     min_points: ClassVar[int] = 4
 
     @classmethod
-    def identity(cls) -> Homography:
-        return cls(np.eye(3))
-
-    @classmethod
     def from_points(cls, src: ArrayLike, dst: ArrayLike, *, weights: ArrayLike | None = None,
                     refine: bool = True) -> Homography:
         """Estimate the homography mapping ``src`` onto ``dst``.
@@ -287,10 +283,6 @@ class AffineTransform(_MatrixTransform):
     def _validate_matrix(self, m: F64) -> None:
         if not np.allclose(m[2], [0.0, 0.0, 1.0], rtol=0, atol=1e-12):
             raise InvalidInputError(f"an affine matrix must end with the row (0, 0, 1); got {m[2].tolist()}")
-
-    @classmethod
-    def identity(cls) -> AffineTransform:
-        return cls(np.eye(3))
 
     @classmethod
     def from_points(cls, src: ArrayLike, dst: ArrayLike, *, weights: ArrayLike | None = None

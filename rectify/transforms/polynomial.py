@@ -149,16 +149,6 @@ class PolynomialTransform(Transform):
         dom = np.array([s.min(axis=0), s.max(axis=0)])
         return cls(order, coef.T, shift, scale, dom)
 
-    @classmethod
-    def order2(cls, src: ArrayLike, dst: ArrayLike, *, weights: ArrayLike | None = None
-               ) -> PolynomialTransform:
-        return cls.from_points(src, dst, weights=weights, order=2)
-
-    @classmethod
-    def order3(cls, src: ArrayLike, dst: ArrayLike, *, weights: ArrayLike | None = None
-               ) -> PolynomialTransform:
-        return cls.from_points(src, dst, weights=weights, order=3)
-
     def __call__(self, points: ArrayLike) -> F64:
         p = as_points(points, "points")
         return _poly_design((p - self.shift) * self.scale, self.order) @ self.coefficients.T

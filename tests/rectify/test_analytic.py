@@ -10,11 +10,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
-from rectify.analytic import TiltedFrame, rectify_tilted
+from rectify.analytic import TiltedFrame
 from rectify.camera import Camera
 from rectify.errors import InvalidInputError
 from rectify.rotation import matrix_from_angles
 from rectify.transforms import CotangentFourPoint, Homography
+from tests.support.transforms_support import rectify_tilted
 
 F = 1000.0  # Resurs-F: f = 1000 mm, 300 x 300 mm frame
 FRAME = np.array([[-150.0, -150.0], [150.0, -150.0], [150.0, 150.0], [-150.0, 150.0]])
