@@ -21,8 +21,16 @@ from importlib.resources import files
 from pathlib import Path
 
 import numpy as np
+from affine import Affine
 
+from .compare import comparison_summary, summary_lines
 from .errors import RasterIOError
+from .formats import GcpTable
+from .georef import world_from_pixel
+from .io import raster_info, read_window, write_raster
+from .report import write_warp_report
+from .warp import WarpOptions, georectify, warp_array
+from .workspace import Workspace
 
 __all__ = ["demo_raster_path", "H_FRAME_FROM_LANDSAT", "DemoResult", "run_demo"]
 
@@ -58,6 +66,20 @@ class DemoResult:
     #: the comparison as readable labelled lines (``rectify.compare.summary_lines``), for the CLI to echo
     compare_lines: tuple[str, ...] = ()
 
+    def summary_lines(self) -> list[str]:
+        """The lines ``rectify demo`` prints: files, GCP fit (m), geolocation error, comparison, report."""
+        s = self.fit_summary
+        lines = [f"frame: {self.frame}",
+                 f"GCPs: {self.gcps} ({s['n_fit']} control, {s['n_check']} check points)",
+                 f"GCP fit (homography): RMSE {s['rmse']:.3f} m, sigma0 {s['sigma0']:.3f} m, "
+                 f"check RMSE {s['rmse_check']:.3f} m",
+                 f"rectified: {self.rectified}",
+                 f"geolocation RMSE against the truth: {self.geolocation_rmse_m:.2f} m = "
+                 f"{self.geolocation_rmse_m / self.pixel_size_m:.4f} Landsat px (max {self.geolocation_max_m:.2f} m)"]
+        lines += [f"projective comparison: {line}" for line in self.compare_lines]
+        lines.append(f"report: {self.report}")
+        return lines
+
 
 def _pick(valid: np.ndarray, n_x: int, n_y: int, margin: int = 40) -> np.ndarray:
     """One valid pixel near the centre of each of n_x * n_y cells (col, row)."""
@@ -75,16 +97,15 @@ def _pick(valid: np.ndarray, n_x: int, n_y: int, margin: int = 40) -> np.ndarray
 
 def run_demo(out_dir: str | Path, *, overwrite: bool = False, pick_sigma_px: float = 0.15, seed: int = 4,
              with_compare: bool = True, progress: Callable[[int, int], None] | None = None) -> DemoResult:
-    """Run the demo into ``out_dir`` (created when absent). See the module docstring."""
-    from affine import Affine
+    """Run the demo into ``out_dir`` (created when absent). See the module docstring.
 
-    from .georef import world_from_pixel
-    from .io import raster_info, read_window, write_raster
-    from .tables import GcpTable, write_gcps
-    from .warp import WarpOptions, georectify, warp_array, write_warp_report
-
+    Every output (``tilted_frame.tif``, ``gcps.csv``, ``rectified.tif``, ``report/``) is checked
+    before any work.
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    ws = Workspace(out, overwrite=overwrite, report_dir=out / "report")
+    ws.prepare("tilted_frame.tif", "gcps.csv", "rectified.tif")
     src = demo_raster_path()
     info = raster_info(src)
     img, valid = read_window(src, 0, 0, info.width, info.height)
@@ -111,7 +132,7 @@ def run_demo(out_dir: str | Path, *, overwrite: bool = False, pick_sigma_px: flo
     ids = tuple([f"gcp{i + 1}" for i in range(len(ctrl))] + [f"chk{i + 1}" for i in range(len(chk))])
     check = np.r_[np.zeros(len(ctrl), bool), np.ones(len(chk), bool)]
     gcps = GcpTable(ids, picked, tgt, None, check, info.crs)
-    gcp_path = write_gcps(out / "gcps.csv", gcps, overwrite=overwrite)
+    gcp_path = ws.save_gcps(out / "gcps.csv", gcps)
 
     res = georectify(frame_path, out / "rectified.tif", gcps, method="homography",
                      options=WarpOptions(resampling="bilinear"), overwrite=overwrite, progress=progress)
@@ -136,28 +157,16 @@ def run_demo(out_dir: str | Path, *, overwrite: bool = False, pick_sigma_px: flo
 
 
 def _compare_summary() -> dict | None:
-    """The projective comparison of ``rectify.compare`` with small settings, when available."""
+    """The projective comparison of ``rectify.compare`` with small settings (None when it fails)."""
     try:
-        from . import compare  # noqa: F401
-    except ImportError:
-        return None
-    fn = getattr(compare, "comparison_summary", None) or getattr(compare, "run_comparison", None)
-    if fn is None:
-        return None
-    try:
-        out = fn(n_trials=5) if "n_trials" in fn.__code__.co_varnames else fn()
-    except Exception as err:  # a peer module: never let it break the demo
+        return comparison_summary(n_trials=5)
+    except Exception as err:  # a side study: never let it break the demo
         logger.warning("projective comparison failed: %s", err)
         return None
-    return out if isinstance(out, dict) else {"result": str(out)}
 
 
 def _compare_lines(summary: dict | None) -> tuple[str, ...]:
     """Readable lines of the projective comparison (empty when there is none)."""
     if not summary:
         return ()
-    try:
-        from .compare import summary_lines
-    except ImportError:
-        return tuple(f"{k}: {v}" for k, v in summary.items())
     return tuple(summary_lines(summary)) or tuple(f"{k}: {v}" for k, v in summary.items())

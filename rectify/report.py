@@ -40,24 +40,31 @@ import shutil
 import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from html.parser import HTMLParser
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from matplotlib.figure import Figure
 from numpy.typing import ArrayLike, NDArray
 
+from .crs import crs_to_string, parse_crs
 from .errors import InvalidInputError, RasterIOError, ShapeError
-from .formats import REPORT_VERSION, report_json_text
+from .formats import REPORT_VERSION, GcpTable, report_json_text
+from .io import read_overview, to_uint8
 from .plots import (
     correlation_heatmap_figure,
     height_bars_figure,
     histogram_qq_figure,
+    match_figures,
     radial_figure,
     residual_vector_figure,
 )
 from .residuals import ResidualTable
+
+if TYPE_CHECKING:  # annotations only: the matcher and the warp engine (OpenCV, GDAL) are not needed to report
+    from .features import MatchResult
+    from .transforms import FitResult
+    from .warp import GeoRectification
 
 logger = logging.getLogger(__name__)
 
@@ -72,8 +79,10 @@ __all__ = [
     "residual_geojson",
     "residual_vector_figure",
     "slugify",
-    "verify_report",
+    "write_fit_report",
+    "write_match_report",
     "write_report",
+    "write_warp_report",
 ]
 
 #: Linear units in which residual components can be taken as ground-frame vectors.
@@ -216,7 +225,6 @@ def residual_geojson(table: ResidualTable, ground_xy: ArrayLike, crs: Any, *,
     CRSError
         If ``crs`` is unknown.
     """
-    from .crs import crs_to_string, parse_crs
 
     g = np.asarray(ground_xy, dtype=np.float64)
     if g.shape != (table.n, 2):
@@ -343,7 +351,6 @@ def _validate(out_dir: Any, title: Any, tables: Any, figures: Any, summary: Any,
                 if g.shape != (t.n, 2):
                     raise ShapeError(f"`ground_xy[{t.step!r}]` must have shape ({t.n}, 2); got {g.shape}",
                                      actual_shape=g.shape, expected_shape=(t.n, 2))
-        from .crs import parse_crs
 
         parse_crs(crs)
     if out_dir is None or (isinstance(out_dir, str) and not out_dir.strip()):
@@ -383,7 +390,6 @@ def _vector_figure(t: ResidualTable, shape: Sequence[int] | None, bg: Any, groun
     if not _in_ground_units(t):
         return residual_vector_figure(t, image_shape=shape, background=bg)
     if ground is not None:
-        from .crs import parse_crs
 
         axis = parse_crs(crs).axis_info
         unit = axis[0].unit_name if axis else t.units
@@ -507,7 +513,7 @@ def _html(title: str, created: str, crs: str | None, plans: list[_TablePlan], su
     if plans:
         parts.append("<table class='overview'><thead><tr><th class='l'>step</th><th class='l'>units</th>"
                      + "".join(f"<th>{e(lab)}</th>" for _, lab in _SUMMARY_COLS) + "</tr></thead><tbody>")
-        for p, s in zip(plans, summaries):
+        for p, s in zip(plans, summaries, strict=True):
             parts.append(f"<tr data-step='{p.slug}'><td class='l'><a href='#t-{p.slug}'>{e(p.table.step)}</a></td>"
                          f"<td class='l' data-scope='{p.slug}' data-key='units'>{e(p.table.units)}</td>"
                          + "".join(_td(s.get(k), scope=p.slug, key=k) for k, _ in _SUMMARY_COLS) + "</tr>")
@@ -517,7 +523,7 @@ def _html(title: str, created: str, crs: str | None, plans: list[_TablePlan], su
     parts.append(_DEFS + "</section>")
 
     # per table
-    for p, s in zip(plans, summaries):
+    for p, s in zip(plans, summaries, strict=True):
         t = p.table
         parts.append(f"<section id='t-{p.slug}' data-section='table-{p.slug}'><h2>{e(t.step)}</h2>")
         parts.append(f"<p>Residual v = adjusted &minus; observed, in <b>{e(t.units)}</b>; components "
@@ -671,7 +677,6 @@ def write_report(out_dir: str | os.PathLike, *, title: str, tables: list[Residua
     crs_text = None
     try:
         if crs is not None:
-            from .crs import crs_to_string
 
             crs_text = crs_to_string(crs)
         summaries = []
@@ -688,8 +693,8 @@ def write_report(out_dir: str | os.PathLike, *, title: str, tables: list[Residua
                 _save(histogram_qq_figure(t), tmp / p.files["distribution"])
             if "radial" in p.files:
                 pp, what = _principal_point(t, principal_point_px, shape)
-                _save(radial_figure(t, pp, components_y_up=_in_ground_units(t), title=f"{t.step}: residuals vs distance from the {what} "
-                                                   f"({pp[0]:.1f}, {pp[1]:.1f}) px"), tmp / p.files["radial"])
+                title = f"{t.step}: residuals vs distance from the {what} ({pp[0]:.1f}, {pp[1]:.1f}) px"
+                _save(radial_figure(t, pp, components_y_up=_in_ground_units(t), title=title), tmp / p.files["radial"])
             if "geojson" in p.files:
                 gj = residual_geojson(t, ground[t.step], crs)
                 (tmp / p.files["geojson"]).write_text(json.dumps(gj, allow_nan=False))
@@ -703,7 +708,7 @@ def write_report(out_dir: str | os.PathLike, *, title: str, tables: list[Residua
             "crs": crs_text,
             "tables": [{"step": p.table.step, "slug": p.slug, "units": p.table.units,
                         "components": list(p.table.components), "summary": s, "files": p.files}
-                       for p, s in zip(plans, summaries)],
+                       for p, s in zip(plans, summaries, strict=True)],
             "figures": fig_files,
             "summary": caller,
             "files": files,
@@ -741,129 +746,81 @@ def _commit(tmp: Path, out: Path, files: list[str], previous: list[str], overwri
         raise RasterIOError(f"cannot move the report into {str(out)!r}: {err}") from err
 
 
-# --------------------------------------------------------------------------- verification
-class _Cells(HTMLParser):
-    """Collect every element with ``data-key``: (scope, key) -> list of (data-value, data-json, text)."""
+# --------------------------------------------------------------------------- the reports of the rectify steps
+def write_match_report(report_dir: str | os.PathLike, result: MatchResult, left: str | os.PathLike,
+                       right: str | os.PathLike, *, overwrite: bool = False) -> Path:
+    """The report of ``rectify match``: verification residuals, matches over both images, match density.
 
-    def __init__(self) -> None:
-        super().__init__(convert_charrefs=True)
-        self.cells: dict[tuple[str, str], list[tuple[str | None, str | None, str]]] = {}
-        self._open: tuple[str, str, str | None, str | None] | None = None
-        self._text: list[str] = []
-
-    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
-        a = dict(attrs)
-        if "data-key" in a:
-            self._open = (a.get("data-scope") or "", a["data-key"] or "", a.get("data-value"), a.get("data-json"))
-            self._text = []
-
-    def handle_data(self, data: str) -> None:
-        if self._open is not None:
-            self._text.append(data)
-
-    def handle_endtag(self, tag: str) -> None:
-        if tag == "td" and self._open is not None:
-            scope, key, value, js = self._open
-            self.cells.setdefault((scope, key), []).append((value, js, "".join(self._text).strip()))
-            self._open = None
-
-
-def _same_number(cell: tuple[str | None, str | None, str], expected: Any) -> bool:
-    value, _, text = cell
-    if expected is None or (isinstance(expected, float) and not math.isfinite(expected)):
-        return value in ("", None) and text == "n/a"
-    if value in ("", None):
-        return False
-    num: Any = int(value) if re.fullmatch(r"-?\d+", value) else float(value)
-    return float(num) == float(expected) and text == format_number(num)
-
-
-def verify_report(out_dir: str | os.PathLike) -> list[str]:
-    """Check that every number shown in ``report.html`` equals the CSV and ``report.json`` values.
-
-    Compares each summary cell with ``report.json``, each residual-row cell with
-    the table's CSV (exact value in ``data-value``, shown text = 4 significant
-    digits) and reports number-bearing cells that correspond to nothing.
+    Parameters
+    ----------
+    report_dir : path
+    result : rectify.features.MatchResult
+    left, right : path
+        The matched rasters; overviews of at most 1024 px are drawn under the matches.
 
     Returns
     -------
-    list of str
-        Discrepancies; empty when the page agrees with the files.
-
-    Raises
-    ------
-    RasterIOError
-        If the report files cannot be read.
+    Path of ``report.html``.
     """
-    import csv as _csv
+    previews = []
+    for p in (left, right):
+        data, valid, scale = read_overview(p, 1024)
+        previews.append((to_uint8(data, valid), scale))
+    figs = match_figures(result, previews[0], previews[1])
+    tables = [result.verification.table] if result.verification.table is not None else []
+    return write_report(report_dir, title=f"rectify match: {left} / {right}", tables=tables, figures=figs,
+                        summary={**result.summary(), "left": str(left), "right": str(right)}, overwrite=overwrite,
+                        image_shapes={t.step: result.image_shapes[0] for t in tables})
 
-    root = Path(out_dir)
-    try:
-        doc = json.loads((root / "report.json").read_text())
-        page = (root / "report.html").read_text(encoding="utf-8")
-    except (OSError, ValueError) as err:
-        raise RasterIOError(f"cannot read the report in {str(root)!r}: {err}") from err
-    parser = _Cells()
-    parser.feed(page)
-    cells = parser.cells
-    problems: list[str] = []
-    seen: set[tuple[str, str]] = set()
 
-    def check(key: tuple[str, str], expected: Any) -> None:
-        seen.add(key)
-        if key not in cells:
-            problems.append(f"{key}: missing from the HTML (expected {expected!r})")
-            return
-        for cell in cells[key]:
-            if not _same_number(cell, expected):
-                problems.append(f"{key}: HTML shows {cell[2]!r} (data-value {cell[0]!r}), files say {expected!r}")
+def write_fit_report(report_dir: str | os.PathLike, result: FitResult, gcps: GcpTable, *,
+                     gcps_path: str | os.PathLike, transform_path: str | os.PathLike,
+                     overwrite: bool = False) -> Path:
+    """The report of ``rectify fit``: the GCP residual table (target units), with GeoJSON when the GCPs have a CRS.
 
-    for t in doc.get("tables", []):
-        slug = t["slug"]
-        for key, val in _flatten(t["summary"]):
-            if key in ("step", "units"):
-                continue
-            if isinstance(val, str):
-                seen.add((slug, key))
-                if [c[2] for c in cells.get((slug, key), [])] != [val] * len(cells.get((slug, key), [1])):
-                    problems.append(f"{(slug, key)}: text differs from {val!r}")
-            elif isinstance(val, bool):
-                seen.add((slug, key))
-                if any(c[2] != format_number(val) for c in cells.get((slug, key), [])):
-                    problems.append(f"{(slug, key)}: HTML differs from {val!r}")
-            elif isinstance(val, (list, dict)):
-                seen.add((slug, key))
-            else:
-                check((slug, key), val)
-        seen.add((slug, "units"))
-        try:
-            lines = [ln for ln in (root / t["files"]["csv"]).read_text().splitlines() if not ln.startswith("#")]
-        except OSError as err:
-            raise RasterIOError(f"cannot read {t['files']['csv']!r}: {err}") from err
-        for i, row in enumerate(_csv.DictReader(lines)):
-            for col, val in row.items():
-                key = (f"{slug}#{i}", col)
-                if col == "id" or key not in cells:
-                    continue  # rows beyond html_max_rows are only in the CSV
-                num = None if val in ("nan", "") else (int(val) if re.fullmatch(r"-?\d+", val) else float(val))
-                check(key, num)
-    for key, val in _flatten(doc.get("summary") or {}):
-        k = ("summary", key)
-        seen.add(k)
-        got = cells.get(k)
-        if got is None:
-            problems.append(f"{k}: missing from the HTML")
-        elif isinstance(val, list):
-            if any(c[1] is None or json.loads(c[1]) != val for c in got):
-                problems.append(f"{k}: HTML list differs from {val!r}")
-        elif isinstance(val, str):
-            if any(c[2] != val for c in got):
-                problems.append(f"{k}: HTML text differs from {val!r}")
-        elif isinstance(val, bool):
-            if any(c[2] != format_number(val) for c in got):
-                problems.append(f"{k}: HTML shows {got[0][2]!r}, files say {val!r}")
-        else:
-            check(k, val)
-    extra = sorted(k for k in cells if k not in seen)
-    problems += [f"{k}: number in the HTML with no counterpart in the CSV/JSON" for k in extra]
-    return problems
+    Returns
+    -------
+    Path of ``report.html``.
+    """
+    table = result.table
+    s = table.summary()
+    ground = {table.step: gcps.target} if gcps.crs else None
+    return write_report(report_dir, title=f"rectify fit: {result.method} on {gcps_path}", tables=[table],
+                        summary={"method": result.method, "gcps": str(gcps_path), "transform": str(transform_path),
+                                 **{k: v for k, v in s.items() if k != "step"}},
+                        crs=gcps.crs, ground_xy=ground, overwrite=overwrite)
+
+
+def write_warp_report(report_dir: str | os.PathLike, result: GeoRectification, *, source_shape: tuple[int, int],
+                      title: str = "rectify warp", summary: dict | None = None, background: ArrayLike | None = None,
+                      overwrite: bool = False) -> Path:
+    """The report of ``rectify warp --gcps`` and the demo: GCP residual table, vectors over the image, grid.
+
+    Parameters
+    ----------
+    report_dir : path
+    result : rectify.warp.GeoRectification
+        With a ``fit`` (GCP runs); check points are reported separately by the table.
+    source_shape : (H, W)
+        Source image size, for the residual-vector plot frame.
+    summary : dict, optional
+        More run-level facts.
+    background : (H, W[, C]) array, optional
+        Image drawn under the vectors (e.g. a decimated source).
+
+    Returns
+    -------
+    Path of ``report.html``.
+    """
+    if result.fit is None:
+        raise InvalidInputError("a report needs a GCP fit (use --gcps)")
+    t = result.fit.table
+    fig = residual_vector_figure(t, source_shape, background, title=f"GCP residuals ({result.method}), {t.units}")
+    info = {"method": result.method, "output": str(result.warp.path), "crs": result.crs,
+            "grid_width": result.warp.grid.width, "grid_height": result.warp.grid.height,
+            "resolution": result.warp.grid.resolution[0], "seconds": round(result.warp.seconds, 3),
+            "invalid_pixels_as": result.warp.policy}
+    info.update(summary or {})
+    return write_report(report_dir, title=title, tables=[t], figures={"gcp_residual_vectors": fig},
+                        summary=info, crs=result.crs, ground_xy={t.step: t.observed} if result.crs else None,
+                        overwrite=overwrite)

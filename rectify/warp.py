@@ -37,12 +37,19 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
+import rasterio
 from numpy.typing import ArrayLike, NDArray
 
+from .crs import crs_to_string, get_transformer, same_crs, transform_xy
 from .errors import CRSError, EstimationError, InvalidInputError
-from .fileutil import read_json
+from .fileutil import atomic_output, check_output
+from .formats import GcpTable
 from .georef import Grid, output_grid, world_from_pixel, world_from_pixel_matrix
+from .io import MaskPolicy, TiledWriter, WindowReader, mask_policy, open_raster, raster_info, translate_to_cog
+from .residuals import ResidualTable
+from .transforms import METHODS, FitResult, fit_gcps, method_of
 
 __all__ = ["RESAMPLING", "WarpOptions", "WarpResult", "warp_raster", "warp_array", "GeoRectification",
            "georectify", "rectify_with_transform", "check_gcps_inside"]
@@ -54,7 +61,6 @@ RESAMPLING: dict[str, tuple[int, int]] = {}
 
 
 def _resampling_table() -> dict[str, tuple[int, int]]:
-    import cv2
 
     if not RESAMPLING:
         RESAMPLING.update({"nearest": (cv2.INTER_NEAREST, 1), "bilinear": (cv2.INTER_LINEAR, 1),
@@ -156,7 +162,7 @@ class _Mapping:
     def __init__(self, grid: Grid, source_from_world: Callable, world_crs: str | None, step: int):
         self.step = step
         m = getattr(source_from_world, "matrix", None)
-        same = world_crs is None or grid.crs is None or _same_crs(world_crs, grid.crs)
+        same = world_crs is None or grid.crs is None or same_crs(world_crs, grid.crs)
         self.matrix = None
         if m is not None and same:
             mm = np.asarray(m, dtype=np.float64)
@@ -178,7 +184,6 @@ class _Mapping:
             return out
         world = world_from_pixel(self._grid.transform, pix)
         if self._crs is not None:
-            from .crs import get_transformer
             t = get_transformer(self._crs[0], self._crs[1])
             x, y = t.transform(world[:, 0], world[:, 1])
             world = np.column_stack([x, y])
@@ -221,11 +226,6 @@ class _Mapping:
         return out[0], out[1]
 
 
-def _same_crs(a, b) -> bool:
-    from .crs import same_crs
-    return same_crs(a, b)
-
-
 # --------------------------------------------------------------------------- tile kernel
 def _fill_value(policy_kind: str, nodata: float | None, dtype: np.dtype) -> Any:
     if policy_kind == "nodata" and nodata is not None:
@@ -243,7 +243,6 @@ def _cv_dtype(a: NDArray) -> NDArray:
 def _apply(img: NDArray, *, M: NDArray | None, affine: bool, maps, size: tuple[int, int], interp: int,
            border: int) -> NDArray:
     """Warp ``img`` (h, w[, C<=4]) to ``size`` (w, h) with a 3x3 inverse map M or maps."""
-    import cv2
 
     if M is not None:
         flags = interp | cv2.WARP_INVERSE_MAP
@@ -267,7 +266,6 @@ def _warp_channels(data: NDArray, **kw) -> NDArray:
 class _Engine:
     def __init__(self, src: str, mapping: _Mapping, grid: Grid, opts: WarpOptions, out_dtype: np.dtype,
                  count: int, fill: Any):
-        from .io import raster_info
         info = raster_info(src)
         self.src, self.mapping, self.grid, self.opts = src, mapping, grid, opts
         self.W, self.H = info.width, info.height
@@ -280,7 +278,6 @@ class _Engine:
     def reader(self):
         r = getattr(self._local, "reader", None)
         if r is None:
-            from .io import WindowReader
             r = WindowReader(self.src)
             self._local.reader = r
             with self._lock:
@@ -345,7 +342,6 @@ class _Engine:
         return out, (None if valid.all() else valid), not valid.any()
 
     def _resample(self, data, valid, x0, y0, c0, r0, w, h, maps):
-        import cv2
 
         m = self.mapping
         if maps is None:
@@ -414,7 +410,6 @@ def _cast(a: NDArray, dtype: np.dtype) -> NDArray:
 
 # --------------------------------------------------------------------------- public API
 def _output_policy(src: str, opts: WarpOptions):
-    from .io import MaskPolicy, mask_policy, raster_info
 
     info = raster_info(src)
     dtype = np.dtype(info.dtype)
@@ -472,8 +467,6 @@ def warp_raster(src: str | Path, dst: str | Path, source_from_world: Callable[[N
     InvalidInputError
         Existing output without ``overwrite``, ``dst`` equal to ``src``, bad options.
     """
-    from .fileutil import atomic_output, check_output
-    from .io import TiledWriter, open_raster, translate_to_cog
 
     opts = options or WarpOptions()
     t0 = time.perf_counter()
@@ -492,7 +485,6 @@ def warp_raster(src: str | Path, dst: str | Path, source_from_world: Callable[[N
                for r in range(0, grid.height, tile) for c in range(0, grid.width, tile)]
     n_empty = 0
     crs = grid.crs
-    import rasterio
     try:
         # bound GDAL's block cache (its default is 5% of RAM): tiles are written once, whole
         with rasterio.Env(GDAL_CACHEMAX=int(opts.cache_mb) * 1024 * 1024), \
@@ -566,7 +558,6 @@ def warp_array(image: ArrayLike, source_from_target: Callable[[NDArray], NDArray
     -------
     (rows, cols[, C]) array of the image's dtype; ``fill`` outside the source.
     """
-    import cv2
 
     a = np.asarray(image)
     if a.ndim not in (2, 3):
@@ -641,7 +632,7 @@ def georectify(src: str | Path, dst: str | Path, gcps, *, method: str = "homogra
     Parameters
     ----------
     src, dst : path
-    gcps : rectify.tables.GcpTable
+    gcps : rectify.formats.GcpTable
         ``pixel`` = source (col, row), ``target`` = map coordinates in
         ``gcp_crs`` (or the table's CRS), or target pixels without a CRS.
     method : str
@@ -666,13 +657,8 @@ def georectify(src: str | Path, dst: str | Path, gcps, *, method: str = "homogra
     CRSError
         Unknown CRS, or an output CRS without a GCP CRS.
     """
-    from .crs import crs_to_string, transform_xy
-    from .io import raster_info
-    from .residuals import ResidualTable
-    from .tables import GcpTable
-    from .transforms import METHODS, FitResult, fit_gcps
-
-    if method not in METHODS:
+    m = METHODS.get(method)
+    if m is None:
         raise InvalidInputError(f"unknown method {method!r}; expected one of {sorted(METHODS)}")
     info = raster_info(src)
     g_crs = gcp_crs or gcps.crs
@@ -681,27 +667,25 @@ def georectify(src: str | Path, dst: str | Path, gcps, *, method: str = "homogra
     if out_crs is not None and g_crs is None:
         raise CRSError("an output CRS needs the GCP CRS (a '# crs=' line in the GCP file or --gcp-crs)")
     check_gcps_inside(gcps.pixel, gcps.ids, info.width, info.height)
-    table = gcps
+    target = gcps.target
     if g_crs is not None and out_crs is not None and g_crs != out_crs:
-        tgt = transform_xy(g_crs, out_crs, gcps.target)
-        table = GcpTable(gcps.ids, gcps.pixel, tgt, gcps.z, gcps.check, out_crs)
-    elif g_crs is not None and table.crs != g_crs:
-        table = GcpTable(gcps.ids, gcps.pixel, gcps.target, gcps.z, gcps.check, g_crs)
+        target = transform_xy(g_crs, out_crs, gcps.target)
     # fit in a local frame (targets minus their rounded centroid): map coordinates of
     # 1e5..1e7 m would otherwise dominate the conditioning of the normal equations
-    offset = np.round(table.target[~table.check].mean(axis=0)) if (~table.check).any() else np.zeros(2)
-    local = GcpTable(table.ids, table.pixel, table.target - offset, table.z, table.check, table.crs)
-    fit_local = fit_gcps(local, method)
+    fit_rows = ~gcps.check
+    offset = np.round(target[fit_rows].mean(axis=0)) if fit_rows.any() else np.zeros(2)
+    local = GcpTable(gcps.ids, gcps.pixel, target - offset, gcps.z, gcps.check, out_crs)
+    fit_local = fit_gcps(local, method)  # residuals in the output CRS's unit (px without a CRS)
     if method in ("poly2", "poly3"):
-        m = fit_local.table.fit_mask
-        inverse_local = METHODS[method].from_points(local.target[m], local.pixel[m])
+        mask = fit_local.table.fit_mask
+        inverse_local = m.from_points(local.target[mask], local.pixel[mask])
     else:
         inverse_local = fit_local.model.inverse
     forward = _Shifted(fit_local.model, offset, after=True)
     inverse = _Shifted(inverse_local, offset, after=False)
     t = fit_local.table
     table_out = ResidualTable(step=t.step, ids=t.ids, observed=t.observed + offset, adjusted=t.adjusted + offset,
-                              units="m" if out_crs is not None else "px", weights=t.weights, outlier=t.outlier,
+                              units=t.units, weights=t.weights, outlier=t.outlier,
                               check=t.check, position_px=t.position_px, n_params=t.n_params,
                               extra=dict(t.extra, fit_offset=offset.tolist()))
     fit = FitResult(forward, table_out, method)
@@ -746,10 +730,6 @@ def rectify_with_transform(src: str | Path, dst: str | Path, model, *, model_crs
     from the footprint transformed through pyproj, and every output pixel is
     mapped back through pyproj (sparse, interpolated) and the model's inverse.
     """
-    from .crs import crs_to_string, get_transformer
-    from .io import raster_info
-    from .transforms import method_of
-
     info = raster_info(src)
     m_crs = crs_to_string(model_crs) if model_crs else None
     out_crs = crs_to_string(dst_crs) if dst_crs else m_crs
@@ -775,52 +755,3 @@ def rectify_with_transform(src: str | Path, dst: str | Path, model, *, model_crs
     except InvalidInputError:
         name = type(model).__name__
     return GeoRectification(None, res, out_crs, name)
-
-
-# --------------------------------------------------------------------------- helpers for commands
-def transform_file_crs(path: str | Path) -> str | None:
-    """The ``crs`` recorded in a transform JSON (None when absent)."""
-    d = read_json(path, "transform file")
-    crs = d.get("crs") if isinstance(d, dict) else None
-    return str(crs) if crs else None
-
-
-def write_warp_report(report_dir: str | Path, result: GeoRectification, *, source_shape: tuple[int, int],
-                      title: str = "rectify warp", summary: dict | None = None, background=None,
-                      overwrite: bool = False) -> Path:
-    """Write the GCP residual table, residual vectors over the image, RMSE and sigma0.
-
-    Parameters
-    ----------
-    report_dir : path
-    result : GeoRectification
-        With a ``fit`` (GCP runs); check points are reported separately by the table.
-    source_shape : (H, W)
-        Source image size, for the residual-vector plot frame.
-    background : (H, W[, C]) array, optional
-        Image drawn under the vectors (e.g. a decimated source).
-
-    Returns
-    -------
-    Path of ``report.html``.
-    """
-    from .plots import residual_vector_figure
-    from .report import write_report
-
-    if result.fit is None:
-        raise InvalidInputError("a report needs a GCP fit (use --gcps)")
-    t = result.fit.table
-    fig = residual_vector_figure(t, source_shape, background,
-                                 title=f"GCP residuals ({result.method}), {t.units}")
-    info = {"method": result.method, "output": str(result.warp.path), "crs": result.crs,
-            "grid_width": result.warp.grid.width, "grid_height": result.warp.grid.height,
-            "resolution": result.warp.grid.resolution[0], "seconds": round(result.warp.seconds, 3),
-            "invalid_pixels_as": result.warp.policy}
-    info.update(summary or {})
-    try:
-        return write_report(report_dir, title=title, tables=[t], figures={"gcp_residual_vectors": fig},
-                            summary=info, crs=result.crs, ground_xy={t.step: t.observed} if result.crs else None,
-                            overwrite=overwrite)
-    finally:
-        import matplotlib.pyplot as plt
-        plt.close(fig)

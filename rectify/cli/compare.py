@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import click
 
+from ..actions import CompareOptions
+from ..actions import compare as compare_action
+from ..workspace import Workspace
 from .options import echo, handle_errors, overwrite_opt, progress
 
 
@@ -27,35 +30,8 @@ def compare(out_dir, configs, trials, speed_points, seed, full, overwrite):
     accuracy for Resurs-F and aerial tilted frames, first-order error
     propagation, conditioning near degeneracy and speed. Writes a Markdown
     table and PNG plots into --out."""
-    from ..compare import StudyConfig, run_study, write_study
-
-    over = dict(n_configs=configs, n_trials=trials, n_speed_points=speed_points, seed=seed)
-    if full:
-        cfg = StudyConfig(**{k: v for k, v in over.items() if v is not None})
-    else:
-        cfg = StudyConfig.quick(**over)
-    _check_outputs(out_dir, overwrite)
+    opts = CompareOptions(n_configs=configs, n_trials=trials, n_speed_points=speed_points, seed=seed, full=full)
     with progress("study", enabled=True) as cb:
-        res = run_study(cfg, progress=cb)
-    path = write_study(res, out_dir, overwrite=overwrite)
-    a, s = res.agreement, res.speed
-    echo(f"agreement: {a['n_configs']} configurations, max |cotangent - homography| = "
-         f"{a['max_rel']:.2e} of the image size (eq. 2 as printed: median error {a['printed_median_rel']:.2f})")
-    shown = 1.0 if any(r["sigma_px"] == 1.0 for r in res.noise) else max(r["sigma_px"] for r in res.noise)
-    for r in res.noise:
-        if r["sigma_px"] == shown:
-            echo(f"noise {r['sigma_px']:g} px, {r['camera']}: RMSE cotangent {r['rmse_cotangent']:.3f} px, "
-                 f"homography(4) {r['rmse_homography4']:.3f} px, homography LSQ {r['rmse_homography_lsq']:.3f} px")
-    echo(f"speed: homography {s['homography_pts_per_s']:,.0f} pts/s, cotangent {s['cotangent_pts_per_s']:,.0f} "
-         f"pts/s, ratio {s['ratio']:.2f}")
-    echo(f"wrote {path}")
-
-
-def _check_outputs(out_dir: str, overwrite: bool) -> None:
-    from pathlib import Path
-
-    from ..errors import InvalidInputError
-
-    p = Path(out_dir)
-    if (p / "study.md").exists() and not overwrite:
-        raise InvalidInputError(f"{str(p / 'study.md')!r} exists; pass --overwrite to replace it")
+        run = compare_action(Workspace(overwrite=overwrite), out_dir, opts, progress=cb)
+    for line in run.summary_lines():
+        echo(line)

@@ -4,19 +4,22 @@ from __future__ import annotations
 
 import click
 
+from ..actions import METHOD_NAMES, FitOptions
+from ..actions import fit as fit_action
+from ..workspace import Workspace
 from .options import echo, handle_errors, overwrite_opt, report_opt
 
-METHOD_NAMES = ("homography", "cotangent", "affine", "poly2", "poly3")
+_D = FitOptions()
 
 
 @click.command(short_help="Fit a transform (homography, cotangent, affine, poly2, poly3) to GCPs.")
 @click.argument("gcps_path", metavar="GCPS", type=click.Path(dir_okay=False))
 @click.option("-o", "--output", "output", type=click.Path(dir_okay=False), required=True,
               help="Transform JSON to write.")
-@click.option("--method", type=click.Choice(METHOD_NAMES), default="homography", show_default=True,
+@click.option("--method", type=click.Choice(list(METHOD_NAMES)), default=_D.method, show_default=True,
               help="Model: 8-parameter homography, Kushtin's cotangent four-point method, affine, "
                    "or polynomial of order 2/3.")
-@click.option("--max-rows", type=int, default=50, show_default=True, help="Residual rows printed.")
+@click.option("--max-rows", type=int, default=_D.max_rows, show_default=True, help="Residual rows printed.")
 @report_opt
 @overwrite_opt
 @handle_errors
@@ -27,30 +30,7 @@ def fit(gcps_path, output, method, max_rows, report_dir, overwrite):
     check = 1 are withheld from the fit and reported as check points. Prints
     the per-point residuals dx, dy, |v| (target units) and the RMSE.
     """
-    from ..fileutil import check_output
-    from ..tables import read_gcps
-    from ..transforms import METHODS, fit_gcps, save_transform
-
-    model_info = METHODS[method]  # the click Choice guarantees the key
-    check_output(output, overwrite=overwrite)
-    gcps = read_gcps(gcps_path)
-    result = fit_gcps(gcps, method)
-    table = result.table
-    echo(table.format_text(max_rows=max_rows))
-    if "control_ids" in table.extra:
-        echo(f"cotangent method: control points {', '.join(table.extra['control_ids'])} (best-conditioned "
-             "quadrilateral); the other fit rows are reported as check points")
-    s = table.summary()
-    echo(f"RMSE {s['rmse']:.4g} {table.units} (fit, n={s['n_fit']}, {model_info.n_params} parameters)"
-         + (f"; check RMSE {s['rmse_check']:.4g} {table.units} (n={s['n_check']})" if s["n_check"] else ""))
-    save_transform(output, result.model, table=table, crs=gcps.crs, overwrite=overwrite)
-    echo(f"wrote {output}")
-    if report_dir is not None:
-        from ..report import write_report
-
-        ground = {table.step: gcps.target} if gcps.crs else None
-        path = write_report(report_dir, title=f"rectify fit: {method} on {gcps_path}", tables=[table],
-                            summary={"method": method, "gcps": str(gcps_path), "transform": str(output),
-                                     **{k: v for k, v in s.items() if k != "step"}},
-                            crs=gcps.crs, ground_xy=ground, overwrite=overwrite)
-        echo(f"report: {path}")
+    ws = Workspace(overwrite=overwrite, inputs=[gcps_path], report_dir=report_dir)
+    run = fit_action(ws, gcps_path, output, FitOptions(method=method, max_rows=max_rows))
+    for line in run.summary_lines():
+        echo(line)

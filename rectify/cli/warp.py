@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import click
 
-from ..warp import RESAMPLING_NAMES
+from ..actions import METHOD_NAMES, RESAMPLING_NAMES, WarpRunOptions
+from ..actions import warp as warp_action
+from ..workspace import Workspace
 from .options import echo, handle_errors, overwrite_opt, progress, report_opt
 
-METHOD_NAMES = ("homography", "cotangent", "affine", "poly2", "poly3")
+_D = WarpRunOptions()
 
 
 @click.command(short_help="Rectify a raster into a georeferenced GeoTIFF (GCPs or transform.json).")
@@ -17,14 +19,14 @@ METHOD_NAMES = ("homography", "cotangent", "affine", "poly2", "poly3")
               help="GCP CSV (id,col,row,x,y) or QGIS .points file.")
 @click.option("--transform", "transform_path", type=click.Path(dir_okay=False), default=None,
               help="A transform.json written by 'rectify fit'.")
-@click.option("--method", type=click.Choice(METHOD_NAMES), default="homography", show_default=True,
+@click.option("--method", type=click.Choice(list(METHOD_NAMES)), default=_D.method, show_default=True,
               help="Model fitted to the GCPs.")
 @click.option("--gcp-crs", default=None, help="CRS of the GCP (or transform) coordinates, e.g. EPSG:4326; "
               "overrides the file's '# crs=' line.")
 @click.option("--dst-crs", default=None, help="Output CRS (default: the GCP CRS).")
 @click.option("--resolution", type=float, default=None, help="Output pixel size in output CRS units "
               "(default: estimated from the transform, as GDAL suggests).")
-@click.option("--resampling", type=click.Choice(RESAMPLING_NAMES), default="bilinear", show_default=True)
+@click.option("--resampling", type=click.Choice(list(RESAMPLING_NAMES)), default=_D.resampling, show_default=True)
 @click.option("--cog", is_flag=True, default=False, help="Write a Cloud Optimized GeoTIFF (with overviews).")
 @click.option("--threads", type=click.IntRange(1, 256), default=None, help="Worker threads (default: all cores).")
 @report_opt
@@ -39,41 +41,15 @@ def warp(src, dst, gcps_path, transform_path, method, gcp_crs, dst_crs, resoluti
     transformed footprint and is aligned to the resolution. Pixels outside
     the footprint are nodata (or masked / alpha 0, following the source).
     """
-    import os
-
-    # GDAL reads GDAL_CACHEMAX once, at its first block access: bound it before any pixel IO
-    os.environ.setdefault("GDAL_CACHEMAX", "64")
-    from ..fileutil import check_output
-    from ..io import raster_info
-    from ..warp import WarpOptions, georectify, rectify_with_transform, transform_file_crs, write_warp_report
-
     if (gcps_path is None) == (transform_path is None):
         raise click.UsageError("give exactly one of --gcps or --transform")
     if report_dir is not None and transform_path is not None:
         raise click.UsageError("--report needs --gcps (a saved transform has no residuals to report)")
-    opts = WarpOptions(resampling=resampling, cog=cog, threads=threads)
-    check_output(dst, overwrite=overwrite)
-    info = raster_info(src)
+    opts = WarpRunOptions(method=method, gcp_crs=gcp_crs, dst_crs=dst_crs, resolution=resolution,
+                          resampling=resampling, cog=cog, threads=threads)
+    ws = Workspace(overwrite=overwrite, inputs=[src, gcps_path, transform_path], report_dir=report_dir)
     with progress("warping", enabled=True) as cb:
-        if gcps_path is not None:
-            from ..tables import read_gcps
-
-            gcps = read_gcps(gcps_path)
-            result = georectify(src, dst, gcps, method=method, gcp_crs=gcp_crs, dst_crs=dst_crs,
-                                resolution=resolution, options=opts, overwrite=overwrite, progress=cb)
-        else:
-            from ..transforms import load_transform
-
-            model = load_transform(transform_path)
-            m_crs = gcp_crs or transform_file_crs(transform_path)
-            result = rectify_with_transform(src, dst, model, model_crs=m_crs, dst_crs=dst_crs,
-                                            resolution=resolution, options=opts, overwrite=overwrite, progress=cb)
-    g = result.warp.grid
-    if result.fit is not None:
-        echo(result.fit.table.summary_line())
-    echo(f"wrote {dst}: {g.width} x {g.height} px, {g.resolution[0]:.6g} units/px, CRS {result.crs or 'none'}, "
-         f"{resampling}, {'COG' if cog else 'tiled GeoTIFF'}, {result.warp.seconds:.2f} s")
-    if report_dir is not None:
-        path = write_warp_report(report_dir, result, source_shape=(info.height, info.width),
-                                 overwrite=overwrite)
-        echo(f"report: {path}")
+        run = warp_action(ws, src, dst, gcps_path=gcps_path, transform_path=transform_path, options=opts,
+                          progress=cb)
+    for line in run.summary_lines():
+        echo(line)

@@ -10,7 +10,7 @@ from click.testing import CliRunner
 
 from rectify import io as rio
 from rectify.cli.main import cli
-from rectify.tables import read_matches
+from rectify.formats import read_matches
 
 
 def _pair(tmp_path):

@@ -103,7 +103,7 @@ def test_model_cli_collinear_control(tmp_path, scene):
 
 def test_demo_cli_default_configuration(tmp_path):
     """The demo as a user runs it (seed 0, 480 px): calibrated check-point std, units, counts, full report."""
-    from rectify.report import verify_report
+    from tests.support.rectify_support import verify_report
 
     out = tmp_path / "demo"
     r = CliRunner().invoke(cli, ["demo", "--out", str(out)])

@@ -8,7 +8,8 @@ from affine import Affine
 from click.testing import CliRunner
 
 from rectify.cli.main import cli
-from rectify.io import cog_problems, write_raster
+from rectify.io import write_raster
+from tests.support.rectify_support import cog_problems
 
 T = Affine(30.0, 0.0, 500000.0, 0.0, -30.0, 4400000.0)
 
@@ -24,7 +25,7 @@ def scene(tmp_path):
     pix = np.array([[2, 3], [60, 4], [5, 44], [58, 45], [30, 20], [12, 30], [45, 12]], float)
     tgt = pix @ A[:, :2].T + A[:, 2]
     lines = ["# crs=EPSG:32618", "id,col,row,x,y"] + [f"p{i},{c},{r},{float(x)!r},{float(y)!r}" for i, ((c, r), (x, y))
-                                                        in enumerate(zip(pix, tgt))]
+                                                        in enumerate(zip(pix, tgt, strict=True))]
     gcps = tmp_path / "gcps.csv"
     gcps.write_text("\n".join(lines) + "\n")
     return tmp_path, src, gcps, A
@@ -65,7 +66,8 @@ def test_warp_gcps_report_and_cog(scene):
 
 def test_warp_transform_json(scene):
     d, src, gcps, A = scene
-    from rectify.transforms import AffineTransform, save_transform
+    from rectify.formats import write_transform as save_transform
+    from rectify.transforms import AffineTransform
 
     # small coordinates keep the matrix well scaled
     m = np.vstack([A, [0, 0, 1]])

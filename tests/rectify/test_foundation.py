@@ -13,10 +13,10 @@ from numpy.testing import assert_allclose
 from rectify import errors
 from rectify.camera import Camera
 from rectify.fileutil import atomic_output, atomic_write_text, check_output
+from rectify.formats import Matches, read_control, read_gcps, read_matches, write_gcps, write_matches
 from rectify.points import as_pair, as_points, check_distinct, check_no_three_collinear, check_not_collinear
 from rectify.residuals import ResidualTable
 from rectify.rotation import ORDERS, angles_from_matrix, check_rotation, matrix_from_angles, rot_x, rot_y, rot_z
-from rectify.tables import Matches, read_control, read_gcps, read_matches, write_gcps, write_matches
 
 angle = st.floats(-3.0, 3.0)
 mid_angle = st.floats(-1.5, 1.5)

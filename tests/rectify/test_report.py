@@ -556,7 +556,7 @@ def test_radial_figure_scales_to_fit_points():
 
 
 def test_verify_report_agrees_and_catches_tampering(tmp_path: Path):
-    from rectify.report import verify_report
+    from tests.support.rectify_support import verify_report
 
     t = ResidualTable("flags", ["a", "b", "c", "d"], np.zeros((4, 2)), [[0.1, 0.0], [0.0, -0.2], [0.3, 0.1],
                                                                       [-0.1, 0.1]], "px", n_params=2,
@@ -582,7 +582,7 @@ def test_verify_report_agrees_and_catches_tampering(tmp_path: Path):
 
 
 def test_verify_report_on_shared_report(report_dir: Path):
-    from rectify.report import verify_report
+    from tests.support.rectify_support import verify_report
 
     assert verify_report(report_dir) == []
 

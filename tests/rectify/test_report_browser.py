@@ -26,9 +26,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rectify.report import verify_report, write_report
+from rectify.report import write_report
 from rectify.residuals import ResidualTable
 from stereo.report import write_stereo_report
+from tests.support.rectify_support import verify_report
 
 INSTALL_TIMEOUT_S = 600
 RUN_TIMEOUT_S = 45

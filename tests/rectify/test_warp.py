@@ -13,10 +13,11 @@ from affine import Affine
 from numpy.testing import assert_allclose
 
 from rectify.errors import EstimationError, InvalidInputError, RasterIOError
+from rectify.formats import GcpTable
 from rectify.georef import Grid, pixel_from_world, world_from_pixel
-from rectify.io import cog_problems, read_window, tiff_ifds, write_raster
-from rectify.tables import GcpTable
+from rectify.io import read_window, write_raster
 from rectify.warp import WarpOptions, georectify, rectify_with_transform, warp_array, warp_raster
+from tests.support.rectify_support import cog_problems, tiff_ifds
 
 LANDSAT = Path(str(files("rectify") / "data" / "RGB.byte.tif"))
 H_TILT = np.array([[0.9, 0.15, 40.0], [-0.1, 0.95, 60.0], [2e-4, 1e-4, 1.0]])  # landsat px -> frame px
@@ -85,7 +86,10 @@ def test_landsat_round_trip(tmp_path, method):
     assert (data[:, 0, 0] == 0).all()
 
 
-def _write(tmp_path, name, arr, *, nodata=None, transform=Affine(2, 0, 100, 0, -2, 500), crs="EPSG:32618"):
+_TRANSFORM = Affine(2, 0, 100, 0, -2, 500)
+
+
+def _write(tmp_path, name, arr, *, nodata=None, transform=_TRANSFORM, crs="EPSG:32618"):
     p = tmp_path / name
     write_raster(p, arr, transform, crs, nodata=nodata)
     return p
@@ -271,6 +275,17 @@ class _MatrixModel:
     @property
     def inverse(self):
         return _MatrixModel(np.linalg.inv(self.matrix))
+
+
+def test_residual_units_follow_the_output_crs(tmp_path):
+    """Residuals of a fit into geographic coordinates are in degrees, not labelled metres (issue 11)."""
+    src, gcps, _ = _tilted_frame(tmp_path)
+    r = georectify(src, tmp_path / "geo.tif", gcps, method="homography", dst_crs="EPSG:4326",
+                   options=WarpOptions(resampling="nearest"))
+    assert r.fit.table.units == "degree"
+    assert "degree" in r.fit.table.summary_line() and " m" not in r.fit.table.summary_line()
+    r_utm = georectify(src, tmp_path / "utm.tif", gcps, method="homography", resolution=600.0)
+    assert r_utm.fit.table.units == "m"
 
 
 def test_dst_crs_through_pyproj(tmp_path):
