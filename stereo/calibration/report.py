@@ -44,7 +44,7 @@ def residual_views_figure(cal: Calibration, *, max_views: int = 30) -> Figure:
     cols = min(5, n)
     rows = math.ceil(n / cols)
     w, h = cal.intrinsics.width, cal.intrinsics.height
-    fig = Figure(figsize=(3.0 * cols, 3.0 * rows * h / w + 0.8), dpi=100, layout="constrained")
+    fig = Figure(figsize=(3.0 * cols, 3.0 * rows * h / w + 0.8), dpi=100)
     allr = np.concatenate([v.residuals for v in views])
     p95 = float(np.percentile(np.linalg.norm(allr, axis=1), 95)) or 1.0
     scale = nice_number(0.06 * w / p95)
@@ -57,6 +57,7 @@ def residual_views_figure(cal: Calibration, *, max_views: int = 30) -> Figure:
         ax.set_title(f"{v.name}: RMS {v.rms_px:.3f} px", fontsize=8)
         ax.tick_params(labelsize=6)
     fig.suptitle(f"Residuals (adjusted - observed) x{scale:g}; {len(cal.views)} views", fontsize=10)
+    fig.subplots_adjust(left=0.06, right=0.98, bottom=0.06, top=0.9, wspace=0.3, hspace=0.35)
     return fig
 
 
@@ -67,7 +68,7 @@ def distortion_figure(cal: Calibration, *, grid: int = 15) -> Figure:
     xs, ys = np.meshgrid(np.linspace(0, w - 1, grid + 1), np.linspace(0, h - 1, int(grid * h / w) + 1))
     p = np.column_stack([xs.ravel(), ys.ravel()])
     radial, dec = i.distortion_px(p)
-    fig = Figure(figsize=(11, 4.6 * h / w + 0.9), dpi=100, layout="constrained")
+    fig = Figure(figsize=(11, 4.6 * h / w + 0.9), dpi=100)
     for k, (d, name) in enumerate(((radial, "radial (k1, k2, k3)"), (dec, "decentering (p1, p2)"))):
         ax = fig.add_subplot(1, 2, k + 1)
         mag = np.linalg.norm(d, axis=1)
@@ -97,7 +98,7 @@ def coverage_figure(cal: Calibration) -> Figure:
     ix = np.clip((pts[:, 0] + 0.5) / w * gx, 0, gx - 1).astype(int)
     iy = np.clip((pts[:, 1] + 0.5) / h * gy, 0, gy - 1).astype(int)
     np.add.at(cells, (iy, ix), 1)
-    fig = Figure(figsize=(6.5, 6.5 * h / w + 0.7), dpi=100, layout="constrained")
+    fig = Figure(figsize=(6.5, 6.5 * h / w + 0.7), dpi=100)
     ax = fig.add_subplot()
     ax.imshow(cells > 0, extent=(-0.5, w - 0.5, h - 0.5, -0.5), cmap="Greens", vmin=0, vmax=3, alpha=0.6)
     for k, v in enumerate(cal.views):

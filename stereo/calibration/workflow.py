@@ -70,9 +70,7 @@ def _finish(cal: Calibration, output: str | Path, *, pixel_size_mm: float | None
 def _model_kwargs(kw: dict[str, Any], pixel_size_mm: float | None) -> dict[str, Any]:
     out = dict(kw)
     if pixel_size_mm is not None:
-        out.setdefault("equal_focal", True)
-        if not out["equal_focal"]:
-            raise InvalidInputError("a millimetre camera (--pixel-size) has square pixels: one focal length")
+        out["equal_focal"] = True  # a millimetre camera has square pixels: one focal length
     return out
 
 

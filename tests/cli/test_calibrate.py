@@ -1,0 +1,101 @@
+"""``stereo calibrate`` end to end on tiny rendered chessboard images and on CSV files."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from stereo.calibration.model import Intrinsics, rodrigues
+from stereo.calibration.result import camera_from_dict
+from stereo.calibration.synthetic import board_scene, field_scene
+from stereo.calibration.targets import Chessboard
+from stereo.cli.main import cli
+
+CAM = Intrinsics(fx=420.0, fy=420.0, cx=161.0, cy=118.0, width=320, height=240)
+BOARD = Chessboard(7, 5, 1.0)
+
+
+def _render(tmp_path, n=5, seed=0):
+    """Render ``n`` views of a 7 x 5 (inner corners) chessboard, 320 x 240 px, no distortion."""
+    sc = board_scene(np.random.default_rng(seed), n_views=n, board=BOARD, camera=CAM, noise_px=0.0, fill=0.55)
+    s, off = 40, 20 + 40  # texture: 40 px squares, 20 px white border; X = -1 at the border
+    tex = np.full((20 * 2 + 40 * 6, 20 * 2 + 40 * 8), 255, np.uint8)
+    for j in range(6):
+        for i in range(8):
+            if (i + j) % 2 == 0:
+                tex[20 + 40 * j:20 + 40 * (j + 1), 20 + 40 * i:20 + 40 * (i + 1)] = 0
+    A = np.array([[1 / s, 0, -off / s + 0.5 / s], [0, 1 / s, -off / s + 0.5 / s], [0, 0, 1.0]])
+    paths = []
+    for k, pose in enumerate(sc.poses):
+        R = rodrigues(pose[:3])[0]
+        H = CAM.K @ np.column_stack([R[:, 0], R[:, 1], pose[3:]]) @ A
+        img = cv2.warpPerspective(tex, H, (CAM.width, CAM.height), flags=cv2.INTER_AREA, borderValue=255)
+        p = tmp_path / f"board{k}.png"
+        cv2.imwrite(str(p), img)
+        paths.append(str(p))
+    return paths
+
+
+def test_calibrate_chessboard_images(tmp_path):
+    paths = _render(tmp_path)
+    blank = tmp_path / "blank.png"
+    cv2.imwrite(str(blank), np.full((240, 320), 200, np.uint8))
+    out = tmp_path / "camera.json"
+    r = CliRunner().invoke(cli, ["calibrate", *paths, str(blank), "--chessboard", "7x5", "--square", "30mm",
+                                 "-o", str(out), "--report", str(tmp_path / "rep"), "--distortion", "k1,k2,p1,p2"])
+    assert r.exit_code == 0, r.output
+    assert "board not found in 1 of 6 images: blank.png (left out)" in r.output
+    assert "found in 5 of 6 images, 320 x 240 px" in r.output
+    cam = camera_from_dict(json.loads(out.read_text()))
+    assert abs(cam.intrinsics.fx - 420) < 4 and abs(cam.intrinsics.cx - 161) < 4 and abs(cam.intrinsics.cy - 118) < 4
+    assert cam.sigma0_px is not None and cam.sigma0_px < 0.2
+    for name in ("report.html", "fig_calibration_distortion.png", "fig_calibration_coverage.png",
+                 "fig_calibration_residuals_per_view.png", "fig_calibration_correlation.png", "calibration.json"):
+        assert (tmp_path / "rep" / name).is_file(), name
+    # no --overwrite: refused, file untouched
+    before = out.read_text()
+    r = CliRunner().invoke(cli, ["calibrate", *paths, "--chessboard", "7x5", "-o", str(out)])
+    assert r.exit_code == 1 and "exists" in r.output and out.read_text() == before
+
+
+def test_calibrate_board_not_found_everywhere(tmp_path):
+    paths = _render(tmp_path, n=3)
+    out = tmp_path / "cam.json"
+    r = CliRunner().invoke(cli, ["calibrate", *paths, "--chessboard", "9x6", "-o", str(out)])
+    assert r.exit_code == 1
+    assert "chessboard 9x6 found in only 0 of 3 images (not found: board0.png, board1.png, board2.png)" in r.output
+    assert "Traceback" not in r.output and not out.exists()
+
+
+@pytest.mark.parametrize("args, msg", [
+    ([], "no input"),
+    (["IMG"], "need --chessboard"),
+    (["IMG", "--chessboard", "9by6"], "chessboard pattern must look like 9x6"),
+    (["--points", "OBS"], "--points needs --size"),
+    (["--points", "OBS", "--size", "640x480"], "no object coordinates"),
+    (["--points", "OBS", "--field", "FIELD", "--size", "64x48"], "outside the 64 x 48 image"),
+    (["--points", "OBS", "--field", "FIELD", "--size", "640x480", "--pixel-size", "0.005"], None),
+])
+def test_calibrate_cli_errors(tmp_path, args, msg):
+    sc = field_scene(np.random.default_rng(3), n_views=2, n_points=40, noise_px=0.2)
+    obs = ["view,point,col,row"] + [f"{v.name},{p},{c},{r}" for v in sc.views for p, (c, r) in zip(v.ids, v.pixel)]
+    field = ["point,x,y,z"] + [f"{p},{x},{y},{z}" for p, (x, y, z) in zip(sc.views[0].ids, sc.views[0].object_xyz)]
+    (tmp_path / "obs.csv").write_text("\n".join(obs) + "\n")
+    (tmp_path / "field.csv").write_text("\n".join(field) + "\n")
+    img = tmp_path / "img.png"
+    cv2.imwrite(str(img), np.zeros((48, 64), np.uint8))
+    sub = {"OBS": str(tmp_path / "obs.csv"), "FIELD": str(tmp_path / "field.csv"), "IMG": str(img)}
+    out = tmp_path / "cam.json"
+    r = CliRunner().invoke(cli, ["calibrate", *[sub.get(a, a) for a in args], "-o", str(out)])
+    if msg is None:  # the good case: a millimetre camera from a 3D field
+        assert r.exit_code == 0, r.output
+        assert "3D test field: 80 measured points in 2 views" in r.output and "(mm camera)" in r.output
+        d = json.loads(out.read_text())
+        assert d["pixel_size_mm"] == 0.005 and abs(d["focal_length_mm"] - 4.0) < 0.1
+        return
+    assert r.exit_code == 1 and msg in r.output, r.output
+    assert "Traceback" not in r.output and not out.exists()
