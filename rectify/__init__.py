@@ -7,7 +7,9 @@ points      validation of point arrays at the public boundary
 camera      interior orientation; pixel <-> photo millimetres
 rotation    angle systems <-> rotation matrices
 residuals   residual tables shared by every estimator and report
-tables      CSV/JSON contracts (GCPs, matches, control points)
+formats     every image-side file: GCP/matches/control CSV, camera, transform and report JSON
+workspace   the files of one job (planned outputs checked at once, atomic all-or-nothing writes)
+actions     one function per step (match, fit, warp, compare, demo), used by the commands
 fileutil    atomic output files
 """
 

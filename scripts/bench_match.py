@@ -82,7 +82,7 @@ def score(left: np.ndarray, right: np.ndarray, H: np.ndarray, size: int, cell: i
 def run_pair(work: Path, size: int, skip_peer: bool) -> dict:
     from make_large_scene import generate
 
-    from rectify.tables import read_matches
+    from rectify.formats import read_matches
 
     d = work / f"pair{size}"
     if not (d / "truth.json").is_file():
@@ -116,7 +116,7 @@ def run_large(work: Path, size: int) -> dict:
     import cv2
     from make_large_scene import generate
 
-    from rectify.tables import read_matches
+    from rectify.formats import read_matches
 
     d = work / f"large{size}"
     t0 = time.perf_counter()

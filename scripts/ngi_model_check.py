@@ -21,7 +21,7 @@ from scipy import ndimage
 from rectify.camera import Camera
 from rectify.residuals import rms
 from rectify.rotation import matrix_from_angles
-from rectify.tables import ControlTable
+from rectify.formats import ControlTable
 from stereo.model import ModelOptions, run_pair
 from stereo.resection import ExteriorOrientation
 

@@ -39,7 +39,7 @@ from rectify.errors import CRSError, InvalidInputError
 from rectify.fileutil import check_output
 from rectify.points import as_ids
 from rectify.residuals import ResidualTable, rms
-from rectify.tables import ControlTable, Matches
+from rectify.formats import ControlTable, Matches
 
 from .absolute import AbsoluteOrientation
 from .formats import orientation_dict, write_orientation, write_ply, write_points_csv, write_relative
@@ -462,7 +462,7 @@ def run_pair(left: str | Path, right: str | Path, camera: Camera, out_dir: str |
              progress: Callable[[int, int], None] | None = None) -> StereoModel:
     """``stereo run``: match, orient, intersect, orient absolutely, write everything into ``out_dir``."""
     from rectify.features import MatcherConfig, match_images
-    from rectify.tables import write_matches
+    from rectify.formats import write_matches
     opts = options or ModelOptions()
     ws = Workspace(out_dir, overwrite=overwrite)
     ws.prepare()

@@ -248,7 +248,7 @@ def run_demo(out_dir, *, seed: int = 0, size_px: int = 480, overwrite: bool = Fa
     from pathlib import Path
 
     from rectify.residuals import rms
-    from rectify.tables import read_control
+    from rectify.formats import read_control
 
     from .model import ModelOptions, run_pair
 

@@ -23,7 +23,7 @@ from ..errors import EstimationError, InvalidInputError
 from ..lsm import LsmConfig, refine_matches
 from ..points import as_pair
 from ..residuals import ResidualTable, rms
-from ..tables import Matches
+from ..formats import Matches
 from .detect import DETECTORS, Features, detect, grid_select
 
 __all__ = ["VERIFY_METHODS", "MatcherConfig", "MatchResult", "ProgressFn", "Verification", "Verify", "match_arrays",

@@ -26,7 +26,7 @@ from ..errors import EstimationError, InvalidInputError
 from ..fileutil import atomic_write_text, read_json
 from ..points import as_weights
 from ..residuals import ResidualTable
-from ..tables import GcpTable
+from ..formats import GcpTable
 from .base import F64, Transform
 from .cotangent import CotangentFourPoint
 from .matrix import AffineTransform, Homography

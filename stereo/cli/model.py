@@ -10,7 +10,7 @@ from rectify.camera import Camera
 from rectify.cli.options import echo, handle_errors, overwrite_opt, report_opt
 from rectify.errors import InvalidInputError
 from rectify.fileutil import check_output
-from rectify.tables import read_control, read_matches
+from rectify.formats import read_control, read_matches
 
 from ..formats import read_relative
 from ..intersection import METHODS

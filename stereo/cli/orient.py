@@ -58,7 +58,7 @@ def orient(images, camera_path, camera_right_path, matches_path, output, system,
     cam_r = Camera.from_json(camera_right_path) if camera_right_path else None
     if images:
         from rectify.features import MatcherConfig, match_images
-        from rectify.tables import write_matches
+        from rectify.formats import write_matches
 
         res = match_images(images[0], images[1], config=MatcherConfig(verify="fundamental"))
         matches = res.matches
@@ -66,7 +66,7 @@ def orient(images, camera_path, camera_right_path, matches_path, output, system,
         if matches_out:
             write_matches(matches_out, matches, overwrite=overwrite)
     else:
-        from rectify.tables import read_matches
+        from rectify.formats import read_matches
 
         matches = read_matches(matches_path)
     if len(matches) == 0:

@@ -10,7 +10,7 @@ from rectify.camera import Camera
 from rectify.cli.options import echo, handle_errors, overwrite_opt, report_opt
 from rectify.errors import InvalidInputError
 from rectify.fileutil import check_output
-from rectify.tables import read_gcps
+from rectify.formats import read_gcps
 
 from ..formats import exterior_dict, write_exterior
 from ..resection import INITIAL_METHODS

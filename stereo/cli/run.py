@@ -6,7 +6,7 @@ import click
 
 from rectify.camera import Camera
 from rectify.cli.options import echo, handle_errors, overwrite_opt, progress
-from rectify.tables import read_control
+from rectify.formats import read_control
 
 from ..intersection import METHODS
 from ..model import FRAMES, ModelOptions, Workspace, run_pair

@@ -10,7 +10,7 @@ import pytest
 from click.testing import CliRunner
 
 from rectify.camera import Camera
-from rectify.tables import Matches, write_matches
+from rectify.formats import Matches, write_matches
 from stereo.cli.main import cli
 from tests.support.stereo_support import simulate_pair
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from rectify.tables import Matches, write_matches
+from rectify.formats import Matches, write_matches
 from stereo.cli.main import cli
 from stereo.formats import relative_json_text
 from stereo.relative import RelativeOrientation

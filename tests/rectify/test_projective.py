@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
 from rectify.errors import EstimationError, InvalidInputError, RasterIOError, ShapeError
-from rectify.tables import GcpTable
+from rectify.formats import GcpTable
 from rectify.transforms import (
     METHODS,
     PAIRS,

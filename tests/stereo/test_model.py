@@ -7,7 +7,7 @@ import pytest
 
 from rectify.errors import EstimationError, InvalidInputError
 from rectify.residuals import rms
-from rectify.tables import ControlTable
+from rectify.formats import ControlTable
 from stereo.formats import read_ply_xyz
 from stereo.model import (
     ModelOptions,
