@@ -270,6 +270,11 @@ class _Problem:
         return tuple(out)
 
 
+def _gram(J: F64, Jw: F64) -> F64:
+    """``J^T Jw`` without multi-threaded BLAS (small matrices: threads only cost time on shared machines)."""
+    return np.einsum("ki,kj->ij", J, Jw)
+
+
 def _lm(prob: _Problem, p: F64, w: F64, *, max_iter: int, tol: float) -> tuple[F64, int, bool]:
     """Levenberg-Marquardt on the column-scaled weighted normal equations."""
     wr = np.repeat(w, 2)
@@ -281,8 +286,8 @@ def _lm(prob: _Problem, p: F64, w: F64, *, max_iter: int, tol: float) -> tuple[F
     for it in range(1, max_iter + 1):  # noqa: B007
         J = prob.jacobian(p)
         Jw = J * wr[:, None]
-        A = J.T @ Jw
-        g = Jw.T @ r
+        A = _gram(J, Jw)
+        g = np.einsum("ki,k->i", Jw, r)
         d = np.sqrt(np.diag(A))
         d[d == 0] = 1.0
         As = A / np.outer(d, d)
@@ -377,7 +382,7 @@ def adjust(obs: Observations, interiors: Sequence[F64], free: Sequence[Sequence[
     r = prob.residuals(p)
     J = prob.jacobian(p)
     wr = np.repeat(w, 2)
-    A = J.T @ (J * wr[:, None])
+    A = _gram(J, J * wr[:, None])
     d = np.sqrt(np.diag(A))
     labels_c = camera_labels or [f"camera{c}" for c in range(len(prob.base))]
     labels_s = station_labels or [f"view{s}" for s in range(len(poses))]

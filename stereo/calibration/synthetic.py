@@ -16,7 +16,7 @@ from rectify.errors import InvalidInputError
 from .model import Intrinsics, rotvec_from_matrix
 from .targets import Chessboard, TargetView
 
-__all__ = ["SyntheticScene", "look_at", "board_scene", "field_scene", "DEFAULT_CAMERA"]
+__all__ = ["SyntheticScene", "look_at", "board_scene", "field_scene", "rig_scene", "zoom_camera", "DEFAULT_CAMERA"]
 
 F64 = NDArray[np.float64]
 
@@ -120,3 +120,42 @@ def field_scene(rng: np.random.Generator, *, n_views: int = 3, n_points: int = 6
     if len(poses) < n_views:
         raise InvalidInputError("could not place the field inside the frame")
     return _project_views(camera, X, poses, ids, [f"img{i}" for i in range(n_views)], noise_px, rng)
+
+
+def rig_scene(rng: np.random.Generator, *, n_views: int = 6, left: Intrinsics = DEFAULT_CAMERA,
+              right: Intrinsics | None = None, rel_rotvec: tuple[float, float, float] = (0.01, 0.2, 0.005),
+              rel_t: tuple[float, float, float] = (-120.0, 1.5, 4.0), noise_px: float = 0.2,
+              board: Chessboard | None = None) -> tuple[SyntheticScene, SyntheticScene]:
+    """Synchronous board views of a two-camera rig: ``Xc_right = R_rel Xc_left + t_rel`` (OpenCV frames)."""
+    from .model import rodrigues
+
+    b = board or Chessboard(9, 6, 25.0)
+    cam_r = right or left
+    Rr = rodrigues(np.array(rel_rotvec))[0]
+    tr = np.asarray(rel_t, dtype=np.float64)
+    cand = board_scene(rng, n_views=4 * n_views, board=b, camera=left, noise_px=0.0, fill=0.45)
+    X = b.object_xyz
+    pl: list[tuple[F64, F64]] = []
+    pr: list[tuple[F64, F64]] = []
+    for pose in cand.poses:
+        R = rodrigues(pose[:3])[0]
+        R2, t2 = Rr @ R, Rr @ pose[3:] + tr
+        if _inside(cam_r, cam_r.project(X @ R2.T + t2), 5):
+            pl.append((R, pose[3:]))
+            pr.append((R2, t2))
+        if len(pl) == n_views:
+            break
+    if len(pl) < n_views:
+        raise InvalidInputError("could not place the board inside both frames")
+    names = [f"pair{i:02d}" for i in range(n_views)]
+    return (_project_views(left, X, pl, b.ids, names, noise_px, rng),
+            _project_views(cam_r, X, pr, b.ids, names, noise_px, rng))
+
+
+def zoom_camera(setting: float, width: int = 640, height: int = 480) -> Intrinsics:
+    """A synthetic zoom lens: interior orientation as quadratic functions of the setting (10..30, "mm")."""
+    z = float(setting)
+    f = 40.0 * z + 0.3 * (z - 20.0) ** 2
+    return Intrinsics(fx=f, fy=f * 0.998, cx=322.0 + 0.25 * (z - 20.0), cy=236.0 - 0.15 * (z - 20.0),
+                      width=width, height=height, k1=-0.25 + 0.008 * z, k2=0.10 - 0.002 * z, k3=0.0,
+                      p1=0.0005, p2=-0.0004)
