@@ -257,6 +257,35 @@ def test_fit_gcps_weight_equals_repeated_row():
     assert a.table.sigma0 ** 2 * (2 * 12 - 8) == pytest.approx(vv, rel=1e-6)
 
 
+# ------------------------------------------------------------------ overviews and QGIS files
+def test_overview_keypoints_to_full_resolution_against_rasterio():
+    """A keypoint at an overview pixel (decimation 4, window origin (100, 40)) lands where rasterio puts that
+    overview pixel's centre on the full-resolution grid."""
+    from rectify.features import Features
+
+    full_t = Affine(1.0, 0.0, 0.0, 0.0, -1.0, 0.0)
+    ov_t = full_t * Affine.translation(100, 40) * Affine.scale(4.0)
+    ov = np.array([[0.0, 0.0], [3.0, 7.0], [10.5, 2.25]])
+    f = Features(ov, np.ones(3), np.zeros(3), np.ones(3), np.zeros(3, np.int64), np.zeros((3, 4), np.uint8))
+    got = f.transformed(4.0, (100.0, 40.0)).xy
+    xs, ys = rasterio.transform.xy(ov_t, ov[:, 1], ov[:, 0], offset="center")
+    inv = ~full_t
+    ref = np.array([inv * (x, y) for x, y in zip(xs, ys, strict=True)]) - 0.5
+    assert_allclose(got, ref, atol=1e-12)
+    assert_allclose(got[0], [101.5, 41.5])
+
+
+def test_qgis_points_pixel_convention(tmp_path):
+    """QGIS georeferencer .points: sourceX/sourceY are pixel-corner coordinates with y negative down, so
+    (0.5, -0.5) is the centre of the top-left pixel, (10.0, -3.0) the corner at column 9.5, row 2.5."""
+    p = tmp_path / "g.points"
+    p.write_text("#CRS: EPSG:4326\nmapX,mapY,sourceX,sourceY,enable,dX,dY,residual\n"
+                 "10,20,0.5,-0.5,1,0,0,0\n11,21,10.0,-3.0,1,0,0,0\n12,19,120.25,-44.75,1,0,0,0\n")
+    g = read_gcps(p)
+    assert_allclose(g.pixel, [[0.0, 0.0], [9.5, 2.5], [119.75, 44.25]])
+    assert_allclose(g.target, [[10, 20], [11, 21], [12, 19]])
+
+
 # ------------------------------------------------------------------ GCP file fields
 def test_write_gcps_fields(tmp_path):
     g = GcpTable(("a", "b", "c"), np.array([[0.0, 0.5], [10.25, 3.0], [4.0, 9.0]]),
