@@ -22,7 +22,8 @@ from rectify.camera import Camera
 from rectify.residuals import rms
 from rectify.rotation import matrix_from_angles
 from rectify.formats import ControlTable
-from stereo.model import ModelOptions, run_pair
+from stereo.actions import run
+from stereo.model import ModelOptions
 from stereo.resection import ExteriorOrientation
 
 LO25 = "+proj=tmerc +lat_0=0 +lon_0=25 +k=1 +x_0=0 +y_0=0 +datum=WGS84 +units=m"
@@ -64,8 +65,9 @@ def main() -> None:
     ctrl = ControlTable(tuple(f"dem{i}" for i in range(len(pts))), np.array([p[1] for p in pts]),
                         np.array([p[2] for p in pts]), np.array([p[0] for p in pts]), crs=LO25)
     out = Path(a.out)
-    m = run_pair(d / f"3324c_2015_1004_05_{left}_RGB.tif", d / f"3324c_2015_1004_05_{right}_RGB.tif", cam, out,
-                 control=ctrl, options=ModelOptions(frame=a.frame), overwrite=True, title="NGI strip 05 model")
+    m = run(d / f"3324c_2015_1004_05_{left}_RGB.tif", d / f"3324c_2015_1004_05_{right}_RGB.tif", camera=cam,
+            out_dir=out, control=ctrl, options=ModelOptions(frame=a.frame), overwrite=True,
+            title="NGI strip 05 model").model
     tie = ~m.is_control & ~np.isin(np.array(m.ids), ctrl.ids)
     dz = m.ground[tie, 2] - dem_h(m.ground[tie, :2])
     ok = np.isfinite(dz)

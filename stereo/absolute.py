@@ -38,15 +38,17 @@ from numpy.typing import ArrayLike, NDArray
 from rectify.errors import EstimationError, InvalidInputError, ShapeError
 from rectify.points import as_ids, as_mask, as_points
 from rectify.residuals import ResidualTable
+from rectify.robust import ROBUST_METHODS
 from rectify.rotation import angles_from_matrix, matrix_from_angles, rot_x, rot_y, rot_z
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["AbsoluteOrientation", "PolynomialCorrection", "PARAM_NAMES", "ROBUST_CHOICES",
+__all__ = ["AbsoluteOrientation", "PolynomialCorrection", "DEFORMATION_ORDERS", "PARAM_NAMES",
            "similarity_from_points"]
 
 PARAM_NAMES = ("scale", "omega", "phi", "kappa", "tx", "ty", "tz")
-ROBUST_CHOICES = ("none", "huber", "tukey", "hampel", "andrews")
+#: orders of seed 002's polynomial deformation correction
+DEFORMATION_ORDERS = (2, 3)
 _K = [np.array([[0.0, 0, 0], [0, 0, -1], [0, 1, 0]]),
       np.array([[0.0, 0, 1], [0, 0, 0], [-1, 0, 0]]),
       np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 0]])]
@@ -399,9 +401,9 @@ class AbsoluteOrientation:
         if g.ndim != 2 or g.shape != (len(m), 3):
             raise ShapeError(f"`ground` must have shape ({len(m)}, 3) like `model`; got {g.shape}",
                              actual_shape=g.shape, expected_shape=(len(m), 3))
-        if robust not in ROBUST_CHOICES:
-            raise InvalidInputError(f"unknown robust option {robust!r}; expected one of {list(ROBUST_CHOICES)}")
-        if deformation_order not in (None, 2, 3):
+        if robust not in ROBUST_METHODS:
+            raise InvalidInputError(f"unknown robust option {robust!r}; expected one of {list(ROBUST_METHODS)}")
+        if deformation_order is not None and deformation_order not in DEFORMATION_ORDERS:
             raise InvalidInputError(f"`deformation_order` must be None, 2 or 3; got {deformation_order!r}")
         n = len(m)
         ids_t = as_ids(ids, n)

@@ -16,8 +16,8 @@ and reports the difference. Heights are treated as ellipsoidal in the
 conversion; for a geoid-referenced height the undulation, constant over a
 block, cancels on the way back.
 
-:class:`Workspace` owns the output folder layout; :func:`run_pair` and
-:func:`run_model` load, compute and save.
+:func:`build_model` is the geometry (stages 2-4) on photo coordinates; the files of a run are
+owned by :class:`stereo.workspace.PairWorkspace`, the steps by :mod:`stereo.actions`.
 """
 
 from __future__ import annotations
@@ -25,9 +25,8 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -36,20 +35,18 @@ from numpy.typing import ArrayLike, NDArray
 from rectify.camera import Camera
 from rectify.crs import unit_label
 from rectify.errors import CRSError, InvalidInputError
-from rectify.fileutil import check_output
+from rectify.geodesy import enu_from_map, geodetic_from_map, map_from_enu
 from rectify.points import as_ids
 from rectify.residuals import ResidualTable, rms
-from rectify.formats import ControlTable, Matches
+from rectify.formats import ControlTable
 
 from .absolute import AbsoluteOrientation
-from .formats import orientation_dict, write_orientation, write_ply, write_points_csv, write_relative
 from .intersection import METHODS, Intersection, intersect
-from .relative import RelativeGeometry, RelativeOrientation
+from .relative import RelativeGeometry
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ModelOptions", "StereoModel", "Workspace", "build_model", "match_control", "run_model", "run_pair",
-           "FRAMES", "ground_unit", "write_pair_report"]
+__all__ = ["FRAMES", "ModelOptions", "StereoModel", "build_model", "ground_unit", "match_control"]
 
 FRAMES = ("topocentric", "map")
 
@@ -69,9 +66,9 @@ class ModelOptions:
     deformation_order : int or None
         Seed 002's polynomial deformation correction (2 or 3).
     ro_system : str
-        System of relative orientation elements for :func:`run_pair`.
+        System of relative orientation elements for :func:`stereo.actions.run`.
     ro_robust : str
-        Robust relative orientation for :func:`run_pair`.
+        Robust relative orientation for :func:`stereo.actions.run`.
     check_ids : tuple of str
         Control points used only as checks.
     control_sigma_px : float or None
@@ -146,6 +143,60 @@ class StereoModel:
         """Ground points when oriented, model points otherwise, (N, 3)."""
         return self.intersection.points if self.ground is None else self.ground
 
+    def intersection_line(self, tie_note: str) -> str:
+        """Intersection summary with the point count broken down (tie points + control-file points)."""
+        s = self.summary
+        t = next(t for t in self.tables if t.step == "intersection")
+        ts = t.summary()
+        parts = [f"{s['n_tie_points']} tie points {tie_note}".rstrip()]
+        if s.get("n_control_file_points"):
+            n_c, n_k = s["n_control_points"], s["n_check_points"]
+            n_other = s["n_control_file_points"] - n_c - n_k
+            parts.append(f"{n_c} control + {n_k} check" + (f" + {n_other} other" if n_other else "")
+                         + " points from the control file")
+        return (f"intersection: {ts['n_fit']} points ({' + '.join(parts)}), photo residual RMSE "
+                f"{ts['rmse'] * 1000:.2f} um, RMS vertical parallax {s['rms_vertical_parallax_mm'] * 1000:.2f} um")
+
+    def summary_lines(self, tie_note: str = "from the matches") -> list[str]:
+        """Residual summary of every table, absolute orientation details, check points (units named)."""
+        s = self.summary
+        out = []
+        for t in self.tables:
+            if t.step == "intersection":
+                out.append(self.intersection_line(tie_note))
+            elif self.absolute is not None and t is self.absolute.residuals:
+                ts = t.summary()
+                u = t.units
+                line = f"{t.step}: {ts['n_fit']} control points, RMSE {ts['rmse']:.3f} {u}"
+                if ts["n_check"]:
+                    line += f"; {ts['n_check']} check points, RMSE {ts['rmse_check']:.3f} {u}"
+                if ts["n_outliers"]:
+                    line += f"; {ts['n_outliers']} outliers"
+                line += f"; sigma0 {self.absolute.sigma0:.3f}" + ("" if s.get("absolute_weighted") else f" {u}")
+                if s.get("control_sigma_source") == "estimated":
+                    line += " (1 by construction: the control image precision is scaled to it)"
+                out.append(line)
+            else:
+                out.append(f"{t.step}: {t.summary_line()}")
+        if self.absolute is not None:
+            u = s.get("ground_unit", "ground units")
+            out.append(f"absolute orientation ({self.frame['name']} frame): scale {self.absolute.scale:.6g}")
+            if s.get("control_sigma_px") is not None:
+                how = ("estimated from the absolute orientation" if s["control_sigma_source"] == "estimated"
+                       else "given")
+                out.append(f"image precision: tie points {s['tie_sigma_px']:.4f} px (RO sigma0), control/check "
+                           f"points {s['control_sigma_px']:.3f} px ({how})")
+            d = self.frame_difference
+            if d and "rms_xyz_m" in d:
+                out.append(f"{d['other_frame']} frame instead: points differ by RMS {d['rms_xyz_m']:.3f} m "
+                           f"(max {d['max_xyz_m']:.3f} m)")
+            if s.get("rmse_check_xyz_m"):
+                x, y, z = s["rmse_check_xyz_m"]
+                out.append(f"check points: RMSE X {x:.3f} {u}, Y {y:.3f} {u}, Z {z:.3f} {u}")
+            if "rms_normalised_check_error" in s:
+                out.append(f"check points: RMS of error / predicted std {s['rms_normalised_check_error']:.3f}")
+        return out
+
 
 def _combine(ids_t: Sequence[str], left_mm: NDArray, right_mm: NDArray, control: ControlTable | None,
              control_mm: tuple[NDArray, NDArray] | None
@@ -184,8 +235,6 @@ def _combine(ids_t: Sequence[str], left_mm: NDArray, right_mm: NDArray, control:
 
 def _enu_jacobian(crs: str, origin: NDArray) -> NDArray:
     """d(map E, N, h) / d(ENU) at the ENU origin, (3, 3) (for covariances)."""
-    from rectify.geodesy import map_from_enu
-
     e = 1.0
     pts = np.array([[0, 0, 0], [e, 0, 0], [0, e, 0], [0, 0, e]], float)
     m = map_from_enu(pts, crs, origin)
@@ -227,8 +276,6 @@ def _orient(model_pts: NDArray, xyz: NDArray, use: NDArray, check: NDArray, ids:
     cov_rows = None if model_cov is None else model_cov[rows]
     rid = [ids[i] for i in rows]
     if frame == "topocentric":
-        from rectify.geodesy import enu_from_map, geodetic_from_map, map_from_enu
-
         ctrl = xyz[use]
         mid = np.concatenate([ctrl[:, :2].mean(0), [ctrl[:, 2].mean()]])
         origin = geodetic_from_map(mid[None], crs)[0]
@@ -394,153 +441,3 @@ def build_model(
 def match_control(control: ControlTable, camera: Camera) -> tuple[NDArray, NDArray]:
     """Photo coordinates (mm) of the control points in both images."""
     return camera.photo_from_pixel(control.left), camera.photo_from_pixel(control.right)
-
-
-class Workspace:
-    """Output folder of a pair run; owns the file layout.
-
-    ::
-
-        OUTDIR/matches.csv          tie points (pixels)
-        OUTDIR/relative.json        relative orientation (DESIGN.md contract)
-        OUTDIR/orientation.json     absolute orientation, frame, summary
-        OUTDIR/points.ply           ground (or model) points
-        OUTDIR/points.csv           id,x,y,z,residual_mm[,std_*]
-        OUTDIR/model_points.ply     model frame points
-        OUTDIR/report/              QA report (rectify.report)
-    """
-
-    def __init__(self, root: str | Path, *, overwrite: bool = False) -> None:
-        self.root = Path(root)
-        self.overwrite = overwrite
-
-    def prepare(self) -> None:
-        if self.root.exists() and not self.root.is_dir():
-            raise InvalidInputError(f"output {str(self.root)!r} exists and is not a folder")
-        self.root.mkdir(parents=True, exist_ok=True)
-        if not self.overwrite:
-            for name in ("matches.csv", "relative.json", "orientation.json", "points.ply", "points.csv"):
-                check_output(self.root / name, overwrite=False)
-
-    def path(self, name: str) -> Path:
-        return self.root / name
-
-    @property
-    def report_dir(self) -> Path:
-        return self.root / "report"
-
-
-def save_model(model: StereoModel, *, points_path: str | Path, csv_path: str | Path | None = None,
-               orientation_path: str | Path | None = None, model_ply_path: str | Path | None = None,
-               overwrite: bool = False, extra: dict[str, Any] | None = None) -> None:
-    """Write PLY, CSV and orientation JSON of a model."""
-    res = np.sqrt(np.mean(model.intersection.residuals_mm ** 2, axis=1))
-    write_ply(points_path, model.points, overwrite=overwrite,
-              comment="ground" if model.ground is not None else "model frame")
-    if csv_path is not None:
-        write_points_csv(csv_path, model.ids, model.points, res, std=model.ground_std, crs=model.crs,
-                         overwrite=overwrite)
-    if model_ply_path is not None:
-        write_ply(model_ply_path, model.intersection.points, overwrite=overwrite, comment="model frame")
-    if orientation_path is not None:
-        write_orientation(orientation_path, orientation_dict(model, extra=extra), overwrite=overwrite)
-
-
-def run_model(geometry: RelativeGeometry, matches: Matches, camera: Camera, *, control: ControlTable | None = None,
-              options: ModelOptions | None = None) -> StereoModel:
-    """``stereo model``: matches (pixels) + relative orientation -> model (+ ground) points."""
-    l = camera.photo_from_pixel(matches.left)
-    r = camera.photo_from_pixel(matches.right)
-    cmm = match_control(control, camera) if control is not None else None
-    return build_model(l, r, geometry, ids=matches.ids, control=control, control_mm=cmm, options=options,
-                       pixel_size_mm=camera.pixel_size_mm)
-
-
-def run_pair(left: str | Path, right: str | Path, camera: Camera, out_dir: str | Path, *,
-             control: ControlTable | None = None, options: ModelOptions | None = None, overwrite: bool = False,
-             report: bool = True, title: str = "stereo run", extra_summary: dict[str, Any] | None = None,
-             progress: Callable[[int, int], None] | None = None) -> StereoModel:
-    """``stereo run``: match, orient, intersect, orient absolutely, write everything into ``out_dir``."""
-    from rectify.features import MatcherConfig, match_images
-    from rectify.formats import write_matches
-    opts = options or ModelOptions()
-    ws = Workspace(out_dir, overwrite=overwrite)
-    ws.prepare()
-    t0 = time.perf_counter()
-    import warnings
-
-    from rasterio.errors import NotGeoreferencedWarning
-
-    with warnings.catch_warnings():  # plain photos have no geotransform, as expected
-        warnings.simplefilter("ignore", NotGeoreferencedWarning)
-        mr = match_images(left, right, config=MatcherConfig(verify="fundamental"), progress=progress)
-    m = mr.matches
-    t_match = time.perf_counter() - t0
-    write_matches(ws.path("matches.csv"), m, overwrite=overwrite)
-    l_all, r_all, ids_all = m.left, m.right, list(m.ids)
-    if control is not None:  # control image points are tie points too
-        l_all = np.vstack([l_all, control.left])
-        r_all = np.vstack([r_all, control.right])
-        ids_all += list(control.ids)
-    ro = RelativeOrientation.from_pixels(l_all, r_all, camera, system=opts.ro_system, robust=opts.ro_robust,
-                                         ids=ids_all)
-    write_relative(ws.path("relative.json"), ro, overwrite=overwrite)
-    keep = ~np.asarray(ro.outlier)[:len(m)]
-    mk = Matches(tuple(np.asarray(m.ids)[keep]), m.left[keep], m.right[keep])
-    model = run_model(RelativeGeometry.from_relative(ro), mk, camera, control=control, options=opts)
-    summary = dict(model.summary)
-    summary.update({"n_matches": len(m), "match_rmse_px": mr.rmse_px, "t_match_s": t_match,
-                    "ro_sigma0_mm": ro.sigma0_mm, "ro_n_used": ro.n_used, "ro_system": ro.system})
-    if extra_summary:
-        summary.update(extra_summary)
-    model = StereoModel(**{**model.__dict__, "summary": summary, "tables": [ro.residual_table()] + model.tables})
-    save_model(model, points_path=ws.path("points.ply"), csv_path=ws.path("points.csv"),
-               orientation_path=ws.path("orientation.json"), model_ply_path=ws.path("model_points.ply"),
-               overwrite=overwrite)
-    if report:
-        write_pair_report(model, ws.report_dir, title=title, ro=ro, left_image=left, camera=camera,
-                          overwrite=overwrite)
-    return model
-
-
-def write_pair_report(model: StereoModel, out_dir: str | Path, *, title: str, ro: Any = None,
-                      left_image: str | Path | None = None, camera: Camera | None = None,
-                      overwrite: bool = False) -> Path:
-    """QA report of a pair run with :func:`stereo.report.write_stereo_report`.
-
-    Relative orientation: vertical-parallax table over the left image (drawn on
-    the photo when ``left_image`` can be read) and the correlation heat map of
-    its elements; absolute orientation: residual table, plan vectors at the
-    control points' ground positions (GeoJSON too when the model has a CRS,
-    EPSG code or WKT) and height bars; the intersection table. ``model.tables``
-    must start with ``ro.residual_table()`` when ``ro`` is given.
-    """
-    from .report import write_stereo_report
-
-    tables = list(model.tables)
-    rel = corr = None
-    if ro is not None:
-        rel = tables.pop(0)
-        c = ro.correlation
-        if c is not None and np.isfinite(c).all():
-            corr = (list(ro.names), c)
-    absolute = gxy = None
-    if model.absolute is not None and model.ground is not None:
-        absolute = model.absolute.residuals
-        tables = [t for t in tables if t is not absolute]
-        rows = [model.ids.index(i) for i in absolute.ids]
-        gxy = model.ground[rows, :2]
-    img = shape = pp = None
-    if camera is not None:
-        shape = (camera.height, camera.width)
-        pp = camera.pixel_from_photo(np.zeros((1, 2)))[0]
-    if left_image is not None:
-        from rectify import io as rio
-
-        # a bounded overview for the plot background (drawn over the full-resolution extent)
-        data, valid, _ = rio.read_overview(left_image, 2048)
-        img = rio.to_uint8(data, valid)
-    return write_stereo_report(out_dir, title=title, relative=rel, correlation=corr, absolute=absolute,
-                               absolute_ground_xy=gxy, tables=tables, summary=model.summary,
-                               crs=model.crs or None, left_image_shape=shape, left_image=img,
-                               principal_point_px=pp, overwrite=overwrite)

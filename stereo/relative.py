@@ -77,13 +77,13 @@ from rectify.errors import (
 )
 from rectify.points import as_ids, as_pair, as_weights
 from rectify.residuals import ResidualTable, rms
-from rectify.robust import PSI_FUNCTIONS, get_psi, irls
+from rectify.robust import ROBUST_METHODS, get_psi, irls
 from rectify.rotation import angles_from_matrix, check_rotation
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "ROBUST_METHODS",
+    "INITIAL_METHODS",
     "SYSTEMS",
     "PrecisionStructure",
     "RelativeGeometry",
@@ -96,7 +96,8 @@ __all__ = [
     "relative_from_essential",
 ]
 
-ROBUST_METHODS = ("none", *sorted(PSI_FUNCTIONS))
+#: initial values of the adjustment (see :meth:`RelativeOrientation.from_points`)
+INITIAL_METHODS = ("auto", "zero", "essential")
 
 # rotation generators: d/da R_axis(a) = R_axis(a) @ G_axis
 _G = {
@@ -817,7 +818,7 @@ class RelativeOrientation:
         # ---- initial values
         if isinstance(initial, str):
             init = initial.lower()
-            if init not in ("auto", "zero", "essential"):
+            if init not in INITIAL_METHODS:
                 raise InvalidInputError(f"unknown initial {initial!r}; expected 'auto', 'zero', 'essential', "
                                         "5 values or a dict of elements")
             given = None

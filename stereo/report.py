@@ -7,7 +7,10 @@
 
 :func:`write_stereo_report` gathers them and calls
 :func:`rectify.report.write_report`, so a stereo run writes the same CSV, JSON,
-PNG, GeoJSON and HTML files as every other command.
+PNG, GeoJSON and HTML files as every other command. This module is the one stereo
+report builder: :func:`write_orient_report` (``stereo orient``), :func:`write_pair_report`
+(``stereo model``, ``stereo run``, ``stereo demo``) and :func:`write_resect_report`
+(``stereo resect``).
 """
 
 from __future__ import annotations
@@ -16,20 +19,29 @@ import logging
 import os
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from matplotlib.figure import Figure
 from numpy.typing import ArrayLike
 
+from rectify import io as rio
+from rectify.camera import Camera
 from rectify.errors import InvalidInputError, ShapeError
 from rectify.plots import correlation_heatmap_figure, height_bars_figure, residual_vector_figure
 from rectify.report import write_report
 from rectify.residuals import ResidualTable
 
+from .relative import RelativeOrientation
+from .resection import ExteriorOrientation
+
+if TYPE_CHECKING:  # type hints only: stereo.model does not depend on the report
+    from .model import StereoModel
+
 logger = logging.getLogger(__name__)
 
-__all__ = ["absolute_orientation_figures", "relative_orientation_figures", "write_stereo_report"]
+__all__ = ["absolute_orientation_figures", "relative_orientation_figures", "write_orient_report",
+           "write_pair_report", "write_resect_report", "write_stereo_report"]
 
 
 def relative_orientation_figures(correlation_names: Sequence[str], correlation_matrix: ArrayLike, *,
@@ -188,3 +200,63 @@ def write_stereo_report(out_dir: str | os.PathLike, *, title: str,
                         crs=crs if ground else None, ground_xy=ground, overwrite=overwrite,
                         backgrounds=backgrounds or None, image_shapes=shapes or None,
                         principal_point_px=pps or None)
+
+
+def write_pair_report(model: StereoModel, out_dir: str | os.PathLike, *, title: str, ro: Any = None,
+                      left_image: str | os.PathLike | None = None, camera: Camera | None = None,
+                      overwrite: bool = False) -> Path:
+    """QA report of a pair run with :func:`stereo.report.write_stereo_report`.
+
+    Relative orientation: vertical-parallax table over the left image (drawn on
+    the photo when ``left_image`` can be read) and the correlation heat map of
+    its elements; absolute orientation: residual table, plan vectors at the
+    control points' ground positions (GeoJSON too when the model has a CRS,
+    EPSG code or WKT) and height bars; the intersection table. ``model.tables``
+    must start with ``ro.residual_table()`` when ``ro`` is given.
+    """
+    tables = list(model.tables)
+    rel = corr = None
+    if ro is not None:
+        rel = tables.pop(0)
+        c = ro.correlation
+        if c is not None and np.isfinite(c).all():
+            corr = (list(ro.names), c)
+    absolute = gxy = None
+    if model.absolute is not None and model.ground is not None:
+        absolute = model.absolute.residuals
+        tables = [t for t in tables if t is not absolute]
+        rows = [model.ids.index(i) for i in absolute.ids]
+        gxy = model.ground[rows, :2]
+    img = shape = pp = None
+    if camera is not None:
+        shape = (camera.height, camera.width)
+        pp = camera.pixel_from_photo(np.zeros((1, 2)))[0]
+    if left_image is not None:
+        # a bounded overview for the plot background (drawn over the full-resolution extent)
+        data, valid, _ = rio.read_overview(left_image, 2048)
+        img = rio.to_uint8(data, valid)
+    return write_stereo_report(out_dir, title=title, relative=rel, correlation=corr, absolute=absolute,
+                               absolute_ground_xy=gxy, tables=tables, summary=model.summary,
+                               crs=model.crs or None, left_image_shape=shape, left_image=img,
+                               principal_point_px=pp, overwrite=overwrite)
+
+
+def write_orient_report(ro: RelativeOrientation, camera: Camera, out_dir: str | os.PathLike, *, title: str,
+                        overwrite: bool = False) -> Path:
+    """QA report of ``stereo orient``: vertical-parallax table over the left image frame, the correlation
+    heat map of the elements and the summary (with the elements in radians)."""
+    corr = ro.correlation
+    return write_stereo_report(
+        out_dir, title=title, relative=ro.residual_table(),
+        correlation=None if corr is None else (list(ro.names), corr),
+        summary={**ro.summary(), "elements_rad": ro.element_dict, "sigma0_mm": ro.sigma0_mm},
+        left_image_shape=(camera.height, camera.width), principal_point_px=camera.principal_point_px,
+        overwrite=overwrite)
+
+
+def write_resect_report(eo: ExteriorOrientation, out_dir: str | os.PathLike, *, summary: dict[str, Any],
+                        title: str = "stereo resect", overwrite: bool = False) -> Path:
+    """QA report of ``stereo resect``: the photo residual table (mm) and ``summary`` (the EO JSON)."""
+    if eo.residuals is None:
+        raise InvalidInputError("the exterior orientation has no residual table to report")
+    return write_report(out_dir, title=title, tables=[eo.residuals], summary=summary, overwrite=overwrite)

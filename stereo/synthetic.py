@@ -13,22 +13,28 @@ exercised.
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
 from rectify.camera import Camera
 from rectify.errors import InvalidInputError
+from rectify.fileutil import atomic_output, atomic_write_text
 from rectify.rotation import matrix_from_angles
-from stereo.resection import ExteriorOrientation
+
+from .resection import ExteriorOrientation
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["SyntheticScene", "make_scene", "render", "LO25_CRS"]
+__all__ = ["LO25_CRS", "SyntheticScene", "make_scene", "render", "write_scene_inputs"]
 
 #: the NGI data's CRS (transverse Mercator, central meridian 25 E, WGS84)
 LO25_CRS = ('PROJCRS["Lo25",BASEGEOGCRS["WGS 84",DATUM["World Geodetic System 1984",ELLIPSOID["WGS 84",'
@@ -190,8 +196,9 @@ def render(scene: SyntheticScene, which: str = "left", *, progress: Callable[[in
     return np.clip(np.round(img), 0, 255).astype(np.uint8).reshape(cam.height, cam.width)
 
 
-def write_scene_inputs(scene: SyntheticScene, out_dir, *, n_control: int = 10, n_check: int = 20,
-                       seed: int = 0, pixel_noise_px: float = 0.2, overwrite: bool = False, progress: Callable[[int, int], None] | None = None):
+def write_scene_inputs(scene: SyntheticScene, out_dir: str | Path, *, n_control: int = 10, n_check: int = 20,
+                       seed: int = 0, pixel_noise_px: float = 0.2, overwrite: bool = False,
+                       progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
     """Render both photos (PNG) and write camera.json and control.csv into ``out_dir``.
 
     Control and check points are DEM points projected into both photos, with
@@ -202,13 +209,6 @@ def write_scene_inputs(scene: SyntheticScene, out_dir, *, n_control: int = 10, n
     dict with paths (``left``, ``right``, ``camera``, ``control``), ``check_ids``
     and the true ground coordinates ``truth`` (id -> (3,)).
     """
-    import json
-    from pathlib import Path
-
-    import cv2
-
-    from rectify.fileutil import atomic_output, atomic_write_text
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {}
@@ -232,50 +232,4 @@ def write_scene_inputs(scene: SyntheticScene, out_dir, *, n_control: int = 10, n
         lines.append(f"{pid},{pl[i, 0]:.4f},{pl[i, 1]:.4f},{pr[i, 0]:.4f},{pr[i, 1]:.4f},"
                      f"{g[i, 0]:.4f},{g[i, 1]:.4f},{g[i, 2]:.4f}")
     paths["control"] = atomic_write_text(out / "control.csv", "\n".join(lines) + "\n", overwrite=overwrite)
-    return {**paths, "check_ids": tuple(ids[n_control:]), "truth": dict(zip(ids, g))}
-
-
-def run_demo(out_dir, *, seed: int = 0, size_px: int = 480, overwrite: bool = False,
-             pixel_noise_px: float = 0.2, progress: Callable[[int, int], None] | None = None):
-    """``stereo demo``: synthetic pair -> full chain -> accuracy against the truth.
-
-    Returns
-    -------
-    (StereoModel, dict)
-        The model and the truth comparison (check point RMSE per axis, RMS of
-        normalised check errors, RMSE of all points' heights against the DEM).
-    """
-    from pathlib import Path
-
-    from rectify.residuals import rms
-    from rectify.formats import read_control
-
-    from .model import ModelOptions, run_pair
-
-    out = Path(out_dir)
-    scene = make_scene(seed, size_px=size_px)
-    inp = write_scene_inputs(scene, out / "input", seed=seed, pixel_noise_px=pixel_noise_px, overwrite=overwrite,
-                             progress=progress)
-    control = read_control(inp["control"])
-    opts = ModelOptions(check_ids=inp["check_ids"])
-    ground_px = scene.cell_m
-    m = run_pair(inp["left"], inp["right"], scene.camera, out, control=control, options=opts, overwrite=overwrite,
-                 title="stereo demo: synthetic pair with known truth",
-                 extra_summary={"scene_seed": seed, "ground_pixel_m": ground_px}, progress=progress)
-    chk = m.is_check
-    truth = np.array([inp["truth"][i] for i, c in zip(m.ids, chk) if c])
-    e = m.ground[chk] - truth
-    dz = m.ground[:, 2] - scene.height(m.ground[:, :2])
-    ok = np.isfinite(dz)
-    nrm = e / m.ground_std[chk] if m.ground_std is not None else np.full_like(e, np.nan)
-    res = {"n_check": int(chk.sum()), "check_rmse_xyz_m": [rms(e[:, k]) for k in range(3)],
-           "check_normalised_rms": rms(nrm), "check_normalised_rms_xyz": [rms(nrm[:, k]) for k in range(3)],
-           "pixel_noise_px": pixel_noise_px,
-           "dem_rmse_m": rms(dz[ok]), "n_points": int(ok.sum()), "ground_pixel_m": ground_px}
-    import json
-
-    from rectify.fileutil import atomic_write_text
-    from rectify.report import json_safe
-
-    atomic_write_text(out / "truth_comparison.json", json.dumps(json_safe(res), indent=2), overwrite=overwrite)
-    return m, res
+    return {**paths, "check_ids": tuple(ids[n_control:]), "truth": dict(zip(ids, g, strict=True))}

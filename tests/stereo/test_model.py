@@ -14,9 +14,9 @@ from stereo.model import (
     build_model,
     ground_unit,
     match_control,
-    save_model,
 )
 from stereo.relative import RelativeGeometry, RelativeOrientation
+from stereo.workspace import PairWorkspace
 from stereo.synthetic import make_scene
 
 
@@ -95,13 +95,13 @@ def test_topocentric_vs_map_frame_reported(scene):
 
 def test_outputs(tmp_path, scene):
     m, _ = _run(scene, 8)
-    save_model(m, points_path=tmp_path / "p.ply", csv_path=tmp_path / "p.csv",
-               orientation_path=tmp_path / "o.json")
+    PairWorkspace().save_model(m, points_path=tmp_path / "p.ply", csv_path=tmp_path / "p.csv",
+                               orientation_path=tmp_path / "o.json")
     assert np.allclose(read_ply_xyz(tmp_path / "p.ply"), m.ground)
     lines = (tmp_path / "p.csv").read_text().splitlines()
     assert lines[1].startswith("id,x,y,z,residual_mm") and len(lines) == 2 + len(m.ids)
     with pytest.raises(InvalidInputError, match="exists"):
-        save_model(m, points_path=tmp_path / "p.ply")
+        PairWorkspace().save_model(m, points_path=tmp_path / "p.ply")
 
 
 def test_bad_control(scene):

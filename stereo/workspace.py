@@ -1,0 +1,177 @@
+"""The files of a stereo job: :class:`PairWorkspace` adds the stereo artefacts to :class:`rectify.workspace.Workspace`.
+
+``stereo run`` and ``stereo demo`` write a fixed layout into their output folder::
+
+    OUTDIR/matches.csv          tie points (pixels)
+    OUTDIR/relative.json        relative orientation
+    OUTDIR/orientation.json     absolute orientation, frame, summary
+    OUTDIR/points.ply           ground (or model) points
+    OUTDIR/points.csv           id,x,y,z,residual_mm[,std_*]
+    OUTDIR/model_points.ply     model frame points
+    OUTDIR/report/              QA report (stereo.report)
+
+``stereo model`` writes ``<points>.ply`` with ``<points>.csv`` and ``<points>.orientation.json``
+beside it (:func:`model_outputs`). The formats are in :mod:`stereo.formats`; every ``save_*``
+method writes through :meth:`~rectify.workspace.Workspace.output`, so inside
+:meth:`~rectify.workspace.Workspace.transaction` the files of a job are written all or none.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import shutil
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from rectify.errors import InvalidInputError, RasterIOError
+from rectify.formats import Matches, write_matches
+from rectify.workspace import StrPath, Workspace
+
+from .formats import (
+    dump_exterior,
+    dump_orientation,
+    dump_ply,
+    dump_points_csv,
+    dump_relative,
+    orientation_dict,
+    read_exterior,
+    read_orientation,
+    read_ply,
+    read_points_csv,
+    read_relative,
+)
+from .relative import RelativeGeometry
+from .resection import ExteriorOrientation
+
+if TYPE_CHECKING:  # type hints only (stereo.model builds the model; this module stores it)
+    from .formats import PointCloud, PointsTable
+    from .model import StereoModel
+
+__all__ = ["RUN_LAYOUT", "PairWorkspace", "model_outputs"]
+
+#: the files of ``stereo run``'s output folder, by role
+RUN_LAYOUT = {
+    "matches": "matches.csv",
+    "relative": "relative.json",
+    "orientation": "orientation.json",
+    "points": "points.ply",
+    "points_csv": "points.csv",
+    "model_points": "model_points.ply",
+}
+_REPORT = "report"
+
+
+def model_outputs(points: StrPath) -> tuple[Path, Path, Path]:
+    """``points.ply`` -> (``points.ply``, ``points.csv``, ``points.orientation.json``)."""
+    p = Path(points)
+    return p, p.with_suffix(".csv"), p.with_suffix(".orientation.json")
+
+
+class PairWorkspace(Workspace):
+    """The files of one stereo pair job (see the module docstring for the run layout).
+
+    Parameters are those of :class:`rectify.workspace.Workspace`. :meth:`for_run` makes the workspace
+    of an output folder with the fixed layout and its ``report/`` folder.
+    """
+
+    @classmethod
+    def for_run(cls, out_dir: StrPath, *, overwrite: bool = False, inputs: tuple[StrPath | None, ...] = (),
+                report: bool = True) -> PairWorkspace:
+        """Workspace of ``stereo run`` / ``stereo demo``: output folder ``out_dir``, report in ``out_dir/report``."""
+        root = Path(out_dir)
+        return cls(root, overwrite=overwrite, inputs=[p for p in inputs if p is not None],
+                   report_dir=root / _REPORT if report else None)
+
+    # ------------------------------------------------------------------ layout
+    def layout_path(self, role: str) -> Path:
+        """Path of a file of the run layout by role (``"matches"``, ``"relative"``, ... see :data:`RUN_LAYOUT`)."""
+        return self.path(RUN_LAYOUT[role])
+
+    def run_outputs(self) -> list[Path]:
+        """Every file of the run layout (the report folder apart)."""
+        return [self.path(n) for n in RUN_LAYOUT.values()]
+
+    def plan_run(self) -> list[Path]:
+        """Check the output folder, every output of the layout and the report folder before any work.
+
+        Creates nothing. Raises when the folder is a file or its parent is missing, when an output
+        exists without ``overwrite`` or equals an input, and when the report folder is not writable or
+        already holds a report without ``overwrite``.
+        """
+        root = self.root
+        if root is None:
+            raise InvalidInputError("a pair run needs an output folder")
+        if root.exists() and not root.is_dir():
+            raise InvalidInputError(f"output {str(root)!r} exists and is not a folder")
+        parent = root.parent if str(root.parent) else Path(".")
+        if not root.exists() and not parent.is_dir():
+            raise RasterIOError(f"output folder {str(parent)!r} does not exist")
+        out = self.plan(*self.run_outputs())
+        self.check_report_dir()
+        if self.report_dir is not None and (self.report_dir / "report.html").exists() and not self.overwrite:
+            raise InvalidInputError(f"report folder {str(self.report_dir)!r} already holds a report; pass --overwrite")
+        return out
+
+    def discard_root(self) -> None:
+        """After a failure: remove the output folder if this workspace created it (with what was written in it)."""
+        if self._created_root and self.root is not None:
+            with contextlib.suppress(OSError):
+                shutil.rmtree(self.root)
+
+    # ------------------------------------------------------------------ stereo artefacts
+    def save_matches(self, path: StrPath, matches: Matches) -> Path:
+        """Matches CSV (pixels) through :meth:`output`."""
+        with self.output(path) as tmp:
+            write_matches(tmp, matches, overwrite=True)  # the temporary file exists already
+        return Path(path)
+
+    def save_relative(self, path: StrPath, ro: Any, *, extra: dict[str, Any] | None = None) -> Path:
+        """Relative orientation JSON (``ro`` a :class:`~stereo.relative.RelativeOrientation` or its dict)."""
+        with self.output(path) as tmp:
+            dump_relative(tmp, ro, extra=extra)
+        return Path(path)
+
+    def load_relative(self, path: StrPath) -> RelativeGeometry:
+        """Relative orientation JSON -> :class:`~stereo.relative.RelativeGeometry`."""
+        return read_relative(path)
+
+    def save_exterior(self, path: StrPath, eo: ExteriorOrientation, *, camera: dict[str, Any] | None = None) -> Path:
+        """Exterior orientation JSON, with the camera."""
+        with self.output(path) as tmp:
+            dump_exterior(tmp, eo, camera=camera)
+        return Path(path)
+
+    def load_exterior(self, path: StrPath) -> ExteriorOrientation:
+        """Exterior orientation JSON -> :class:`~stereo.resection.ExteriorOrientation`."""
+        return read_exterior(path)
+
+    def save_model(self, model: StereoModel, *, points_path: StrPath, csv_path: StrPath | None = None,
+                   orientation_path: StrPath | None = None, model_ply_path: StrPath | None = None,
+                   extra: dict[str, Any] | None = None) -> None:
+        """Points PLY (ground, or model frame without control), points CSV, orientation JSON, model-frame PLY."""
+        res = np.sqrt(np.mean(model.intersection.residuals_mm ** 2, axis=1))
+        with self.output(points_path) as tmp:
+            dump_ply(tmp, model.points, comment="ground" if model.ground is not None else "model frame")
+        if csv_path is not None:
+            with self.output(csv_path) as tmp:
+                dump_points_csv(tmp, model.ids, model.points, res, std=model.ground_std, crs=model.crs)
+        if model_ply_path is not None:
+            with self.output(model_ply_path) as tmp:
+                dump_ply(tmp, model.intersection.points, comment="model frame")
+        if orientation_path is not None:
+            with self.output(orientation_path) as tmp:
+                dump_orientation(tmp, orientation_dict(model, extra=extra))
+
+    def load_points(self, path: StrPath) -> PointCloud:
+        """Points PLY -> :class:`~stereo.formats.PointCloud`."""
+        return read_ply(path)
+
+    def load_points_csv(self, path: StrPath) -> PointsTable:
+        """Points CSV -> :class:`~stereo.formats.PointsTable`."""
+        return read_points_csv(path)
+
+    def load_orientation(self, path: StrPath) -> dict[str, Any]:
+        """Model orientation JSON -> dict (frame, crs, summary, absolute)."""
+        return read_orientation(path)
