@@ -353,9 +353,9 @@ class Calibration:
         if start is None:
             st = initial_orientation(views, width, height, equal_focal=equal_focal)
             v0, p0 = st.interior, st.poses
-            a = adjust(obs, [v0], [()], p0)  # exterior orientation only
+            a = adjust(obs, [v0], [()], p0, tol=1e-8)  # exterior orientation only
             core = tuple(n for n in free if n in ("f", "fx", "fy", "cx", "cy", "cx*", "cy*"))
-            a = adjust(obs, a.interiors, [core], a.poses)
+            a = adjust(obs, a.interiors, [core], a.poses, tol=1e-8)
             v0, p0 = a.interiors[0], a.poses
             method = st.method
         else:
