@@ -16,10 +16,10 @@ where (a1 a2 a3; b1 b2 b3; c1 c2 c3) = R are the direction cosines: the
 rotation matrix of :mod:`rectify.rotation` that takes the photo vector
 (x - x0, y - y0, -f) into the horizontal (object-parallel) frame.
 
-Frames: photo coordinates in millimetres, x right, y up (DESIGN.md). The
-input coordinates are measured in the frame in which the principal point is
-(x0, y0) (e.g. the fiducial frame); the output is centred on the nadir
-point's image (the principal point of the horizontal image). An optional
+Frames: photo coordinates in millimetres, x right, y up (the photo frame of
+:mod:`rectify.camera`). The input coordinates are measured in the frame in
+which the principal point is (x0, y0) (e.g. the fiducial frame); the output
+is centred on the nadir point's image (the principal point of the horizontal image). An optional
 ``f_out`` gives the horizontal image another principal distance (scale).
 
 Because eq. (1) is a ratio of linear functions of (x, y), it is a
@@ -33,6 +33,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -118,6 +119,11 @@ class TiltedFrame:
         return cls(focal_length_mm, matrix_from_angles(a1, a2, a3, order), principal_point_mm, f_out_mm)
 
     @property
+    def _f_out(self) -> float:
+        """``f_out_mm`` as set by ``__post_init__`` (never None after construction)."""
+        return self.focal_length_mm if self.f_out_mm is None else float(self.f_out_mm)
+
+    @property
     def tilt(self) -> float:
         """Angle between the camera axis and the vertical, rad."""
         return float(math.acos(max(-1.0, min(1.0, self.rotation[2, 2]))))
@@ -134,15 +140,16 @@ class TiltedFrame:
         Xp = a1 * dx + a2 * dy - a3 * f
         Yp = b1 * dx + b2 * dy - b3 * f
         Zp = c1 * dx + c2 * dy - c3 * f
+        fo = self._f_out
         with np.errstate(divide="ignore", invalid="ignore"):
-            return np.column_stack([-self.f_out_mm * Xp / Zp, -self.f_out_mm * Yp / Zp])
+            return np.column_stack([-fo * Xp / Zp, -fo * Yp / Zp])
 
     @property
     def homography(self) -> Homography:
         """Eq. (1) as a homography, tilted photo mm -> horizontal photo mm."""
         f, (x0, y0) = self.focal_length_mm, self.principal_point_mm
         A = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, -f]])
-        m = np.diag([-self.f_out_mm, -self.f_out_mm, 1.0]) @ self.rotation @ A
+        m = np.diag([-self._f_out, -self._f_out, 1.0]) @ self.rotation @ A
         return Homography(m / m[2, 2] if abs(m[2, 2]) > 1e-300 else m)
 
     @property
@@ -170,4 +177,4 @@ class TiltedFrame:
                                     f"set principal_point_mm=(0, 0), got {self.principal_point_mm}")
         px = np.array([[0.0, 0.0], [camera.width - 1.0, 0.0], [0.0, camera.height - 1.0]])
         A = AffineTransform.from_points(px, camera.photo_from_pixel(px))
-        return self.homography @ A
+        return cast(Homography, self.homography @ A)   # a homography composed with an affine map

@@ -143,7 +143,7 @@ class StudyConfig:
     @classmethod
     def quick(cls, **overrides: Any) -> StudyConfig:
         """The small preset of ``rectify compare`` (about a minute on a busy 2-core machine)."""
-        base = dict(n_configs=500, n_trials=60, n_speed_points=200_000, speed_repeats=5)
+        base: dict[str, Any] = dict(n_configs=500, n_trials=60, n_speed_points=200_000, speed_repeats=5)
         base.update({k: v for k, v in overrides.items() if v is not None})
         return cls(**base)
 

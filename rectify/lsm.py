@@ -159,6 +159,10 @@ def bicubic(img: NDArray, x: NDArray[np.float64], y: NDArray[np.float64]) -> NDA
     return _bicubic_padded(np.pad(a, 2, mode="edge"), a.shape[0], a.shape[1], x, y)
 
 
+#: an image padded by 2 px (edge mode) and its original height and width
+_Padded = tuple[NDArray, int, int]
+
+
 def _bicubic_padded(pad: NDArray, h: int, w: int, x, y) -> NDArray[np.float64]:
     """:func:`bicubic` on an image already padded by 2 px (edge mode); flat gathers, no clipping."""
     x = np.asarray(x, dtype=np.float64)
@@ -173,13 +177,13 @@ def _bicubic_padded(pad: NDArray, h: int, w: int, x, y) -> NDArray[np.float64]:
     stride = w + 4
     base = (y0.astype(np.int64) + 1) * stride + x0.astype(np.int64) + 1
     flat = pad.ravel()
-    out = None
+    out = np.zeros_like(x)
     for j in range(4):
         row = None
         for i in range(4):
             v = wx[i] * flat.take(base + (j * stride + i))
             row = v if row is None else row + v
-        out = wy[j] * row if out is None else out + wy[j] * row
+        out = out + wy[j] * row
     return np.where(inside, out, np.nan)
 
 
@@ -268,7 +272,7 @@ def refine_matches(left_img: ArrayLike, right_img: ArrayLike, left_xy: ArrayLike
     return LsmResult(out_r, conv, std, corr, iters, aff)
 
 
-def _refine_chunk(L, R, pl, pr, A, cfg: LsmConfig):
+def _refine_chunk(L: _Padded, R: _Padded, pl, pr, A, cfg: LsmConfig):
     r = int(cfg.radius_px)
     g = np.arange(-r, r + 1, dtype=np.float64)
     uy, ux = np.meshgrid(g, g, indexing="ij")
@@ -303,8 +307,8 @@ def _refine_chunk(L, R, pl, pr, A, cfg: LsmConfig):
         Rv = _bicubic_padded(*R, xs, ys)
         # gradients of the resampled window (consistent with the resampling), back to image axes
         W = Rv.reshape(-1, 2 * r + 1, 2 * r + 1)
-        du = np.gradient(W, axis=2).reshape(Rv.shape)
-        dv = np.gradient(W, axis=1).reshape(Rv.shape)
+        du = np.asarray(np.gradient(W, axis=2)).reshape(Rv.shape)
+        dv = np.asarray(np.gradient(W, axis=1)).reshape(Rv.shape)
         Ainv = np.linalg.inv(Ai)                                      # grad_x = A^-T grad_u
         Gx = Ainv[:, 0, :1] * du + Ainv[:, 1, :1] * dv
         Gy = Ainv[:, 0, 1:] * du + Ainv[:, 1, 1:] * dv
@@ -363,7 +367,7 @@ def _refine_chunk(L, R, pl, pr, A, cfg: LsmConfig):
     return out, conv, np.where(conv, std, np.nan), corr, iters, A
 
 
-def _sample(R, t, A, ux, uy):
+def _sample(R: _Padded, t, A, ux, uy):
     xs = t[:, :1] + A[:, 0, :1] * ux + A[:, 0, 1:] * uy
     ys = t[:, 1:] + A[:, 1, :1] * ux + A[:, 1, 1:] * uy
     return _bicubic_padded(*R, xs, ys)

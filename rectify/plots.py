@@ -101,13 +101,20 @@ def standardised_components(table: ResidualTable) -> NDArray[np.float64]:
             s = table.std / math.sqrt(k)
         else:
             s0 = _finite_or_nan(table.sigma0)
-            s = np.where(table.weights > 0, s0 / np.sqrt(table.weights), np.nan)
+            w = np.ones(table.n) if table.weights is None else table.weights
+            s = np.where(w > 0, s0 / np.sqrt(w), np.nan)
         s = np.where(s > 0, s, np.nan)
         return v / s[:, None]
 
 
+def _flags(a: NDArray[np.bool_] | None, n: int) -> NDArray[np.bool_]:
+    """A per-point flag column of a table (``check``, ``outlier``), all False when absent."""
+    return np.zeros(n, dtype=bool) if a is None else a
+
+
 def _masks(table: ResidualTable) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.bool_]]:
-    return table.fit_mask, table.check & ~table.outlier, table.outlier
+    out = _flags(table.outlier, table.n)
+    return table.fit_mask, _flags(table.check, table.n) & ~out, out
 
 
 def _subsample_background(background: NDArray) -> tuple[NDArray, int]:
@@ -245,7 +252,7 @@ def residual_vector_figure(table: ResidualTable, image_shape: Sequence[int] | No
     if gridded:
         # too many arrows to read: mean residual of the non-outlier points per grid cell
         g = max(2, int(math.sqrt(max_arrows / 2.0)))
-        use = ~table.outlier & finite & np.isfinite(u) & np.isfinite(w)
+        use = ~_flags(table.outlier, table.n) & finite & np.isfinite(u) & np.isfinite(w)
         cx = np.clip(((pos[:, 0] - x0) / max(x1 - x0, 1e-12) * g).astype(np.int64), 0, g - 1)
         cy = np.clip(((pos[:, 1] - y0) / max(y1 - y0, 1e-12) * g).astype(np.int64), 0, g - 1)
         cell = (cy * g + cx)[use]

@@ -4,7 +4,7 @@
 Both transforms map the same 1e6 random points (a 10 000 x 10 000 px frame,
 some outside it) through the same projective map, in one run, repeated and
 interleaved (H, C, H, C, ...) so machine load affects both alike; the
-median time of each is reported with the ratio. Target (DESIGN.md): the
+median time of each is reported with the ratio. Target (README, benchmarks): the
 cotangent method reaches at least 0.5x the homography's throughput.
 
 OpenCV's ``cv2.perspectiveTransform`` (C++, no input validation) is timed

@@ -110,15 +110,15 @@ def _make_detector(name: str, nfeatures: int):
     if name == "sift":
         # OpenCV keeps the 2 * nfeatures strongest before computing descriptors (the costly part);
         # grid_select then spreads the final max_keypoints evenly
-        return cv2.SIFT_create(nfeatures=2 * max(1, int(nfeatures)))
+        return cv2.SIFT.create(nfeatures=2 * max(1, int(nfeatures)))
     if name == "orb":
-        return cv2.ORB_create(nfeatures=max(500, int(nfeatures)))
+        return cv2.ORB.create(nfeatures=max(500, int(nfeatures)))
     if name == "akaze":
         if not akaze_available():
             raise InvalidInputError(
                 "detector 'akaze' is not available in this OpenCV build "
                 f"(opencv {cv2.__version__}: AKAZE moved to opencv-contrib); use 'sift' or 'orb'")
-        return cv2.AKAZE_create()
+        return cv2.AKAZE_create()  # type: ignore[attr-defined]  # absent from OpenCV 5's main modules and stubs
     raise InvalidInputError(f"unknown detector {name!r}; choose from {DETECTORS}")
 
 

@@ -20,10 +20,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import EstimationError, InvalidInputError
+from ..formats import Matches
 from ..lsm import LsmConfig, refine_matches
 from ..points import as_pair
 from ..residuals import ResidualTable, rms
-from ..formats import Matches
 from .detect import DETECTORS, Features, detect, grid_select
 
 __all__ = ["VERIFY_METHODS", "MatcherConfig", "MatchResult", "ProgressFn", "Verification", "Verify", "match_arrays",
@@ -241,24 +241,26 @@ def match_descriptors(left: Features, right: Features, *, ratio: float = 0.8, mu
     if len(left) < 2 or len(right) < 2:
         return empty
     if left.descriptors.dtype == np.float32:
-        index = dict(algorithm=1, trees=4)
-        matcher = cv2.FlannBasedMatcher(index, dict(checks=64))
+        index: dict[str, bool | int | float | str] = dict(algorithm=1, trees=4)
+        matcher: cv2.DescriptorMatcher = cv2.FlannBasedMatcher(index, dict(checks=64))
     else:
         matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
     dl = np.ascontiguousarray(left.descriptors)
     dr = np.ascontiguousarray(right.descriptors)
     knn = matcher.knnMatch(dl, dr, k=2)
-    li, ri, rat = [], [], []
+    li_: list[int] = []
+    ri_: list[int] = []
+    rat_: list[float] = []
     for m in knn:
         if len(m) < 2:
             continue
         a, b = m
         r = a.distance / b.distance if b.distance > 0 else (0.0 if a.distance == 0 else 1.0)
         if r < ratio:
-            li.append(a.queryIdx)
-            ri.append(a.trainIdx)
-            rat.append(r)
-    li, ri, rat = np.array(li, np.int64), np.array(ri, np.int64), np.array(rat, np.float64)
+            li_.append(a.queryIdx)
+            ri_.append(a.trainIdx)
+            rat_.append(r)
+    li, ri, rat = np.array(li_, np.int64), np.array(ri_, np.int64), np.array(rat_, np.float64)
     if mutual and li.size:
         back = matcher.knnMatch(dr, dl, k=1)
         best = np.full(len(right), -1, dtype=np.int64)
@@ -341,20 +343,20 @@ def verify_matches(left_xy: ArrayLike, right_xy: ArrayLike, *, method: str = "ho
                                          confidence=confidence)
         else:
             M, mask = cv2.findFundamentalMat(pl, pr, cv2.USAC_MAGSAC, params_thr, confidence, max_iters)
-    except cv2.error as err:
-        raise EstimationError(f"USAC {method} estimation failed on {n} matches: {err}") from err
+    except cv2.error as exc:
+        raise EstimationError(f"USAC {method} estimation failed on {n} matches: {exc}") from exc
     if M is None or mask is None or M.shape != (3, 3):
         raise EstimationError(f"USAC found no {method} consistent with {n} matches")
-    M = np.asarray(M, dtype=np.float64)
+    Mf: NDArray[np.float64] = np.asarray(M, dtype=np.float64)
     if method == "homography":
-        pred = _apply_h(M, pl)
+        pred = _apply_h(Mf, pl)
         err = np.linalg.norm(pred - pr, axis=1)
         inl = mask.ravel().astype(bool) & (err <= max(2.5 * threshold_px, threshold_px + 1))
         table = ResidualTable(f"match verification ({method})", ids, pr, pred, "px", ("dx", "dy"),
                               outlier=~inl, position_px=pl, n_params=8,
                               extra={"threshold_px": float(threshold_px)})
     else:
-        d = _sampson_vectors(M, pl, pr)
+        d = _sampson_vectors(Mf, pl, pr)
         err = np.linalg.norm(d, axis=1)
         err = np.where(np.isfinite(err), err, np.inf)
         inl = mask.ravel().astype(bool) & (err <= max(2.5 * threshold_px, threshold_px + 1))
@@ -362,7 +364,7 @@ def verify_matches(left_xy: ArrayLike, right_xy: ArrayLike, *, method: str = "ho
         table = ResidualTable(f"match verification ({method})", ids, obs, obs + np.nan_to_num(d), "px",
                               ("dx_left", "dy_left", "dx_right", "dy_right"), outlier=~inl,
                               position_px=pl, n_params=7, extra={"threshold_px": float(threshold_px)})
-    return Verification(method, M, inl, err, table)
+    return Verification(method, Mf, inl, err, table)
 
 
 # --------------------------------------------------------------------------- helpers
@@ -576,6 +578,8 @@ def _reverify_and_cap(pl, pr, raw_pr, score, cfg: MatcherConfig, shape_left):
 def _table_for(ver: Verification, pl, pr, cfg: MatcherConfig) -> Verification:
     ids = [str(i + 1) for i in range(len(pl))]
     M = ver.matrix
+    if M is None:
+        raise InvalidInputError(f"verification {ver.method!r} has no model matrix")
     if ver.method == "homography":
         pred = _apply_h(M, pl)
         err = np.linalg.norm(pred - pr, axis=1)

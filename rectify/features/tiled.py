@@ -12,6 +12,7 @@ import logging
 import math
 import time
 from dataclasses import replace
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -58,7 +59,8 @@ def _scale_mat(s: tuple[float, float]) -> NDArray[np.float64]:
 def _coarse(left_path, right_path, il, ir, cfg: MatcherConfig):
     gl, vl, sl, lim_l = _overview(left_path, il, cfg)
     gr, vr, sr, lim_r = _overview(right_path, ir, cfg)
-    kw = dict(detector="sift", max_keypoints=cfg.max_keypoints, cell_cap=cfg.cell_cap, percentiles=cfg.percentiles)
+    kw: dict[str, Any] = dict(detector="sift", max_keypoints=cfg.max_keypoints, cell_cap=cfg.cell_cap,
+                              percentiles=cfg.percentiles)
     fl = detect(gl, valid=vl, **kw)
     _check_blank(fl, "left", left_path)
     fr = detect(gr, valid=vr, **kw)
@@ -66,7 +68,8 @@ def _coarse(left_path, right_path, il, ir, cfg: MatcherConfig):
     pairs = match_descriptors(fl, fr, ratio=cfg.ratio, mutual=True)
     pl, pr = fl.xy[pairs.left], fr.xy[pairs.right]
     ver = _verify_checked(pl, pr, replace(cfg, threshold_px=max(cfg.threshold_px, 2.0)), "homography")
-    H = np.linalg.inv(_scale_mat(sr)) @ ver.matrix @ _scale_mat(sl)
+    Hc = cast(NDArray[np.float64], ver.matrix)   # a verified homography always has its matrix
+    H = np.linalg.inv(_scale_mat(sr)) @ Hc @ _scale_mat(sl)
     H /= H[2, 2]
     err_full = ver.rmse_px * max(sr)
     logger.info("coarse match: %d of %d verified, RMSE %.2f overview px (scales %.2f, %.2f)",
@@ -96,7 +99,7 @@ def _match_tiled(left_path, right_path, il, ir, cfg: MatcherConfig, progress) ->
     store_s: list[NDArray] = []
     n_stored = 0
     n_det_l = n_det_r = n_matched = n_ref = n_fail = 0
-    kw = dict(detector=cfg.detector, cell_cap=cfg.cell_cap, percentiles=cfg.percentiles)
+    kw: dict[str, Any] = dict(detector=cfg.detector, cell_cap=cfg.cell_cap, percentiles=cfg.percentiles)
     right = _RightTiles(right_path, ir, cfg, per_tile_kp, lim_r)
     for k, (c0, r0, w, h) in enumerate(tiles):
         if progress is not None:
@@ -282,7 +285,7 @@ def _thin(sl, sr, sraw, ss, info, cfg: MatcherConfig):
     return [pl[keep]], [pr[keep]], [raw[keep]], [sc[keep]]
 
 
-def _cap_candidates(pl, pr, inl, cap):
+def _cap_candidates(pl, pr, inl, cap) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
     if len(pl) <= cap:
         return pl, pr, inl
     idx = np.random.default_rng(0).choice(len(pl), cap, replace=False)

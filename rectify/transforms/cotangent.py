@@ -57,7 +57,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from itertools import combinations
-from typing import Any, ClassVar
+from typing import Any, ClassVar, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -80,8 +80,8 @@ _EPS = float(np.finfo(np.float64).eps)
 _SEL_CHUNK = 1 << 13  # points per block of the pair selection: its float32 (6, n) work arrays stay in cache
 
 
-_PAIRS: tuple[tuple[int, int, int, int], ...] = tuple(
-    (a, b, *[k for k in range(4) if k not in (a, b)]) for a, b in combinations(range(4), 2))
+_PAIRS: tuple[tuple[int, int, int, int], ...] = cast(tuple[tuple[int, int, int, int], ...], tuple(
+    (a, b, *[k for k in range(4) if k not in (a, b)]) for a, b in combinations(range(4), 2)))
 
 #: The six base pairs (a, b) of the cotangent method, as indices of the control points.
 PAIRS: tuple[tuple[int, int], ...] = tuple((a, b) for a, b, _, _ in _PAIRS)
@@ -379,10 +379,10 @@ class CotangentFourPoint(Transform):
             k, q = self._map_block(p[s0:s0 + _CHUNK], np.empty_like(p[s0:s0 + _CHUNK]), check=False)
             ks.append(k)
             qs.append(q)
-        k = np.concatenate(ks) if ks else np.empty(0, np.int32)
-        q = np.concatenate(qs).astype(np.float64) if qs else np.empty(0)
+        k_all = np.concatenate(ks) if ks else np.empty(0, np.int32)
+        q_all = np.concatenate(qs).astype(np.float64) if qs else np.empty(0)
         with np.errstate(divide="ignore"):
-            return k.astype(np.intp), _EPS / q
+            return k_all.astype(np.intp), np.asarray(_EPS / q_all, dtype=np.float64)
 
     def error_bound(self, points: ArrayLike) -> F64:
         """Error measure M_k(p) of all six base pairs, times eps, (6, N), target units.

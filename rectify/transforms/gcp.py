@@ -24,9 +24,9 @@ from numpy.typing import ArrayLike, NDArray
 from ..crs import unit_label
 from ..errors import EstimationError, InvalidInputError
 from ..fileutil import atomic_write_text, read_json
+from ..formats import GcpTable
 from ..points import as_weights
 from ..residuals import ResidualTable
-from ..formats import GcpTable
 from .base import F64, Transform
 from .cotangent import CotangentFourPoint
 from .matrix import AffineTransform, Homography
@@ -265,10 +265,11 @@ def save_transform(path: str | Path, model: Transform, *, table: ResidualTable |
         out["units"] = table.units
         out["summary"] = {k: v for k, v in s.items() if _jsonable(v)}
         res = table.residual
+        chk = np.zeros(table.n, bool) if table.check is None else table.check
         out["residuals"] = [
             {"id": table.ids[i], "observed": table.observed[i].tolist(), "adjusted": table.adjusted[i].tolist(),
              "dx": float(res[i, 0]), "dy": float(res[i, 1]), "norm": float(table.norm[i]),
-             "check": bool(table.check[i])} for i in range(table.n)]
+             "check": bool(chk[i])} for i in range(table.n)]
     if extra:
         out.update(extra)
     text = json.dumps(out, indent=2, allow_nan=True) + "\n"

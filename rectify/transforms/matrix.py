@@ -185,7 +185,7 @@ class Homography(_MatrixTransform):
     @property
     def inverse(self) -> Homography:
         """The target -> source homography (exact)."""
-        m = np.linalg.inv(self.matrix)
+        m = np.asarray(np.linalg.inv(self.matrix), dtype=np.float64)
         return Homography(m / m[2, 2] if abs(m[2, 2]) > 1e-12 * np.abs(m).max() else m)
 
 
@@ -312,6 +312,7 @@ class AffineTransform(_MatrixTransform):
 
     @property
     def inverse(self) -> AffineTransform:
-        m = np.linalg.inv(self.matrix)
+        """The target -> source affine map (exact)."""
+        m = np.asarray(np.linalg.inv(self.matrix), dtype=np.float64)
         m[2] = (0.0, 0.0, 1.0)
         return AffineTransform(m)
