@@ -18,7 +18,8 @@ for det in ("sift", "orb"):
         gi = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
         gi = cv2.normalize(gi.astype(np.float32), None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
         d = cv2.SIFT_create() if det == "sift" else cv2.ORB_create(5000)
-        k1, d1 = d.detectAndCompute(gi, None); k2, d2 = d.detectAndCompute(gi[::-1, ::-1].copy(), None)
+        k1, d1 = d.detectAndCompute(gi, None)
+        k2, d2 = d.detectAndCompute(gi[::-1, ::-1].copy(), None)
         m = cv2.BFMatcher(cv2.NORM_L2 if det == "sift" else cv2.NORM_HAMMING, crossCheck=True).match(d1, d2)
         s = (np.array([k1[x.queryIdx].pt for x in m]) + np.array([k2[x.trainIdx].pt for x in m]) - [w - 1, h - 1]) / 2
         s = s[np.linalg.norm(s, axis=1) < 1.5]
