@@ -48,7 +48,9 @@ def test_study_results_are_consistent():
         assert 0.6 < row["ratio"] < 1.6  # first-order prediction matches the Monte Carlo
     gains = [r["gain_cotangent"] for r in res.conditioning if "error" not in r]
     assert gains == sorted(gains)  # noise gain grows as the configuration degenerates
-    assert res.speed["ratio"] > 0
+    sp = res.speed  # throughput ratio cotangent / homography: the two measured rates, in a plausible range
+    assert sp["ratio"] == pytest.approx(sp["cotangent_pts_per_s"] / sp["homography_pts_per_s"], rel=1e-9)
+    assert 0.05 < sp["ratio"] < 20 and sp["homography_pts_per_s"] > 1e3, sp
 
 
 def test_study_config_validation():

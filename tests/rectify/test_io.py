@@ -40,9 +40,15 @@ def test_window_outside_is_invalid(tif):
 
 
 def test_overview(tif):
-    p, _ = tif
+    p, data = tif
     d, v, s = read_overview(p, 30)
     assert max(d.shape[:2]) == 30 and s == pytest.approx(2.0)
+    # values: each overview pixel holds one of the 2 x 2 source pixels it covers (bands kept together)
+    src = data.transpose(1, 2, 0)
+    cand = np.stack([src[a::2, b::2] for a in (0, 1) for b in (0, 1)])  # (4, 20, 30, 3)
+    hit = (cand == d[None]).all(axis=-1).any(axis=0)
+    assert hit[3:].all()
+    assert not v[:2].any() and v[3:].all()  # source rows 0-4 are nodata
 
 
 def test_errors(tif, tmp_path):

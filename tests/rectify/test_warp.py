@@ -310,3 +310,19 @@ def test_dst_crs_through_pyproj(tmp_path):
     with rasterio.open(tmp_path / "geo2.tif") as ds2:
         assert ds2.crs.to_epsg() == 4326
     assert 0 <= px[0] < g2.width and 0 <= px[1] < g2.height
+    # the landmark's lon/lat by pyproj directly, its output pixel by rasterio's inverse geotransform
+    import pyproj
+
+    lon, lat = pyproj.Transformer.from_crs(32618, 4326, always_xy=True).transform(*gcps.target[0])
+    assert_allclose(ll[0], [lon, lat], rtol=0, atol=1e-9)
+    col, row = ~g2.transform * (lon, lat)
+    assert_allclose(px, [col - 0.5, row - 0.5], atol=1e-6)
+    # value: the nearest-resampled output pixel holding the landmark equals the frame pixel that its centre
+    # maps to (centre lon/lat by rasterio, frame pixel by the model fitted in lon/lat, shifted by its offset)
+    with rasterio.open(out) as ds, rasterio.open(src) as fr:
+        r0, c0 = ds.index(lon, lat)
+        clon, clat = ds.xy(r0, c0)
+        q = r.fit.model.model.inverse(np.array([[clon, clat]]) - r.fit.model.offset)[0]
+        assert np.hypot(*(q - gcps.pixel[0])) < 2.0  # within the output pixel (about 1.3 frame px)
+        frame = fr.read()
+        assert (ds.read()[:, r0, c0] == frame[:, int(round(q[1])), int(round(q[0]))]).all()
