@@ -300,8 +300,8 @@ class CompareOptions:
 
     def config(self) -> StudyConfig:
         """The study configuration."""
-        over = {"n_configs": self.n_configs, "n_trials": self.n_trials, "n_speed_points": self.n_speed_points,
-                "seed": self.seed}
+        over: dict[str, Any] = {"n_configs": self.n_configs, "n_trials": self.n_trials,
+                                "n_speed_points": self.n_speed_points, "seed": self.seed}
         if self.full:
             return StudyConfig(**{k: v for k, v in over.items() if v is not None})
         return StudyConfig.quick(**over)

@@ -15,9 +15,14 @@ import functools
 import logging
 
 import numpy as np
+import pyproj
 from numpy.typing import ArrayLike, NDArray
+from pyproj import Transformer
+from pyproj.exceptions import CRSError as ProjCRSError
+from pyproj.exceptions import ProjError
 
 from .errors import CRSError
+from .points import as_points
 
 __all__ = ["unit_label", "parse_crs", "crs_to_string", "get_transformer", "transform_xy", "transform_xyz",
            "same_crs", "is_geographic"]
@@ -27,8 +32,6 @@ logger = logging.getLogger(__name__)
 
 @functools.lru_cache(maxsize=128)
 def _parse(text: str):
-    import pyproj
-    from pyproj.exceptions import CRSError as ProjCRSError
 
     try:
         return pyproj.CRS.from_user_input(text)
@@ -36,7 +39,7 @@ def _parse(text: str):
         raise CRSError(f"unknown CRS {text!r}: {err}") from err
 
 
-def parse_crs(crs) -> pyproj.CRS:  # noqa: F821
+def parse_crs(crs) -> pyproj.CRS:
     """Parse ``"EPSG:nnnn"``, WKT, a ``pyproj.CRS`` or a ``rasterio.crs.CRS``.
 
     Raises
@@ -53,7 +56,6 @@ def parse_crs(crs) -> pyproj.CRS:  # noqa: F821
     ...
     rectify.errors.CRSError: unknown CRS 'EPSG:99999999': ...
     """
-    import pyproj
 
     if crs is None:
         raise CRSError("CRS is missing (None)")
@@ -85,8 +87,6 @@ def is_geographic(crs) -> bool:
 
 @functools.lru_cache(maxsize=64)
 def _transformer(src_key: str, dst_key: str):
-    from pyproj import Transformer
-    from pyproj.exceptions import ProjError
 
     try:
         return Transformer.from_crs(_parse(src_key), _parse(dst_key), always_xy=True)
@@ -94,7 +94,7 @@ def _transformer(src_key: str, dst_key: str):
         raise CRSError(f"no transformation from {src_key!r} to {dst_key!r}: {err}") from err
 
 
-def get_transformer(src, dst) -> pyproj.Transformer:  # noqa: F821
+def get_transformer(src, dst) -> pyproj.Transformer:
     """Cached ``Transformer.from_crs(src, dst, always_xy=True)``.
 
     Parameters
@@ -127,9 +127,7 @@ def transform_xy(src, dst, xy: ArrayLike) -> NDArray[np.float64]:
     CRSError
         If a point cannot be transformed (the message names the first one).
     """
-    from pyproj.exceptions import ProjError
 
-    from .points import as_points
 
     p = as_points(xy, "xy", 2)
     if len(p) == 0:
@@ -155,9 +153,7 @@ def transform_xyz(src, dst, xyz: ArrayLike) -> NDArray[np.float64]:
     -------
     (N, 3) float64, a new array.
     """
-    from pyproj.exceptions import ProjError
 
-    from .points import as_points
 
     p = as_points(xyz, "xyz", 3)
     if len(p) == 0:

@@ -9,17 +9,19 @@ partial file and an existing output is replaced only with ``overwrite``.
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from .errors import InvalidInputError, RasterIOError
 
 __all__ = ["check_output", "atomic_output", "atomic_write_text", "read_json"]
 
 
-def check_output(path: str | Path, *, overwrite: bool) -> Path:
+def check_output(path: str | os.PathLike[str], *, overwrite: bool) -> Path:
     """Validate an output path before any work is done.
 
     Raises
@@ -43,7 +45,8 @@ def check_output(path: str | Path, *, overwrite: bool) -> Path:
 
 
 @contextlib.contextmanager
-def atomic_output(path: str | Path, *, overwrite: bool = False, suffix: str | None = None) -> Iterator[Path]:
+def atomic_output(path: str | os.PathLike[str], *, overwrite: bool = False,
+                  suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it to ``path`` on success.
 
     On any exception the temporary file is removed and ``path`` is untouched.
@@ -64,14 +67,14 @@ def atomic_output(path: str | Path, *, overwrite: bool = False, suffix: str | No
         raise
 
 
-def atomic_write_text(path: str | Path, text: str, *, overwrite: bool = False) -> Path:
+def atomic_write_text(path: str | os.PathLike[str], text: str, *, overwrite: bool = False) -> Path:
     """Write ``text`` to ``path`` atomically; return the path."""
     with atomic_output(path, overwrite=overwrite) as tmp:
         tmp.write_text(text)
     return Path(path)
 
 
-def read_json(path: str | Path, what: str = "JSON file"):
+def read_json(path: str | os.PathLike[str], what: str = "JSON file") -> Any:
     """Parse a JSON file; ``what`` names it in errors ("camera file", ...).
 
     Raises
@@ -81,8 +84,6 @@ def read_json(path: str | Path, what: str = "JSON file"):
     InvalidInputError
         If it is not valid JSON.
     """
-    import json
-
     p = Path(path)
     try:
         text = p.read_text()

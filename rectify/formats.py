@@ -32,6 +32,7 @@ import csv
 import io
 import json
 import math
+import os
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -68,7 +69,7 @@ TRANSFORM_VERSION = 2
 #: Version of ``report.json`` (1: 0.1.0, ``report_version: 1``; 2: ``format``/``version`` keys).
 REPORT_VERSION = 2
 
-StrPath = str | Path
+StrPath = str | os.PathLike[str]
 
 
 # --------------------------------------------------------------------------- versioning
@@ -174,7 +175,7 @@ class GcpTable:
     def subset(self, mask: NDArray[np.bool_]) -> GcpTable:
         """The rows where ``mask`` (N,) is true."""
         m = np.asarray(mask, dtype=bool)
-        return GcpTable(tuple(i for i, k in zip(self.ids, m) if k), self.pixel[m], self.target[m],
+        return GcpTable(tuple(i for i, k in zip(self.ids, m, strict=False) if k), self.pixel[m], self.target[m],
                         None if self.z is None else self.z[m], self.check[m], self.crs)
 
 
@@ -218,7 +219,7 @@ class ControlTable:
     @property
     def is_control(self) -> NDArray[np.bool_]:
         """(N,) rows with full ground coordinates."""
-        return np.isfinite(self.xyz).all(axis=1)
+        return np.asarray(np.isfinite(self.xyz).all(axis=1), dtype=bool)
 
 
 def _read_text(path: StrPath) -> str:
@@ -311,7 +312,7 @@ def read_gcps(path: StrPath) -> GcpTable:
         sx = "sourceX" if "sourceX" in fields else "pixelX"
         sy = "sourceY" if "sourceY" in fields else "pixelY"
         _need(fields, ("mapX", "mapY", sx, sy), path)
-        for k, (r, ln) in enumerate(zip(rows, lines)):
+        for k, (r, ln) in enumerate(zip(rows, lines, strict=False)):
             ids.append(str(k + 1))
             # QGIS: corner convention, row axis negative
             pix.append((_num(r, sx, ln, path) - 0.5, -_num(r, sy, ln, path) - 0.5))
@@ -321,7 +322,7 @@ def read_gcps(path: StrPath) -> GcpTable:
     else:
         _need(fields, ("id", "col", "row", "x", "y"), path)
         has_z = "z" in fields
-        for r, ln in zip(rows, lines):
+        for r, ln in zip(rows, lines, strict=False):
             ids.append(r["id"])
             pix.append((_num(r, "col", ln, path), _num(r, "row", ln, path)))
             tgt.append((_num(r, "x", ln, path), _num(r, "y", ln, path)))
@@ -364,7 +365,7 @@ def read_matches(path: StrPath) -> Matches:
     _need(fields, ("id", "col_left", "row_left", "col_right", "row_right"), path)
     has_score = "score" in fields
     ids, left, right, score = [], [], [], []
-    for r, ln in zip(rows, lines):
+    for r, ln in zip(rows, lines, strict=False):
         ids.append(r["id"])
         left.append((_num(r, "col_left", ln, path), _num(r, "row_left", ln, path)))
         right.append((_num(r, "col_right", ln, path), _num(r, "row_right", ln, path)))
@@ -402,7 +403,7 @@ def read_control(path: StrPath) -> ControlTable:
     rows, lines, crs, fields = _load(path, "rows")
     _need(fields, ("id", "col_left", "row_left", "col_right", "row_right", "x", "y", "z"), path)
     ids, left, right, xyz = [], [], [], []
-    for r, ln in zip(rows, lines):
+    for r, ln in zip(rows, lines, strict=False):
         ids.append(r["id"])
         left.append((_num(r, "col_left", ln, path), _num(r, "row_left", ln, path)))
         right.append((_num(r, "col_right", ln, path), _num(r, "row_right", ln, path)))
@@ -523,11 +524,11 @@ def transform_document(model: Any, *, table: ResidualTable | None = None, crs: s
         out["rmse_check"] = s["rmse_check"]
         out["units"] = table.units
         out["summary"] = {k: v for k, v in s.items() if _jsonable(v)}
-        res = table.residual
+        res, check = table.residual, np.asarray(table.check, dtype=bool)
         out["residuals"] = [
             {"id": table.ids[i], "observed": table.observed[i].tolist(), "adjusted": table.adjusted[i].tolist(),
              "dx": float(res[i, 0]), "dy": float(res[i, 1]), "norm": float(table.norm[i]),
-             "check": bool(table.check[i])} for i in range(table.n)]
+             "check": bool(check[i])} for i in range(table.n)]
     if extra:
         out.update(extra)
     return out
@@ -619,11 +620,11 @@ def read_residuals(path: StrPath) -> ResidualTable:
     def val(r: dict[str, str], key: str, ln: int) -> float:
         return math.nan if r[key] == "nan" else _num(r, key, ln, path)
 
-    obs = [[val(r, f"observed_{j}", ln) for j in range(k)] for r, ln in zip(rows, lines)]
-    adjusted = [[val(r, a, ln) for a in adj] for r, ln in zip(rows, lines)]
+    obs = [[val(r, f"observed_{j}", ln) for j in range(k)] for r, ln in zip(rows, lines, strict=False)]
+    adjusted = [[val(r, a, ln) for a in adj] for r, ln in zip(rows, lines, strict=False)]
     return ResidualTable(step=m["step"], ids=[r["id"] for r in rows], observed=np.array(obs).reshape(-1, k),
                          adjusted=np.array(adjusted).reshape(-1, k), units=m["units"].strip(), components=comps,
-                         weights=np.array([_num(r, "weight", ln, path) for r, ln in zip(rows, lines)]),
+                         weights=np.array([_num(r, "weight", ln, path) for r, ln in zip(rows, lines, strict=False)]),
                          outlier=np.array([r["outlier"] == "1" for r in rows]),
                          check=np.array([r["check"] == "1" for r in rows]))
 

@@ -40,7 +40,9 @@ import math
 from typing import NamedTuple
 
 import numpy as np
+import pyproj
 from numpy.typing import ArrayLike, NDArray
+from pyproj.exceptions import ProjError
 
 from .crs import get_transformer, parse_crs, transform_xyz
 from .errors import CRSError, InvalidInputError
@@ -100,7 +102,6 @@ def _geo3d(wkt: str) -> str:
 
 @functools.lru_cache(maxsize=32)
 def _geocentric(wkt: str) -> str:
-    import pyproj
 
     c = parse_crs(wkt)
     g = c.geodetic_crs
@@ -245,7 +246,6 @@ def geodetic_from_map(xyh: ArrayLike, crs) -> NDArray[np.float64]:
     out = p.copy()
     t = get_transformer(src, src.geodetic_crs)
     if len(p):
-        from pyproj.exceptions import ProjError
         try:
             lon, lat = t.transform(p[:, 0], p[:, 1], errcheck=True)
         except ProjError as err:
@@ -260,7 +260,6 @@ def map_from_geodetic(lonlat_h: ArrayLike, crs) -> NDArray[np.float64]:
     dst = parse_crs(crs)
     out = p.copy()
     if len(p):
-        from pyproj.exceptions import ProjError
         t = get_transformer(dst.geodetic_crs, dst)
         try:
             x, y = t.transform(p[:, 0], p[:, 1], errcheck=True)

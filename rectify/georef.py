@@ -16,6 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from affine import Affine
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import InvalidInputError
@@ -54,7 +55,7 @@ def pixel_from_world_matrix(transform) -> NDArray[np.float64]:
     det = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
     if not math.isfinite(det) or abs(det) < 1e-300:
         raise InvalidInputError(f"geotransform is singular: {tuple(transform)[:6]}")
-    return np.linalg.inv(m)
+    return np.asarray(np.linalg.inv(m), dtype=np.float64)
 
 
 def world_from_pixel(transform, pixels: ArrayLike) -> NDArray[np.float64]:
@@ -127,13 +128,13 @@ class Grid:
     @property
     def resolution(self) -> tuple[float, float]:
         """(x, y) pixel size in CRS units (positive)."""
-        t = tuple(self.transform)
+        t: tuple[float, ...] = tuple(self.transform)  # type: ignore[arg-type]  # Affine is a 9-tuple
         return abs(float(t[0])), abs(float(t[4]))
 
     @property
     def bounds(self) -> tuple[float, float, float, float]:
         """(left, bottom, right, top) of the outer pixel edges."""
-        t = tuple(self.transform)
+        t: tuple[float, ...] = tuple(self.transform)  # type: ignore[arg-type]  # Affine is a 9-tuple
         left, top = float(t[2]), float(t[5])
         right = left + t[0] * self.width
         bottom = top + t[4] * self.height
@@ -217,7 +218,6 @@ def output_grid(world_from_src: Callable[[NDArray], NDArray], width: int, height
         Non-positive resolution, a footprint that does not transform to finite
         coordinates, or an absurdly large grid.
     """
-    from affine import Affine
 
     if resolution is not None and (not math.isfinite(resolution) or resolution <= 0):
         raise InvalidInputError(f"resolution must be a positive number; got {resolution!r}")

@@ -17,9 +17,16 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import rasterio
+import rasterio.shutil
+from affine import Affine
 from numpy.typing import NDArray
+from rasterio.enums import MaskFlags, Resampling
+from rasterio.errors import RasterioError
+from rasterio.windows import Window
 
 from .errors import InvalidInputError, RasterIOError
+from .fileutil import atomic_output
 
 __all__ = ["RasterInfo", "open_raster", "raster_info", "read_window", "read_overview", "iter_windows",
            "to_uint8"]
@@ -55,7 +62,7 @@ class RasterInfo:
     dtype: str
     nodata: float | None
     crs: str | None
-    transform: object
+    transform: Affine
     block_shape: tuple[int, int]
 
     @property
@@ -65,8 +72,6 @@ class RasterInfo:
 
 def _open(path: str | Path):
     """rasterio dataset opened for reading; missing or unreadable files raise RasterIOError."""
-    import rasterio
-    from rasterio.errors import RasterioError
 
     p = str(path)
     if not Path(p).exists():
@@ -78,7 +83,7 @@ def _open(path: str | Path):
 
 
 @contextlib.contextmanager
-def open_raster(path: str | Path) -> Iterator[rasterio.io.DatasetReader]:  # noqa: F821
+def open_raster(path: str | Path) -> Iterator[rasterio.io.DatasetReader]:
     """Open a raster for reading; rasterio errors become :class:`RasterIOError`."""
     ds = _open(path)
     try:
@@ -132,8 +137,6 @@ def read_window(path: str | Path, col_off: int, row_off: int, width: int, height
     valid : (h, w) bool
         True where the dataset mask says the pixel holds data.
     """
-    from rasterio.errors import RasterioError
-    from rasterio.windows import Window
 
     if width <= 0 or height <= 0:
         raise InvalidInputError(f"window size must be positive; got {width} x {height}")
@@ -160,7 +163,6 @@ def _inside(ds, win) -> bool:
 
 def _boundless_mask(ds, win, out_shape) -> NDArray[np.bool_]:
     """Dataset mask for a window reaching outside the raster (outside = invalid)."""
-    from rasterio.windows import Window
 
     h, w = int(win.height), int(win.width)
     full = np.zeros((h, w), dtype=bool)
@@ -283,7 +285,6 @@ class MaskPolicy:
 
 def mask_policy(path: str | Path) -> MaskPolicy:
     """How a raster on disk stores validity (nodata, internal mask, alpha or none)."""
-    from rasterio.enums import MaskFlags
 
     with open_raster(path) as ds:
         flags = ds.mask_flag_enums
@@ -337,8 +338,6 @@ class WindowReader:
             Nodata: a pixel is invalid when all its bands equal nodata (as
             rasterio's dataset mask); NaN counts as nodata for float rasters.
         """
-        from rasterio.errors import RasterioError
-        from rasterio.windows import Window
 
         if col_off < 0 or row_off < 0 or width <= 0 or height <= 0 or col_off + width > self.width \
                 or row_off + height > self.height:
@@ -408,8 +407,6 @@ class TiledWriter:
     def __init__(self, path: str | Path, width: int, height: int, count: int, dtype: str, transform,
                  crs: str | None, policy: MaskPolicy, *, tile: int = 512, compress: str = "deflate",
                  threads: int = 1, colorinterp=None):
-        import rasterio
-        from rasterio.errors import RasterioError
 
         if tile % 16:
             raise InvalidInputError(f"tile size must be a multiple of 16; got {tile}")
@@ -434,8 +431,6 @@ class TiledWriter:
         With a nodata or alpha policy the caller has already filled invalid
         pixels; with an internal mask ``valid`` becomes the mask (None = all valid).
         """
-        from rasterio.errors import RasterioError
-        from rasterio.windows import Window
 
         h, w = data.shape[:2]
         win = Window(col_off, row_off, w, h)
@@ -448,7 +443,6 @@ class TiledWriter:
             raise RasterIOError(f"cannot write window {win} of {self.path!r}: {err}") from err
 
     def close(self) -> None:
-        from rasterio.errors import RasterioError
 
         try:
             self._ds.close()
@@ -479,7 +473,6 @@ def write_raster(path: str | Path, data: NDArray, transform, crs: str | None, *,
     overwrite : bool
         Replace an existing file.
     """
-    from .fileutil import atomic_output
 
     a = np.asarray(data)
     if a.ndim == 2:
@@ -502,7 +495,6 @@ def write_raster(path: str | Path, data: NDArray, transform, crs: str | None, *,
 
 def cog_driver_available() -> bool:
     """True when GDAL's COG driver is registered (GDAL >= 3.1)."""
-    import rasterio
 
     with rasterio.Env() as env:
         return "COG" in env.drivers()
@@ -516,9 +508,6 @@ def translate_to_cog(src: str | Path, dst: str | Path, *, compress: str = "defla
     copy and writes it with ``COPY_SRC_OVERVIEWS=YES``. ``dst`` is written in
     place (wrap in :func:`rectify.fileutil.atomic_output`).
     """
-    import rasterio
-    import rasterio.shutil
-    from rasterio.errors import RasterioError
 
     try:
         if cog_driver_available():
@@ -530,7 +519,6 @@ def translate_to_cog(src: str | Path, dst: str | Path, *, compress: str = "defla
                         opts["PREDICTOR"] = "YES"
             rasterio.shutil.copy(str(src), str(dst), driver="COG", **opts)
             return
-        from rasterio.enums import Resampling
 
         with rasterio.open(src, "r+") as ds:
             levels, n = [], 2
@@ -563,9 +551,6 @@ def read_overview_average(path: str | Path, max_size: int, *, bands: list[int] |
         Mean full-resolution pixels per overview pixel; the exact per-axis
         scales are ``width / w`` and ``height / h``.
     """
-    from rasterio.enums import Resampling
-    from rasterio.errors import RasterioError
-    from rasterio.windows import Window
 
     if max_size < 16:
         raise InvalidInputError(f"max_size must be >= 16; got {max_size}")

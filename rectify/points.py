@@ -7,6 +7,8 @@ so callers' arrays are never modified.
 
 from __future__ import annotations
 
+from itertools import combinations
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -136,7 +138,6 @@ def check_no_three_collinear(pts: NDArray[np.float64], name: str = "points", *, 
     The tolerance is relative: the triangle's doubled area over the squared
     longest side of the set.
     """
-    from itertools import combinations
 
     scale2 = float(np.ptp(pts, axis=0).max()) ** 2 or 1.0
     for i, j, k in combinations(range(len(pts)), 3):

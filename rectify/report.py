@@ -245,15 +245,17 @@ def residual_geojson(table: ResidualTable, ground_xy: ArrayLike, crs: Any, *,
         else:
             ex = float(exaggeration)
     v, nrm, nz = table.residual, table.norm, table.normalised
+    weights, outlier, check = (np.asarray(a) for a in (table.weights, table.outlier, table.check))
     feats = []
     for i in range(table.n):
         props: dict[str, Any] = {"id": table.ids[i], "step": table.step, "units": table.units}
         for j, name in enumerate(table.components):
             props[name] = v[i, j]
-        props.update(norm=nrm[i], normalised=nz[i], weight=table.weights[i],
-                     outlier=bool(table.outlier[i]), check=bool(table.check[i]))
+        props.update(norm=nrm[i], normalised=nz[i], weight=weights[i],
+                     outlier=bool(outlier[i]), check=bool(check[i]))
         x, y = float(g[i, 0]), float(g[i, 1])
-        if vg is not None and np.all(np.isfinite(vg[i])):
+        geom: dict[str, Any]
+        if vg is not None and ex is not None and np.all(np.isfinite(vg[i])):
             props.update(v_ground_x=vg[i, 0], v_ground_y=vg[i, 1], exaggeration=ex)
             geom = {"type": "LineString",
                     "coordinates": [[x, y], [x + ex * float(vg[i, 0]), y + ex * float(vg[i, 1])]]}
@@ -369,7 +371,8 @@ def _principal_point(t: ResidualTable, pp: Any, shape: Sequence[int] | None) -> 
     if shape is not None:
         h, w = int(shape[0]), int(shape[1])
         return np.array([(w - 1) / 2.0, (h - 1) / 2.0]), "image centre (assumed principal point)"
-    pos = t.position_px[np.all(np.isfinite(t.position_px), axis=1)]
+    pp_all = np.asarray(t.position_px, dtype=np.float64).reshape(-1, 2)
+    pos = pp_all[np.all(np.isfinite(pp_all), axis=1)]
     if len(pos):
         return 0.5 * (pos.min(axis=0) + pos.max(axis=0)), "centre of the points' extent (assumed principal point)"
     return np.zeros(2), "origin"
@@ -591,7 +594,7 @@ def _html(title: str, created: str, crs: str | None, plans: list[_TablePlan], su
 # --------------------------------------------------------------------------- main entry
 def write_report(out_dir: str | os.PathLike, *, title: str, tables: list[ResidualTable],
                  figures: dict[str, Figure] | None = None, summary: dict | None = None,
-                 crs: str | None = None, ground_xy: dict[str, ArrayLike] | None = None,
+                 crs: str | None = None, ground_xy: Mapping[str, ArrayLike] | None = None,
                  overwrite: bool = False, backgrounds: dict[str, ArrayLike] | None = None,
                  image_shapes: dict[str, Sequence[int]] | None = None,
                  principal_point_px: ArrayLike | dict[str, ArrayLike] | None = None,
@@ -764,7 +767,7 @@ def write_match_report(report_dir: str | os.PathLike, result: MatchResult, left:
     """
     previews = []
     for p in (left, right):
-        data, valid, scale = read_overview(p, 1024)
+        data, valid, scale = read_overview(os.fspath(p), 1024)
         previews.append((to_uint8(data, valid), scale))
     figs = match_figures(result, previews[0], previews[1])
     tables = [result.verification.table] if result.verification.table is not None else []

@@ -16,12 +16,13 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import InvalidInputError, ShapeError
+from .fileutil import atomic_write_text
 
 __all__ = ["ResidualTable", "rms"]
 
@@ -130,6 +131,19 @@ class ResidualTable:
                 a.flags.writeable = False
 
     # ----------------------------------------------------------------- derived
+    # weights, outlier and check are arrays once __post_init__ has run (None only as constructor defaults)
+    @property
+    def _weights(self) -> NDArray[np.float64]:
+        return cast(NDArray[np.float64], self.weights)
+
+    @property
+    def _outlier(self) -> NDArray[np.bool_]:
+        return cast(NDArray[np.bool_], self.outlier)
+
+    @property
+    def _check(self) -> NDArray[np.bool_]:
+        return cast(NDArray[np.bool_], self.check)
+
     @property
     def n(self) -> int:
         return len(self.ids)
@@ -147,12 +161,12 @@ class ResidualTable:
     @property
     def fit_mask(self) -> NDArray[np.bool_]:
         """Points that took part in the fit: not check points, not outliers."""
-        return ~self.check & ~self.outlier
+        return ~self._check & ~self._outlier
 
     def _sigma0(self) -> float:
         m = self.fit_mask
         v = self.residual[m]
-        w = self.weights[m]
+        w = self._weights[m]
         dof = v.size - self.n_params
         if dof <= 0:
             return float("nan")
@@ -169,7 +183,7 @@ class ResidualTable:
 
     def summary(self) -> dict[str, Any]:
         """Counts, RMSE (fit and check points, per component) and sigma0."""
-        fit, chk = self.fit_mask, self.check
+        fit, chk = self.fit_mask, self._check
         v = self.residual
         out: dict[str, Any] = {
             "step": self.step,
@@ -177,7 +191,7 @@ class ResidualTable:
             "n_points": self.n,
             "n_fit": int(fit.sum()),
             "n_check": int(chk.sum()),
-            "n_outliers": int(self.outlier.sum()),
+            "n_outliers": int(self._outlier.sum()),
             "n_params": int(self.n_params),
             "rmse": rms(self.norm[fit]),
             "rmse_check": rms(self.norm[chk]) if chk.any() else None,
@@ -195,17 +209,17 @@ class ResidualTable:
         rows = []
         for i in range(self.n):
             r: dict[str, Any] = {"id": self.ids[i]}
-            for j, c in enumerate(self.components):
+            for j in range(len(self.components)):
                 r[f"observed_{j}"] = self.observed[i, j]
-            for j, c in enumerate(self.components):
+            for j in range(len(self.components)):
                 r[f"adjusted_{j}"] = self.adjusted[i, j]
             for j, c in enumerate(self.components):
                 r[c] = v[i, j]
             r["norm"] = nrm[i]
             r["normalised"] = nz[i]
-            r["weight"] = self.weights[i]
-            r["outlier"] = int(self.outlier[i])
-            r["check"] = int(self.check[i])
+            r["weight"] = self._weights[i]
+            r["outlier"] = int(self._outlier[i])
+            r["check"] = int(self._check[i])
             rows.append(r)
         return rows
 
@@ -226,8 +240,6 @@ class ResidualTable:
             w.writerow({k: (repr(float(v)) if isinstance(v, (float, np.floating)) else v) for k, v in r.items()})
         text = buf.getvalue()
         if path is not None:
-            from .fileutil import atomic_write_text
-
             atomic_write_text(path, text, overwrite=True)
         return text
 
@@ -239,7 +251,7 @@ class ResidualTable:
         v, nrm = self.residual, self.norm
         idx = range(self.n) if self.n <= max_rows else list(range(max_rows))
         for i in idx:
-            flag = "check" if self.check[i] else ("OUTLIER" if self.outlier[i] else "")
+            flag = "check" if self._check[i] else ("OUTLIER" if self._outlier[i] else "")
             lines.append(f"{self.ids[i]:>10} " + " ".join(f"{x:>10.{precision}f}" for x in v[i])
                          + f" {nrm[i]:>10.{precision}f}  {flag}")
         if self.n > max_rows:

@@ -71,7 +71,8 @@ MAD_TO_SIGMA = 0.6744897501960817
 class PsiFunction(Protocol):
     """An M-estimator: psi(u) and weight(u) = psi(u) / u on standardised residuals u."""
 
-    name: str
+    @property
+    def name(self) -> str: ...
 
     def psi(self, u: NDArray[np.float64]) -> NDArray[np.float64]: ...
 
@@ -370,7 +371,7 @@ def irls(
     converged = False
     s = 0.0
     it = 0
-    for it in range(1, max_iterations + 1):
+    for it in range(1, max_iterations + 1):  # noqa: B007 (it is read after the loop: iterations done)
         r = np.asarray(residuals(model), dtype=np.float64).reshape(-1)
         s = scale if scale is not None else robust_scale(r, mask=w0 > 0)
         if s == 0.0:  # exact fit: nothing to reweight
@@ -488,7 +489,7 @@ def _as_data(data: Any) -> tuple[NDArray[np.float64], ...]:
 
 def ransac(
     data: NDArray[np.float64] | Sequence[NDArray[np.float64]],
-    model_cls: type,
+    model_cls: Any,
     *,
     min_samples: int,
     residual_threshold_px: float,

@@ -688,7 +688,7 @@ def georectify(src: str | Path, dst: str | Path, gcps, *, method: str = "homogra
                               units=t.units, weights=t.weights, outlier=t.outlier,
                               check=t.check, position_px=t.position_px, n_params=t.n_params,
                               extra=dict(t.extra, fit_offset=offset.tolist()))
-    fit = FitResult(forward, table_out, method)
+    fit = FitResult(forward, table_out, method)  # type: ignore[arg-type]  # maps like the model, shifted
     opts = options or WarpOptions()
     grid = output_grid(forward, info.width, info.height, resolution=resolution, crs=out_crs,
                        y_up=out_crs is not None)

@@ -92,9 +92,10 @@ def main() -> None:
     a = ap.parse_args()
     from affine import Affine
 
+    from rectify.formats import write_transform as save_transform
     from rectify.georef import world_from_pixel_matrix
     from rectify.io import raster_info
-    from rectify.transforms import AffineTransform, Homography, save_transform
+    from rectify.transforms import AffineTransform, Homography
 
     work = Path(a.workdir or tempfile.mkdtemp(prefix="bench_warp_"))
     work.mkdir(parents=True, exist_ok=True)
