@@ -331,7 +331,7 @@ def test_table_without_positions_and_empty_table(tmp_path: Path):
 def test_figures_only(tmp_path: Path):
     fig = correlation_heatmap_figure(["a", "b"], np.eye(2))
     write_report(tmp_path / "r", title="figs", tables=[], figures={"heat": fig})
-    assert (tmp_path / "r" / "fig_heat.png").is_file()
+    _assert_figure(tmp_path / "r", "fig_heat.png")
 
 
 def test_background_and_principal_point(tmp_path: Path):
@@ -605,4 +605,15 @@ def test_ground_unit_residuals_drawn_on_map_axes(tmp_path: Path):
     assert fig2.axes[0].yaxis_inverted()
     assert np.all(q2.V * tm.residual[:, 1] <= 0)  # image axes: north is up, i.e. negative row
     write_report(tmp_path / "r", title="t", tables=[tm], crs="EPSG:32618", ground_xy={"map fit": g})
-    assert (tmp_path / "r" / "map_fit_vectors.png").is_file()
+    _assert_figure(tmp_path / "r", "map_fit_vectors.png")
+
+
+def _assert_figure(folder: Path, name: str) -> None:
+    """A written figure decodes as a PNG of a plausible size with drawn content, and the HTML shows it."""
+    import matplotlib.image
+
+    img = matplotlib.image.imread(folder / name)
+    assert img.ndim == 3 and img.shape[0] >= 200 and img.shape[1] >= 200, img.shape
+    colours = np.unique((img[..., :3] * 255).astype(np.uint8).reshape(-1, 3), axis=0)
+    assert len(colours) > 20, len(colours)  # not blank
+    assert f'data-file="{name}" src="data:image/png;base64,' in (folder / "report.html").read_text()
