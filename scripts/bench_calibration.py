@@ -39,11 +39,11 @@ def _cv_calibrate(views, size, flags=0, K0=None):
     obj = [v.object_xyz.astype(np.float32) for v in views]
     img = [v.pixel.astype(np.float32).reshape(-1, 1, 2) for v in views]
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-15)
-    r = cv2.calibrateCameraExtended(obj, img, size, K0, None, flags=flags, criteria=crit)
+    r = cv2.calibrateCameraExtended(obj, img, size, K0, None, flags=flags, criteria=crit)  # type: ignore[call-overload]
     rms, K, d, _, _, std_i = r[0], r[1], r[2].ravel(), r[3], r[4], r[5].ravel()
     vals = {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "k1": d[0], "k2": d[1], "p1": d[2],
             "p2": d[3], "k3": d[4] if len(d) > 4 else 0.0}
-    std = dict(zip(NAMES, std_i[[0, 1, 2, 3, 4, 5, 6, 7, 8]]))
+    std = dict(zip(NAMES, std_i[[0, 1, 2, 3, 4, 5, 6, 7, 8]], strict=True))
     return float(rms), vals, std
 
 
@@ -61,17 +61,19 @@ def section_chessboard(folder: Path, n_mc: int) -> None:
     t = time.perf_counter()
     rms_cv, cv_vals, cv_std = _cv_calibrate(views, size)
     t_cv = time.perf_counter() - t
-    print(f"  RMS reprojection error: ours {cal.rms_px:.6f} px, OpenCV {rms_cv:.6f} px, ratio {cal.rms_px / rms_cv:.6f}")
+    print(f"  RMS reprojection error: ours {cal.rms_px:.9f} px, OpenCV {rms_cv:.9f} px, "
+          f"ratio {cal.rms_px / rms_cv:.9f}")
     print(f"  time: ours {t_ours:.2f} s, OpenCV {t_cv:.2f} s; sigma0 {cal.sigma0_px:.4f} px")
     # Monte Carlo: noise at sigma0 on the adjusted image points, re-solve from the solution
     rng = np.random.default_rng(15)
-    exact = [TargetView(v.name, v.object_xyz, v.pixel + v.residuals, v.ids) for v in cal.views]
+    exact = [TargetView(v.name, tv.object_xyz, v.pixel + v.residuals, v.ids)
+             for v, tv in zip(cal.views, views, strict=True)]
     start = (cal.intrinsics.vector, cal.adjustment.poses)
     est = []
     t = time.perf_counter()
     for _ in range(n_mc):
-        noisy = [TargetView(v.name, v.object_xyz, v.pixel + rng.normal(0, cal.sigma0_px, v.pixel.shape), v.ids)
-                 for v in exact]
+        noisy = [TargetView(v.name, v.object_xyz, v.pixel + rng.normal(0, cal.sigma0_px, v.pixel.shape),
+                            v.ids) for v in exact]
         c = Calibration.from_views(noisy, *size, start=start)
         est.append([c.value(n) for n in cal.names])
     mc = np.std(np.array(est), axis=0, ddof=1)
@@ -98,16 +100,17 @@ def section_reference(path: Path) -> None:
         k += 3 * n
     views = []
     for i in range(nv):
-        views.append(TargetView(f"v{i}", obj[i], np.array(vals[k:k + 2 * n]).reshape(n, 2), [str(j) for j in range(n)]))
+        px = np.array(vals[k:k + 2 * n]).reshape(n, 2)
+        views.append(TargetView(f"v{i}", obj[i], px, tuple(str(j) for j in range(n))))
         k += 2 * n
     ref = vals[k:]
     cal = Calibration.from_views(views, w, h, distortion=("k1", "k2", "p1", "p2"))
     rms_cv, cv_vals, _ = _cv_calibrate(views, (w, h), flags=cv2.CALIB_FIX_K3)
-    i = cal.intrinsics
+    ci = cal.intrinsics
     print(f"[published calibration] {nv} views of a {gc} x {gr} grid, {w} x {h} px (k3 fixed at 0)")
     print(f"  {'':>10} {'published':>11} {'ours':>11} {'OpenCV':>11}")
     for name, r, o in zip(("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"), ref[:8],
-                          (i.fx, i.fy, i.cx, i.cy, i.k1, i.k2, i.p1, i.p2)):
+                          (ci.fx, ci.fy, ci.cx, ci.cy, ci.k1, ci.k2, ci.p1, ci.p2), strict=True):
         print(f"  {name:>10} {r:11.5f} {o:11.5f} {cv_vals[name]:11.5f}")
     ex, ey = cal.pixel_error_std
     print(f"  {'pixel err':>10} {ref[8]:.5f} {ref[9]:.5f} ours {ex:.5f} {ey:.5f}; RMS ours {cal.rms_px:.5f}, "

@@ -172,13 +172,13 @@ class _Problem:
     # parameter vector <-> pieces
     def pack(self, interiors: Sequence[F64], poses: F64, rel: F64) -> F64:
         p = []
-        for v, names in zip(interiors, self.free):
+        for v, names in zip(interiors, self.free, strict=True):
             p += [v[FREE_NAMES[n][0]] for n in names]
         return np.concatenate([np.array(p, dtype=np.float64), poses.reshape(-1), rel.reshape(-1)])
 
     def interiors(self, p: F64) -> list[F64]:
         out, k = [], 0
-        for v0, names in zip(self.base, self.free):
+        for v0, names in zip(self.base, self.free, strict=True):
             v = v0.copy()
             for n in names:
                 v[list(FREE_NAMES[n])] = p[k]
@@ -252,7 +252,7 @@ class _Problem:
                 rp, rm = rel.copy(), rel.copy()
                 rp[:, j] += h
                 rm[:, j] -= h
-                d = (project_vector(V, self.camera_points(poses, rp)) - project_vector(V, self.camera_points(poses, rm)))
+                d = project_vector(V, self.camera_points(poses, rp)) - project_vector(V, self.camera_points(poses, rm))
                 J[m, :, self.off_rel + 6 * ci + j] = d[m] / (2 * h[ci])[:, None]
         return J.reshape(2 * n, self.U)
 

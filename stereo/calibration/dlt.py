@@ -248,7 +248,7 @@ class DLT:
             Rcv = -Rcv
             scale = -scale
         K = K / K[2, 2]
-        C = -np.linalg.solve(M, self.matrix[:, 3])
+        C = np.asarray(-np.linalg.solve(M, self.matrix[:, 3]), dtype=np.float64)
         R = Rcv.T @ CV_FROM_PHOTO
         del scale
         return ProjectiveInterior(fx=float(K[0, 0]), fy=float(K[1, 1]), skew=float(K[0, 1]), cx=float(K[0, 2]),

@@ -30,7 +30,7 @@ principal point, so the coefficients compare directly with OpenCV's and with
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -128,9 +128,6 @@ class Intrinsics:
     @property
     def distortion(self) -> dict[str, float]:
         return {"k1": self.k1, "k2": self.k2, "k3": self.k3, "p1": self.p1, "p2": self.p2}
-
-    def with_distortion(self, **kw: float) -> Intrinsics:
-        return replace(self, **kw)
 
     # ------------------------------------------------------------- projection
     def project(self, xc: ArrayLike) -> F64:

@@ -79,7 +79,7 @@ def distortion_figure(cal: Calibration, *, grid: int = 15) -> Figure:
         cb = fig.colorbar(q, ax=ax, shrink=0.8)
         cb.set_label("displacement (px)")
         ax.plot([i.cx], [i.cy], "k+", ms=12)
-        if i.sx is not None:
+        if i.sx is not None and i.sy is not None:
             ax.plot([i.sx], [i.sy], "rx", ms=8)
         _frame(ax, w, h)
         ax.set_title(f"{name}: max {top:.2f} px", fontsize=10)

@@ -367,22 +367,22 @@ class Calibration:
         m = len(free)
         se = a.std_errors[:m]
         labels = tuple(n.rstrip("*") for n in free)
-        std = dict(zip(labels, (float(s) for s in se)))
+        std = dict(zip(labels, (float(s) for s in se), strict=True))
         fkey = "f" if equal_focal else "fx"
         if std[fkey] > 0.5 * intr.fx:
             raise CalibrationError(f"focal length unobservable: {intr.fx:.1f} +- {std[fkey]:.1f} px from these views "
                                    "(are they all parallel to the image plane?)")
         vres = []
         k0 = 0
-        for s, v in enumerate(views):
-            sl = slice(k0, k0 + v.n)
-            k0 += v.n
+        for s, tv in enumerate(views):
+            sl = slice(k0, k0 + tv.n)
+            k0 += tv.n
             pose = a.poses[s]
             eo = _eo(pose)
             o = m + 6 * s
             eos = _eo_std(pose, a.covariance[o:o + 6, o:o + 6])
             Rcv = rodrigues(pose[:3])[0]
-            vres.append(ViewResult(v.name, v.ids, v.pixel, a.residuals[sl], a.weights[sl], Rcv.T @ CV_FROM_PHOTO,
+            vres.append(ViewResult(tv.name, tv.ids, tv.pixel, a.residuals[sl], a.weights[sl], Rcv.T @ CV_FROM_PHOTO,
                                    eo[3:], eo[:3], eos[:3], eos[3:]))
         r = a.residuals
         rms = float(np.sqrt(np.sum(r * r) / len(r)))

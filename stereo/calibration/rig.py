@@ -92,7 +92,7 @@ class RigCalibration:
         """
         if len(left_views) != len(right_views):
             raise InvalidInputError(f"{len(left_views)} left views but {len(right_views)} right views")
-        for lv, rv in zip(left_views, right_views):
+        for lv, rv in zip(left_views, right_views, strict=True):
             common = set(lv.ids) & set(rv.ids)
             if len(common) < 4:
                 raise InvalidInputError(f"views {lv.name!r} / {rv.name!r} share {len(common)} target points")
@@ -102,7 +102,7 @@ class RigCalibration:
         cr = Calibration.from_views(right_views, rw, rh, **kw)
         pl, pr = cl.adjustment.poses, cr.adjustment.poses
         rels = []
-        for a, b in zip(pl, pr):
+        for a, b in zip(pl, pr, strict=True):
             Ra, Rb = rodrigues(a[:3])[0], rodrigues(b[:3])[0]
             Rr = Rb @ Ra.T
             rels.append(np.concatenate([rotvec_from_matrix(Rr), b[3:] - Rr @ a[3:]]))
@@ -123,8 +123,8 @@ class RigCalibration:
         m = len(free)
         se = a.std_errors
         labels = [n.rstrip("*") for n in free]
-        sl = dict(zip(labels, (float(s) for s in se[:m])))
-        sr = dict(zip(labels, (float(s) for s in se[m:2 * m])))
+        sl = dict(zip(labels, (float(s) for s in se[:m]), strict=True))
+        sr = dict(zip(labels, (float(s) for s in se[m:2 * m]), strict=True))
         rel = a.relative[0]
         o = len(a.names) - 6
         cov = a.covariance[o:, o:]

@@ -88,7 +88,7 @@ def initial_orientation(views: Sequence[TargetView], width: int, height: int, *,
         the image plane) or a view has too few points.
     """
     planar = [v.is_planar for v in views]
-    for v, pl in zip(views, planar):
+    for v, pl in zip(views, planar, strict=True):
         need = 4 if pl else 6
         if v.n < need:
             raise CalibrationError(f"view {v.name!r} has {v.n} points; a {'plane' if pl else '3D'} view needs "
@@ -114,7 +114,7 @@ def initial_orientation(views: Sequence[TargetView], width: int, height: int, *,
         cy = float(np.median([d.cy for d in dec.values()]))
         K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
         method = f"DLT ({len(dlts)} view{'s' if len(dlts) > 1 else ''})"
-        for i, d in dec.items():
+        for i in dec:
             persp[i] = np.inf
         dlt_int = tuple((views[i].name, dec[i]) for i in sorted(dec))
     else:

@@ -53,7 +53,7 @@ def look_at(centre: F64, target: F64, roll: float = 0.0) -> tuple[F64, F64]:
 def _project_views(cam: Intrinsics, X: F64, poses: list[tuple[F64, F64]], ids: tuple[str, ...], names: list[str],
                    noise_px: float, rng: np.random.Generator) -> SyntheticScene:
     views, exact, pv = [], [], []
-    for (R, t), name in zip(poses, names):
+    for (R, t), name in zip(poses, names, strict=True):
         xc = X @ R.T + t
         px = cam.project(xc)
         exact.append(px)

@@ -283,7 +283,7 @@ def read_field_csv(path: str | Path) -> dict[str, F64]:
         pid = r[ix[0]]
         if pid in out:
             raise InvalidInputError(f"{what} line {k}: duplicate point {pid!r}")
-        out[pid] = np.array([_num(r[i], what, k, c) for i, c in zip(ix[1:], need[1:])])
+        out[pid] = np.array([_num(r[i], what, k, c) for i, c in zip(ix[1:], need[1:], strict=True)])
     return out
 
 
@@ -310,7 +310,7 @@ def read_observations_csv(path: str | Path) -> tuple[list[tuple[str, str, float,
         seen.add((view, pid))
         obs.append((view, pid, _num(r[ix[2]], what, k, "col"), _num(r[ix[3]], what, k, "row")))
         if has_xyz:
-            p = np.array([_num(r[i], what, k, c) for i, c in zip(ixyz, "xyz")])
+            p = np.array([_num(r[i], what, k, c) for i, c in zip(ixyz, "xyz", strict=True)])
             if pid in xyz and not np.allclose(xyz[pid], p):
                 raise InvalidInputError(f"{what} line {k}: point {pid!r} has two different object coordinates")
             xyz[pid] = p

@@ -82,8 +82,10 @@ def test_calibrate_board_not_found_everywhere(tmp_path):
 ])
 def test_calibrate_cli_errors(tmp_path, args, msg):
     sc = field_scene(np.random.default_rng(3), n_views=2, n_points=40, noise_px=0.2)
-    obs = ["view,point,col,row"] + [f"{v.name},{p},{c},{r}" for v in sc.views for p, (c, r) in zip(v.ids, v.pixel)]
-    field = ["point,x,y,z"] + [f"{p},{x},{y},{z}" for p, (x, y, z) in zip(sc.views[0].ids, sc.views[0].object_xyz)]
+    obs = ["view,point,col,row"] + [f"{v.name},{p},{c},{r}" for v in sc.views
+                                    for p, (c, r) in zip(v.ids, v.pixel, strict=True)]
+    v0 = sc.views[0]
+    field = ["point,x,y,z"] + [f"{p},{x},{y},{z}" for p, (x, y, z) in zip(v0.ids, v0.object_xyz, strict=True)]
     (tmp_path / "obs.csv").write_text("\n".join(obs) + "\n")
     (tmp_path / "field.csv").write_text("\n".join(field) + "\n")
     img = tmp_path / "img.png"

@@ -94,7 +94,7 @@ def test_plane_target_recovers_truth(plane_cal):
     assert lines[0].startswith("calibration: 8 views, 432 points")
     assert any(line.strip().startswith("fx = ") for line in lines)
     # exterior orientation: centres are at the simulated positions
-    for v, pose in zip(cal.views, sc.poses):
+    for v, pose in zip(cal.views, sc.poses, strict=True):
         Rcv = rodrigues(pose[:3])[0]
         assert np.allclose(v.centre, -Rcv.T @ pose[3:], atol=6 * v.std_centre.max() + 1e-6)
 
@@ -227,8 +227,10 @@ def test_calibration_camera_dict_reads_back(plane_cal):
 # ------------------------------------------------------------------------ CSV files
 def test_csv_views(tmp_path):
     sc = field_scene(np.random.default_rng(9), n_views=2, n_points=30)
-    obs = ["view,point,col,row"] + [f"{v.name},{p},{c},{r}" for v in sc.views for p, (c, r) in zip(v.ids, v.pixel)]
-    field = ["point,x,y,z"] + [f"{p},{x},{y},{z}" for p, (x, y, z) in zip(sc.views[0].ids, sc.views[0].object_xyz)]
+    obs = ["view,point,col,row"] + [f"{v.name},{p},{c},{r}" for v in sc.views
+                                    for p, (c, r) in zip(v.ids, v.pixel, strict=True)]
+    v0 = sc.views[0]
+    field = ["point,x,y,z"] + [f"{p},{x},{y},{z}" for p, (x, y, z) in zip(v0.ids, v0.object_xyz, strict=True)]
     (tmp_path / "obs.csv").write_text("\n".join(obs) + "\n")
     (tmp_path / "field.csv").write_text("\n".join(field) + "\n")
     views = views_from_csv(tmp_path / "obs.csv", tmp_path / "field.csv")
@@ -263,7 +265,8 @@ def test_published_calibration_calib1():
     if not p.is_file():
         pytest.skip(f"published calibration not found at {p}")
     w, h, obj, img, ref = _read_calib1(p)
-    views = [TargetView(f"v{i}", o, x, [str(j) for j in range(len(o))]) for i, (o, x) in enumerate(zip(obj, img))]
+    views = [TargetView(f"v{i}", o, x, tuple(str(j) for j in range(len(o))))
+             for i, (o, x) in enumerate(zip(obj, img, strict=True))]
     cal = Calibration.from_views(views, w, h, distortion=("k1", "k2", "p1", "p2"))
     i = cal.intrinsics
     assert [round(i.fx, 2), round(i.fy, 2), round(i.cx, 2), round(i.cy, 2)] == [809.95, 806.56, 362.00, 214.40]

@@ -35,7 +35,7 @@ def test_zoom_model_predicts_held_out_setting(zoom_cals):
     val, se = zm.predict(20.0)
     held = zoom_cals[20.0]
     zs = [(val[n] - held.value(n)) / math.hypot(se[n], held.std_errors[n]) for n in zm.names]
-    assert max(abs(z) for z in zs) < 2.0, dict(zip(zm.names, zs))
+    assert max(abs(z) for z in zs) < 2.0, dict(zip(zm.names, zs, strict=True))
     assert float(np.sqrt(np.mean(np.square(zs)))) < 1.5
     truth = zoom_camera(20.0)
     for n in ("fx", "fy", "cx", "cy", "k1"):
