@@ -27,3 +27,26 @@ def test_demo(tmp_path):
     assert r2.exit_code != 0 and "exists" in r2.output
     r3 = CliRunner().invoke(cli, ["demo", "--out", str(out), "--overwrite"])
     assert r3.exit_code == 0, r3.output
+
+
+def test_command_modules_are_thin():
+    """Every ``rectify`` command module parses options and calls one action: it imports click, the
+    actions, the workspace and the shared options, and nothing that computes, reads files or draws."""
+    import ast
+    from pathlib import Path
+
+    import rectify.cli
+
+    allowed = {"__future__", "click", "actions", "workspace", "options", "..", ""}
+    for path in Path(rectify.cli.__file__).parent.glob("*.py"):
+        if path.name in ("__init__.py", "main.py", "options.py"):
+            continue
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                names = [node.module or ""] if node.module else [a.name for a in node.names]
+            else:
+                continue
+            assert all(n.split(".")[-1] in allowed for n in names), (path.name, names)
