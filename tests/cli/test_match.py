@@ -37,7 +37,11 @@ def test_match_end_to_end_with_report(tmp_path):
     e = np.linalg.norm(q[:, :2] / q[:, 2:] - m.right, axis=1)
     assert np.median(e) < 0.1
     assert (tmp_path / "rep" / "report.html").is_file()
-    assert (tmp_path / "rep" / "fig_matches.png").is_file() and (tmp_path / "rep" / "fig_density.png").is_file()
+    import matplotlib.image
+
+    for name in ("fig_matches.png", "fig_density.png"):  # decoded, drawn (not blank)
+        img = matplotlib.image.imread(tmp_path / "rep" / name)
+        assert min(img.shape[:2]) >= 200 and np.ptp(img[..., :3]) > 0.5, (name, img.shape)
     # never overwrite without --overwrite
     res2 = CliRunner().invoke(cli, ["match", str(lp), str(rp), "-o", str(out)])
     assert res2.exit_code != 0 and "exists" in res2.output

@@ -131,6 +131,11 @@ def test_demo_cli_default_configuration(tmp_path):
     for name in ("fig_ro_correlation_of_elements.png", "fig_ao_plan_residuals.png", "fig_ao_height_residuals.png",
                  "absolute_orientation.geojson"):
         assert (rep / name).is_file(), name
+        if name.endswith(".png"):  # decoded, drawn (not blank)
+            import matplotlib.image
+
+            img = matplotlib.image.imread(rep / name)
+            assert min(img.shape[:2]) >= 200 and np.ptp(img[..., :3]) > 0.5, (name, img.shape)
     gj = json.loads((rep / "absolute_orientation.geojson").read_text())
     assert len(gj["features"]) == 30
     assert (out / "points.ply").is_file()
