@@ -97,7 +97,8 @@ def test_ply_round_trip(tmp_path):
     assert read_ply_xyz(tmp_path / "p.ply").shape == (0, 3)
     write_ply(tmp_path / "p.ply", xyz, overwrite=True)
     pc = read_ply(tmp_path / "p.ply")
-    assert_array_equal(pc.xyz, xyz) and pc.colors is None and pc.comments == ()
+    assert_array_equal(pc.xyz, xyz)
+    assert pc.colors is None and pc.comments == ()
 
 
 def test_points_csv_round_trip(tmp_path):
