@@ -335,11 +335,12 @@ class RPC:
 
     def localize_on_dem(self, pixels: ArrayLike, dem: Callable[[NDArray], NDArray], *,
                         h_range: tuple[float, float] | None = None, tol_m: float = 1e-4,
-                        on_failure: str = "raise") -> NDArray[np.float64]:
+                        on_failure: str = "raise", n_scan: int = 128) -> NDArray[np.float64]:
         """Image -> the first ground point of a DEM along the line of sight, (N, 3).
 
-        The line of sight is scanned from the top of ``h_range`` down (so the
-        *visible* surface is found, not a hidden one); the first bracket where
+        The line of sight is scanned from the top of ``h_range`` down in
+        ``n_scan`` steps (so the *visible* surface is found, not a hidden one;
+        features thinner than a step along the line may be missed); the first bracket where
         ``h - dem(lon, lat)`` changes sign is refined by the secant/bisection
         method on exact localisations until the height is within ``tol_m``.
 
@@ -360,33 +361,33 @@ class RPC:
         lo, hi = h_range if h_range is not None else self.validity_box[2]
         if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
             raise InvalidInputError(f"h_range must be two finite heights, low < high; got {h_range!r}")
+        if on_failure not in ("raise", "nan"):
+            raise InvalidInputError(f"on_failure must be 'raise' or 'nan'; got {on_failure!r}")
         n = len(p)
-        levels = np.linspace(hi, lo, max(3, int(math.ceil((hi - lo) / max((hi - lo) / 64, 1.0))) + 1))
-        # exact localisation at each level, linear interpolation between levels for the scan
-        prev_h = np.full(n, levels[0])
-        prev_g = self.localize(p, prev_h, on_failure="nan")
-        prev_f = prev_h - _dem_eval(dem, prev_g[:, :2])
+        # the line of sight between the top and the bottom of h_range; it is straight to well under a
+        # millimetre over a DEM's height range, so the scan interpolates it and only the root is exact
+        top = self.localize(p, hi, on_failure="nan")
+        bot = self.localize(p, lo, on_failure="nan")
+        steps = n_scan
         a_h, b_h = np.full(n, np.nan), np.full(n, np.nan)
-        a_f, b_f = np.full(n, np.nan), np.full(n, np.nan)
         found = np.zeros(n, bool)
-        found |= prev_f <= 0  # already below the surface at the top: take the top bracket
-        a_h[found], b_h[found], a_f[found], b_f[found] = prev_h[found], prev_h[found], prev_f[found], prev_f[found]
-        for z in levels[1:]:
-            hz = np.full(n, z)
-            gz = self.localize(p, hz, on_failure="nan")
-            sub = 4
-            for k in range(1, sub + 1):
-                t = k / sub
-                gi = prev_g * (1 - t) + gz * t
-                fi = gi[:, 2] - _dem_eval(dem, gi[:, :2])
-                hit = ~found & (fi <= 0) & np.isfinite(prev_f)
-                a_h[hit] = (prev_g[hit, 2] * (1 - (k - 1) / sub) + gz[hit, 2] * (k - 1) / sub)
-                b_h[hit] = gi[hit, 2]
-                found |= hit
-                prev_f = np.where(np.isfinite(fi), fi, prev_f)
-            prev_g = gz
-            if found.all():
+        prev_f = np.full(n, np.nan)
+        active = np.isfinite(top).all(axis=1) & np.isfinite(bot).all(axis=1)
+        for k in range(steps + 1):
+            idx = np.flatnonzero(active & ~found)
+            if not len(idx):
                 break
+            t = k / steps
+            gi = top[idx] * (1 - t) + bot[idx] * t
+            fi = gi[:, 2] - _dem_eval(dem, gi[:, :2])
+            below = fi <= 0
+            first = below & (k == 0)
+            hit = below & ~first & np.isfinite(prev_f[idx])
+            a_h[idx[hit]] = hi + (lo - hi) * (k - 1) / steps
+            b_h[idx[hit]] = gi[hit, 2]
+            a_h[idx[first]] = b_h[idx[first]] = hi  # below the surface at the top of h_range
+            found[idx[hit | first]] = True
+            prev_f[idx] = np.where(np.isfinite(fi), fi, prev_f[idx])
         if not found.all() and on_failure == "raise":
             i = int(np.flatnonzero(~found)[0])
             raise ConvergenceError(f"RPC {self.source}: the line of sight of pixel {p[i].tolist()} does not meet "
@@ -398,23 +399,34 @@ class RPC:
             pp = p[idx]
             fa = a - _dem_eval(dem, self.localize(pp, a, on_failure="nan")[:, :2])
             fb = b - _dem_eval(dem, self.localize(pp, b, on_failure="nan")[:, :2])
-            for _ in range(100):
+            best_h = np.where(np.abs(fa) < np.abs(fb), a, b)
+            best_f = np.minimum(np.abs(fa), np.abs(fb))
+            last = np.zeros(len(idx), np.int8)  # Illinois variant of regula falsi: +1 a moved, -1 b moved
+            act = np.ones(len(idx), bool)
+            for _ in range(60):
+                j = np.flatnonzero(act)
+                if not len(j):
+                    break
+                aj, bj, faj, fbj = a[j], b[j], fa[j], fb[j]
                 with np.errstate(divide="ignore", invalid="ignore"):
-                    m = np.where(np.abs(fa - fb) > 1e-12, b - fb * (b - a) / (fb - fa), 0.5 * (a + b))
-                lo_ab, hi_ab = np.minimum(a, b), np.maximum(a, b)
-                m = np.where((m > lo_ab) & (m < hi_ab), m, 0.5 * (a + b))
-                gm = self.localize(pp, m, on_failure="nan")
+                    m = np.where(np.abs(faj - fbj) > 1e-12, bj - fbj * (bj - aj) / (fbj - faj), 0.5 * (aj + bj))
+                m = np.where((m > np.minimum(aj, bj)) & (m < np.maximum(aj, bj)), m, 0.5 * (aj + bj))
+                gm = self.localize(pp[j], m, on_failure="nan")
                 fm = m - _dem_eval(dem, gm[:, :2])
                 # keep the bracket: a above the surface (f > 0), b below (f <= 0)
                 above = fm > 0
-                a = np.where(above, m, a)
-                fa = np.where(above, fm, fa)
-                b = np.where(above, b, m)
-                fb = np.where(above, fb, fm)
-                if np.all(np.abs(fm) < tol_m) or np.all(np.abs(a - b) < tol_m * 1e-3):
-                    break
-            hbest = np.where(np.abs(fa) < np.abs(fb), a, b)
-            out[idx] = self.localize(pp, hbest, on_failure="nan")
+                fb[j] = np.where(above & (last[j] == 1), 0.5 * fbj, fbj)
+                fa[j] = np.where(~above & (last[j] == -1), 0.5 * faj, faj)
+                a[j] = np.where(above, m, aj)
+                fa[j] = np.where(above, fm, fa[j])
+                b[j] = np.where(above, bj, m)
+                fb[j] = np.where(above, fb[j], fm)
+                last[j] = np.where(above, 1, -1)
+                better = np.abs(fm) < best_f[j]
+                best_h[j[better]] = m[better]
+                best_f[j[better]] = np.abs(fm[better])
+                act[j] = ~((np.abs(fm) < tol_m) | ~np.isfinite(fm) | (np.abs(a[j] - b[j]) < tol_m * 1e-3))
+            out[idx] = self.localize(pp, best_h, on_failure="nan")
         return out
 
     # ------------------------------------------------------------ synthetic

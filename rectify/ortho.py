@@ -1,0 +1,820 @@
+"""Orthorectification with a DEM: frame cameras and RPC images, true orthophotos.
+
+For every output pixel (a north-up grid in any CRS) the ground height comes
+from the DEM (any CRS and resolution, bilinear, resampled on the fly through
+:class:`rectify.datum.Dem`), the ground point (x, y, h) is projected into the
+image by the sensor model, and the image is resampled there (OpenCV remap on
+the source window the tile needs). The horizontal CRS changes (output ->
+model, output -> DEM) are smooth and are evaluated exactly on a sparse grid
+(every ``map_step_px`` pixels) and interpolated bilinearly; heights and the
+sensor projection are evaluated exactly at every output pixel.
+
+True orthophoto (``true_ortho=True``): each ground point is tested for
+visibility by marching along its line of sight towards the sensor over the
+DEM (half-pixel steps, up to the highest DEM point of the tile's
+neighbourhood); a point hidden by higher ground (a wall, a building, a ridge)
+gets nodata instead of the occluder's pixels (no ghost image), and an extra
+last band records the visibility: 0 outside the image, 1 occluded, 2 visible.
+
+Output: tiled, compressed GeoTIFF (COG with ``cog=True``), written tile by
+tile from a thread pool (bounded memory: at most ``2 x threads + 1`` tiles in
+flight) to a temporary file renamed at the end. Nodata outside the image:
+the source nodata, else 0 for integer rasters and NaN for float ones (valid
+pixels equal to 0 in integer outputs are raised to 1 so they stay valid).
+
+Sensor models (:class:`FrameModel`, :class:`RPCModel`) share one small
+interface: ``crs`` (the ground CRS of the model), ``width``/``height`` (image
+size), ``project(ground (N, 3)) -> pixels (N, 2)`` (NaN where it cannot),
+``ground_at_height(pixels, h) -> (N, 3)`` and ``nadir`` (the ground point under
+the sensor, or the image centre for RPCs, in ``crs``).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .camera import Camera
+from .datum import Dem, bilinear
+from .errors import CRSError, InvalidInputError, RasterIOError, ShapeError
+from .georef import Grid
+
+__all__ = ["SensorModel", "FrameModel", "RPCModel", "OrthoOptions", "OrthoResult", "orthorectify",
+           "read_exterior", "ortho_grid", "VISIBILITY_OUTSIDE", "VISIBILITY_OCCLUDED", "VISIBILITY_VISIBLE"]
+
+logger = logging.getLogger(__name__)
+
+VISIBILITY_OUTSIDE, VISIBILITY_OCCLUDED, VISIBILITY_VISIBLE = 0, 1, 2
+
+
+class SensorModel(Protocol):
+    crs: str
+    width: int
+    height: int
+
+    def project(self, ground: NDArray[np.float64]) -> NDArray[np.float64]: ...
+
+    def ground_at_height(self, pixels: NDArray[np.float64], h: NDArray[np.float64] | float
+                         ) -> NDArray[np.float64]: ...
+
+    @property
+    def nadir(self) -> NDArray[np.float64]: ...
+
+
+# =========================================================================== models
+def read_exterior(path: str | Path) -> dict[str, Any]:
+    """Read the fields the orthorectifier needs from an exterior orientation JSON (``stereo resect``).
+
+    Returns ``{"position": (3,), "rotation": (3, 3), "crs": str | None}``. The
+    rotation is ``rotation`` (photo vector -> ground) or is built from
+    ``angles`` (radians, ``system`` default omega-phi-kappa).
+
+    Raises
+    ------
+    RasterIOError, InvalidInputError
+        Missing file, bad JSON, missing or bad keys (named).
+    """
+    from .fileutil import read_json
+    from .rotation import check_rotation, matrix_from_angles
+
+    d = read_json(path, "exterior orientation file")
+    if not isinstance(d, dict):
+        raise InvalidInputError(f"exterior orientation {str(path)!r} must be a JSON object")
+    if "position" not in d:
+        raise InvalidInputError(f"exterior orientation {str(path)!r} lacks 'position'")
+    pos = np.asarray(d["position"], dtype=np.float64).reshape(-1)
+    if pos.shape != (3,) or not np.isfinite(pos).all():
+        raise InvalidInputError(f"exterior orientation {str(path)!r}: 'position' must be 3 finite numbers; "
+                                f"got {d['position']!r}")
+    if "rotation" in d:
+        R = check_rotation(d["rotation"], "rotation")
+    elif isinstance(d.get("angles"), dict):
+        a = d["angles"]
+        try:
+            R = matrix_from_angles(float(a["omega"]), float(a["phi"]), float(a["kappa"]),
+                                   a.get("system", "omega-phi-kappa"))
+        except (KeyError, TypeError, ValueError) as err:
+            raise InvalidInputError(f"exterior orientation {str(path)!r}: bad 'angles': {err}") from None
+    else:
+        raise InvalidInputError(f"exterior orientation {str(path)!r} lacks 'rotation' (or 'angles')")
+    crs = d.get("crs")
+    return {"position": pos, "rotation": np.asarray(R, dtype=np.float64), "crs": crs}
+
+
+@dataclass(frozen=True, eq=False)
+class FrameModel:
+    """A frame camera: interior orientation + exterior orientation in a ground CRS.
+
+    Attributes
+    ----------
+    camera : Camera
+    position : (3,) projection centre (X, Y, Z) in ``crs`` units (heights in metres)
+    rotation : (3, 3) photo vector (x, y, -f) -> ground frame
+    crs : str
+        The ground CRS (a projected CRS; heights as the DEM's after datum correction).
+    """
+
+    camera: Camera
+    position: NDArray[np.float64]
+    rotation: NDArray[np.float64]
+    crs: str
+
+    def __post_init__(self) -> None:
+        from .crs import crs_to_string
+        from .rotation import check_rotation
+
+        pos = np.array(self.position, dtype=np.float64).reshape(-1)
+        if pos.shape != (3,) or not np.isfinite(pos).all():
+            raise ShapeError(f"`position` must be 3 finite numbers; got {np.asarray(self.position).tolist()}")
+        R = check_rotation(self.rotation, "rotation")
+        if self.crs is None:
+            raise CRSError("a frame model needs the CRS of its exterior orientation (--eo-crs or 'crs' in the JSON)")
+        object.__setattr__(self, "position", pos)
+        object.__setattr__(self, "rotation", R)
+        object.__setattr__(self, "crs", crs_to_string(self.crs))
+
+    @classmethod
+    def from_files(cls, camera_json: str | Path, exterior_json: str | Path, *, crs: str | None = None) -> FrameModel:
+        """Camera JSON + exterior orientation JSON (``crs`` overrides the EO file's)."""
+        cam = Camera.from_json(camera_json)
+        eo = read_exterior(exterior_json)
+        c = crs or eo["crs"]
+        if c is None:
+            raise CRSError(f"exterior orientation {str(exterior_json)!r} has no 'crs'; pass the CRS of its "
+                           f"coordinates")
+        return cls(cam, eo["position"], eo["rotation"], c)
+
+    @property
+    def width(self) -> int:
+        return self.camera.width
+
+    @property
+    def height(self) -> int:
+        return self.camera.height
+
+    @property
+    def nadir(self) -> NDArray[np.float64]:
+        return self.position[:2].copy()
+
+    def project(self, ground: NDArray[np.float64]) -> NDArray[np.float64]:
+        g = np.asarray(ground, dtype=np.float64).reshape(-1, 3)
+        p = (g - self.position) @ self.rotation  # R^T (P - C), row-wise
+        f = self.camera.focal_length_mm
+        out = np.full((len(g), 2), np.nan)
+        ok = np.isfinite(p).all(axis=1) & (p[:, 2] < 0)  # in front of the camera
+        if ok.any():
+            mm = np.column_stack([-f * p[ok, 0] / p[ok, 2], -f * p[ok, 1] / p[ok, 2]])
+            out[ok] = self.camera.pixel_from_photo(mm)
+        return out
+
+    def ground_at_height(self, pixels: NDArray[np.float64], h: NDArray[np.float64] | float) -> NDArray[np.float64]:
+        px = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+        hh = np.broadcast_to(np.asarray(h, dtype=np.float64), (len(px),))
+        rays = self.camera.rays_from_pixel(px) @ self.rotation.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (hh - self.position[2]) / rays[:, 2]
+        out = self.position + t[:, None] * rays
+        out[:, 2] = hh
+        out[~(t > 0)] = np.nan
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class RPCModel:
+    """An RPC (or refined RPC) image: ground (lon, lat, ellipsoidal h) on WGS 84 -> pixels."""
+
+    rpc: Any  # rectify.rpc.RPC or RPCRefinement
+    width: int
+    height: int
+    crs: str = "EPSG:4326"
+
+    def project(self, ground: NDArray[np.float64]) -> NDArray[np.float64]:
+        g = np.asarray(ground, dtype=np.float64).reshape(-1, 3)
+        return self.rpc._project(g)
+
+    def ground_at_height(self, pixels: NDArray[np.float64], h: NDArray[np.float64] | float) -> NDArray[np.float64]:
+        return self.rpc.localize(pixels, h, on_failure="nan")
+
+    @property
+    def nadir(self) -> NDArray[np.float64]:
+        """The image centre at the model's mean height (an RPC has no nadir point)."""
+        c = np.array([[(self.width - 1) / 2.0, (self.height - 1) / 2.0]])
+        return self.rpc.localize(c, self.rpc.validity_box[2][0] / 2 + self.rpc.validity_box[2][1] / 2)[0, :2]
+
+
+# =========================================================================== options / result
+@dataclass(frozen=True)
+class OrthoOptions:
+    """Options of :func:`orthorectify`.
+
+    Attributes
+    ----------
+    resampling : ``nearest``, ``bilinear`` or ``cubic``
+    tile_px : output tile and block size (multiple of 16)
+    threads : worker threads (None: all cores)
+    compress : GeoTIFF compression
+    cog : write a Cloud Optimized GeoTIFF
+    true_ortho : z-buffer (line-of-sight) visibility and the visibility band
+    map_step_px : spacing of the exactly transformed points for CRS changes
+    max_window_px : largest source window read for one tile (bigger tiles are split)
+    """
+
+    resampling: str = "bilinear"
+    tile_px: int = 512
+    threads: int | None = None
+    compress: str = "zstd"
+    cog: bool = False
+    true_ortho: bool = False
+    map_step_px: int = 16
+    max_window_px: int = 8192
+
+    def __post_init__(self) -> None:
+        if self.resampling not in ("nearest", "bilinear", "cubic"):
+            raise InvalidInputError(f"unknown resampling {self.resampling!r}; expected nearest, bilinear or cubic")
+        if self.tile_px < 16 or self.tile_px % 16 or self.tile_px > 4096:
+            raise InvalidInputError(f"tile_px must be a multiple of 16 in 16..4096; got {self.tile_px}")
+        if self.threads is not None and self.threads < 1:
+            raise InvalidInputError(f"threads must be >= 1; got {self.threads}")
+        if self.map_step_px < 1:
+            raise InvalidInputError(f"map_step_px must be >= 1; got {self.map_step_px}")
+
+    @property
+    def n_threads(self) -> int:
+        import os
+
+        return self.threads or (os.cpu_count() or 1)
+
+
+@dataclass(frozen=True)
+class OrthoResult:
+    """What :func:`orthorectify` wrote.
+
+    Attributes
+    ----------
+    path, grid, seconds
+    n_tiles, n_empty_tiles : int
+    dem_path : str
+    dem_range : (float, float)
+        Lowest and highest ellipsoidal/model heights met on the output grid.
+    max_relief_shift : float
+        Largest horizontal displacement (output CRS units) a planar
+        rectification at the mean height would have made: the height-induced
+        shift the DEM removed.
+    n_occluded : int
+        Output pixels found hidden (true ortho).
+    nodata : float
+    model : str
+    """
+
+    path: Path
+    grid: Grid
+    seconds: float
+    n_tiles: int
+    n_empty_tiles: int
+    dem_path: str
+    dem_range: tuple[float, float]
+    max_relief_shift: float
+    n_occluded: int
+    nodata: float
+    model: str
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def summary_lines(self) -> list[str]:
+        g = self.grid
+        out = [f"wrote {self.path}: {g.width} x {g.height} px, {g.resolution[0]:.6g} units/px, CRS {g.crs}, "
+               f"{self.model}, {self.seconds:.2f} s",
+               f"DEM {self.dem_path}: heights {self.dem_range[0]:.2f} .. {self.dem_range[1]:.2f} m on the output; "
+               f"relief displacement removed up to {self.max_relief_shift:.2f} units"]
+        if self.extra.get("true_ortho"):
+            out.append(f"true ortho: {self.n_occluded} occluded pixels set to nodata (visibility band "
+                       f"{g and self.extra.get('visibility_band')})")
+        return out
+
+
+# =========================================================================== grids
+def _utm_for(lon: float, lat: float) -> str:
+    zone = int(math.floor((lon + 180.0) / 6.0)) % 60 + 1
+    return f"EPSG:{32600 + zone if lat >= 0 else 32700 + zone}"
+
+
+def ortho_grid(model: SensorModel, dem: Dem, *, dst_crs: str | None = None, resolution: float | None = None,
+               max_pixels: float = 4e10) -> Grid:
+    """The north-up output grid covering the image footprint between the DEM's lowest and highest heights.
+
+    Default CRS: the model's for frame cameras, the UTM zone of the image
+    centre for RPC images. Default resolution: the ground distance of the
+    image diagonal over its length in pixels (GDAL's suggestion), at the mean
+    height. Bounds are aligned to multiples of the resolution.
+    """
+    from affine import Affine
+
+    from .crs import crs_to_string, transform_xy
+    from .georef import boundary_pixels
+
+    hmin, hmax = dem.range()
+    edge = boundary_pixels(model.width, model.height, 33)
+    pts = []
+    for h in (hmin, 0.5 * (hmin + hmax), hmax):
+        g = model.ground_at_height(edge, h)
+        pts.append(g[np.isfinite(g).all(axis=1), :2])
+    world = np.vstack(pts)
+    if len(world) < 3:
+        raise InvalidInputError("the image footprint does not reach the ground at the DEM's heights "
+                                f"({hmin:.1f} .. {hmax:.1f} m): check the orientation and the DEM")
+    if dst_crs is None:
+        if model.crs in ("EPSG:4326", "EPSG:4979"):
+            c = world.mean(axis=0)
+            dst_crs = _utm_for(float(c[0]), float(c[1]))
+        else:
+            dst_crs = model.crs
+    dst = crs_to_string(dst_crs)
+    w = transform_xy(model.crs, dst, world)
+    if resolution is None:
+        hm = 0.5 * (hmin + hmax)
+        d = model.ground_at_height(np.array([[-0.5, -0.5], [model.width - 0.5, model.height - 0.5]]), hm)
+        if not np.isfinite(d).all():
+            raise InvalidInputError("cannot estimate an output resolution; pass one")
+        dd = transform_xy(model.crs, dst, d[:, :2])
+        resolution = float(np.hypot(*(dd[1] - dd[0]))) / math.hypot(model.width, model.height)
+    res = float(resolution)
+    if not math.isfinite(res) or res <= 0:
+        raise InvalidInputError(f"resolution must be a positive number; got {resolution!r}")
+    eps = 1e-9
+    x0 = math.floor(w[:, 0].min() / res + eps) * res
+    y0 = math.floor(w[:, 1].min() / res + eps) * res
+    x1 = math.ceil(w[:, 0].max() / res - eps) * res
+    y1 = math.ceil(w[:, 1].max() / res - eps) * res
+    nx, ny = max(1, int(round((x1 - x0) / res))), max(1, int(round((y1 - y0) / res)))
+    if float(nx) * float(ny) > max_pixels:
+        raise InvalidInputError(f"output grid of {nx} x {ny} pixels at resolution {res!r} is too large; "
+                                f"pass a coarser --resolution")
+    return Grid(nx, ny, Affine(res, 0.0, x0, 0.0, -res, y1), dst)
+
+
+# =========================================================================== tile engine
+def _interp_matrix(n: int, knots: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(n, k) linear interpolation weights from values at ``knots`` (ascending) to 0..n-1."""
+    x = np.arange(n, dtype=np.float64)
+    k = len(knots)
+    if k == 1:
+        return np.ones((n, 1))
+    i = np.clip(np.searchsorted(knots, x, side="right") - 1, 0, k - 2)
+    t = (x - knots[i]) / (knots[i + 1] - knots[i])
+    M = np.zeros((n, k))
+    M[np.arange(n), i] = 1 - t
+    M[np.arange(n), i + 1] = t
+    return M
+
+
+def _knots(n: int, step: int) -> NDArray[np.float64]:
+    k = np.arange(0, n, step, dtype=np.float64)
+    if k[-1] != n - 1:
+        k = np.append(k, n - 1)
+    return k
+
+
+class _Engine:
+    def __init__(self, src: str, model: SensorModel, dem: Dem, grid: Grid, opts: OrthoOptions, dtype: np.dtype,
+                 count: int, nodata: float, margin_px: int, h_ref: float):
+        import cv2
+
+        self.src, self.model, self.dem, self.grid, self.opts = src, model, dem, grid, opts
+        self.dtype, self.count, self.nodata = dtype, count, nodata
+        self.margin = int(margin_px)
+        self.h_ref = h_ref
+        self.interp = {"nearest": cv2.INTER_NEAREST, "bilinear": cv2.INTER_LINEAR,
+                       "cubic": cv2.INTER_CUBIC}[opts.resampling]
+        self._local = threading.local()
+        self._readers: list = []
+        self._lock = threading.Lock()
+        self.stats_lock = threading.Lock()
+        self.hmin, self.hmax, self.max_shift, self.n_occluded = math.inf, -math.inf, 0.0, 0
+        from .crs import same_crs
+
+        self.same_model = same_crs(grid.crs, model.crs)
+        self.same_dem = same_crs(grid.crs, dem.crs)
+
+    def reader(self):
+        r = getattr(self._local, "reader", None)
+        if r is None:
+            from .io import WindowReader
+
+            r = WindowReader(self.src)
+            self._local.reader = r
+            with self._lock:
+                self._readers.append(r)
+        return r
+
+    def close(self) -> None:
+        for r in self._readers:
+            r.close()
+
+    # ---------------------------------------------------------------- geometry of a block
+    def _world(self, c0: int, r0: int, w: int, h: int) -> tuple[NDArray, NDArray]:
+        t = tuple(self.grid.transform)
+        xs = t[2] + t[0] * (np.arange(c0, c0 + w) + 0.5)
+        ys = t[5] + t[4] * (np.arange(r0, r0 + h) + 0.5)
+        return np.broadcast_to(xs, (h, w)), np.broadcast_to(ys[:, None], (h, w))
+
+    def _sparse(self, c0: int, r0: int, w: int, h: int, fn: Callable[[NDArray], NDArray], dim: int) -> NDArray:
+        """fn evaluated on a sparse grid of the block's world points, interpolated to (h, w, dim)."""
+        step = self.opts.map_step_px
+        kc, kr = _knots(w, step), _knots(h, step)
+        t = tuple(self.grid.transform)
+        X = t[2] + t[0] * (c0 + kc + 0.5)
+        Y = t[5] + t[4] * (r0 + kr + 0.5)
+        XX, YY = np.meshgrid(X, Y)
+        vals = np.asarray(fn(np.column_stack([XX.ravel(), YY.ravel()])), dtype=np.float64).reshape(len(kr), len(kc), dim)
+        Mc, Mr = _interp_matrix(w, kc), _interp_matrix(h, kr)
+        return np.stack([Mr @ vals[:, :, k] @ Mc.T for k in range(dim)], axis=-1)
+
+    def _heights(self, c0: int, r0: int, w: int, h: int) -> NDArray[np.float64]:
+        from .crs import transform_xy
+        from .georef import pixel_from_world_matrix
+
+        M = pixel_from_world_matrix(self.dem.transform)
+        if self.same_dem:
+            X, Y = self._world(c0, r0, w, h)
+            dx = M[0, 0] * X + M[0, 1] * Y + M[0, 2]
+            dy = M[1, 0] * X + M[1, 1] * Y + M[1, 2]
+        else:
+            def to_dem_px(p):
+                q = transform_xy(self.grid.crs, self.dem.crs, p)
+                return q @ M[:2, :2].T + M[:2, 2]
+            d = self._sparse(c0, r0, w, h, to_dem_px, 2)
+            dx, dy = d[..., 0], d[..., 1]
+        z = self.dem.heights_at_dem_pixels(dx, dy) + self.dem.undulation
+        if self.dem.geoid is not None:
+            from .datum import geoid_undulation
+
+            z = z + self._sparse(c0, r0, w, h, lambda p: geoid_undulation(
+                transform_xy(self.grid.crs, "EPSG:4326", p), self.dem.geoid or "")[:, None], 1)[..., 0]
+        return z
+
+    def _model_xy(self, c0: int, r0: int, w: int, h: int) -> tuple[NDArray, NDArray]:
+        from .crs import transform_xy
+
+        if self.same_model:
+            return self._world(c0, r0, w, h)
+        m = self._sparse(c0, r0, w, h, lambda p: transform_xy(self.grid.crs, self.model.crs, p), 2)
+        return m[..., 0], m[..., 1]
+
+    def _direction(self, c0: int, r0: int, w: int, h: int, hz: float) -> NDArray[np.float64]:
+        """Horizontal displacement towards the sensor per metre of height, in output pixels (h, w, 2) (col, row)."""
+        from .crs import transform_xy
+
+        t = tuple(self.grid.transform)
+        dz = 10.0
+
+        def fn(p):
+            g0 = transform_xy(self.grid.crs, self.model.crs, p) if not self.same_model else p
+            pix = self.model.project(np.column_stack([g0, np.full(len(g0), hz)]))
+            out = np.zeros((len(p), 2))
+            ok = np.isfinite(pix).all(axis=1)
+            if ok.any():
+                g1 = self.model.ground_at_height(pix[ok], hz + dz)
+                ok2 = np.isfinite(g1).all(axis=1)
+                w1 = np.full((ok.sum(), 2), np.nan)
+                if ok2.any():
+                    w1[ok2] = transform_xy(self.model.crs, self.grid.crs, g1[ok2, :2]) if not self.same_model \
+                        else g1[ok2, :2]
+                d = (w1 - p[ok]) / dz
+                out[ok] = np.where(np.isfinite(d), d, 0.0)
+            return np.column_stack([out[:, 0] / t[0], out[:, 1] / t[4]])
+        return self._sparse(c0, r0, w, h, fn, 2)
+
+    # ---------------------------------------------------------------- one tile
+    def tile(self, c0: int, r0: int, w: int, h: int) -> tuple[NDArray, bool]:
+        m = self.margin if self.opts.true_ortho else 0
+        # the block with a margin (for the line-of-sight test), clipped to nothing: heights outside the grid exist
+        bc0, br0, bw, bh = c0 - m, r0 - m, w + 2 * m, h + 2 * m
+        Z = self._heights(bc0, br0, bw, bh)
+        z = Z[m:m + h, m:m + w]
+        mx, my = self._model_xy(c0, r0, w, h)
+        g = np.column_stack([mx.ravel(), my.ravel(), z.ravel()])
+        pix = np.full((len(g), 2), np.nan)
+        okz = np.isfinite(g[:, 2])
+        if okz.any():
+            pix[okz] = self.model.project(g[okz])
+        col = pix[:, 0].reshape(h, w)
+        row = pix[:, 1].reshape(h, w)
+        W, H = self.model.width, self.model.height
+        inside = np.isfinite(col) & np.isfinite(row) & (col >= -0.5) & (col <= W - 0.5) & (row >= -0.5) \
+            & (row <= H - 0.5)
+        vis = None
+        d = None
+        if inside.any():
+            d = self._direction(c0, r0, w, h, float(np.nanmean(z[inside])))
+            self._stats(z[inside], d)
+        if self.opts.true_ortho and d is not None:
+            vis = self._visible(Z, m, d, w, h, z, inside)
+        out_bands = self.count + (1 if self.opts.true_ortho else 0)
+        out = np.full((h, w, out_bands), self.nodata, dtype=self.dtype)
+        if self.opts.true_ortho:
+            out[..., -1] = VISIBILITY_OUTSIDE
+        if not inside.any():
+            return out, True
+        use = inside if vis is None else (inside & vis)
+        if self.opts.true_ortho:
+            out[..., -1] = np.where(inside, np.where(use, VISIBILITY_VISIBLE, VISIBILITY_OCCLUDED), VISIBILITY_OUTSIDE)
+            with self.stats_lock:
+                self.n_occluded += int((inside & ~use).sum())
+        if use.any():
+            data = self._resample(col, row, use, h, w)
+            if data is not None:
+                img, valid = data
+                sel = use & valid
+                band = out[..., :self.count]
+                band[sel] = img[sel]
+        return out, False
+
+    def _stats(self, zin: NDArray, d: NDArray) -> None:
+        if not len(zin):
+            return
+        lo, hi = float(np.nanmin(zin)), float(np.nanmax(zin))
+        # relief displacement a planar rectification at h_ref would leave: |d| * |h - h_ref|
+        mag = float(np.nanmax(np.hypot(d[..., 0], d[..., 1]))) * self.grid.resolution[0]
+        sh = mag * max(abs(hi - self.h_ref), abs(lo - self.h_ref))
+        with self.stats_lock:
+            self.hmin, self.hmax = min(self.hmin, lo), max(self.hmax, hi)
+            self.max_shift = max(self.max_shift, sh)
+
+    def _visible(self, Z: NDArray, m: int, d: NDArray, w: int, h: int, z: NDArray,
+                 inside: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        """Line-of-sight test over the DEM block ``Z`` (with margin ``m``): True where nothing hides the point.
+
+        ``d`` (h, w, 2): output pixels per metre of height towards the sensor.
+        """
+        zmax = float(np.nanmax(Z))
+        ddist = np.hypot(d[..., 0], d[..., 1])
+        vis = np.ones((h, w), bool)
+        cand = inside & (ddist > 1e-12) & np.isfinite(z)
+        step = 0.5  # px
+        rows, cols = np.nonzero(cand)
+        if not len(rows):
+            return vis
+        dx, dy, dd = d[rows, cols, 0], d[rows, cols, 1], ddist[rows, cols]
+        z0 = z[rows, cols]
+        ux, uy = dx / dd, dy / dd
+        px0, py0 = cols + m + 0.0, rows + m + 0.0
+        occl = np.zeros(len(rows), bool)
+        active = np.ones(len(rows), bool)
+        Zf = np.where(np.isfinite(Z), Z, -np.inf)
+        k = 1
+        while active.any():
+            a = np.flatnonzero(active)
+            s = k * step
+            ray_h = z0[a] + s / dd[a]
+            x = px0[a] + s * ux[a]
+            y = py0[a] + s * uy[a]
+            inb = (x >= 0) & (y >= 0) & (x <= Z.shape[1] - 1) & (y <= Z.shape[0] - 1)
+            ter = np.full(len(a), -np.inf)
+            if inb.any():
+                ter[inb] = bilinear(Zf, None, x[inb], y[inb])
+            hit = ter > ray_h + 1e-3
+            occl[a[hit]] = True
+            stop = hit | ~inb | (ray_h > zmax)
+            active[a[stop]] = False
+            k += 1
+            if k > 100000:
+                break
+        vis[rows, cols] = ~occl
+        return vis
+
+    def _resample(self, col: NDArray, row: NDArray, use: NDArray[np.bool_], h: int, w: int):
+        import cv2
+
+        W, H = self.model.width, self.model.height
+        pad = 3
+        c_lo = max(int(math.floor(np.min(col[use]))) - pad, 0)
+        r_lo = max(int(math.floor(np.min(row[use]))) - pad, 0)
+        c_hi = min(int(math.ceil(np.max(col[use]))) + pad + 1, W)
+        r_hi = min(int(math.ceil(np.max(row[use]))) + pad + 1, H)
+        if c_hi <= c_lo or r_hi <= r_lo:
+            return None
+        if c_hi - c_lo > self.opts.max_window_px or r_hi - r_lo > self.opts.max_window_px:
+            if h <= 16 and w <= 16:
+                raise InvalidInputError(f"the source window for one output tile exceeds {self.opts.max_window_px} px;"
+                                        f" use a finer output resolution")
+            # split the tile in four
+            img = np.zeros((h, w, self.count), dtype=np.float64)
+            valid = np.zeros((h, w), bool)
+            hh, ww = max(h // 2, 1), max(w // 2, 1)
+            for rs, re_ in ((0, hh), (hh, h)):
+                for cs, ce in ((0, ww), (ww, w)):
+                    if re_ <= rs or ce <= cs:
+                        continue
+                    u = use[rs:re_, cs:ce]
+                    if not u.any():
+                        continue
+                    sub = self._resample(col[rs:re_, cs:ce], row[rs:re_, cs:ce], u, re_ - rs, ce - cs)
+                    if sub is not None:
+                        img[rs:re_, cs:ce] = sub[0]
+                        valid[rs:re_, cs:ce] = sub[1]
+            return img, valid
+        data, vmask = self.reader().read(c_lo, r_lo, c_hi - c_lo, r_hi - r_lo)
+        mx = np.where(use, col - c_lo, -10.0).astype(np.float32)
+        my = np.where(use, row - r_lo, -10.0).astype(np.float32)
+        src = data if data.dtype in (np.uint8, np.uint16, np.int16, np.float32) else data.astype(np.float32)
+        chans = []
+        for k0 in range(0, src.shape[2], 4):
+            part = np.ascontiguousarray(src[..., k0:k0 + 4])
+            if part.shape[2] == 2:
+                r = cv2.remap(np.ascontiguousarray(part[..., :1]), mx, my, self.interp, borderMode=cv2.BORDER_REPLICATE)
+                r2 = cv2.remap(np.ascontiguousarray(part[..., 1:]), mx, my, self.interp,
+                               borderMode=cv2.BORDER_REPLICATE)
+                r = np.dstack([r, r2])
+            else:
+                r = cv2.remap(part, mx, my, self.interp, borderMode=cv2.BORDER_REPLICATE)
+            if r.ndim == 2:
+                r = r[..., None]
+            chans.append(r)
+        img = np.concatenate(chans, axis=2)
+        valid = np.ones((h, w), bool)
+        if vmask is not None:
+            v = cv2.remap(vmask.astype(np.uint8), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                          borderValue=0)
+            valid = v > 0
+        if self.dtype.kind in "ui":
+            ii = np.iinfo(self.dtype)
+            img = np.clip(np.rint(img), ii.min, ii.max)
+            if self.nodata == 0:
+                img = np.where(img == 0, 1, img)
+        return img.astype(self.dtype), valid
+
+
+def _run(engine: _Engine, writer, windows, threads: int, progress) -> int:
+    total, done, n_empty = len(windows), 0, 0
+    if progress:
+        progress(0, total)
+    max_inflight = 2 * threads + 1
+    with cf.ThreadPoolExecutor(max_workers=threads, thread_name_prefix="ortho") as pool:
+        it = iter(windows)
+        pending: dict[cf.Future, tuple[int, int, int, int]] = {}
+        for win in it:
+            pending[pool.submit(engine.tile, *win)] = win
+            if len(pending) >= max_inflight:
+                break
+        try:
+            while pending:
+                finished, _ = cf.wait(pending, return_when=cf.FIRST_COMPLETED)
+                for fut in finished:
+                    c, r, w, h = pending.pop(fut)
+                    data, empty = fut.result()
+                    n_empty += int(empty)
+                    writer.write(data, c, r)
+                    done += 1
+                    if progress:
+                        progress(done, total)
+                    nxt = next(it, None)
+                    if nxt is not None:
+                        pending[pool.submit(engine.tile, *nxt)] = nxt
+        except BaseException:
+            for f in pending:
+                f.cancel()
+            raise
+    return n_empty
+
+
+def _margin_px(model: SensorModel, dem: Dem, grid: Grid, h_range: tuple[float, float]) -> int:
+    """Output pixels a line of sight can travel over the DEM's height range (for the true-ortho margin)."""
+    from .crs import transform_xy
+
+    t = tuple(grid.transform)
+    cc, rr = np.meshgrid(np.linspace(0, grid.width - 1, 9), np.linspace(0, grid.height - 1, 9))
+    X = t[2] + t[0] * (cc.ravel() + 0.5)
+    Y = t[5] + t[4] * (rr.ravel() + 0.5)
+    g0 = transform_xy(grid.crs, model.crs, np.column_stack([X, Y]))
+    lo, hi = h_range
+    pix = model.project(np.column_stack([g0, np.full(len(g0), lo)]))
+    ok = np.isfinite(pix).all(axis=1)
+    if not ok.any():
+        return 8
+    g1 = model.ground_at_height(pix[ok], hi)
+    ok1 = np.isfinite(g1).all(axis=1)
+    if not ok1.any():
+        return 8
+    w1 = transform_xy(model.crs, grid.crs, g1[ok1, :2])
+    w0 = np.column_stack([X, Y])[ok][ok1]
+    dist = float(np.hypot(*(w1 - w0).T).max()) / grid.resolution[0]
+    return int(min(math.ceil(dist * 1.5) + 4, 2048))
+
+
+def orthorectify(src: str | Path, dst: str | Path, model: SensorModel, dem: Dem, *, grid: Grid | None = None,
+                 dst_crs: str | None = None, resolution: float | None = None, options: OrthoOptions | None = None,
+                 overwrite: bool = False, progress: Callable[[int, int], None] | None = None) -> OrthoResult:
+    """Orthorectify ``src`` through a sensor model and a DEM into the GeoTIFF ``dst``.
+
+    Parameters
+    ----------
+    src : path
+        The image (any band count and dtype rasterio reads). Never modified.
+    dst : path
+        Output GeoTIFF (tiled; COG with ``options.cog``), written atomically.
+    model : FrameModel or RPCModel
+    dem : Dem
+        Heights in the model's vertical frame (ellipsoidal for RPCs: use
+        ``Dem(undulation=...)`` or ``geoid=`` for geoid heights).
+    grid : Grid, optional
+        Output grid; default :func:`ortho_grid` (``dst_crs``, ``resolution``).
+    options : OrthoOptions
+
+    Raises
+    ------
+    RasterIOError, InvalidInputError, CRSError
+        Unreadable inputs, existing output without ``overwrite``, output equal
+        to an input, an image that does not match its model's size.
+    """
+    from .crs import crs_to_string
+    from .fileutil import atomic_output, check_output
+    from .io import MaskPolicy, TiledWriter, raster_info, translate_to_cog
+
+    opts = options or OrthoOptions()
+    t0 = time.perf_counter()
+    src = str(src)
+    for p in (src, dem.path):
+        if Path(dst).resolve() == Path(p).resolve():
+            raise InvalidInputError(f"output {str(dst)!r} is an input; inputs are never modified")
+    check_output(dst, overwrite=overwrite)
+    info = raster_info(src)
+    if (info.width, info.height) != (model.width, model.height):
+        raise InvalidInputError(f"image {src!r} is {info.width} x {info.height} px but its model expects "
+                                f"{model.width} x {model.height}")
+    if grid is None:
+        grid = ortho_grid(model, dem, dst_crs=dst_crs, resolution=resolution)
+    elif grid.crs is None:
+        raise CRSError("the output grid needs a CRS")
+    else:
+        grid = Grid(grid.width, grid.height, grid.transform, crs_to_string(grid.crs))
+    dtype = np.dtype(info.dtype)
+    if info.nodata is not None:
+        nodata = float(info.nodata)
+    else:
+        nodata = float("nan") if dtype.kind == "f" else 0.0
+    hr = dem.range()
+    h_ref = 0.5 * (hr[0] + hr[1])
+    margin = _margin_px(model, dem, grid, hr) if opts.true_ortho else 0
+    engine = _Engine(src, model, dem, grid, opts, dtype, info.count, nodata, margin, h_ref)
+    tile = opts.tile_px
+    windows = [(c, r, min(tile, grid.width - c), min(tile, grid.height - r))
+               for r in range(0, grid.height, tile) for c in range(0, grid.width, tile)]
+    count = info.count + (1 if opts.true_ortho else 0)
+    import rasterio
+
+    n_empty = 0
+    try:
+        with rasterio.Env(GDAL_CACHEMAX=64 * 1024 * 1024), atomic_output(dst, overwrite=overwrite) as tmp:
+            body = tmp.with_name(tmp.name + ".body.tif") if opts.cog else tmp
+            try:
+                with TiledWriter(body, grid.width, grid.height, count, dtype.name, grid.transform, grid.crs,
+                                 MaskPolicy("nodata", nodata), tile=tile,
+                                 compress="none" if opts.cog else opts.compress, threads=opts.n_threads) as writer:
+                    n_empty = _run(engine, writer, windows, opts.n_threads, progress)
+                nad = _nadir_in(model, grid.crs)
+                tags = {"ORTHO_MODEL": type(model).__name__, "ORTHO_DEM": Path(dem.path).name,
+                        "ORTHO_NADIR_X": repr(float(nad[0])), "ORTHO_NADIR_Y": repr(float(nad[1]))}
+                if opts.true_ortho:
+                    tags["ORTHO_VISIBILITY_BAND"] = str(count)
+                with rasterio.open(body, "r+") as ds:
+                    ds.update_tags(**tags)
+                    if opts.true_ortho:
+                        ds.set_band_description(count, "visibility: 0 outside, 1 occluded, 2 visible")
+                if opts.cog:
+                    translate_to_cog(body, tmp, compress=opts.compress, threads=opts.n_threads, tile=tile,
+                                     resampling="nearest")
+            finally:
+                if opts.cog and body.exists():
+                    body.unlink()
+    except OSError as err:
+        if isinstance(err, RasterIOError):
+            raise
+        raise RasterIOError(f"cannot write {str(dst)!r}: {err}") from err
+    finally:
+        engine.close()
+    dt = time.perf_counter() - t0
+    lo = engine.hmin if math.isfinite(engine.hmin) else float("nan")
+    hi = engine.hmax if math.isfinite(engine.hmax) else float("nan")
+    logger.info("ortho %s -> %s: %d x %d, %d tiles in %.2f s", src, dst, grid.width, grid.height, len(windows), dt)
+    return OrthoResult(Path(dst), grid, dt, len(windows), n_empty, dem.path, (lo, hi), engine.max_shift,
+                       engine.n_occluded, nodata, type(model).__name__,
+                       {"true_ortho": opts.true_ortho, "visibility_band": count if opts.true_ortho else None,
+                        "margin_px": margin})
+
+
+def _nadir_in(model: SensorModel, crs: str) -> NDArray[np.float64]:
+    from .crs import transform_xy
+
+    try:
+        return transform_xy(model.crs, crs, np.asarray(model.nadir).reshape(1, 2))[0]
+    except Exception:  # noqa: BLE001 - the nadir is metadata only
+        return np.array([np.nan, np.nan])
