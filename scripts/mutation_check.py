@@ -147,6 +147,9 @@ MUTATIONS = (
        "np.sum(w[:, None] * v * v)", "np.sum(v * v)", T_PREC_R),
     _m("R26", "write_gcps drops the '# crs=' line",
        'buf.write(f"# crs={gcps.crs}\\n")', "pass", T_CONV_R),
+    _m("R27", "camera JSON: the principal point written under another key",
+       'out["principal_point_mm"] = list(self.principal_point_mm)',
+       'out["principal_point"] = list(self.principal_point_mm)', T_CONV_R),
     # ------------------------------------------------------------------ stereo: relative orientation
     _m("S01", "relative orientation: redundancy n - 6 instead of n - 5",
        "dof = int(used.sum()) - 5", "dof = int(used.sum()) - 6", T_PREC_S),
@@ -186,6 +189,13 @@ MUTATIONS = (
        "(bx + a2 / focal_length_mm * bz) / p", "(bx - a2 / focal_length_mm * bz) / p", T_CONV_S),
     _m("S17", "collinearity (intersection.project): x without the minus sign",
        "[-focal_length_mm * p[:, 0] / p[:, 2]", "[focal_length_mm * p[:, 0] / p[:, 2]", T_CONV_S),
+    # ------------------------------------------------------------------ stereo: shared least squares, formats
+    _m("S18", "normal equations (rectify.lsq, used by absolute orientation) weight rows by w^2",
+       "a * np.asarray(weights, dtype=np.float64).reshape(-1, 1)",
+       "a * np.asarray(weights, dtype=np.float64).reshape(-1, 1) ** 2", T_CONV_S),
+    _m("S19", "exterior orientation JSON: omega and phi values swapped",
+       '"system": "omega-phi-kappa", "omega": om, "phi": ph', '"system": "omega-phi-kappa", "omega": ph, "phi": om',
+       T_CONV_S),
 )
 
 

@@ -202,6 +202,25 @@ def test_camera_pixel_photo_against_the_formulas():
     assert K[0, 0] == K[1, 1] == pytest.approx(120.0 / 0.144)
 
 
+def test_camera_json_fields(tmp_path):
+    """The camera JSON keys of docs/formats.md, and a round trip that keeps the principal point."""
+    import json
+
+    from rectify.formats import read_camera, write_camera
+
+    cam = Camera(focal_length_mm=120.0, pixel_size_mm=0.144, width=640, height=1152, principal_point_mm=(0.3, -0.2),
+                 distortion={"k1": -0.01})
+    p = write_camera(tmp_path / "cam.json", cam)
+    doc = json.loads(p.read_text())
+    assert doc["principal_point_mm"] == [0.3, -0.2]
+    assert doc["focal_length_mm"] == 120.0 and doc["pixel_size_mm"] == 0.144
+    assert (doc["width"], doc["height"]) == (640, 1152)
+    assert doc["distortion"]["k1"] == -0.01
+    back = read_camera(p)
+    assert back.principal_point_mm == (0.3, -0.2)
+    assert_allclose(back.principal_point_px, cam.principal_point_px)
+
+
 # ------------------------------------------------------------------ weights
 def _pts(rng, n, truth):
     s = rng.uniform(0, 1000, (n, 2))

@@ -109,6 +109,18 @@ def test_exterior_orientation_projection_with_principal_point():
     assert np.abs(bad.position - C).max() > 1.0
 
 
+def test_exterior_orientation_json_angles():
+    """The EO JSON names omega, phi, kappa of R = Rx(omega) Ry(phi) Rz(kappa), each with its own value."""
+    om, ph, ka = 0.03, -0.07, 1.9
+    R = matrix_from_angles(om, ph, ka)
+    eo = ExteriorOrientation(position=[1.0, 2.0, 3.0], rotation=R, focal_length_mm=100.0)
+    d = eo.to_dict()
+    assert d["angles"]["system"] == "omega-phi-kappa"
+    assert [d["angles"][k] for k in ("omega", "phi", "kappa")] == pytest.approx([om, ph, ka], abs=1e-12)
+    assert_allclose(matrix_from_angles(d["angles"]["omega"], d["angles"]["phi"], d["angles"]["kappa"]),
+                    d["rotation"], atol=1e-12)
+
+
 # ------------------------------------------------------------------ weights
 def test_relative_orientation_weight_two_equals_repeated_point():
     sp = simulate_pair("convergent", n=30, noise_px=0.5, rng=12)
