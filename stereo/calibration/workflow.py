@@ -104,9 +104,11 @@ def calibrate_images(images: Sequence[str | Path], *, pattern: str, square: str 
     sq, unit = parse_square(square)
     board = Chessboard(cols, rows, sq)
     views, missing, (w, h) = detect_chessboards(images, board)
-    if len(views) < 3:
+    if len(views) < 3 and missing:
         raise CalibrationError(f"chessboard {cols}x{rows} found in only {len(views)} of {len(images)} images "
-                               f"(not found: {', '.join(missing) or 'none'}); at least 3 views needed")
+                               f"(not found: {', '.join(missing)}); at least 3 views needed")
+    if len(views) < 3:
+        raise CalibrationError(f"too few views: {len(views)} images of the chessboard {cols}x{rows}, at least 3 needed")
     cal = Calibration.from_views(views, w, h, **_model_kwargs(model, pixel_size_mm))
     out, rep = _finish(cal, output, pixel_size_mm=pixel_size_mm, report_dir=report_dir, overwrite=overwrite)
     src = (f"chessboard {cols}x{rows} (square {sq:g} {unit}) found in {len(views)} of {len(images)} images, "

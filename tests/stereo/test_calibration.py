@@ -277,3 +277,32 @@ def test_published_calibration_calib1():
     # the toolbox prints 3 x its standard error; its standard errors are 0.5 x ours (OpenCV's equal ours)
     assert cal.std_errors["fx"] == pytest.approx(9.48 / 1.5, rel=0.01)
     assert cal.std_errors["cy"] == pytest.approx(13.28 / 1.5, rel=0.01)
+
+
+@pytest.mark.shared
+def test_real_chessboard_against_opencv():
+    """Real views (8 of the chessboard samples): RMS <= OpenCV's on the same corners, interior within 0.01
+    standard error of OpenCV's, standard errors equal to OpenCV's stdDeviationsIntrinsics within 1%."""
+    import cv2
+
+    from stereo.calibration.targets import Chessboard, detect_chessboards
+
+    folder = SHARED / "calibration_chessboard"
+    paths = sorted(folder.glob("left*.jpg"))[:8]
+    if len(paths) < 8:
+        pytest.skip(f"chessboard views not found under {folder}")
+    views, missing, size = detect_chessboards(paths, Chessboard(9, 6, 1.0))
+    assert not missing and size == (640, 512)
+    cal = Calibration.from_views(views, *size)
+    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-15)
+    r = cv2.calibrateCameraExtended([v.object_xyz.astype(np.float32) for v in views],
+                                    [v.pixel.astype(np.float32).reshape(-1, 1, 2) for v in views], size, None, None,
+                                    criteria=crit)
+    rms, K, d, std = r[0], r[1], r[2].ravel(), r[5].ravel()
+    assert cal.rms_px <= rms * (1 + 1e-9)
+    cv_vals = {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "k1": d[0], "k2": d[1], "p1": d[2],
+               "p2": d[3], "k3": d[4]}
+    cv_std = dict(zip(("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"), std[:9], strict=True))
+    for n in cal.names:
+        assert abs(cal.value(n) - cv_vals[n]) < 0.01 * cal.std_errors[n], n
+        assert cal.std_errors[n] == pytest.approx(cv_std[n], rel=0.01), n
