@@ -35,10 +35,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from rectify import lsq
 from rectify.errors import EstimationError, InvalidInputError, ShapeError
 from rectify.points import as_ids, as_mask, as_points
 from rectify.residuals import ResidualTable
-from rectify.robust import ROBUST_METHODS
+from rectify.robust import ROBUST_METHODS, irls
 from rectify.rotation import angles_from_matrix, matrix_from_angles, rot_x, rot_y, rot_z
 
 logger = logging.getLogger(__name__)
@@ -322,7 +323,7 @@ class AbsoluteOrientation:
                        "kappa": float(self.angles[2])},
             "rotation": self.rotation.tolist(),
             "translation": self.translation.tolist(),
-            "std_errors": dict(zip(PARAM_NAMES, map(float, se))),
+            "std_errors": dict(zip(PARAM_NAMES, map(float, se), strict=True)),
             "covariance": {"names": list(PARAM_NAMES), "matrix": self.covariance.tolist()},
             "sigma0": self.sigma0,
             "iterations": self.iterations,
@@ -396,206 +397,263 @@ class AbsoluteOrientation:
         ShapeError, InvalidInputError
             Malformed input or unknown option.
         """
-        m = as_points(model, "model", 3)
-        g = np.array(ground, dtype=np.float64, copy=True)
-        if g.ndim != 2 or g.shape != (len(m), 3):
-            raise ShapeError(f"`ground` must have shape ({len(m)}, 3) like `model`; got {g.shape}",
-                             actual_shape=g.shape, expected_shape=(len(m), 3))
-        if robust not in ROBUST_METHODS:
-            raise InvalidInputError(f"unknown robust option {robust!r}; expected one of {list(ROBUST_METHODS)}")
-        if deformation_order is not None and deformation_order not in DEFORMATION_ORDERS:
-            raise InvalidInputError(f"`deformation_order` must be None, 2 or 3; got {deformation_order!r}")
-        n = len(m)
-        ids_t = as_ids(ids, n)
-        chk = as_mask(check, n, "check")
-        w_in = np.ones(n) if weights is None else np.array(weights, dtype=np.float64, copy=True)
-        w_blk = None
-        if w_in.shape == (n, 3, 3):
-            if not np.isfinite(w_in).all():
-                raise InvalidInputError("`weights` (N, 3, 3) must be finite")
-            w_blk = 0.5 * (w_in + np.transpose(w_in, (0, 2, 1)))
-            w_in = np.einsum("nii->ni", w_blk).copy()
-        if w_in.shape == (n,):
-            w_in = np.repeat(w_in[:, None], 3, axis=1)
-        if w_in.shape != (n, 3) or not np.isfinite(w_in).all() or (w_in < 0).any():
-            raise InvalidInputError(f"`weights` must be ({n},) or ({n}, 3), finite and >= 0; got shape "
-                                    f"{np.shape(weights)}")
-        w_pt = w_in.max(axis=1)
-        fin = np.isfinite(g)
-        full_all = fin.all(1)
-        zonly_all = ~fin[:, 0] & ~fin[:, 1] & fin[:, 2]
-        bad = ~(full_all | zonly_all | ~fin.any(1))
-        if bad.any():
-            i = int(np.flatnonzero(bad)[0])
-            raise InvalidInputError(
-                f"ground point {ids_t[i]!r} has {g[i].tolist()}: give X, Y, Z (full point), only Z "
-                f"(height point) or nothing (tie point)")
-        used = ~chk & (w_pt > 0)
-        full = full_all & used
-        zonly = zonly_all & used
-        nf, nz = int(full.sum()), int(zonly.sum())
-        if nf < 2 or 3 * nf + nz < 7:
-            raise EstimationError(
-                f"too few control points: {nf} full and {nz} height point(s) give {3 * nf + nz} equations; "
-                f"at least 2 full points and 1 height point (7 equations) are needed")
-        _check_not_collinear(m[full | zonly], f"the {nf + nz} control points (model coordinates)")
-        if nz == 0:
-            _check_not_collinear(g[full], f"the {nf} control points (ground coordinates)")
-        if deformation_order is not None:
-            nt = 6 if deformation_order == 2 else 10
-            if nf < nt:
-                raise EstimationError(
-                    f"too few full control points for the order-{deformation_order} deformation "
-                    f"correction: {nf} given, {nt} needed (seed 002: 6 for order 2)")
-
-        # observation bookkeeping: rows (point, coordinate)
-        obs_pt = np.concatenate([np.repeat(np.flatnonzero(full), 3), np.flatnonzero(zonly)])
-        obs_c = np.concatenate([np.tile([0, 1, 2], nf), np.full(nz, 2)])
-        n_obs = len(obs_pt)
-        w_obs = w_in[obs_pt, obs_c]
-        # centring for conditioning
-        sel = full | zonly
-        mc = m[sel].mean(0)
-        gc_full = g[full].mean(0)
-        m_c = m - mc
-
-        s0, R0, t0 = _initial(m, g, full, zonly)
-        ang = angles_from_matrix(R0, "omega-phi-kappa")
-        # T' such that G = s R (m - mc) + T'
-        x = np.concatenate([[s0], ang, t0 + s0 * R0 @ mc - gc_full])
-        gobs = g - gc_full
-
-        extent = float(np.abs(m_c[sel]).max()) or 1.0
-
-        # full weight matrices: whiten each full point's 3 rows with U (U^T U = P), then unit weights
-        U = None
-        if w_blk is not None:
-            fidx = np.flatnonzero(full)
-            try:
-                U = np.transpose(np.linalg.cholesky(w_blk[fidx]), (0, 2, 1))
-            except np.linalg.LinAlgError as err:
-                raise InvalidInputError("`weights` (N, 3, 3) must be positive definite for every full control "
-                                        f"point: {err}") from err
-            w_z = np.sqrt(w_blk[np.flatnonzero(zonly), 2, 2])
-
-        def whiten(X: NDArray) -> NDArray:
-            if U is None:
-                return X
-            X = np.asarray(X, dtype=np.float64)
-            k = 3 * nf
-            head = X[:k].reshape(nf, 3, -1)
-            out = np.empty_like(X)
-            out[:k] = np.einsum("nij,njk->nik", U, head).reshape(X[:k].shape)
-            out[k:] = X[k:] * (w_z if X.ndim == 1 else w_z[:, None])
-            return out
-
-        w_obs_fit = np.ones(n_obs) if U is not None else w_obs
-
-        def conv_scale(xk: NDArray) -> NDArray:
-            # relative for the scale, rad for the angles, ground extent for the translation
-            ge = abs(xk[0]) * extent
-            return np.array([abs(xk[0]), 1.0, 1.0, 1.0, ge, ge, ge])
-
-        def solve(w: NDArray, x0: NDArray) -> tuple[NDArray, NDArray, int, bool]:
-            xk = x0.copy()
-            conv = False
-            it = 0
-            for it in range(1, max_iterations + 1):
-                pred, J = _design(m_c[obs_pt], xk[0], xk[1:4])
-                pred = pred + xk[4:7]
-                A = whiten(J[np.arange(n_obs), obs_c])
-                l = whiten(gobs[obs_pt, obs_c] - pred[np.arange(n_obs), obs_c])
-                N = (A * w[:, None]).T @ A
-                try:
-                    dx = np.linalg.solve(N, (A * w[:, None]).T @ l)
-                except np.linalg.LinAlgError as err:
-                    raise EstimationError(f"singular normal equations in the absolute orientation: {err}"
-                                          ) from err
-                xk = xk + dx
-                if np.all(np.abs(dx) <= tol * conv_scale(xk)):
-                    conv = True
-                    break
-            return xk, N, it, conv
-
-        def residual_fn(xk: NDArray) -> NDArray:
-            pred, _ = _design(m_c[obs_pt], xk[0], xk[1:4])
-            pred = pred + xk[4:7]
-            return whiten(pred[np.arange(n_obs), obs_c] - gobs[obs_pt, obs_c])
-
-        w_final = w_obs_fit.copy()
-        outl_obs = np.zeros(n_obs, bool)
-        if robust == "none":
-            x, N, iters, conv = solve(w_obs_fit, x)
-        else:
-            from rectify.robust import irls
-
-            state: dict[str, Any] = {}
-
-            def fit(w: NDArray, prev: Any) -> NDArray:
-                xs, Ns, its, cv = solve(w, x if prev is None else prev)
-                state.update(N=Ns, iters=its, conv=cv, w=w)
-                return xs
-
-            res = irls(fit, residual_fn, n_obs, psi=robust, prior_weights=w_obs_fit, min_used=7)
-            x = res.model
-            w_final = res.weights
-            outl_obs = res.outlier_mask
-            # final covariance with the final weights
-            x, N, iters, conv = solve(np.maximum(w_final, 0.0), x)
+        c = _validate(model, ground, ids=ids, check=check, weights=weights, robust=robust,
+                      deformation_order=deformation_order)
+        adj = _Adjustment(c, max_iterations=max_iterations, tol=tol)
+        x, N, iters, conv, w_final, outl_obs = _solve(adj, robust)
         if not conv:
             raise EstimationError(f"absolute orientation did not converge in {max_iterations} iterations")
-        v = residual_fn(x)
-        dof = n_obs - 7
-        sigma0 = math.sqrt(float(np.sum(w_final * v * v)) / dof) if dof > 0 else float("nan")
-        try:
-            Qxx = np.linalg.inv(N)
-        except np.linalg.LinAlgError as err:
-            raise EstimationError(f"singular normal equations: {err}") from err
-        s, ang, tp = x[0], x[1:4], x[4:7]
-        R = matrix_from_angles(*ang, order="omega-phi-kappa")
-        T = tp + gc_full - s * R @ mc
-        # covariance of (s, ang, T) from that of (s, ang, T'): T = T' + gc - s R mc
-        Jt = np.eye(7)
-        Jt[4:7, 0] = -R @ mc
-        Rx, Ry, Rz = rot_x(ang[0]), rot_y(ang[1]), rot_z(ang[2])
-        dR = [Rx @ _K[0] @ Ry @ Rz, Rx @ Ry @ _K[1] @ Rz, R @ _K[2]]
-        for k in range(3):
-            Jt[4:7, 1 + k] = -s * dR[k] @ mc
-        s02 = sigma0 ** 2 if math.isfinite(sigma0) else 1.0
-        cov = s02 * Jt @ Qxx @ Jt.T
+        s, R, T, cov, sigma0 = _precision(adj, x, N, w_final)
+        return cls._result(c, adj, s, R, T, cov, sigma0, w_final, outl_obs, iters, conv, units)
 
+    @classmethod
+    def _result(cls, c: _Control, adj: _Adjustment, s: float, R: NDArray, T: NDArray, cov: NDArray, sigma0: float,
+                w_final: NDArray, outl_obs: NDArray, iters: int, conv: bool, units: str) -> AbsoluteOrientation:
+        """Stage 4: deformation correction, residual table, the result object."""
+        m, g, n = c.m, c.g, len(c.m)
         sim = s * m @ R.T + T
         deformation = None
         adjusted = sim.copy()
-        if deformation_order is not None:
-            w_def = w_final if U is None else w_final * w_obs  # full matrices: their diagonal here
-            deformation, sigma0 = _fit_deformation(sim, g, full, zonly, deformation_order,
-                                                   w_def, obs_pt, obs_c, n_obs)
+        if c.deformation_order is not None:
+            w_def = w_final if adj.U is None else w_final * adj.w_obs  # full matrices: their diagonal here
+            deformation, sigma0 = _fit_deformation(sim, g, c.full, c.zonly, c.deformation_order,
+                                                   w_def, adj.obs_pt, adj.obs_c, adj.n_obs)
             adjusted = sim + deformation(sim)
         # residual table: control and check points with ground coordinates
-        rows = np.flatnonzero(full_all | zonly_all)
+        rows = np.flatnonzero(c.full_all | c.zonly_all)
         observed = g[rows].copy()
-        adj = adjusted[rows]
-        zo = zonly_all[rows]
-        observed[zo, 0:2] = adj[zo, 0:2]  # X, Y not observed for height points
+        adj_rows = adjusted[rows]
+        zo = c.zonly_all[rows]
+        observed[zo, 0:2] = adj_rows[zo, 0:2]  # X, Y not observed for height points
         pw = np.ones(n)
         po = np.zeros(n, bool)
-        for k in range(n_obs):
-            pw[obs_pt[k]] = min(pw[obs_pt[k]], w_final[k] / max(w_obs_fit[k], 1e-300))
-            po[obs_pt[k]] |= bool(outl_obs[k])
+        for k in range(adj.n_obs):
+            pt = adj.obs_pt[k]
+            pw[pt] = min(pw[pt], w_final[k] / max(adj.w_obs_fit[k], 1e-300))
+            po[pt] |= bool(outl_obs[k])
         n_params = 7 + (0 if deformation is None else 3 * deformation.coefficients.shape[1])
         table = ResidualTable(
-            step="absolute orientation" + ("" if deformation is None else f" + order-{deformation_order} "
+            step="absolute orientation" + ("" if deformation is None else f" + order-{c.deformation_order} "
                                            "deformation correction"),
-            ids=[ids_t[i] for i in rows], observed=observed, adjusted=adj, units=units,
-            components=("dX", "dY", "dZ"), weights=pw[rows], outlier=po[rows], check=chk[rows],
+            ids=[c.ids[i] for i in rows], observed=observed, adjusted=adj_rows, units=units,
+            components=("dX", "dY", "dZ"), weights=pw[rows], outlier=po[rows], check=c.chk[rows],
             sigma0=sigma0, n_params=n_params,
-            extra={"n_full": nf, "n_height": nz, "n_equations": n_obs, "robust": robust})
+            extra={"n_full": c.nf, "n_height": c.nz, "n_equations": adj.n_obs, "robust": c.robust})
         logger.info("absolute orientation: %d full + %d height points, sigma0 %.4g, %d iterations",
-                    nf, nz, sigma0, iters)
+                    c.nf, c.nz, sigma0, iters)
         return cls(scale=float(s), rotation=R, translation=T, covariance=cov, sigma0=float(sigma0),
                    residuals=table, deformation=deformation, iterations=iters, converged=conv,
-                   robust=robust, extra={"height_points": [ids_t[i] for i in np.flatnonzero(zonly_all)]})
+                   robust=c.robust, extra={"height_points": [c.ids[i] for i in np.flatnonzero(c.zonly_all)]})
+
+
+# ------------------------------------------------------------------ stages of from_points
+@dataclass(frozen=True, eq=False)
+class _Control:
+    """Stage 1: validated control (model and ground points, weights, which points are used how)."""
+
+    m: NDArray[np.float64]
+    g: NDArray[np.float64]
+    ids: tuple[str, ...]
+    chk: NDArray[np.bool_]
+    w_in: NDArray[np.float64]            # (N, 3) weights per coordinate
+    w_blk: NDArray[np.float64] | None    # (N, 3, 3) full weight matrices, symmetrised
+    full_all: NDArray[np.bool_]          # X, Y, Z known
+    zonly_all: NDArray[np.bool_]         # only Z known (height point)
+    full: NDArray[np.bool_]              # used full points (not checks, weight > 0)
+    zonly: NDArray[np.bool_]             # used height points
+    robust: str
+    deformation_order: int | None
+
+    @property
+    def nf(self) -> int:
+        return int(self.full.sum())
+
+    @property
+    def nz(self) -> int:
+        return int(self.zonly.sum())
+
+
+def _validate(model: ArrayLike, ground: ArrayLike, *, ids: Sequence[str] | None, check: ArrayLike | None,
+              weights: ArrayLike | None, robust: str, deformation_order: int | None) -> _Control:
+    """Stage 1: shapes, options, weights, point kinds, enough and non-collinear control."""
+    m = as_points(model, "model", 3)
+    g = np.array(ground, dtype=np.float64, copy=True)
+    if g.ndim != 2 or g.shape != (len(m), 3):
+        raise ShapeError(f"`ground` must have shape ({len(m)}, 3) like `model`; got {g.shape}",
+                         actual_shape=g.shape, expected_shape=(len(m), 3))
+    if robust not in ROBUST_METHODS:
+        raise InvalidInputError(f"unknown robust option {robust!r}; expected one of {list(ROBUST_METHODS)}")
+    if deformation_order is not None and deformation_order not in DEFORMATION_ORDERS:
+        raise InvalidInputError(f"`deformation_order` must be None, 2 or 3; got {deformation_order!r}")
+    n = len(m)
+    ids_t = as_ids(ids, n)
+    chk = as_mask(check, n, "check")
+    w_in = np.ones(n) if weights is None else np.array(weights, dtype=np.float64, copy=True)
+    w_blk = None
+    if w_in.shape == (n, 3, 3):
+        if not np.isfinite(w_in).all():
+            raise InvalidInputError("`weights` (N, 3, 3) must be finite")
+        w_blk = 0.5 * (w_in + np.transpose(w_in, (0, 2, 1)))
+        w_in = np.einsum("nii->ni", w_blk).copy()
+    if w_in.shape == (n,):
+        w_in = np.repeat(w_in[:, None], 3, axis=1)
+    if w_in.shape != (n, 3) or not np.isfinite(w_in).all() or (w_in < 0).any():
+        raise InvalidInputError(f"`weights` must be ({n},) or ({n}, 3), finite and >= 0; got shape "
+                                f"{np.shape(weights)}")
+    w_pt = w_in.max(axis=1)
+    fin = np.isfinite(g)
+    full_all = fin.all(1)
+    zonly_all = ~fin[:, 0] & ~fin[:, 1] & fin[:, 2]
+    bad = ~(full_all | zonly_all | ~fin.any(1))
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise InvalidInputError(
+            f"ground point {ids_t[i]!r} has {g[i].tolist()}: give X, Y, Z (full point), only Z "
+            f"(height point) or nothing (tie point)")
+    used = ~chk & (w_pt > 0)
+    full = full_all & used
+    zonly = zonly_all & used
+    nf, nz = int(full.sum()), int(zonly.sum())
+    if nf < 2 or 3 * nf + nz < 7:
+        raise EstimationError(
+            f"too few control points: {nf} full and {nz} height point(s) give {3 * nf + nz} equations; "
+            f"at least 2 full points and 1 height point (7 equations) are needed")
+    _check_not_collinear(m[full | zonly], f"the {nf + nz} control points (model coordinates)")
+    if nz == 0:
+        _check_not_collinear(g[full], f"the {nf} control points (ground coordinates)")
+    if deformation_order is not None:
+        nt = 6 if deformation_order == 2 else 10
+        if nf < nt:
+            raise EstimationError(
+                f"too few full control points for the order-{deformation_order} deformation "
+                f"correction: {nf} given, {nt} needed (seed 002: 6 for order 2)")
+    return _Control(m, g, ids_t, chk, w_in, w_blk, full_all, zonly_all, full, zonly, robust, deformation_order)
+
+
+class _Adjustment:
+    """Stage 2: the linearised similarity on centred coordinates (one row per observed coordinate)."""
+
+    def __init__(self, c: _Control, *, max_iterations: int, tol: float) -> None:
+        m, g, full, zonly = c.m, c.g, c.full, c.zonly
+        nf, nz = c.nf, c.nz
+        self.max_iterations, self.tol, self.nf = max_iterations, tol, nf
+        # observation bookkeeping: rows (point, coordinate)
+        self.obs_pt = np.concatenate([np.repeat(np.flatnonzero(full), 3), np.flatnonzero(zonly)])
+        self.obs_c = np.concatenate([np.tile([0, 1, 2], nf), np.full(nz, 2)])
+        self.n_obs = len(self.obs_pt)
+        self.w_obs = c.w_in[self.obs_pt, self.obs_c]
+        # centring for conditioning
+        sel = full | zonly
+        self.mc = m[sel].mean(0)
+        self.gc_full = g[full].mean(0)
+        self.m_c = m - self.mc
+        s0, R0, t0 = _initial(m, g, full, zonly)
+        ang = angles_from_matrix(R0, "omega-phi-kappa")
+        # T' such that G = s R (m - mc) + T'
+        self.x0 = np.concatenate([[s0], ang, t0 + s0 * R0 @ self.mc - self.gc_full])
+        self.gobs = g - self.gc_full
+        self.extent = float(np.abs(self.m_c[sel]).max()) or 1.0
+        # full weight matrices: whiten each full point's 3 rows with U (U^T U = P), then unit weights
+        self.U: NDArray | None = None
+        self.w_z: NDArray | None = None
+        if c.w_blk is not None:
+            fidx = np.flatnonzero(full)
+            try:
+                self.U = np.transpose(np.linalg.cholesky(c.w_blk[fidx]), (0, 2, 1))
+            except np.linalg.LinAlgError as err:
+                raise InvalidInputError("`weights` (N, 3, 3) must be positive definite for every full control "
+                                        f"point: {err}") from err
+            self.w_z = np.sqrt(c.w_blk[np.flatnonzero(zonly), 2, 2])
+        self.w_obs_fit = np.ones(self.n_obs) if self.U is not None else self.w_obs
+
+    def whiten(self, X: NDArray) -> NDArray:
+        if self.U is None:
+            return X
+        assert self.w_z is not None
+        X = np.asarray(X, dtype=np.float64)
+        k = 3 * self.nf
+        head = X[:k].reshape(self.nf, 3, -1)
+        out = np.empty_like(X)
+        out[:k] = np.einsum("nij,njk->nik", self.U, head).reshape(X[:k].shape)
+        out[k:] = X[k:] * (self.w_z if X.ndim == 1 else self.w_z[:, None])
+        return out
+
+    def conv_scale(self, xk: NDArray) -> NDArray:
+        # relative for the scale, rad for the angles, ground extent for the translation
+        ge = abs(xk[0]) * self.extent
+        return np.array([abs(xk[0]), 1.0, 1.0, 1.0, ge, ge, ge])
+
+    def gauss_newton(self, w: NDArray, x0: NDArray) -> tuple[NDArray, NDArray, int, bool]:
+        """Gauss-Newton with observation weights ``w``; returns (x, N, iterations, converged)."""
+        xk = x0.copy()
+        conv = False
+        it = 0
+        rows = np.arange(self.n_obs)
+        N = np.eye(7)
+        while it < self.max_iterations:
+            it += 1
+            pred, J = _design(self.m_c[self.obs_pt], xk[0], xk[1:4])
+            pred = pred + xk[4:7]
+            A = self.whiten(J[rows, self.obs_c])
+            misclosure = self.whiten(self.gobs[self.obs_pt, self.obs_c] - pred[rows, self.obs_c])
+            N, rhs = lsq.normal_equations(A, misclosure, w)
+            try:
+                dx = np.linalg.solve(N, rhs)
+            except np.linalg.LinAlgError as err:
+                raise EstimationError(f"singular normal equations in the absolute orientation: {err}") from err
+            xk = xk + dx
+            if np.all(np.abs(dx) <= self.tol * self.conv_scale(xk)):
+                conv = True
+                break
+        return xk, N, it, conv
+
+    def residuals(self, xk: NDArray) -> NDArray:
+        """Whitened residuals v = computed - observed (n_obs,)."""
+        rows = np.arange(self.n_obs)
+        pred, _ = _design(self.m_c[self.obs_pt], xk[0], xk[1:4])
+        pred = pred + xk[4:7]
+        return self.whiten(pred[rows, self.obs_c] - self.gobs[self.obs_pt, self.obs_c])
+
+
+def _solve(adj: _Adjustment, robust: str) -> tuple[NDArray, NDArray, int, bool, NDArray, NDArray]:
+    """Stage 2: plain or robust (IRLS) adjustment; returns (x, N, iterations, converged, weights, outliers)."""
+    w_final = adj.w_obs_fit.copy()
+    outl_obs = np.zeros(adj.n_obs, bool)
+    if robust == "none":
+        x, N, iters, conv = adj.gauss_newton(adj.w_obs_fit, adj.x0)
+        return x, N, iters, conv, w_final, outl_obs
+
+    def fit(w: NDArray, prev: Any) -> NDArray:
+        return adj.gauss_newton(w, adj.x0 if prev is None else prev)[0]
+
+    res = irls(fit, adj.residuals, adj.n_obs, psi=robust, prior_weights=adj.w_obs_fit, min_used=7)
+    w_final = res.weights
+    # final covariance with the final weights
+    x, N, iters, conv = adj.gauss_newton(np.maximum(w_final, 0.0), res.model)
+    return x, N, iters, conv, w_final, res.outlier_mask
+
+
+def _precision(adj: _Adjustment, x: NDArray, N: NDArray, w_final: NDArray
+               ) -> tuple[float, NDArray, NDArray, NDArray, float]:
+    """Stage 3: sigma0 with the redundancy n - 7, the parameters back from centred coordinates and their
+    covariance; returns (scale, R, T, covariance, sigma0)."""
+    v = adj.residuals(x)
+    dof = adj.n_obs - 7
+    sigma0 = math.sqrt(float(np.sum(w_final * v * v)) / dof) if dof > 0 else float("nan")
+    Qxx = lsq.cofactor(N)
+    s, ang, tp = x[0], x[1:4], x[4:7]
+    R = matrix_from_angles(*ang, order="omega-phi-kappa")
+    T = tp + adj.gc_full - s * R @ adj.mc
+    # covariance of (s, ang, T) from that of (s, ang, T'): T = T' + gc - s R mc
+    Jt = np.eye(7)
+    Jt[4:7, 0] = -R @ adj.mc
+    Rx, Ry, Rz = rot_x(ang[0]), rot_y(ang[1]), rot_z(ang[2])
+    dR = [Rx @ _K[0] @ Ry @ Rz, Rx @ Ry @ _K[1] @ Rz, R @ _K[2]]
+    for k in range(3):
+        Jt[4:7, 1 + k] = -s * dR[k] @ adj.mc
+    s02 = sigma0 ** 2 if math.isfinite(sigma0) else 1.0
+    cov = s02 * Jt @ Qxx @ Jt.T
+    return float(s), R, T, cov, sigma0
 
 
 def _fit_deformation(sim: NDArray, g: NDArray, full: NDArray, zonly: NDArray, order: int, w_obs: NDArray,

@@ -35,10 +35,10 @@ from numpy.typing import ArrayLike, NDArray
 from rectify.camera import Camera
 from rectify.crs import unit_label
 from rectify.errors import CRSError, InvalidInputError
+from rectify.formats import ControlTable
 from rectify.geodesy import enu_from_map, geodetic_from_map, map_from_enu
 from rectify.points import as_ids
 from rectify.residuals import ResidualTable, rms
-from rectify.formats import ControlTable
 
 from .absolute import AbsoluteOrientation
 from .intersection import METHODS, Intersection, intersect
@@ -341,42 +341,8 @@ def build_model(
     """
     t0 = time.perf_counter()
     opts = options or ModelOptions()
-    l = np.array(left_mm, dtype=np.float64, copy=True).reshape(-1, 2)
-    r = np.array(right_mm, dtype=np.float64, copy=True).reshape(-1, 2)
-    ids_t = as_ids(ids, len(l))
-    cmm = None
-    if control is not None:
-        if control_mm is None:
-            raise InvalidInputError("`control_mm` (photo coordinates of the control points) is required with "
-                                    "`control`")
-        cmm = (np.asarray(control_mm[0], float).reshape(-1, 2), np.asarray(control_mm[1], float).reshape(-1, 2))
-    all_ids, L, R, xyz, is_ctrl = _combine(ids_t, l, r, control, cmm)
-    unknown = sorted(set(opts.check_ids) - set(all_ids))
-    if unknown:
-        raise InvalidInputError(f"check point id(s) {unknown} are not among the control points")
-    is_check = np.array([i in set(opts.check_ids) for i in all_ids]) & np.isfinite(xyz).all(1)
-    use = is_ctrl & ~is_check
-    sigma = geometry.sigma0_mm if geometry.sigma0_mm and math.isfinite(geometry.sigma0_mm) else None
-    inter = intersect(L, R, rotation_left=geometry.rotation_left, rotation_right=geometry.rotation_right,
-                      base=geometry.base, focal_length_mm=geometry.focal_length_mm, method=opts.intersection,
-                      sigma_mm=sigma)
-    obs = np.hstack([L, R])
-    tables = [ResidualTable(step="intersection", ids=all_ids, observed=obs, adjusted=obs + inter.residuals_mm,
-                            units="mm", components=("dx1", "dy1", "dx2", "dy2"), n_params=3 * len(L),
-                            extra={"method": opts.intersection,
-                                   "rms_vertical_parallax_mm": rms(inter.vertical_parallax_mm)})]
-    from_file = np.zeros(len(all_ids), bool) if control is None else np.isin(
-        np.array(all_ids, dtype=object), np.array(control.ids, dtype=object))
-    summary: dict[str, Any] = {
-        "n_points": len(all_ids), "n_tie_points": int((~from_file).sum()),
-        "n_control_file_points": int(from_file.sum()), "n_control_points": int(use.sum()),
-        "n_check_points": int(is_check.sum()), "intersection_method": opts.intersection,
-        "rms_vertical_parallax_mm": rms(inter.vertical_parallax_mm),
-        "median_miss_distance_model": float(np.median(inter.miss_distance)) if len(L) else None,
-        "n_behind_camera": int(np.sum((inter.scale_left <= 0) | (inter.scale_right <= 0))),
-    }
-    if pixel_size_mm:
-        summary["rms_vertical_parallax_px"] = summary["rms_vertical_parallax_mm"] / pixel_size_mm
+    pts = _validate(left_mm, right_mm, ids=ids, control=control, control_mm=control_mm, options=opts)
+    inter, tables, summary, sigma = _intersect(pts, geometry, opts, pixel_size_mm)
     ground = std = ao = None
     frame_info: dict[str, Any] = {"name": "model"}
     diff = None
@@ -386,56 +352,138 @@ def build_model(
         if frame == "topocentric" and not crs:
             logger.warning("control has no CRS (# crs=...): absolute orientation in its own frame")
             frame = "map"
-        model_cov = inter.covariance
-        if model_cov is not None:
-            # control and check points are measured apart from the matcher (by hand, or projected from
-            # a DEM), usually far less precisely than matched tie points: their own variance component
-            if opts.control_sigma_px is not None:
-                if not pixel_size_mm:
-                    raise InvalidInputError("`control_sigma_px` needs `pixel_size_mm`")
-                sigma_c = opts.control_sigma_px * pixel_size_mm
-                source = "given"
-            else:
-                ao0, _, _, _ = _orient(inter.points, xyz, use, is_check, all_ids, crs, frame, opts, model_cov)
-                s0 = ao0.sigma0 if math.isfinite(ao0.sigma0) else 1.0
-                sigma_c = sigma * max(1.0, s0)
-                source = "estimated"
-            model_cov = model_cov.copy()
-            model_cov[from_file] *= (sigma_c / sigma) ** 2
-            summary.update({"tie_sigma_mm": sigma, "control_sigma_mm": sigma_c, "control_sigma_source": source})
-            if pixel_size_mm:
-                summary.update({"tie_sigma_px": sigma / pixel_size_mm, "control_sigma_px": sigma_c / pixel_size_mm})
-        ao, ground, std, frame_info = _orient(inter.points, xyz, use, is_check, all_ids, crs, frame, opts,
-                                              model_cov)
+        model_cov = _model_covariance(pts, inter, sigma, crs, frame, opts, pixel_size_mm, summary)
+        ao, ground, std, frame_info, diff = _absolute(pts, inter, model_cov, crs, frame, opts, summary)
         tables.append(ao.residuals)
-        if crs:
-            other = "map" if frame == "topocentric" else "topocentric"
-            try:
-                _, g2, _, _ = _orient(inter.points, xyz, use, is_check, all_ids, crs, other, opts,
-                                      model_cov)
-                d = g2 - ground
-                diff = {"other_frame": other, "rms_xyz_m": rms(np.linalg.norm(d, axis=1)),
-                        "max_xyz_m": float(np.abs(np.linalg.norm(d, axis=1)).max()),
-                        "rms_z_m": rms(d[:, 2]), "max_z_m": float(np.abs(d[:, 2]).max())}
-            except CRSError as err:
-                diff = {"other_frame": other, "error": str(err)}
-        s = ao.residuals.summary()
-        summary.update({"frame": frame_info["name"], "ground_unit": ground_unit(crs, "map"),
-                        "absolute_unit": ao.residuals.units,
-                        "absolute_sigma0": ao.sigma0, "absolute_weighted": model_cov is not None, "scale": ao.scale,
-                        "n_control": s["n_fit"], "n_check": s["n_check"], "rmse_control_m": s["rmse"],
-                        "rmse_check_m": s["rmse_check"]})
-        if is_check.any():
-            e = ground[is_check] - xyz[is_check]
-            summary["rmse_check_xyz_m"] = [rms(e[:, k]) for k in range(3)]
-            if std is not None:
-                summary["rms_normalised_check_error"] = rms(e / std[is_check])
-        if diff is not None:
-            summary["frame_difference"] = diff
     summary["elapsed_s"] = time.perf_counter() - t0
-    return StereoModel(ids=all_ids, intersection=inter, ground=ground, ground_std=std, absolute=ao,
-                       frame=frame_info, frame_difference=diff, is_control=is_ctrl & ~is_check,
-                       is_check=is_check, crs=crs, tables=tables, summary=summary)
+    return StereoModel(ids=pts.ids, intersection=inter, ground=ground, ground_std=std, absolute=ao,
+                       frame=frame_info, frame_difference=diff, is_control=pts.is_ctrl & ~pts.is_check,
+                       is_check=pts.is_check, crs=crs, tables=tables, summary=summary)
+
+
+# ------------------------------------------------------------------ stages of build_model
+@dataclass(frozen=True, eq=False)
+class _Points:
+    """Stage 1: tie and control points of the model, combined (control rows replace ties of the same id)."""
+
+    ids: tuple[str, ...]
+    left_mm: NDArray[np.float64]     # (N, 2)
+    right_mm: NDArray[np.float64]    # (N, 2)
+    xyz: NDArray[np.float64]         # (N, 3) ground coordinates of control points, NaN for ties
+    is_ctrl: NDArray[np.bool_]
+    is_check: NDArray[np.bool_]
+    use: NDArray[np.bool_]           # control points used in the absolute orientation
+    from_file: NDArray[np.bool_]     # rows of the control file
+
+
+def _validate(left_mm: ArrayLike, right_mm: ArrayLike, *, ids: Sequence[str] | None, control: ControlTable | None,
+              control_mm: tuple[ArrayLike, ArrayLike] | None, options: ModelOptions) -> _Points:
+    """Stage 1: shapes, control photo coordinates, check ids; tie and control points combined."""
+    l = np.array(left_mm, dtype=np.float64, copy=True).reshape(-1, 2)  # noqa: E741
+    r = np.array(right_mm, dtype=np.float64, copy=True).reshape(-1, 2)
+    ids_t = as_ids(ids, len(l))
+    cmm = None
+    if control is not None:
+        if control_mm is None:
+            raise InvalidInputError("`control_mm` (photo coordinates of the control points) is required with "
+                                    "`control`")
+        cmm = (np.asarray(control_mm[0], float).reshape(-1, 2), np.asarray(control_mm[1], float).reshape(-1, 2))
+    all_ids, L, R, xyz, is_ctrl = _combine(ids_t, l, r, control, cmm)
+    unknown = sorted(set(options.check_ids) - set(all_ids))
+    if unknown:
+        raise InvalidInputError(f"check point id(s) {unknown} are not among the control points")
+    is_check = np.array([i in set(options.check_ids) for i in all_ids]) & np.isfinite(xyz).all(1)
+    use = is_ctrl & ~is_check
+    from_file = np.zeros(len(all_ids), bool) if control is None else np.isin(
+        np.array(all_ids, dtype=object), np.array(control.ids, dtype=object))
+    return _Points(all_ids, L, R, xyz, is_ctrl, is_check, use, from_file)
+
+
+def _intersect(pts: _Points, geometry: RelativeGeometry, opts: ModelOptions, pixel_size_mm: float | None
+               ) -> tuple[Intersection, list[ResidualTable], dict[str, Any], float | None]:
+    """Stage 2: model points by intersection, their residual table and summary; also the tie sigma (mm)."""
+    L, R, all_ids = pts.left_mm, pts.right_mm, pts.ids
+    sigma = geometry.sigma0_mm if geometry.sigma0_mm and math.isfinite(geometry.sigma0_mm) else None
+    inter = intersect(L, R, rotation_left=geometry.rotation_left, rotation_right=geometry.rotation_right,
+                      base=geometry.base, focal_length_mm=geometry.focal_length_mm, method=opts.intersection,
+                      sigma_mm=sigma)
+    obs = np.hstack([L, R])
+    tables = [ResidualTable(step="intersection", ids=all_ids, observed=obs, adjusted=obs + inter.residuals_mm,
+                            units="mm", components=("dx1", "dy1", "dx2", "dy2"), n_params=3 * len(L),
+                            extra={"method": opts.intersection,
+                                   "rms_vertical_parallax_mm": rms(inter.vertical_parallax_mm)})]
+    summary: dict[str, Any] = {
+        "n_points": len(all_ids), "n_tie_points": int((~pts.from_file).sum()),
+        "n_control_file_points": int(pts.from_file.sum()), "n_control_points": int(pts.use.sum()),
+        "n_check_points": int(pts.is_check.sum()), "intersection_method": opts.intersection,
+        "rms_vertical_parallax_mm": rms(inter.vertical_parallax_mm),
+        "median_miss_distance_model": float(np.median(inter.miss_distance)) if len(L) else None,
+        "n_behind_camera": int(np.sum((inter.scale_left <= 0) | (inter.scale_right <= 0))),
+    }
+    if pixel_size_mm:
+        summary["rms_vertical_parallax_px"] = summary["rms_vertical_parallax_mm"] / pixel_size_mm
+    return inter, tables, summary, sigma
+
+
+def _model_covariance(pts: _Points, inter: Intersection, sigma: float | None, crs: str | None, frame: str,
+                      opts: ModelOptions, pixel_size_mm: float | None, summary: dict[str, Any]) -> NDArray | None:
+    """Stage 3: covariance of the model points with the control points' own variance component."""
+    model_cov = inter.covariance
+    if model_cov is None or sigma is None:
+        return model_cov
+    # control and check points are measured apart from the matcher (by hand, or projected from
+    # a DEM), usually far less precisely than matched tie points: their own variance component
+    if opts.control_sigma_px is not None:
+        if not pixel_size_mm:
+            raise InvalidInputError("`control_sigma_px` needs `pixel_size_mm`")
+        sigma_c = opts.control_sigma_px * pixel_size_mm
+        source = "given"
+    else:
+        ao0, _, _, _ = _orient(inter.points, pts.xyz, pts.use, pts.is_check, pts.ids, crs, frame, opts, model_cov)
+        s0 = ao0.sigma0 if math.isfinite(ao0.sigma0) else 1.0
+        sigma_c = sigma * max(1.0, s0)
+        source = "estimated"
+    model_cov = model_cov.copy()
+    model_cov[pts.from_file] *= (sigma_c / sigma) ** 2
+    summary.update({"tie_sigma_mm": sigma, "control_sigma_mm": sigma_c, "control_sigma_source": source})
+    if pixel_size_mm:
+        summary.update({"tie_sigma_px": sigma / pixel_size_mm, "control_sigma_px": sigma_c / pixel_size_mm})
+    return model_cov
+
+
+def _absolute(pts: _Points, inter: Intersection, model_cov: NDArray | None, crs: str | None, frame: str,
+              opts: ModelOptions, summary: dict[str, Any]
+              ) -> tuple[AbsoluteOrientation, NDArray, NDArray | None, dict[str, Any], dict[str, Any] | None]:
+    """Stage 4: absolute orientation in ``frame`` (and the other frame for comparison), ground points and
+    their standard errors, check-point figures; returns (ao, ground, std, frame info, frame difference)."""
+    xyz, is_check = pts.xyz, pts.is_check
+    ao, ground, std, frame_info = _orient(inter.points, xyz, pts.use, is_check, pts.ids, crs, frame, opts,
+                                          model_cov)
+    diff = None
+    if crs:
+        other = "map" if frame == "topocentric" else "topocentric"
+        try:
+            _, g2, _, _ = _orient(inter.points, xyz, pts.use, is_check, pts.ids, crs, other, opts, model_cov)
+            d = g2 - ground
+            diff = {"other_frame": other, "rms_xyz_m": rms(np.linalg.norm(d, axis=1)),
+                    "max_xyz_m": float(np.abs(np.linalg.norm(d, axis=1)).max()),
+                    "rms_z_m": rms(d[:, 2]), "max_z_m": float(np.abs(d[:, 2]).max())}
+        except CRSError as err:
+            diff = {"other_frame": other, "error": str(err)}
+    s = ao.residuals.summary()
+    summary.update({"frame": frame_info["name"], "ground_unit": ground_unit(crs, "map"),
+                    "absolute_unit": ao.residuals.units,
+                    "absolute_sigma0": ao.sigma0, "absolute_weighted": model_cov is not None, "scale": ao.scale,
+                    "n_control": s["n_fit"], "n_check": s["n_check"], "rmse_control_m": s["rmse"],
+                    "rmse_check_m": s["rmse_check"]})
+    if is_check.any():
+        e = ground[is_check] - xyz[is_check]
+        summary["rmse_check_xyz_m"] = [rms(e[:, k]) for k in range(3)]
+        if std is not None:
+            summary["rms_normalised_check_error"] = rms(e / std[is_check])
+    if diff is not None:
+        summary["frame_difference"] = diff
+    return ao, ground, std, frame_info, diff
 
 
 def match_control(control: ControlTable, camera: Camera) -> tuple[NDArray, NDArray]:

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from rectify import lsq
 from rectify.errors import EstimationError, InvalidInputError, ShapeError
 from rectify.points import as_ids, as_mask, as_pair
 from rectify.residuals import ResidualTable
@@ -112,7 +113,7 @@ class ExteriorOrientation:
     def std_errors(self) -> dict[str, float]:
         if self.covariance is None:
             return {}
-        return dict(zip(self.param_names, map(float, np.sqrt(np.diag(self.covariance)))))
+        return dict(zip(self.param_names, map(float, np.sqrt(np.diag(self.covariance))), strict=True))
 
     def project(self, ground: ArrayLike) -> NDArray[np.float64]:
         """Ground points (N, 3) -> photo coordinates (N, 2), mm."""
@@ -121,6 +122,74 @@ class ExteriorOrientation:
         f = self.focal_length_mm
         return np.column_stack([self.principal_point_mm[0] - f * p[:, 0] / p[:, 2],
                                 self.principal_point_mm[1] - f * p[:, 1] / p[:, 2]])
+
+    @classmethod
+    def from_points(
+        cls,
+        photo_mm: ArrayLike,
+        ground: ArrayLike,
+        *,
+        focal_length_mm: float,
+        principal_point_mm: ArrayLike = (0.0, 0.0),
+        ids: Sequence[str] | None = None,
+        check: ArrayLike | None = None,
+        free_interior: bool = False,
+        initial: str = "pnp",
+        max_iterations: int = 50,
+        tol: float = 1e-10,
+        crs: str | None = None,
+    ) -> ExteriorOrientation:
+        """Space resection by collinearity least squares (validate, start values, Gauss-Newton, precision).
+
+        Parameters
+        ----------
+        photo_mm : (N, 2) array_like
+            Photo coordinates (mm, x right, y up, from the nominal principal point).
+        ground : (N, 3) array_like
+            Ground coordinates of the same points.
+        focal_length_mm : float
+            Principal distance (the initial value when ``free_interior``).
+        principal_point_mm : (2,) array_like
+            (x0, y0), mm (initial value when ``free_interior``).
+        ids : sequence of str, optional
+        check : (N,) bool, optional
+            Check points: not used in the fit, residuals reported.
+        free_interior : bool
+            Also estimate f, x0, y0 (at least 5 control points).
+        initial : {"pnp", "dlt"}
+            Direct solution for the initial values.
+        max_iterations, tol : int, float
+            Gauss-Newton limits (tol on the largest correction: rad, ground units, mm).
+        crs : str, optional
+            Recorded in the result.
+
+        Returns
+        -------
+        ExteriorOrientation
+
+        Raises
+        ------
+        EstimationError
+            Too few points (3 for the exterior elements, 5 with the interior
+            elements free), collinear control, failed initial solution, singular
+            normal equations or no convergence.
+        """
+        prob = _validate(photo_mm, ground, focal_length_mm=focal_length_mm, ids=ids, check=check,
+                         free_interior=free_interior, initial=initial)
+        params0 = _initial_values(prob, focal_length_mm=focal_length_mm, principal_point_mm=principal_point_mm,
+                                  initial=initial)
+        params, N, it = _solve(prob, params0, max_iterations=max_iterations, tol=tol)
+        pred_all, sigma0, cov, cond = _precision(prob, params, N)
+        names = ("omega", "phi", "kappa", "x", "y", "z") + (("f", "x0", "y0") if free_interior else ())
+        table = ResidualTable(step="space resection", ids=prob.ids, observed=prob.x, adjusted=pred_all, units="mm",
+                              components=("dx", "dy"), check=prob.chk, sigma0=sigma0, n_params=prob.nfree,
+                              extra={"condition_number": cond, "free_interior": free_interior})
+        R = matrix_from_angles(*params[0:3], order="omega-phi-kappa")
+        logger.info("space resection: %d points, sigma0 %.4g mm, %d iterations", prob.nf, sigma0, it)
+        return cls(position=params[3:6] + prob.gm, rotation=R, focal_length_mm=float(params[6]),
+                   principal_point_mm=params[7:9], covariance=cov, param_names=names, sigma0=sigma0,
+                   residuals=table, iterations=it, converged=True, crs=crs,
+                   extra={"initial": initial, "free_interior": free_interior})
 
     def to_dict(self) -> dict[str, Any]:
         """The dict form of the exterior orientation JSON (``stereo resect``; see :mod:`stereo.formats`)."""
@@ -252,7 +321,7 @@ def resect(
     tol: float = 1e-10,
     crs: str | None = None,
 ) -> ExteriorOrientation:
-    """Space resection by collinearity least squares.
+    """Space resection by collinearity least squares (:meth:`ExteriorOrientation.from_points`).
 
     Parameters
     ----------
@@ -287,6 +356,33 @@ def resect(
         elements free), collinear control, failed initial solution, singular
         normal equations or no convergence.
     """
+    return ExteriorOrientation.from_points(
+        photo_mm, ground, focal_length_mm=focal_length_mm, principal_point_mm=principal_point_mm, ids=ids,
+        check=check, free_interior=free_interior, initial=initial, max_iterations=max_iterations, tol=tol, crs=crs)
+
+
+# ------------------------------------------------------------------ stages of ExteriorOrientation.from_points
+@dataclass(frozen=True, eq=False)
+class _Problem:
+    """Stage 1: validated observations of a resection (ground coordinates centred on the control)."""
+
+    x: NDArray[np.float64]         # (N, 2) photo coordinates, mm
+    Gc: NDArray[np.float64]        # (N, 3) ground coordinates minus gm
+    gm: NDArray[np.float64]        # (3,) centroid of the control
+    ids: tuple[str, ...]
+    chk: NDArray[np.bool_]
+    fit: NDArray[np.bool_]
+    nfree: int                     # 6, or 9 with the interior elements free
+    free_interior: bool
+
+    @property
+    def nf(self) -> int:
+        return int(self.fit.sum())
+
+
+def _validate(photo_mm: ArrayLike, ground: ArrayLike, *, focal_length_mm: float, ids: Sequence[str] | None,
+              check: ArrayLike | None, free_interior: bool, initial: str) -> _Problem:
+    """Stage 1: shapes, options, enough and non-collinear control."""
     x, G = as_pair(photo_mm, ground, dim_src=2, dim_dst=3, names=("photo_mm", "ground"))
     if initial not in INITIAL_METHODS:
         raise InvalidInputError(f"unknown initial method {initial!r}; expected one of {list(INITIAL_METHODS)}")
@@ -308,56 +404,71 @@ def resect(
         raise EstimationError(f"control points are collinear (singular values {np.round(sv, 6).tolist()}); "
                               "the photo cannot be oriented")
     gm = G[fit].mean(0)
-    Gc = G - gm
+    return _Problem(x, G - gm, gm, ids_t, chk, fit, k, free_interior)
+
+
+def _initial_values(prob: _Problem, *, focal_length_mm: float, principal_point_mm: ArrayLike,
+                    initial: str) -> NDArray[np.float64]:
+    """Stage 2a: (omega, phi, kappa, XL, YL, ZL (centred), f, x0, y0) from a direct solution."""
+    x, Gc, fit = prob.x, prob.Gc, prob.fit
     pp = np.array(principal_point_mm, dtype=np.float64).reshape(-1)
     f = float(focal_length_mm)
     if initial == "dlt":
         R, C, f_dlt, pp_dlt = _initial_dlt(x[fit], Gc[fit])
-        if free_interior:
+        if prob.free_interior:
             f, pp = f_dlt, pp_dlt
     else:
         R, C = _initial_pnp(x[fit] - pp, Gc[fit], f)
     ang = angles_from_matrix(R, "omega-phi-kappa")
-    params = np.concatenate([ang, C, [f, pp[0], pp[1]]])
-    nfree = k
+    return np.concatenate([ang, C, [f, pp[0], pp[1]]])
 
-    def model(pv: NDArray, Gp: NDArray) -> tuple[NDArray, NDArray]:
-        om, ph, ka = pv[0:3]
-        Rx, Ry, Rz = rot_x(om), rot_y(ph), rot_z(ka)
-        Rm = Rx @ Ry @ Rz
-        dR = [Rx @ _K[0] @ Ry @ Rz, Rx @ Ry @ _K[1] @ Rz, Rm @ _K[2]]
-        d = Gp - pv[3:6]
-        p = d @ Rm
-        fv, x0, y0 = pv[6], pv[7], pv[8]
-        w = 1.0 / p[:, 2]
-        pred = np.column_stack([x0 - fv * p[:, 0] * w, y0 - fv * p[:, 1] * w])
-        # d pred / d p
-        J = np.zeros((len(Gp), 2, 9))
-        dxdp = np.stack([-fv * w, np.zeros_like(w), fv * p[:, 0] * w * w], axis=1)
-        dydp = np.stack([np.zeros_like(w), -fv * w, fv * p[:, 1] * w * w], axis=1)
-        for a in range(3):
-            dp = d @ dR[a]
-            J[:, 0, a] = (dxdp * dp).sum(1)
-            J[:, 1, a] = (dydp * dp).sum(1)
-        # d p / d C = -R.T
-        J[:, 0, 3:6] = -dxdp @ Rm.T
-        J[:, 1, 3:6] = -dydp @ Rm.T
-        J[:, 0, 6] = -p[:, 0] * w
-        J[:, 1, 6] = -p[:, 1] * w
-        J[:, 0, 7] = 1.0
-        J[:, 1, 8] = 1.0
-        return pred, J
 
+def _collinearity(pv: NDArray, Gp: NDArray) -> tuple[NDArray, NDArray]:
+    """Predicted photo coordinates (N, 2) and their derivatives (N, 2, 9) by the 9 elements ``pv``."""
+    om, ph, ka = pv[0:3]
+    Rx, Ry, Rz = rot_x(om), rot_y(ph), rot_z(ka)
+    Rm = Rx @ Ry @ Rz
+    dR = [Rx @ _K[0] @ Ry @ Rz, Rx @ Ry @ _K[1] @ Rz, Rm @ _K[2]]
+    d = Gp - pv[3:6]
+    p = d @ Rm
+    fv, x0, y0 = pv[6], pv[7], pv[8]
+    w = 1.0 / p[:, 2]
+    pred = np.column_stack([x0 - fv * p[:, 0] * w, y0 - fv * p[:, 1] * w])
+    # d pred / d p
+    J = np.zeros((len(Gp), 2, 9))
+    dxdp = np.stack([-fv * w, np.zeros_like(w), fv * p[:, 0] * w * w], axis=1)
+    dydp = np.stack([np.zeros_like(w), -fv * w, fv * p[:, 1] * w * w], axis=1)
+    for a in range(3):
+        dp = d @ dR[a]
+        J[:, 0, a] = (dxdp * dp).sum(1)
+        J[:, 1, a] = (dydp * dp).sum(1)
+    # d p / d C = -R.T
+    J[:, 0, 3:6] = -dxdp @ Rm.T
+    J[:, 1, 3:6] = -dydp @ Rm.T
+    J[:, 0, 6] = -p[:, 0] * w
+    J[:, 1, 6] = -p[:, 1] * w
+    J[:, 0, 7] = 1.0
+    J[:, 1, 8] = 1.0
+    return pred, J
+
+
+def _solve(prob: _Problem, params: NDArray, *, max_iterations: int, tol: float
+           ) -> tuple[NDArray, NDArray, int]:
+    """Stage 2b: Gauss-Newton on the photo coordinates; returns (parameters, normal matrix, iterations)."""
+    params = params.copy()
+    nfree, x, fit = prob.nfree, prob.x, prob.fit
     conv = False
     it = 0
     N = np.eye(nfree)
-    for it in range(1, max_iterations + 1):
-        pred, J = model(params, Gc[fit])
+    dp = np.zeros(nfree)
+    while it < max_iterations:
+        it += 1
+        pred, J = _collinearity(params, prob.Gc[fit])
         A = J[:, :, :nfree].reshape(-1, nfree)
         lvec = (x[fit] - pred).reshape(-1)
-        N = A.T @ A
+        N, rhs = lsq.normal_equations(A, lvec)
         try:
-            dp = np.linalg.solve(N, A.T @ lvec)
+            dp = np.linalg.solve(N, rhs)
         except np.linalg.LinAlgError as err:
             raise EstimationError(f"singular normal equations in space resection: {err}") from err
         if not np.isfinite(dp).all():
@@ -371,22 +482,19 @@ def resect(
     if not conv:
         raise EstimationError(f"space resection did not converge in {max_iterations} iterations "
                               f"(last correction {np.abs(dp).max():.3g})")
-    pred_all, _ = model(params, Gc)
+    return params, N, it
+
+
+def _precision(prob: _Problem, params: NDArray, N: NDArray) -> tuple[NDArray, float, NDArray, float]:
+    """Stage 3: residuals, sigma0 with the redundancy 2 n - u, covariance; returns (pred, sigma0, cov, cond)."""
+    nf, nfree, x, fit = prob.nf, prob.nfree, prob.x, prob.fit
+    pred_all, _ = _collinearity(params, prob.Gc)
     v = (pred_all - x)[fit].reshape(-1)
     dof = 2 * nf - nfree
     sigma0 = math.sqrt(float(v @ v) / dof) if dof > 0 else float("nan")
     cond = float(np.linalg.cond(N))
     if cond > 1e12:
         logger.warning("space resection: normal equations badly conditioned (cond %.3g)", cond)
-    Q = np.linalg.inv(N)
+    Q = lsq.cofactor(N)
     cov = (sigma0 ** 2 if math.isfinite(sigma0) else 1.0) * Q
-    names = ("omega", "phi", "kappa", "x", "y", "z") + (("f", "x0", "y0") if free_interior else ())
-    table = ResidualTable(step="space resection", ids=ids_t, observed=x, adjusted=pred_all, units="mm",
-                          components=("dx", "dy"), check=chk, sigma0=sigma0, n_params=nfree,
-                          extra={"condition_number": cond, "free_interior": free_interior})
-    R = matrix_from_angles(*params[0:3], order="omega-phi-kappa")
-    logger.info("space resection: %d points, sigma0 %.4g mm, %d iterations", nf, sigma0, it)
-    return ExteriorOrientation(position=params[3:6] + gm, rotation=R, focal_length_mm=float(params[6]),
-                               principal_point_mm=params[7:9], covariance=cov, param_names=names,
-                               sigma0=sigma0, residuals=table, iterations=it, converged=conv, crs=crs,
-                               extra={"initial": initial, "free_interior": free_interior})
+    return pred_all, sigma0, cov, cond
