@@ -116,7 +116,7 @@ class Grid:
 
     width: int
     height: int
-    transform: object
+    transform: Affine
     crs: str | None = None
 
     def __post_init__(self) -> None:
@@ -128,13 +128,13 @@ class Grid:
     @property
     def resolution(self) -> tuple[float, float]:
         """(x, y) pixel size in CRS units (positive)."""
-        t: tuple[float, ...] = tuple(self.transform)  # type: ignore[arg-type]  # Affine is a 9-tuple
+        t = tuple(self.transform)
         return abs(float(t[0])), abs(float(t[4]))
 
     @property
     def bounds(self) -> tuple[float, float, float, float]:
         """(left, bottom, right, top) of the outer pixel edges."""
-        t: tuple[float, ...] = tuple(self.transform)  # type: ignore[arg-type]  # Affine is a 9-tuple
+        t = tuple(self.transform)
         left, top = float(t[2]), float(t[5])
         right = left + t[0] * self.width
         bottom = top + t[4] * self.height
