@@ -58,9 +58,14 @@ VISIBILITY_OUTSIDE, VISIBILITY_OCCLUDED, VISIBILITY_VISIBLE = 0, 1, 2
 
 
 class SensorModel(Protocol):
-    crs: str
-    width: int
-    height: int
+    @property
+    def crs(self) -> str: ...
+
+    @property
+    def width(self) -> int: ...
+
+    @property
+    def height(self) -> int: ...
 
     def project(self, ground: NDArray[np.float64]) -> NDArray[np.float64]: ...
 
@@ -362,6 +367,11 @@ def ortho_grid(model: SensorModel, dem: Dem, *, dst_crs: str | None = None, reso
 
 
 # =========================================================================== tile engine
+def _gt(transform: Any) -> tuple[float, ...]:
+    """The six geotransform numbers (a, b, c, d, e, f) of a rasterio Affine."""
+    return tuple(float(v) for v in tuple(transform)[:6])
+
+
 def _interp_matrix(n: int, knots: NDArray[np.float64]) -> NDArray[np.float64]:
     """(n, k) linear interpolation weights from values at ``knots`` (ascending) to 0..n-1."""
     x = np.arange(n, dtype=np.float64)
@@ -421,7 +431,7 @@ class _Engine:
 
     # ---------------------------------------------------------------- geometry of a block
     def _world(self, c0: int, r0: int, w: int, h: int) -> tuple[NDArray, NDArray]:
-        t = tuple(self.grid.transform)
+        t = _gt(self.grid.transform)
         xs = t[2] + t[0] * (np.arange(c0, c0 + w) + 0.5)
         ys = t[5] + t[4] * (np.arange(r0, r0 + h) + 0.5)
         return np.broadcast_to(xs, (h, w)), np.broadcast_to(ys[:, None], (h, w))
@@ -430,11 +440,12 @@ class _Engine:
         """fn evaluated on a sparse grid of the block's world points, interpolated to (h, w, dim)."""
         step = self.opts.map_step_px
         kc, kr = _knots(w, step), _knots(h, step)
-        t = tuple(self.grid.transform)
+        t = _gt(self.grid.transform)
         X = t[2] + t[0] * (c0 + kc + 0.5)
         Y = t[5] + t[4] * (r0 + kr + 0.5)
         XX, YY = np.meshgrid(X, Y)
-        vals = np.asarray(fn(np.column_stack([XX.ravel(), YY.ravel()])), dtype=np.float64).reshape(len(kr), len(kc), dim)
+        vals = np.asarray(fn(np.column_stack([XX.ravel(), YY.ravel()])), dtype=np.float64)
+        vals = vals.reshape(len(kr), len(kc), dim)
         Mc, Mr = _interp_matrix(w, kc), _interp_matrix(h, kr)
         return np.stack([Mr @ vals[:, :, k] @ Mc.T for k in range(dim)], axis=-1)
 
@@ -473,7 +484,7 @@ class _Engine:
         """Horizontal displacement towards the sensor per metre of height, in output pixels (h, w, 2) (col, row)."""
         from .crs import transform_xy
 
-        t = tuple(self.grid.transform)
+        t = _gt(self.grid.transform)
         dz = 10.0
 
         def fn(p):
@@ -690,7 +701,7 @@ def _margin_px(model: SensorModel, dem: Dem, grid: Grid, h_range: tuple[float, f
     """Output pixels a line of sight can travel over the DEM's height range (for the true-ortho margin)."""
     from .crs import transform_xy
 
-    t = tuple(grid.transform)
+    t = _gt(grid.transform)
     cc, rr = np.meshgrid(np.linspace(0, grid.width - 1, 9), np.linspace(0, grid.height - 1, 9))
     X = t[2] + t[0] * (cc.ravel() + 0.5)
     Y = t[5] + t[4] * (rr.ravel() + 0.5)
@@ -780,7 +791,7 @@ def orthorectify(src: str | Path, dst: str | Path, model: SensorModel, dem: Dem,
                                  MaskPolicy("nodata", nodata), tile=tile,
                                  compress="none" if opts.cog else opts.compress, threads=opts.n_threads) as writer:
                     n_empty = _run(engine, writer, windows, opts.n_threads, progress)
-                nad = _nadir_in(model, grid.crs)
+                nad = _nadir_in(model, str(grid.crs))
                 tags = {"ORTHO_MODEL": type(model).__name__, "ORTHO_DEM": Path(dem.path).name,
                         "ORTHO_NADIR_X": repr(float(nad[0])), "ORTHO_NADIR_Y": repr(float(nad[1]))}
                 if opts.true_ortho:
@@ -818,3 +829,108 @@ def _nadir_in(model: SensorModel, crs: str) -> NDArray[np.float64]:
         return transform_xy(model.crs, crs, np.asarray(model.nadir).reshape(1, 2))[0]
     except Exception:  # noqa: BLE001 - the nadir is metadata only
         return np.array([np.nan, np.nan])
+
+
+# =========================================================================== one call for the CLI
+@dataclass(frozen=True)
+class OrthoRun:
+    """What :func:`ortho_from_files` did: the ortho, and the GCP residuals when GCPs were given."""
+
+    result: OrthoResult
+    residuals: Any = None  # ResidualTable (px) or None
+    model_kind: str = ""
+
+    def summary_lines(self) -> list[str]:
+        out = []
+        if self.residuals is not None:
+            out.append(self.residuals.summary_line())
+            loo = self.residuals.extra.get("loo_rmse_px")
+            raw = self.residuals.extra.get("rpc_only_rmse_px")
+            if raw is not None:
+                out.append(f"GCP error of the RPC alone: RMSE {raw:.4g} px" +
+                           (f"; leave-one-out check RMSE after refinement {loo:.4g} px" if loo is not None else ""))
+        return out + self.result.summary_lines()
+
+
+def _read_gcps(path: str | Path):
+    try:
+        from .formats import read_gcps
+    except ImportError:  # pragma: no cover - before the formats module existed
+        from .tables import read_gcps  # type: ignore[no-redef]
+    return read_gcps(path)
+
+
+def _gcp_ground(gcps, dem: Dem, crs: str) -> NDArray[np.float64]:
+    """GCP ground points (N, 3) in ``crs``: x, y from the file (its CRS), z from the file or the DEM."""
+    from .crs import transform_xy
+
+    src_crs = gcps.crs or crs
+    xy = transform_xy(src_crs, crs, gcps.target) if gcps.crs else np.asarray(gcps.target, dtype=np.float64)
+    if gcps.z is not None:
+        z = np.asarray(gcps.z, dtype=np.float64) + dem.undulation
+    else:
+        z = dem.sample(xy, crs)
+        if not np.isfinite(z).all():
+            i = int(np.flatnonzero(~np.isfinite(z))[0])
+            raise InvalidInputError(f"GCP {gcps.ids[i]!r} has no z and lies outside the DEM")
+    return np.column_stack([xy, z])
+
+
+def ortho_from_files(src: str | Path, dst: str | Path, dem_path: str | Path, *, rpc: str | Path | bool = False,
+                     camera: str | Path | None = None, exterior: str | Path | None = None,
+                     eo_crs: str | None = None, gcps: str | Path | None = None, refinement: str = "shift",
+                     dst_crs: str | None = None, resolution: float | None = None, undulation: float = 0.0,
+                     geoid: str | None = None, options: OrthoOptions | None = None, overwrite: bool = False,
+                     progress: Callable[[int, int], None] | None = None) -> OrthoRun:
+    """Orthorectify ``src`` with its RPC (``rpc=True``: from the image; a path: an RPC file) or a frame camera.
+
+    With ``gcps`` (any GCP file ``rectify`` reads; z optional, taken from the
+    DEM when absent): an RPC is refined (``refinement``: shift, drift,
+    affine) and the residual table carries leave-one-out errors; a frame
+    camera is only checked (image residuals of the GCPs).
+
+    Raises
+    ------
+    InvalidInputError
+        Neither or both of ``rpc`` and ``camera``/``exterior``, bad files.
+    """
+    from .io import raster_info
+    from .residuals import ResidualTable
+
+    use_rpc = bool(rpc)
+    if use_rpc == (camera is not None or exterior is not None):
+        raise InvalidInputError("give either an RPC (--rpc) or a frame camera (--camera and --exterior)")
+    if not use_rpc and (camera is None or exterior is None):
+        raise InvalidInputError("a frame camera needs both --camera CAM.json and --exterior EO.json")
+    for p in (src, dem_path, camera, exterior, gcps, rpc if isinstance(rpc, (str, Path)) else None):
+        if p is not None and Path(dst).exists() and Path(p).exists() and Path(dst).resolve() == Path(p).resolve():
+            raise InvalidInputError(f"output {str(dst)!r} is an input; inputs are never modified")
+    from .fileutil import check_output
+
+    check_output(dst, overwrite=overwrite)
+    dem = Dem.from_path(dem_path, undulation=undulation, geoid=geoid)
+    info = raster_info(src)
+    table = None
+    model: SensorModel
+    if use_rpc:
+        from .rpc import RPCRefinement, read_rpc, rpc_from_raster
+
+        r = rpc_from_raster(src) if rpc is True else read_rpc(rpc)  # type: ignore[arg-type]
+        model_rpc: Any = r
+        if gcps is not None:
+            g = _read_gcps(gcps)
+            ground = _gcp_ground(g, dem, "EPSG:4326")
+            ref = RPCRefinement.from_gcps(r, g.pixel, ground, model=refinement, ids=list(g.ids), check=g.check)
+            model_rpc, table = ref, ref.residuals
+        model = RPCModel(model_rpc, info.width, info.height)
+    else:
+        model = FrameModel.from_files(str(camera), str(exterior), crs=eo_crs)
+        if gcps is not None:
+            g = _read_gcps(gcps)
+            ground = _gcp_ground(g, dem, model.crs)
+            adj = model.project(ground)
+            table = ResidualTable(step="GCP check (frame model)", ids=list(g.ids), observed=g.pixel, adjusted=adj,
+                                  units="px", check=np.ones(len(g.ids), bool), position_px=g.pixel)
+    result = orthorectify(src, dst, model, dem, dst_crs=dst_crs, resolution=resolution, options=options,
+                          overwrite=overwrite, progress=progress)
+    return OrthoRun(result, table, type(model).__name__)

@@ -1,0 +1,32 @@
+"""``rectify mosaic``: one GeoTIFF/COG from several orthophotos (nearest-nadir seams, feathering)."""
+
+from __future__ import annotations
+
+import click
+
+from .options import echo, handle_errors, overwrite_opt, progress
+
+
+@click.command(short_help="Mosaic orthophotos: nearest-nadir seamlines, feathering, one GeoTIFF or COG.")
+@click.argument("orthos", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.option("-o", "--output", "dst", type=click.Path(dir_okay=False), required=True, help="Output GeoTIFF.")
+@click.option("--resolution", type=float, default=None, help="Output pixel size (default: the finest input).")
+@click.option("--feather", type=click.FloatRange(0, None), default=16.0, show_default=True,
+              help="Blend width across seams, output pixels (0: hard seams).")
+@click.option("--cog", is_flag=True, default=False, help="Write a Cloud Optimized GeoTIFF.")
+@click.option("--threads", type=click.IntRange(1, 256), default=None, help="Worker threads (default: all cores).")
+@overwrite_opt
+@handle_errors
+def mosaic(orthos, dst, resolution, feather, cog, threads, overwrite):
+    """Mosaic the orthophotos ORTHOS (one CRS) into the GeoTIFF given by -o."""
+    import os
+
+    os.environ.setdefault("GDAL_CACHEMAX", "64")
+    from ..mosaic import MosaicOptions
+    from ..mosaic import mosaic as run_mosaic
+
+    opts = MosaicOptions(feather_px=feather, cog=cog, threads=threads)
+    with progress("mosaicking", enabled=True) as cb:
+        res = run_mosaic(list(orthos), dst, resolution=resolution, options=opts, overwrite=overwrite, progress=cb)
+    for line in res.summary_lines():
+        echo(line)

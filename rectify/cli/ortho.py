@@ -1,0 +1,53 @@
+"""``rectify ortho``: orthorectify an RPC or frame image with a DEM."""
+
+from __future__ import annotations
+
+import click
+
+from .options import echo, handle_errors, overwrite_opt, progress
+
+
+@click.command(short_help="Orthorectify an image with a DEM (RPC or frame camera), optionally a true ortho.")
+@click.argument("src", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", "dst", type=click.Path(dir_okay=False), required=True, help="Output GeoTIFF.")
+@click.option("--dem", "dem_path", type=click.Path(dir_okay=False), required=True,
+              help="DEM GeoTIFF (any CRS and resolution).")
+@click.option("--rpc", "rpc", is_flag=False, flag_value="__image__", default=None,
+              help="Use the image's RPC (bare --rpc) or an RPC file (_RPC.TXT, .RPB, DIMAP/DigitalGlobe XML).")
+@click.option("--camera", type=click.Path(dir_okay=False), default=None, help="Camera JSON (frame camera).")
+@click.option("--exterior", type=click.Path(dir_okay=False), default=None,
+              help="Exterior orientation JSON ('stereo resect').")
+@click.option("--eo-crs", default=None, help="CRS of the exterior orientation (when the JSON has none).")
+@click.option("--gcps", type=click.Path(dir_okay=False), default=None,
+              help="GCP file: refines an RPC (bias compensation) or checks a frame model.")
+@click.option("--refinement", type=click.Choice(["shift", "drift", "affine"]), default="shift", show_default=True,
+              help="RPC bias model fitted to the GCPs.")
+@click.option("--dst-crs", default=None, help="Output CRS (default: the EO CRS, or UTM for RPC images).")
+@click.option("--resolution", type=float, default=None, help="Output pixel size in output CRS units.")
+@click.option("--undulation", type=float, default=0.0, show_default=True,
+              help="Geoid undulation N added to DEM heights (h = H + N; RPCs need ellipsoidal heights).")
+@click.option("--geoid", default=None, help="Geoid of the DEM heights, e.g. EPSG:5773 (needs the PROJ grid).")
+@click.option("--resampling", type=click.Choice(["nearest", "bilinear", "cubic"]), default="bilinear",
+              show_default=True)
+@click.option("--true-ortho", is_flag=True, default=False,
+              help="Occluded ground gets nodata; adds a visibility band (0 outside, 1 occluded, 2 visible).")
+@click.option("--cog", is_flag=True, default=False, help="Write a Cloud Optimized GeoTIFF.")
+@click.option("--threads", type=click.IntRange(1, 256), default=None, help="Worker threads (default: all cores).")
+@overwrite_opt
+@handle_errors
+def ortho(src, dst, dem_path, rpc, camera, exterior, eo_crs, gcps, refinement, dst_crs, resolution, undulation,
+          geoid, resampling, true_ortho, cog, threads, overwrite):
+    """Orthorectify SRC over a DEM into the GeoTIFF given by -o."""
+    import os
+
+    os.environ.setdefault("GDAL_CACHEMAX", "64")
+    from ..ortho import OrthoOptions, ortho_from_files
+
+    opts = OrthoOptions(resampling=resampling, cog=cog, threads=threads, true_ortho=true_ortho)
+    rpc_arg = True if rpc == "__image__" else (rpc or False)
+    with progress("orthorectifying", enabled=True) as cb:
+        run = ortho_from_files(src, dst, dem_path, rpc=rpc_arg, camera=camera, exterior=exterior, eo_crs=eo_crs,
+                               gcps=gcps, refinement=refinement, dst_crs=dst_crs, resolution=resolution,
+                               undulation=undulation, geoid=geoid, options=opts, overwrite=overwrite, progress=cb)
+    for line in run.summary_lines():
+        echo(line)
