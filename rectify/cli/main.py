@@ -37,3 +37,9 @@ cli.add_command(demo)
 from .compare import compare  # noqa: E402
 
 cli.add_command(compare)
+from .ortho import ortho  # noqa: E402
+
+cli.add_command(ortho)
+from .mosaic import mosaic  # noqa: E402
+
+cli.add_command(mosaic)
