@@ -1,0 +1,597 @@
+"""Dense matching of a normal-case pair: semi-global matching (OpenCV StereoSGBM), tiled.
+
+Per tile: a disparity range (from the tie points and a coarse pass), StereoSGBM (three-way
+mode, 3 x 3 blocks, BT cost on the colour bands) with its left-right consistency check
+(``disp12MaxDiff``) and uniqueness test, its sub-pixel (1/16 px) parabola, speckle removal, then a
+3 x 3 median of the valid disparities, a fill of small holes by the background (the smaller of the
+nearest valid disparities left and right on the row: holes are mostly occlusions, which belong to
+the farther surface), and a per-pixel confidence.
+
+Disparity convention: ``d = col_left - col_right`` (rectified photos); NaN where no disparity.
+
+Tiling: the left photo is cut into ``tile`` x ``tile`` cores with ``overlap`` pixels on each side;
+the right window of a tile is the left window moved by the tile's disparity range. Memory holds one
+tile pair, its SGBM buffers and the coarse (overview) disparity, whatever the photo size.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import rasterio
+from affine import Affine
+from numpy.typing import ArrayLike, NDArray
+from scipy import ndimage
+
+from rectify.errors import InvalidInputError, ShapeError, StereoError
+from rectify.io import MaskPolicy, TiledWriter, WindowReader, iter_windows, raster_info, read_overview
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["DisparityMap", "MatchOptions", "MatchStats", "NODATA", "fill_background", "match_pair",
+           "match_rasters", "sgbm_baseline"]
+
+StrPath = str | os.PathLike[str]
+
+#: nodata value of the disparity and confidence rasters
+NODATA = -9999.0
+
+
+@dataclass(frozen=True)
+class MatchOptions:
+    """Options of the dense matcher.
+
+    Attributes
+    ----------
+    block_size : int
+        SGBM block side (odd, 1..11).
+    p1, p2 : float
+        SGBM smoothness penalties per ``channels * block_size**2`` (OpenCV's sample uses 8 and 32).
+    uniqueness : int
+        SGBM uniqueness ratio, percent.
+    lr_max_diff : int
+        Left-right consistency tolerance, pixels (negative: no check).
+    speckle_window, speckle_range : int
+        Speckle removal: regions of at most ``speckle_window`` pixels differing by more than
+        ``speckle_range`` from their surroundings are removed (0: off).
+    median : bool
+        3 x 3 median of the valid disparities.
+    fill_max_px : int
+        Holes of at most this many pixels are filled by the background (0: no fill); filled
+        pixels are flagged and get confidence 0.
+    tile, overlap : int
+        Tile core side and the overlap on each side, pixels (arrays larger than ``tile + 2 overlap``
+        and every raster are matched by tiles).
+    margin_px : float
+        Added on both sides of a tile's disparity range.
+    coarse_max_px : int
+        Longest side of the coarse pass (coarse-to-fine disparity ranges); 0 disables it.
+    max_disparities : int
+        Largest disparity search width of a tile (bounds memory and time).
+    """
+
+    block_size: int = 3
+    p1: float = 8.0
+    p2: float = 32.0
+    uniqueness: int = 10
+    lr_max_diff: int = 1
+    speckle_window: int = 100
+    speckle_range: int = 2
+    median: bool = True
+    fill_max_px: int = 200
+    tile: int = 1024
+    overlap: int = 48
+    margin_px: float = 8.0
+    coarse_max_px: int = 640
+    max_disparities: int = 512
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.block_size, int) or self.block_size < 1 or self.block_size > 11 \
+                or self.block_size % 2 == 0:
+            raise InvalidInputError(f"`block_size` must be an odd integer in 1..11; got {self.block_size!r}")
+        for name in ("p1", "p2", "margin_px"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise InvalidInputError(f"`{name}` must be a finite number >= 0; got {v!r}")
+        if self.p2 <= self.p1:
+            raise InvalidInputError(f"`p2` must exceed `p1`; got p1={self.p1!r}, p2={self.p2!r}")
+        for name, lo in (("uniqueness", 0), ("speckle_window", 0), ("speckle_range", 0), ("fill_max_px", 0),
+                         ("overlap", 0), ("coarse_max_px", 0), ("tile", 64), ("max_disparities", 16)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+                raise InvalidInputError(f"`{name}` must be an integer >= {lo}; got {v!r}")
+        if isinstance(self.lr_max_diff, bool) or not isinstance(self.lr_max_diff, int):
+            raise InvalidInputError(f"`lr_max_diff` must be an integer; got {self.lr_max_diff!r}")
+        if self.tile % 16:
+            raise InvalidInputError(f"`tile` must be a multiple of 16; got {self.tile}")
+
+
+@dataclass(frozen=True, eq=False)
+class DisparityMap:
+    """A disparity map of the left rectified photo.
+
+    Attributes
+    ----------
+    disparity : (H, W) float32
+        ``col_left - col_right``, px; NaN where there is none.
+    confidence : (H, W) float32
+        In [0, 1]; 0 where there is no disparity or it was filled.
+    filled : (H, W) bool
+        Disparities filled by the background rather than matched.
+    """
+
+    disparity: NDArray[np.float32]
+    confidence: NDArray[np.float32]
+    filled: NDArray[np.bool_]
+    options: MatchOptions = field(default_factory=MatchOptions)
+
+    def __post_init__(self) -> None:
+        for a in (self.disparity, self.confidence, self.filled):
+            a.flags.writeable = False
+
+    @property
+    def valid(self) -> NDArray[np.bool_]:
+        return np.isfinite(self.disparity)
+
+    @property
+    def density(self) -> float:
+        """Share of pixels with a disparity."""
+        return float(self.valid.mean()) if self.disparity.size else 0.0
+
+
+@dataclass(frozen=True)
+class MatchStats:
+    """What :func:`match_rasters` did: pixels, valid share, filled share, tiles, range."""
+
+    width: int
+    height: int
+    n_valid: int
+    n_filled: int
+    n_tiles: int
+    disparity_min: float
+    disparity_max: float
+
+    @property
+    def density(self) -> float:
+        return self.n_valid / max(1, self.width * self.height)
+
+
+# ---------------------------------------------------------------- helpers
+def _as_image(a: ArrayLike, name: str) -> NDArray:
+    img = np.asarray(a)
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[:, :, 0]
+    if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (3, 4)) or min(img.shape[:2]) < 8:
+        raise ShapeError(f"`{name}` must be an (H, W) or (H, W, 3) image of at least 8 x 8 px; got {img.shape}",
+                         actual_shape=img.shape)
+    if img.dtype.kind not in "uif":
+        raise InvalidInputError(f"`{name}` must be numeric; got dtype {img.dtype}")
+    if img.ndim == 3:
+        img = img[:, :, :3]
+    return img
+
+
+def _to_uint8(img: NDArray, valid: NDArray[np.bool_] | None) -> NDArray[np.uint8]:
+    if img.dtype == np.uint8:
+        return np.ascontiguousarray(img)
+    f = img.astype(np.float32)
+    m = np.isfinite(f) if valid is None else (valid[..., None] if f.ndim == 3 else valid) & np.isfinite(f)
+    if not m.any():
+        return np.zeros(img.shape, np.uint8)
+    lo, hi = np.percentile(f[np.broadcast_to(m, f.shape)], [0.5, 99.5])
+    scale = 255.0 / max(float(hi - lo), 1e-6)
+    return np.clip(np.nan_to_num((f - lo) * scale), 0, 255).astype(np.uint8)
+
+
+def fill_background(disp: NDArray[np.float32], max_px: int) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    """Fill holes of at most ``max_px`` pixels by the smaller of the nearest valid disparities on the row.
+
+    Returns the filled map and the mask of filled pixels.
+    """
+    v = np.isfinite(disp)
+    if max_px <= 0 or v.all() or not v.any():
+        return disp, np.zeros(disp.shape, bool)
+    H, W = disp.shape
+    lab, n = ndimage.label(~v)
+    sizes = np.bincount(lab.ravel(), minlength=n + 1)
+    small = sizes <= max_px
+    small[0] = False
+    target = small[lab]
+    cols = np.arange(W)[None, :]
+    left = np.maximum.accumulate(np.where(v, cols, -1), axis=1)
+    right = np.minimum.accumulate(np.where(v, cols, W)[:, ::-1], axis=1)[:, ::-1]
+    rows = np.arange(H)[:, None]
+    lv = np.where(left >= 0, disp[rows, np.clip(left, 0, W - 1)], np.inf)
+    rv = np.where(right < W, disp[rows, np.clip(right, 0, W - 1)], np.inf)
+    f = np.minimum(lv, rv)
+    target &= np.isfinite(f)
+    out = disp.copy()
+    out[target] = f[target]
+    return out, target
+
+
+def _median_valid(disp: NDArray[np.float32]) -> NDArray[np.float32]:
+    v = np.isfinite(disp)
+    m = cv2.medianBlur(np.where(v, disp, 0).astype(np.float32), 3)
+    return np.where(v, m, np.nan).astype(np.float32)
+
+
+def _confidence(grey: NDArray[np.float32], disp: NDArray[np.float32], filled: NDArray[np.bool_]
+                ) -> NDArray[np.float32]:
+    """Texture (local grey std) times smoothness (local disparity std), in [0, 1]."""
+    g = grey.astype(np.float32)
+    mu = cv2.blur(g, (5, 5))
+    sd = np.sqrt(np.maximum(cv2.blur(g * g, (5, 5)) - mu * mu, 0))
+    tex = 1.0 - np.exp(-((sd / 4.0) ** 2))
+    v = np.isfinite(disp)
+    d = np.where(v, disp, 0).astype(np.float32)
+    n = cv2.blur(v.astype(np.float32), (3, 3))
+    m1 = cv2.blur(d, (3, 3)) / np.maximum(n, 1e-6)
+    m2 = cv2.blur(d * d, (3, 3)) / np.maximum(n, 1e-6)
+    dsd = np.sqrt(np.maximum(m2 - m1 * m1, 0))
+    smooth = np.exp(-(dsd ** 2)) * np.clip(n, 0, 1)
+    c = (tex * smooth).astype(np.float32)
+    c[~v | filled] = 0.0
+    return c
+
+
+def _sgbm(opts: MatchOptions, channels: int, min_disp: int, num_disp: int) -> cv2.StereoSGBM:
+    bs = opts.block_size
+    return cv2.StereoSGBM_create(
+        minDisparity=int(min_disp), numDisparities=int(num_disp), blockSize=bs,
+        P1=int(round(opts.p1 * channels * bs * bs)), P2=int(round(opts.p2 * channels * bs * bs)),
+        disp12MaxDiff=int(opts.lr_max_diff), uniquenessRatio=int(opts.uniqueness),
+        speckleWindowSize=int(opts.speckle_window), speckleRange=int(opts.speckle_range),
+        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
+
+
+def _match_window(L: NDArray[np.uint8], R: NDArray[np.uint8], lv: NDArray[np.bool_], rv: NDArray[np.bool_],
+                  dmin: int, dmax: int, opts: MatchOptions) -> NDArray[np.float32]:
+    """SGBM of one window pair whose columns coincide; d in [dmin, dmax]; NaN where none.
+
+    The right window is moved by ``dmin`` first so that SGBM searches [0, dmax - dmin].
+    """
+    H, W = L.shape[:2]
+    num = int(math.ceil((dmax - dmin + 1) / 16.0)) * 16
+    # right shifted: Rs[:, x] = R[:, x - dmin] is not available here (caller passes R already shifted)
+    pad = num + 1
+    Lp = cv2.copyMakeBorder(L, 0, 0, pad, 0, cv2.BORDER_REFLECT_101)
+    Rp = cv2.copyMakeBorder(R, 0, 0, pad, 0, cv2.BORDER_REFLECT_101)
+    ch = 1 if L.ndim == 2 else L.shape[2]
+    raw = _sgbm(opts, ch, 0, num).compute(Lp, Rp)[:, pad:]
+    d = raw.astype(np.float32) / 16.0
+    d[raw < 0] = np.nan
+    d[~lv] = np.nan
+    # a disparity whose right pixel is invalid is dropped
+    cols = np.arange(W)[None, :] - np.nan_to_num(d, nan=0.0)
+    ci = np.clip(np.rint(cols).astype(np.int64), 0, W - 1)
+    bad = ~rv[np.arange(H)[:, None], ci] | (cols < -0.5)
+    d[bad] = np.nan
+    d += float(dmin)
+    return d
+
+
+def _post(d: NDArray[np.float32], grey: NDArray[np.float32], opts: MatchOptions
+          ) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.bool_]]:
+    if opts.median:
+        d = _median_valid(d)
+    d, filled = fill_background(d, opts.fill_max_px)
+    return d, _confidence(grey, d, filled), filled
+
+
+def _range_of(values: NDArray, opts: MatchOptions) -> tuple[int, int] | None:
+    v = values[np.isfinite(values)]
+    if v.size < 10:
+        return None
+    lo, hi = np.percentile(v, [0.5, 99.5])
+    return int(math.floor(lo - opts.margin_px)), int(math.ceil(hi + opts.margin_px))
+
+
+def _clip_range(r: tuple[int, int], opts: MatchOptions) -> tuple[int, int]:
+    lo, hi = r
+    if hi - lo + 1 > opts.max_disparities:
+        mid = 0.5 * (lo + hi)
+        lo, hi = int(mid - opts.max_disparities / 2), int(mid + opts.max_disparities / 2) - 1
+    return lo, hi
+
+
+def _shifted_window(img: NDArray, valid: NDArray[np.bool_], r0: int, r1: int, c0: int, c1: int
+                    ) -> tuple[NDArray, NDArray[np.bool_]]:
+    """img[r0:r1, c0:c1] with columns outside the image as zeros (invalid)."""
+    H, W = img.shape[:2]
+    shape = (r1 - r0, c1 - c0) + img.shape[2:]
+    out = np.zeros(shape, img.dtype)
+    ov = np.zeros((r1 - r0, c1 - c0), bool)
+    a, b = max(c0, 0), min(c1, W)
+    if b > a:
+        out[:, a - c0:b - c0] = img[r0:r1, a:b]
+        ov[:, a - c0:b - c0] = valid[r0:r1, a:b]
+    return out, ov
+
+
+def _coarse(L8: NDArray[np.uint8], R8: NDArray[np.uint8], lv, rv, rng: tuple[int, int] | None,
+            opts: MatchOptions) -> tuple[NDArray[np.float32] | None, float]:
+    """Disparity of a downsampled pair (in full-resolution pixels) and the scale."""
+    H, W = L8.shape[:2]
+    if opts.coarse_max_px <= 0:
+        return None, 1.0
+    s = max(H, W) / opts.coarse_max_px
+    k = 2 ** max(0, int(math.ceil(math.log2(s)))) if s > 1 else 1
+    if k == 1:
+        k = 2
+    size = (max(8, W // k), max(8, H // k))
+    Lc = cv2.resize(L8, size, interpolation=cv2.INTER_AREA)
+    Rc = cv2.resize(R8, size, interpolation=cv2.INTER_AREA)
+    lvc = cv2.resize(lv.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+    rvc = cv2.resize(rv.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+    if rng is None:
+        lo, hi = 0, max(16, size[0] // 3)
+    else:
+        lo, hi = int(math.floor(rng[0] / k)) - 2, int(math.ceil(rng[1] / k)) + 2
+    Rs, rvs = _shifted_window(Rc, rvc, 0, size[1], -lo, size[0] - lo)
+    d = _match_window(Lc, Rs, lvc, rvs, lo, hi, opts) * k
+    return d, float(k)
+
+
+def _grey(img: NDArray) -> NDArray[np.float32]:
+    return img.astype(np.float32) if img.ndim == 2 else img.astype(np.float32).mean(axis=2)
+
+
+def match_pair(
+    left: ArrayLike,
+    right: ArrayLike,
+    *,
+    left_valid: ArrayLike | None = None,
+    right_valid: ArrayLike | None = None,
+    disparity_range: tuple[float, float] | None = None,
+    options: MatchOptions | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> DisparityMap:
+    """Dense disparity of an in-memory normal-case pair (tiles when larger than one tile).
+
+    Parameters
+    ----------
+    left, right : (H, W) or (H, W, 3) arrays
+        Rectified photos of equal height (uint8, or any numeric dtype: stretched to uint8).
+    left_valid, right_valid : (H, W) bool, optional
+    disparity_range : (float, float), optional
+        Expected ``col_left - col_right`` range (e.g. from tie points); without it a coarse pass
+        searches ``0 .. width / 3``.
+    options : MatchOptions, optional
+    progress : callable(done, total), optional
+
+    Returns
+    -------
+    DisparityMap
+
+    Raises
+    ------
+    ShapeError, InvalidInputError
+        Bad images, masks or range.
+    StereoError
+        No disparity found anywhere.
+    """
+    opts = options or MatchOptions()
+    if not isinstance(opts, MatchOptions):
+        raise InvalidInputError(f"`options` must be a MatchOptions; got {type(opts).__name__}")
+    Li, Ri = _as_image(left, "left"), _as_image(right, "right")
+    if Li.shape[0] != Ri.shape[0] or Li.ndim != Ri.ndim:
+        raise ShapeError(f"`left` and `right` must have equal heights and bands; got {Li.shape} and {Ri.shape}",
+                         actual_shape=(Li.shape, Ri.shape))
+    lv = _as_mask(left_valid, Li.shape[:2], "left_valid")
+    rv = _as_mask(right_valid, Ri.shape[:2], "right_valid")
+    rng = _check_range(disparity_range)
+    L8, R8 = _to_uint8(Li, lv), _to_uint8(Ri, rv)
+    coarse, k = _coarse(L8, R8, lv, rv, rng, opts)
+    H, W = L8.shape[:2]
+    out = np.full((H, W), np.nan, np.float32)
+    conf = np.zeros((H, W), np.float32)
+    filled = np.zeros((H, W), bool)
+    windows = list(iter_windows(W, H, opts.tile, opts.overlap))
+    for i, (c0, r0, w, h) in enumerate(windows):
+        d, cf, fl = _tile(L8, R8, lv, rv, c0, r0, w, h, coarse, k, rng, opts)
+        cc0, cr0 = c0 if c0 == 0 else c0 + opts.overlap, r0 if r0 == 0 else r0 + opts.overlap
+        cc1, cr1 = min(cc0 + opts.tile, W), min(cr0 + opts.tile, H)
+        sl = (slice(cr0 - r0, cr1 - r0), slice(cc0 - c0, cc1 - c0))
+        out[cr0:cr1, cc0:cc1] = d[sl]
+        conf[cr0:cr1, cc0:cc1] = cf[sl]
+        filled[cr0:cr1, cc0:cc1] = fl[sl]
+        if progress is not None:
+            progress(i + 1, len(windows))
+    if not np.isfinite(out).any():
+        raise StereoError("dense matching found no disparity: no texture, no overlap, or a wrong disparity range "
+                          f"({disparity_range!r})")
+    return DisparityMap(out, conf, filled, opts)
+
+
+def _as_mask(m: ArrayLike | None, shape: tuple[int, ...], name: str) -> NDArray[np.bool_]:
+    if m is None:
+        return np.ones(shape, bool)
+    a = np.asarray(m)
+    if a.shape != shape:
+        raise ShapeError(f"`{name}` must have shape {shape}; got {a.shape}", actual_shape=a.shape,
+                         expected_shape=shape)
+    return a.astype(bool)
+
+
+def _check_range(r: tuple[float, float] | None) -> tuple[int, int] | None:
+    if r is None:
+        return None
+    try:
+        lo, hi = float(r[0]), float(r[1])
+    except (TypeError, ValueError, IndexError) as err:
+        raise InvalidInputError(f"`disparity_range` must be two numbers; got {r!r}") from err
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+        raise InvalidInputError(f"`disparity_range` must be two finite numbers, low <= high; got {r!r}")
+    return int(math.floor(lo)), int(math.ceil(hi))
+
+
+def _tile(L8, R8, lv, rv, c0, r0, w, h, coarse, k, rng, opts: MatchOptions, col_shift: int = 0):
+    """Match one left window (c0, r0, w, h) of in-memory photos; returns disparity, confidence, filled."""
+    tr = None
+    if coarse is not None:
+        sub = coarse[int(r0 // k):int(math.ceil((r0 + h) / k)), int(c0 // k):int(math.ceil((c0 + w) / k))]
+        tr = _range_of(sub, opts)
+    if tr is None:
+        tr = rng if rng is not None else (0, max(16, L8.shape[1] // 3))
+        tr = (int(tr[0] - opts.margin_px), int(tr[1] + opts.margin_px))
+    lo, hi = _clip_range(tr, opts)
+    L, lvw = L8[r0:r0 + h, c0:c0 + w], lv[r0:r0 + h, c0:c0 + w]
+    Rs, rvs = _shifted_window(R8, rv, r0, r0 + h, c0 - lo - col_shift, c0 + w - lo - col_shift)
+    d = _match_window(L, Rs, lvw, rvs, lo, hi, opts)
+    return _post(d, _grey(L), opts)
+
+
+def sgbm_baseline(left: ArrayLike, right: ArrayLike, num_disparities: int = 64, block_size: int = 5
+                  ) -> NDArray[np.float32]:
+    """OpenCV StereoSGBM with the settings of OpenCV's sample (the benchmark's peer); NaN where invalid."""
+    Li, Ri = _as_image(left, "left"), _as_image(right, "right")
+    ch = 1 if Li.ndim == 2 else 3
+    bs = block_size
+    s = cv2.StereoSGBM_create(minDisparity=0, numDisparities=num_disparities, blockSize=bs, P1=8 * ch * bs * bs,
+                              P2=32 * ch * bs * bs, disp12MaxDiff=1, uniquenessRatio=10, speckleWindowSize=100,
+                              speckleRange=2)
+    raw = s.compute(_to_uint8(Li, None), _to_uint8(Ri, None))
+    d = raw.astype(np.float32) / 16.0
+    d[raw < 0] = np.nan
+    return d
+
+
+# ---------------------------------------------------------------- rasters
+def _read(rd: WindowReader, c0: int, r0: int, w: int, h: int) -> tuple[NDArray, NDArray[np.bool_]]:
+    """Window (clipped reads, zeros and invalid outside) of a rectified photo, 1 or 3 bands."""
+    H, W = rd.height, rd.width
+    bands = 3 if rd.count >= 3 else 1
+    out = np.zeros((h, w, bands), np.uint8)
+    ov = np.zeros((h, w), bool)
+    x0, y0, x1, y1 = max(c0, 0), max(r0, 0), min(c0 + w, W), min(r0 + h, H)
+    if x1 > x0 and y1 > y0:
+        data, valid = rd.read(x0, y0, x1 - x0, y1 - y0)
+        data = data[:, :, :bands]
+        out[y0 - r0:y1 - r0, x0 - c0:x1 - c0] = data if data.dtype == np.uint8 else _to_uint8(data, valid)
+        ov[y0 - r0:y1 - r0, x0 - c0:x1 - c0] = True if valid is None else valid
+    return (out[:, :, 0] if bands == 1 else out), ov
+
+
+def match_rasters(
+    left_path: StrPath,
+    right_path: StrPath,
+    disparity_path: StrPath,
+    confidence_path: StrPath,
+    *,
+    disparity_range: tuple[float, float] | None = None,
+    tie_points: ArrayLike | None = None,
+    options: MatchOptions | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> MatchStats:
+    """Dense matching of two rectified rasters, tile by tile, into disparity and confidence GeoTIFFs.
+
+    Parameters
+    ----------
+    left_path, right_path : path
+        Rectified photos (equal heights), e.g. from :func:`stereo.dense.epipolar.resample_view`.
+    disparity_path, confidence_path : path
+        Float32 tiled GeoTIFFs to write as given (nodata ``NODATA``); the confidence raster has a
+        second band, 1 where the disparity was filled.
+    disparity_range : (float, float), optional
+        Global range; ``tie_points`` (N, 3: col, row, disparity in the left rectified photo) refine it
+        per tile. Each tile takes the range of the coarse pass under it, else of its tie points,
+        else the global one.
+    options : MatchOptions, optional
+    progress : callable(done, total), optional
+    """
+    opts = options or MatchOptions()
+    if not isinstance(opts, MatchOptions):
+        raise InvalidInputError(f"`options` must be a MatchOptions; got {type(opts).__name__}")
+    il, ir = raster_info(left_path), raster_info(right_path)
+    if il.height != ir.height:
+        raise InvalidInputError(f"rectified photos must have equal heights; got {il.height} and {ir.height}")
+    rng = _check_range(disparity_range)
+    ties = None
+    if tie_points is not None:
+        ties = np.asarray(tie_points, dtype=np.float64)
+        if ties.ndim != 2 or ties.shape[1] != 3 or not np.isfinite(ties).all():
+            raise ShapeError(f"`tie_points` must be finite (N, 3) col, row, disparity; got {ties.shape}",
+                             actual_shape=ties.shape, expected_shape=(None, 3))
+        if rng is None and len(ties):
+            rng = (int(math.floor(ties[:, 2].min())), int(math.ceil(ties[:, 2].max())))
+    # coarse pass on overviews (bounded size)
+    coarse, k = None, 1.0
+    if opts.coarse_max_px > 0:
+        side = max(opts.coarse_max_px, 64)
+        ovl, vl, sl = read_overview(left_path, side)
+        ovr, vr, sr = read_overview(right_path, side)
+        s = max(sl, sr)
+        if s > 1.0 + 1e-9 or max(il.width, il.height) > side:
+            # bring both to the same scale
+            size_l = (max(8, int(round(il.width / s))), max(8, int(round(il.height / s))))
+            size_r = (max(8, int(round(ir.width / s))), size_l[1])
+            Lc = cv2.resize(_to_uint8(ovl[:, :, :3].mean(axis=2), vl), size_l, interpolation=cv2.INTER_AREA)
+            Rc = cv2.resize(_to_uint8(ovr[:, :, :3].mean(axis=2), vr), size_r, interpolation=cv2.INTER_AREA)
+            lvc = cv2.resize(vl.astype(np.uint8), size_l, interpolation=cv2.INTER_NEAREST) > 0
+            rvc = cv2.resize(vr.astype(np.uint8), size_r, interpolation=cv2.INTER_NEAREST) > 0
+            k = il.height / size_l[1]
+            if rng is None:
+                lo, hi = 0, max(16, size_l[0] // 3)
+            else:
+                lo, hi = int(math.floor(rng[0] / k)) - 2, int(math.ceil(rng[1] / k)) + 2
+            Rs, rvs = _shifted_window(Rc, rvc, 0, size_l[1], -lo, size_l[0] - lo)
+            coarse = _match_window(Lc, Rs, lvc, rvs, lo, hi, opts) * k
+    windows = list(iter_windows(il.width, il.height, opts.tile, opts.overlap))
+    n_valid = n_filled = 0
+    dlo, dhi = math.inf, -math.inf
+    with WindowReader(left_path) as rl, WindowReader(right_path) as rr, warnings.catch_warnings():
+        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        tile_px = min(512, opts.tile)
+        with TiledWriter(disparity_path, il.width, il.height, 1, "float32", Affine.identity(), None,
+                         MaskPolicy("nodata", NODATA), tile=tile_px) as wd, \
+                TiledWriter(confidence_path, il.width, il.height, 2, "float32", Affine.identity(), None,
+                            MaskPolicy("nodata", NODATA), tile=tile_px) as wc:
+            for i, (c0, r0, w, h) in enumerate(windows):
+                tr = None
+                if coarse is not None:
+                    sub = coarse[int(r0 // k):int(math.ceil((r0 + h) / k)), int(c0 // k):int(math.ceil((c0 + w) / k))]
+                    tr = _range_of(sub, opts)
+                if tr is None and ties is not None and len(ties):
+                    inside = (ties[:, 0] >= c0) & (ties[:, 0] < c0 + w) & (ties[:, 1] >= r0) & (ties[:, 1] < r0 + h)
+                    if inside.sum() >= 3:
+                        tr = (int(math.floor(ties[inside, 2].min() - opts.margin_px)),
+                              int(math.ceil(ties[inside, 2].max() + opts.margin_px)))
+                if tr is None:
+                    g = rng if rng is not None else (0, max(16, il.width // 3))
+                    tr = (int(g[0] - opts.margin_px), int(g[1] + opts.margin_px))
+                lo, hi = _clip_range(tr, opts)
+                L, lv = _read(rl, c0, r0, w, h)
+                R, rv = _read(rr, c0 - lo, r0, w, h)
+                if lv.any() and rv.any():
+                    d = _match_window(L, R, lv, rv, lo, hi, opts)
+                    d, cf, fl = _post(d, _grey(L), opts)
+                else:
+                    d = np.full((h, w), np.nan, np.float32)
+                    cf = np.zeros((h, w), np.float32)
+                    fl = np.zeros((h, w), bool)
+                cc0, cr0 = c0 if c0 == 0 else c0 + opts.overlap, r0 if r0 == 0 else r0 + opts.overlap
+                cc1, cr1 = min(cc0 + opts.tile, il.width), min(cr0 + opts.tile, il.height)
+                sl_ = (slice(cr0 - r0, cr1 - r0), slice(cc0 - c0, cc1 - c0))
+                dc, cfc, flc = d[sl_], cf[sl_], fl[sl_]
+                ok = np.isfinite(dc)
+                n_valid += int(ok.sum())
+                n_filled += int(flc.sum())
+                if ok.any():
+                    dlo, dhi = min(dlo, float(dc[ok].min())), max(dhi, float(dc[ok].max()))
+                wd.write(np.where(ok, dc, NODATA).astype(np.float32)[:, :, None], cc0, cr0)
+                wc.write(np.dstack([np.where(ok, cfc, NODATA), flc.astype(np.float32)]).astype(np.float32),
+                         cc0, cr0)
+                if progress is not None:
+                    progress(i + 1, len(windows))
+    if n_valid == 0:
+        raise StereoError("dense matching found no disparity: no texture, no overlap, or a wrong disparity range "
+                          f"({rng!r})")
+    return MatchStats(il.width, il.height, n_valid, n_filled, len(windows), dlo, dhi)
