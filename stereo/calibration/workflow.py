@@ -17,7 +17,7 @@ from .targets import Chessboard, detect_chessboards, parse_pattern, parse_square
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["CalibrationRun", "calibrate_images", "calibrate_points", "parse_size"]
+__all__ = ["CalibrationRun", "RigRun", "calibrate_images", "calibrate_points", "calibrate_rig_images", "parse_size"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -41,6 +41,26 @@ class CalibrationRun:
         out.append(f"wrote {self.output} ({self.units} camera)")
         if self.report is not None:
             out.append(f"report: {self.report}")
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class RigRun:
+    """What a rig calibration did: the rig, the file written, the pairs left out."""
+
+    rig: Any
+    output: Path
+    missing: tuple[str, ...]
+    n_pairs: int
+    source: str
+
+    def summary_lines(self) -> list[str]:
+        out = [self.source]
+        if self.missing:
+            out.append(f"board not found in {len(self.missing)} of {self.n_pairs} pairs: {', '.join(self.missing)} "
+                       "(left out)")
+        out += self.rig.summary_lines()
+        out.append(f"wrote {self.output} (rig: left and right cameras, relative orientation)")
         return out
 
 
@@ -131,3 +151,53 @@ def calibrate_points(points: str | Path, *, field: str | Path | None, size: str,
     kind = "plane target" if all(v.is_planar for v in views) else "3D test field"
     src = f"{kind}: {sum(v.n for v in views)} measured points in {len(views)} views, {w} x {h} px"
     return CalibrationRun(cal, out, (), len(views), rep, "mm" if pixel_size_mm else "pixel", src)
+
+
+def calibrate_rig_images(left: Sequence[str | Path], right: Sequence[str | Path], *, pattern: str, square: str = "1",
+                         output: str | Path, overwrite: bool = False, pixel_size_mm: float | None = None,
+                         **model: Any) -> RigRun:
+    """Calibrate a two-camera rig from synchronous chessboard images (``left[i]`` with ``right[i]``).
+
+    Pairs where the board is missing in either image are left out (named). Writes the rig JSON
+    (:meth:`.rig.RigCalibration.to_dict`).
+
+    Raises
+    ------
+    InvalidInputError
+        Different numbers of left and right images.
+    CalibrationError
+        Fewer than 3 complete pairs, or as :meth:`Calibration.from_views`.
+    """
+    from .rig import RigCalibration
+
+    check_output(output, overwrite=overwrite)
+    if len(left) != len(right):
+        raise InvalidInputError(f"{len(left)} left images but {len(right)} right images")
+    if not left:
+        raise InvalidInputError("no images given")
+    cols, rows = parse_pattern(pattern)
+    sq, unit = parse_square(square)
+    board = Chessboard(cols, rows, sq)
+    lv, lmiss, lsize = detect_chessboards(left, board)
+    rv, rmiss, rsize = detect_chessboards(right, board)
+    lnames = [Path(p).name for p in left]
+    rnames = [Path(p).name for p in right]
+    by_l = {v.name: v for v in lv}
+    by_r = {v.name: v for v in rv}
+    pairs, missing = [], []
+    for a, b in zip(lnames, rnames, strict=True):
+        if a in by_l and b in by_r:
+            pairs.append((by_l[a], by_r[b]))
+        else:
+            missing.append(f"{a}/{b}")
+    if len(pairs) < 3:
+        raise CalibrationError(f"chessboard {cols}x{rows} found in both images of only {len(pairs)} of {len(left)} "
+                               f"pairs (not found: {', '.join(missing) or 'none'}); at least 3 pairs needed")
+    kw = _model_kwargs(model, pixel_size_mm)
+    kw.pop("robust", None)
+    rig = RigCalibration.from_views([p[0] for p in pairs], [p[1] for p in pairs], *lsize, right_size=rsize, **kw)
+    atomic_write_text(output, json.dumps(rig.to_dict(pixel_size_mm=pixel_size_mm), indent=2) + "\n",
+                      overwrite=overwrite)
+    src = (f"rig: chessboard {cols}x{rows} (square {sq:g} {unit}) in {len(pairs)} of {len(left)} pairs, "
+           f"left {lsize[0]} x {lsize[1]} px, right {rsize[0]} x {rsize[1]} px")
+    return RigRun(rig, Path(output), tuple(missing), len(left), src)

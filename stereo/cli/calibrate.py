@@ -16,6 +16,9 @@ from rectify.errors import InvalidInputError
               help="Observation CSV view,point,col,row[,x,y,z] (instead of images).")
 @click.option("--field", "field_path", type=click.Path(exists=True, dir_okay=False), default=None,
               help="Field CSV point,x,y,z: object coordinates of the target points (plane or 3D).")
+@click.option("--right", "right_glob", default=None,
+              help="Rig: right-camera images as a quoted glob pattern ('right*.jpg'); IMAGES are the left images, "
+                   "paired in sorted order. Writes the rig JSON (both cameras, relative orientation).")
 @click.option("--size", default=None, help="Image size WxH in pixels (with --points), e.g. 640x480.")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Camera JSON to write.")
 @click.option("--pixel-size", "pixel_size_mm", type=float, default=None,
@@ -30,11 +33,11 @@ from rectify.errors import InvalidInputError
 @report_opt
 @overwrite_opt
 @handle_errors
-def calibrate(images, pattern, square, points_path, field_path, size, output, pixel_size_mm, equal_focal, distortion,
-              symmetry, robust, report_dir, overwrite):
+def calibrate(images, pattern, square, points_path, field_path, right_glob, size, output, pixel_size_mm, equal_focal,
+              distortion, symmetry, robust, report_dir, overwrite):
     """Calibrate a camera: interior orientation (f or fx/fy, principal point, Brown k1..k3, p1, p2) with standard
     errors, by a least-squares adjustment of all views. IMAGES with --chessboard, or --points [--field] --size."""
-    from ..calibration.workflow import calibrate_images, calibrate_points
+    from ..calibration.workflow import calibrate_images, calibrate_points, calibrate_rig_images
 
     dist = () if distortion.strip().lower() == "none" else tuple(d.strip() for d in distortion.split(",") if d.strip())
     model = {"equal_focal": equal_focal, "distortion": dist, "symmetry": symmetry,
@@ -46,6 +49,21 @@ def calibrate(images, pattern, square, points_path, field_path, size, output, pi
             raise InvalidInputError("--points needs --size WxH (the image size in pixels)")
         run = calibrate_points(points_path, field=field_path, size=size, output=output, report_dir=report_dir,
                                overwrite=overwrite, pixel_size_mm=pixel_size_mm, **model)
+    elif right_glob:
+        import glob
+
+        right = sorted(glob.glob(right_glob))
+        if not right:
+            raise InvalidInputError(f"--right {right_glob!r} matches no files")
+        if not pattern:
+            raise InvalidInputError("a rig needs --chessboard COLSxROWS (inner corners, e.g. 9x6)")
+        if report_dir:
+            raise InvalidInputError("--report is not available for rigs yet")
+        rig_run = calibrate_rig_images(sorted(images), right, pattern=pattern, square=square, output=output,
+                                       overwrite=overwrite, pixel_size_mm=pixel_size_mm, **model)
+        for line in rig_run.summary_lines():
+            echo(line)
+        return
     else:
         if not images:
             raise InvalidInputError("no input: give IMAGES with --chessboard 9x6, or --points obs.csv")

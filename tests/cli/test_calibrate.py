@@ -11,7 +11,7 @@ from click.testing import CliRunner
 
 from stereo.calibration.model import Intrinsics, rodrigues
 from stereo.calibration.result import camera_from_dict
-from stereo.calibration.synthetic import board_scene, field_scene
+from stereo.calibration.synthetic import board_scene, field_scene, rig_scene
 from stereo.calibration.targets import Chessboard
 from stereo.cli.main import cli
 
@@ -19,9 +19,8 @@ CAM = Intrinsics(fx=420.0, fy=420.0, cx=161.0, cy=118.0, width=320, height=240)
 BOARD = Chessboard(7, 5, 1.0)
 
 
-def _render(tmp_path, n=5, seed=0):
-    """Render ``n`` views of a 7 x 5 (inner corners) chessboard, 320 x 240 px, no distortion."""
-    sc = board_scene(np.random.default_rng(seed), n_views=n, board=BOARD, camera=CAM, noise_px=0.0, fill=0.55)
+def _render_poses(tmp_path, poses, prefix="board"):
+    """Render a 7 x 5 (inner corners) chessboard seen from ``poses`` (rotation vector, t), 320 x 240 px."""
     s, off = 40, 20 + 40  # texture: 40 px squares, 20 px white border; X = -1 at the border
     tex = np.full((20 * 2 + 40 * 6, 20 * 2 + 40 * 8), 255, np.uint8)
     for j in range(6):
@@ -30,14 +29,19 @@ def _render(tmp_path, n=5, seed=0):
                 tex[20 + 40 * j:20 + 40 * (j + 1), 20 + 40 * i:20 + 40 * (i + 1)] = 0
     A = np.array([[1 / s, 0, -off / s + 0.5 / s], [0, 1 / s, -off / s + 0.5 / s], [0, 0, 1.0]])
     paths = []
-    for k, pose in enumerate(sc.poses):
+    for k, pose in enumerate(poses):
         R = rodrigues(pose[:3])[0]
         H = CAM.K @ np.column_stack([R[:, 0], R[:, 1], pose[3:]]) @ A
         img = cv2.warpPerspective(tex, H, (CAM.width, CAM.height), flags=cv2.INTER_AREA, borderValue=255)
-        p = tmp_path / f"board{k}.png"
+        p = tmp_path / f"{prefix}{k}.png"
         cv2.imwrite(str(p), img)
         paths.append(str(p))
     return paths
+
+
+def _render(tmp_path, n=5, seed=0):
+    sc = board_scene(np.random.default_rng(seed), n_views=n, board=BOARD, camera=CAM, noise_px=0.0, fill=0.55)
+    return _render_poses(tmp_path, sc.poses)
 
 
 def test_calibrate_chessboard_images(tmp_path):
@@ -101,3 +105,25 @@ def test_calibrate_cli_errors(tmp_path, args, msg):
         return
     assert r.exit_code == 1 and msg in r.output, r.output
     assert "Traceback" not in r.output and not out.exists()
+
+
+def test_calibrate_rig_images(tmp_path):
+    """Two cameras on a rig: rendered synchronous views; the rig JSON has both cameras and the base."""
+    left, right = rig_scene(np.random.default_rng(0), n_views=4, left=CAM, board=BOARD, rel_rotvec=(0.0, 0.1, 0.0),
+                            rel_t=(-2.0, 0.05, 0.1), noise_px=0.0)
+    lp = _render_poses(tmp_path, left.poses, "left")
+    _render_poses(tmp_path, right.poses, "right")
+    out = tmp_path / "rig.json"
+    r = CliRunner().invoke(cli, ["calibrate", *lp, "--right", str(tmp_path / "right*.png"), "--chessboard", "7x5",
+                                 "-o", str(out), "--distortion", "k1,p1,p2", "--equal-focal"])
+    assert r.exit_code == 0, r.output
+    assert "rig: chessboard 7x5 (square 1 unit) in 4 of 4 pairs" in r.output and "base (" in r.output
+    d = json.loads(out.read_text())
+    assert d["format"] == "rectify-stereo/rig"
+    assert abs(camera_from_dict(d["right"]).intrinsics.fx - 420) < 6
+    Rr = rodrigues(np.array([0.0, 0.1, 0.0]))[0]
+    base_true = np.diag([1.0, -1.0, -1.0]) @ (-Rr.T @ np.array([-2.0, 0.05, 0.1]))
+    assert np.allclose(d["base"], base_true, atol=0.05), (d["base"], base_true)
+    r = CliRunner().invoke(cli, ["calibrate", *lp[:3], "--right", str(tmp_path / "right*.png"), "--chessboard", "7x5",
+                                 "-o", str(tmp_path / "rig2.json")])
+    assert r.exit_code == 1 and "3 left images but 4 right images" in r.output
