@@ -73,8 +73,12 @@ class MosaicResult:
     seconds: float
 
     def summary_lines(self) -> list[str]:
+        from .crs import unit_label
+        from .ortho import crs_label
+
         g = self.grid
-        out = [f"wrote {self.path}: {g.width} x {g.height} px, {g.resolution[0]:.6g} units/px, CRS {g.crs}, "
+        out = [f"wrote {self.path}: {g.width} x {g.height} px, {g.resolution[0]:.6g} {unit_label(g.crs)}/px, "
+               f"CRS {crs_label(g.crs)}, "
                f"{len(self.inputs)} orthophotos, {self.seconds:.2f} s"]
         out += [f"  {Path(p).name}: {100 * s:.1f}% of the mosaic" for p, s in zip(self.inputs, self.share,
                                                                                   strict=True)]

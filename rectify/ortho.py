@@ -295,15 +295,36 @@ class OrthoResult:
     extra: dict[str, Any] = field(default_factory=dict)
 
     def summary_lines(self) -> list[str]:
+        from .crs import unit_label
+
         g = self.grid
-        out = [f"wrote {self.path}: {g.width} x {g.height} px, {g.resolution[0]:.6g} units/px, CRS {g.crs}, "
+        u = unit_label(g.crs)
+        out = [f"wrote {self.path}: {g.width} x {g.height} px, {g.resolution[0]:.6g} {u}/px, CRS {crs_label(g.crs)}, "
                f"{self.model}, {self.seconds:.2f} s",
                f"DEM {self.dem_path}: heights {self.dem_range[0]:.2f} .. {self.dem_range[1]:.2f} m on the output; "
-               f"relief displacement removed up to {self.max_relief_shift:.2f} units"]
+               f"relief displacement removed up to {self.max_relief_shift:.2f} {u}"]
         if self.extra.get("true_ortho"):
             out.append(f"true ortho: {self.n_occluded} occluded pixels set to nodata (visibility band "
                        f"{g and self.extra.get('visibility_band')})")
         return out
+
+
+def crs_label(crs: str | None) -> str:
+    """A short CRS name for messages: ``EPSG:n``, else the PROJ string."""
+    import warnings
+
+    from .crs import parse_crs
+
+    if not crs:
+        return "none"
+    if crs.startswith("EPSG:"):
+        return crs
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            return parse_crs(crs).to_proj4() or crs[:60]
+        except Exception:  # noqa: BLE001 - a label only
+            return crs[:60]
 
 
 # =========================================================================== grids
@@ -843,7 +864,7 @@ class OrthoRun:
     def summary_lines(self) -> list[str]:
         out = []
         if self.residuals is not None:
-            out.append(self.residuals.summary_line())
+            out.append(f"{self.residuals.step}: {self.residuals.summary_line()}")
             loo = self.residuals.extra.get("loo_rmse_px")
             raw = self.residuals.extra.get("rpc_only_rmse_px")
             if raw is not None:

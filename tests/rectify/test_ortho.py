@@ -300,3 +300,142 @@ def test_read_exterior(tmp_path):
     (tmp_path / "bad3.json").write_text(json.dumps({"position": [1, 2, 3]}))
     with pytest.raises(InvalidInputError, match="lacks 'rotation'"):
         read_exterior(tmp_path / "bad3.json")
+
+
+# ----------------------------------------------------------------- mosaic
+def _flat_ortho(path: Path, x0: float, x1: float, value: float, nadir_x: float, *, vis=None) -> None:
+    res = 1.0
+    w, h = int(x1 - x0), 40
+    data = np.full((1, h, w), value, np.float32)
+    count = 1 if vis is None else 2
+    with rasterio.open(path, "w", driver="GTiff", width=w, height=h, count=count, dtype="float32", crs=CRS,
+                       nodata=np.nan, transform=Affine(res, 0, E0 + x0, 0, -res, N0 + 40)) as ds:
+        if vis is not None:
+            data = np.where(vis == 2, data, np.nan).astype(np.float32)
+            ds.write(np.concatenate([data, vis[None].astype(np.float32)]))
+            ds.update_tags(ORTHO_VISIBILITY_BAND="2")
+        else:
+            ds.write(data)
+        ds.update_tags(ORTHO_NADIR_X=repr(E0 + nadir_x), ORTHO_NADIR_Y=repr(N0 + 20))
+
+
+def test_mosaic_nearest_nadir_and_feathering(tmp_path):
+    from rectify.mosaic import MosaicOptions, mosaic
+
+    _flat_ortho(tmp_path / "a.tif", 0, 100, 100.0, 30.0)
+    _flat_ortho(tmp_path / "b.tif", 40, 140, 200.0, 110.0)
+    r = mosaic([tmp_path / "a.tif", tmp_path / "b.tif"], tmp_path / "hard.tif", options=MosaicOptions(feather_px=0))
+    with rasterio.open(tmp_path / "hard.tif") as ds:
+        m = ds.read(1)
+        assert ds.width == 140 and ds.crs.to_epsg() == 32632
+    x = np.arange(140) + 0.5
+    # the seam is the bisector of the nadirs, x = 70
+    assert (m[:, x < 70] == 100).all() and (m[:, x > 70] == 200).all()
+    assert abs(r.share[0] - 0.5) < 0.01
+    mosaic([tmp_path / "a.tif", tmp_path / "b.tif"], tmp_path / "soft.tif", options=MosaicOptions(feather_px=20))
+    with rasterio.open(tmp_path / "soft.tif") as ds:
+        s = ds.read(1)[20]
+    # feathering: along the nadir line d_a - d_b changes by 2 per unit, so the blend spans 20 m around x = 70
+    assert s[int(70 - 12)] == 100 and s[int(70 + 12)] == 200
+    assert 140 < s[70] < 160 and np.all(np.diff(s[55:86]) >= -1e-3)
+    assert "2 orthophotos" in r.summary_lines()[0]
+
+
+def test_mosaic_fills_occluded_pixels_from_the_next_image(tmp_path):
+    from rectify.mosaic import MosaicOptions, mosaic
+
+    vis = np.full((40, 100), 2, np.uint8)
+    vis[:, 10:20] = 1  # occluded in a: the nearest image there, but hidden
+    _flat_ortho(tmp_path / "a.tif", 0, 100, 100.0, 30.0, vis=vis)
+    _flat_ortho(tmp_path / "b.tif", 0, 100, 200.0, 110.0)
+    mosaic([tmp_path / "a.tif", tmp_path / "b.tif"], tmp_path / "m.tif", options=MosaicOptions(feather_px=0))
+    with rasterio.open(tmp_path / "m.tif") as ds:
+        m = ds.read(1)
+        assert ds.count == 1  # the visibility band is not mosaicked
+    assert (m[:, 10:20] == 200).all() and (m[:, :10] == 100).all() and (m[:, 20:70] == 100).all()
+
+
+def test_mosaic_bad_input(tmp_path):
+    from rectify.mosaic import mosaic
+
+    _flat_ortho(tmp_path / "a.tif", 0, 100, 100.0, 30.0)
+    with rasterio.open(tmp_path / "other.tif", "w", driver="GTiff", width=4, height=4, count=1, dtype="float32",
+                       crs="EPSG:4326", transform=Affine(1, 0, 0, 0, -1, 4)) as ds:
+        ds.write(np.zeros((1, 4, 4), np.float32))
+    with pytest.raises(CRSError, match="share one CRS"):
+        mosaic([tmp_path / "a.tif", tmp_path / "other.tif"], tmp_path / "m.tif")
+    with pytest.raises(InvalidInputError, match="is an input"):
+        mosaic([tmp_path / "a.tif"], tmp_path / "a.tif", overwrite=True)
+    with pytest.raises(InvalidInputError, match="twice"):
+        mosaic([tmp_path / "a.tif", tmp_path / "a.tif"], tmp_path / "m.tif")
+    with pytest.raises(InvalidInputError, match="at least one"):
+        mosaic([], tmp_path / "m.tif")
+    with pytest.raises(RasterIOError, match="not found"):
+        mosaic([tmp_path / "nope.tif"], tmp_path / "m.tif")
+    assert not (tmp_path / "m.tif").exists()
+
+
+# ----------------------------------------------------------------- real aerial pair (shared data)
+NGI = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "ngi_strip05"
+LO25 = "+proj=tmerc +lat_0=0 +lon_0=25 +k=1 +x_0=0 +y_0=0 +datum=WGS84 +units=m +no_defs"
+NGI_EO = {"0182": (-55094.504480, -3727407.037480, 5258.307930, -0.349216, 0.298484, -179.086702),
+          "0184": (-57710.435280, -3727433.893020, 5256.764790, 0.269761, -0.281937, -179.027883)}
+
+
+def overlap_shift(a_path: Path, b_path: Path, patch: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """Phase-correlation shifts (px) of patches over the overlap of two orthophotos, and the global shift."""
+    import cv2
+    from rasterio.windows import from_bounds
+
+    with rasterio.open(a_path) as A, rasterio.open(b_path) as B:
+        left, right = max(A.bounds.left, B.bounds.left), min(A.bounds.right, B.bounds.right)
+        bottom, top = max(A.bounds.bottom, B.bounds.bottom), min(A.bounds.top, B.bounds.top)
+        wa = from_bounds(left, bottom, right, top, A.transform).round_offsets().round_lengths()
+        wb = from_bounds(left, bottom, right, top, B.transform).round_offsets().round_lengths()
+        ga = A.read(window=wa).astype(np.float64)[:3].mean(0)
+        gb = B.read(window=wb).astype(np.float64)[:3].mean(0)
+        both = (A.read_masks(1, window=wa) > 0) & (B.read_masks(1, window=wb) > 0)
+    han = cv2.createHanningWindow((patch, patch), cv2.CV_64F)
+    shifts = []
+    for r0 in range(0, ga.shape[0] - patch, patch // 2):
+        for c0 in range(0, ga.shape[1] - patch, patch // 2):
+            if both[r0:r0 + patch, c0:c0 + patch].all():
+                pa, pb = ga[r0:r0 + patch, c0:c0 + patch], gb[r0:r0 + patch, c0:c0 + patch]
+                if pa.std() > 2 and pb.std() > 2:
+                    (dx, dy), resp = cv2.phaseCorrelate(pa, pb, han)
+                    if resp > 0.2:
+                        shifts.append((dx, dy))
+    fa = np.where(both, ga, ga[both].mean())
+    fb = np.where(both, gb, gb[both].mean())
+    ys, xs = np.nonzero(both)
+    sl = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
+    (dx, dy), _ = cv2.phaseCorrelate(fa[sl], fb[sl])
+    return np.array(shifts), np.array([dx, dy])
+
+
+@pytest.mark.shared
+def test_ngi_pair_orthophotos_coincide(tmp_path):
+    import json
+
+    from rectify.mosaic import mosaic
+    from rectify.ortho import ortho_from_files
+
+    if not (NGI / "dem.tif").is_file():
+        pytest.skip(f"NGI pair not found under {NGI}")
+    (tmp_path / "cam.json").write_text(json.dumps({"focal_length_mm": 120.0, "pixel_size_mm": 0.144,
+                                                   "width": 640, "height": 1152}))
+    for k, (x, y, z, o, p, kk) in NGI_EO.items():
+        R = matrix_from_angles(*np.radians([o, p, kk]))
+        (tmp_path / f"eo_{k}.json").write_text(json.dumps({"position": [x, y, z], "rotation": R.tolist(),
+                                                           "crs": LO25}))
+        run = ortho_from_files(NGI / f"3324c_2015_1004_05_{k}_RGB.tif", tmp_path / f"o{k}.tif", NGI / "dem.tif",
+                               camera=tmp_path / "cam.json", exterior=tmp_path / f"eo_{k}.json", resolution=6.0,
+                               options=OrthoOptions(threads=2))
+        assert run.result.max_relief_shift > 100  # 150-780 m terrain seen from 5250 m
+    shifts, glob = overlap_shift(tmp_path / "o0182.tif", tmp_path / "o0184.tif")
+    assert len(shifts) > 50
+    # measured: global 0.06 px; patches median |shift| 0.15 px, 90th percentile 0.40 px (6 m pixels)
+    assert np.hypot(*glob) <= 0.5
+    assert np.median(np.hypot(shifts[:, 0], shifts[:, 1])) <= 0.5
+    m = mosaic([tmp_path / "o0182.tif", tmp_path / "o0184.tif"], tmp_path / "mosaic.tif")
+    assert min(m.share) > 0.3
