@@ -306,3 +306,22 @@ def test_real_chessboard_against_opencv():
     for n in cal.names:
         assert abs(cal.value(n) - cv_vals[n]) < 0.01 * cal.std_errors[n], n
         assert cal.std_errors[n] == pytest.approx(cv_std[n], rel=0.01), n
+
+
+def test_detect_chessboards_bad_input(tmp_path):
+    import cv2
+
+    from rectify.errors import RasterIOError
+    from stereo.calibration.targets import Chessboard, detect_chessboards
+
+    (tmp_path / "junk.png").write_text("not an image")
+    with pytest.raises(RasterIOError, match="cannot read image"):
+        detect_chessboards([tmp_path / "junk.png"], Chessboard(9, 6))
+    cv2.imwrite(str(tmp_path / "a.png"), np.zeros((40, 60), np.uint8))
+    cv2.imwrite(str(tmp_path / "b.png"), np.zeros((50, 60), np.uint8))
+    with pytest.raises(InvalidInputError, match="'b.png' is 60 x 50 px, the first was 60 x 40"):
+        detect_chessboards([tmp_path / "a.png", tmp_path / "b.png"], Chessboard(9, 6))
+    views, missing, size = detect_chessboards([tmp_path / "a.png"], Chessboard(9, 6))
+    assert views == [] and missing == ["a.png"] and size == (60, 40)
+    with pytest.raises(InvalidInputError, match="at least 2 x 2"):
+        Chessboard(1, 6)
