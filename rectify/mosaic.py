@@ -268,7 +268,10 @@ def mosaic(orthos: Sequence[str | Path], dst: str | Path, *, resolution: float |
     described = [_describe(p) for p in paths]
     inputs = [d[0] for d in described]
     crs, dtype_name = described[0][1], described[0][2]
-    for inp, c, _dt in described[1:]:
+    for inp, c, dt in described[1:]:
+        if dt != dtype_name:
+            raise InvalidInputError(f"orthophoto {inp.path!r} is {dt}, {inputs[0].path!r} {dtype_name}; mosaic "
+                                    f"inputs must share one data type")
         if not same_crs(c, crs):
             raise CRSError(f"orthophoto {inp.path!r} is in {c}, not {crs}; mosaic inputs must share one CRS")
         if inp.count != inputs[0].count:
