@@ -80,12 +80,12 @@ def main(argv=None) -> int:
             rows: dict[str, list] = {}
             for trial in range(a.trials):
                 sp = simulate_pair(kind, n=a.n, noise_px=a.noise, outlier_fraction=frac, rng=1000 + trial)
-                (R, b), t = timed(lambda: opencv(sp.left_mm, sp.right_mm, f, pix), a.repeats)
+                (R, b), t = timed(lambda sp=sp: opencv(sp.left_mm, sp.right_mm, f, pix), a.repeats)
                 rows.setdefault("OpenCV 5-pt MAGSAC + recoverPose", []).append(
                     (rot_err_deg(R, sp.R_rel), vec_err_deg(b, sp.base_left), t))
                 robust = "none" if frac == 0 else "tukey"
                 for system in SYSTEMS:
-                    ro, t = timed(lambda: RelativeOrientation.from_points(
+                    ro, t = timed(lambda sp=sp, system=system, robust=robust: RelativeOrientation.from_points(
                         sp.left_mm, sp.right_mm, focal_length_mm=f, system=system, robust=robust,
                         pixel_size_mm=pix), a.repeats)
                     rows.setdefault(f"ours {system} ({robust}, start {ro.initial_method})", []).append(

@@ -35,18 +35,18 @@ def main() -> None:
             print(f"    {m:14s} {e[0]:8.4f} {e[1]:8.4f} {e[2]:8.4f}")
     # near seed 000's singularity: epipolar plane containing (1, 1, 1) -> image y ~ -f in the normal case
     print("normal case, points near y = -f (seed 000's singular direction), 2 um noise; RMS error X, Y, Z")
-    I = np.eye(3)
+    eye = np.eye(3)
     B = np.array([200.0, 0, 0])
     for y in (-50.0, -90.0, -99.0, -99.9):
         n = 20000
         P = np.column_stack([rng.uniform(0, 200, n), np.full(n, y * 10.0) + rng.uniform(-0.5, 0.5, n),
                              np.full(n, -1000.0)])
-        x1 = project(P, rotation=I, centre=np.zeros(3), focal_length_mm=100.0) + rng.normal(0, 0.002, (n, 2))
-        x2 = project(P, rotation=I, centre=B, focal_length_mm=100.0) + rng.normal(0, 0.002, (n, 2))
+        x1 = project(P, rotation=eye, centre=np.zeros(3), focal_length_mm=100.0) + rng.normal(0, 0.002, (n, 2))
+        x2 = project(P, rotation=eye, centre=B, focal_length_mm=100.0) + rng.normal(0, 0.002, (n, 2))
         out = []
         for m in METHODS:
             try:
-                r = intersect(x1, x2, rotation_left=I, rotation_right=I, base=B, focal_length_mm=100.0, method=m)
+                r = intersect(x1, x2, rotation_left=eye, rotation_right=eye, base=B, focal_length_mm=100.0, method=m)
                 e = np.sqrt(np.mean((r.points - P) ** 2, axis=0))
                 out.append(f"{m}: {e[0]:.3f} {e[1]:.3f} {e[2]:.3f}")
             except Exception as err:  # noqa: BLE001 - report the singularity

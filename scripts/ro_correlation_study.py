@@ -70,7 +70,8 @@ def study(sets: dict[str, tuple]) -> str:
            "coplanarity adjustment at the solution; condition numbers of the column-scaled normal "
            "matrix (= of the correlation structure) and of the raw normal matrix (all elements are "
            "angles in radians).", ""]
-    summary = ["| point set | system | largest abs(r) (pair) | 2nd largest | mean abs(r) | cond (scaled) | cond (raw) |",
+    summary = ["| point set | system | largest abs(r) (pair) | 2nd largest | mean abs(r) | cond (scaled) "
+               "| cond (raw) |",
                "|---|---|---|---|---|---|---|"]
     details = []
     for set_name, (left, right, f, desc) in sets.items():

@@ -499,10 +499,10 @@ def _validate(model: ArrayLike, ground: ArrayLike, *, ids: Sequence[str] | None,
         w_in = np.repeat(w_in[:, None], 3, axis=1)
     if w_in.shape != (n, 3) or not np.isfinite(w_in).all() or (w_in < 0).any():
         raise InvalidInputError(f"`weights` must be ({n},) or ({n}, 3), finite and >= 0; got shape "
-                                f"{np.shape(weights)}")
+                                f"{np.shape(np.asarray(weights))}")
     w_pt = w_in.max(axis=1)
     fin = np.isfinite(g)
-    full_all = fin.all(1)
+    full_all = np.asarray(fin.all(1), dtype=bool)
     zonly_all = ~fin[:, 0] & ~fin[:, 1] & fin[:, 2]
     bad = ~(full_all | zonly_all | ~fin.any(1))
     if bad.any():
@@ -597,6 +597,7 @@ class _Adjustment:
             A = self.whiten(J[rows, self.obs_c])
             misclosure = self.whiten(self.gobs[self.obs_pt, self.obs_c] - pred[rows, self.obs_c])
             N, rhs = lsq.normal_equations(A, misclosure, w)
+            assert rhs is not None
             try:
                 dx = np.linalg.solve(N, rhs)
             except np.linalg.LinAlgError as err:
@@ -642,7 +643,7 @@ def _precision(adj: _Adjustment, x: NDArray, N: NDArray, w_final: NDArray
     sigma0 = math.sqrt(float(np.sum(w_final * v * v)) / dof) if dof > 0 else float("nan")
     Qxx = lsq.cofactor(N)
     s, ang, tp = x[0], x[1:4], x[4:7]
-    R = matrix_from_angles(*ang, order="omega-phi-kappa")
+    R = matrix_from_angles(ang[0], ang[1], ang[2], order="omega-phi-kappa")
     T = tp + adj.gc_full - s * R @ adj.mc
     # covariance of (s, ang, T) from that of (s, ang, T'): T = T' + gc - s R mc
     Jt = np.eye(7)
@@ -672,7 +673,7 @@ def _fit_deformation(sim: NDArray, g: NDArray, full: NDArray, zonly: NDArray, or
         pts = obs_pt[k]
         w = w_obs[k]
         D = D_all[pts]
-        l = g[pts, j] - sim[pts, j]
+        lv = g[pts, j] - sim[pts, j]
         if len(pts) < nt:
             raise EstimationError(f"too few points for the deformation polynomial of coordinate {j}: "
                                   f"{len(pts)} < {nt}")
@@ -681,9 +682,9 @@ def _fit_deformation(sim: NDArray, g: NDArray, full: NDArray, zonly: NDArray, or
             raise EstimationError(f"the control points do not determine the order-{order} deformation "
                                   f"polynomial (rank {np.linalg.matrix_rank(Nj)} < {nt})")
         Q = np.linalg.inv(Nj)
-        b = Q @ (D * w[:, None]).T @ l
+        b = Q @ (D * w[:, None]).T @ lv
         coef[j] = b
-        v = D @ b - l
+        v = D @ b - lv
         vtpv += float(np.sum(w * v * v))
         Qs.append(Q)
     dof = n_obs - 7 - 3 * nt

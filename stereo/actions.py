@@ -24,10 +24,9 @@ from rasterio.errors import NotGeoreferencedWarning
 from rectify.camera import Camera
 from rectify.errors import InvalidInputError
 from rectify.features import MatcherConfig, match_images
+from rectify.formats import ControlTable, read_control, read_gcps, read_matches
 from rectify.report import json_safe
 from rectify.residuals import rms
-from rectify.formats import ControlTable, read_control, read_gcps, read_matches
-from rectify.workspace import StrPath
 
 from .formats import exterior_dict
 from .model import ModelOptions, StereoModel, build_model
@@ -54,6 +53,11 @@ __all__ = [
 ]
 
 Progress = Callable[[int, int], None]
+PathArg = str | Path
+
+
+def _given(*paths: PathArg | None) -> list[PathArg]:
+    return [p for p in paths if p is not None]
 
 
 # ---------------------------------------------------------------------- orient
@@ -115,16 +119,16 @@ class OrientResult:
         return out
 
 
-def _match(left: StrPath, right: StrPath, progress: Progress | None = None) -> Any:
+def _match(left: PathArg, right: PathArg, progress: Progress | None = None) -> Any:
     """Tie points of a photo pair: the default matcher with fundamental-matrix verification."""
     with warnings.catch_warnings():  # plain photos have no geotransform, as expected
         warnings.simplefilter("ignore", NotGeoreferencedWarning)
         return match_images(left, right, config=MatcherConfig(verify="fundamental"), progress=progress)
 
 
-def orient(*, camera: StrPath, output: StrPath, matches: StrPath | None = None,
-           images: tuple[StrPath, StrPath] | None = None, camera_right: StrPath | None = None,
-           matches_out: StrPath | None = None, report_dir: StrPath | None = None, overwrite: bool = False,
+def orient(*, camera: PathArg, output: PathArg, matches: PathArg | None = None,
+           images: tuple[PathArg, PathArg] | None = None, camera_right: PathArg | None = None,
+           matches_out: PathArg | None = None, report_dir: PathArg | None = None, overwrite: bool = False,
            options: OrientOptions | None = None) -> OrientResult:
     """``stereo orient``: relative orientation from a matches CSV or from matching two images.
 
@@ -150,7 +154,7 @@ def orient(*, camera: StrPath, output: StrPath, matches: StrPath | None = None,
     opts = options or OrientOptions()
     if (matches is None) == (images is None):
         raise InvalidInputError("give either a matches CSV or the two images LEFT RIGHT")
-    ws = PairWorkspace(overwrite=overwrite, inputs=[camera, camera_right, matches, *(images or ())],
+    ws = PairWorkspace(overwrite=overwrite, inputs=_given(camera, camera_right, matches, *(images or ())),
                        report_dir=report_dir)
     ws.plan(output, matches_out)
     ws.check_report_dir()
@@ -204,7 +208,7 @@ class ModelResult:
         return out
 
 
-def _camera_for(geometry: RelativeGeometry, camera: StrPath | None, ro_json: StrPath) -> Camera:
+def _camera_for(geometry: RelativeGeometry, camera: PathArg | None, ro_json: PathArg) -> Camera:
     if camera is not None:
         return Camera.from_json(camera)
     if isinstance(geometry.raw.get("camera"), dict):  # written by `stereo orient`
@@ -213,8 +217,8 @@ def _camera_for(geometry: RelativeGeometry, camera: StrPath | None, ro_json: Str
                             "--camera CAM.json, pixels cannot be converted to photo mm without it")
 
 
-def model(ro_json: StrPath, *, matches: StrPath, output: StrPath, camera: StrPath | None = None,
-          control: StrPath | None = None, report_dir: StrPath | None = None, overwrite: bool = False,
+def model(ro_json: PathArg, *, matches: PathArg, output: PathArg, camera: PathArg | None = None,
+          control: PathArg | None = None, report_dir: PathArg | None = None, overwrite: bool = False,
           options: ModelOptions | None = None) -> ModelResult:
     """``stereo model``: matches + relative orientation -> model points, oriented to control when given.
 
@@ -228,7 +232,8 @@ def model(ro_json: StrPath, *, matches: StrPath, output: StrPath, camera: StrPat
     """
     opts = options or ModelOptions()
     outputs = model_outputs(output)
-    ws = PairWorkspace(overwrite=overwrite, inputs=[ro_json, matches, camera, control], report_dir=report_dir)
+    ws = PairWorkspace(overwrite=overwrite, inputs=_given(ro_json, matches, camera, control),
+                       report_dir=report_dir)
     ws.plan(*outputs)
     ws.check_report_dir()
     geom = ws.load_relative(ro_json)
@@ -306,7 +311,7 @@ class ResectResult:
         return out
 
 
-def resect(*, camera: StrPath, gcps: StrPath, output: StrPath, report_dir: StrPath | None = None,
+def resect(*, camera: PathArg, gcps: PathArg, output: PathArg, report_dir: PathArg | None = None,
            overwrite: bool = False, options: ResectOptions | None = None) -> ResectResult:
     """``stereo resect``: exterior orientation of one photo from GCPs with heights.
 
@@ -359,8 +364,8 @@ class RunResult:
         return out
 
 
-def run(left: StrPath, right: StrPath, *, camera: StrPath | Camera, out_dir: StrPath,
-        control: StrPath | ControlTable | None = None, overwrite: bool = False, options: ModelOptions | None = None,
+def run(left: PathArg, right: PathArg, *, camera: PathArg | Camera, out_dir: PathArg,
+        control: PathArg | ControlTable | None = None, overwrite: bool = False, options: ModelOptions | None = None,
         report: bool = True, title: str = "stereo run", extra_summary: dict[str, Any] | None = None,
         progress: Progress | None = None) -> RunResult:
     """``stereo run``: match, orient, intersect, orient absolutely; write everything into ``out_dir``.
@@ -450,7 +455,7 @@ class DemoResult:
         ]
 
 
-def demo(out_dir: StrPath, *, seed: int = 0, size_px: int = 480, overwrite: bool = False,
+def demo(out_dir: PathArg, *, seed: int = 0, size_px: int = 480, overwrite: bool = False,
          pixel_noise_px: float = 0.2, progress: Progress | None = None) -> DemoResult:
     """``stereo demo``: synthetic pair (:mod:`stereo.synthetic`) -> :func:`run` -> accuracy against the truth.
 

@@ -244,7 +244,7 @@ def intersect(
     ...           base=[200.0, 0, 0], focal_length_mm=100.0)
     Traceback (most recent call last):
     ...
-    rectify.errors.StereoError: parallel rays: 1 of 1 ray pairs meet at less than 1e-06 rad; first is point 0 (angle 0 rad)
+    rectify.errors.StereoError: parallel rays: 1 of 1 ray pairs meet at less than 1e-06 rad; first is point 0 ...
     """
     if method not in METHODS:
         raise InvalidInputError(f"unknown intersection method {method!r}; expected one of {list(METHODS)}")
@@ -408,7 +408,7 @@ def _intersect_chunk(x1, x2, R1, R2, B, f1, f2, method, sigma_mm, min_angle_rad,
         P = [0.5 * (N1 * d1[k] + Bt[k] + N2 * d2[k]) for k in range(3)]
         if method == "least-squares":
             idx = None  # all points active
-            for iters in range(1, max_iterations + 1):
+            for iters in range(1, max_iterations + 1):  # noqa: B007 (returned: the iterations used)
                 if idx is None:
                     Pa, a_uv = P, (u1, v1, u2, v2)
                 else:

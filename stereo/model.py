@@ -205,6 +205,7 @@ def _combine(ids_t: Sequence[str], left_mm: NDArray, right_mm: NDArray, control:
     xyz = np.full((len(ids_t), 3), np.nan)
     if control is None:
         return tuple(ids_t), left_mm, right_mm, xyz, np.zeros(len(ids_t), bool)
+    assert control_mm is not None  # given with the control (checked by the caller)
     cl, cr = control_mm
     pos = {i: k for k, i in enumerate(ids_t)}
     L, R = [left_mm.copy()], [right_mm.copy()]  # control rows replace ties: never write into the inputs
@@ -276,6 +277,7 @@ def _orient(model_pts: NDArray, xyz: NDArray, use: NDArray, check: NDArray, ids:
     cov_rows = None if model_cov is None else model_cov[rows]
     rid = [ids[i] for i in rows]
     if frame == "topocentric":
+        assert crs is not None  # the topocentric frame needs the control's CRS (checked by build_model)
         ctrl = xyz[use]
         mid = np.concatenate([ctrl[:, :2].mean(0), [ctrl[:, 2].mean()]])
         origin = geodetic_from_map(mid[None], crs)[0]

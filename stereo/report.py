@@ -233,7 +233,7 @@ def write_pair_report(model: StereoModel, out_dir: str | os.PathLike, *, title: 
         pp = camera.pixel_from_photo(np.zeros((1, 2)))[0]
     if left_image is not None:
         # a bounded overview for the plot background (drawn over the full-resolution extent)
-        data, valid, _ = rio.read_overview(left_image, 2048)
+        data, valid, _ = rio.read_overview(Path(left_image), 2048)
         img = rio.to_uint8(data, valid)
     return write_stereo_report(out_dir, title=title, relative=rel, correlation=corr, absolute=absolute,
                                absolute_ground_xy=gxy, tables=tables, summary=model.summary,

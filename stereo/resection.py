@@ -24,7 +24,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import cv2
 import numpy as np
+import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
 from rectify import lsq
@@ -184,7 +186,7 @@ class ExteriorOrientation:
         table = ResidualTable(step="space resection", ids=prob.ids, observed=prob.x, adjusted=pred_all, units="mm",
                               components=("dx", "dy"), check=prob.chk, sigma0=sigma0, n_params=prob.nfree,
                               extra={"condition_number": cond, "free_interior": free_interior})
-        R = matrix_from_angles(*params[0:3], order="omega-phi-kappa")
+        R = matrix_from_angles(params[0], params[1], params[2], order="omega-phi-kappa")
         logger.info("space resection: %d points, sigma0 %.4g mm, %d iterations", prob.nf, sigma0, it)
         return cls(position=params[3:6] + prob.gm, rotation=R, focal_length_mm=float(params[6]),
                    principal_point_mm=params[7:9], covariance=cov, param_names=names, sigma0=sigma0,
@@ -239,8 +241,6 @@ def _corr(c: NDArray) -> NDArray:
 
 
 def _initial_pnp(photo: NDArray, ground_c: NDArray, f: float) -> tuple[NDArray, NDArray]:
-    import cv2
-
     K = np.array([[f, 0, 0], [0, f, 0], [0, 0, 1.0]])
     img = np.column_stack([photo[:, 0], -photo[:, 1]]).reshape(-1, 1, 2)
     obj = ground_c.reshape(-1, 1, 3)
@@ -292,8 +292,6 @@ def _initial_dlt(photo: NDArray, ground_c: NDArray) -> tuple[NDArray, NDArray, f
     C = -np.linalg.solve(P[:, :3], P[:, 3])
     H = P[:, :3]
     # RQ decomposition of H = Kq Q
-    import scipy.linalg
-
     Kq, Q = scipy.linalg.rq(H)
     S = np.diag(np.sign(np.diag(Kq)))
     Kq, Q = Kq @ S, S @ Q
@@ -460,13 +458,14 @@ def _solve(prob: _Problem, params: NDArray, *, max_iterations: int, tol: float
     conv = False
     it = 0
     N = np.eye(nfree)
-    dp = np.zeros(nfree)
+    dp: NDArray = np.zeros(nfree)
     while it < max_iterations:
         it += 1
         pred, J = _collinearity(params, prob.Gc[fit])
         A = J[:, :, :nfree].reshape(-1, nfree)
         lvec = (x[fit] - pred).reshape(-1)
         N, rhs = lsq.normal_equations(A, lvec)
+        assert rhs is not None
         try:
             dp = np.linalg.solve(N, rhs)
         except np.linalg.LinAlgError as err:

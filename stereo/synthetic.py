@@ -111,7 +111,7 @@ class SyntheticScene:
     def random_ground_points(self, n: int, rng: np.random.Generator, *, margin_px: float = 20.0
                              ) -> NDArray[np.float64]:
         """n ground points (x, y, DEM z) visible in both photos (at least ``margin_px`` inside)."""
-        out = []
+        out: list[NDArray[np.float64]] = []
         H, W = self.dem.shape
         while sum(len(o) for o in out) < n:
             xy = self.origin + np.column_stack([rng.uniform(0, W - 1, 4 * n), -rng.uniform(0, H - 1, 4 * n)]
@@ -165,9 +165,9 @@ def make_scene(seed: int = 0, *, size_px: int = 480, relief_m: float = 250.0) ->
     centre_xy = origin + np.array([n * cell / 2, -n * cell / 2])
     zc = float(z.mean()) + flying_h
     a = rng.uniform(-0.02, 0.02, 6)
-    left = ExteriorOrientation(position=[centre_xy[0] - base / 2, centre_xy[1], zc],
+    left = ExteriorOrientation(position=np.array([centre_xy[0] - base / 2, centre_xy[1], zc]),
                                rotation=matrix_from_angles(a[0], a[1], a[2]), focal_length_mm=120.0)
-    right = ExteriorOrientation(position=[centre_xy[0] + base / 2, centre_xy[1] + 20.0, zc + 15.0],
+    right = ExteriorOrientation(position=np.array([centre_xy[0] + base / 2, centre_xy[1] + 20.0, zc + 15.0]),
                                 rotation=matrix_from_angles(a[3], a[4], a[5]), focal_length_mm=120.0)
     return SyntheticScene(dem=z, texture=tex.astype(np.float32), origin=origin, cell_m=cell, camera=cam,
                           left=left, right=right, crs=LO25_CRS)

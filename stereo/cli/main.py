@@ -22,19 +22,19 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
 
 
 # --- registered subcommands (one module each) ---
-from .orient import orient
+from .orient import orient  # noqa: E402
 
 cli.add_command(orient)
-from .model import model
+from .model import model  # noqa: E402
 
 cli.add_command(model)
-from .resect import resect
+from .resect import resect  # noqa: E402
 
 cli.add_command(resect)
-from .run import run
+from .run import run  # noqa: E402
 
 cli.add_command(run)
-from .demo import demo
+from .demo import demo  # noqa: E402
 
 cli.add_command(demo)
 from .calibrate import calibrate

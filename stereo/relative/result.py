@@ -227,10 +227,10 @@ class RelativeOrientation:
         the pixel size of the left camera is used for pixel figures.
         """
         cam_r = camera_right or camera
-        l = camera.photo_from_pixel(left_px)
+        lm = camera.photo_from_pixel(left_px)
         r = cam_r.photo_from_pixel(right_px)
         kwargs.setdefault("pixel_size_mm", camera.pixel_size_mm)
-        ro = cls.from_points(l, r, focal_length_mm=(camera.focal_length_mm, cam_r.focal_length_mm), **kwargs)
+        ro = cls.from_points(lm, r, focal_length_mm=(camera.focal_length_mm, cam_r.focal_length_mm), **kwargs)
         return dataclasses.replace(ro, left_px=np.asarray(left_px, dtype=np.float64))
 
     # --------------------------------------------------------------- geometry
@@ -246,7 +246,7 @@ class RelativeOrientation:
 
     @property
     def element_dict(self) -> dict[str, float]:
-        return {k: float(v) for k, v in zip(self.names, self.elements)}
+        return {k: float(v) for k, v in zip(self.names, self.elements, strict=True)}
 
     @property
     def rotation_left(self) -> NDArray[np.float64]:
@@ -295,9 +295,9 @@ class RelativeOrientation:
 
     def residuals(self, left_mm: ArrayLike, right_mm: ArrayLike) -> NDArray[np.float64]:
         """Residual vertical parallax (N,), mm, of other tie points under this orientation."""
-        l, r = as_pair(left_mm, right_mm, names=("left_mm", "right_mm"))
+        lm, r = as_pair(left_mm, right_mm, names=("left_mm", "right_mm"))
         f1, f2 = self.focal_length_mm
-        return _evaluate(SYSTEMS[self.system], self.elements, _rays(l, f1), _rays(r, f2), jac=False).parallax
+        return _evaluate(SYSTEMS[self.system], self.elements, _rays(lm, f1), _rays(r, f2), jac=False).parallax
 
     def to_system(self, system: str) -> NDArray[np.float64]:
         """Elements (5,) of the same relative geometry in another system (no re-adjustment)."""
@@ -329,7 +329,8 @@ class RelativeOrientation:
                 G[:, k] = (conv(self.elements + dp) - conv(self.elements - dp)) / (2 * h)
             C = G @ self.covariance @ G.T
             s = np.sqrt(np.diag(C))
-            std = [float(s[0]), float(s[1]), float(s[2]), float(abs(bx) * s[3]), float(abs(bx) * s[4])]
+            std: list[float | None] = [float(s[0]), float(s[1]), float(s[2]), float(abs(bx) * s[3]),
+                                       float(abs(bx) * s[4])]
         else:
             std = [None] * 5
         return WesternForm(float(v[0]), float(v[1]), float(v[2]), float(bx), float(bx * v[3]), float(bx * v[4]),
@@ -362,7 +363,7 @@ class RelativeOrientation:
 
     def summary(self) -> dict[str, Any]:
         """Short figures for the CLI and reports."""
-        out = {
+        out: dict[str, Any] = {
             "system": self.system, "n_points": self.n_points, "n_used": self.n_used,
             "n_outliers": int(self.outlier.sum()), "iterations": self.iterations,
             "irls_iterations": self.irls_iterations, "sigma0_mm": self.sigma0_mm,
@@ -388,7 +389,7 @@ class RelativeOrientation:
         return {
             "system": self.system,
             "elements": self.element_dict,
-            "std_errors": None if std is None else {k: float(v) for k, v in zip(self.names, std)},
+            "std_errors": None if std is None else {k: float(v) for k, v in zip(self.names, std, strict=True)},
             "correlation": {"names": list(self.names), "matrix": None if corr is None else corr.tolist()},
             "covariance": None if self.covariance is None else self.covariance.tolist(),
             "sigma0_mm": self.sigma0_mm,

@@ -70,12 +70,12 @@ def relative_from_essential(left_mm: ArrayLike, right_mm: ArrayLike, focal_lengt
     EstimationError
         When OpenCV finds no essential matrix or fewer than 5 inliers.
     """
-    l, r = as_pair(left_mm, right_mm, names=("left_mm", "right_mm"))
-    if len(l) < 5:
-        raise EstimationError(f"too few tie points for the essential matrix: {len(l)} given, at least 5 needed")
+    lm, r = as_pair(left_mm, right_mm, names=("left_mm", "right_mm"))
+    if len(lm) < 5:
+        raise EstimationError(f"too few tie points for the essential matrix: {len(lm)} given, at least 5 needed")
     f1, f2 = _focals(focal_length_mm)
     # OpenCV camera frame: x right, y down, z forward = diag(1, -1, -1) * photo frame
-    n1 = np.column_stack([l[:, 0] / f1, -l[:, 1] / f1])
+    n1 = np.column_stack([lm[:, 0] / f1, -lm[:, 1] / f1])
     n2 = np.column_stack([r[:, 0] / f2, -r[:, 1] / f2])
     flag = {"magsac": cv2.USAC_MAGSAC, "ransac": cv2.RANSAC}[method]
     thr = threshold_mm / math.sqrt(f1 * f2)
@@ -85,7 +85,7 @@ def relative_from_essential(left_mm: ArrayLike, right_mm: ArrayLike, focal_lengt
     except cv2.error as err:
         raise EstimationError(f"OpenCV findEssentialMat failed: {err}") from err
     if E is None or E.shape[0] < 3:
-        raise EstimationError(f"OpenCV found no essential matrix for {len(l)} tie points (degenerate configuration?)")
+        raise EstimationError(f"OpenCV found no essential matrix for {len(lm)} tie points (degenerate configuration?)")
     E = E[:3]
     try:
         _ninl, R, t, mask2 = cv2.recoverPose(E, n1, n2, np.eye(3), mask=mask.copy())
@@ -196,9 +196,9 @@ def _gauss_newton(sys_: System, p0: NDArray, u1: NDArray, u2: NDArray, w: NDArra
         f"(last correction {last:.3g} rad > {opts.tol_rad:g})", iterations=opts.max_iterations)
 
 
-def _inplane_rotation(l: NDArray, r: NDArray) -> float:
+def _inplane_rotation(lm: NDArray, r: NDArray) -> float:
     """|angle| (rad) of the 2D similarity that best maps left photo points onto the right ones."""
-    a = l - l.mean(axis=0)
+    a = lm - lm.mean(axis=0)
     b = r - r.mean(axis=0)
     return abs(math.atan2(float(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])), float(np.sum(a * b))))
 
@@ -306,8 +306,8 @@ def validate(left_mm: ArrayLike, right_mm: ArrayLike, *, focal_length_mm: float 
     robust = str(robust).lower()
     if robust not in ROBUST_METHODS:
         raise InvalidInputError(f"unknown robust method {robust!r}; expected one of {list(ROBUST_METHODS)}")
-    l, r = as_pair(left_mm, right_mm, names=("left_mm", "right_mm"))
-    n = len(l)
+    lm, r = as_pair(left_mm, right_mm, names=("left_mm", "right_mm"))
+    n = len(lm)
     if n < 5:
         raise EstimationError(f"too few tie points for relative orientation: {n} given, at least 5 needed")
     f1, f2 = _focals(focal_length_mm)
@@ -324,7 +324,7 @@ def validate(left_mm: ArrayLike, right_mm: ArrayLike, *, focal_length_mm: float 
     else:
         init = "given"
         given = _initial_vector(sys_, initial)
-    return Problem(sys_, robust, l, r, (f1, f2), pixel_size_mm, w0, id_list, init, given)
+    return Problem(sys_, robust, lm, r, (f1, f2), pixel_size_mm, w0, id_list, init, given)
 
 
 @dataclass(frozen=True, eq=False)
@@ -354,14 +354,14 @@ class Solution:
 
 def solve(prob: Problem, opts: RelativeOptions) -> Solution:
     """Stage 2: start values, Gauss-Newton (and IRLS), cheirality; tries the next start on failure."""
-    sys_, robust, l, r, n = prob.system, prob.robust, prob.left_mm, prob.right_mm, prob.n
+    sys_, robust, lm, r, n = prob.system, prob.robust, prob.left_mm, prob.right_mm, prob.n
     u1, u2 = prob.rays
     pix = prob.pixel_size_mm or _DEFAULT_PIXEL_MM
     essential_cache: dict[str, Any] = {}
 
     def essential() -> tuple[NDArray, NDArray]:
         if not essential_cache:
-            R_rel, bl, inl = relative_from_essential(l, r, prob.focal_length_mm,
+            R_rel, bl, inl = relative_from_essential(lm, r, prob.focal_length_mm,
                                                      threshold_mm=opts.ransac_threshold_px * pix,
                                                      rng_seed=opts.rng_seed)
             essential_cache.update(p=sys_.elements_from_relative(R_rel, bl), inliers=inl)
@@ -380,7 +380,7 @@ def solve(prob: Problem, opts: RelativeOptions) -> Solution:
         starts.append(("zero", np.zeros(5)))
     elif init == "essential" or (init == "auto" and robust != "none"):
         starts.append(("essential", None))
-    elif _inplane_rotation(l, r) > opts.zero_start_max_rotation:
+    elif _inplane_rotation(lm, r) > opts.zero_start_max_rotation:
         starts.append(("essential", None))  # e.g. relative kappa near 180 deg: zero angles cannot serve
     else:
         starts += [("zero", np.zeros(5)), ("essential", None)]

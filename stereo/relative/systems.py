@@ -42,7 +42,7 @@ def _rot(axis: str, a: float) -> NDArray[np.float64]:
 
 def _chain(axes: str, angles: Sequence[float]) -> tuple[NDArray[np.float64], list[NDArray[np.float64]]]:
     """R = E1 E2 E3 and the analytic dR/d(angle_i) = E1..Ei G_i ..E3."""
-    E = [_rot(ax, a) for ax, a in zip(axes, angles)]
+    E = [_rot(ax, a) for ax, a in zip(axes, angles, strict=True)]
     R = E[0] @ E[1] @ E[2]
     d = [E[0] @ _G[axes[0]] @ E[1] @ E[2],
          E[0] @ E[1] @ _G[axes[1]] @ E[2],
@@ -176,7 +176,7 @@ class System:
                     g = (X @ bc) * (X @ z2) - bc @ z2
                     dg = (dX @ bc) * (X @ z2) + (X @ bc) * (dX @ z2)
                     if dg != 0:
-                        a -= g / dg
+                        a -= float(g / dg)
                 X = np.array([math.cos(a), 0.0, math.sin(a)])
                 Z = z2 - X * (X @ z2)
                 if np.linalg.norm(Z) < 1e-9:
@@ -294,9 +294,9 @@ def coplanarity(system: str | System, elements: ArrayLike, left_mm: ArrayLike, r
     """
     s = get_system(system)
     p = np.asarray(elements, dtype=np.float64).reshape(5)
-    l, r = as_pair(left_mm, right_mm, names=("left_mm", "right_mm"))
+    lm, r = as_pair(left_mm, right_mm, names=("left_mm", "right_mm"))
     f1, f2 = _focals(focal_length_mm)
-    e = _evaluate(s, p, _rays(l, f1), _rays(r, f2))
+    e = _evaluate(s, p, _rays(lm, f1), _rays(r, f2))
     return e.F, e.J
 
 
@@ -347,9 +347,9 @@ def precision_structure(system: str | System, elements: ArrayLike, left_mm: Arra
     """
     s = get_system(system)
     p = np.asarray(elements, dtype=np.float64).reshape(5)
-    l, r = as_pair(left_mm, right_mm, names=("left_mm", "right_mm"))
+    lm, r = as_pair(left_mm, right_mm, names=("left_mm", "right_mm"))
     f1, f2 = _focals(focal_length_mm)
-    e = _evaluate(s, p, _rays(l, f1), _rays(r, f2))
+    e = _evaluate(s, p, _rays(lm, f1), _rays(r, f2))
     A = e.J / np.sqrt(e.gn2)[:, None]
     N, _ = lsq.normal_equations(A)
     if not (np.diag(N) > 0).all():

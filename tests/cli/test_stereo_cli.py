@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import re
 
+import matplotlib.image
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -14,6 +15,7 @@ from stereo.cli.main import cli
 from stereo.formats import relative_json_text
 from stereo.relative import RelativeOrientation
 from stereo.synthetic import make_scene
+from tests.support.rectify_support import verify_report
 
 
 @pytest.fixture(scope="module")
@@ -91,7 +93,7 @@ def test_model_cli_mismatched_ids(tmp_path, scene):
 def test_model_cli_collinear_control(tmp_path, scene):
     d = _files(tmp_path, scene)
     lines = (d / "control.csv").read_text().splitlines()
-    rows = [l.split(",") for l in lines[2:]]
+    rows = [ln.split(",") for ln in lines[2:]]
     for k, row in enumerate(rows):  # put the ground coordinates on one line
         row[5], row[6], row[7] = str(-55000 + 10 * k), str(-3727000 + 5 * k), str(400 + k)
     (d / "line.csv").write_text("\n".join(lines[:2] + [",".join(r) for r in rows]) + "\n")
@@ -103,8 +105,6 @@ def test_model_cli_collinear_control(tmp_path, scene):
 
 def test_demo_cli_default_configuration(tmp_path):
     """The demo as a user runs it (seed 0, 480 px): calibrated check-point std, units, counts, full report."""
-    from tests.support.rectify_support import verify_report
-
     out = tmp_path / "demo"
     r = CliRunner().invoke(cli, ["demo", "--out", str(out)])
     assert r.exit_code == 0, r.output
@@ -132,8 +132,6 @@ def test_demo_cli_default_configuration(tmp_path):
                  "absolute_orientation.geojson"):
         assert (rep / name).is_file(), name
         if name.endswith(".png"):  # decoded, drawn (not blank)
-            import matplotlib.image
-
             img = matplotlib.image.imread(rep / name)
             assert min(img.shape[:2]) >= 200 and np.ptp(img[..., :3]) > 0.5, (name, img.shape)
     gj = json.loads((rep / "absolute_orientation.geojson").read_text())
@@ -142,7 +140,7 @@ def test_demo_cli_default_configuration(tmp_path):
 
 
 def test_orient_then_model_without_camera_option(tmp_path, scene):
-    """DESIGN.md's chain: `stereo orient --camera ...` stores the camera in ro.json, so
+    """The documented chain: `stereo orient --camera ...` stores the camera in ro.json, so
     `stereo model RO.json --matches ... -o points.ply --control ...` needs no --camera."""
     d = _files(tmp_path, scene)
     r = CliRunner().invoke(cli, ["orient", "--camera", str(d / "cam.json"), "--matches", str(d / "matches.csv"),

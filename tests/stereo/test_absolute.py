@@ -15,8 +15,8 @@ from stereo.absolute import AbsoluteOrientation, similarity_from_points
 
 def _dewitt(path):
     blocks = (path / "3DCONF_sample.dat").read_text().split("#")
-    ctrl = [l.split() for l in blocks[0].strip().splitlines()]
-    pts = [l.split() for l in blocks[1].strip().splitlines()]
+    ctrl = [ln.split() for ln in blocks[0].strip().splitlines()]
+    pts = [ln.split() for ln in blocks[1].strip().splitlines()]
     c = np.array([r[1:] for r in ctrl], float)
     return [r[0] for r in ctrl], c[:, :3], c[:, 3:], np.array([r[1:] for r in pts], float)
 

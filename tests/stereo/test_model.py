@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from rectify.errors import EstimationError, InvalidInputError
-from rectify.residuals import rms
 from rectify.formats import ControlTable
+from rectify.residuals import rms
 from stereo.formats import read_ply_xyz
 from stereo.model import (
     ModelOptions,
@@ -16,8 +16,8 @@ from stereo.model import (
     match_control,
 )
 from stereo.relative import RelativeGeometry, RelativeOrientation
+from stereo.synthetic import LO25_CRS, make_scene
 from stereo.workspace import PairWorkspace
-from stereo.synthetic import make_scene
 
 
 @pytest.fixture(scope="module")
@@ -111,23 +111,21 @@ def test_bad_control(scene):
     pl, pr = scene.pixel_from_ground(scene.left, g), scene.pixel_from_ground(scene.right, g)
     ro = RelativeOrientation.from_pixels(pl[:30], pr[:30], cam)
     geo = RelativeGeometry.from_relative(ro)
-    l, r = cam.photo_from_pixel(pl[:30]), cam.photo_from_pixel(pr[:30])
+    lm, r = cam.photo_from_pixel(pl[:30]), cam.photo_from_pixel(pr[:30])
     two = ControlTable(("a", "b"), pl[30:32], pr[30:32], g[30:32], crs=scene.crs)
     with pytest.raises(EstimationError, match="too few control points: 2 full"):
-        build_model(l, r, geo, control=two, control_mm=match_control(two, cam))
+        build_model(lm, r, geo, control=two, control_mm=match_control(two, cam))
     ctrl = ControlTable(tuple("abcdef"), pl[30:36], pr[30:36], g[30:36], crs=scene.crs)
     with pytest.raises(InvalidInputError, match=r"check point id\(s\) \['zz'\]"):
-        build_model(l, r, geo, control=ctrl, control_mm=match_control(ctrl, cam),
+        build_model(lm, r, geo, control=ctrl, control_mm=match_control(ctrl, cam),
                     options=ModelOptions(check_ids=("zz",)))
     with pytest.raises(InvalidInputError, match="control_mm"):
-        build_model(l, r, geo, control=ctrl)
+        build_model(lm, r, geo, control=ctrl)
     with pytest.raises(InvalidInputError, match="unknown frame"):
         ModelOptions(frame="ecef")
 
 
 def test_ground_unit_names():
-    from stereo.synthetic import LO25_CRS
-
     assert ground_unit(None) == "ground units"
     assert ground_unit(None, "topocentric") == "m"
     assert ground_unit("EPSG:32618") == "m"

@@ -19,6 +19,7 @@ from rectify.errors import (
     ShapeError,
     WeakGeometryWarning,
 )
+from rectify.features import MatcherConfig, match_images
 from rectify.residuals import ResidualTable
 from rectify.rotation import matrix_from_angles
 from stereo.formats import relative_json_text, write_relative
@@ -66,10 +67,10 @@ def test_analytic_jacobian_matches_finite_differences(system):
         assert_allclose(J, Jfd, rtol=1e-6, atol=1e-7 * np.abs(J).max())
 
 
-def _seed000(p, l, r, f):
+def _seed000(p, lm, r, f):
     """Seed 000, eqs. (2), (4) and the coefficients a..e of the correction equations (5)."""
     tau, w1, a1, a2, c2 = p
-    x1, y1, x2, y2 = l[:, 0], l[:, 1], r[:, 0], r[:, 1]
+    x1, y1, x2, y2 = lm[:, 0], lm[:, 1], r[:, 0], r[:, 1]
     X1 = x1 * np.cos(a1) - f * np.sin(a1)
     Y1 = x1 * np.sin(w1) * np.sin(a1) + y1 * np.cos(w1) + f * np.sin(w1) * np.cos(a1)
     Z1 = -x1 * np.cos(w1) * np.sin(a1) + y1 * np.sin(w1) - f * np.cos(w1) * np.cos(a1)
@@ -80,9 +81,11 @@ def _seed000(p, l, r, f):
     F = (Y1 * Z2 - Z1 * Y2) + (Z1 * X2 - X1 * Z2) * t
     a = (Z1 * X2 - X1 * Z2) / np.cos(tau) ** 2
     b = Y1 * (X2 * t - Y2) - Z1 * Z2
-    c = X1 * (Y2 * np.cos(w1) + Z2 * np.sin(w1)) + (Z2 * (x1 * np.sin(a1) + f * np.cos(a1)) - X1 * X2 * np.cos(w1)) * t
+    c = (X1 * (Y2 * np.cos(w1) + Z2 * np.sin(w1))
+         + (Z2 * (x1 * np.sin(a1) + f * np.cos(a1)) - X1 * X2 * np.cos(w1)) * t)
     d = (X1 * X2 + Z1 * Z2) * t - Y1 * X2
-    e = Y1 * Y2 * np.sin(a2) - Z1 * (x2 * np.cos(c2) - y2 * np.sin(c2)) - (X1 * Y2 * np.sin(a2) + Z1 * Y2 * np.cos(a2)) * t
+    e = (Y1 * Y2 * np.sin(a2) - Z1 * (x2 * np.cos(c2) - y2 * np.sin(c2))
+         - (X1 * Y2 * np.sin(a2) + Z1 * Y2 * np.cos(a2)) * t)
     return F, np.column_stack([a, b, c, d, e])
 
 
@@ -96,10 +99,11 @@ def test_seed000_equations_and_coefficients():
     Fs, coef = _seed000(p, sp.left_mm, sp.right_mm, F_NGI)
     assert_allclose(F, Fs * math.cos(p[0]), rtol=1e-10)
     h = 1e-6
-    for col, k in zip(range(5), range(5)):
+    for col, k in zip(range(5), range(5), strict=True):
         d = np.zeros(5)
         d[k] = h
-        fd = (_seed000(p + d, sp.left_mm, sp.right_mm, F_NGI)[0] - _seed000(p - d, sp.left_mm, sp.right_mm, F_NGI)[0]) / (2 * h)
+        fd = (_seed000(p + d, sp.left_mm, sp.right_mm, F_NGI)[0]
+              - _seed000(p - d, sp.left_mm, sp.right_mm, F_NGI)[0]) / (2 * h)
         assert_allclose(coef[:, col], fd, rtol=1e-6, atol=1e-6 * np.abs(fd).max())
     # our analytic Jacobian is the seed's times cos(tau) (plus F * d cos(tau) / d tau for tau)
     scale = math.cos(p[0])
@@ -232,8 +236,6 @@ EO = {
 
 @pytest.fixture(scope="module")
 def ngi_matches(ngi_pair):
-    from rectify.features import MatcherConfig, match_images
-
     res = match_images(ngi_pair / "3324c_2015_1004_05_0182_RGB.tif", ngi_pair / "3324c_2015_1004_05_0184_RGB.tif",
                        config=MatcherConfig(verify="fundamental"))
     return res.matches
@@ -287,9 +289,9 @@ def test_to_dict_contract_and_json(tmp_path):
 
 def test_inputs_not_modified_and_result_frozen():
     sp = simulate_pair("vertical", n=20, rng=1)
-    l, r = sp.left_mm.copy(), sp.right_mm.copy()
-    ro = RelativeOrientation.from_points(l, r, focal_length_mm=F_NGI)
-    assert np.array_equal(l, sp.left_mm) and np.array_equal(r, sp.right_mm)
+    lm, r = sp.left_mm.copy(), sp.right_mm.copy()
+    ro = RelativeOrientation.from_points(lm, r, focal_length_mm=F_NGI)
+    assert np.array_equal(lm, sp.left_mm) and np.array_equal(r, sp.right_mm)
     with pytest.raises(ValueError):
         ro.elements[0] = 1.0
 
@@ -298,7 +300,7 @@ def test_given_initial_values_dict_and_vector():
     sp = simulate_pair("kappa180", n=40, rng=6)
     tr = sp.truth("basis")
     ro = RelativeOrientation.from_points(sp.left_mm, sp.right_mm, focal_length_mm=F_NGI, system="basis",
-                                         initial=dict(zip(SYSTEMS["basis"].names, tr + 0.05)))
+                                         initial=dict(zip(SYSTEMS["basis"].names, tr + 0.05, strict=True)))
     assert ro.initial_method == "given"
     assert_allclose(wrap(ro.elements - tr), 0, atol=1e-9)
     ro2 = RelativeOrientation.from_points(sp.left_mm, sp.right_mm, focal_length_mm=F_NGI, system="basis",
@@ -309,32 +311,32 @@ def test_given_initial_values_dict_and_vector():
 # ----------------------------------------------------------------- bad input
 def test_bad_input_messages():
     sp = simulate_pair("vertical", n=20, rng=1)
-    l, r = sp.left_mm, sp.right_mm
+    lm, r = sp.left_mm, sp.right_mm
     fr = RelativeOrientation.from_points
     with pytest.raises(EstimationError, match="too few tie points for relative orientation: 4 given"):
-        fr(l[:4], r[:4], focal_length_mm=F_NGI)
+        fr(lm[:4], r[:4], focal_length_mm=F_NGI)
     with pytest.raises(ShapeError, match="same number of points"):
-        fr(l, r[:10], focal_length_mm=F_NGI)
-    bad = l.copy()
+        fr(lm, r[:10], focal_length_mm=F_NGI)
+    bad = lm.copy()
     bad[3, 1] = np.nan
     with pytest.raises(InvalidInputError, match="non-finite"):
         fr(bad, r, focal_length_mm=F_NGI)
     with pytest.raises(InvalidInputError, match="unknown system 'foo'"):
-        fr(l, r, focal_length_mm=F_NGI, system="foo")
+        fr(lm, r, focal_length_mm=F_NGI, system="foo")
     with pytest.raises(InvalidInputError, match="unknown robust method 'l1'"):
-        fr(l, r, focal_length_mm=F_NGI, robust="l1")
+        fr(lm, r, focal_length_mm=F_NGI, robust="l1")
     with pytest.raises(InvalidInputError, match="unknown initial 'random'"):
-        fr(l, r, focal_length_mm=F_NGI, initial="random")
+        fr(lm, r, focal_length_mm=F_NGI, initial="random")
     with pytest.raises(InvalidInputError, match="unknown element"):
-        fr(l, r, focal_length_mm=F_NGI, initial={"phi": 0.1})
+        fr(lm, r, focal_length_mm=F_NGI, initial={"phi": 0.1})
     with pytest.raises(InvalidInputError, match="5 finite angles"):
-        fr(l, r, focal_length_mm=F_NGI, initial=[0, 0, 0])
+        fr(lm, r, focal_length_mm=F_NGI, initial=[0, 0, 0])
     with pytest.raises(InvalidInputError, match="focal_length_mm"):
-        fr(l, r, focal_length_mm=-1.0)
+        fr(lm, r, focal_length_mm=-1.0)
     with pytest.raises(InvalidInputError, match="pixel_size_mm"):
-        fr(l, r, focal_length_mm=F_NGI, pixel_size_mm=0.0)
+        fr(lm, r, focal_length_mm=F_NGI, pixel_size_mm=0.0)
     with pytest.raises(InvalidInputError, match="ids"):
-        fr(l, r, focal_length_mm=F_NGI, ids=["a"])
+        fr(lm, r, focal_length_mm=F_NGI, ids=["a"])
 
 
 def test_degenerate_no_parallax():
@@ -346,10 +348,10 @@ def test_degenerate_no_parallax():
 
 def test_degenerate_collinear_points():
     x = np.linspace(-40, 40, 12)
-    l = np.column_stack([x, 0.5 * x])
-    r = l + [-30.0, 0.0]
+    lm = np.column_stack([x, 0.5 * x])
+    r = lm + [-30.0, 0.0]
     with pytest.raises(EstimationError, match="degenerate configuration"):
-        RelativeOrientation.from_points(l, r, focal_length_mm=F_NGI, initial="zero")
+        RelativeOrientation.from_points(lm, r, focal_length_mm=F_NGI, initial="zero")
 
 
 def test_divergence_reported():

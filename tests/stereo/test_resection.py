@@ -15,9 +15,9 @@ from stereo.resection import ExteriorOrientation, resect
 
 
 def _dewitt(path):
-    lines = [l for l in (path / "resect_sample.dat").read_text().splitlines() if l.strip()]
+    lines = [ln for ln in (path / "resect_sample.dat").read_text().splitlines() if ln.strip()]
     f = float(lines[0])
-    rows = [l.split() for l in lines[1:]]
+    rows = [ln.split() for ln in lines[1:]]
     a = np.array([r[1:] for r in rows], float)
     return f, [r[0] for r in rows], a[:, :2], a[:, 2:]
 

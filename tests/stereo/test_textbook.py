@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
+from rectify.rotation import matrix_from_angles
 from stereo.absolute import AbsoluteOrientation
 from stereo.intersection import intersect
 from stereo.relative import RelativeOrientation
@@ -95,8 +96,6 @@ def test_relor_sample_object_points():
     a = np.array([r[1:] for r in d["points"]], float)
     ro = RelativeOrientation.from_points(a[:, :2], a[:, 2:], focal_length_mm=f, system="left-image")
     wf = ro.western(bx=bx)
-    from rectify.rotation import matrix_from_angles
-
     R2 = matrix_from_angles(wf.omega, wf.phi, wf.kappa)
     it = intersect(a[:, :2], a[:, 2:], rotation_left=np.eye(3), rotation_right=R2, base=[bx, wf.by, wf.bz],
                    focal_length_mm=f, centre_left=(0.0, 0.0, f))

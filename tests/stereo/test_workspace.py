@@ -10,7 +10,7 @@ import pytest
 import stereo.actions as actions
 from rectify.errors import EstimationError, InvalidInputError
 from stereo.formats import read_relative
-from stereo.synthetic import make_scene
+from stereo.synthetic import make_scene, write_scene_inputs
 from stereo.workspace import RUN_LAYOUT, PairWorkspace, model_outputs
 
 
@@ -53,8 +53,6 @@ def test_transaction_removes_a_folder_it_created(tmp_path):
 
 @pytest.fixture(scope="module")
 def pair(tmp_path_factory):
-    from stereo.synthetic import write_scene_inputs
-
     d = tmp_path_factory.mktemp("pair")
     scene = make_scene(0, size_px=480)
     return write_scene_inputs(scene, d / "input"), scene
