@@ -19,9 +19,9 @@ import rasterio
 from scipy import ndimage
 
 from rectify.camera import Camera
+from rectify.formats import ControlTable
 from rectify.residuals import rms
 from rectify.rotation import matrix_from_angles
-from rectify.formats import ControlTable
 from stereo.actions import run
 from stereo.model import ModelOptions
 from stereo.resection import ExteriorOrientation
