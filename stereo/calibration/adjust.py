@@ -373,12 +373,14 @@ def adjust(obs: Observations, interiors: Sequence[F64], free: Sequence[Sequence[
             w_new = psi.weight(np.linalg.norm(v, axis=1) / (math.sqrt(2.0) * s))
             if int(np.sum(w_new > 0)) * 2 <= prob.U:
                 raise CalibrationError("robust weighting left too few points for the unknowns")
-            p, k, conv = _lm(prob, p, w_new, max_iter=max_iter, tol=tol)
+            p, k, conv = _lm(prob, p, w_new, max_iter=max_iter, tol=max(tol, 1e-9))
             its += k
             change = float(np.max(np.abs(w_new - w)))
             w = w_new
             if change < 1e-3:
                 break
+        p, k, conv = _lm(prob, p, w, max_iter=max_iter, tol=tol)
+        its += k
     r = prob.residuals(p)
     J = prob.jacobian(p)
     wr = np.repeat(w, 2)

@@ -22,7 +22,7 @@ DIST = ("k1", "k2", "p1", "p2")
 def zoom_cals():
     out = {}
     for z in (10.0, 15.0, 20.0, 25.0, 30.0):
-        sc = board_scene(np.random.default_rng(int(z)), n_views=4, camera=zoom_camera(z), noise_px=0.3, fill=0.5)
+        sc = board_scene(np.random.default_rng(int(z)), n_views=3, camera=zoom_camera(z), noise_px=0.3, fill=0.5)
         out[z] = Calibration.from_views(sc.views, 640, 480, distortion=DIST)
     return out
 
