@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -49,7 +48,7 @@ logger = logging.getLogger(__name__)
 __all__ = ["EpipolarRectification", "ParallaxReport", "RectifiedView", "rectify_pair", "resample_view",
            "tie_parallax"]
 
-StrPath = str | os.PathLike[str]
+StrPath = str | Path
 
 #: the rectified photos may cover at most this many times the original area (strongly convergent pairs)
 MAX_AREA_RATIO = 4.0

@@ -18,10 +18,10 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -38,7 +38,7 @@ logger = logging.getLogger(__name__)
 __all__ = ["DisparityMap", "MatchOptions", "MatchStats", "NODATA", "fill_background", "match_pair",
            "match_rasters", "sgbm_baseline"]
 
-StrPath = str | os.PathLike[str]
+StrPath = str | Path
 
 #: nodata value of the disparity and confidence rasters
 NODATA = -9999.0

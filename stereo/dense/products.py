@@ -1,0 +1,325 @@
+"""Products of dense matching: point clouds (LAS/LAZ, PLY) and the DSM GeoTIFF.
+
+Points arrive by tiles; every writer here streams them:
+
+- :class:`LasWriter`: LAS 1.4 point format 2 (x, y, z, RGB) through laspy, in chunks; ``.laz``
+  needs a laspy LAZ backend (``lazrs`` or ``laszip``), else a one-line error.
+- :class:`PlyWriter`: binary little-endian PLY (x, y, z float64, RGB uint8); the points go to a
+  temporary body file first, the header (which needs the count) is written at the end.
+- :class:`DsmGrid`: cell statistics on a regular grid in the ground frame: the mean (default),
+  minimum or maximum height of the points in each cell, and their count. Cells without points are
+  nodata (``-9999``). Optional hole filling (:meth:`DsmGrid.filled`) interpolates holes of at most
+  ``max_hole_cells`` cells from their rim and marks them in a mask band. The grid itself is held
+  in memory: 10 bytes per cell (sum float64, count uint16).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from affine import Affine
+from numpy.typing import ArrayLike, NDArray
+from scipy import ndimage
+
+from rectify.errors import InvalidInputError, RasterIOError, ShapeError
+from rectify.io import write_raster
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["DSM_NODATA", "STATISTICS", "DsmGrid", "DsmResult", "LasWriter", "PlyWriter", "point_writer"]
+
+StrPath = str | Path
+
+DSM_NODATA = -9999.0
+STATISTICS = ("mean", "min", "max")
+
+
+def _check_xyz(xyz: ArrayLike, colors: ArrayLike | None) -> tuple[NDArray[np.float64], NDArray[np.uint8] | None]:
+    p = np.asarray(xyz, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ShapeError(f"points must have shape (N, 3); got {p.shape}", actual_shape=p.shape,
+                         expected_shape=(None, 3))
+    if not np.isfinite(p).all():
+        raise InvalidInputError("points must be finite (NaN or inf given)")
+    c = None
+    if colors is not None:
+        c = np.asarray(colors)
+        if c.shape != (len(p), 3):
+            raise ShapeError(f"colors must have shape ({len(p)}, 3); got {c.shape}", actual_shape=c.shape,
+                             expected_shape=(len(p), 3))
+        c = np.clip(c, 0, 255).astype(np.uint8)
+    return p, c
+
+
+class LasWriter:
+    """Stream points into a LAS/LAZ file (laspy).
+
+    Parameters
+    ----------
+    path : path
+        Written as given (the caller stages it).
+    offset : (3,) float
+        LAS offsets (a point near the data); scales are ``scale`` in every axis.
+    crs_wkt : str, optional
+        Stored as an OGC WKT VLR when given.
+    """
+
+    def __init__(self, path: StrPath, offset: ArrayLike, *, scale: float = 0.001, crs_wkt: str | None = None,
+                 compress: bool | None = None):
+        import laspy
+
+        self.path = Path(path)
+        laz = self.path.suffix.lower() == ".laz" if compress is None else compress
+        if laz and not laspy.LazBackend.detect_available():
+            raise InvalidInputError(f"cannot write {str(self.path)!r}: no LAZ backend (install lazrs); write .las")
+        header = laspy.LasHeader(point_format=2, version="1.4")
+        header.offsets = np.asarray(offset, dtype=np.float64).reshape(3)
+        header.scales = np.array([scale, scale, scale])
+        if crs_wkt:
+            try:
+                from pyproj import CRS
+
+                header.add_crs(CRS.from_user_input(crs_wkt))
+            except Exception as err:  # noqa: BLE001 - a CRS laspy cannot store is logged, not fatal
+                logger.warning("CRS not stored in %s: %s", self.path, err)
+        self._laspy = laspy
+        self._header = header
+        try:
+            self._w = laspy.open(str(self.path), mode="w", header=header, do_compress=laz)
+        except OSError as err:
+            raise RasterIOError(f"cannot write {str(self.path)!r}: {err}") from err
+        self.count = 0
+
+    def write(self, xyz: ArrayLike, colors: ArrayLike | None = None) -> None:
+        p, c = _check_xyz(xyz, colors)
+        if len(p) == 0:
+            return
+        rec = self._laspy.ScaleAwarePointRecord.zeros(len(p), header=self._header)
+        rec.x, rec.y, rec.z = p[:, 0], p[:, 1], p[:, 2]
+        if c is not None:
+            rec.red, rec.green, rec.blue = (c[:, 0].astype(np.uint16) * 257, c[:, 1].astype(np.uint16) * 257,
+                                            c[:, 2].astype(np.uint16) * 257)
+        self._w.write_points(rec)
+        self.count += len(p)
+
+    def close(self) -> None:
+        self._w.close()
+
+
+class PlyWriter:
+    """Stream points into a binary little-endian PLY (x, y, z double; red, green, blue uchar)."""
+
+    def __init__(self, path: StrPath, *, comment: str | None = None):
+        self.path = Path(path)
+        self.comment = comment
+        self._body_path = self.path.with_name(self.path.name + ".body")
+        try:
+            self._body = open(self._body_path, "wb")  # noqa: SIM115 - closed in close()
+        except OSError as err:
+            raise RasterIOError(f"cannot write {str(self.path)!r}: {err.strerror}") from err
+        self.count = 0
+        self._dtype = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
+
+    def write(self, xyz: ArrayLike, colors: ArrayLike | None = None) -> None:
+        p, c = _check_xyz(xyz, colors)
+        rec = np.zeros(len(p), self._dtype)
+        rec["x"], rec["y"], rec["z"] = p[:, 0], p[:, 1], p[:, 2]
+        if c is not None:
+            rec["r"], rec["g"], rec["b"] = c[:, 0], c[:, 1], c[:, 2]
+        self._body.write(rec.tobytes())
+        self.count += len(p)
+
+    def close(self) -> None:
+        self._body.close()
+        head = ["ply", "format binary_little_endian 1.0"]
+        if self.comment:
+            head.append(f"comment {self.comment}")
+        head += [f"element vertex {self.count}", "property double x", "property double y", "property double z",
+                 "property uchar red", "property uchar green", "property uchar blue", "end_header"]
+        try:
+            with open(self.path, "wb") as out, open(self._body_path, "rb") as body:
+                out.write(("\n".join(head) + "\n").encode("ascii"))
+                shutil.copyfileobj(body, out, 1 << 22)
+        finally:
+            self._body_path.unlink(missing_ok=True)
+
+
+def point_writer(path: StrPath, fmt: str | None = None, *, offset: ArrayLike, crs_wkt: str | None = None,
+                 comment: str | None = None) -> LasWriter | PlyWriter:
+    """A streaming writer: ``fmt`` ``las``, ``laz`` or ``ply`` (default: from the suffix of ``path``)."""
+    f = fmt if fmt is not None else Path(path).suffix.lower().lstrip(".")
+    if f in ("las", "laz"):
+        return LasWriter(path, offset, crs_wkt=crs_wkt, compress=f == "laz")
+    if f == "ply":
+        return PlyWriter(path, comment=comment)
+    raise InvalidInputError(f"unknown point cloud format {f!r} of {str(path)!r}; expected las, laz or ply")
+
+
+@dataclass(frozen=True, eq=False)
+class DsmResult:
+    """A finished DSM grid.
+
+    Attributes
+    ----------
+    height : (H, W) float32
+        Heights; ``DSM_NODATA`` where no points (and not filled).
+    count : (H, W) uint16
+        Points per cell.
+    filled : (H, W) bool
+        Cells filled by interpolation.
+    transform : affine.Affine
+        rasterio geotransform (cell corners).
+    crs : str or None
+    """
+
+    height: NDArray[np.float32]
+    count: NDArray[np.uint16]
+    filled: NDArray[np.bool_]
+    transform: Affine
+    crs: str | None
+
+    def __post_init__(self) -> None:
+        for a in (self.height, self.count, self.filled):
+            a.flags.writeable = False
+
+    @property
+    def valid(self) -> NDArray[np.bool_]:
+        return np.asarray(self.height != DSM_NODATA)
+
+    @property
+    def coverage(self) -> float:
+        """Share of cells with points (before filling)."""
+        return float((self.count > 0).mean()) if self.count.size else 0.0
+
+    def write(self, path: StrPath, *, overwrite: bool = False) -> Path:
+        """Write the DSM GeoTIFF: band 1 height (nodata -9999), band 2 point count, band 3 fill mask (1 filled)."""
+        data = np.dstack([self.height.astype(np.float32), self.count.astype(np.float32),
+                          self.filled.astype(np.float32)])
+        return write_raster(path, data, self.transform, self.crs, nodata=DSM_NODATA, overwrite=overwrite)
+
+
+class DsmGrid:
+    """Accumulate points into DSM cells.
+
+    Parameters
+    ----------
+    bounds : (xmin, ymin, xmax, ymax)
+        Ground extent.
+    cell : float
+        Cell side, ground units.
+    statistic : {"mean", "min", "max"}
+    crs : str, optional
+    """
+
+    def __init__(self, bounds: tuple[float, float, float, float], cell: float, *, statistic: str = "mean",
+                 crs: str | None = None, max_cells: int = 400_000_000):
+        if statistic not in STATISTICS:
+            raise InvalidInputError(f"unknown DSM statistic {statistic!r}; expected one of {list(STATISTICS)}")
+        if not (isinstance(cell, (int, float)) and math.isfinite(cell) and cell > 0):
+            raise InvalidInputError(f"DSM cell must be a finite number > 0; got {cell!r}")
+        x0, y0, x1, y1 = (float(b) for b in bounds)
+        if not all(math.isfinite(v) for v in (x0, y0, x1, y1)) or x1 <= x0 or y1 <= y0:
+            raise InvalidInputError(f"DSM bounds must be finite with xmin < xmax, ymin < ymax; got {bounds!r}")
+        self.cell = float(cell)
+        self.x0 = math.floor(x0 / cell) * cell
+        self.y1 = math.ceil(y1 / cell) * cell
+        self.width = int(math.ceil((x1 - self.x0) / cell)) + 1
+        self.height = int(math.ceil((self.y1 - y0) / cell)) + 1
+        if self.width * self.height > max_cells:
+            raise InvalidInputError(f"the DSM would have {self.width} x {self.height} cells (more than {max_cells}); "
+                                    f"choose a larger cell than {cell!r}")
+        self.statistic = statistic
+        self.crs = crs
+        self._count = np.zeros((self.height, self.width), np.uint16)
+        if statistic == "mean":
+            self._acc = np.zeros((self.height, self.width), np.float64)
+        else:
+            fill = np.inf if statistic == "min" else -np.inf
+            self._acc = np.full((self.height, self.width), fill, np.float64)
+
+    @property
+    def transform(self) -> Affine:
+        return Affine(self.cell, 0.0, self.x0 - self.cell / 2, 0.0, -self.cell, self.y1 + self.cell / 2)
+
+    def cell_of(self, xy: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        c = np.rint((xy[:, 0] - self.x0) / self.cell).astype(np.int64)
+        r = np.rint((self.y1 - xy[:, 1]) / self.cell).astype(np.int64)
+        return r, c
+
+    def add(self, xyz: ArrayLike) -> int:
+        """Add points (N, 3); returns how many fell inside the grid."""
+        p, _ = _check_xyz(xyz, None)
+        r, c = self.cell_of(p)
+        ok = (r >= 0) & (c >= 0) & (r < self.height) & (c < self.width)
+        r, c, z = r[ok], c[ok], p[ok, 2]
+        idx = r * self.width + c
+        flat_n = self._count.reshape(-1)
+        n_add = np.bincount(idx, minlength=flat_n.size)
+        np.minimum(flat_n.astype(np.int64) + n_add, 65535, out=n_add)
+        flat_n[:] = n_add.astype(np.uint16)
+        flat = self._acc.reshape(-1)
+        if self.statistic == "mean":
+            flat += np.bincount(idx, weights=z, minlength=flat.size)
+        elif self.statistic == "min":
+            np.minimum.at(flat, idx, z)
+        else:
+            np.maximum.at(flat, idx, z)
+        return int(ok.sum())
+
+    def result(self, *, max_hole_cells: int = 0) -> DsmResult:
+        """The DSM; holes of at most ``max_hole_cells`` cells are interpolated from their rim and flagged."""
+        if isinstance(max_hole_cells, bool) or not isinstance(max_hole_cells, int) or max_hole_cells < 0:
+            raise InvalidInputError(f"`max_hole_cells` must be an integer >= 0; got {max_hole_cells!r}")
+        has = self._count > 0
+        if self.statistic == "mean":
+            h = np.where(has, self._acc / np.maximum(self._count, 1), np.nan)
+        else:
+            h = np.where(has, self._acc, np.nan)
+        filled = np.zeros(h.shape, bool)
+        if max_hole_cells > 0 and has.any() and not has.all():
+            h, filled = _fill_holes(h, has, max_hole_cells)
+        out = np.where(np.isfinite(h), h, DSM_NODATA).astype(np.float32)
+        return DsmResult(out, self._count.copy(), filled, self.transform, self.crs)
+
+
+def _fill_holes(h: NDArray[np.float64], has: NDArray[np.bool_], max_cells: int
+                ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Fill enclosed holes of at most ``max_cells`` cells by inverse-distance weighting of their rim."""
+    lab, n = ndimage.label(~has)
+    if n == 0:
+        return h, np.zeros(h.shape, bool)
+    sizes = np.bincount(lab.ravel(), minlength=n + 1)
+    # a hole touching the border is outside the data, not a hole
+    border = np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))
+    small = sizes <= max_cells
+    small[0] = False
+    small[border] = False
+    target = small[lab]
+    if not target.any():
+        return h, np.zeros(h.shape, bool)
+    # nearest-valid value, then smoothed inside the hole by repeated averaging (harmonic fill)
+    idx = ndimage.distance_transform_edt(~has, return_distances=False, return_indices=True)
+    out = h[idx[0], idx[1]]
+    for _ in range(50):
+        pad = np.pad(out, 1, mode="edge")
+        avg = 0.25 * (pad[:-2, 1:-1] + pad[2:, 1:-1] + pad[1:-1, :-2] + pad[1:-1, 2:])
+        out[target] = avg[target]
+    return np.where(has | target, out, np.nan), target
+
+
+def ply_header_count(path: StrPath) -> int:
+    """The vertex count in a PLY header (for tests and reports)."""
+    with open(path, "rb") as fh:
+        for raw in fh:
+            line = raw.decode("ascii", "replace").strip()
+            if line.startswith("element vertex"):
+                return int(line.split()[2])
+            if line == "end_header":
+                break
+    raise InvalidInputError(f"{str(path)!r} has no vertex element")
+
