@@ -24,7 +24,7 @@ from rasterio.errors import NotGeoreferencedWarning
 from rectify.camera import Camera
 from rectify.errors import InvalidInputError
 from rectify.features import MatcherConfig, match_images
-from rectify.formats import ControlTable, read_control, read_gcps, read_matches
+from rectify.formats import ControlTable
 from rectify.report import json_safe
 from rectify.residuals import rms
 
@@ -158,8 +158,8 @@ def orient(*, camera: PathArg, output: PathArg, matches: PathArg | None = None,
                        report_dir=report_dir)
     ws.plan(output, matches_out)
     ws.check_report_dir()
-    cam = Camera.from_json(camera)
-    cam_r = Camera.from_json(camera_right) if camera_right else None
+    cam = ws.load_camera(camera)
+    cam_r = ws.load_camera(camera_right) if camera_right else None
     n_matched = rmse = None
     if images is not None:
         res = _match(images[0], images[1])
@@ -167,7 +167,7 @@ def orient(*, camera: PathArg, output: PathArg, matches: PathArg | None = None,
         n_matched, rmse = len(m), res.rmse_px
     else:
         assert matches is not None
-        m = read_matches(matches)
+        m = ws.load_matches(matches)
     if len(m) == 0:
         raise InvalidInputError("no tie points")
     ro = RelativeOrientation.from_pixels(m.left, m.right, cam, camera_right=cam_r, system=opts.system,
@@ -208,9 +208,9 @@ class ModelResult:
         return out
 
 
-def _camera_for(geometry: RelativeGeometry, camera: PathArg | None, ro_json: PathArg) -> Camera:
+def _camera_for(ws: PairWorkspace, geometry: RelativeGeometry, camera: PathArg | None, ro_json: PathArg) -> Camera:
     if camera is not None:
-        return Camera.from_json(camera)
+        return ws.load_camera(camera)
     if isinstance(geometry.raw.get("camera"), dict):  # written by `stereo orient`
         return Camera.from_dict(geometry.raw["camera"])
     raise InvalidInputError(f"{str(ro_json)!r} holds no camera (it was not written by `stereo orient`): pass "
@@ -237,14 +237,14 @@ def model(ro_json: PathArg, *, matches: PathArg, output: PathArg, camera: PathAr
     ws.plan(*outputs)
     ws.check_report_dir()
     geom = ws.load_relative(ro_json)
-    cam = _camera_for(geom, camera, ro_json)
-    m = read_matches(matches)
+    cam = _camera_for(ws, geom, camera, ro_json)
+    m = ws.load_matches(matches)
     ro_ids = {str(p.get("id")) for p in geom.raw.get("points", []) if isinstance(p, dict)}
     if ro_ids and not ro_ids & set(m.ids):
         raise InvalidInputError(
             f"ids in {str(matches)!r} do not match the points of {str(ro_json)!r} (e.g. {sorted(m.ids)[:3]} vs "
             f"{sorted(ro_ids)[:3]}): the files belong to different pairs")
-    ctrl = read_control(control) if control else None
+    ctrl = ws.load_control(control) if control else None
     if opts.check_ids and ctrl is None:
         raise InvalidInputError("--check needs --control")
     result = build_model(cam.photo_from_pixel(m.left), cam.photo_from_pixel(m.right), geom, ids=m.ids,
@@ -324,8 +324,8 @@ def resect(*, camera: PathArg, gcps: PathArg, output: PathArg, report_dir: PathA
     ws = PairWorkspace(overwrite=overwrite, inputs=[camera, gcps], report_dir=report_dir)
     ws.plan(output)
     ws.check_report_dir()
-    cam = Camera.from_json(camera)
-    g = read_gcps(gcps)
+    cam = ws.load_camera(camera)
+    g = ws.load_gcps(gcps)
     if g.z is None:
         raise InvalidInputError(f"{str(gcps)!r} has no z column: space resection needs ground heights")
     ground = np.column_stack([g.target, g.z])
@@ -389,8 +389,8 @@ def run(left: PathArg, right: PathArg, *, camera: PathArg | Camera, out_dir: Pat
     inputs = [left, right] + [p for p in (camera, control) if isinstance(p, (str, Path))]
     ws = PairWorkspace.for_run(out_dir, overwrite=overwrite, inputs=tuple(inputs), report=report)
     ws.plan_run()
-    cam = camera if isinstance(camera, Camera) else Camera.from_json(camera)
-    ctrl = read_control(control) if isinstance(control, (str, Path)) else control
+    cam = camera if isinstance(camera, Camera) else ws.load_camera(camera)
+    ctrl = ws.load_control(control) if isinstance(control, (str, Path)) else control
     t0 = time.perf_counter()
     mr = _match(left, right, progress)
     m = mr.matches
@@ -468,7 +468,7 @@ def demo(out_dir: PathArg, *, seed: int = 0, size_px: int = 480, overwrite: bool
     scene = make_scene(seed, size_px=size_px)
     inp = write_scene_inputs(scene, out / "input", seed=seed, pixel_noise_px=pixel_noise_px, overwrite=overwrite,
                              progress=progress)
-    control = read_control(inp["control"])
+    control = PairWorkspace().load_control(inp["control"])
     ground_px = scene.cell_m
     r = run(inp["left"], inp["right"], camera=scene.camera, out_dir=out, control=control, overwrite=overwrite,
             options=ModelOptions(check_ids=inp["check_ids"]), title="stereo demo: synthetic pair with known truth",

@@ -26,7 +26,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from rectify.errors import InvalidInputError, RasterIOError
-from rectify.formats import Matches, write_matches
 from rectify.workspace import StrPath, Workspace
 
 from .formats import (
@@ -121,12 +120,7 @@ class PairWorkspace(Workspace):
                 shutil.rmtree(self.root)
 
     # ------------------------------------------------------------------ stereo artefacts
-    def save_matches(self, path: StrPath, matches: Matches) -> Path:
-        """Matches CSV (pixels) through :meth:`output`."""
-        with self.output(path) as tmp:
-            write_matches(tmp, matches, overwrite=True)  # the temporary file exists already
-        return Path(path)
-
+    # (matches, control, camera and GCP files: the load_*/save_* methods of rectify.workspace.Workspace)
     def save_relative(self, path: StrPath, ro: Any, *, extra: dict[str, Any] | None = None) -> Path:
         """Relative orientation JSON (``ro`` a :class:`~stereo.relative.RelativeOrientation` or its dict)."""
         with self.output(path) as tmp:
