@@ -40,3 +40,6 @@ cli.add_command(demo)
 from .calibrate import calibrate
 
 cli.add_command(calibrate)
+from .dense import dense
+
+cli.add_command(dense)
