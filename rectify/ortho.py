@@ -393,18 +393,47 @@ def _gt(transform: Any) -> tuple[float, ...]:
     return tuple(float(v) for v in tuple(transform)[:6])
 
 
-def _interp_matrix(n: int, knots: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(n, k) linear interpolation weights from values at ``knots`` (ascending) to 0..n-1."""
+def _interp_index(n: int, knots: NDArray[np.float64]) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+    """Left knot index and weight of 0..n-1 for linear interpolation between ``knots`` (ascending)."""
     x = np.arange(n, dtype=np.float64)
     k = len(knots)
     if k == 1:
-        return np.ones((n, 1))
+        return np.zeros(n, np.intp), np.zeros(n)
     i = np.clip(np.searchsorted(knots, x, side="right") - 1, 0, k - 2)
-    t = (x - knots[i]) / (knots[i + 1] - knots[i])
-    M = np.zeros((n, k))
-    M[np.arange(n), i] = 1 - t
-    M[np.arange(n), i + 1] = t
-    return M
+    return i.astype(np.intp), (x - knots[i]) / (knots[i + 1] - knots[i])
+
+
+def _densify(vals: NDArray[np.float64], kc: NDArray[np.float64], kr: NDArray[np.float64], w: int, h: int
+             ) -> NDArray[np.float64]:
+    """Bilinear interpolation of (nr, nc, ...) values at the knots to (h, w, ...)."""
+    ir, tr = _interp_index(h, kr)
+    ic, tc = _interp_index(w, kc)
+    if len(kr) == 1:
+        rows = np.repeat(vals[:1], h, axis=0)
+    else:
+        sh = (-1,) + (1,) * (vals.ndim - 1)
+        rows = vals[ir] * (1 - tr).reshape(sh) + vals[ir + 1] * tr.reshape(sh)
+    if len(kc) == 1:
+        return np.repeat(rows[:, :1], w, axis=1)
+    sh2 = (1, -1) + (1,) * (vals.ndim - 2)
+    return rows[:, ic] * (1 - tc).reshape(sh2) + rows[:, ic + 1] * tc.reshape(sh2)
+
+
+PROJECTION_TOLERANCE_PX = 1e-3
+_NODES = np.array([0.0, 1 / 3, 2 / 3, 1.0])
+#: power-basis coefficients from values at the 4 nodes: coef = _VANDER_INV @ values
+_VANDER_INV = np.linalg.inv(np.vander(_NODES, 4, increasing=True))
+
+
+def _lagrange4(t: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Cubic Lagrange weights (N, 4) for nodes 0, 1/3, 2/3, 1 at t (N,)."""
+    n = np.array([0.0, 1 / 3, 2 / 3, 1.0])
+    out = np.ones((len(t), 4))
+    for k in range(4):
+        for j in range(4):
+            if j != k:
+                out[:, k] *= (t - n[j]) / (n[k] - n[j])
+    return out
 
 
 def _knots(n: int, step: int) -> NDArray[np.float64]:
@@ -457,9 +486,10 @@ class _Engine:
         ys = t[5] + t[4] * (np.arange(r0, r0 + h) + 0.5)
         return np.broadcast_to(xs, (h, w)), np.broadcast_to(ys[:, None], (h, w))
 
-    def _sparse(self, c0: int, r0: int, w: int, h: int, fn: Callable[[NDArray], NDArray], dim: int) -> NDArray:
+    def _sparse(self, c0: int, r0: int, w: int, h: int, fn: Callable[[NDArray], NDArray], dim: int,
+                step: int | None = None) -> NDArray:
         """fn evaluated on a sparse grid of the block's world points, interpolated to (h, w, dim)."""
-        step = self.opts.map_step_px
+        step = step or self.opts.map_step_px
         kc, kr = _knots(w, step), _knots(h, step)
         t = _gt(self.grid.transform)
         X = t[2] + t[0] * (c0 + kc + 0.5)
@@ -467,8 +497,7 @@ class _Engine:
         XX, YY = np.meshgrid(X, Y)
         vals = np.asarray(fn(np.column_stack([XX.ravel(), YY.ravel()])), dtype=np.float64)
         vals = vals.reshape(len(kr), len(kc), dim)
-        Mc, Mr = _interp_matrix(w, kc), _interp_matrix(h, kr)
-        return np.stack([Mr @ vals[:, :, k] @ Mc.T for k in range(dim)], axis=-1)
+        return _densify(vals, kc, kr, w, h)
 
     def _heights(self, c0: int, r0: int, w: int, h: int) -> NDArray[np.float64]:
         from .crs import transform_xy
@@ -501,7 +530,8 @@ class _Engine:
         m = self._sparse(c0, r0, w, h, lambda p: transform_xy(self.grid.crs, self.model.crs, p), 2)
         return m[..., 0], m[..., 1]
 
-    def _direction(self, c0: int, r0: int, w: int, h: int, hz: float) -> NDArray[np.float64]:
+    def _direction(self, c0: int, r0: int, w: int, h: int, hz: float, step: int | None = None
+                   ) -> NDArray[np.float64]:
         """Horizontal displacement towards the sensor per metre of height, in output pixels (h, w, 2) (col, row)."""
         from .crs import transform_xy
 
@@ -523,7 +553,83 @@ class _Engine:
                 d = (w1 - p[ok]) / dz
                 out[ok] = np.where(np.isfinite(d), d, 0.0)
             return np.column_stack([out[:, 0] / t[0], out[:, 1] / t[4]])
-        return self._sparse(c0, r0, w, h, fn, 2)
+        return self._sparse(c0, r0, w, h, fn, 2, step)
+
+    def _project(self, c0: int, r0: int, w: int, h: int, z: NDArray[np.float64]) -> tuple[NDArray, NDArray]:
+        """Image (col, row) of every output pixel at its DEM height, (h, w) each; NaN where unknown.
+
+        The projection is evaluated exactly on the sparse grid at 4 heights spanning the tile's heights
+        and interpolated (bilinear in x, y; cubic Lagrange in h). The interpolation is checked against
+        the exact projection at the sparse cells' centres and intermediate heights; when it is off by
+        more than ``PROJECTION_TOLERANCE_PX`` the tile is projected exactly, pixel by pixel.
+        """
+        fin = np.isfinite(z)
+        col = np.full((h, w), np.nan)
+        row = np.full((h, w), np.nan)
+        if not fin.any():
+            return col, row
+        zlo, zhi = float(z[fin].min()), float(z[fin].max())
+        step = self.opts.map_step_px
+        kc, kr = _knots(w, step), _knots(h, step)
+        t = _gt(self.grid.transform)
+        XX, YY = np.meshgrid(t[2] + t[0] * (c0 + kc + 0.5), t[5] + t[4] * (r0 + kr + 0.5))
+        # cell centres, for the check
+        xc = 0.5 * (kc[:-1] + kc[1:]) if len(kc) > 1 else kc
+        yc = 0.5 * (kr[:-1] + kr[1:]) if len(kr) > 1 else kr
+        XC, YC = np.meshgrid(t[2] + t[0] * (c0 + xc + 0.5), t[5] + t[4] * (r0 + yc + 0.5))
+        pts = np.column_stack([np.concatenate([XX.ravel(), XC.ravel()]), np.concatenate([YY.ravel(), YC.ravel()])])
+        if not self.same_model:
+            from .crs import transform_xy
+
+            pts = transform_xy(self.grid.crs, self.model.crs, pts)
+        n_knot = XX.size
+        span = zhi - zlo
+        K = 1 if span < 1e-9 else 4
+        hk = np.linspace(zlo, zhi, K) if K > 1 else np.array([zlo])
+        vals = np.empty((len(kr), len(kc), K, 2))
+        for k, hv in enumerate(hk):
+            vals[:, :, k] = self.model.project(np.column_stack([pts[:n_knot], np.full(n_knot, hv)])
+                                               ).reshape(len(kr), len(kc), 2)
+        exact = not np.isfinite(vals).all()
+        if not exact and K > 1 and len(kc) > 1 and len(kr) > 1:
+            # check at the cell centres and at heights between the nodes
+            tq = np.array([1 / 6, 1 / 2, 5 / 6])[np.arange(XC.size) % 3]
+            centre = 0.25 * (vals[:-1, :-1] + vals[1:, :-1] + vals[:-1, 1:] + vals[1:, 1:]).reshape(-1, K, 2)
+            est = np.einsum("nk,nkc->nc", _lagrange4(tq), centre)
+            ex = self.model.project(np.column_stack([pts[n_knot:], zlo + tq * span]))
+            err = np.abs(est - ex).max() if np.isfinite(ex).all() else np.inf
+            exact = not (err <= PROJECTION_TOLERANCE_PX)
+        if exact:
+            mx, my = self._model_xy(c0, r0, w, h)
+            g = np.column_stack([mx.ravel(), my.ravel(), z.ravel()])
+            okz = fin.ravel()
+            pix = np.full((len(g), 2), np.nan)
+            pix[okz] = self.model.project(g[okz])
+            return pix[:, 0].reshape(h, w), pix[:, 1].reshape(h, w)
+        ir, tr = _interp_index(h, kr)
+        ic, tc = _interp_index(w, kc)
+
+        def plane(v: NDArray[np.float64]) -> NDArray[np.float64]:
+            """One (nr, nc) plane bilinearly to (h, w)."""
+            r = v[ir] * (1 - tr)[:, None] + v[np.minimum(ir + 1, len(kr) - 1)] * tr[:, None]
+            return r[:, ic] * (1 - tc) + r[:, np.minimum(ic + 1, len(kc) - 1)] * tc
+
+        res = np.empty((h, w, 2))
+        if K == 1:
+            for c in range(2):
+                res[..., c] = plane(vals[:, :, 0, c])
+        else:
+            # cubic in t = (z - zlo) / span through the 4 nodes: coefficients per sparse point, Horner per pixel
+            coef = np.einsum("jk,rskc->rsjc", _VANDER_INV, vals)
+            tz = np.where(fin, (z - zlo) / span, 0.0)
+            for c in range(2):
+                acc = plane(coef[:, :, 3, c])
+                for j in (2, 1, 0):
+                    acc *= tz
+                    acc += plane(coef[:, :, j, c])
+                res[..., c] = acc
+        res[~fin] = np.nan
+        return res[..., 0], res[..., 1]
 
     # ---------------------------------------------------------------- one tile
     def tile(self, c0: int, r0: int, w: int, h: int) -> tuple[NDArray, bool]:
@@ -532,21 +638,15 @@ class _Engine:
         bc0, br0, bw, bh = c0 - m, r0 - m, w + 2 * m, h + 2 * m
         Z = self._heights(bc0, br0, bw, bh)
         z = Z[m:m + h, m:m + w]
-        mx, my = self._model_xy(c0, r0, w, h)
-        g = np.column_stack([mx.ravel(), my.ravel(), z.ravel()])
-        pix = np.full((len(g), 2), np.nan)
-        okz = np.isfinite(g[:, 2])
-        if okz.any():
-            pix[okz] = self.model.project(g[okz])
-        col = pix[:, 0].reshape(h, w)
-        row = pix[:, 1].reshape(h, w)
+        col, row = self._project(c0, r0, w, h, z)
         W, H = self.model.width, self.model.height
         inside = np.isfinite(col) & np.isfinite(row) & (col >= -0.5) & (col <= W - 0.5) & (row >= -0.5) \
             & (row <= H - 0.5)
         vis = None
         d = None
         if inside.any():
-            d = self._direction(c0, r0, w, h, float(np.nanmean(z[inside])))
+            d = self._direction(c0, r0, w, h, float(np.nanmean(z[inside])),
+                                None if self.opts.true_ortho else 8 * self.opts.map_step_px)
             self._stats(z[inside], d)
         if self.opts.true_ortho and d is not None:
             vis = self._visible(Z, m, d, w, h, z, inside)

@@ -1,0 +1,179 @@
+"""Benchmark ``rectify ortho`` (RPC + DEM) against GDAL's warper with RPC_DEM, on the same inputs, in one run.
+
+Builds a synthetic RPC scene (an N x N uint8 tiled GeoTIFF with RPC tags, a DEM in EPSG:4326), then runs
+each side in its own subprocess onto the same output grid (UTM, tiled 512, ZSTD level 1, predictor 2,
+2 threads) and prints wall time, peak RSS and the agreement of the two outputs.
+
+    nice python scripts/bench_ortho.py --size 20000 --workdir /tmp/bench_ortho
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+E0, N0 = 500_000.0, 5_000_000.0
+CRS = "EPSG:32632"
+
+
+def build(work: Path, n: int) -> dict:
+    """Source image with RPC tags, DEM, and the output grid (same for both sides)."""
+    import rasterio
+    from affine import Affine
+    from rasterio.windows import Window
+
+    sys.path.insert(0, str(ROOT))
+    from rectify.crs import transform_xy
+    from rectify.rpc import RPC
+
+    gsd = 1.0
+    half = n / 2 * gsd
+    lon0, lat0 = transform_xy(CRS, "EPSG:4326", [[E0, N0]])[0]
+    m_lon, m_lat = 1.0 / (111_320 * np.cos(np.radians(lat0))), 1.0 / 111_320
+    rpc = RPC.from_coefficients(offsets=(n / 2, n / 2, lat0, lon0, 300.0),
+                                scales=(n / 2, n / 2, half * m_lat, half * m_lon, 300.0),
+                                samp_num=[0.0, 1.0, 0.03, 300 * 0.25 / half, 0.001, 0.0, 0.0, 0.002],
+                                samp_den=[1.0, 0.001], line_num=[0.0, 0.03, -1.0, 300 * 0.05 / half],
+                                line_den=[1.0, 0.0, 0.001])
+    src = work / f"src_{n}.tif"
+    if not src.exists():
+        tmp = src.with_suffix(".part.tif")
+        with rasterio.open(tmp, "w", driver="GTiff", width=n, height=n, count=1, dtype="uint8", tiled=True,
+                           blockxsize=512, blockysize=512, compress="deflate", rpcs=rpc.to_rasterio()) as ds:
+            for r0 in range(0, n, 512):
+                h = min(512, n - r0)
+                rr, cc = np.mgrid[r0:r0 + h, 0:n]
+                img = 128 + 60 * np.sin(cc / 7.0) * np.cos(rr / 5.0) + 40 * np.sin((cc + rr) / 31.0)
+                ds.write(img.astype(np.uint8)[None], window=Window(0, r0, n, h))
+        tmp.rename(src)
+    dem = work / f"dem_{n}.tif"
+    if not dem.exists():
+        m = 1000
+        span = 1.2 * half
+        res_lon, res_lat = 2 * span * m_lon / m, 2 * span * m_lat / m
+        yy, xx = np.mgrid[0:m, 0:m]
+        z = 300 + 150 * np.sin(xx / 60.0) * np.cos(yy / 45.0) + 0.1 * xx
+        with rasterio.open(dem, "w", driver="GTiff", width=m, height=m, count=1, dtype="float32", crs="EPSG:4326",
+                           transform=Affine(res_lon, 0, lon0 - span * m_lon, 0, -res_lat, lat0 + span * m_lat),
+                           tiled=True) as ds:
+            ds.write(z.astype("float32"), 1)
+    # output grid: the footprint at the DEM's heights, 1 m, aligned
+    sys.path.insert(0, str(ROOT))
+    from rectify.datum import Dem
+    from rectify.ortho import RPCModel, ortho_grid
+
+    grid = ortho_grid(RPCModel(rpc, n, n), Dem.from_path(dem), dst_crs=CRS, resolution=gsd)
+    return {"src": str(src), "dem": str(dem), "width": grid.width, "height": grid.height,
+            "transform": list(tuple(grid.transform)[:6]), "crs": CRS}
+
+
+CHILD_OURS = r"""
+import json, os, resource, sys, time
+t0 = time.perf_counter()
+os.environ.setdefault("GDAL_CACHEMAX", "64")
+sys.path.insert(0, {root!r})
+from affine import Affine
+from rectify.datum import Dem
+from rectify.georef import Grid
+from rectify.ortho import OrthoOptions, RPCModel, orthorectify
+from rectify.rpc import rpc_from_raster
+import rasterio
+cfg = json.loads({cfg!r})
+rpc = rpc_from_raster(cfg["src"])
+with rasterio.open(cfg["src"]) as ds:
+    w, h = ds.width, ds.height
+grid = Grid(cfg["width"], cfg["height"], Affine(*cfg["transform"]), cfg["crs"])
+orthorectify(cfg["src"], cfg["out"], RPCModel(rpc, w, h), Dem.from_path(cfg["dem"]), grid=grid,
+             options=OrthoOptions(threads=2), overwrite=True)
+print(json.dumps({{"seconds": time.perf_counter() - t0,
+                  "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}}))
+"""
+
+CHILD_GDAL = r"""
+import json, os, resource, sys, time
+t0 = time.perf_counter()
+import rasterio
+from affine import Affine
+from rasterio.enums import Resampling
+from rasterio.warp import reproject
+cfg = json.loads({cfg!r})
+prof = dict(driver="GTiff", width=cfg["width"], height=cfg["height"], count=1, dtype="uint8", crs=cfg["crs"],
+            transform=Affine(*cfg["transform"]), nodata=0, tiled=True, blockxsize=512, blockysize=512,
+            compress="zstd", predictor=2, ZSTD_LEVEL=1, BIGTIFF="IF_SAFER")
+with rasterio.Env(GDAL_CACHEMAX=64 * 1024 * 1024, GDAL_NUM_THREADS=2):
+    with rasterio.open(cfg["src"]) as src, rasterio.open(cfg["out"], "w", **prof) as dst:
+        reproject(rasterio.band(src, 1), rasterio.band(dst, 1), rpcs=src.rpcs, src_crs="EPSG:4326",
+                  dst_transform=dst.transform, dst_crs=dst.crs, dst_nodata=0, resampling=Resampling.bilinear,
+                  num_threads=2, warp_mem_limit=64, RPC_DEM=cfg["dem"])
+print(json.dumps({{"seconds": time.perf_counter() - t0,
+                  "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}}))
+"""
+
+
+def run_child(code: str) -> dict:
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    if out.returncode != 0:
+        raise SystemExit(f"child failed:\n{out.stderr[-3000:]}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def compare(a: str, b: str, n_windows: int = 16) -> dict:
+    """|difference| of the two outputs over sample windows where both are valid."""
+    import rasterio
+    from rasterio.windows import Window
+
+    diffs = []
+    with rasterio.open(a) as A, rasterio.open(b) as B:
+        rng = np.random.default_rng(0)
+        for _ in range(n_windows):
+            c = int(rng.integers(0, max(1, A.width - 256)))
+            r = int(rng.integers(0, max(1, A.height - 256)))
+            w = Window(c, r, min(256, A.width), min(256, A.height))
+            x, y = A.read(1, window=w).astype(float), B.read(1, window=w).astype(float)
+            ok = (x > 0) & (y > 0)
+            diffs.append(np.abs(x - y)[ok])
+    d = np.concatenate(diffs) if diffs else np.zeros(0)
+    return {"mean": float(d.mean()) if d.size else float("nan"), "p99": float(np.percentile(d, 99)) if d.size
+            else float("nan"), "n": int(d.size)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--size", type=int, default=20000, help="source (and about the output) side in pixels")
+    ap.add_argument("--workdir", type=Path, default=Path("bench_ortho_work"))
+    ap.add_argument("--skip-gdal", action="store_true")
+    args = ap.parse_args()
+    args.workdir.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    cfg = build(args.workdir, args.size)
+    print(f"inputs: {args.size} x {args.size} uint8 RPC image, 1000 x 1000 DEM (EPSG:4326); output "
+          f"{cfg['width']} x {cfg['height']} px at 1 m, EPSG:32632 (built in {time.perf_counter() - t0:.1f} s)")
+    rows = {}
+    cfg_o = dict(cfg, out=str(args.workdir / "ours.tif"))
+    rows["rectify ortho (RPC + DEM)"] = run_child(CHILD_OURS.format(root=str(ROOT), cfg=json.dumps(cfg_o)))
+    print(f"ours: {rows['rectify ortho (RPC + DEM)']}", flush=True)
+    if not args.skip_gdal:
+        cfg_g = dict(cfg, out=str(args.workdir / "gdal.tif"))
+        rows["GDAL reproject, rpcs + RPC_DEM"] = run_child(CHILD_GDAL.format(cfg=json.dumps(cfg_g)))
+        print(f"GDAL: {rows['GDAL reproject, rpcs + RPC_DEM']}", flush=True)
+    print(f"\n| {cfg['width']} x {cfg['height']} output, bilinear, 2 threads | wall s | peak RSS MB |")
+    print("|---|---|---|")
+    for k, v in rows.items():
+        print(f"| {k} | {v['seconds']:.2f} | {v['rss_mb']:.0f} |")
+    if not args.skip_gdal:
+        o, g = rows["rectify ortho (RPC + DEM)"], rows["GDAL reproject, rpcs + RPC_DEM"]
+        print(f"time ratio ours/GDAL = {o['seconds'] / g['seconds']:.3f} (target <= 1)")
+        print(f"RSS ratio ours/GDAL = {o['rss_mb'] / g['rss_mb']:.3f}")
+        c = compare(cfg_o["out"], cfg_g["out"])
+        print(f"outputs ours vs GDAL: |diff| mean {c['mean']:.3f} DN, p99 {c['p99']:.1f} DN over {c['n']} pixels")
+
+
+if __name__ == "__main__":
+    main()
