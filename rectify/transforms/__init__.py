@@ -8,8 +8,8 @@ matrix      :class:`Homography`, :class:`AffineTransform` ((3, 3) matrix models)
 polynomial  :class:`PolynomialTransform` (orders 1-3) and its fitted inverse
 cotangent   :class:`CotangentFourPoint` (seed 001, corrected eq. 2) and the eq. (2) helpers
 gcp         :data:`METHODS` (the one list of methods), :func:`fit_gcps`, :class:`FitResult`,
-            :func:`transform_from_dict`, and the transform JSON (:func:`save_transform`,
-            :func:`load_transform`)
+            :func:`transform_to_dict` / :func:`transform_from_dict` (the body of the transform
+            JSON, which :mod:`rectify.formats` reads and writes)
 
 The theory and the study are in ``docs/projective.md``.
 """
@@ -18,12 +18,9 @@ from .base import Transform
 from .cotangent import COT_MAX_REL_ERROR, PAIRS, CotangentFourPoint, base_cotangents, corrected_eq2, printed_eq2
 from .gcp import (
     METHODS,
-    TRANSFORM_FORMAT_VERSION,
     FitResult,
     fit_gcps,
-    load_transform,
     method_of,
-    save_transform,
     transform_from_dict,
     transform_to_dict,
 )
@@ -33,6 +30,6 @@ from .polynomial import PolynomialTransform
 __all__ = [
     "Transform", "Homography", "AffineTransform", "PolynomialTransform", "CotangentFourPoint",
     "METHODS", "FitResult", "fit_gcps", "method_of", "transform_to_dict", "transform_from_dict",
-    "save_transform", "load_transform", "COT_MAX_REL_ERROR", "PAIRS", "TRANSFORM_FORMAT_VERSION",
+    "COT_MAX_REL_ERROR", "PAIRS",
     "base_cotangents", "printed_eq2", "corrected_eq2",
 ]

@@ -2,20 +2,19 @@
 
 :data:`METHODS` (name -> method) is the one list of transform methods: the
 CLIs take their choices from it. :func:`fit_gcps` fits a GCP table,
-withholding check points; :func:`transform_from_dict` rebuilds any model
-from its :meth:`~rectify.transforms.base.Transform.to_dict`;
-:func:`save_transform` / :func:`load_transform` read and write the transform
-JSON (described in ``docs/formats.md``).
+withholding check points; :func:`transform_to_dict` gives the body of the
+transform JSON and :func:`transform_from_dict` rebuilds any model from it
+(the file itself, with its ``format``/``version`` stamp and residual table,
+is read and written by :func:`rectify.formats.read_transform` /
+:func:`rectify.formats.write_transform`; see ``docs/formats.md``).
 """
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 from itertools import combinations
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -23,7 +22,6 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..crs import unit_label
 from ..errors import EstimationError, InvalidInputError
-from ..fileutil import atomic_write_text, read_json
 from ..formats import GcpTable
 from ..points import as_weights
 from ..residuals import ResidualTable
@@ -34,12 +32,7 @@ from .polynomial import PolynomialTransform
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["METHODS", "FitResult", "fit_gcps", "method_of", "transform_to_dict", "transform_from_dict",
-           "save_transform", "load_transform", "TRANSFORM_FORMAT_VERSION"]
-
-#: Version of the transform JSON written by :func:`save_transform`.
-TRANSFORM_FORMAT_VERSION = 1
-
+__all__ = ["METHODS", "FitResult", "fit_gcps", "method_of", "transform_to_dict", "transform_from_dict"]
 
 def _poly2(src: ArrayLike, dst: ArrayLike, *, weights: ArrayLike | None = None) -> PolynomialTransform:
     return PolynomialTransform.from_points(src, dst, weights=weights, order=2)
@@ -197,7 +190,10 @@ def fit_gcps(gcps: GcpTable, method: str = "homography", *, weights: ArrayLike |
 
 # --------------------------------------------------------------------------- dict and JSON
 def transform_to_dict(model: Transform) -> dict[str, Any]:
-    """The parameters of a model as a JSON-ready dict: ``format``, ``version`` and :meth:`Transform.to_dict`.
+    """The parameters of a model of :data:`METHODS` as a JSON-ready dict (:meth:`Transform.to_dict`).
+
+    This is the body of the transform JSON; :func:`rectify.formats.write_transform`
+    adds the ``format``/``version`` stamp and the residual table.
 
     Raises
     ------
@@ -205,9 +201,7 @@ def transform_to_dict(model: Transform) -> dict[str, Any]:
         Not a model of :data:`METHODS`.
     """
     method_of(model)
-    out: dict[str, Any] = {"format": "rectify-transform", "version": TRANSFORM_FORMAT_VERSION}
-    out.update(model.to_dict())
-    return out
+    return model.to_dict()
 
 
 def transform_from_dict(d: dict[str, Any]) -> Transform:
@@ -245,53 +239,3 @@ def transform_from_dict(d: dict[str, Any]) -> Transform:
         if isinstance(err, InvalidInputError):
             raise
         raise InvalidInputError(f"malformed {name!r} transform JSON: {err}") from err
-
-
-def save_transform(path: str | Path, model: Transform, *, table: ResidualTable | None = None,
-                   crs: str | None = None, overwrite: bool = False, extra: dict | None = None) -> Path:
-    """Write the transform JSON (``docs/formats.md``) atomically.
-
-    Keys: ``method``, the parameters (:func:`transform_to_dict`), ``crs`` of
-    the target (when known), and, with ``table``, ``rmse``,
-    ``rmse_check``, ``summary`` and ``residuals`` (one object per GCP).
-    """
-    out = transform_to_dict(model)
-    if crs:
-        out["crs"] = crs
-    if table is not None:
-        s = table.summary()
-        out["rmse"] = s["rmse"]
-        out["rmse_check"] = s["rmse_check"]
-        out["units"] = table.units
-        out["summary"] = {k: v for k, v in s.items() if _jsonable(v)}
-        res = table.residual
-        chk = np.zeros(table.n, bool) if table.check is None else table.check
-        out["residuals"] = [
-            {"id": table.ids[i], "observed": table.observed[i].tolist(), "adjusted": table.adjusted[i].tolist(),
-             "dx": float(res[i, 0]), "dy": float(res[i, 1]), "norm": float(table.norm[i]),
-             "check": bool(chk[i])} for i in range(table.n)]
-    if extra:
-        out.update(extra)
-    text = json.dumps(out, indent=2, allow_nan=True) + "\n"
-    return atomic_write_text(path, text, overwrite=overwrite)
-
-
-def _jsonable(v: Any) -> bool:
-    try:
-        json.dumps(v)
-        return True
-    except (TypeError, ValueError):
-        return False
-
-
-def load_transform(path: str | Path) -> Transform:
-    """Read a transform JSON written by :func:`save_transform` (or ``rectify fit``).
-
-    Raises
-    ------
-    RasterIOError
-        File missing or unreadable.
-    InvalidInputError
-        Not JSON, or not a valid transform.
-    """
-    return transform_from_dict(read_json(path, "transform file"))

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
 from rectify.errors import EstimationError, InvalidInputError, RasterIOError, ShapeError
-from rectify.formats import GcpTable
+from rectify.formats import GcpTable, read_transform, write_transform
 from rectify.transforms import (
     METHODS,
     PAIRS,
@@ -24,9 +24,7 @@ from rectify.transforms import (
     base_cotangents,
     corrected_eq2,
     fit_gcps,
-    load_transform,
     printed_eq2,
-    save_transform,
     transform_from_dict,
     transform_to_dict,
 )
@@ -408,27 +406,27 @@ def test_fit_gcps_exact_homography_and_errors():
 def test_transform_json_roundtrip(tmp_path, name):
     g = _gcps(14, check_rows=(13,), noise=0.2, crs="EPSG:32633")
     r = fit_gcps(g, name)
-    p = save_transform(tmp_path / "t.json", r.model, table=r.table, crs=g.crs)
+    p = write_transform(tmp_path / "t.json", r.model, table=r.table, crs=g.crs)
     d = json.loads(p.read_text())
     assert d["method"] == name and "rmse" in d and len(d["residuals"]) == 14 and d["crs"] == "EPSG:32633"
     if name == "homography":
         assert np.array(d["matrix"]).shape == (3, 3)
     if name == "cotangent":
         assert np.array(d["src"]).shape == (4, 2) and np.array(d["dst"]).shape == (4, 2)
-    m2 = load_transform(p)
+    m2 = read_transform(p).model
     assert type(m2) is type(r.model)
     assert_allclose(m2(g.pixel), r.model(g.pixel), rtol=1e-12, atol=1e-9)
     with pytest.raises(InvalidInputError, match="exists"):
-        save_transform(p, r.model)
-    save_transform(p, r.model, overwrite=True)
+        write_transform(p, r.model)
+    write_transform(p, r.model, overwrite=True)
 
 
 def test_load_transform_errors(tmp_path):
     with pytest.raises(RasterIOError, match="not found"):
-        load_transform(tmp_path / "missing.json")
+        read_transform(tmp_path / "missing.json")
     (tmp_path / "bad.json").write_text("{not json")
     with pytest.raises(InvalidInputError, match="not valid JSON"):
-        load_transform(tmp_path / "bad.json")
+        read_transform(tmp_path / "bad.json")
     with pytest.raises(InvalidInputError, match="unknown method 'spline'"):
         transform_from_dict({"method": "spline"})
     with pytest.raises(InvalidInputError, match=r"misses key\(s\) \['matrix'\]"):
