@@ -91,6 +91,8 @@ class MatchOptions:
     margin_px: float = 8.0
     coarse_max_px: int = 640
     max_disparities: int = 512
+    refine_iterations: int = 0
+    refine_radius: int = 3
 
     def __post_init__(self) -> None:
         if not isinstance(self.block_size, int) or self.block_size < 1 or self.block_size > 11 \
@@ -109,6 +111,10 @@ class MatchOptions:
                 raise InvalidInputError(f"`{name}` must be an integer >= {lo}; got {v!r}")
         if isinstance(self.lr_max_diff, bool) or not isinstance(self.lr_max_diff, int):
             raise InvalidInputError(f"`lr_max_diff` must be an integer; got {self.lr_max_diff!r}")
+        for name, lo in (("refine_iterations", 0), ("refine_radius", 1)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+                raise InvalidInputError(f"`{name}` must be an integer >= {lo}; got {v!r}")
         if self.tile % 16:
             raise InvalidInputError(f"`tile` must be a multiple of 16; got {self.tile}")
 
@@ -278,10 +284,48 @@ def _match_window(L: NDArray[np.uint8], R: NDArray[np.uint8], lv: NDArray[np.boo
     return d
 
 
-def _post(d: NDArray[np.float32], grey: NDArray[np.float32], opts: MatchOptions
-          ) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.bool_]]:
+def refine_subpixel(left: NDArray[np.float32], right: NDArray[np.float32], disp: NDArray[np.float32], *,
+                    radius: int = 3, iterations: int = 2, max_step: float = 1.0) -> NDArray[np.float32]:
+    """Least-squares refinement of disparities along the rows (1-D Lucas-Kanade on (2r+1)^2 windows).
+
+    Each iteration warps the right window by the current disparity and solves, per pixel,
+    ``sum(g (L - R_w)) / sum(g^2)`` for the update (``g``: the warped right image's x gradient). This
+    removes the pixel-locking bias of SGBM's parabola. Updates larger than ``max_step`` in total are
+    undone (the pixel keeps its SGBM value).
+    """
+    v = np.isfinite(disp)
+    if not v.any() or iterations <= 0:
+        return disp
+    H, W = disp.shape
+    xs = np.arange(W, dtype=np.float32)[None, :].repeat(H, 0)
+    ys = np.arange(H, dtype=np.float32)[:, None].repeat(W, 1)
+    d0 = np.where(v, disp, 0).astype(np.float32)
+    d = d0.copy()
+    gx_r = cv2.Sobel(right, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+    k = (2 * radius + 1, 2 * radius + 1)
+    for _ in range(iterations):
+        mx = xs - d
+        rw = cv2.remap(right, mx, ys, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        g = cv2.remap(gx_r, mx, ys, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        e = left - rw
+        # L(x) = R(x - d)  =>  dL/dd = -g ; update dd = -sum(g e) / sum(g g)
+        num = cv2.boxFilter(g * e, -1, k, normalize=False)
+        den = cv2.boxFilter(g * g, -1, k, normalize=False)
+        step = np.where(den > 1e-3, -num / np.maximum(den, 1e-3), 0).astype(np.float32)
+        d = d + np.clip(step, -0.5, 0.5)
+    moved = np.abs(d - d0) > max_step
+    d[moved] = d0[moved]
+    return np.where(v, d, np.nan).astype(np.float32)
+
+
+def _post(d: NDArray[np.float32], grey: NDArray[np.float32], opts: MatchOptions, right_grey: NDArray | None = None,
+          shift: int = 0) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.bool_]]:
+    """Median, sub-pixel refinement (``right_grey``: the right window moved by ``shift``), fill, confidence."""
     if opts.median:
         d = _median_valid(d)
+    if right_grey is not None and opts.refine_iterations > 0:
+        d = refine_subpixel(grey, right_grey, d - shift, radius=opts.refine_radius,
+                            iterations=opts.refine_iterations) + shift
     d, filled = fill_background(d, opts.fill_max_px)
     return d, _confidence(grey, d, filled), filled
 
@@ -446,7 +490,7 @@ def _tile(L8, R8, lv, rv, c0, r0, w, h, coarse, k, rng, opts: MatchOptions, col_
     L, lvw = L8[r0:r0 + h, c0:c0 + w], lv[r0:r0 + h, c0:c0 + w]
     Rs, rvs = _shifted_window(R8, rv, r0, r0 + h, c0 - lo - col_shift, c0 + w - lo - col_shift)
     d = _match_window(L, Rs, lvw, rvs, lo, hi, opts)
-    return _post(d, _grey(L), opts)
+    return _post(d, _grey(L), opts, _grey(Rs), lo)
 
 
 def sgbm_baseline(left: ArrayLike, right: ArrayLike, num_disparities: int = 64, block_size: int = 5
@@ -572,7 +616,7 @@ def match_rasters(
                 R, rv = _read(rr, c0 - lo, r0, w, h)
                 if lv.any() and rv.any():
                     d = _match_window(L, R, lv, rv, lo, hi, opts)
-                    d, cf, fl = _post(d, _grey(L), opts)
+                    d, cf, fl = _post(d, _grey(L), opts, _grey(R), lo)
                 else:
                     d = np.full((h, w), np.nan, np.float32)
                     cf = np.zeros((h, w), np.float32)

@@ -92,6 +92,8 @@ class DenseOptions:
         Compare the DSM with it (same or any CRS; resampled bilinearly onto the DSM grid).
     measure_parallax : bool
         Re-measure the tie points' vertical parallax by LSM in the resampled photos.
+    despike_cells : float
+        DSM cells differing from their 5 x 5 median by more than this many cell sides are removed (0: off).
     """
 
     matching: MatchOptions = field(default_factory=MatchOptions)
@@ -105,6 +107,7 @@ class DenseOptions:
     intersection: str = "midpoint"
     reference_dem: str | None = None
     measure_parallax: bool = True
+    despike_cells: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.matching, MatchOptions):
@@ -402,7 +405,7 @@ def run_dense(
                       hi[1] + 0.05 * span[1] + cell)
             grid = DsmGrid(bounds, cell, statistic=opts.dsm_statistic, crs=crs)
             n_pts = _triangulate_all(rect, paths, grid, transform, opts, suffix, crs, frame, prog("points"))
-            dsm = grid.result(max_hole_cells=opts.fill_holes)
+            dsm = grid.result(max_hole_cells=opts.fill_holes, despike_cells=opts.despike_cells)
             dsm.write(paths["dsm.tif"], overwrite=True)
             comparison = None
             dz = None

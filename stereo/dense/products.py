@@ -235,6 +235,7 @@ class DsmGrid:
                                     f"choose a larger cell than {cell!r}")
         self.statistic = statistic
         self.crs = crs
+        self.n_despiked = 0
         self._count = np.zeros((self.height, self.width), np.uint16)
         if statistic == "mean":
             self._acc = np.zeros((self.height, self.width), np.float64)
@@ -271,8 +272,13 @@ class DsmGrid:
             np.maximum.at(flat, idx, z)
         return int(ok.sum())
 
-    def result(self, *, max_hole_cells: int = 0) -> DsmResult:
-        """The DSM; holes of at most ``max_hole_cells`` cells are interpolated from their rim and flagged."""
+    def result(self, *, max_hole_cells: int = 0, despike_cells: float = 0.0) -> DsmResult:
+        """The DSM; holes of at most ``max_hole_cells`` cells are interpolated from their rim and flagged.
+
+        With ``despike_cells`` > 0, cells whose height differs from the median of their 5 x 5
+        neighbourhood by more than ``despike_cells`` cell sides are removed first (matching blunders);
+        the removed count is in :attr:`n_despiked`.
+        """
         if isinstance(max_hole_cells, bool) or not isinstance(max_hole_cells, int) or max_hole_cells < 0:
             raise InvalidInputError(f"`max_hole_cells` must be an integer >= 0; got {max_hole_cells!r}")
         has = self._count > 0
@@ -280,6 +286,14 @@ class DsmGrid:
             h = np.where(has, self._acc / np.maximum(self._count, 1), np.nan)
         else:
             h = np.where(has, self._acc, np.nan)
+        self.n_despiked = 0
+        if despike_cells > 0 and has.any():
+            idx = ndimage.distance_transform_edt(~has, return_distances=False, return_indices=True)
+            med = ndimage.median_filter(h[idx[0], idx[1]], size=5, mode="nearest")
+            spike = has & (np.abs(h - med) > despike_cells * self.cell)
+            self.n_despiked = int(spike.sum())
+            h[spike] = np.nan
+            has = has & ~spike
         filled = np.zeros(h.shape, bool)
         if max_hole_cells > 0 and has.any() and not has.all():
             h, filled = _fill_holes(h, has, max_hole_cells)
