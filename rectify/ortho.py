@@ -591,11 +591,11 @@ class _Engine:
             vals[:, :, k] = self.model.project(np.column_stack([pts[:n_knot], np.full(n_knot, hv)])
                                                ).reshape(len(kr), len(kc), 2)
         exact = not np.isfinite(vals).all()
-        if not exact and K > 1 and len(kc) > 1 and len(kr) > 1:
+        if not exact and len(kc) > 1 and len(kr) > 1:
             # check at the cell centres and at heights between the nodes
-            tq = np.array([1 / 6, 1 / 2, 5 / 6])[np.arange(XC.size) % 3]
+            tq = np.array([1 / 6, 1 / 2, 5 / 6])[np.arange(XC.size) % 3] if K > 1 else np.zeros(XC.size)
             centre = 0.25 * (vals[:-1, :-1] + vals[1:, :-1] + vals[:-1, 1:] + vals[1:, 1:]).reshape(-1, K, 2)
-            est = np.einsum("nk,nkc->nc", _lagrange4(tq), centre)
+            est = np.einsum("nk,nkc->nc", _lagrange4(tq), centre) if K > 1 else centre[:, 0]
             ex = self.model.project(np.column_stack([pts[n_knot:], zlo + tq * span]))
             err = np.abs(est - ex).max() if np.isfinite(ex).all() else np.inf
             exact = not (err <= PROJECTION_TOLERANCE_PX)

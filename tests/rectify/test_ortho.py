@@ -439,3 +439,49 @@ def test_ngi_pair_orthophotos_coincide(tmp_path):
     assert np.median(np.hypot(shifts[:, 0], shifts[:, 1])) <= 0.5
     m = mosaic([tmp_path / "o0182.tif", tmp_path / "o0184.tif"], tmp_path / "mosaic.tif")
     assert min(m.share) > 0.3
+
+
+# ----------------------------------------------------------------- internals with stated tolerances
+def test_interpolated_projection_matches_exact(tmp_path):
+    """The per-tile projection (sparse grid x 4 heights, cubic in h) is within 1e-3 px of the exact one."""
+    from rectify.ortho import PROJECTION_TOLERANCE_PX, _Engine, ortho_grid
+
+    model = FrameModel(Camera(focal_length_mm=10.0, pixel_size_mm=0.01, width=240, height=200),
+                       [E0 + 30, N0 - 20, 800.0], matrix_from_angles(0.06, -0.05, 0.35), CRS)
+    write_dem(tmp_path / "dem.tif", hills)
+    dem = Dem.from_path(tmp_path / "dem.tif")
+    grid = ortho_grid(model, dem, resolution=1.0)
+    eng = _Engine(str(tmp_path / "dem.tif"), model, dem, grid, OrthoOptions(tile_px=128), np.dtype("float32"), 1,
+                  float("nan"), 0, 100.0)
+    c0, r0, w, h = 64, 64, 128, 96
+    z = eng._heights(c0, r0, w, h)
+    col, row = eng._project(c0, r0, w, h, z)
+    mx, my = eng._model_xy(c0, r0, w, h)
+    ex = model.project(np.column_stack([mx.ravel(), my.ravel(), z.ravel()]))
+    d = np.abs(np.column_stack([col.ravel(), row.ravel()]) - ex)
+    assert np.nanmax(d) < PROJECTION_TOLERANCE_PX
+    # a flat DEM takes the single-height path and is exact
+    col1, row1 = eng._project(c0, r0, w, h, np.full((h, w), 120.0))
+    ex1 = model.project(np.column_stack([mx.ravel(), my.ravel(), np.full(mx.size, 120.0)]))
+    assert np.abs(col1.ravel() - ex1[:, 0]).max() < PROJECTION_TOLERANCE_PX
+
+
+def test_dem_undulation_and_geoid(tmp_path):
+    from rectify.datum import geoid_undulation
+
+    write_dem(tmp_path / "dem.tif", hills)
+    plain = Dem.from_path(tmp_path / "dem.tif")
+    shifted = Dem.from_path(tmp_path / "dem.tif", undulation=32.5)
+    pts = np.array([[E0 + 10.3, N0 - 40.7], [E0 - 100.0, N0 + 3.0]])
+    assert np.allclose(shifted.sample(pts) - plain.sample(pts), 32.5)
+    # bilinear between cell centres: the DEM is sampled exactly at a centre
+    assert abs(plain.sample([[E0 - 300 + 1.0, N0 + 300 - 1.0]])[0] - hills(E0 - 299.0, N0 + 299.0)) < 1e-3
+    assert np.isnan(plain.sample([[E0 + 5000, N0]])[0])  # outside: NaN
+    with pytest.raises(InvalidInputError, match="undulation"):
+        Dem.from_path(tmp_path / "dem.tif", undulation=float("nan"))
+    try:
+        n = geoid_undulation([[9.0, 45.0]], "EPSG:5773")
+    except CRSError as err:  # no grid installed: the message says what to do
+        assert "constant undulation" in str(err)
+    else:
+        assert 30 < n[0] < 60  # EGM96 near 9 E, 45 N is about 47 m
