@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import rasterio
 import rasterio.enums
+import rasterio.transform
 import rasterio.warp
 from affine import Affine
 from numpy.testing import assert_allclose
@@ -42,7 +43,8 @@ def _tilted_frame(tmp_path):
             pts.append(p)
     pts = np.array(pts)
     h = np.c_[pts, np.ones(len(pts))] @ hinv.T
-    tgt = world_from_pixel(T, h[:, :2] / h[:, 2:])
+    lp = h[:, :2] / h[:, 2:]  # landsat pixels; their world coordinates by rasterio, not by the code under test
+    tgt = np.column_stack(rasterio.transform.xy(T, lp[:, 1], lp[:, 0], offset="center"))
     g = GcpTable(tuple(f"g{i}" for i in range(len(pts))), pts, tgt, None, np.zeros(len(pts), bool), "EPSG:32618")
     return path, g, T
 
