@@ -49,7 +49,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .crs import crs_to_string, parse_crs
 from .errors import InvalidInputError, RasterIOError, ShapeError
-from .formats import REPORT_VERSION, GcpTable, report_json_text
+from .formats import REPORT_VERSION, GcpTable, read_report, report_json_text
 from .io import read_overview, to_uint8
 from .plots import (
     correlation_heatmap_figure,
@@ -668,8 +668,8 @@ def write_report(out_dir: str | os.PathLike, *, title: str, tables: list[Residua
         if clash and not overwrite:
             raise InvalidInputError(f"report folder {str(out)!r} already holds {clash[:5]}"
                                     f"{' ...' if len(clash) > 5 else ''}; pass overwrite=True (--overwrite)")
-        with contextlib.suppress(OSError, ValueError, TypeError, AttributeError):
-            previous = [str(f) for f in json.loads((out / "report.json").read_text())["files"]]
+        with contextlib.suppress(OSError, ValueError, TypeError, AttributeError, KeyError):
+            previous = [str(f) for f in read_report(out)["files"]]
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".part", dir=out.parent))
