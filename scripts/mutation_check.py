@@ -75,14 +75,12 @@ T_PREC_R = "tests/rectify/test_precision.py"
 T_PREC_S = "tests/stereo/test_precision.py"
 T_TEXT = "tests/stereo/test_textbook.py"
 
-MUTATIONS: tuple[Mutation, ...] = ()  # filled in below
-
-
 def _m(id_: str, description: str, old: str, new: str, *tests: str) -> Mutation:
     return Mutation(id_, description, old, new, tuple(tests))
 
 
-MUTATIONS = (
+#: the curated list (ids R.. rectify, S.. stereo)
+MUTATIONS: tuple[Mutation, ...] = (
     # ------------------------------------------------------------------ rectify: seed formulas, rotations
     _m("R01", "cotangent eq. (2), vectorised chain: the y-line sign as printed (- (x2 - x1))",
        "gy += dx0", "gy -= dx0", "tests/rectify/test_projective.py"),
@@ -277,7 +275,6 @@ def apply_and_run(base: Path, work: Path, m: Mutation) -> Outcome:
     """Copy ``base`` to ``work / m.id``, plant ``m`` and run its tests."""
     tree = work / m.id
     _link_tree(base, tree)
-    t0 = time.perf_counter()
     try:
         hits, total = locate(tree, m.old)
         if total != 1:
@@ -296,7 +293,6 @@ def apply_and_run(base: Path, work: Path, m: Mutation) -> Outcome:
         return Outcome(m, "error", where, secs, f"pytest exit status {code}: {tail}")
     finally:
         shutil.rmtree(tree, ignore_errors=True)
-        del t0
 
 
 def _check_import_location(base: Path) -> None:
