@@ -92,7 +92,7 @@ def main() -> None:
     a = ap.parse_args()
     from affine import Affine
 
-    from rectify.formats import write_transform as save_transform
+    from rectify.formats import write_transform
     from rectify.georef import world_from_pixel_matrix
     from rectify.io import raster_info
     from rectify.transforms import AffineTransform, Homography
@@ -109,10 +109,10 @@ def main() -> None:
         make_source(src, n, n, T, "EPSG:32618")
         print(f"made {src} ({n} x {n} x 3 uint8) in {time.perf_counter() - t0:.1f} s", flush=True)
     M = world_from_pixel_matrix(T)
-    save_transform(work / "affine.json", AffineTransform(M), crs="EPSG:32618", overwrite=True)
+    write_transform(work / "affine.json", AffineTransform(M), crs="EPSG:32618", overwrite=True)
     P = M.copy()
     P[2, :2] = [2e-6, 1e-6]  # mild perspective
-    save_transform(work / "homography.json", Homography(P), crs="EPSG:32618", overwrite=True)
+    write_transform(work / "homography.json", Homography(P), crs="EPSG:32618", overwrite=True)
 
     results = {}
     ours = work / "ours_affine.tif"
@@ -144,7 +144,7 @@ def main() -> None:
         if not wide.exists():
             make_source(wide, a.wide, 2000, Affine(1, 0, 1000, 0, -1, 4000), "EPSG:32618", count=1)
         Tw = Affine(math.cos(0.01), math.sin(0.01), 1000.0, math.sin(0.01), -math.cos(0.01), 4000.0)
-        save_transform(work / "wide.json", AffineTransform(world_from_pixel_matrix(Tw)), crs="EPSG:32618",
+        write_transform(work / "wide.json", AffineTransform(world_from_pixel_matrix(Tw)), crs="EPSG:32618",
                        overwrite=True)
         results["ours_wide"] = run_child(["ours", "-q", "warp", str(wide), str(work / "ours_wide.tif"), "--transform",
                                           str(work / "wide.json"), "--threads", "2", "--overwrite"])

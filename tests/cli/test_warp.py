@@ -66,13 +66,13 @@ def test_warp_gcps_report_and_cog(scene):
 
 def test_warp_transform_json(scene):
     d, src, gcps, A = scene
-    from rectify.formats import write_transform as save_transform
+    from rectify.formats import write_transform
     from rectify.transforms import AffineTransform
 
     # small coordinates keep the matrix well scaled
     m = np.vstack([A, [0, 0, 1]])
     m[0, 2], m[1, 2] = 1000.0, 2000.0
-    save_transform(d / "t.json", AffineTransform(m), crs="EPSG:32618")
+    write_transform(d / "t.json", AffineTransform(m), crs="EPSG:32618")
     out = d / "o.tif"
     r = CliRunner().invoke(cli, ["warp", str(src), str(out), "--transform", str(d / "t.json"), "--threads", "1"])
     assert r.exit_code == 0, r.output
