@@ -29,9 +29,15 @@ from numpy.typing import ArrayLike, NDArray
 from .errors import CalibrationError
 from .points import as_points
 
-__all__ = ["Camera", "DISTORTION_KEYS"]
+__all__ = ["Camera", "DISTORTION_KEYS", "NOMINAL_PIXEL_SIZE_MM"]
 
 DISTORTION_KEYS = ("k1", "k2", "k3", "p1", "p2")
+
+#: pixel size given to a camera read in pixels (no physical pixel size), mm: 1 um
+NOMINAL_PIXEL_SIZE_MM = 1e-3
+
+_PIXEL_KEYS = ("focal_length_px", "fx_px", "fy_px", "principal_point_px")
+_META_KEYS = ("name", "comment", "format", "version", "std_errors", "sigma0_px", "sigma0_mm")
 
 
 @dataclass(frozen=True, eq=False)
@@ -51,6 +57,16 @@ class Camera:
         axes (x right, y up), mm.
     distortion : dict
         Brown-Conrady coefficients ``k1, k2, k3, p1, p2`` (missing ones are 0).
+    pixel_camera : bool
+        The camera was given in pixels (``focal_length_px``, ``principal_point_px``, no pixel
+        size, as from calibration or OpenSfM). It is then held with the nominal pixel size
+        :data:`NOMINAL_PIXEL_SIZE_MM` (1 um), so geometry is exact and photo-coordinate figures
+        in micrometres read as pixels; :meth:`to_dict` writes it back in pixels.
+    std_errors : dict
+        Standard errors of the interior orientation from a calibration (name -> value, the
+        file's units), carried through unchanged.
+    sigma0_px : float or None
+        sigma0 of that calibration, pixels.
     """
 
     focal_length_mm: float
@@ -59,6 +75,9 @@ class Camera:
     height: int
     principal_point_mm: tuple[float, float] = (0.0, 0.0)
     distortion: dict[str, float] = field(default_factory=dict)
+    pixel_camera: bool = False
+    std_errors: dict[str, float] = field(default_factory=dict)
+    sigma0_px: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("focal_length_mm", "pixel_size_mm"):
@@ -88,6 +107,17 @@ class Camera:
                 raise CalibrationError(f"distortion `{k}` must be finite; got {v!r}")
             clean[k] = v
         object.__setattr__(self, "distortion", clean)
+        se = dict(self.std_errors or {})
+        for k, v in se.items():
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or v < 0:
+                raise CalibrationError(f"camera standard error `{k}` must be a finite number >= 0; got {v!r}")
+        object.__setattr__(self, "std_errors", {str(k): float(v) for k, v in se.items()})
+        if self.sigma0_px is not None:
+            v = self.sigma0_px
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or v < 0:
+                raise CalibrationError(f"camera `sigma0_px` must be a finite number >= 0; got {v!r}")
+            object.__setattr__(self, "sigma0_px", float(v))
+        object.__setattr__(self, "pixel_camera", bool(self.pixel_camera))
 
     # ------------------------------------------------------------------ derived
     @property
@@ -171,44 +201,106 @@ class Camera:
 
     # -------------------------------------------------------------------- JSON
     def to_dict(self) -> dict[str, Any]:
-        """The camera JSON object (``docs/formats.md``) without the format stamp (it is embedded in other files)."""
-        out: dict[str, Any] = {
-            "focal_length_mm": self.focal_length_mm,
-            "pixel_size_mm": self.pixel_size_mm,
-            "width": self.width,
-            "height": self.height,
-        }
-        if any(self.principal_point_mm):
-            out["principal_point_mm"] = list(self.principal_point_mm)
+        """The camera JSON object (``docs/formats.md``) without the format stamp (it is embedded in other files).
+
+        A pixel camera is written in pixels (``focal_length_px``, ``principal_point_px``).
+        """
+        out: dict[str, Any]
+        if self.pixel_camera:
+            out = {"focal_length_px": self.focal_px, "principal_point_px": [float(c) for c in self.principal_point_px],
+                   "width": self.width, "height": self.height}
+        else:
+            out = {
+                "focal_length_mm": self.focal_length_mm,
+                "pixel_size_mm": self.pixel_size_mm,
+                "width": self.width,
+                "height": self.height,
+            }
+            if any(self.principal_point_mm):
+                out["principal_point_mm"] = list(self.principal_point_mm)
         if self.has_distortion:
             out["distortion"] = dict(self.distortion)
+        if self.std_errors:
+            out["std_errors"] = dict(self.std_errors)
+        if self.sigma0_px is not None:
+            out["sigma0_px"] = self.sigma0_px
         return out
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Camera:
         """Build from the camera JSON object (``docs/formats.md``); unknown keys are rejected by name.
 
-        The ``format``/``version`` stamp of a camera file is accepted and not checked here
-        (:func:`rectify.formats.read_camera` checks it).
+        Two forms are read: a millimetre camera (``focal_length_mm``, ``pixel_size_mm``, optional
+        ``principal_point_mm``) and a pixel camera (``focal_length_px`` or equal ``fx_px``/``fy_px``,
+        ``principal_point_px`` in the pixel frame), both with ``width``, ``height``, optional
+        ``distortion``, ``std_errors`` and ``sigma0_px``. The ``format``/``version`` stamp of a
+        camera file is accepted and not checked here (:func:`rectify.formats.read_camera` checks it).
         """
         if not isinstance(d, dict):
             raise CalibrationError(f"camera JSON must be an object; got {type(d).__name__}")
+        if any(k in d for k in _PIXEL_KEYS) and "pixel_size_mm" not in d:
+            return cls._from_pixel_dict(d)
         required = ("focal_length_mm", "pixel_size_mm", "width", "height")
         missing = [k for k in required if k not in d]
         if missing:
-            raise CalibrationError(f"camera JSON lacks required key(s) {missing}")
-        allowed = set(required) | {"principal_point_mm", "distortion", "name", "comment", "format", "version"}
+            raise CalibrationError(f"camera JSON lacks required key(s) {missing} (or give focal_length_px and "
+                                   "principal_point_px for a camera in pixels)")
+        allowed = set(required) | {"principal_point_mm", "distortion", "point_of_symmetry_mm", *_META_KEYS}
         unknown = sorted(set(d) - allowed)
         if unknown:
             raise CalibrationError(f"camera JSON has unknown key(s) {unknown}")
+        pp = tuple(d.get("principal_point_mm", (0.0, 0.0)))
+        _same_point(d, "point_of_symmetry_mm", pp)
         return cls(
             focal_length_mm=d["focal_length_mm"],
             pixel_size_mm=d["pixel_size_mm"],
             width=d["width"],
             height=d["height"],
-            principal_point_mm=tuple(d.get("principal_point_mm", (0.0, 0.0))),
+            principal_point_mm=pp,
             distortion=d.get("distortion", {}) or {},
+            std_errors=d.get("std_errors", {}) or {},
+            sigma0_px=d.get("sigma0_px"),
         )
+
+    @classmethod
+    def _from_pixel_dict(cls, d: dict[str, Any]) -> Camera:
+        allowed = {"width", "height", "distortion", "point_of_symmetry_px", *_PIXEL_KEYS, *_META_KEYS}
+        unknown = sorted(set(d) - allowed)
+        if unknown:
+            raise CalibrationError(f"camera JSON has unknown key(s) {unknown}")
+        missing = [k for k in ("width", "height", "principal_point_px") if k not in d]
+        if missing:
+            raise CalibrationError(f"camera JSON in pixels lacks required key(s) {missing}")
+        if "focal_length_px" in d:
+            f = d["focal_length_px"]
+        elif "fx_px" in d and "fy_px" in d:
+            fx, fy = d["fx_px"], d["fy_px"]
+            if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (fx, fy)):
+                raise CalibrationError(f"camera `fx_px`, `fy_px` must be numbers; got {fx!r}, {fy!r}")
+            if abs(fx - fy) > 1e-9 * max(abs(fx), abs(fy)):
+                raise CalibrationError(f"camera has non-square pixels (fx_px {fx!r} != fy_px {fy!r}); the frame "
+                                       "camera model needs one focal length: calibrate with a single f")
+            f = fx
+        else:
+            raise CalibrationError("camera JSON in pixels needs `focal_length_px` (or equal `fx_px` and `fy_px`)")
+        if not isinstance(f, (int, float)) or isinstance(f, bool) or not math.isfinite(f) or f <= 0:
+            raise CalibrationError(f"camera `focal_length_px` must be a finite number > 0; got {f!r}")
+        w, h = d["width"], d["height"]
+        if isinstance(w, bool) or not isinstance(w, int) or w <= 0 or isinstance(h, bool) or not isinstance(h, int) \
+                or h <= 0:
+            raise CalibrationError(f"camera `width`, `height` must be positive integers; got {w!r}, {h!r}")
+        pp = np.asarray(d["principal_point_px"], dtype=float).reshape(-1) \
+            if isinstance(d["principal_point_px"], (list, tuple)) else np.array([np.nan])
+        if pp.shape != (2,) or not np.all(np.isfinite(pp)):
+            raise CalibrationError(f"camera `principal_point_px` must be two finite numbers; "
+                                   f"got {d['principal_point_px']!r}")
+        _same_point(d, "point_of_symmetry_px", tuple(pp))
+        ps = NOMINAL_PIXEL_SIZE_MM
+        x0 = (pp[0] - (w - 1) / 2.0) * ps
+        y0 = -(pp[1] - (h - 1) / 2.0) * ps
+        return cls(focal_length_mm=float(f) * ps, pixel_size_mm=ps, width=w, height=h, principal_point_mm=(x0, y0),
+                   distortion=d.get("distortion", {}) or {}, pixel_camera=True,
+                   std_errors=d.get("std_errors", {}) or {}, sigma0_px=d.get("sigma0_px"))
 
     @classmethod
     def from_json(cls, path: str | Path) -> Camera:
@@ -216,3 +308,17 @@ class Camera:
         from .formats import read_camera  # import cycle: rectify.formats builds cameras
 
         return read_camera(path)
+
+
+def _same_point(d: dict[str, Any], key: str, principal_point: tuple[float, ...]) -> None:
+    """Refuse a point of symmetry of distortion apart from the principal point (not in this camera model)."""
+    if key not in d:
+        return
+    try:
+        ps = tuple(float(c) for c in d[key])
+    except (TypeError, ValueError) as err:
+        raise CalibrationError(f"camera `{key}` must be two numbers; got {d[key]!r}") from err
+    if len(ps) != 2 or any(abs(a - b) > 1e-9 for a, b in zip(ps, principal_point, strict=False)):
+        raise CalibrationError(f"camera `{key}` {list(ps)} differs from the principal point "
+                               f"{list(principal_point)}; the frame camera model has no separate point of symmetry: "
+                               "calibrate without it")

@@ -63,7 +63,7 @@ __all__ = [
 #: Prefix of every ``format`` value written by this project.
 FORMAT_PREFIX = "rectify-stereo/"
 #: Version of the camera JSON (1: the 0.1.0 keys plus ``format``/``version``).
-CAMERA_VERSION = 1
+CAMERA_VERSION = 2  # 2: pixel cameras, std_errors, sigma0_px (1: millimetre cameras)
 #: Version of the transform JSON (1: 0.1.0, ``format: rectify-transform``; 2: ``rectify-stereo/transform``).
 TRANSFORM_VERSION = 2
 #: Version of ``report.json`` (1: 0.1.0, ``report_version: 1``; 2: ``format``/``version`` keys).
