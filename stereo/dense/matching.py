@@ -75,6 +75,19 @@ class MatchOptions:
         Longest side of the coarse pass (coarse-to-fine disparity ranges); 0 disables it.
     max_disparities : int
         Largest disparity search width of a tile (bounds memory and time).
+    refine_iterations, refine_radius : int
+        Optional least-squares sub-pixel refinement along the rows (0: off).
+    colour : bool
+        Match the colour bands (BT cost per band) rather than the grey image (default: grey, which
+        is faster and as accurate on the benchmarks).
+    border_px : int
+        Disparities whose left or right pixel lies within this many pixels of nodata (or of the
+        photo edge) are dropped.
+    right_check : {"collision", "sgbm"}
+        The left-right test besides SGBM's own: ``collision`` drops a pixel whose right pixel is
+        also the match of a left pixel with a larger disparity (by more than ``lr_max_diff``: the
+        nearer surface hides it); ``sgbm`` runs a second SGBM with the right photo as reference
+        and keeps disparities that agree within ``lr_max_diff`` (twice the time).
     """
 
     block_size: int = 3
@@ -89,10 +102,13 @@ class MatchOptions:
     tile: int = 1024
     overlap: int = 48
     margin_px: float = 8.0
-    coarse_max_px: int = 640
+    coarse_max_px: int = 320
     max_disparities: int = 512
     refine_iterations: int = 0
     refine_radius: int = 3
+    colour: bool = False
+    border_px: int = 2
+    right_check: str = "collision"
 
     def __post_init__(self) -> None:
         if not isinstance(self.block_size, int) or self.block_size < 1 or self.block_size > 11 \
@@ -111,7 +127,11 @@ class MatchOptions:
                 raise InvalidInputError(f"`{name}` must be an integer >= {lo}; got {v!r}")
         if isinstance(self.lr_max_diff, bool) or not isinstance(self.lr_max_diff, int):
             raise InvalidInputError(f"`lr_max_diff` must be an integer; got {self.lr_max_diff!r}")
-        for name, lo in (("refine_iterations", 0), ("refine_radius", 1)):
+        if self.right_check not in ("collision", "sgbm"):
+            raise InvalidInputError(f"`right_check` must be 'collision' or 'sgbm'; got {self.right_check!r}")
+        if not isinstance(self.colour, bool):
+            raise InvalidInputError(f"`colour` must be a bool; got {self.colour!r}")
+        for name, lo in (("refine_iterations", 0), ("refine_radius", 1), ("border_px", 0)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < lo:
                 raise InvalidInputError(f"`{name}` must be an integer >= {lo}; got {v!r}")
@@ -258,28 +278,87 @@ def _sgbm(opts: MatchOptions, channels: int, min_disp: int, num_disp: int) -> cv
         mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
 
 
+def _noise_fill(img: NDArray[np.uint8], valid: NDArray[np.bool_], seed: int) -> NDArray[np.uint8]:
+    """``img`` with its invalid pixels replaced by random grey values (they then match nothing well)."""
+    if valid.all():
+        return img
+    out = img.copy()
+    bad = ~valid
+    rng = np.random.default_rng(seed)
+    shape = (int(bad.sum()),) + img.shape[2:]
+    out[bad] = rng.integers(0, 256, shape, dtype=np.uint8)
+    return out
+
+
+def _erode(valid: NDArray[np.bool_], px: int) -> NDArray[np.bool_]:
+    if px <= 0 or valid.all():
+        return valid
+    k = np.ones((2 * px + 1, 2 * px + 1), np.uint8)
+    return cv2.erode(valid.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+
+
+def _collisions(d: NDArray[np.float32], ci: NDArray[np.int64], tol: float) -> NDArray[np.bool_]:
+    """Pixels whose right pixel is also the match of a left pixel with a disparity larger by > ``tol``."""
+    H, W = d.shape
+    v = np.isfinite(d)
+    rows = np.broadcast_to(np.arange(H)[:, None], d.shape)
+    zb = np.full(H * W, -np.inf, np.float32)
+    np.maximum.at(zb, (rows[v] * W + ci[v]), d[v])
+    zb = zb.reshape(H, W)
+    out = np.zeros(d.shape, bool)
+    out[v] = zb[rows[v], ci[v]] > d[v] + tol
+    return out
+
+
 def _match_window(L: NDArray[np.uint8], R: NDArray[np.uint8], lv: NDArray[np.bool_], rv: NDArray[np.bool_],
-                  dmin: int, dmax: int, opts: MatchOptions) -> NDArray[np.float32]:
+                  dmin: int, dmax: int, opts: MatchOptions, *, lr_check: bool = True) -> NDArray[np.float32]:
     """SGBM of one window pair whose columns coincide; d in [dmin, dmax]; NaN where none.
 
-    The right window is moved by ``dmin`` first so that SGBM searches [0, dmax - dmin].
+    The caller passes the right window already moved by ``dmin`` (``R[:, x] = right[:, x - dmin]``),
+    so that SGBM searches [0, dmax - dmin]. Invalid pixels are replaced by noise first (they match
+    nothing). Then, besides SGBM's own uniqueness and consistency tests:
+
+    - with ``lr_check`` (and ``opts.lr_max_diff >= 0``), a left-right test (``opts.right_check``):
+      the collision test (a right pixel matched by two left pixels belongs to the nearer one) or a
+      second SGBM with the right photo as reference (both windows mirrored) and a consistency check
+      within ``opts.lr_max_diff`` px. This removes the matches of pixels that are hidden in, or
+      outside of, the right photo, which SGBM's built-in check lets through next to image borders;
+    - disparities whose left pixel or right pixel lies within ``opts.border_px`` of an invalid pixel
+      or the window edge are dropped.
     """
+    if L.ndim == 3 and not opts.colour:
+        L = cv2.cvtColor(np.ascontiguousarray(L), cv2.COLOR_RGB2GRAY)
+        R = cv2.cvtColor(np.ascontiguousarray(R), cv2.COLOR_RGB2GRAY)
     H, W = L.shape[:2]
     num = int(math.ceil((dmax - dmin + 1) / 16.0)) * 16
-    # right shifted: Rs[:, x] = R[:, x - dmin] is not available here (caller passes R already shifted)
+    L = _noise_fill(L, lv, 1)
+    R = _noise_fill(R, rv, 2)
     pad = num + 1
-    Lp = cv2.copyMakeBorder(L, 0, 0, pad, 0, cv2.BORDER_REFLECT_101)
-    Rp = cv2.copyMakeBorder(R, 0, 0, pad, 0, cv2.BORDER_REFLECT_101)
+    # padded on both sides: SGBM leaves the first ``num`` columns of its reference photo unmatched
+    Lp = cv2.copyMakeBorder(L, 0, 0, pad, pad, cv2.BORDER_REFLECT_101)
+    Rp = cv2.copyMakeBorder(R, 0, 0, pad, pad, cv2.BORDER_REFLECT_101)
     ch = 1 if L.ndim == 2 else L.shape[2]
-    raw = _sgbm(opts, ch, 0, num).compute(Lp, Rp)[:, pad:]
+    sgbm = _sgbm(opts, ch, 0, num)
+    raw = sgbm.compute(Lp, Rp)[:, pad:pad + W]
     d = raw.astype(np.float32) / 16.0
     d[raw < 0] = np.nan
-    d[~lv] = np.nan
-    # a disparity whose right pixel is invalid is dropped
-    cols = np.arange(W)[None, :] - np.nan_to_num(d, nan=0.0)
-    ci = np.clip(np.rint(cols).astype(np.int64), 0, W - 1)
-    bad = ~rv[np.arange(H)[:, None], ci] | (cols < -0.5)
-    d[bad] = np.nan
+    lve, rve = _erode(lv, opts.border_px), _erode(rv, opts.border_px)
+    d[~lve] = np.nan
+    rows = np.arange(H)[:, None]
+    xr = np.arange(W, dtype=np.float32)[None, :] - d
+    ci = np.rint(np.nan_to_num(xr, nan=-1.0)).astype(np.int64)
+    inside = (ci >= 0) & (ci < W)
+    ci = np.clip(ci, 0, W - 1)
+    d[~inside | ~rve[rows, ci]] = np.nan
+    if lr_check and opts.lr_max_diff >= 0 and opts.right_check == "collision":
+        d[_collisions(d, ci, float(opts.lr_max_diff))] = np.nan
+    elif lr_check and opts.lr_max_diff >= 0 and np.isfinite(d).any():
+        raw_r = sgbm.compute(np.ascontiguousarray(Rp[:, ::-1]), np.ascontiguousarray(Lp[:, ::-1]))
+        raw_r = raw_r[:, ::-1][:, pad:pad + W]
+        dr = raw_r.astype(np.float32) / 16.0
+        dr[raw_r < 0] = np.nan
+        back = dr[rows, ci]
+        d[~(np.abs(back - d) <= opts.lr_max_diff)] = np.nan
     d += float(dmin)
     return d
 
@@ -380,7 +459,7 @@ def _coarse(L8: NDArray[np.uint8], R8: NDArray[np.uint8], lv, rv, rng: tuple[int
     else:
         lo, hi = int(math.floor(rng[0] / k)) - 2, int(math.ceil(rng[1] / k)) + 2
     Rs, rvs = _shifted_window(Rc, rvc, 0, size[1], -lo, size[0] - lo)
-    d = _match_window(Lc, Rs, lvc, rvs, lo, hi, opts) * k
+    d = _match_window(Lc, Rs, lvc, rvs, lo, hi, opts, lr_check=False) * k
     return d, float(k)
 
 
@@ -587,7 +666,7 @@ def match_rasters(
             else:
                 lo, hi = int(math.floor(rng[0] / k)) - 2, int(math.ceil(rng[1] / k)) + 2
             Rs, rvs = _shifted_window(Rc, rvc, 0, size_l[1], -lo, size_l[0] - lo)
-            coarse = _match_window(Lc, Rs, lvc, rvs, lo, hi, opts) * k
+            coarse = _match_window(Lc, Rs, lvc, rvs, lo, hi, opts, lr_check=False) * k
     windows = list(iter_windows(il.width, il.height, opts.tile, opts.overlap))
     n_valid = n_filled = 0
     dlo, dhi = math.inf, -math.inf

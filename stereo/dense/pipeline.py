@@ -474,7 +474,8 @@ def _triangulate_all(rect: EpipolarRectification, paths: dict[str, Path], grid: 
             cf, _ = rc.read(c0, r0, w, h)
             disp = d[:, :, 0].astype(np.float64)
             disp[disp == NODATA] = np.nan
-            mask = np.isfinite(disp)
+            # filled disparities (band 2 of the confidence) are for the disparity product only
+            mask = np.isfinite(disp) & (cf[:, :, 1] == 0)
             if opts.min_confidence > 0:
                 mask &= cf[:, :, 0] >= opts.min_confidence
             pts = triangulate_disparity(rect, disp, col_off=c0, row_off=r0, mask=mask, method=opts.intersection,
