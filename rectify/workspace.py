@@ -69,6 +69,7 @@ class Workspace:
         self.report_dir = Path(report_dir) if report_dir is not None else None
         self._staged: list[tuple[Path, Path]] | None = None
         self._created_root = False
+        self._created_top: Path | None = None  # the outermost folder prepare() created (root or an ancestor)
 
     # ------------------------------------------------------------------ paths
     def path(self, name: str) -> Path:
@@ -112,14 +113,17 @@ class Workspace:
             if self.root.exists() and not self.root.is_dir():
                 raise InvalidInputError(f"output {str(self.root)!r} exists and is not a folder")
             if not self.root.exists():
-                parent = self.root.parent if str(self.root.parent) else Path(".")
-                if not parent.is_dir():
-                    raise RasterIOError(f"output folder {str(parent)!r} does not exist")
+                top = self.root
+                while not top.parent.exists() and top.parent != top:
+                    top = top.parent
+                if top.parent.exists() and not top.parent.is_dir():
+                    raise InvalidInputError(f"output folder {str(top.parent)!r} is a file")
                 try:
-                    self.root.mkdir()
+                    self.root.mkdir(parents=True)
                 except OSError as err:
                     raise RasterIOError(f"cannot create output folder {str(self.root)!r}: {err.strerror}") from err
                 self._created_root = True
+                self._created_top = top
             for n in names:
                 self.check_output(self.root / n)
         self.check_report_dir()
@@ -138,8 +142,13 @@ class Workspace:
     def discard_root(self) -> None:
         """Remove the output folder if this workspace created it and it is empty (after a failure)."""
         if self._created_root and self.root is not None:
+            d = self.root
             with contextlib.suppress(OSError):
-                self.root.rmdir()
+                while True:
+                    d.rmdir()
+                    if d == self._created_top or d.parent == d:
+                        break
+                    d = d.parent
 
     # ------------------------------------------------------------------ writing
     @contextlib.contextmanager

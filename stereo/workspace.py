@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from rectify.errors import InvalidInputError, RasterIOError
+from rectify.errors import InvalidInputError
 from rectify.workspace import StrPath, Workspace
 
 from .formats import (
@@ -104,9 +104,9 @@ class PairWorkspace(Workspace):
             raise InvalidInputError("a pair run needs an output folder")
         if root.exists() and not root.is_dir():
             raise InvalidInputError(f"output {str(root)!r} exists and is not a folder")
-        parent = root.parent if str(root.parent) else Path(".")
+        parent = next((p for p in root.parents if p.exists()), Path("."))
         if not root.exists() and not parent.is_dir():
-            raise RasterIOError(f"output folder {str(parent)!r} does not exist")
+            raise InvalidInputError(f"output folder {str(parent)!r} is a file")
         out = self.plan(*self.run_outputs())
         self.check_report_dir()
         if self.report_dir is not None and (self.report_dir / "report.html").exists() and not self.overwrite:
@@ -117,7 +117,7 @@ class PairWorkspace(Workspace):
         """After a failure: remove the output folder if this workspace created it (with what was written in it)."""
         if self._created_root and self.root is not None:
             with contextlib.suppress(OSError):
-                shutil.rmtree(self.root)
+                shutil.rmtree(self._created_top or self.root)
 
     # ------------------------------------------------------------------ stereo artefacts
     # (matches, control, camera and GCP files: the load_*/save_* methods of rectify.workspace.Workspace)

@@ -69,6 +69,11 @@ def test_run_failure_leaves_no_folder(tmp_path, pair, monkeypatch):
     with pytest.raises(EstimationError, match="simulated"):
         actions.run(inp["left"], inp["right"], camera=inp["camera"], out_dir=out, control=inp["control"])
     assert not out.exists()
+    # missing parent folders are created (as in release 0.1.0) and removed again after a failure
+    nested = tmp_path / "a" / "b" / "run"
+    with pytest.raises(EstimationError, match="simulated"):
+        actions.run(inp["left"], inp["right"], camera=inp["camera"], out_dir=nested, control=inp["control"])
+    assert not (tmp_path / "a").exists()
 
 
 def test_run_writes_the_layout(tmp_path, pair):
