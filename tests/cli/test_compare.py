@@ -48,9 +48,11 @@ def test_study_results_are_consistent():
         assert 0.6 < row["ratio"] < 1.6  # first-order prediction matches the Monte Carlo
     gains = [r["gain_cotangent"] for r in res.conditioning if "error" not in r]
     assert gains == sorted(gains)  # noise gain grows as the configuration degenerates
-    sp = res.speed  # throughput ratio cotangent / homography: the two measured rates, in a plausible range
+    sp = res.speed  # throughput ratio cotangent / homography from the two measured rates (timing: loose range)
     assert sp["ratio"] == pytest.approx(sp["cotangent_pts_per_s"] / sp["homography_pts_per_s"], rel=1e-9)
-    assert 0.05 < sp["ratio"] < 20 and sp["homography_pts_per_s"] > 1e3, sp
+    for m in ("cotangent", "homography"):
+        assert sp[f"{m}_pts_per_s"] == pytest.approx(1000 / sp[f"{m}_s"], rel=1e-9), sp
+    assert 1e-3 < sp["ratio"] < 1e3, sp
 
 
 def test_study_config_validation():
