@@ -1,8 +1,7 @@
 """Open generated report.html pages in headless Chromium: sections render, images decode, no console output.
 
-Debian's ``chromium`` is installed with apt-get when absent (once per session);
-the tests skip with a clear message when that is impossible (not root, no apt,
-no registry access, timeout). Set ``RECTIFY_NO_APT=1`` to never try installing.
+Debian's ``chromium`` is installed by ``.ci/run`` (the test never installs anything);
+without it the test skips and says so.
 Chromium runs fully offline on ``file://`` URLs with networking features disabled.
 
 Console messages are captured from Chromium's own log (``--enable-logging=stderr``
@@ -31,7 +30,6 @@ from rectify.residuals import ResidualTable
 from stereo.report import write_stereo_report
 from tests.support.rectify_support import verify_report
 
-INSTALL_TIMEOUT_S = 600
 RUN_TIMEOUT_S = 45
 FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
          "--disable-background-networking", "--disable-component-update", "--disable-sync",
@@ -40,44 +38,17 @@ FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-
 CONSOLE_RE = re.compile(r":CONSOLE[:(]")
 
 
-def _apt_install() -> tuple[bool, str]:
-    env = dict(os.environ, DEBIAN_FRONTEND="noninteractive")
-    cmd = ["apt-get", "install", "-y", "--no-install-recommends", "-o", "DPkg::Lock::Timeout=120", "chromium"]
-    log = ""
-    for attempt in range(2):
-        try:
-            if attempt == 1:  # package lists may be missing or stale
-                r = subprocess.run(["apt-get", "update"], env=env, capture_output=True, text=True, check=False,
-                                   timeout=INSTALL_TIMEOUT_S // 3)
-                log += r.stdout[-500:] + r.stderr[-500:]
-            r = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False,
-                               timeout=INSTALL_TIMEOUT_S // 2)
-        except (OSError, subprocess.TimeoutExpired) as err:
-            return False, f"{log}\n{type(err).__name__}: {err}"
-        log += r.stdout[-500:] + r.stderr[-500:]
-        if r.returncode == 0:
-            return True, log
-    return False, log
-
-
 @pytest.fixture(scope="session")
 def chromium() -> str:
-    """Path of the chromium executable, installed from Debian when absent; skip when impossible."""
+    """Path of the chromium executable; skip with the reason when it is not installed.
+
+    ``.ci/run`` installs Debian's ``chromium`` before the suite; the test never installs anything.
+    """
     for name in ("chromium", "chromium-browser"):
         exe = shutil.which(name)
         if exe:
             return exe
-    if os.environ.get("RECTIFY_NO_APT"):
-        pytest.skip("chromium is not installed and RECTIFY_NO_APT is set (apt-get install chromium to run)")
-    if shutil.which("apt-get") is None:
-        pytest.skip("chromium is not installed and apt-get is not available on this system")
-    if hasattr(os, "geteuid") and os.geteuid() != 0:
-        pytest.skip("chromium is not installed and installing it needs root (sudo apt-get install chromium)")
-    ok, log = _apt_install()
-    exe = shutil.which("chromium")
-    if not ok or exe is None:
-        pytest.skip(f"could not install Debian's chromium with apt-get; last output:\n{log[-800:]}")
-    return exe
+    pytest.skip("chromium is not installed (`.ci/run` installs it; or: apt-get install chromium)")
 
 
 @dataclass
