@@ -7,6 +7,13 @@ import click
 from rectify.cli.options import setup_logging, verbosity_opts
 
 from .. import __version__
+from .calibrate import calibrate
+from .demo import demo
+from .dense import dense
+from .model import model
+from .orient import orient
+from .resect import resect
+from .run import run
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -22,24 +29,5 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
 
 
 # --- registered subcommands (one module each) ---
-from .orient import orient  # noqa: E402
-
-cli.add_command(orient)
-from .model import model  # noqa: E402
-
-cli.add_command(model)
-from .resect import resect  # noqa: E402
-
-cli.add_command(resect)
-from .run import run  # noqa: E402
-
-cli.add_command(run)
-from .demo import demo  # noqa: E402
-
-cli.add_command(demo)
-from .calibrate import calibrate
-
-cli.add_command(calibrate)
-from .dense import dense
-
-cli.add_command(dense)
+for _command in (orient, model, resect, run, demo, calibrate, dense):
+    cli.add_command(_command)
