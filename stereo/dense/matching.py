@@ -64,8 +64,9 @@ class MatchOptions:
     median : bool
         3 x 3 median of the valid disparities.
     fill_max_px : int
-        Holes of at most this many pixels are filled by the background (0: no fill); filled
-        pixels are flagged and get confidence 0.
+        Holes of at most this many pixels are filled by the background (0, the default: no fill);
+        filled pixels are flagged and get confidence 0. For a disparity product only: the dense
+        pipeline never turns filled disparities into points.
     tile, overlap : int
         Tile core side and the overlap on each side, pixels (arrays larger than ``tile + 2 overlap``
         and every raster are matched by tiles).
@@ -98,13 +99,13 @@ class MatchOptions:
     speckle_window: int = 100
     speckle_range: int = 2
     median: bool = True
-    fill_max_px: int = 200
+    fill_max_px: int = 0
     tile: int = 1024
     overlap: int = 48
     margin_px: float = 8.0
     coarse_max_px: int = 320
     max_disparities: int = 512
-    refine_iterations: int = 0
+    refine_iterations: int = 1
     refine_radius: int = 3
     colour: bool = False
     border_px: int = 2
@@ -244,28 +245,40 @@ def fill_background(disp: NDArray[np.float32], max_px: int) -> tuple[NDArray[np.
 
 
 def _median_valid(disp: NDArray[np.float32]) -> NDArray[np.float32]:
+    """3 x 3 median of the valid disparities; where nodata neighbours could change it, the value is kept.
+
+    The median with nodata as -inf and as +inf bounds the median of the valid values only; where the
+    two agree it is exact, elsewhere (next to holes) the pixel keeps its own disparity.
+    """
     v = np.isfinite(disp)
-    m = cv2.medianBlur(np.where(v, disp, 0).astype(np.float32), 3)
+    if v.all():
+        return cv2.medianBlur(disp.astype(np.float32), 3)
+    a = cv2.medianBlur(np.where(v, disp, np.float32(-1e9)), 3)
+    b = cv2.medianBlur(np.where(v, disp, np.float32(1e9)), 3)
+    m = np.where(a == b, a, disp)
     return np.where(v, m, np.nan).astype(np.float32)
 
 
 def _confidence(grey: NDArray[np.float32], disp: NDArray[np.float32], filled: NDArray[np.bool_]
                 ) -> NDArray[np.float32]:
-    """Texture (local grey std) times smoothness (local disparity std), in [0, 1]."""
-    g = grey.astype(np.float32)
+    """Texture (5 x 5 grey variance) times smoothness (3 x 3 disparity variance), in [0, 1].
+
+    ``(1 - exp(-var_grey / 16)) * exp(-var_disparity) * (share of valid 3 x 3 neighbours)``; 0 where
+    there is no disparity or it was filled.
+    """
+    g = grey.astype(np.float32, copy=False)
     mu = cv2.blur(g, (5, 5))
-    sd = np.sqrt(np.maximum(cv2.blur(g * g, (5, 5)) - mu * mu, 0))
-    tex = 1.0 - np.exp(-((sd / 4.0) ** 2))
+    var_g = cv2.blur(g * g, (5, 5)) - mu * mu
+    tex = 1.0 - cv2.exp(np.maximum(var_g, 0) * np.float32(-1.0 / 16.0))
     v = np.isfinite(disp)
-    d = np.where(v, disp, 0).astype(np.float32)
+    d = np.where(v, disp, np.float32(0))
     n = cv2.blur(v.astype(np.float32), (3, 3))
-    m1 = cv2.blur(d, (3, 3)) / np.maximum(n, 1e-6)
-    m2 = cv2.blur(d * d, (3, 3)) / np.maximum(n, 1e-6)
-    dsd = np.sqrt(np.maximum(m2 - m1 * m1, 0))
-    smooth = np.exp(-(dsd ** 2)) * np.clip(n, 0, 1)
-    c = (tex * smooth).astype(np.float32)
+    inv = 1.0 / np.maximum(n, np.float32(1e-6))
+    m1 = cv2.blur(d, (3, 3)) * inv
+    var_d = cv2.blur(d * d, (3, 3)) * inv - m1 * m1
+    c = tex * cv2.exp(-np.maximum(var_d, 0)) * n
     c[~v | filled] = 0.0
-    return c
+    return c.astype(np.float32, copy=False)
 
 
 def _sgbm(opts: MatchOptions, channels: int, min_disp: int, num_disp: int) -> cv2.StereoSGBM:
@@ -297,17 +310,24 @@ def _erode(valid: NDArray[np.bool_], px: int) -> NDArray[np.bool_]:
     return cv2.erode(valid.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
 
 
-def _collisions(d: NDArray[np.float32], ci: NDArray[np.int64], tol: float) -> NDArray[np.bool_]:
-    """Pixels whose right pixel is also the match of a left pixel with a disparity larger by > ``tol``."""
-    H, W = d.shape
-    v = np.isfinite(d)
-    rows = np.broadcast_to(np.arange(H)[:, None], d.shape)
-    zb = np.full(H * W, -np.inf, np.float32)
-    np.maximum.at(zb, (rows[v] * W + ci[v]), d[v])
-    zb = zb.reshape(H, W)
-    out = np.zeros(d.shape, bool)
-    out[v] = zb[rows[v], ci[v]] > d[v] + tol
-    return out
+def _collisions(d: NDArray[np.float32], tol: float) -> NDArray[np.bool_]:
+    """Pixels hidden in the right photo by a nearer surface.
+
+    Pixel x (disparity d) claims the right pixel ``x - d``. It is hidden when a pixel further right
+    on the row maps left of that by more than ``tol`` (the nearer surface covers it), or when a pixel
+    at least two columns further right maps within half a pixel of it: then that pixel's disparity
+    exceeds d by more than 1.5 px and both claim one right pixel, which belongs to the nearer one.
+    This is a z-buffer of the right pixels computed with two running minima per row.
+    """
+    W = d.shape[1]
+    xr = np.arange(W, dtype=np.float32)[None, :] - d
+    xr = np.where(np.isfinite(xr), xr, np.float32(np.inf))
+    run = np.minimum.accumulate(xr[:, ::-1], axis=1)[:, ::-1]
+    n1 = np.full_like(run, np.inf)
+    n1[:, :-1] = run[:, 1:]
+    n2 = np.full_like(run, np.inf)
+    n2[:, :-2] = run[:, 2:]
+    return np.asarray((n1 < xr - tol) | (n2 < xr + 0.5))
 
 
 def _match_window(L: NDArray[np.uint8], R: NDArray[np.uint8], lv: NDArray[np.bool_], rv: NDArray[np.bool_],
@@ -351,7 +371,7 @@ def _match_window(L: NDArray[np.uint8], R: NDArray[np.uint8], lv: NDArray[np.boo
     ci = np.clip(ci, 0, W - 1)
     d[~inside | ~rve[rows, ci]] = np.nan
     if lr_check and opts.lr_max_diff >= 0 and opts.right_check == "collision":
-        d[_collisions(d, ci, float(opts.lr_max_diff))] = np.nan
+        d[_collisions(d, float(opts.lr_max_diff))] = np.nan
     elif lr_check and opts.lr_max_diff >= 0 and np.isfinite(d).any():
         raw_r = sgbm.compute(np.ascontiguousarray(Rp[:, ::-1]), np.ascontiguousarray(Lp[:, ::-1]))
         raw_r = raw_r[:, ::-1][:, pad:pad + W]
@@ -364,33 +384,40 @@ def _match_window(L: NDArray[np.uint8], R: NDArray[np.uint8], lv: NDArray[np.boo
 
 
 def refine_subpixel(left: NDArray[np.float32], right: NDArray[np.float32], disp: NDArray[np.float32], *,
-                    radius: int = 3, iterations: int = 2, max_step: float = 1.0) -> NDArray[np.float32]:
-    """Least-squares refinement of disparities along the rows (1-D Lucas-Kanade on (2r+1)^2 windows).
+                    radius: int = 3, iterations: int = 1, max_step: float = 1.0) -> NDArray[np.float32]:
+    """Least-squares refinement of disparities along the rows (1-D Lucas-Kanade, Gaussian window).
 
-    Each iteration warps the right window by the current disparity and solves, per pixel,
-    ``sum(g (L - R_w)) / sum(g^2)`` for the update (``g``: the warped right image's x gradient). This
-    removes the pixel-locking bias of SGBM's parabola. Updates larger than ``max_step`` in total are
-    undone (the pixel keeps its SGBM value).
+    Each iteration warps the right photo by the current disparity (cubic) and solves, per pixel, for
+    the update that best aligns the two windows (radius ``radius``, Gaussian weights) with the mean
+    grey difference removed (an offset between the photos does not bias it); the gradient is the
+    left photo's x gradient. This removes most of the pixel-locking bias
+    of SGBM's parabola. Updates of more than ``max_step`` px in total are undone.
     """
     v = np.isfinite(disp)
     if not v.any() or iterations <= 0:
         return disp
+    left = left.astype(np.float32)
+    right = right.astype(np.float32)
     H, W = disp.shape
     xs = np.arange(W, dtype=np.float32)[None, :].repeat(H, 0)
     ys = np.arange(H, dtype=np.float32)[:, None].repeat(W, 1)
     d0 = np.where(v, disp, 0).astype(np.float32)
     d = d0.copy()
-    gx_r = cv2.Sobel(right, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+    g = cv2.Sobel(left, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
     k = (2 * radius + 1, 2 * radius + 1)
+
+    def win(a: NDArray[np.float32]) -> NDArray[np.float32]:
+        return cv2.GaussianBlur(a, k, radius / 2.0)
+
+    mg = win(g)
+    den = win(g * g) - mg * mg
     for _ in range(iterations):
         mx = xs - d
-        rw = cv2.remap(right, mx, ys, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        g = cv2.remap(gx_r, mx, ys, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        rw = cv2.remap(right, mx, ys, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
         e = left - rw
-        # L(x) = R(x - d)  =>  dL/dd = -g ; update dd = -sum(g e) / sum(g g)
-        num = cv2.boxFilter(g * e, -1, k, normalize=False)
-        den = cv2.boxFilter(g * g, -1, k, normalize=False)
-        step = np.where(den > 1e-3, -num / np.maximum(den, 1e-3), 0).astype(np.float32)
+        # L(x) = R(x - d)  =>  dL/dd = -g ; update dd = -cov(g, e) / var(g) over the window
+        num = win(g * e) - mg * win(e)
+        step = np.where(den > 1e-4, -num / np.maximum(den, 1e-4), 0).astype(np.float32)
         d = d + np.clip(step, -0.5, 0.5)
     moved = np.abs(d - d0) > max_step
     d[moved] = d0[moved]
@@ -464,7 +491,11 @@ def _coarse(L8: NDArray[np.uint8], R8: NDArray[np.uint8], lv, rv, rng: tuple[int
 
 
 def _grey(img: NDArray) -> NDArray[np.float32]:
-    return img.astype(np.float32) if img.ndim == 2 else img.astype(np.float32).mean(axis=2)
+    if img.ndim == 2:
+        return img.astype(np.float32)
+    if img.dtype == np.uint8:
+        return cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY).astype(np.float32)
+    return img.astype(np.float32).mean(axis=2)
 
 
 def match_pair(
