@@ -91,6 +91,10 @@ class MatchRun:
         if o.refine and not res.tiled:
             lines.append(refined)
         expected = s["n_verified"] - (s["n_refine_failed"] if o.refine and not res.tiled else 0)
+        if res.n_duplicates:
+            lines.append(f"duplicates: {res.n_duplicates} removed (a left or right position used twice; "
+                         "the output is one-to-one, best score kept)")
+            expected -= res.n_duplicates
         if len(res.matches) != expected:
             lines.append(f"kept: {len(res.matches)} of the verified matches (evenly spread, --max-matches "
                          f"{self.config.max_matches}, re-verified)")
@@ -236,6 +240,7 @@ class WarpRun:
         r, o = self.result, self.options
         g = r.warp.grid
         lines = [r.fit.table.summary_line()] if r.fit is not None else []
+        lines += list(r.notes)
         lines.append(f"wrote {self.output}: {g.width} x {g.height} px, {g.resolution[0]:.6g} units/px, "
                      f"CRS {r.crs or 'none'}, {o.resampling}, {'COG' if o.cog else 'tiled GeoTIFF'}, "
                      f"{r.warp.seconds:.2f} s")

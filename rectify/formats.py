@@ -34,6 +34,7 @@ import json
 import math
 import os
 import re
+from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -225,7 +226,8 @@ class ControlTable:
 def _read_text(path: StrPath) -> str:
     p = Path(path)
     try:
-        return p.read_text()
+        # utf-8-sig: spreadsheets write a byte-order mark before the header or the '# crs=' line
+        return p.read_text(encoding="utf-8-sig").replace("\ufeff", "")
     except FileNotFoundError as err:
         raise RasterIOError(f"file not found: {str(p)!r}") from err
     except (OSError, UnicodeDecodeError) as err:
@@ -285,17 +287,19 @@ def _num(row: dict[str, str], key: str, line: int, path: StrPath, *, allow_empty
 
 
 def _no_duplicates(ids: list[str], path: StrPath, what: str) -> None:
-    dup = {i for i in ids if ids.count(i) > 1}
+    counts = Counter(ids)
+    dup = {i for i, n in counts.items() if n > 1}
     if dup:
         raise InvalidInputError(f"{str(path)!r}: duplicate {what} {sorted(dup)}")
 
 
 def read_gcps(path: StrPath) -> GcpTable:
-    """Read a GCP CSV (``id,col,row,x,y[,z][,check]``) or a QGIS ``.points`` file.
+    """Read a GCP CSV (``id,col,row,x,y[,z][,check]``), a QGIS ``.points`` file or a matches CSV.
 
     QGIS files (``mapX,mapY,sourceX,sourceY,enable,...``, pixel corners, rows
     negative) are converted to the project's convention; disabled rows become
-    check points.
+    check points. A matches CSV (``id,col_left,row_left,col_right,row_right[,score]``) gives
+    GCPs that map the right image onto the left one: ``pixel`` = right, ``target`` = left pixels.
 
     Returns
     -------
@@ -308,6 +312,9 @@ def read_gcps(path: StrPath) -> GcpTable:
     tgt: list[tuple[float, float]] = []
     zs: list[float] = []
     chk: list[bool] = []
+    if "col_left" in fields and "x" not in fields:  # a matches CSV: fit the right image to the left
+        m = read_matches(path)
+        return GcpTable(m.ids, m.right.copy(), m.left.copy(), None, np.zeros(len(m), dtype=bool), crs)
     if "mapX" in fields:
         sx = "sourceX" if "sourceX" in fields else "pixelX"
         sy = "sourceY" if "sourceY" in fields else "pixelY"
@@ -371,6 +378,7 @@ def read_matches(path: StrPath) -> Matches:
         right.append((_num(r, "col_right", ln, path), _num(r, "row_right", ln, path)))
         if has_score:
             score.append(_num(r, "score", ln, path, allow_empty=True))
+    _no_duplicates(ids, path, "match id(s)")
     return Matches(tuple(ids), np.array(left).reshape(-1, 2), np.array(right).reshape(-1, 2),
                    np.array(score) if has_score else None)
 

@@ -52,7 +52,8 @@ from .residuals import ResidualTable
 from .transforms import METHODS, FitResult, fit_gcps, method_of
 
 __all__ = ["RESAMPLING", "WarpOptions", "WarpResult", "warp_raster", "warp_array", "GeoRectification",
-           "georectify", "rectify_with_transform", "check_gcps_inside"]
+           "georectify", "rectify_with_transform", "check_gcps_inside",
+           "gcps_outside", "outside_note"]
 
 logger = logging.getLogger(__name__)
 
@@ -594,21 +595,39 @@ class GeoRectification:
     crs : str or None
         Output CRS.
     method : str
+    notes : tuple of str
+        One-line notes for the user (GCPs outside the source image).
     """
 
     fit: Any
     warp: WarpResult
     crs: str | None
     method: str
+    notes: tuple[str, ...] = ()
+
+
+def gcps_outside(pixel: NDArray[np.float64], width: int, height: int) -> NDArray[np.bool_]:
+    """(N,) mask of the GCPs whose source pixel lies outside the ``width`` x ``height`` image."""
+    p = np.asarray(pixel, dtype=np.float64).reshape(-1, 2)
+    return np.asarray((p[:, 0] < -0.5) | (p[:, 0] > width - 0.5) | (p[:, 1] < -0.5) | (p[:, 1] > height - 0.5))
+
+
+def outside_note(pixel: NDArray[np.float64], ids, width: int, height: int) -> str | None:
+    """A one-line note naming the GCPs outside the source image (used for the fit, as ``rectify fit`` does),
+    or None when all are inside."""
+    out = gcps_outside(pixel, width, height)
+    if not out.any():
+        return None
+    i = int(np.flatnonzero(out)[0])
+    return (f"note: {int(out.sum())} GCP(s) outside the {width} x {height} image, used for the fit; first is "
+            f"{ids[i]!r} at (col, row) = {np.round(pixel[i], 3).tolist()}")
 
 
 def check_gcps_inside(pixel: NDArray[np.float64], ids, width: int, height: int) -> None:
-    """Raise InvalidInputError naming the first GCP outside the source image."""
-    out = (pixel[:, 0] < -0.5) | (pixel[:, 0] > width - 0.5) | (pixel[:, 1] < -0.5) | (pixel[:, 1] > height - 0.5)
-    if out.any():
-        i = int(np.flatnonzero(out)[0])
-        raise InvalidInputError(f"{int(out.sum())} GCP(s) outside the {width} x {height} image; first is "
-                                f"{ids[i]!r} at (col, row) = {pixel[i].tolist()}")
+    """Raise InvalidInputError naming the first GCP outside the source image (for callers that need it)."""
+    note = outside_note(pixel, ids, width, height)
+    if note is not None:
+        raise InvalidInputError(note.removeprefix("note: ").replace(", used for the fit", ""))
 
 
 class _Inverse:
@@ -653,7 +672,8 @@ def georectify(src: str | Path, dst: str | Path, gcps, *, method: str = "homogra
     EstimationError
         Too few or degenerate GCPs.
     InvalidInputError
-        GCPs outside the image, unknown method, existing output.
+        Unknown method, existing output. GCPs outside the image are used (as by ``rectify fit``) and
+        named in ``notes``.
     CRSError
         Unknown CRS, or an output CRS without a GCP CRS.
     """
@@ -666,7 +686,9 @@ def georectify(src: str | Path, dst: str | Path, gcps, *, method: str = "homogra
     out_crs = crs_to_string(dst_crs) if dst_crs else g_crs
     if out_crs is not None and g_crs is None:
         raise CRSError("an output CRS needs the GCP CRS (a '# crs=' line in the GCP file or --gcp-crs)")
-    check_gcps_inside(gcps.pixel, gcps.ids, info.width, info.height)
+    note = outside_note(gcps.pixel, gcps.ids, info.width, info.height)
+    if note is not None:  # accepted, as by 'rectify fit' (e.g. GCPs read off a larger scan); the summary says so
+        logger.info(note)
     target = gcps.target
     if g_crs is not None and out_crs is not None and g_crs != out_crs:
         target = transform_xy(g_crs, out_crs, gcps.target)
@@ -693,7 +715,7 @@ def georectify(src: str | Path, dst: str | Path, gcps, *, method: str = "homogra
     grid = output_grid(forward, info.width, info.height, resolution=resolution, crs=out_crs,
                        y_up=out_crs is not None)
     res = warp_raster(src, dst, inverse, grid, options=opts, overwrite=overwrite, progress=progress)
-    return GeoRectification(fit, res, out_crs, method)
+    return GeoRectification(fit, res, out_crs, method, notes=(note,) if note else ())
 
 
 class _Shifted:

@@ -191,6 +191,9 @@ class MatchResult:
     tiled : bool
     image_shapes : ((H, W), (H, W))
     timings_s : dict
+    n_duplicates : int
+        Verified matches dropped because their left or right position repeats another's (the output is
+        one-to-one; the best score is kept).
     """
 
     matches: Matches
@@ -208,13 +211,14 @@ class MatchResult:
     tiled: bool
     image_shapes: tuple[tuple[int, int], tuple[int, int]]
     timings_s: dict[str, float] = field(default_factory=dict)
+    n_duplicates: int = 0
 
     def summary(self) -> dict[str, Any]:
         return {"n_detected_left": self.n_detected[0], "n_detected_right": self.n_detected[1],
                 "n_matched": self.n_matched, "n_verified": self.n_verified, "n_output": len(self.matches),
                 "n_refined": self.n_refined, "n_refine_failed": self.n_refine_failed,
                 "verification": self.verification.method, "rmse_px": self.rmse_px,
-                "rmse_raw_px": self.rmse_raw_px, "tiled": self.tiled,
+                "rmse_raw_px": self.rmse_raw_px, "tiled": self.tiled, "n_duplicates": self.n_duplicates,
                 **{f"time_{k}_s": v for k, v in self.timings_s.items()}}
 
 
@@ -459,7 +463,7 @@ def _final_select(pl, pr, score, shape_left, budget, cap):
 
 
 def _result(pl, pr, score, ver, cfg, n_det, n_matched, n_verified, n_ref, n_fail, raw_pr, cand_l, cand_r,
-            cand_inl, tiled, shapes, timings) -> MatchResult:
+            cand_inl, tiled, shapes, timings, n_dup: int = 0) -> MatchResult:
     ids = tuple(str(i + 1) for i in range(len(pl)))
     rmse = ver.rmse_px
     rmse_raw = float("nan")
@@ -469,7 +473,7 @@ def _result(pl, pr, score, ver, cfg, n_det, n_matched, n_verified, n_ref, n_fail
         else:
             rmse_raw = rms(np.linalg.norm(_sampson_vectors(ver.matrix, pl, raw_pr), axis=1))
     return MatchResult(Matches(ids, pl, pr, score), n_det, n_matched, n_verified, n_ref, n_fail, rmse,
-                       rmse_raw, ver, cand_l, cand_r, cand_inl, tiled, shapes, timings)
+                       rmse_raw, ver, cand_l, cand_r, cand_inl, tiled, shapes, timings, n_dup)
 
 
 def _finish(pl, pr, ratio, Lg, Rg, cfg: MatcherConfig, ver0: Verification | None, progress=None):
@@ -552,19 +556,38 @@ def _match_whole(L, lv, R, rv, cfg: MatcherConfig, progress, names) -> MatchResu
     Lg = _grey_float(L, lv) if cfg.refine else None
     Rg = _grey_float(R, rv) if cfg.refine else None
     fl_, fr_, raw_pr, score, n_ref, n_fail = _finish(vl, vr, vratio, Lg, Rg, cfg, ver0)
-    out_l, out_r, raw, sc, ver = _reverify_and_cap(fl_, fr_, raw_pr, score, cfg, L.shape[:2])
+    out_l, out_r, raw, sc, ver, n_dup = _reverify_and_cap(fl_, fr_, raw_pr, score, cfg, L.shape[:2])
     t4 = time.perf_counter()
     tick(4, 4)
     timings = {"detect": t1 - t0, "match": t2 - t1, "verify": t3 - t2, "refine": t4 - t3, "total": t4 - t0}
     return _result(out_l, out_r, sc, ver, cfg, (len(fl), len(fr)), len(pairs.left), int(inl.sum()), n_ref,
-                   n_fail, raw, cand_l, cand_r, cand_inl, False, (L.shape[:2], R.shape[:2]), timings)
+                   n_fail, raw, cand_l, cand_r, cand_inl, False, (L.shape[:2], R.shape[:2]), timings, n_dup)
+
+
+def _one_to_one(pl, pr, score, tol_px: float = 0.1):
+    """Indices of matches with distinct left and distinct right positions (within ``tol_px``), keeping the best
+    (lowest) score of each group: SIFT gives several keypoints at one position (one per orientation) and
+    refinement can move two candidates onto one point; duplicates make the fitted models singular."""
+    if len(pl) == 0:
+        return np.arange(0)
+    s = np.nan_to_num(np.asarray(score, dtype=float), nan=np.inf)
+    order = np.argsort(s, kind="stable")
+    keep = order
+    for p in (pl, pr):
+        q = np.round(np.asarray(p)[keep] / tol_px).astype(np.int64)
+        _, first = np.unique(q, axis=0, return_index=True)
+        keep = keep[np.sort(first)]
+    return np.sort(keep)
 
 
 def _reverify_and_cap(pl, pr, raw_pr, score, cfg: MatcherConfig, shape_left):
+    u = _one_to_one(pl, pr, score)
+    n_dup = len(pl) - len(u)
+    pl, pr, raw_pr, score = pl[u], pr[u], raw_pr[u], score[u]
     if cfg.verify == "none":
         keep = _final_select(pl, pr, score, shape_left, cfg.max_matches, cfg.cell_cap)
         pl, pr, raw_pr, score = pl[keep], pr[keep], raw_pr[keep], score[keep]
-        return pl, pr, raw_pr, score, verify_matches(pl, pr, method="none")
+        return pl, pr, raw_pr, score, verify_matches(pl, pr, method="none"), n_dup
     ver = _verify_checked(pl, pr, cfg, cfg.verify)
     m = ver.inliers
     pl, pr, raw_pr, score = pl[m], pr[m], raw_pr[m], score[m]
@@ -572,7 +595,7 @@ def _reverify_and_cap(pl, pr, raw_pr, score, cfg: MatcherConfig, shape_left):
     pl, pr, raw_pr, score = pl[keep], pr[keep], raw_pr[keep], score[keep]
     # the residual table of exactly the returned matches, with the same model
     ver = _table_for(ver, pl, pr, cfg)
-    return pl, pr, raw_pr, score, ver
+    return pl, pr, raw_pr, score, ver, n_dup
 
 
 def _table_for(ver: Verification, pl, pr, cfg: MatcherConfig) -> Verification:

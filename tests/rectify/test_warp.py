@@ -254,9 +254,11 @@ def test_progress_and_gcp_errors(tmp_path):
     few = gcps.subset(np.arange(len(gcps)) < 3)
     with pytest.raises(EstimationError, match="too few"):
         georectify(src, tmp_path / "x.tif", few, method="homography")
+    # GCPs outside the image are used (as by 'rectify fit') and named in a note
     outside = GcpTable(gcps.ids, gcps.pixel + [0, 2000], gcps.target, None, gcps.check, gcps.crs)
-    with pytest.raises(InvalidInputError, match="outside"):
-        georectify(src, tmp_path / "x.tif", outside)
+    r = georectify(src, tmp_path / "outside.tif", outside, method="affine", resolution=600.0)
+    assert len(r.notes) == 1 and "outside" in r.notes[0] and repr(gcps.ids[0]) in r.notes[0]
+    (tmp_path / "outside.tif").unlink()
     line = GcpTable(gcps.ids[:5], np.c_[np.arange(5) * 10.0, np.arange(5) * 10.0],
                     np.c_[np.arange(5) * 3e3, np.arange(5) * 3e3], None, np.zeros(5, bool), "EPSG:32618")
     with pytest.raises(EstimationError):

@@ -1,0 +1,140 @@
+"""Issue 12, users' files: spreadsheet CSVs (byte-order mark), duplicate match ids, one-to-one matches,
+``rectify fit`` on a matches CSV, ``warp --gcps`` with GCPs outside the image."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+import affine
+import cv2
+import numpy as np
+import pytest
+import skimage.data as skd
+from click.testing import CliRunner
+
+from rectify import io as rio
+from rectify.cli.main import cli
+from rectify.errors import InvalidInputError
+from rectify.features.match import _one_to_one
+from rectify.formats import read_gcps, read_matches, read_transform
+from rectify.io import write_raster
+
+H_TRUE = np.array([[1.1, 0.05, 10.0], [-0.02, 0.95, 20.0], [1e-4, -5e-5, 1.0]])
+
+
+def _hash(p):
+    return hashlib.sha256(p.read_bytes()).hexdigest()
+
+
+def _files(d):
+    return sorted(p.name for p in d.iterdir())
+
+
+def _gcp_lines(n=10):
+    rng = np.random.default_rng(3)
+    pix = rng.uniform(0, 1000, (n, 2))
+    q = np.c_[pix, np.ones(n)] @ H_TRUE.T
+    tgt = q[:, :2] / q[:, 2:] * 10 + [500000, 4400000]
+    return ["id,col,row,x,y"] + [f"G{i},{pix[i, 0]:.10f},{pix[i, 1]:.10f},{tgt[i, 0]:.6f},{tgt[i, 1]:.6f}"
+                                 for i in range(n)]
+
+
+@pytest.mark.parametrize("crs_line", [False, True])
+def test_bom_before_header_or_crs_line_is_accepted(tmp_path, crs_line):
+    g = tmp_path / "gcps.csv"
+    lines = (["# crs=EPSG:32618"] if crs_line else []) + _gcp_lines()
+    g.write_bytes(b"\xef\xbb\xbf" + ("\r\n".join(lines) + "\r\n").encode())   # as Excel writes it
+    t = read_gcps(g)
+    assert t.ids[0] == "G0" and len(t) == 10
+    assert t.crs == ("EPSG:32618" if crs_line else None)
+    before = _hash(g)
+    out = tmp_path / "t.json"
+    r = CliRunner().invoke(cli, ["fit", str(g), "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    assert json.loads(out.read_text())["method"] == "homography"
+    assert _hash(g) == before
+
+
+def _matches_csv(path, rows):
+    path.write_text("id,col_left,row_left,col_right,row_right,score\n"
+                    + "".join(f"{i},{a:.6f},{b:.6f},{c:.6f},{d:.6f},0.5\n" for i, (a, b, c, d) in rows))
+
+
+def _matches_rows(n=30):
+    rng = np.random.default_rng(5)
+    right = rng.uniform(0, 800, (n, 2))
+    q = np.c_[right, np.ones(n)] @ H_TRUE.T
+    left = q[:, :2] / q[:, 2:]
+    return [(str(i + 1), (*left[i], *right[i])) for i in range(n)], left, right
+
+
+def test_duplicate_match_ids_rejected(tmp_path):
+    rows, _, _ = _matches_rows()
+    rows[7] = ("3", rows[7][1])
+    m = tmp_path / "m.csv"
+    _matches_csv(m, rows)
+    with pytest.raises(InvalidInputError, match=r"duplicate match id\(s\) \['3'\]"):
+        read_matches(m)
+    before, files = _hash(m), _files(tmp_path)
+    r = CliRunner().invoke(cli, ["fit", str(m), "-o", str(tmp_path / "t.json")])
+    assert r.exit_code == 1 and "duplicate match id(s) ['3']" in r.output and "Traceback" not in r.output
+    assert _hash(m) == before and _files(tmp_path) == files
+
+
+def test_fit_reads_a_matches_csv(tmp_path):
+    rows, left, right = _matches_rows()
+    m = tmp_path / "m.csv"
+    _matches_csv(m, rows)
+    before = _hash(m)
+    out = tmp_path / "t.json"
+    r = CliRunner().invoke(cli, ["fit", str(m), "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    model = read_transform(out).model                   # right pixels -> left pixels
+    assert np.abs(model(right) - left).max() < 1e-3
+    assert "px" in r.output and _hash(m) == before
+
+
+def test_one_to_one_keeps_the_best_score():
+    pl = np.array([[10.0, 10.0], [10.0, 10.0], [20.0, 20.0], [30.0, 30.0], [40.0, 40.0]])
+    pr = np.array([[11.0, 11.0], [12.0, 12.0], [21.0, 21.0], [21.02, 21.0], [41.0, 41.0]])
+    score = np.array([0.5, 0.2, 0.3, 0.1, 0.4])
+    keep = _one_to_one(pl, pr, score)
+    assert keep.tolist() == [1, 3, 4]
+
+
+def test_match_output_is_one_to_one(tmp_path):
+    img = skd.astronaut()[:400, :440]
+    H = np.array([[0.98, 0.03, 6.0], [-0.02, 1.0, -4.0], [0, 0, 1.0]])
+    warped = cv2.warpPerspective(img, H, (440, 400), flags=cv2.INTER_CUBIC)
+    lp, rp = tmp_path / "left.tif", tmp_path / "right.tif"
+    rio.write_raster(lp, img, affine.Affine.identity(), None)
+    rio.write_raster(rp, warped, affine.Affine.identity(), None)
+    out = tmp_path / "m.csv"
+    r = CliRunner().invoke(cli, ["match", str(lp), str(rp), "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    m = read_matches(out)
+    for p in (m.left, m.right):
+        q = np.round(p / 0.1).astype(np.int64)
+        assert len(np.unique(q, axis=0)) == len(m)
+    # the matches feed 'rectify fit' directly (right -> left)
+    r = CliRunner().invoke(cli, ["fit", str(out), "-o", str(tmp_path / "t.json")])
+    assert r.exit_code == 0, r.output
+
+
+def test_warp_accepts_gcps_outside_the_image(tmp_path):
+    rr, cc = np.mgrid[0:48, 0:64]
+    img = np.stack([10 + 2 * cc + 2 * rr + 10 * k for k in range(3)], axis=-1).astype(np.uint8)
+    src = tmp_path / "frame.tif"
+    write_raster(src, img, affine.Affine(1, 0, 0, 0, 1.0000001, 0), None, nodata=0)
+    A = np.array([[29.0, 6.0, 500100.0], [5.0, -31.0, 4399900.0]])
+    pix = np.array([[2, 3], [60, 4], [5, 44], [58, 45], [30, 20], [12, 30], [45, 12], [500, 10]], float)
+    tgt = pix @ A[:, :2].T + A[:, 2]
+    g = tmp_path / "gcps.csv"
+    g.write_text("# crs=EPSG:32618\nid,col,row,x,y\n" + "".join(
+        f"p{i},{c},{r},{x:.6f},{y:.6f}\n" for i, ((c, r), (x, y)) in enumerate(zip(pix, tgt, strict=True))))
+    out = tmp_path / "o.tif"
+    r = CliRunner().invoke(cli, ["warp", str(src), str(out), "--gcps", str(g), "--method", "affine"])
+    assert r.exit_code == 0, r.output
+    assert "1 GCP(s) outside the 64 x 48 image, used for the fit; first is 'p7'" in r.output
+    assert out.is_file()
