@@ -108,7 +108,7 @@ class MatchOptions:
     refine_iterations: int = 1
     refine_radius: int = 3
     colour: bool = False
-    border_px: int = 2
+    border_px: int = 4
     right_check: str = "collision"
 
     def __post_init__(self) -> None:

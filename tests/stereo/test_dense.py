@@ -233,10 +233,13 @@ def test_cones_bad1():
     assert bad1 <= 0.12 and v.sum() / nocc.sum() > 0.9, bad1
 
 
-@pytest.mark.xfail(reason="synthetic DSM accuracy not yet within 0.5 GSD in this configuration (issue 14, open)",
-                   strict=False)
-def test_dense_json_is_written_by_pipeline(tmp_path):
-    """End to end on a small synthetic pair with exterior orientations: DSM median and NMAD within 0.1 / 0.5 GSD."""
+def test_synthetic_dsm_within_half_gsd(tmp_path):
+    """End to end on a synthetic pair with exterior orientations and a known surface (issue 14 must-show).
+
+    The DSM (cell = the ground sampling distance, GSD) against the true surface at the cell centres:
+    RMSE <= 0.5 GSD (the issue's figure; measured 0.36), |median| < 0.1 GSD, NMAD < 0.35 GSD
+    (measured 0.26) and no cell off by more than 3 GSD (matching blunders).
+    """
     from stereo.dense.pipeline import DenseOptions, run_dense
     from stereo.formats import write_exterior
     from stereo.synthetic import make_scene, render
@@ -263,4 +266,8 @@ def test_dense_json_is_written_by_pipeline(tmp_path):
     dz = d.height[rr, cc] - sc.height(np.column_stack([x, y]))
     dz = dz[np.isfinite(dz)]
     nmad = 1.4826 * np.median(np.abs(dz - np.median(dz)))
-    assert abs(np.median(dz)) < 0.1 * res.dsm_cell and nmad < 0.5 * res.dsm_cell, (np.median(dz), nmad, res.dsm_cell)
+    gsd = res.dsm_cell
+    rmse = float(np.sqrt(np.mean(dz ** 2)))
+    assert d.coverage > 0.6, d.coverage  # measured 0.77 of the grid (the grid is the points' bounding box)
+    assert abs(np.median(dz)) < 0.1 * gsd and nmad < 0.35 * gsd, (np.median(dz), nmad, gsd)
+    assert rmse <= 0.5 * gsd and np.abs(dz).max() < 3 * gsd, (rmse / gsd, np.abs(dz).max() / gsd)
