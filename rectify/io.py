@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,7 +27,7 @@ from rasterio.errors import RasterioError
 from rasterio.windows import Window
 
 from .errors import InvalidInputError, RasterIOError
-from .fileutil import atomic_output
+from .fileutil import atomic_output, write_failure_reason
 
 __all__ = ["RasterInfo", "open_raster", "raster_info", "read_window", "read_overview", "iter_windows",
            "to_uint8"]
@@ -439,21 +440,59 @@ class TiledWriter:
             if self.policy.kind == "mask":
                 m = np.full((h, w), 255, np.uint8) if valid is None else valid.astype(np.uint8) * 255
                 self._ds.write_mask(m, window=win)
-        except RasterioError as err:
-            raise RasterIOError(f"cannot write window {win} of {self.path!r}: {err}") from err
+        except (RasterioError, OSError) as err:
+            raise RasterIOError(f"cannot write {self.path!r}: {write_failure_reason(err, self.path)} "
+                                f"(window {win})") from err
 
     def close(self) -> None:
+        """Close the file and check that it was written whole.
 
+        GDAL reports a failed flush (a full disk, most often) only on its own stderr, so the closed
+        file is opened again and every block of it must lie inside the file.
+        """
+        if self._ds.closed:
+            return
         try:
             self._ds.close()
-        except RasterioError as err:
-            raise RasterIOError(f"cannot finish {self.path!r}: {err}") from err
+        except (RasterioError, OSError) as err:
+            raise RasterIOError(f"cannot write {self.path!r}: {write_failure_reason(err, self.path)}") from err
+        verify_geotiff(self.path)
 
     def __enter__(self) -> TiledWriter:
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, *exc) -> None:
+        if exc_type is None:
+            self.close()
+            return
+        with contextlib.suppress(Exception):  # failing already: close without masking the error
+            self._ds.close()
+
+
+def verify_geotiff(path: str | Path) -> None:
+    """Raise :class:`RasterIOError` unless the GeoTIFF ``path`` opens and holds every block it indexes.
+
+    Catches files left truncated by a write failure GDAL did not raise (a full disk at close); the
+    reason names "no space left on device" when the file system is (nearly) full.
+    """
+    p = str(path)
+    try:
+        size = os.path.getsize(p)
+        with rasterio.open(p) as ds:
+            bh, bw = ds.block_shapes[0]
+            nbx, nby = math.ceil(ds.width / bw), math.ceil(ds.height / bh)
+            for j in range(nby):
+                for i in range(nbx):
+                    off = ds.get_tag_item(f"BLOCK_OFFSET_{i}_{j}", "TIFF", bidx=1)
+                    n = ds.get_tag_item(f"BLOCK_SIZE_{i}_{j}", "TIFF", bidx=1)
+                    if off is not None and n is not None and int(off) + int(n) > size:
+                        raise RasterIOError(f"cannot write {p!r}: {write_failure_reason(None, p)} "
+                                            f"(block {i},{j} ends past the end of the file)")
+    except RasterIOError:
+        raise
+    except (RasterioError, OSError) as err:
+        raise RasterIOError(f"cannot write {p!r}: {write_failure_reason(err, p)} (the written file does not "
+                            "open)") from err
 
 
 def write_raster(path: str | Path, data: NDArray, transform, crs: str | None, *,
@@ -518,6 +557,7 @@ def translate_to_cog(src: str | Path, dst: str | Path, *, compress: str = "defla
                     if np.dtype(ds.dtypes[0]).kind in "ui":
                         opts["PREDICTOR"] = "YES"
             rasterio.shutil.copy(str(src), str(dst), driver="COG", **opts)
+            verify_geotiff(dst)
             return
 
         with rasterio.open(src, "r+") as ds:
@@ -530,8 +570,11 @@ def translate_to_cog(src: str | Path, dst: str | Path, *, compress: str = "defla
         rasterio.shutil.copy(str(src), str(dst), driver="GTiff", COPY_SRC_OVERVIEWS="YES", TILED="YES",
                              BLOCKXSIZE=str(tile), BLOCKYSIZE=str(tile), COMPRESS=compress.upper(),
                              BIGTIFF="IF_SAFER")
+        verify_geotiff(dst)
+    except RasterIOError:
+        raise
     except (RasterioError, OSError) as err:
-        raise RasterIOError(f"cannot write COG {str(dst)!r}: {err}") from err
+        raise RasterIOError(f"cannot write COG {str(dst)!r}: {write_failure_reason(err, dst)}") from err
 
 
 def read_overview_average(path: str | Path, max_size: int, *, bands: list[int] | None = None,

@@ -48,7 +48,8 @@ from matplotlib.figure import Figure
 from numpy.typing import ArrayLike, NDArray
 
 from .crs import crs_to_string, parse_crs
-from .errors import InvalidInputError, RasterIOError, ShapeError
+from .errors import InvalidInputError, RasterIOError, RectifyError, ShapeError
+from .fileutil import current_umask, write_failure_reason
 from .formats import REPORT_VERSION, GcpTable, read_report, report_json_text
 from .io import read_overview, to_uint8
 from .plots import (
@@ -673,7 +674,7 @@ def write_report(out_dir: str | os.PathLike, *, title: str, tables: list[Residua
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".part", dir=out.parent))
-        os.chmod(tmp, 0o755)  # mkdtemp makes it private; the report folder is an ordinary one
+        os.chmod(tmp, 0o777 & ~current_umask())  # mkdtemp makes it private; the report folder is an ordinary one
     except OSError as err:
         raise RasterIOError(f"cannot create report folder beside {str(out)!r}: {err}") from err
     created = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M:%S")
@@ -720,6 +721,11 @@ def write_report(out_dir: str | os.PathLike, *, title: str, tables: list[Residua
         (tmp / "report.html").write_text(_html(title, created, crs_text, plans, summaries, fig_files,
                                                caller, tmp, files, int(html_max_rows)), encoding="utf-8")
         _commit(tmp, out, files, previous, overwrite)
+    except OSError as err:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if isinstance(err, RectifyError):
+            raise
+        raise RasterIOError(f"cannot write the report {str(out)!r}: {write_failure_reason(err, out)}") from err
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

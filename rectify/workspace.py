@@ -18,15 +18,14 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
 from . import formats
 from .camera import Camera
-from .errors import InvalidInputError, RasterIOError
-from .fileutil import check_output
+from .errors import InvalidInputError, RasterIOError, RectifyError
+from .fileutil import apply_umask, check_output, make_temp, write_failure_reason
 from .residuals import ResidualTable
 
 __all__ = ["Workspace", "same_file"]
@@ -168,7 +167,10 @@ class Workspace:
                 if dst.exists() and not self.overwrite:
                     raise InvalidInputError(f"output {str(dst)!r} appeared while writing; pass --overwrite")
             for tmp, dst in self._staged:
-                os.replace(tmp, dst)
+                try:
+                    os.replace(tmp, dst)
+                except OSError as err:
+                    raise RasterIOError(f"cannot write {str(dst)!r}: {write_failure_reason(err, dst)}") from err
         except BaseException:
             for tmp, _ in self._staged:
                 with contextlib.suppress(OSError):
@@ -186,16 +188,14 @@ class Workspace:
         outside it, it is renamed into place as soon as the writer returns without error.
         """
         p = self.check_output(path)
-        parent = p.parent if str(p.parent) else Path(".")
-        fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=suffix if suffix is not None else p.suffix + ".part",
-                                   dir=parent)
-        os.close(fd)
-        tmp_path = Path(tmp)
+        tmp_path = make_temp(p, suffix)
         try:
             yield tmp_path
-        except BaseException:
+            apply_umask(tmp_path)
+        except BaseException as err:
             with contextlib.suppress(OSError):
                 tmp_path.unlink()
+            _reraise_os_error(err, p)
             raise
         if self._staged is not None:
             self._staged.append((tmp_path, p))
@@ -204,9 +204,10 @@ class Workspace:
             if p.exists() and not self.overwrite:
                 raise InvalidInputError(f"output {str(p)!r} appeared while writing; pass --overwrite")
             os.replace(tmp_path, p)
-        except BaseException:
+        except BaseException as err:
             with contextlib.suppress(OSError):
                 tmp_path.unlink()
+            _reraise_os_error(err, p)
             raise
 
     def write_text(self, path: StrPath, text: str) -> Path:
@@ -268,10 +269,13 @@ class Workspace:
 
 
 def _write(tmp: Path, text: str) -> None:
-    try:
-        with open(tmp, "w", encoding="utf-8") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-    except OSError as err:
-        raise RasterIOError(f"cannot write {str(tmp)!r}: {err.strerror or err}") from err
+    with open(tmp, "w", encoding="utf-8") as fh:
+        fh.write(text)
+        fh.flush()
+        os.fsync(fh.fileno())
+
+
+def _reraise_os_error(err: BaseException, dst: Path) -> None:
+    """An OSError that is not a project error becomes a one-line RasterIOError naming ``dst`` and the reason."""
+    if isinstance(err, OSError) and not isinstance(err, RectifyError):
+        raise RasterIOError(f"cannot write {str(dst)!r}: {write_failure_reason(err, dst)}") from err

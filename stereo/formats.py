@@ -36,7 +36,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from rectify.errors import InvalidInputError, RasterIOError
-from rectify.fileutil import atomic_output, read_json
+from rectify.fileutil import atomic_output, read_json, write_failure_reason
 from rectify.report import json_safe
 
 from .relative import RelativeGeometry
@@ -122,7 +122,7 @@ def _write_text_file(tmp: StrPath, text: str) -> None:
         with open(tmp, "w", encoding="utf-8") as fh:
             fh.write(text)
     except OSError as err:
-        raise RasterIOError(f"cannot write {str(tmp)!r}: {err.strerror or err}") from err
+        raise RasterIOError(f"cannot write {str(tmp)!r}: {write_failure_reason(err, tmp)}") from err
 
 
 def _atomic(path: StrPath, overwrite: bool, dump: Callable[[Path], None]) -> Path:
@@ -294,7 +294,7 @@ def dump_ply(path: StrPath, xyz: ArrayLike, *, colors: ArrayLike | None = None, 
         with open(path, "wb") as fh:
             fh.write(data)
     except OSError as err:
-        raise RasterIOError(f"cannot write {str(path)!r}: {err.strerror or err}") from err
+        raise RasterIOError(f"cannot write {str(path)!r}: {write_failure_reason(err, path)}") from err
 
 
 def write_ply(path: StrPath, xyz: ArrayLike, *, colors: ArrayLike | None = None, overwrite: bool = False,

@@ -1,0 +1,137 @@
+"""Faults and bad input (issue 12): every case exits non-zero with a one-line message naming the
+problem and the value, leaves nothing at any output path and leaves the inputs untouched."""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import os
+import stat
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from affine import Affine
+from click.testing import CliRunner
+
+from rectify.cli.main import cli as rectify_cli
+from rectify.io import write_raster
+
+
+def _hash(*paths: Path) -> list[str]:
+    return [hashlib.sha256(Path(p).read_bytes()).hexdigest() for p in paths]
+
+
+def _entries(d: Path) -> list[str]:
+    """Every name in ``d`` (hidden temporaries included)."""
+    return sorted(p.name for p in Path(d).iterdir())
+
+
+def _one_line_error(r) -> None:
+    assert r.exit_code != 0
+    assert "Traceback" not in r.output
+    err = [ln for ln in r.output.splitlines() if ln.startswith("Error")]
+    assert len(err) == 1, r.output
+
+
+@pytest.fixture()
+def noise_scene(tmp_path):
+    """A 400 x 400 RGB noise frame (does not compress) and 5 GCPs of a metre grid in UTM 18N."""
+    rng = np.random.default_rng(0)
+    img = (rng.random((400, 400, 3)) * 255).astype(np.uint8)
+    src = tmp_path / "noise.tif"
+    write_raster(src, img, Affine(1, 0, 0, 0, 1.0000001, 0), None)
+    pix = np.array([[2, 3], [390, 4], [5, 390], [380, 395], [200, 200]], float)
+    lines = ["# crs=EPSG:32618", "id,col,row,x,y"] + [
+        f"p{i},{c:g},{r:g},{500000.0 + c:.1f},{4400000.0 - r:.1f}" for i, (c, r) in enumerate(pix)]
+    gcps = tmp_path / "gcps.csv"
+    gcps.write_text("\n".join(lines) + "\n")
+    return tmp_path, src, gcps
+
+
+@pytest.fixture()
+def small_disk(tmp_path):
+    """A 200 KiB tmpfs (root only; skipped otherwise); unmounted at teardown."""
+    if os.geteuid() != 0:
+        pytest.skip("a small tmpfs needs root")
+    d = tmp_path / "small_disk"
+    d.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=200k", "tmpfs", str(d)], capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs: {r.stderr.strip()}")
+    try:
+        yield d
+    finally:
+        subprocess.run(["umount", str(d)], capture_output=True)
+
+
+def _fill(d: Path, leave: int = 0) -> Path:
+    """Fill the file system of ``d`` up to ``leave`` bytes with one file (an existing, unrelated file)."""
+    filler = d / "filler.bin"
+    with open(filler, "wb", buffering=0) as fh, contextlib.suppress(OSError):
+        while True:
+            fh.write(b"\0" * 4096)
+    if leave:
+        os.truncate(filler, max(0, filler.stat().st_size - leave))
+    return filler
+
+
+# ----------------------------------------------------------------------------------------- 1. writers
+@pytest.mark.parametrize("cog", [False, True])
+def test_warp_disk_full_fails_and_cleans_up(noise_scene, small_disk, cog):
+    d, src, gcps = noise_scene
+    before = _hash(src, gcps)
+    out = small_disk / "out.tif"
+    r = CliRunner().invoke(rectify_cli, ["warp", str(src), str(out), "--gcps", str(gcps), "--method", "affine"]
+                           + (["--cog"] if cog else []))
+    _one_line_error(r)
+    assert "no space left on device" in r.output and str(out) in r.output
+    assert ".part" not in r.output  # the destination is named, not the temporary file
+    assert _entries(small_disk) == []
+    assert _hash(src, gcps) == before
+
+
+def test_fit_json_disk_full(noise_scene, small_disk):
+    d, src, gcps = noise_scene
+    before = _hash(gcps)
+    filler = _fill(small_disk)
+    out = small_disk / "t.json"
+    r = CliRunner().invoke(rectify_cli, ["fit", str(gcps), "-o", str(out), "--method", "affine"])
+    _one_line_error(r)
+    assert "no space left on device" in r.output and "t.json" in r.output
+    assert _entries(small_disk) == [filler.name]
+    assert _hash(gcps) == before
+
+
+def test_csv_and_ply_writers_disk_full(small_disk):
+    from rectify.errors import RasterIOError
+    from rectify.formats import Matches, write_matches
+    from stereo.formats import write_ply
+
+    filler = _fill(small_disk)
+    n = 2000
+    m = Matches(np.array([f"m{i}" for i in range(n)]), np.zeros((n, 2)), np.ones((n, 2)))
+    with pytest.raises(RasterIOError, match="no space left on device"):
+        write_matches(small_disk / "m.csv", m)
+    with pytest.raises(RasterIOError, match="no space left on device"):
+        write_ply(small_disk / "p.ply", np.zeros((n, 3)))
+    assert _entries(small_disk) == [filler.name]
+
+
+# ----------------------------------------------------------------------------------------- 2. umask
+@pytest.mark.parametrize("mask", [0o022, 0o002])
+def test_outputs_follow_the_umask(noise_scene, mask):
+    d, src, gcps = noise_scene
+    old = os.umask(mask)
+    try:
+        r = CliRunner().invoke(rectify_cli, ["warp", str(src), str(d / "o.tif"), "--gcps", str(gcps),
+                                             "--method", "affine", "--report", str(d / "rep")])
+        assert r.exit_code == 0, r.output
+        r = CliRunner().invoke(rectify_cli, ["fit", str(gcps), "-o", str(d / "t.json"), "--method", "affine"])
+        assert r.exit_code == 0, r.output
+    finally:
+        os.umask(old)
+    for p in (d / "o.tif", d / "t.json", d / "rep" / "report.html"):
+        assert stat.S_IMODE(p.stat().st_mode) == 0o666 & ~mask, p
+    assert stat.S_IMODE((d / "rep").stat().st_mode) == 0o777 & ~mask
