@@ -9,6 +9,7 @@ returns a frozen result whose :meth:`summary_lines` are the lines the command pr
 
 from __future__ import annotations
 
+import contextlib
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -19,7 +20,7 @@ from .compare import StudyConfig, StudyResults, run_study, write_study
 from .demo import DemoResult, run_demo
 from .errors import InvalidInputError
 from .features import DETECTORS, VERIFY_METHODS, MatcherConfig, MatchResult, match_images
-from .formats import GcpTable
+from .formats import GcpTable, has_embedded_gcps
 from .io import raster_info
 from .report import write_fit_report, write_match_report, write_warp_report
 from .transforms import METHODS, FitResult, fit_gcps
@@ -126,10 +127,11 @@ def match(ws: Workspace, left: str | Path, right: str | Path, output: str | Path
     ws.check_report_dir()
     cfg = options.config()
     res = match_images(left, right, config=cfg, progress=progress)
-    out = ws.save_matches(output, res.matches)
     report = None
-    if ws.report_dir is not None:
-        report = write_match_report(ws.report_dir, res, left, right, overwrite=ws.overwrite)
+    with ws.transaction():  # the matches and the report, all or none
+        out = ws.save_matches(output, res.matches)
+        if ws.report_dir is not None:
+            report = write_match_report(ws.report_dir, res, left, right, overwrite=ws.overwrite)
     return MatchRun(res, options, cfg, out, report)
 
 
@@ -186,11 +188,12 @@ def fit(ws: Workspace, gcps_path: str | Path, output: str | Path, options: FitOp
     ws.check_report_dir()
     gcps = ws.load_gcps(gcps_path)
     result = fit_gcps(gcps, options.method)
-    out = ws.save_transform(output, result.model, table=result.table, crs=gcps.crs)
     report = None
-    if ws.report_dir is not None:
-        report = write_fit_report(ws.report_dir, result, gcps, gcps_path=gcps_path, transform_path=out,
-                                  overwrite=ws.overwrite)
+    with ws.transaction():  # the transform and the report, all or none
+        out = ws.save_transform(output, result.model, table=result.table, crs=gcps.crs)
+        if ws.report_dir is not None:
+            report = write_fit_report(ws.report_dir, result, gcps, gcps_path=gcps_path, transform_path=out,
+                                      overwrite=ws.overwrite)
     return FitRun(result, gcps, options, out, report)
 
 
@@ -254,12 +257,22 @@ def warp(ws: Workspace, src: str | Path, dst: str | Path, *, gcps_path: str | Pa
          progress: Progress = None) -> WarpRun:
     """Rectify ``src`` into the GeoTIFF ``dst`` with GCPs (fitted with ``options.method``) or a saved transform.
 
+    GCP files: CSV, QGIS ``.points``, matches CSV, GeoJSON, GeoPackage, or a GeoTIFF's embedded GCPs
+    (:func:`rectify.formats.read_gcps`). With neither ``gcps_path`` nor ``transform_path``, the GCPs
+    embedded in ``src`` are used when it carries some.
+
     Raises
     ------
     InvalidInputError
-        Neither or both of ``gcps_path`` and ``transform_path``; a report without GCPs; bad paths.
+        Neither (and no embedded GCPs) or both of ``gcps_path`` and ``transform_path``; a report without
+        GCPs; bad paths.
     """
-    if (gcps_path is None) == (transform_path is None):
+    if gcps_path is None and transform_path is None:
+        if not has_embedded_gcps(src):
+            raise InvalidInputError(f"give exactly one of --gcps or --transform ({str(src)!r} carries no "
+                                    "embedded GCPs)")
+        gcps_path = src  # the GCPs embedded in the source GeoTIFF
+    if gcps_path is not None and transform_path is not None:
         raise InvalidInputError("give exactly one of --gcps or --transform")
     if ws.report_dir is not None and transform_path is not None:
         raise InvalidInputError("--report needs --gcps (a saved transform has no residuals to report)")
@@ -284,8 +297,13 @@ def warp(ws: Workspace, src: str | Path, dst: str | Path, *, gcps_path: str | Pa
                                         overwrite=ws.overwrite, progress=progress)
     report = None
     if ws.report_dir is not None:
-        report = write_warp_report(ws.report_dir, result, source_shape=(info.height, info.width),
-                                   overwrite=ws.overwrite)
+        try:
+            report = write_warp_report(ws.report_dir, result, source_shape=(info.height, info.width),
+                                       overwrite=ws.overwrite)
+        except BaseException:  # all or none: the GeoTIFF this run wrote goes too
+            with contextlib.suppress(OSError):
+                Path(dst).unlink()
+            raise
     return WarpRun(result, options, Path(dst), report)
 
 

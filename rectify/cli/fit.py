@@ -26,7 +26,9 @@ _D = FitOptions()
 def fit(gcps_path, output, method, max_rows, report_dir, overwrite):
     """Fit a transform from source pixels to target coordinates.
 
-    GCPS is a CSV (id,col,row,x,y[,check]) or a QGIS .points file. Rows with
+    GCPS is a CSV (id,col,row,x,y[,check]), a QGIS .points file, a matches CSV
+    (fits the right image onto the left), GeoJSON, GeoPackage, or a GeoTIFF
+    with embedded GCPs (see docs/formats.md). Rows with
     check = 1 are withheld from the fit and reported as check points. Prints
     the per-point residuals dx, dy, |v| (target units) and the RMSE.
     """

@@ -16,7 +16,8 @@ _D = WarpRunOptions()
 @click.argument("src", type=click.Path(dir_okay=False))
 @click.argument("dst", type=click.Path(dir_okay=False))
 @click.option("--gcps", "gcps_path", type=click.Path(dir_okay=False), default=None,
-              help="GCP CSV (id,col,row,x,y) or QGIS .points file.")
+              help="GCPs: CSV (id,col,row,x,y), QGIS .points, matches CSV, GeoJSON, GeoPackage, or a GeoTIFF "
+                   "with embedded GCPs. Default: the GCPs embedded in SRC, when it has some.")
 @click.option("--transform", "transform_path", type=click.Path(dir_okay=False), default=None,
               help="A transform.json written by 'rectify fit'.")
 @click.option("--method", type=click.Choice(list(METHOD_NAMES)), default=_D.method, show_default=True,
@@ -36,12 +37,13 @@ def warp(src, dst, gcps_path, transform_path, method, gcp_crs, dst_crs, resoluti
          report_dir, overwrite):
     """Rectify SRC into the GeoTIFF DST.
 
-    The transform comes from GCPs (--gcps, fitted with --method) or from a
-    saved transform (--transform). The output grid is north-up, covers the
+    The transform comes from GCPs (--gcps, fitted with --method), from a
+    saved transform (--transform), or, with neither, from the GCPs embedded
+    in SRC. The output grid is north-up, covers the
     transformed footprint and is aligned to the resolution. Pixels outside
     the footprint are nodata (or masked / alpha 0, following the source).
     """
-    if (gcps_path is None) == (transform_path is None):
+    if gcps_path is not None and transform_path is not None:
         raise click.UsageError("give exactly one of --gcps or --transform")
     if report_dir is not None and transform_path is not None:
         raise click.UsageError("--report needs --gcps (a saved transform has no residuals to report)")

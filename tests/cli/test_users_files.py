@@ -138,3 +138,106 @@ def test_warp_accepts_gcps_outside_the_image(tmp_path):
     assert r.exit_code == 0, r.output
     assert "1 GCP(s) outside the 64 x 48 image, used for the fit; first is 'p7'" in r.output
     assert out.is_file()
+
+
+# --------------------------------------------------------------------------- GCPs from GeoJSON, GeoPackage, GeoTIFF
+A_UTM = np.array([[29.0, 6.0, 500100.0], [5.0, -31.0, 4399900.0]])
+PIX = np.array([[2, 3], [60, 4], [5, 44], [58, 45], [30, 20], [12, 30], [45, 12]], float)
+
+
+def _frame(tmp_path, name="frame.tif", gcps=None):
+    rr, cc = np.mgrid[0:48, 0:64]
+    img = np.stack([10 + 2 * cc + 2 * rr + 10 * k for k in range(3)], axis=-1).astype(np.uint8)
+    src = tmp_path / name
+    write_raster(src, img, affine.Affine(1, 0, 0, 0, 1.0000001, 0), None, nodata=0)
+    if gcps is not None:
+        import rasterio
+        from rasterio.control import GroundControlPoint
+        from rasterio.crs import CRS
+
+        with rasterio.open(src, "r+") as ds:   # GDAL pixel/line: corners, so centres are at +0.5
+            ds.gcps = ([GroundControlPoint(row=r + 0.5, col=c + 0.5, x=x, y=y, id=f"e{i}")
+                        for i, ((c, r), (x, y)) in enumerate(gcps)], CRS.from_epsg(32618))
+    return src
+
+
+def _tgt():
+    return PIX @ A_UTM[:, :2].T + A_UTM[:, 2]
+
+
+def _check_output(out):
+    import rasterio
+
+    with rasterio.open(out) as ds:
+        assert ds.crs.to_epsg() == 32618
+        x, y = A_UTM[:, :2] @ [30, 20] + A_UTM[:, 2]
+        row, col = ds.index(x, y)
+        assert abs(int(ds.read(1)[row, col]) - (10 + 2 * 30 + 2 * 20)) <= 3
+
+
+def _geojson(path, style):
+    tgt = _tgt()
+    feats = []
+    for i, ((c, r), (x, y)) in enumerate(zip(PIX, tgt, strict=True)):
+        if style == "colrow":
+            props = {"id": f"g{i}", "col": c, "row": r}
+        else:    # QGIS-like: pixel corners, negative rows, a 'name'
+            props = {"name": f"g{i}", "sourceX": c + 0.5, "sourceY": -(r + 0.5), "enable": 1}
+        feats.append({"type": "Feature", "geometry": {"type": "Point", "coordinates": [x, y]}, "properties": props})
+    doc = {"type": "FeatureCollection", "crs": {"type": "name", "properties": {"name": "urn:ogc:def:crs:EPSG::32618"}},
+           "features": feats}
+    path.write_text(json.dumps(doc))
+
+
+@pytest.mark.parametrize("kind", ["geojson-colrow", "geojson-qgis", "gpkg", "embedded", "embedded-auto"])
+def test_gcp_files_rectify_end_to_end(tmp_path, kind):
+    from rectify.formats import GcpTable, write_gcps_gpkg
+
+    src = _frame(tmp_path, gcps=list(zip(PIX, _tgt(), strict=True)) if kind.startswith("embedded") else None)
+    args_gcps: list[str] = []
+    if kind.startswith("geojson"):
+        g = tmp_path / "gcps.geojson"
+        _geojson(g, kind.split("-")[1])
+        args_gcps = ["--gcps", str(g)]
+    elif kind == "gpkg":
+        g = tmp_path / "gcps.gpkg"
+        write_gcps_gpkg(g, GcpTable(tuple(f"g{i}" for i in range(len(PIX))), PIX, _tgt(), None,
+                                    np.zeros(len(PIX), bool), "EPSG:32618"))
+        args_gcps = ["--gcps", str(g)]
+    elif kind == "embedded":
+        g = src
+        args_gcps = ["--gcps", str(src)]
+    else:
+        g = src
+    t = read_gcps(g)
+    assert len(t) == 7 and t.crs == "EPSG:32618"
+    assert np.abs(t.pixel - PIX).max() < 1e-9 and np.abs(t.target - _tgt()).max() < 1e-6
+    before = {p.name: _hash(p) for p in tmp_path.iterdir()}
+    out = tmp_path / "out.tif"
+    r = CliRunner().invoke(cli, ["warp", str(src), str(out), *args_gcps, "--method", "affine"])
+    assert r.exit_code == 0, r.output
+    assert "7 fit points" in r.output
+    _check_output(out)
+    assert {p.name: _hash(p) for p in tmp_path.iterdir() if p != out} == before
+    r = CliRunner().invoke(cli, ["fit", str(g), "-o", str(tmp_path / "t.json"), "--method", "affine"])
+    assert r.exit_code == 0, r.output
+
+
+def test_geojson_without_crs_is_lonlat_and_bad_geojson_is_named(tmp_path):
+    g = tmp_path / "g.geojson"
+    feats = [{"type": "Feature", "geometry": {"type": "Point", "coordinates": [30.0 + i * 0.01, 50.0 + i * 0.01]},
+              "properties": {"col": float(c), "row": float(r)}} for i, (c, r) in enumerate(PIX)]
+    g.write_text(json.dumps({"type": "FeatureCollection", "features": feats}))
+    t = read_gcps(g)
+    assert t.crs == "EPSG:4326" and t.ids[0] == "1"
+    feats[2]["properties"] = {"x": 1}
+    g.write_text(json.dumps({"type": "FeatureCollection", "features": feats}))
+    src = _frame(tmp_path)
+    before = {p.name: _hash(p) for p in tmp_path.iterdir()}
+    r = CliRunner().invoke(cli, ["warp", str(src), str(tmp_path / "o.tif"), "--gcps", str(g)])
+    assert r.exit_code == 1 and "feature 2: no pixel coordinates" in r.output and "Traceback" not in r.output
+    assert {p.name: _hash(p) for p in tmp_path.iterdir()} == before
+    # no --gcps and no embedded GCPs: named
+    r = CliRunner().invoke(cli, ["warp", str(src), str(tmp_path / "o.tif")])
+    assert r.exit_code != 0 and "carries no embedded GCPs" in r.output
+    assert {p.name: _hash(p) for p in tmp_path.iterdir()} == before
