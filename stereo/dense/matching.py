@@ -96,7 +96,7 @@ class MatchOptions:
     p2: float = 32.0
     uniqueness: int = 10
     lr_max_diff: int = 1
-    speckle_window: int = 100
+    speckle_window: int = 400
     speckle_range: int = 2
     median: bool = True
     fill_max_px: int = 0
