@@ -9,7 +9,9 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
+import signal
 import sys
+import warnings
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -26,10 +28,38 @@ report_opt = click.option("--report", "report_dir", type=click.Path(file_okay=Fa
 
 
 def setup_logging(verbose: int, quiet: int) -> None:
-    """Set the root log level from -v/-q counts (default WARNING)."""
+    """Set up a command's process: log level from -v/-q, library warnings, SIGTERM.
+
+    The root log level is WARNING by default, lowered by each -v and raised by each -q. Warnings of
+    the libraries (rasterio's ``NotGeoreferencedWarning`` on a plain photo, ...) are shown only with
+    -v. SIGTERM (``timeout``, a batch scheduler) raises ``SystemExit(143)`` in the main thread, so
+    that temporary files and half-written outputs are removed as on any other error.
+    """
     level = logging.WARNING - 10 * verbose + 10 * quiet
     logging.basicConfig(level=max(level, logging.DEBUG), format="%(levelname)s %(name)s: %(message)s",
                         stream=sys.stderr, force=True)
+    if verbose <= 0:
+        _hide_library_warnings()
+    install_sigterm_handler()
+
+
+def _hide_library_warnings() -> None:
+    """Hide third-party warnings (rasterio, GDAL, numpy, matplotlib); the project's own stay visible."""
+    from ..errors import RectifyWarning
+
+    warnings.filterwarnings("ignore")
+    warnings.filterwarnings("default", category=RectifyWarning)
+    logging.getLogger("rasterio").setLevel(logging.ERROR)
+
+
+def _sigterm(signum: int, frame: Any) -> None:
+    raise SystemExit(128 + signum)
+
+
+def install_sigterm_handler() -> None:
+    """Turn SIGTERM into ``SystemExit(143)`` (cleanup runs); a no-op outside the main thread."""
+    with contextlib.suppress(ValueError, AttributeError):
+        signal.signal(signal.SIGTERM, _sigterm)
 
 
 def verbosity_opts(f: Callable) -> Callable:

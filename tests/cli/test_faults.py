@@ -135,3 +135,104 @@ def test_outputs_follow_the_umask(noise_scene, mask):
     for p in (d / "o.tif", d / "t.json", d / "rep" / "report.html"):
         assert stat.S_IMODE(p.stat().st_mode) == 0o666 & ~mask, p
     assert stat.S_IMODE((d / "rep").stat().st_mode) == 0o777 & ~mask
+
+
+# ----------------------------------------------------------------------------------------- 3. outputs vs inputs, all or none, SIGTERM
+def _stereo_cli():
+    from stereo.cli.main import cli
+
+    return cli
+
+
+def test_output_equal_to_an_input_is_refused_even_with_overwrite(noise_scene):
+    d, src, gcps = noise_scene
+    (d / "x.csv").write_text("id,x_left,y_left,x_right,y_right\n")
+    (d / "ro.json").write_text("{}")
+    (d / "cam.json").write_text("{}")
+    inputs = [src, gcps, d / "x.csv", d / "ro.json", d / "cam.json"]
+    before = _hash(*inputs)
+    names = _entries(d)
+    cases = [
+        (rectify_cli, ["fit", str(gcps), "-o", str(gcps), "--overwrite"], gcps),
+        (rectify_cli, ["warp", str(src), str(src), "--gcps", str(gcps), "--overwrite"], src),
+        (rectify_cli, ["warp", str(src), str(gcps), "--gcps", str(gcps), "--overwrite"], gcps),
+        (rectify_cli, ["match", str(src), str(src), "-o", str(src), "--overwrite"], src),
+        (rectify_cli, ["match", str(src), str(gcps), "-o", str(gcps), "--overwrite"], gcps),
+        # a derived sibling: `stereo model -o X.ply` writes X.csv, here the matches input
+        (_stereo_cli(), ["model", str(d / "ro.json"), "--matches", str(d / "x.csv"), "-o", str(d / "x.ply"),
+                         "--overwrite"], d / "x.csv"),
+        (_stereo_cli(), ["orient", "--camera", str(d / "cam.json"), "--matches", str(d / "x.csv"),
+                         "-o", str(d / "cam.json"), "--overwrite"], d / "cam.json"),
+        (_stereo_cli(), ["orient", str(src), str(src), "--camera", str(d / "cam.json"),
+                         "-o", str(d / "new.json"), "--matches-out", str(src), "--overwrite"], src),
+    ]
+    for cli, args, clash in cases:
+        r = CliRunner().invoke(cli, args)
+        assert r.exit_code != 0, (args, r.output)
+        _one_line_error(r)
+        if clash is not None:
+            assert "is also an input" in r.output and str(clash) in r.output, (args, r.output)
+        assert _entries(d) == names, args
+    assert _hash(*inputs) == before
+
+
+def test_fit_with_a_failing_report_writes_nothing(noise_scene, monkeypatch):
+    import rectify.actions
+
+    d, src, gcps = noise_scene
+
+    def boom(*a, **k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(rectify.actions, "write_fit_report", boom)
+    monkeypatch.setattr(rectify.actions, "write_warp_report", boom)
+    names = _entries(d)
+    r = CliRunner().invoke(rectify_cli, ["fit", str(gcps), "-o", str(d / "t.json"), "--report", str(d / "rep")])
+    assert r.exit_code != 0 and _entries(d) == names
+    r = CliRunner().invoke(rectify_cli, ["warp", str(src), str(d / "o.tif"), "--gcps", str(gcps), "--method",
+                                         "affine", "--report", str(d / "rep")])
+    assert r.exit_code != 0 and _entries(d) == names
+
+
+def test_stale_temporaries_are_ignored(noise_scene):
+    d, src, gcps = noise_scene
+    stale = d / ".o.tif.abcd1234.tif.part"
+    stale.write_bytes(b"left by a killed run")
+    r = CliRunner().invoke(rectify_cli, ["warp", str(src), str(d / "o.tif"), "--gcps", str(gcps), "--method", "affine"])
+    assert r.exit_code == 0, r.output
+    assert stale.read_bytes() == b"left by a killed run"
+
+
+def test_sigterm_removes_temporaries(tmp_path):
+    """A warp killed with SIGTERM (as by `timeout`) exits 143 and leaves neither output nor temporary file."""
+    import signal
+    import sys
+    import time
+
+    rng = np.random.default_rng(1)
+    img = (rng.random((1500, 1500, 3)) * 255).astype(np.uint8)
+    src = tmp_path / "big.tif"
+    write_raster(src, img, Affine(1, 0, 0, 0, 1.0000001, 0), None)
+    gcps = tmp_path / "g.csv"
+    gcps.write_text("# crs=EPSG:32618\nid,col,row,x,y\n" + "\n".join(
+        f"p{i},{c},{r},{500000.0 + c:.1f},{4400000.0 - r:.1f}"
+        for i, (c, r) in enumerate([(0, 0), (1499, 0), (0, 1499), (1499, 1499), (700, 800)])) + "\n")
+    out = tmp_path / "out" / "o.tif"
+    out.parent.mkdir()
+    before = _hash(src, gcps)
+    proc = subprocess.Popen([sys.executable, "-c", "from rectify.cli.main import cli; cli()", "warp", str(src),
+                             str(out), "--gcps", str(gcps), "--method", "affine", "--resolution", "0.2",
+                             "--resampling", "lanczos", "--threads", "1"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    t0 = time.monotonic()
+    while not any(out.parent.iterdir()) and proc.poll() is None and time.monotonic() - t0 < 120:
+        time.sleep(0.05)
+    if proc.poll() is not None:
+        pytest.skip(f"the warp ended before it could be interrupted (exit {proc.returncode})")
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, err.decode()
+    assert b"Traceback" not in err
+    assert _entries(out.parent) == []
+    assert _hash(src, gcps) == before
