@@ -305,7 +305,7 @@ class OrthoResult:
                f"relief displacement removed up to {self.max_relief_shift:.2f} {u}"]
         if self.extra.get("true_ortho"):
             out.append(f"true ortho: {self.n_occluded} occluded pixels set to nodata (visibility band "
-                       f"{g and self.extra.get('visibility_band')})")
+                       f"{self.extra.get('visibility_band')}: 0 outside, 1 occluded, 2 visible)")
         return out
 
 

@@ -74,9 +74,20 @@ def build(work: Path, n: int) -> dict:
             "transform": list(tuple(grid.transform)[:6]), "crs": CRS}
 
 
+# peak RSS of this process image: VmHWM (ru_maxrss would carry the parent's peak across fork + exec on Linux)
+PEAK = r"""
+def peak_rss_mb():
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+"""
+
 CHILD_OURS = r"""
-import json, os, resource, sys, time
+import json, os, sys, time
 t0 = time.perf_counter()
+{peak}
 os.environ.setdefault("GDAL_CACHEMAX", "64")
 sys.path.insert(0, {root!r})
 from affine import Affine
@@ -92,13 +103,13 @@ with rasterio.open(cfg["src"]) as ds:
 grid = Grid(cfg["width"], cfg["height"], Affine(*cfg["transform"]), cfg["crs"])
 orthorectify(cfg["src"], cfg["out"], RPCModel(rpc, w, h), Dem.from_path(cfg["dem"]), grid=grid,
              options=OrthoOptions(threads=2), overwrite=True)
-print(json.dumps({{"seconds": time.perf_counter() - t0,
-                  "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}}))
+print(json.dumps({{"seconds": time.perf_counter() - t0, "rss_mb": peak_rss_mb()}}))
 """
 
 CHILD_GDAL = r"""
-import json, os, resource, sys, time
+import json, os, sys, time
 t0 = time.perf_counter()
+{peak}
 import rasterio
 from affine import Affine
 from rasterio.enums import Resampling
@@ -112,8 +123,7 @@ with rasterio.Env(GDAL_CACHEMAX=64 * 1024 * 1024, GDAL_NUM_THREADS=2):
         reproject(rasterio.band(src, 1), rasterio.band(dst, 1), rpcs=src.rpcs, src_crs="EPSG:4326",
                   dst_transform=dst.transform, dst_crs=dst.crs, dst_nodata=0, resampling=Resampling.bilinear,
                   num_threads=2, warp_mem_limit=64, RPC_DEM=cfg["dem"])
-print(json.dumps({{"seconds": time.perf_counter() - t0,
-                  "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}}))
+print(json.dumps({{"seconds": time.perf_counter() - t0, "rss_mb": peak_rss_mb()}}))
 """
 
 
@@ -157,11 +167,11 @@ def main() -> None:
           f"{cfg['width']} x {cfg['height']} px at 1 m, EPSG:32632 (built in {time.perf_counter() - t0:.1f} s)")
     rows = {}
     cfg_o = dict(cfg, out=str(args.workdir / "ours.tif"))
-    rows["rectify ortho (RPC + DEM)"] = run_child(CHILD_OURS.format(root=str(ROOT), cfg=json.dumps(cfg_o)))
+    rows["rectify ortho (RPC + DEM)"] = run_child(CHILD_OURS.format(root=str(ROOT), cfg=json.dumps(cfg_o), peak=PEAK))
     print(f"ours: {rows['rectify ortho (RPC + DEM)']}", flush=True)
     if not args.skip_gdal:
         cfg_g = dict(cfg, out=str(args.workdir / "gdal.tif"))
-        rows["GDAL reproject, rpcs + RPC_DEM"] = run_child(CHILD_GDAL.format(cfg=json.dumps(cfg_g)))
+        rows["GDAL reproject, rpcs + RPC_DEM"] = run_child(CHILD_GDAL.format(cfg=json.dumps(cfg_g), peak=PEAK))
         print(f"GDAL: {rows['GDAL reproject, rpcs + RPC_DEM']}", flush=True)
     print(f"\n| {cfg['width']} x {cfg['height']} output, bilinear, 2 threads | wall s | peak RSS MB |")
     print("|---|---|---|")

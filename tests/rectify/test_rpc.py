@@ -352,3 +352,19 @@ def test_real_rpcs_agree_with_gdal(name):
     assert res["loc_m"] < 1e-3, res
     # GDAL's iteration gives up on part of the Planet samples (extreme heights); ours converge on all
     assert res["gdal_failed"] < res["n"]
+
+
+def test_fit_and_dem_localisation_bad_input():
+    rpc = synthetic_rpc()
+    with pytest.raises(EstimationError, match="finite"):
+        fit_rpc(lambda g: np.full((len(g), 2), np.nan), ((0, 1), (0, 1), (0, 1)))
+    with pytest.raises(InvalidInputError, match="h_range"):
+        rpc.localize_on_dem([[1.0, 2.0]], lambda ll: np.zeros(len(ll)), h_range=(5.0, 1.0))
+    with pytest.raises(InvalidInputError, match="on_failure"):
+        rpc.localize_on_dem([[1.0, 2.0]], lambda ll: np.zeros(len(ll)), h_range=(0.0, 1.0), on_failure="skip")
+    with pytest.raises(ShapeError):
+        rpc.localize_on_dem([1.0, 2.0, 3.0], lambda ll: np.zeros(len(ll)))
+    with pytest.raises(InvalidInputError, match="5 numbers"):
+        RPC.from_coefficients(offsets=(0, 0, 0), scales=(1, 1, 1, 1, 1), samp_num=[0, 1], line_num=[0, 0, 1])
+    with pytest.raises(InvalidInputError, match="missing key"):
+        RPC.from_dict({"line_off": 1.0})
