@@ -960,6 +960,7 @@ class OrthoRun:
     result: OrthoResult
     residuals: Any = None  # ResidualTable (px) or None
     model_kind: str = ""
+    report_files: list[Path] | None = None
 
     def summary_lines(self) -> list[str]:
         out = []
@@ -970,7 +971,10 @@ class OrthoRun:
             if raw is not None:
                 out.append(f"GCP error of the RPC alone: RMSE {raw:.4g} px" +
                            (f"; leave-one-out check RMSE after refinement {loo:.4g} px" if loo is not None else ""))
-        return out + self.result.summary_lines()
+        out += self.result.summary_lines()
+        if self.report_files:
+            out.append(f"report: {', '.join(str(p) for p in self.report_files)}")
+        return out
 
 
 def _read_gcps(path: str | Path):
@@ -1002,7 +1006,8 @@ def ortho_from_files(src: str | Path, dst: str | Path, dem_path: str | Path, *, 
                      eo_crs: str | None = None, gcps: str | Path | None = None, refinement: str = "shift",
                      dst_crs: str | None = None, resolution: float | None = None, undulation: float = 0.0,
                      geoid: str | None = None, options: OrthoOptions | None = None, overwrite: bool = False,
-                     progress: Callable[[int, int], None] | None = None) -> OrthoRun:
+                     progress: Callable[[int, int], None] | None = None,
+                     report_dir: str | Path | None = None) -> OrthoRun:
     """Orthorectify ``src`` with its RPC (``rpc=True``: from the image; a path: an RPC file) or a frame camera.
 
     With ``gcps`` (any GCP file ``rectify`` reads; z optional, taken from the
@@ -1029,6 +1034,13 @@ def ortho_from_files(src: str | Path, dst: str | Path, dem_path: str | Path, *, 
     from .fileutil import check_output
 
     check_output(dst, overwrite=overwrite)
+    if report_dir is not None:  # fail before the work, not after
+        rd = Path(report_dir)
+        if rd.exists() and not rd.is_dir():
+            raise InvalidInputError(f"report folder {str(rd)!r} is a file")
+        if rd.is_dir():
+            for name in ("ortho_report.json", "residuals.csv", "relief_shift.tif"):
+                check_output(rd / name, overwrite=overwrite)
     dem = Dem.from_path(dem_path, undulation=undulation, geoid=geoid)
     info = raster_info(src)
     table = None
@@ -1054,4 +1066,67 @@ def ortho_from_files(src: str | Path, dst: str | Path, dem_path: str | Path, *, 
                                   units="px", check=np.ones(len(g.ids), bool), position_px=g.pixel)
     result = orthorectify(src, dst, model, dem, dst_crs=dst_crs, resolution=resolution, options=options,
                           overwrite=overwrite, progress=progress)
-    return OrthoRun(result, table, type(model).__name__)
+    run = OrthoRun(result, table, type(model).__name__)
+    if report_dir is not None:
+        paths = write_ortho_report(report_dir, run, model, dem, overwrite=overwrite)
+        run = OrthoRun(result, table, type(model).__name__, paths)
+    return run
+
+
+def relief_shift_map(model: SensorModel, dem: Dem, grid: Grid, *, max_size: int = 256
+                     ) -> tuple[NDArray[np.float64], Any]:
+    """The horizontal shift (output CRS units) the DEM removed, on a coarse copy of ``grid``.
+
+    ``|d| * |h - h_mean|``: the displacement a planar rectification at the
+    mean height would leave, with ``d`` the horizontal shift per metre of
+    height. Returns the (rows, cols) array (NaN outside the DEM) and its
+    rasterio geotransform.
+    """
+    from affine import Affine
+
+    scale = max(1.0, max(grid.width, grid.height) / max_size)
+    w, h = max(1, int(round(grid.width / scale))), max(1, int(round(grid.height / scale)))
+    t = _gt(grid.transform)
+    coarse = Grid(w, h, Affine(t[0] * grid.width / w, 0.0, t[2], 0.0, t[4] * grid.height / h, t[5]), grid.crs)
+    eng = _Engine(dem.path, model, dem, coarse, OrthoOptions(), np.dtype("float32"), 1, float("nan"), 0, 0.0)
+    z = eng._heights(0, 0, w, h)
+    h_ref = float(np.nanmean(z)) if np.isfinite(z).any() else 0.0
+    d = eng._direction(0, 0, w, h, h_ref, 4)
+    shift = np.hypot(d[..., 0], d[..., 1]) * coarse.resolution[0] * np.abs(z - h_ref)
+    return shift, coarse.transform
+
+
+def write_ortho_report(report_dir: str | Path, run: OrthoRun, model: SensorModel, dem: Dem, *,
+                       overwrite: bool = False) -> list[Path]:
+    """``ortho_report.json`` (summary, DEM, GCP residuals), ``residuals.csv`` and ``relief_shift.tif``.
+
+    Each file is written atomically into ``report_dir`` (created when missing).
+    """
+    import json
+
+    from .fileutil import atomic_write_text
+    from .io import write_raster
+
+    d = Path(report_dir)
+    if d.exists() and not d.is_dir():
+        raise InvalidInputError(f"report folder {str(d)!r} is a file")
+    d.mkdir(parents=True, exist_ok=True)
+    r = run.result
+    shift, tr = relief_shift_map(model, dem, r.grid)
+    doc: dict[str, Any] = {
+        "output": str(r.path), "model": r.model, "crs": r.grid.crs, "width": r.grid.width, "height": r.grid.height,
+        "resolution": r.grid.resolution[0], "dem": {"path": r.dem_path, "undulation_m": dem.undulation,
+                                                    "geoid": dem.geoid, "heights_on_output_m": list(r.dem_range)},
+        "relief_shift_removed": {"max": float(np.nanmax(shift)) if np.isfinite(shift).any() else None,
+                                 "mean": float(np.nanmean(shift)) if np.isfinite(shift).any() else None,
+                                 "map": "relief_shift.tif"},
+        "occluded_pixels": r.n_occluded, "seconds": r.seconds, "summary": run.summary_lines()}
+    out = []
+    if run.residuals is not None:
+        doc["gcp_residuals"] = run.residuals.summary()
+        out.append(atomic_write_text(d / "residuals.csv", run.residuals.to_csv(), overwrite=overwrite))
+    out.append(write_raster(d / "relief_shift.tif", shift.astype(np.float32), tr, r.grid.crs, nodata=float("nan"),
+                            valid=np.isfinite(shift), overwrite=overwrite))
+    out.append(atomic_write_text(d / "ortho_report.json", json.dumps(doc, indent=2, default=str) + "\n",
+                                 overwrite=overwrite))
+    return out

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from .options import echo, handle_errors, overwrite_opt, progress
+from .options import echo, handle_errors, overwrite_opt, progress, report_opt
 
 
 @click.command(short_help="Orthorectify an image with a DEM (RPC or frame camera), optionally a true ortho.")
@@ -33,10 +33,11 @@ from .options import echo, handle_errors, overwrite_opt, progress
               help="Occluded ground gets nodata; adds a visibility band (0 outside, 1 occluded, 2 visible).")
 @click.option("--cog", is_flag=True, default=False, help="Write a Cloud Optimized GeoTIFF.")
 @click.option("--threads", type=click.IntRange(1, 256), default=None, help="Worker threads (default: all cores).")
+@report_opt
 @overwrite_opt
 @handle_errors
 def ortho(src, dst, dem_path, rpc, camera, exterior, eo_crs, gcps, refinement, dst_crs, resolution, undulation,
-          geoid, resampling, true_ortho, cog, threads, overwrite):
+          geoid, resampling, true_ortho, cog, threads, report_dir, overwrite):
     """Orthorectify SRC over a DEM into the GeoTIFF given by -o."""
     import os
 
@@ -48,6 +49,7 @@ def ortho(src, dst, dem_path, rpc, camera, exterior, eo_crs, gcps, refinement, d
     with progress("orthorectifying", enabled=True) as cb:
         run = ortho_from_files(src, dst, dem_path, rpc=rpc_arg, camera=camera, exterior=exterior, eo_crs=eo_crs,
                                gcps=gcps, refinement=refinement, dst_crs=dst_crs, resolution=resolution,
-                               undulation=undulation, geoid=geoid, options=opts, overwrite=overwrite, progress=cb)
+                               undulation=undulation, geoid=geoid, options=opts, overwrite=overwrite, progress=cb,
+                               report_dir=report_dir)
     for line in run.summary_lines():
         echo(line)

@@ -152,3 +152,22 @@ def test_mosaic_cli(frame):
     assert not (d / "m2.tif").exists()
     r = CliRunner().invoke(cli, ["mosaic", str(d / "a.tif"), "-o", str(d / "a.tif"), "--overwrite"])
     assert r.exit_code == 1 and "is an input" in r.output
+
+
+def test_ortho_cli_report(rpc_scene):
+    d = rpc_scene
+    r = CliRunner().invoke(cli, ["ortho", str(d / "sat.tif"), "--dem", str(d / "dem.tif"), "--rpc", "-o",
+                                 str(d / "o.tif"), "--gcps", str(d / "gcps.csv"), "--resolution", "2",
+                                 "--report", str(d / "rep")])
+    assert r.exit_code == 0, r.output
+    doc = json.loads((d / "rep" / "ortho_report.json").read_text())
+    assert doc["gcp_residuals"]["n_fit"] == 6 and doc["dem"]["path"].endswith("dem.tif")
+    assert doc["relief_shift_removed"]["max"] > 0
+    with rasterio.open(d / "rep" / "relief_shift.tif") as ds:
+        assert ds.crs.to_epsg() == 32632 and np.nanmax(ds.read(1)) > 0
+    assert (d / "rep" / "residuals.csv").read_text().startswith("# step=RPC refinement (shift)")
+    # a second run without --overwrite fails before any work and leaves everything as it was
+    (d / "o.tif").unlink()
+    r = CliRunner().invoke(cli, ["ortho", str(d / "sat.tif"), "--dem", str(d / "dem.tif"), "--rpc", "-o",
+                                 str(d / "o.tif"), "--report", str(d / "rep")])
+    assert r.exit_code == 1 and "exists" in r.output and not (d / "o.tif").exists()
