@@ -19,6 +19,7 @@ distortion (returns ideal coordinates); ``pixel_from_photo`` applies it.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -90,11 +91,17 @@ class Camera:
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v <= 0:
                 raise CalibrationError(f"camera `{name}` must be a positive integer; got {v!r}")
             object.__setattr__(self, name, int(v))
-        pp = tuple(float(c) for c in np.asarray(self.principal_point_mm, dtype=float).reshape(-1))
+        raw_pp = self.principal_point_mm
+        pp: tuple[float, ...] = ()
+        if isinstance(raw_pp, (list, tuple, np.ndarray)) and all(_is_number(c) for c in np.asarray(raw_pp).ravel()):
+            pp = tuple(float(c) for c in np.asarray(raw_pp, dtype=float).reshape(-1))
         if len(pp) != 2 or not all(math.isfinite(c) for c in pp):
             raise CalibrationError(
-                f"camera `principal_point_mm` must be two finite numbers; got {self.principal_point_mm!r}")
+                f"camera `principal_point_mm` must be two finite numbers [x0, y0]; got {raw_pp!r}")
         object.__setattr__(self, "principal_point_mm", pp)
+        if self.distortion is not None and not isinstance(self.distortion, Mapping):
+            raise CalibrationError(f"camera `distortion` must be an object such as {{\"k1\": 0.0, \"p1\": 0.0}}; "
+                                   f"got {self.distortion!r}")
         dist = dict(self.distortion or {})
         unknown = set(dist) - set(DISTORTION_KEYS)
         if unknown:
@@ -102,11 +109,13 @@ class Camera:
                 f"unknown distortion coefficient(s) {sorted(unknown)}; expected {list(DISTORTION_KEYS)}")
         clean = {}
         for k in DISTORTION_KEYS:
-            v = float(dist.get(k, 0.0))
-            if not math.isfinite(v):
-                raise CalibrationError(f"distortion `{k}` must be finite; got {v!r}")
-            clean[k] = v
+            raw = dist.get(k, 0.0)
+            if not _is_number(raw) or not math.isfinite(float(raw)):
+                raise CalibrationError(f"distortion `{k}` must be a finite number; got {raw!r}")
+            clean[k] = float(raw)
         object.__setattr__(self, "distortion", clean)
+        if self.std_errors is not None and not isinstance(self.std_errors, Mapping):
+            raise CalibrationError(f"camera `std_errors` must be an object (name -> value); got {self.std_errors!r}")
         se = dict(self.std_errors or {})
         for k, v in se.items():
             if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or v < 0:
@@ -249,7 +258,10 @@ class Camera:
         unknown = sorted(set(d) - allowed)
         if unknown:
             raise CalibrationError(f"camera JSON has unknown key(s) {unknown}")
-        pp = tuple(d.get("principal_point_mm", (0.0, 0.0)))
+        pp = d.get("principal_point_mm", (0.0, 0.0))
+        if not isinstance(pp, (list, tuple)) or len(pp) != 2 or not all(_is_number(c) for c in pp):
+            raise CalibrationError(f"camera `principal_point_mm` must be two numbers [x0, y0]; got {pp!r}")
+        pp = tuple(pp)
         _same_point(d, "point_of_symmetry_mm", pp)
         return cls(
             focal_length_mm=d["focal_length_mm"],
@@ -289,8 +301,9 @@ class Camera:
         if isinstance(w, bool) or not isinstance(w, int) or w <= 0 or isinstance(h, bool) or not isinstance(h, int) \
                 or h <= 0:
             raise CalibrationError(f"camera `width`, `height` must be positive integers; got {w!r}, {h!r}")
-        pp = np.asarray(d["principal_point_px"], dtype=float).reshape(-1) \
-            if isinstance(d["principal_point_px"], (list, tuple)) else np.array([np.nan])
+        raw_pp = d["principal_point_px"]
+        pp = np.asarray(raw_pp, dtype=float).reshape(-1) \
+            if isinstance(raw_pp, (list, tuple)) and all(_is_number(c) for c in raw_pp) else np.array([np.nan])
         if pp.shape != (2,) or not np.all(np.isfinite(pp)):
             raise CalibrationError(f"camera `principal_point_px` must be two finite numbers; "
                                    f"got {d['principal_point_px']!r}")
@@ -308,6 +321,11 @@ class Camera:
         from .formats import read_camera  # import cycle: rectify.formats builds cameras
 
         return read_camera(path)
+
+
+def _is_number(v: Any) -> bool:
+    """A JSON number (not a bool, not a string)."""
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
 
 
 def _same_point(d: dict[str, Any], key: str, principal_point: tuple[float, ...]) -> None:

@@ -13,13 +13,13 @@ from .options import echo, handle_errors, overwrite_opt, progress
 @click.command(short_help="Compare the cotangent four-point method with the homography (study).")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default="compare-output", show_default=True,
               help="Folder for study.md, study.json and the PNG plots.")
-@click.option("--configs", type=click.IntRange(1), default=None,
+@click.option("--configs", type=click.IntRange(1, 100_000), default=None,
               help="Random configurations for the agreement test [quick preset: 500].")
-@click.option("--trials", type=click.IntRange(1), default=None,
+@click.option("--trials", type=click.IntRange(1, 100_000), default=None,
               help="Monte Carlo trials per camera and noise level [quick preset: 60].")
-@click.option("--speed-points", type=click.IntRange(1), default=None,
+@click.option("--speed-points", type=click.IntRange(1, 10_000_000), default=None,
               help="Points for the speed test [quick preset: 200000].")
-@click.option("--seed", type=int, default=None, help="Random seed [0].")
+@click.option("--seed", type=click.IntRange(0, 2**32 - 1), default=None, help="Random seed [0].")
 @click.option("--full", is_flag=True, default=False,
               help="Use the full sizes of scripts/compare_cotangent_homography.py instead of the quick preset.")
 @overwrite_opt

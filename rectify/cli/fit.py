@@ -19,11 +19,15 @@ _D = FitOptions()
 @click.option("--method", type=click.Choice(list(METHOD_NAMES)), default=_D.method, show_default=True,
               help="Model: 8-parameter homography, Kushtin's cotangent four-point method, affine, "
                    "or polynomial of order 2/3.")
-@click.option("--max-rows", type=int, default=_D.max_rows, show_default=True, help="Residual rows printed.")
+@click.option("--max-rows", type=click.IntRange(0), default=_D.max_rows, show_default=True,
+              help="Residual rows printed.")
+@click.option("--image", type=click.Path(dir_okay=False), default=None,
+              help="The source image (only its size is read): judge the GCP geometry over it (convex hull share, "
+                   "predicted error at the corners). Default: the GCP file when it is a GeoTIFF.")
 @report_opt
 @overwrite_opt
 @handle_errors
-def fit(gcps_path, output, method, max_rows, report_dir, overwrite):
+def fit(gcps_path, output, method, max_rows, image, report_dir, overwrite):
     """Fit a transform from source pixels to target coordinates.
 
     GCPS is a CSV (id,col,row,x,y[,check]), a QGIS .points file, a matches CSV
@@ -32,7 +36,7 @@ def fit(gcps_path, output, method, max_rows, report_dir, overwrite):
     check = 1 are withheld from the fit and reported as check points. Prints
     the per-point residuals dx, dy, |v| (target units) and the RMSE.
     """
-    ws = Workspace(overwrite=overwrite, inputs=[gcps_path], report_dir=report_dir)
-    run = fit_action(ws, gcps_path, output, FitOptions(method=method, max_rows=max_rows))
+    ws = Workspace(overwrite=overwrite, inputs=[gcps_path, image], report_dir=report_dir)
+    run = fit_action(ws, gcps_path, output, FitOptions(method=method, max_rows=max_rows, image=image))
     for line in run.summary_lines():
         echo(line)

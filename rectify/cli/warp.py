@@ -25,7 +25,8 @@ _D = WarpRunOptions()
 @click.option("--gcp-crs", default=None, help="CRS of the GCP (or transform) coordinates, e.g. EPSG:4326; "
               "overrides the file's '# crs=' line.")
 @click.option("--dst-crs", default=None, help="Output CRS (default: the GCP CRS).")
-@click.option("--resolution", type=float, default=None, help="Output pixel size in output CRS units "
+@click.option("--resolution", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="Output pixel size in output CRS units "
               "(default: estimated from the transform, as GDAL suggests).")
 @click.option("--resampling", type=click.Choice(list(RESAMPLING_NAMES)), default=_D.resampling, show_default=True)
 @click.option("--cog", is_flag=True, default=False, help="Write a Cloud Optimized GeoTIFF (with overviews).")

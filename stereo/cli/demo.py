@@ -11,8 +11,10 @@ from ..actions import demo as demo_action
 
 @click.command(short_help="Run the whole stereo chain on a synthetic pair and compare with the truth.")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default="demo-output", show_default=True)
-@click.option("--seed", type=int, default=0, show_default=True, help="Scene seed (deterministic).")
-@click.option("--size", "size_px", type=int, default=480, show_default=True, help="Photo side, pixels.")
+@click.option("--seed", type=click.IntRange(0, 2**32 - 1), default=0, show_default=True,
+              help="Scene seed (deterministic).")
+@click.option("--size", "size_px", type=click.IntRange(64, 8192), default=480, show_default=True,
+              help="Photo side, pixels.")
 @overwrite_opt
 @handle_errors
 def demo(out_dir, seed, size_px, overwrite):

@@ -34,7 +34,7 @@ _D = ModelOptions()
               help="Robust absolute orientation.")
 @click.option("--deformation", type=click.Choice(["none", *map(str, DEFORMATION_ORDERS)]), default="none",
               show_default=True, help="Polynomial correction of model deformation (order).")
-@click.option("--control-sigma-px", type=float, default=None,
+@click.option("--control-sigma-px", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Image precision of the control/check points, pixels (default: estimated from the absolute "
                    "orientation).")
 @report_opt

@@ -25,7 +25,7 @@ _D = ModelOptions()
 @click.option("--method", type=click.Choice(list(METHODS)), default=_D.intersection, show_default=True)
 @click.option("--robust", type=click.Choice(list(ROBUST_METHODS)), default=_D.robust, show_default=True,
               help="Robust absolute orientation.")
-@click.option("--control-sigma-px", type=float, default=None,
+@click.option("--control-sigma-px", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Image precision of the control/check points, pixels (default: estimated from the absolute "
                    "orientation).")
 @overwrite_opt

@@ -236,3 +236,87 @@ def test_sigterm_removes_temporaries(tmp_path):
     assert b"Traceback" not in err
     assert _entries(out.parent) == []
     assert _hash(src, gcps) == before
+
+
+# ----------------------------------------------------------------------------------------- 7. wrong JSON types, option ranges
+_CAM = {"focal_length_mm": 50.0, "pixel_size_mm": 0.01, "width": 1000, "height": 800}
+
+
+@pytest.mark.parametrize("bad, key", [
+    ({"principal_point_mm": 0.1}, "principal_point_mm"),
+    ({"principal_point_mm": "0.1, 0.2"}, "principal_point_mm"),
+    ({"distortion": [0.1, 0.0, 0.0]}, "distortion"),
+    ({"distortion": {"k1": "abc"}}, "k1"),
+    ({"focal_length_mm": "50"}, "focal_length_mm"),
+    ({"width": "1000"}, "width"),
+])
+def test_camera_json_with_wrong_types(tmp_path, bad, key):
+    import json
+
+    cam = tmp_path / "cam.json"
+    cam.write_text(json.dumps({**_CAM, **bad}))
+    m = tmp_path / "m.csv"
+    m.write_text("id,col_left,row_left,col_right,row_right\n" + "".join(
+        f"t{i},{100 + 50 * i},{200 + 30 * i},{90 + 50 * i},{205 + 30 * i}\n" for i in range(12)))
+    before, names = _hash(cam, m), _entries(tmp_path)
+    r = CliRunner().invoke(_stereo_cli(), ["orient", "--camera", str(cam), "--matches", str(m),
+                                           "-o", str(tmp_path / "ro.json")])
+    _one_line_error(r)
+    assert "CalibrationError" in r.output and key in r.output and "TypeError" not in r.output
+    assert _entries(tmp_path) == names and _hash(cam, m) == before
+
+
+@pytest.mark.parametrize("key, value", [("base", "1, 0, 0"), ("base", [1, 0]), ("rotation_left", 1.0),
+                                        ("rotation_right", [[1, 0, 0], [0, 1, 0], [0, 0, "x"]]),
+                                        ("focal_length_mm", "150"), ("sigma0_mm", "small")])
+def test_relative_json_with_wrong_types(tmp_path, key, value):
+    import json
+
+    doc = {"format": "rectify-stereo/relative-orientation", "version": 1,
+           "rotation_left": np.eye(3).tolist(), "rotation_right": np.eye(3).tolist(), "base": [1.0, 0.0, 0.0],
+           "focal_length_mm": 150.0, "camera": _CAM, key: value}
+    ro = tmp_path / "ro.json"
+    ro.write_text(json.dumps(doc))
+    m = tmp_path / "m.csv"
+    m.write_text("id,col_left,row_left,col_right,row_right\nt0,1,2,3,4\n")
+    before, names = _hash(ro, m), _entries(tmp_path)
+    r = CliRunner().invoke(_stereo_cli(), ["model", str(ro), "--matches", str(m), "-o", str(tmp_path / "p.ply")])
+    _one_line_error(r)
+    assert "InvalidInputError" in r.output and f"`{key}`" in r.output, r.output
+    assert _entries(tmp_path) == names and _hash(ro, m) == before
+
+
+def test_exterior_json_with_wrong_types(tmp_path):
+    import json
+
+    from rectify.errors import InvalidInputError
+    from stereo.formats import read_exterior
+
+    p = tmp_path / "eo.json"
+    for key, value in [("position", "1,2,3"), ("focal_length_mm", "150"), ("principal_point_mm", 0.0)]:
+        doc = {"format": "rectify-stereo/exterior-orientation", "version": 1, "position": [1.0, 2.0, 3.0],
+               "rotation": np.eye(3).tolist(), "focal_length_mm": 150.0, key: value}
+        p.write_text(json.dumps(doc))
+        with pytest.raises(InvalidInputError, match=f"`{key}`"):
+            read_exterior(p)
+
+
+@pytest.mark.parametrize("cli_name, args", [
+    ("rectify", ["compare", "--seed", "-1"]),
+    ("rectify", ["compare", "--speed-points", "1000000000000"]),
+    ("rectify", ["compare", "--trials", "0"]),
+    ("rectify", ["fit", "g.csv", "-o", "t.json", "--max-rows", "-1"]),
+    ("rectify", ["warp", "a.tif", "b.tif", "--gcps", "g.csv", "--resolution", "-5"]),
+    ("stereo", ["demo", "--seed", "-1"]),
+    ("stereo", ["demo", "--size", "10"]),
+    ("stereo", ["run", "a.tif", "b.tif", "--camera", "c.json", "-o", "out", "--control-sigma-px", "0"]),
+])
+def test_numeric_options_out_of_range(tmp_path, monkeypatch, cli_name, args):
+    monkeypatch.chdir(tmp_path)
+    for f in ("a.tif", "b.tif", "c.json", "g.csv"):
+        (tmp_path / f).write_text("x")
+    names = _entries(tmp_path)
+    r = CliRunner().invoke(rectify_cli if cli_name == "rectify" else _stereo_cli(), args)
+    assert r.exit_code == 2, r.output
+    assert "Invalid value" in r.output and "Traceback" not in r.output
+    assert _entries(tmp_path) == names
