@@ -20,10 +20,11 @@ from .compare import StudyConfig, StudyResults, run_study, write_study
 from .demo import DemoResult, run_demo
 from .errors import InvalidInputError
 from .features import DETECTORS, VERIFY_METHODS, MatcherConfig, MatchResult, match_images
-from .formats import GcpTable, has_embedded_gcps
+from .formats import TIFF_SUFFIXES, GcpTable, has_embedded_gcps
 from .io import raster_info
 from .report import write_fit_report, write_match_report, write_warp_report
 from .transforms import METHODS, FitResult, fit_gcps
+from .transforms.quality import GcpGeometry, geographic_lines, judge_gcp_geometry
 from .warp import RESAMPLING_NAMES, GeoRectification, WarpOptions, georectify, rectify_with_transform
 from .workspace import Workspace
 
@@ -142,6 +143,7 @@ class FitOptions:
 
     method: str = "homography"
     max_rows: int = 50
+    image: str | Path | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -153,11 +155,16 @@ class FitRun:
     options: FitOptions
     output: Path
     report: Path | None = None
+    geometry: GcpGeometry | None = None
 
     def summary_lines(self) -> list[str]:
-        """The residual table, the cotangent control points, RMSE (fit and check) and the files."""
+        """The residual table (degrees and metres in a geographic CRS), the cotangent control points, RMSE
+        (fit and check), the GCP geometry (with the image size) and the files."""
         table = self.fit.table
-        lines = [table.format_text(max_rows=self.options.max_rows)]
+        if table.units.startswith("degree"):
+            lines = geographic_lines(table, max_rows=self.options.max_rows)
+        else:
+            lines = [table.format_text(max_rows=self.options.max_rows)]
         if "control_ids" in table.extra:
             lines.append(f"cotangent method: control points {', '.join(table.extra['control_ids'])} "
                          "(best-conditioned quadrilateral); the other fit rows are reported as check points")
@@ -166,6 +173,11 @@ class FitRun:
         lines.append(f"RMSE {s['rmse']:.4g} {table.units} (fit, n={s['n_fit']}, {n_params} parameters)"
                      + (f"; check RMSE {s['rmse_check']:.4g} {table.units} (n={s['n_check']})"
                         if s["n_check"] else ""))
+        if self.geometry is not None:
+            lines += self.geometry.summary_lines()
+        elif 2 * s["n_fit"] <= n_params:
+            lines.append(f"no redundancy: {s['n_fit']} GCPs determine the {n_params} {self.options.method} "
+                         "parameters exactly; the residuals are zero by construction and no error can be estimated")
         lines.append(f"wrote {self.output}")
         if self.report is not None:
             lines.append(f"report: {self.report}")
@@ -180,21 +192,33 @@ def _check_method(method: str) -> None:
 def fit(ws: Workspace, gcps_path: str | Path, output: str | Path, options: FitOptions = FitOptions()) -> FitRun:
     """Fit a transform (source pixels -> target) to the GCP file ``gcps_path``; write the transform JSON.
 
-    Check points (``check = 1``) are withheld from the fit and reported separately.
+    Check points (``check = 1``) are withheld from the fit and reported separately. With the source image
+    (``options.image``, or the GCP file itself when it is a GeoTIFF with embedded GCPs) the GCP geometry
+    is judged over the image (:func:`rectify.transforms.quality.judge_gcp_geometry`).
     """
     _check_method(options.method)
-    ws.add_inputs(gcps_path)
+    image = options.image
+    if image is None and Path(gcps_path).suffix.lower() in TIFF_SUFFIXES:
+        image = gcps_path
+    ws.add_inputs(gcps_path, image)
+    size = None
+    if image is not None:
+        info = raster_info(image)
+        size = (info.width, info.height)
     ws.plan(output)
     ws.check_report_dir()
     gcps = ws.load_gcps(gcps_path)
     result = fit_gcps(gcps, options.method)
+    geometry = None
+    if size is not None:
+        geometry = judge_gcp_geometry(gcps, options.method, *size, units=result.table.units)
     report = None
     with ws.transaction():  # the transform and the report, all or none
         out = ws.save_transform(output, result.model, table=result.table, crs=gcps.crs)
         if ws.report_dir is not None:
             report = write_fit_report(ws.report_dir, result, gcps, gcps_path=gcps_path, transform_path=out,
                                       overwrite=ws.overwrite)
-    return FitRun(result, gcps, options, out, report)
+    return FitRun(result, gcps, options, out, report, geometry)
 
 
 # --------------------------------------------------------------------------- warp
@@ -237,13 +261,18 @@ class WarpRun:
     options: WarpRunOptions
     output: Path
     report: Path | None = None
+    geometry: GcpGeometry | None = None
 
     def summary_lines(self) -> list[str]:
         """GCP fit summary (when fitted), output grid, CRS, resampling, format and time, report."""
         r, o = self.result, self.options
         g = r.warp.grid
         lines = [r.fit.table.summary_line()] if r.fit is not None else []
+        if r.fit is not None and r.fit.table.units.startswith("degree"):
+            lines.append(geographic_lines(r.fit.table, max_rows=0)[-1])
         lines += list(r.notes)
+        if self.geometry is not None:
+            lines += self.geometry.summary_lines()
         lines.append(f"wrote {self.output}: {g.width} x {g.height} px, {g.resolution[0]:.6g} units/px, "
                      f"CRS {r.crs or 'none'}, {o.resampling}, {'COG' if o.cog else 'tiled GeoTIFF'}, "
                      f"{r.warp.seconds:.2f} s")
@@ -295,6 +324,11 @@ def warp(ws: Workspace, src: str | Path, dst: str | Path, *, gcps_path: str | Pa
         result = rectify_with_transform(src, dst, tf.model, model_crs=options.gcp_crs or tf.crs,
                                         dst_crs=options.dst_crs, resolution=options.resolution, options=wopts,
                                         overwrite=ws.overwrite, progress=progress)
+    geometry = None
+    if result.fit is not None:
+        t = result.fit.table
+        fitted = GcpTable(t.ids, t.position_px, t.observed, None, t.check, result.crs)
+        geometry = judge_gcp_geometry(fitted, options.method, info.width, info.height, units=t.units)
     report = None
     if ws.report_dir is not None:
         try:
@@ -304,7 +338,7 @@ def warp(ws: Workspace, src: str | Path, dst: str | Path, *, gcps_path: str | Pa
             with contextlib.suppress(OSError):
                 Path(dst).unlink()
             raise
-    return WarpRun(result, options, Path(dst), report)
+    return WarpRun(result, options, Path(dst), report, geometry)
 
 
 # --------------------------------------------------------------------------- compare
