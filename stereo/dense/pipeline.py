@@ -94,6 +94,12 @@ class DenseOptions:
         Re-measure the tie points' vertical parallax by LSM in the resampled photos.
     despike_cells : float
         DSM cells differing from their 5 x 5 median by more than this many cell sides are removed (0: off).
+    dsm_radius : float
+        A point counts in the DSM cells within this many cells of it (Gaussian-weighted; 0: its own
+        cell only).
+    dsm_max_spread : float
+        DSM cells whose points' height standard deviation exceeds this many cell sides are dropped
+        (0: no test).
     """
 
     matching: MatchOptions = field(default_factory=MatchOptions)
@@ -108,6 +114,8 @@ class DenseOptions:
     reference_dem: str | None = None
     measure_parallax: bool = True
     despike_cells: float = 0.0
+    dsm_radius: float = 1.0
+    dsm_max_spread: float = 2.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.matching, MatchOptions):
@@ -125,6 +133,12 @@ class DenseOptions:
             raise InvalidInputError(f"`fill_holes` must be an integer >= 0; got {self.fill_holes!r}")
         if not (isinstance(self.min_confidence, (int, float)) and 0 <= self.min_confidence <= 1):
             raise InvalidInputError(f"`min_confidence` must be in [0, 1]; got {self.min_confidence!r}")
+        for name in ("despike_cells", "dsm_radius", "dsm_max_spread"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v <= 100):
+                raise InvalidInputError(f"`{name}` must be a number in [0, 100]; got {v!r}")
+        if self.dsm_radius > 5:
+            raise InvalidInputError(f"`dsm_radius` must be at most 5 cells; got {self.dsm_radius!r}")
         if not isinstance(self.tile, int) or self.tile < 64 or self.tile % 16:
             raise InvalidInputError(f"`tile` must be a multiple of 16, at least 64; got {self.tile!r}")
 
@@ -403,7 +417,8 @@ def run_dense(
             span = hi - lo
             bounds = (lo[0] - 0.05 * span[0] - cell, lo[1] - 0.05 * span[1] - cell, hi[0] + 0.05 * span[0] + cell,
                       hi[1] + 0.05 * span[1] + cell)
-            grid = DsmGrid(bounds, cell, statistic=opts.dsm_statistic, crs=crs)
+            grid = DsmGrid(bounds, cell, statistic=opts.dsm_statistic, crs=crs, radius=opts.dsm_radius,
+                           max_spread=opts.dsm_max_spread)
             n_pts = _triangulate_all(rect, paths, grid, transform, opts, suffix, crs, frame, prog("points"))
             dsm = grid.result(max_hole_cells=opts.fill_holes, despike_cells=opts.despike_cells)
             dsm.write(paths["dsm.tif"], overwrite=True)

@@ -6,11 +6,13 @@ Points arrive by tiles; every writer here streams them:
   needs a laspy LAZ backend (``lazrs`` or ``laszip``), else a one-line error.
 - :class:`PlyWriter`: binary little-endian PLY (x, y, z float64, RGB uint8); the points go to a
   temporary body file first, the header (which needs the count) is written at the end.
-- :class:`DsmGrid`: cell statistics on a regular grid in the ground frame: the mean (default),
-  minimum or maximum height of the points in each cell, and their count. Cells without points are
-  nodata (``-9999``). Optional hole filling (:meth:`DsmGrid.filled`) interpolates holes of at most
-  ``max_hole_cells`` cells from their rim and marks them in a mask band. The grid itself is held
-  in memory: 10 bytes per cell (sum float64, count uint16).
+- :class:`DsmGrid`: cell statistics on a regular grid in the ground frame: the Gaussian-weighted
+  mean (default), minimum or maximum height of the points within ``radius`` cells of each cell
+  centre, and the count of points in the cell. Cells whose points spread by more than
+  ``max_spread`` cell sides are dropped, optionally cells far from their 5 x 5 median
+  (``despike_cells``). Cells without points are nodata (``-9999``). Optional hole filling
+  interpolates holes of at most ``max_hole_cells`` cells from their rim and marks them in a mask
+  band. The grid itself is held in memory: 14 bytes per cell.
 """
 
 from __future__ import annotations
@@ -169,7 +171,7 @@ class DsmResult:
     height : (H, W) float32
         Heights; ``DSM_NODATA`` where no points (and not filled).
     count : (H, W) uint16
-        Points per cell.
+        Points that made each cell (within the grid's radius of its centre; 0 where no height).
     filled : (H, W) bool
         Cells filled by interpolation.
     transform : affine.Affine
@@ -214,14 +216,29 @@ class DsmGrid:
         Cell side, ground units.
     statistic : {"mean", "min", "max"}
     crs : str, optional
+    radius : float
+        Each point counts in every cell whose centre lies within ``radius`` cells of it (Gaussian
+        weight, sigma ``radius / 2``, for the mean): with points about one per cell, as a disparity
+        map gives at a cell of one ground pixel, this leaves no empty cells between the points'
+        rows. 0: a point counts in its own cell only.
+    max_spread : float
+        Cells whose points' (weighted) height standard deviation exceeds ``max_spread`` cell sides
+        are dropped (points of two surfaces, or blunders, in one cell; 0: no test).
+
+    Memory: 14 bytes per cell (float32 weight, weighted sums of z and z^2 about a reference height,
+    uint16 count); points are added by batches over the cells they touch only.
     """
 
     def __init__(self, bounds: tuple[float, float, float, float], cell: float, *, statistic: str = "mean",
-                 crs: str | None = None, max_cells: int = 400_000_000):
+                 crs: str | None = None, max_cells: int = 400_000_000, radius: float = 1.0,
+                 max_spread: float = 2.0):
         if statistic not in STATISTICS:
             raise InvalidInputError(f"unknown DSM statistic {statistic!r}; expected one of {list(STATISTICS)}")
         if not (isinstance(cell, (int, float)) and math.isfinite(cell) and cell > 0):
             raise InvalidInputError(f"DSM cell must be a finite number > 0; got {cell!r}")
+        for name, v in (("radius", radius), ("max_spread", max_spread)):
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v <= 5):
+                raise InvalidInputError(f"`{name}` must be a number in [0, 5]; got {v!r}")
         x0, y0, x1, y1 = (float(b) for b in bounds)
         if not all(math.isfinite(v) for v in (x0, y0, x1, y1)) or x1 <= x0 or y1 <= y0:
             raise InvalidInputError(f"DSM bounds must be finite with xmin < xmax, ymin < ymax; got {bounds!r}")
@@ -235,13 +252,18 @@ class DsmGrid:
                                     f"choose a larger cell than {cell!r}")
         self.statistic = statistic
         self.crs = crs
+        self.radius = float(radius)
+        self.max_spread = float(max_spread)
         self.n_despiked = 0
-        self._count = np.zeros((self.height, self.width), np.uint16)
-        if statistic == "mean":
-            self._acc = np.zeros((self.height, self.width), np.float64)
-        else:
-            fill = np.inf if statistic == "min" else -np.inf
-            self._acc = np.full((self.height, self.width), fill, np.float64)
+        self.n_spread = 0
+        self._z0: float | None = None
+        shape = (self.height, self.width)
+        self._count = np.zeros(shape, np.uint16)
+        self._w = np.zeros(shape, np.float32)
+        self._wz = np.zeros(shape, np.float32)
+        self._wzz = np.zeros(shape, np.float32)
+        if statistic != "mean":
+            self._acc = np.full(shape, np.inf if statistic == "min" else -np.inf, np.float32)
 
     @property
     def transform(self) -> Affine:
@@ -255,37 +277,73 @@ class DsmGrid:
     def add(self, xyz: ArrayLike) -> int:
         """Add points (N, 3); returns how many fell inside the grid."""
         p, _ = _check_xyz(xyz, None)
-        r, c = self.cell_of(p)
-        ok = (r >= 0) & (c >= 0) & (r < self.height) & (c < self.width)
-        r, c, z = r[ok], c[ok], p[ok, 2]
-        idx = r * self.width + c
-        flat_n = self._count.reshape(-1)
-        n_add = np.bincount(idx, minlength=flat_n.size)
-        np.minimum(flat_n.astype(np.int64) + n_add, 65535, out=n_add)
-        flat_n[:] = n_add.astype(np.uint16)
-        flat = self._acc.reshape(-1)
-        if self.statistic == "mean":
-            flat += np.bincount(idx, weights=z, minlength=flat.size)
-        elif self.statistic == "min":
-            np.minimum.at(flat, idx, z)
-        else:
-            np.maximum.at(flat, idx, z)
-        return int(ok.sum())
+        fc = (p[:, 0] - self.x0) / self.cell
+        fr = (self.y1 - p[:, 1]) / self.cell
+        r0, c0 = np.rint(fr).astype(np.int64), np.rint(fc).astype(np.int64)
+        own = (r0 >= 0) & (c0 >= 0) & (r0 < self.height) & (c0 < self.width)
+        if not own.any():
+            return 0
+        if self._z0 is None:
+            self._z0 = float(np.median(p[own, 2]))
+        z = (p[:, 2] - self._z0).astype(np.float32)
+        k = int(math.ceil(self.radius))
+        lo_r, hi_r = max(int(r0[own].min()) - k, 0), min(int(r0[own].max()) + k, self.height - 1)
+        lo_c, hi_c = max(int(c0[own].min()) - k, 0), min(int(c0[own].max()) + k, self.width - 1)
+        h, w = hi_r - lo_r + 1, hi_c - lo_c + 1
+        sl = (slice(lo_r, hi_r + 1), slice(lo_c, hi_c + 1))
+        cnt = self._count[sl].astype(np.int64)
+        sigma = max(self.radius / 2.0, 1e-6)
+        for dr in range(-k, k + 1):
+            for dc in range(-k, k + 1):
+                rr, cc = r0 + dr, c0 + dc
+                dist2 = (rr - fr) ** 2 + (cc - fc) ** 2
+                m = (rr >= lo_r) & (cc >= lo_c) & (rr <= hi_r) & (cc <= hi_c)
+                if self.radius > 0:
+                    m &= dist2 <= self.radius ** 2
+                elif dr or dc:
+                    continue
+                if not m.any():
+                    continue
+                j = (rr[m] - lo_r) * w + (cc[m] - lo_c)
+                wt = np.exp(-0.5 * dist2[m] / sigma ** 2) if self.radius > 0 else np.ones(int(m.sum()))
+                zm = z[m].astype(np.float64)
+                cnt += np.bincount(j, minlength=h * w).reshape(h, w)
+                self._w[sl] += np.bincount(j, weights=wt, minlength=h * w).reshape(h, w).astype(np.float32)
+                self._wz[sl] += np.bincount(j, weights=wt * zm, minlength=h * w).reshape(h, w).astype(np.float32)
+                self._wzz[sl] += np.bincount(j, weights=wt * zm * zm, minlength=h * w).reshape(h, w).astype(
+                    np.float32)
+                if self.statistic != "mean":
+                    flat = self._acc[sl].reshape(-1).copy()
+                    (np.minimum if self.statistic == "min" else np.maximum).at(flat, j, z[m])
+                    self._acc[sl] = flat.reshape(h, w)
+        self._count[sl] = np.minimum(cnt, 65535).astype(np.uint16)
+        return int(own.sum())
 
     def result(self, *, max_hole_cells: int = 0, despike_cells: float = 0.0) -> DsmResult:
         """The DSM; holes of at most ``max_hole_cells`` cells are interpolated from their rim and flagged.
 
-        With ``despike_cells`` > 0, cells whose height differs from the median of their 5 x 5
-        neighbourhood by more than ``despike_cells`` cell sides are removed first (matching blunders);
-        the removed count is in :attr:`n_despiked`.
+        Cells whose points spread by more than ``max_spread`` cell sides are dropped (counted in
+        :attr:`n_spread`). With ``despike_cells`` > 0, cells whose height differs from the median of
+        their 5 x 5 neighbourhood by more than ``despike_cells`` cell sides are removed next
+        (matching blunders); the removed count is in :attr:`n_despiked`.
         """
         if isinstance(max_hole_cells, bool) or not isinstance(max_hole_cells, int) or max_hole_cells < 0:
             raise InvalidInputError(f"`max_hole_cells` must be an integer >= 0; got {max_hole_cells!r}")
-        has = self._count > 0
+        z0 = self._z0 if self._z0 is not None else 0.0
+        has = self._w > 0
+        wsafe = np.where(has, self._w, np.float32(1))
+        mean = self._wz / wsafe
         if self.statistic == "mean":
-            h = np.where(has, self._acc / np.maximum(self._count, 1), np.nan)
+            h = np.where(has, mean + z0, np.nan)
         else:
-            h = np.where(has, self._acc, np.nan)
+            h = np.where(has, self._acc.astype(np.float64) + z0, np.nan)
+        self.n_spread = 0
+        if self.max_spread > 0 and has.any():
+            var = np.maximum(self._wzz / wsafe - mean * mean, 0)
+            wide = has & (var > (self.max_spread * self.cell) ** 2)
+            self.n_spread = int(wide.sum())
+            h[wide] = np.nan
+            has &= ~wide
         self.n_despiked = 0
         if despike_cells > 0 and has.any():
             idx = ndimage.distance_transform_edt(~has, return_distances=False, return_indices=True)
@@ -298,7 +356,8 @@ class DsmGrid:
         if max_hole_cells > 0 and has.any() and not has.all():
             h, filled = _fill_holes(h, has, max_hole_cells)
         out = np.where(np.isfinite(h), h, DSM_NODATA).astype(np.float32)
-        return DsmResult(out, self._count.copy(), filled, self.transform, self.crs)
+        count = np.where(has | filled, self._count, 0).astype(np.uint16)
+        return DsmResult(out, count, filled, self.transform, self.crs)
 
 
 def _fill_holes(h: NDArray[np.float64], has: NDArray[np.bool_], max_cells: int

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -140,7 +141,7 @@ def test_fill_background_uses_smaller_neighbour():
 
 
 def test_dsm_grid_mean_count_and_holes(tmp_path):
-    g = DsmGrid((0, 0, 10, 10), 1.0, crs="EPSG:32633")
+    g = DsmGrid((0, 0, 10, 10), 1.0, crs="EPSG:32633", radius=0.0)
     xs, ys = np.meshgrid(np.arange(0, 11.0), np.arange(0, 11.0))
     pts = np.column_stack([xs.ravel(), ys.ravel(), 2 * xs.ravel() + ys.ravel()])
     keep = ~((pts[:, 0] == 5) & (pts[:, 1] == 5))
@@ -162,6 +163,33 @@ def test_dsm_grid_mean_count_and_holes(tmp_path):
         DsmGrid((0, 0, 0, 1), 1.0)
     with pytest.raises(ShapeError):
         g.add(np.zeros((3, 2)))
+
+
+def test_dsm_grid_radius_spread_and_despike():
+    """radius 1: a cell without its own point gets the plane's height from its neighbours (not flagged as
+    filled); a cell with points of two surfaces 50 cells apart is dropped; a lone spike is despiked."""
+    xs, ys = np.meshgrid(np.arange(0, 21.0), np.arange(0, 21.0))
+    pts = np.column_stack([xs.ravel(), ys.ravel(), 2 * xs.ravel() + ys.ravel()])
+    gap = (pts[:, 0] == 5) & (pts[:, 1] == 5)
+    g = DsmGrid((0, 0, 20, 20), 1.0, radius=1.0, max_spread=2.0)
+    g.add(pts[~gap])
+    g.add(np.array([[15.0, 15.0, 45.0 + 50.0], [15.2, 15.2, 45.6 - 50.0]]))  # two surfaces in one cell
+    res = g.result()
+    r, c = g.cell_of(np.array([[5.0, 5.0]]))
+    assert not res.filled[r[0], c[0]] and res.height[r[0], c[0]] == pytest.approx(15.0, abs=1e-3)
+    r, c = g.cell_of(np.array([[15.0, 15.0]]))
+    assert res.height[r[0], c[0]] == -9999 and res.count[r[0], c[0]] == 0 and g.n_spread >= 1
+    r, c = g.cell_of(np.array([[8.0, 3.0]]))
+    assert res.height[r[0], c[0]] == pytest.approx(19.0, abs=1e-3) and res.count[r[0], c[0]] == 5
+    g2 = DsmGrid((0, 0, 20, 20), 1.0, radius=0.0)
+    spike = pts.copy()
+    spike[gap, 2] += 30.0
+    g2.add(spike)
+    res2 = g2.result(despike_cells=3.0)
+    r, c = g2.cell_of(np.array([[5.0, 5.0]]))
+    assert res2.height[r[0], c[0]] == -9999 and g2.n_despiked == 1
+    with pytest.raises(InvalidInputError, match="radius"):
+        DsmGrid((0, 0, 1, 1), 1.0, radius=-1)
 
 
 def test_point_writers_roundtrip(tmp_path):
@@ -248,8 +276,9 @@ def test_synthetic_dsm_within_half_gsd(tmp_path):
     cv2.imwrite(str(tmp_path / "l.png"), render(sc, "left"))
     cv2.imwrite(str(tmp_path / "r.png"), render(sc, "right"))
     cam = sc.camera.to_dict()
-    write_exterior(tmp_path / "l.json", sc.left, camera=cam)
-    write_exterior(tmp_path / "r.json", sc.right, camera=cam)
+    # known orientations: sigma0 0 (not adjusted), so that the JSON holds no NaN
+    write_exterior(tmp_path / "l.json", dataclasses.replace(sc.left, sigma0=0.0), camera=cam)
+    write_exterior(tmp_path / "r.json", dataclasses.replace(sc.right, sigma0=0.0), camera=cam)
     g = sc.random_ground_points(60, np.random.default_rng(0))
     pl, pr = sc.pixel_from_ground(sc.left, g), sc.pixel_from_ground(sc.right, g)
     (tmp_path / "m.csv").write_text("id,col_left,row_left,col_right,row_right\n" + "".join(
