@@ -6,10 +6,10 @@ from __future__ import annotations
 import click
 
 from .. import __version__
-from .options import setup_logging, verbosity_opts
+from .options import VerbosityGroup, setup_logging, verbosity_opts
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=VerbosityGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="rectify")
 @verbosity_opts
 @click.pass_context

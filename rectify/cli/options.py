@@ -19,7 +19,8 @@ import click
 
 from ..errors import RectifyError
 
-__all__ = ["overwrite_opt", "verbosity_opts", "report_opt", "handle_errors", "progress", "setup_logging"]
+__all__ = ["overwrite_opt", "verbosity_opts", "report_opt", "handle_errors", "progress", "setup_logging",
+           "VerbosityGroup", "subcommand_verbosity_params"]
 
 overwrite_opt = click.option("--overwrite", is_flag=True, default=False,
                              help="Replace existing outputs (never done without it).")
@@ -69,6 +70,36 @@ def verbosity_opts(f: Callable) -> Callable:
     return f
 
 
+def _add_verbosity(ctx: click.Context, param: click.Parameter, value: int) -> None:
+    """-v/-q given after the subcommand: add to the group's counts and set the logging up again."""
+    if not value:
+        return
+    root = ctx.find_root()
+    if not isinstance(root.obj, dict):
+        root.obj = {"verbose": 0, "quiet": 0}
+    root.obj[param.name or ""] = int(root.obj.get(param.name or "", 0)) + int(value)
+    setup_logging(int(root.obj.get("verbose", 0)), int(root.obj.get("quiet", 0)))
+
+
+def subcommand_verbosity_params() -> list[click.Parameter]:
+    """-v/--verbose and -q/--quiet for a subcommand: they count together with the group's own."""
+    return [click.Option(["-v", "--verbose"], count=True, expose_value=False, callback=_add_verbosity,
+                         help="More output (repeatable; also accepted before the subcommand)."),
+            click.Option(["-q", "--quiet"], count=True, expose_value=False, callback=_add_verbosity,
+                         help="Less output (repeatable; also accepted before the subcommand).")]
+
+
+class VerbosityGroup(click.Group):
+    """A click group whose subcommands take -v/-q too, so that ``rectify -v warp ...`` and
+    ``rectify warp ... -v`` do the same (the counts add up)."""
+
+    def add_command(self, cmd: click.Command, name: str | None = None) -> None:
+        taken = {o for p in cmd.params for o in getattr(p, "opts", [])}
+        if not taken & {"-v", "--verbose", "-q", "--quiet"}:
+            cmd.params.extend(subcommand_verbosity_params())
+        super().add_command(cmd, name)
+
+
 def handle_errors(f: Callable) -> Callable:
     """Map project errors to ``click.ClickException`` (message, exit code 1)."""
 
@@ -111,11 +142,13 @@ def progress(label: str, *, enabled: bool = True) -> Iterator[Callable[[int, int
 
 
 def quiet_level() -> int:
-    """The -q count of the current click context's root (0 when outside click)."""
+    """The -q count less the -v count of the current click context's root (0 when outside click)."""
     ctx = click.get_current_context(silent=True)
     while ctx is not None and ctx.parent is not None:
         ctx = ctx.parent
-    return int((ctx.obj or {}).get("quiet", 0)) if ctx is not None else 0
+    if ctx is None or not isinstance(ctx.obj, dict):
+        return 0
+    return max(int(ctx.obj.get("quiet", 0)) - int(ctx.obj.get("verbose", 0)), 0)
 
 
 def echo(msg: str = "", *, err: bool = False) -> None:

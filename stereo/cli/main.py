@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from rectify.cli.options import setup_logging, verbosity_opts
+from rectify.cli.options import VerbosityGroup, setup_logging, verbosity_opts
 
 from .. import __version__
 from .calibrate import calibrate
@@ -16,7 +16,7 @@ from .resect import resect
 from .run import run
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=VerbosityGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="stereo")
 @verbosity_opts
 @click.pass_context
