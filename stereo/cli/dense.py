@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import click
 
 from rectify.cli.options import echo, handle_errors, overwrite_opt
 
-from ..dense.matching import MatchOptions
 from ..dense.pipeline import DenseOptions, run_dense
 from ..dense.products import STATISTICS
 
@@ -14,18 +15,18 @@ _D = DenseOptions()
 
 
 @click.command(short_help="Dense matching of an oriented pair: normal case, disparity, point cloud, DSM.")
-@click.argument("orientation", type=click.Path(exists=True, dir_okay=False))
-@click.argument("left", type=click.Path(exists=True, dir_okay=False))
-@click.argument("right", type=click.Path(exists=True, dir_okay=False))
+@click.argument("orientation", type=click.Path(dir_okay=False))
+@click.argument("left", type=click.Path(dir_okay=False))
+@click.argument("right", type=click.Path(dir_okay=False))
 @click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False),
               help="Output folder (normal-case photos, disparity, confidence, points, dsm.tif, dense.json, report/).")
-@click.option("--right-orientation", type=click.Path(exists=True, dir_okay=False), default=None,
+@click.option("--right-orientation", type=click.Path(dir_okay=False), default=None,
               help="Right exterior orientation JSON, when ORIENTATION is the left one's.")
-@click.option("--camera", type=click.Path(exists=True, dir_okay=False), default=None,
+@click.option("--camera", type=click.Path(dir_okay=False), default=None,
               help="Camera JSON (default: the camera stored in ORIENTATION).")
-@click.option("--matches", type=click.Path(exists=True, dir_okay=False), default=None,
+@click.option("--matches", type=click.Path(dir_okay=False), default=None,
               help="Tie points CSV (default: match the photos).")
-@click.option("--control", type=click.Path(exists=True, dir_okay=False), default=None,
+@click.option("--control", type=click.Path(dir_okay=False), default=None,
               help="Stereo control CSV: products in the control's ground frame.")
 @click.option("--cloud", type=click.Choice(["las", "laz", "ply", "none"]), default=_D.cloud_format, show_default=True,
               help="Point cloud format.")
@@ -36,19 +37,21 @@ _D = DenseOptions()
               help="Interpolate DSM holes of at most this many cells (flagged in band 3).")
 @click.option("--min-confidence", type=float, default=0.0, show_default=True,
               help="Leave out points of lower matching confidence (0..1).")
-@click.option("--reference-dem", type=click.Path(exists=True, dir_okay=False), default=None,
+@click.option("--reference-dem", type=click.Path(dir_okay=False), default=None,
               help="Compare the DSM with this DEM (RMSE, NMAD, blunders, histogram).")
-@click.option("--tile", type=int, default=1024, show_default=True, help="Tile side of the matcher, pixels.")
+@click.option("--despike", type=float, default=_D.despike_cells, show_default=True,
+              help="Drop DSM cells farther than this many cell sides from their 5 x 5 median (0: off).")
+@click.option("--tile", type=int, default=_D.matching.tile, show_default=True, help="Tile side of the matcher, pixels.")
 @overwrite_opt
 @handle_errors
 def dense(orientation, left, right, out_dir, right_orientation, camera, matches, control, cloud, dsm_cell, dsm_stat,
-          fill_holes, min_confidence, reference_dem, tile, overwrite):
+          fill_holes, min_confidence, reference_dem, despike, tile, overwrite):
     """Resample LEFT and RIGHT into the normal case from ORIENTATION (ro.json of `stereo orient`, or
     the left exterior orientation with --right-orientation), match them densely and write the point
     cloud and the DSM."""
-    opts = DenseOptions(matching=MatchOptions(tile=tile), cloud_format=cloud, dsm_cell=dsm_cell,
+    opts = DenseOptions(matching=dataclasses.replace(_D.matching, tile=tile), cloud_format=cloud, dsm_cell=dsm_cell,
                         dsm_statistic=dsm_stat, fill_holes=fill_holes, min_confidence=min_confidence,
-                        reference_dem=reference_dem)
+                        reference_dem=reference_dem, despike_cells=despike)
     result = run_dense(orientation, left, right, out_dir, right_orientation=right_orientation, camera=camera,
                        matches=matches, control=control, options=opts, overwrite=overwrite)
     for line in result.summary_lines():
