@@ -176,8 +176,8 @@ class EpipolarRectification:
         fx = ((cols - col_off) / step).astype(np.float32)
         fy = ((rows - row_off) / step).astype(np.float32)
         ffx, ffy = np.meshgrid(fx, fy)
-        mx = cv2.remap(gx, ffx, ffy, cv2.INTER_LINEAR)
-        my = cv2.remap(gy, ffx, ffy, cv2.INTER_LINEAR)
+        mx = np.asarray(cv2.remap(gx, ffx, ffy, cv2.INTER_LINEAR), dtype=np.float32)
+        my = np.asarray(cv2.remap(gy, ffx, ffy, cv2.INTER_LINEAR), dtype=np.float32)
         return mx, my
 
     def to_dict(self) -> dict:

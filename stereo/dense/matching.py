@@ -252,7 +252,7 @@ def _median_valid(disp: NDArray[np.float32]) -> NDArray[np.float32]:
     """
     v = np.isfinite(disp)
     if v.all():
-        return cv2.medianBlur(disp.astype(np.float32), 3)
+        return np.asarray(cv2.medianBlur(disp.astype(np.float32), 3), dtype=np.float32)
     a = cv2.medianBlur(np.where(v, disp, np.float32(-1e9)), 3)
     b = cv2.medianBlur(np.where(v, disp, np.float32(1e9)), 3)
     m = np.where(a == b, a, disp)
@@ -283,7 +283,7 @@ def _confidence(grey: NDArray[np.float32], disp: NDArray[np.float32], filled: ND
 
 def _sgbm(opts: MatchOptions, channels: int, min_disp: int, num_disp: int) -> cv2.StereoSGBM:
     bs = opts.block_size
-    return cv2.StereoSGBM_create(
+    return cv2.StereoSGBM.create(
         minDisparity=int(min_disp), numDisparities=int(num_disp), blockSize=bs,
         P1=int(round(opts.p1 * channels * bs * bs)), P2=int(round(opts.p2 * channels * bs * bs)),
         disp12MaxDiff=int(opts.lr_max_diff), uniquenessRatio=int(opts.uniqueness),
@@ -347,8 +347,8 @@ def _match_window(L: NDArray[np.uint8], R: NDArray[np.uint8], lv: NDArray[np.boo
       or the window edge are dropped.
     """
     if L.ndim == 3 and not opts.colour:
-        L = cv2.cvtColor(np.ascontiguousarray(L), cv2.COLOR_RGB2GRAY)
-        R = cv2.cvtColor(np.ascontiguousarray(R), cv2.COLOR_RGB2GRAY)
+        L = np.asarray(cv2.cvtColor(np.ascontiguousarray(L), cv2.COLOR_RGB2GRAY), dtype=np.uint8)
+        R = np.asarray(cv2.cvtColor(np.ascontiguousarray(R), cv2.COLOR_RGB2GRAY), dtype=np.uint8)
     H, W = L.shape[:2]
     num = int(math.ceil((dmax - dmin + 1) / 16.0)) * 16
     L = _noise_fill(L, lv, 1)
@@ -403,11 +403,11 @@ def refine_subpixel(left: NDArray[np.float32], right: NDArray[np.float32], disp:
     ys = np.arange(H, dtype=np.float32)[:, None].repeat(W, 1)
     d0 = np.where(v, disp, 0).astype(np.float32)
     d = d0.copy()
-    g = cv2.Sobel(left, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+    g = np.asarray(cv2.Sobel(left, cv2.CV_32F, 1, 0, ksize=3, scale=0.125), dtype=np.float32)
     k = (2 * radius + 1, 2 * radius + 1)
 
     def win(a: NDArray[np.float32]) -> NDArray[np.float32]:
-        return cv2.GaussianBlur(a, k, radius / 2.0)
+        return np.asarray(cv2.GaussianBlur(a, k, radius / 2.0), dtype=np.float32)
 
     mg = win(g)
     den = win(g * g) - mg * mg
@@ -477,8 +477,8 @@ def _coarse(L8: NDArray[np.uint8], R8: NDArray[np.uint8], lv, rv, rng: tuple[int
     if k == 1:
         k = 2
     size = (max(8, W // k), max(8, H // k))
-    Lc = cv2.resize(L8, size, interpolation=cv2.INTER_AREA)
-    Rc = cv2.resize(R8, size, interpolation=cv2.INTER_AREA)
+    Lc = np.asarray(cv2.resize(L8, size, interpolation=cv2.INTER_AREA), dtype=np.uint8)
+    Rc = np.asarray(cv2.resize(R8, size, interpolation=cv2.INTER_AREA), dtype=np.uint8)
     lvc = cv2.resize(lv.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
     rvc = cv2.resize(rv.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
     if rng is None:
@@ -609,7 +609,7 @@ def sgbm_baseline(left: ArrayLike, right: ArrayLike, num_disparities: int = 64, 
     Li, Ri = _as_image(left, "left"), _as_image(right, "right")
     ch = 1 if Li.ndim == 2 else 3
     bs = block_size
-    s = cv2.StereoSGBM_create(minDisparity=0, numDisparities=num_disparities, blockSize=bs, P1=8 * ch * bs * bs,
+    s = cv2.StereoSGBM.create(minDisparity=0, numDisparities=num_disparities, blockSize=bs, P1=8 * ch * bs * bs,
                               P2=32 * ch * bs * bs, disp12MaxDiff=1, uniquenessRatio=10, speckleWindowSize=100,
                               speckleRange=2)
     raw = s.compute(_to_uint8(Li, None), _to_uint8(Ri, None))
@@ -687,8 +687,10 @@ def match_rasters(
             # bring both to the same scale
             size_l = (max(8, int(round(il.width / s))), max(8, int(round(il.height / s))))
             size_r = (max(8, int(round(ir.width / s))), size_l[1])
-            Lc = cv2.resize(_to_uint8(ovl[:, :, :3].mean(axis=2), vl), size_l, interpolation=cv2.INTER_AREA)
-            Rc = cv2.resize(_to_uint8(ovr[:, :, :3].mean(axis=2), vr), size_r, interpolation=cv2.INTER_AREA)
+            Lc = np.asarray(cv2.resize(_to_uint8(ovl[:, :, :3].mean(axis=2), vl), size_l, interpolation=cv2.INTER_AREA),
+                            dtype=np.uint8)
+            Rc = np.asarray(cv2.resize(_to_uint8(ovr[:, :, :3].mean(axis=2), vr), size_r, interpolation=cv2.INTER_AREA),
+                            dtype=np.uint8)
             lvc = cv2.resize(vl.astype(np.uint8), size_l, interpolation=cv2.INTER_NEAREST) > 0
             rvc = cv2.resize(vr.astype(np.uint8), size_r, interpolation=cv2.INTER_NEAREST) > 0
             k = il.height / size_l[1]

@@ -74,6 +74,8 @@ class DenseOptions:
     Attributes
     ----------
     matching : MatchOptions
+        Default: :class:`MatchOptions` with holes of up to 200 px filled in the disparity product
+        (flagged in band 2 of the confidence raster; filled disparities never become points).
     cloud_format : {"las", "laz", "ply", "none"}
     dsm_cell : float or None
         DSM cell side (ground units); default the median ground sampling distance.
@@ -102,7 +104,7 @@ class DenseOptions:
         (0: no test).
     """
 
-    matching: MatchOptions = field(default_factory=MatchOptions)
+    matching: MatchOptions = field(default_factory=lambda: MatchOptions(fill_max_px=200))
     cloud_format: str = "las"
     dsm_cell: float | None = None
     dsm_statistic: str = "mean"
@@ -178,7 +180,8 @@ class DenseResult:
             lines.append(f"absolute orientation to the control: RMSE {self.control_rmse:.3f} (3D)")
         if self.comparison is not None:
             lines.append(self.comparison.summary_line(cell=self.dsm_cell))
-        lines.append(f"outputs in {self.out_dir}: " + ", ".join(p.name for p in self.files))
+        lines.append(f"outputs in {self.out_dir}: " + ", ".join(
+            p.relative_to(self.out_dir).as_posix() if p.is_relative_to(self.out_dir) else str(p) for p in self.files))
         lines.append(f"time {self.seconds:.1f} s")
         return lines
 
