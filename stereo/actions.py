@@ -119,17 +119,32 @@ class OrientResult:
         return out
 
 
-def _match(left: PathArg, right: PathArg, progress: Progress | None = None) -> Any:
-    """Tie points of a photo pair: the default matcher with fundamental-matrix verification."""
+#: The matcher of a stereo pair: fundamental-matrix verification (a homography drops most matches of a
+#: pair with relief); the other options are :class:`rectify.features.MatcherConfig`'s defaults.
+PAIR_MATCHER = MatcherConfig(verify="fundamental")
+
+
+def matcher_config(*, detector: str = PAIR_MATCHER.detector, verify: str = PAIR_MATCHER.verify,
+                   refine: bool = PAIR_MATCHER.refine, max_matches: int | None = None,
+                   max_keypoints: int | None = None) -> MatcherConfig:
+    """The pair matcher with the commands' options (None: :data:`PAIR_MATCHER`'s value)."""
+    return replace(PAIR_MATCHER, detector=detector, verify=verify, refine=refine,
+                   max_matches=PAIR_MATCHER.max_matches if max_matches is None else max_matches,
+                   max_keypoints=PAIR_MATCHER.max_keypoints if max_keypoints is None else max_keypoints)
+
+
+def _match(left: PathArg, right: PathArg, progress: Progress | None = None,
+           matcher: MatcherConfig | None = None) -> Any:
+    """Tie points of a photo pair: :data:`PAIR_MATCHER` unless ``matcher`` is given."""
     with warnings.catch_warnings():  # plain photos have no geotransform, as expected
         warnings.simplefilter("ignore", NotGeoreferencedWarning)
-        return match_images(left, right, config=MatcherConfig(verify="fundamental"), progress=progress)
+        return match_images(left, right, config=matcher or PAIR_MATCHER, progress=progress)
 
 
 def orient(*, camera: PathArg, output: PathArg, matches: PathArg | None = None,
            images: tuple[PathArg, PathArg] | None = None, camera_right: PathArg | None = None,
            matches_out: PathArg | None = None, report_dir: PathArg | None = None, overwrite: bool = False,
-           options: OrientOptions | None = None) -> OrientResult:
+           options: OrientOptions | None = None, matcher: MatcherConfig | None = None) -> OrientResult:
     """``stereo orient``: relative orientation from a matches CSV or from matching two images.
 
     Parameters
@@ -144,6 +159,8 @@ def orient(*, camera: PathArg, output: PathArg, matches: PathArg | None = None,
         Photos to match first; ``matches_out`` also writes the matches.
     report_dir : path, optional
         QA report folder.
+    matcher : MatcherConfig, optional
+        Matcher options with ``images`` (default :data:`PAIR_MATCHER`, fundamental-matrix verification).
 
     Raises
     ------
@@ -162,7 +179,7 @@ def orient(*, camera: PathArg, output: PathArg, matches: PathArg | None = None,
     cam_r = ws.load_camera(camera_right) if camera_right else None
     n_matched = rmse = None
     if images is not None:
-        res = _match(images[0], images[1])
+        res = _match(images[0], images[1], matcher=matcher)
         m = res.matches
         n_matched, rmse = len(m), res.rmse_px
     else:
@@ -367,7 +384,7 @@ class RunResult:
 def run(left: PathArg, right: PathArg, *, camera: PathArg | Camera, out_dir: PathArg,
         control: PathArg | ControlTable | None = None, overwrite: bool = False, options: ModelOptions | None = None,
         report: bool = True, title: str = "stereo run", extra_summary: dict[str, Any] | None = None,
-        progress: Progress | None = None) -> RunResult:
+        progress: Progress | None = None, matcher: MatcherConfig | None = None) -> RunResult:
     """``stereo run``: match, orient, intersect, orient absolutely; write everything into ``out_dir``.
 
     Every output of the layout (:data:`stereo.workspace.RUN_LAYOUT`) and the report folder are
@@ -384,6 +401,8 @@ def run(left: PathArg, right: PathArg, *, camera: PathArg | Camera, out_dir: Pat
         Stereo control CSV; its image points are tie points of the relative orientation too.
     options : ModelOptions, optional
         ``ro_system``/``ro_robust`` for the relative orientation, the rest for the model.
+    matcher : MatcherConfig, optional
+        Matcher options (default :data:`PAIR_MATCHER`, fundamental-matrix verification).
     """
     opts = options or ModelOptions()
     inputs = [left, right] + [p for p in (camera, control) if isinstance(p, (str, Path))]
@@ -392,7 +411,7 @@ def run(left: PathArg, right: PathArg, *, camera: PathArg | Camera, out_dir: Pat
     cam = camera if isinstance(camera, Camera) else ws.load_camera(camera)
     ctrl = ws.load_control(control) if isinstance(control, (str, Path)) else control
     t0 = time.perf_counter()
-    mr = _match(left, right, progress)
+    mr = _match(left, right, progress, matcher)
     m = mr.matches
     t_match = time.perf_counter() - t0
     # pixels -> photo mm once, for the relative orientation and the model
@@ -471,7 +490,9 @@ def demo(out_dir: PathArg, *, seed: int = 0, size_px: int = 480, overwrite: bool
     control = PairWorkspace().load_control(inp["control"])
     ground_px = scene.cell_m
     r = run(inp["left"], inp["right"], camera=scene.camera, out_dir=out, control=control, overwrite=overwrite,
-            options=ModelOptions(check_ids=inp["check_ids"]), title="stereo demo: synthetic pair with known truth",
+            # robust="none": the demo's control is clean and its figures are the README's
+            options=ModelOptions(check_ids=inp["check_ids"], robust="none"),
+            title="stereo demo: synthetic pair with known truth",
             extra_summary={"scene_seed": seed, "ground_pixel_m": ground_px}, progress=progress)
     m = r.model
     assert m.ground is not None

@@ -70,6 +70,32 @@ def verbosity_opts(f: Callable) -> Callable:
     return f
 
 
+def matcher_opts(default_verify: str) -> Callable[[Callable], Callable]:
+    """--detector, --verify, --refine/--no-refine, --max-matches, --max-keypoints (choices and defaults from
+    :class:`rectify.features.MatcherConfig`); the command gets them as keyword arguments of those names."""
+    from ..features import DETECTORS, VERIFY_METHODS, MatcherConfig
+
+    d = MatcherConfig()
+
+    def deco(f: Callable) -> Callable:
+        for opt in reversed([
+            click.option("--detector", type=click.Choice(list(DETECTORS)), default=d.detector, show_default=True,
+                         help="Keypoint detector."),
+            click.option("--verify", type=click.Choice(list(VERIFY_METHODS)), default=default_verify,
+                         show_default=True, help="Geometric verification of the matches (OpenCV USAC MAGSAC++)."),
+            click.option("--refine/--no-refine", default=d.refine, show_default=True,
+                         help="Least-squares matching refinement of the positions."),
+            click.option("--max-matches", type=click.IntRange(1), default=None,
+                         help=f"At most this many matches, spread evenly (default {d.max_matches})."),
+            click.option("--max-keypoints", type=click.IntRange(1), default=None,
+                         help=f"Keypoints kept per image (per tile for large images; default {d.max_keypoints})."),
+        ]):
+            f = opt(f)
+        return f
+
+    return deco
+
+
 def _add_verbosity(ctx: click.Context, param: click.Parameter, value: int) -> None:
     """-v/-q given after the subcommand: add to the group's counts and set the logging up again."""
     if not value:

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import click
 
-from rectify.cli.options import echo, handle_errors, overwrite_opt, report_opt
+from rectify.cli.options import echo, handle_errors, matcher_opts, overwrite_opt, report_opt
 from rectify.robust import ROBUST_METHODS
 
-from ..actions import OrientOptions
+from ..actions import PAIR_MATCHER, OrientOptions, matcher_config
 from ..actions import orient as orient_action
 from ..relative import INITIAL_METHODS, SYSTEMS
 
@@ -32,11 +32,12 @@ _D = OrientOptions()
               help="Initial values: zero angles, OpenCV's five-point essential matrix, or zero then essential.")
 @click.option("--matches-out", type=click.Path(dir_okay=False), default=None,
               help="With LEFT RIGHT: also write the matches CSV here.")
+@matcher_opts(PAIR_MATCHER.verify)
 @report_opt
 @overwrite_opt
 @handle_errors
 def orient(images, camera_path, camera_right_path, matches_path, output, system, robust, initial, matches_out,
-           report_dir, overwrite):
+           detector, verify, refine, max_matches, max_keypoints, report_dir, overwrite):
     """Estimate the five elements of relative orientation.
 
     Either ``stereo orient --camera CAM.json --matches matches.csv -o ro.json``
@@ -53,7 +54,9 @@ def orient(images, camera_path, camera_right_path, matches_path, output, system,
     result = orient_action(camera=camera_path, camera_right=camera_right_path, matches=matches_path,
                            images=tuple(images) if images else None, output=output, matches_out=matches_out,
                            report_dir=report_dir, overwrite=overwrite,
-                           options=OrientOptions(system=system, robust=robust, initial=initial))
+                           options=OrientOptions(system=system, robust=robust, initial=initial),
+                           matcher=matcher_config(detector=detector, verify=verify, refine=refine,
+                                                  max_matches=max_matches, max_keypoints=max_keypoints))
     for line in result.summary_lines():
         echo(line)
 

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import click
 
-from rectify.cli.options import echo, handle_errors, overwrite_opt, progress
+from rectify.cli.options import echo, handle_errors, matcher_opts, overwrite_opt, progress
 from rectify.robust import ROBUST_METHODS
 
+from ..actions import PAIR_MATCHER, matcher_config
 from ..actions import run as run_action
 from ..intersection import METHODS
 from ..model import FRAMES, ModelOptions
@@ -24,20 +25,23 @@ _D = ModelOptions()
 @click.option("--frame", type=click.Choice(list(FRAMES)), default=_D.frame, show_default=True)
 @click.option("--method", type=click.Choice(list(METHODS)), default=_D.intersection, show_default=True)
 @click.option("--robust", type=click.Choice(list(ROBUST_METHODS)), default=_D.robust, show_default=True,
-              help="Robust absolute orientation.")
+              help="Robust absolute orientation (none: plain least squares).")
 @click.option("--control-sigma-px", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Image precision of the control/check points, pixels (default: estimated from the absolute "
                    "orientation).")
+@matcher_opts(PAIR_MATCHER.verify)
 @overwrite_opt
 @handle_errors
 def run(left, right, camera_path, out_dir, control_path, check_ids, frame, method, robust, control_sigma_px,
-        overwrite):
+        detector, verify, refine, max_matches, max_keypoints, overwrite):
     """Run the stereo pipeline on LEFT and RIGHT into OUTDIR."""
     checks = tuple(s.strip() for s in check_ids.split(",") if s.strip())
     opts = ModelOptions(intersection=method, frame=frame, robust=robust, check_ids=checks,
                         control_sigma_px=control_sigma_px)
+    matcher = matcher_config(detector=detector, verify=verify, refine=refine, max_matches=max_matches,
+                             max_keypoints=max_keypoints)
     with progress("matching") as cb:
         result = run_action(left, right, camera=camera_path, out_dir=out_dir, control=control_path, options=opts,
-                            overwrite=overwrite, progress=cb)
+                            overwrite=overwrite, progress=cb, matcher=matcher)
     for line in result.summary_lines():
         echo(line)
