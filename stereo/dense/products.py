@@ -86,9 +86,14 @@ class LasWriter:
             try:
                 from pyproj import CRS
 
-                header.add_crs(CRS.from_user_input(crs_wkt))
-            except Exception as err:  # noqa: BLE001 - a CRS laspy cannot store is logged, not fatal
-                logger.warning("CRS not stored in %s: %s", self.path, err)
+                crs = CRS.from_user_input(crs_wkt)
+                try:
+                    header.add_crs(crs)
+                except Exception:  # noqa: BLE001 - laspy wants an EPSG code: store the OGC WKT VLR directly
+                    header.vlrs.append(laspy.vlrs.known.WktCoordinateSystemVlr(crs.to_wkt()))
+                    header.global_encoding.wkt = True
+            except Exception as err:  # noqa: BLE001 - a CRS that cannot be stored is logged, not fatal
+                logger.warning("CRS not stored in the point cloud: %s", err)
         self._laspy = laspy
         self._header = header
         try:

@@ -201,6 +201,14 @@ def test_point_writers_roundtrip(tmp_path):
     w.close()
     las = laspy.read(tmp_path / "p.las")
     np.testing.assert_allclose(np.column_stack([las.x, las.y, las.z]), xyz, atol=1e-3)
+    # a CRS without an EPSG code (the NGI "Lo25" transverse Mercator) is kept as an OGC WKT VLR
+    lo25 = "+proj=tmerc +lat_0=0 +lon_0=25 +k=1 +x_0=0 +y_0=0 +datum=WGS84 +units=m"
+    w = point_writer(tmp_path / "q.las", offset=(1000, 2000, 0), crs_wkt=lo25)
+    w.write(xyz, col)
+    w.close()
+    from pyproj import CRS
+
+    assert laspy.read(tmp_path / "q.las").header.parse_crs().equals(CRS.from_user_input(lo25))
     pw = PlyWriter(tmp_path / "p.ply", comment="ground")
     pw.write(xyz, col)
     pw.close()
