@@ -25,8 +25,15 @@ from .io import raster_info
 from .report import write_fit_report, write_match_report, write_warp_report
 from .transforms import METHODS, FitResult, fit_gcps
 from .transforms.quality import GcpGeometry, geographic_lines, judge_gcp_geometry
-from .warp import RESAMPLING_NAMES, GeoRectification, WarpOptions, georectify, rectify_with_transform
-from .workspace import Workspace
+from .warp import (
+    DEFAULT_MAX_PIXELS,
+    RESAMPLING_NAMES,
+    GeoRectification,
+    WarpOptions,
+    georectify,
+    rectify_with_transform,
+)
+from .workspace import Workspace, check_table_crs
 
 __all__ = [
     "DETECTORS", "VERIFY_METHODS", "METHOD_NAMES", "RESAMPLING_NAMES",
@@ -242,6 +249,8 @@ class WarpRunOptions:
         Cloud Optimized GeoTIFF with overviews.
     threads : int, optional
         Worker threads (default: all cores).
+    max_pixels : float
+        Refuse an output grid with more pixels (default :data:`rectify.warp.DEFAULT_MAX_PIXELS`, 2e9).
     """
 
     method: str = "homography"
@@ -251,6 +260,7 @@ class WarpRunOptions:
     resampling: str = "bilinear"
     cog: bool = False
     threads: int | None = None
+    max_pixels: float = DEFAULT_MAX_PIXELS
 
 
 @dataclass(frozen=True, eq=False)
@@ -313,9 +323,12 @@ def warp(ws: Workspace, src: str | Path, dst: str | Path, *, gcps_path: str | Pa
     ws.plan(dst)
     ws.check_report_dir()
     info = raster_info(src)
-    wopts = WarpOptions(resampling=options.resampling, cog=options.cog, threads=options.threads)
+    wopts = WarpOptions(resampling=options.resampling, cog=options.cog, threads=options.threads,
+                        max_pixels=options.max_pixels)
     if gcps_path is not None:
         gcps = ws.load_gcps(gcps_path)
+        if options.gcp_crs:  # --gcp-crs overrides the file's CRS: the coordinates must fit it too
+            check_table_crs(gcps_path, options.gcp_crs, gcps.target, gcps.ids)
         result = georectify(src, dst, gcps, method=options.method, gcp_crs=options.gcp_crs, dst_crs=options.dst_crs,
                             resolution=options.resolution, options=wopts, overwrite=ws.overwrite, progress=progress)
     else:

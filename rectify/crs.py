@@ -25,7 +25,7 @@ from .errors import CRSError
 from .points import as_points
 
 __all__ = ["unit_label", "parse_crs", "crs_to_string", "get_transformer", "transform_xy", "transform_xyz",
-           "same_crs", "is_geographic"]
+           "same_crs", "is_geographic", "check_area_of_use"]
 
 logger = logging.getLogger(__name__)
 
@@ -186,3 +186,59 @@ def unit_label(crs, *, default: str = "map units") -> str:
     if name in ("metre", "meter", "m"):
         return "m"
     return name or default
+
+
+def check_area_of_use(crs, xy: ArrayLike, ids=None, *, margin_deg: float = 10.0) -> None:
+    """Refuse coordinates that cannot be in ``crs``.
+
+    A geographic CRS takes longitudes within +-360 and latitudes within +-90 degrees (projected
+    metres labelled EPSG:4326 are caught here). A projected CRS takes points that transform to
+    longitude/latitude within ``margin_deg`` of its area of use (pyproj's ``CRS.area_of_use``).
+    Rows with NaN are skipped.
+
+    Raises
+    ------
+    CRSError
+        Naming the first offending point (its id when ``ids`` is given), its coordinates, the CRS
+        and its area of use.
+    """
+    c = parse_crs(crs)
+    p = as_points(xy, "xy", 2)
+    names = [str(i) for i in ids] if ids is not None else [f"#{k + 1}" for k in range(len(p))]
+    keep: NDArray[np.bool_] = np.asarray(np.isfinite(p).all(axis=1), dtype=bool)
+    names = [names[i] for i in np.flatnonzero(keep)]
+    p = p[keep]
+    if len(p) == 0:
+        return
+    label = crs_to_string(c) if c.to_epsg(min_confidence=100) else (c.name or "the CRS")
+    if c.is_geographic:
+        bad = (np.abs(p[:, 0]) > 360.0) | (np.abs(p[:, 1]) > 90.0)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise CRSError(f"point {names[i]} ({p[i, 0]:.10g}, {p[i, 1]:.10g}) is not a longitude/latitude in "
+                           f"{label} (degrees, |lat| <= 90): are these projected coordinates (metres) labelled "
+                           "with a geographic CRS?")
+        lon, lat = (p[:, 0] + 180.0) % 360.0 - 180.0, p[:, 1]
+    else:
+        try:
+            t = get_transformer(c, "EPSG:4326")
+            lon, lat = (np.asarray(v, dtype=np.float64) for v in t.transform(p[:, 0], p[:, 1]))
+        except (CRSError, ProjError):
+            return
+        bad = ~(np.isfinite(lon) & np.isfinite(lat))
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise CRSError(f"point {names[i]} ({p[i, 0]:.10g}, {p[i, 1]:.10g}) lies outside the domain of {label} "
+                           "(it has no longitude/latitude): wrong CRS for these coordinates?")
+    aou = c.area_of_use
+    if aou is None:
+        return
+    m = float(margin_deg)
+    out = (lat < aou.south - m) | (lat > aou.north + m)
+    if aou.west <= aou.east and aou.east - aou.west < 360.0 - 2 * m:
+        out |= (lon < aou.west - m) | (lon > aou.east + m)
+    if out.any():
+        i = int(np.flatnonzero(out)[0])
+        raise CRSError(f"point {names[i]} ({p[i, 0]:.10g}, {p[i, 1]:.10g}) lies far outside the area of use of "
+                       f"{label} (lon {aou.west:g}..{aou.east:g}, lat {aou.south:g}..{aou.north:g}; the point is at "
+                       f"lon {lon[i]:.4g}, lat {lat[i]:.4g}): wrong CRS for these coordinates?")

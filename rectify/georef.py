@@ -23,7 +23,7 @@ from .errors import InvalidInputError
 from .points import as_points
 
 __all__ = ["Grid", "world_from_pixel", "pixel_from_world", "world_from_pixel_matrix",
-           "pixel_from_world_matrix", "boundary_pixels", "suggest_resolution", "output_grid"]
+           "pixel_from_world_matrix", "boundary_pixels", "suggest_resolution", "output_grid", "check_horizon"]
 
 logger = logging.getLogger(__name__)
 
@@ -221,6 +221,9 @@ def output_grid(world_from_src: Callable[[NDArray], NDArray], width: int, height
 
     if resolution is not None and (not math.isfinite(resolution) or resolution <= 0):
         raise InvalidInputError(f"resolution must be a positive number; got {resolution!r}")
+    matrix = getattr(world_from_src, "matrix", None)
+    if matrix is not None:
+        check_horizon(matrix, width, height)
     edge = boundary_pixels(width, height, 21 if max(width, height) < 100 else 65)
     w = np.asarray(world_from_src(edge), dtype=np.float64)
     if w.shape != edge.shape or not np.isfinite(w).all():
@@ -239,9 +242,40 @@ def output_grid(world_from_src: Callable[[NDArray], NDArray], width: int, height
     nx = max(1, int(round((x1 - x0) / res)))
     ny = max(1, int(round((y1 - y0) / res)))
     if float(nx) * float(ny) > max_pixels:
-        raise InvalidInputError(f"output grid of {nx} x {ny} pixels at resolution {res!r} is too large; "
-                                f"check the transform or pass a coarser resolution")
+        raise InvalidInputError(f"output grid of {nx} x {ny} = {float(nx) * float(ny):.3g} pixels at resolution "
+                                f"{res:.6g} is too large: above the limit of {max_pixels:.3g} pixels (--max-pixels); "
+                                "check the transform, pass a coarser --resolution or raise --max-pixels")
     logger.debug("output grid %d x %d at %g, x0 %g, y %g..%g", nx, ny, res, x0, y0, y1)
     if not y_up:
         return Grid(nx, ny, Affine(res, 0.0, x0 - half, 0.0, res, y0 - half), crs)
     return Grid(nx, ny, Affine(res, 0.0, x0, 0.0, -res, y1), crs)
+
+
+def check_horizon(matrix: ArrayLike, width: int, height: int) -> None:
+    """Refuse a projective transform whose horizon crosses the source frame.
+
+    The horizon is the line where the denominator ``h31 x + h32 y + h33`` of the (3, 3) matrix
+    (source pixels -> world) is 0; the image on its far side maps to the other end of the plane, so
+    no finite output grid covers the frame. The denominator is evaluated at the outer corners of the
+    frame (pixel edges): it must keep one sign and stay away from 0.
+
+    Raises
+    ------
+    InvalidInputError
+        Naming the corners on each side and the denominators.
+    """
+    m = np.asarray(matrix, dtype=np.float64)
+    if m.shape != (3, 3) or not np.isfinite(m).all():
+        return
+    corners = np.array([[-0.5, -0.5], [width - 0.5, -0.5], [width - 0.5, height - 0.5], [-0.5, height - 0.5]])
+    den = corners @ m[2, :2] + m[2, 2]
+    scale = np.abs(corners @ np.abs(m[2, :2])) + abs(m[2, 2])
+    tiny = np.abs(den) <= 1e-9 * np.maximum(scale, 1e-300)
+    if (den > 0).all() or (den < 0).all():
+        if not tiny.any():
+            return
+    raise InvalidInputError(
+        f"the horizon of the transform crosses the source frame ({width} x {height} px): the projective "
+        f"denominator at the corners (0,0), ({width},0), ({width},{height}), (0,{height}) is "
+        f"{', '.join(f'{d:.3g}' for d in den)}, it changes sign inside the image; the part beyond the horizon "
+        "has no place on the map (crop the sky away or check the GCPs)")

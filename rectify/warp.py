@@ -30,6 +30,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import logging
 import os
+import shutil
 import threading
 import time
 from collections.abc import Callable
@@ -43,17 +44,17 @@ import rasterio
 from numpy.typing import ArrayLike, NDArray
 
 from .crs import crs_to_string, get_transformer, same_crs, transform_xy
-from .errors import CRSError, EstimationError, InvalidInputError
+from .errors import CRSError, EstimationError, InvalidInputError, RasterIOError
 from .fileutil import atomic_output, check_output
 from .formats import GcpTable
-from .georef import Grid, output_grid, world_from_pixel, world_from_pixel_matrix
+from .georef import Grid, check_horizon, output_grid, world_from_pixel, world_from_pixel_matrix
 from .io import MaskPolicy, TiledWriter, WindowReader, mask_policy, open_raster, raster_info, translate_to_cog
 from .residuals import ResidualTable
 from .transforms import METHODS, FitResult, fit_gcps, method_of
 
 __all__ = ["RESAMPLING", "WarpOptions", "WarpResult", "warp_raster", "warp_array", "GeoRectification",
            "georectify", "rectify_with_transform", "check_gcps_inside",
-           "gcps_outside", "outside_note"]
+           "gcps_outside", "outside_note", "check_free_space", "DEFAULT_MAX_PIXELS"]
 
 logger = logging.getLogger(__name__)
 
@@ -71,6 +72,10 @@ def _resampling_table() -> dict[str, tuple[int, int]]:
 
 RESAMPLING_NAMES = ("nearest", "bilinear", "cubic", "lanczos")
 _CV_LIMIT = 32767  # OpenCV's SHRT_MAX limit on remap/warp sizes
+#: default limit on the pixels of an output grid (``rectify warp --max-pixels``): 2e9, a 44721 px square
+DEFAULT_MAX_PIXELS = 2e9
+#: compression ratio assumed when checking that an output fits on the disk
+ASSUMED_COMPRESSION = 4.0
 
 
 @dataclass(frozen=True)
@@ -101,6 +106,9 @@ class WarpOptions:
     cache_mb : int
         GDAL block cache limit while warping (effective when set before GDAL
         first uses its cache; the CLI sets ``GDAL_CACHEMAX`` at start).
+    max_pixels : float
+        Refuse an output grid with more pixels than this (``rectify warp --max-pixels``), before
+        any pixel is written: a degenerate transform or a tiny resolution can ask for billions.
     """
 
     resampling: str = "bilinear"
@@ -112,8 +120,11 @@ class WarpOptions:
     map_step_px: int = 16
     max_window_px: int = 8192
     cache_mb: int = 64
+    max_pixels: float = DEFAULT_MAX_PIXELS
 
     def __post_init__(self) -> None:
+        if not self.max_pixels > 0:
+            raise InvalidInputError(f"max_pixels must be > 0; got {self.max_pixels!r}")
         if self.resampling not in RESAMPLING_NAMES:
             raise InvalidInputError(f"unknown resampling {self.resampling!r}; expected one of {list(RESAMPLING_NAMES)}")
         if self.tile_px < 16 or self.tile_px % 16 or self.tile_px > 4096:
@@ -478,6 +489,7 @@ def warp_raster(src: str | Path, dst: str | Path, source_from_world: Callable[[N
     with open_raster(src) as ds:
         count, colorinterp = ds.count, list(ds.colorinterp)
     policy, dtype = _output_policy(src, opts)
+    check_free_space(dst, grid, count + (1 if policy.kind == "mask" else 0), dtype, opts)
     fill = _fill_value(policy.kind, policy.nodata, dtype)
     mapping = _Mapping(grid, source_from_world, world_crs, opts.map_step_px)
     engine = _Engine(src, mapping, grid, opts, dtype, count, fill)
@@ -507,6 +519,29 @@ def warp_raster(src: str | Path, dst: str | Path, source_from_world: Callable[[N
     logger.info("warped %s -> %s: %d x %d, %d tiles (%d empty) in %.2f s", src, dst, grid.width, grid.height,
                 len(windows), n_empty, dt)
     return WarpResult(Path(dst), grid, len(windows), n_empty, dt, policy.kind, policy.nodata)
+
+
+def check_free_space(dst: str | Path, grid: Grid, bands: int, dtype: np.dtype, opts: WarpOptions) -> None:
+    """Refuse an output that cannot fit on the destination's file system, before any work.
+
+    The bound is the uncompressed size divided by :data:`ASSUMED_COMPRESSION` (a compressed output
+    may turn out smaller; one that needs more than this fails when written, and is cleaned up). A
+    COG is first written uncompressed beside the destination, so it needs its full size in addition.
+    """
+    raw = float(grid.width) * float(grid.height) * bands * np.dtype(dtype).itemsize
+    compressed = raw if opts.compress.lower() == "none" else raw / ASSUMED_COMPRESSION
+    need = compressed + (raw if opts.cog else 0.0)
+    folder = Path(dst).parent if str(Path(dst).parent) else Path(".")
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return
+    if need > free:
+        raise RasterIOError(
+            f"not enough space left on device for {str(dst)!r}: the output grid of {grid.width} x {grid.height} px "
+            f"x {bands} band(s) {np.dtype(dtype).name} is {raw / 1e6:,.1f} MB uncompressed and needs about "
+            f"{need / 1e6:,.1f} MB{' (COG: uncompressed body + copy)' if opts.cog else ''}; "
+            f"{free / 1e6:,.1f} MB are free in {str(folder)!r}")
 
 
 def _run_tiles(engine: _Engine, writer, windows, threads: int, progress) -> int:
@@ -713,7 +748,7 @@ def georectify(src: str | Path, dst: str | Path, gcps, *, method: str = "homogra
     fit = FitResult(forward, table_out, method)  # type: ignore[arg-type]  # maps like the model, shifted
     opts = options or WarpOptions()
     grid = output_grid(forward, info.width, info.height, resolution=resolution, crs=out_crs,
-                       y_up=out_crs is not None)
+                       y_up=out_crs is not None, max_pixels=opts.max_pixels)
     res = warp_raster(src, dst, inverse, grid, options=opts, overwrite=overwrite, progress=progress)
     return GeoRectification(fit, res, out_crs, method, notes=(note,) if note else ())
 
@@ -768,8 +803,11 @@ def rectify_with_transform(src: str | Path, dst: str | Path, model, *, model_crs
         world_crs = m_crs
     else:
         forward, world_crs = model, None
+    model_matrix = getattr(model, "matrix", None)
+    if model_matrix is not None:
+        check_horizon(model_matrix, info.width, info.height)
     grid = output_grid(forward, info.width, info.height, resolution=resolution, crs=out_crs,
-                       y_up=out_crs is not None)
+                       y_up=out_crs is not None, max_pixels=(options or WarpOptions()).max_pixels)
     res = warp_raster(src, dst, _Inverse(inverse), grid, world_crs=world_crs, options=options,
                       overwrite=overwrite, progress=progress)
     try:

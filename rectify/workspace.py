@@ -18,17 +18,19 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
 from . import formats
 from .camera import Camera
-from .errors import InvalidInputError, RasterIOError, RectifyError
+from .crs import check_area_of_use, parse_crs
+from .errors import CRSError, InvalidInputError, RasterIOError, RectifyError
 from .fileutil import apply_umask, check_output, make_temp, write_failure_reason
 from .residuals import ResidualTable
 
-__all__ = ["Workspace", "same_file"]
+__all__ = ["Workspace", "same_file", "check_table_crs"]
 
 StrPath = str | os.PathLike[str]
 
@@ -135,8 +137,17 @@ class Workspace:
         if d.exists() and not d.is_dir():
             raise InvalidInputError(f"report folder {str(d)!r} exists and is not a folder")
         probe = d if d.exists() else next((p for p in d.parents if p.exists()), Path("."))
-        if not os.access(probe, os.W_OK):
-            raise RasterIOError(f"report folder {str(d)!r} is not writable")
+        if not probe.is_dir():
+            raise InvalidInputError(f"report folder {str(d)!r} cannot be created: {str(probe)!r} is a file")
+        if not os.access(probe, os.W_OK | os.X_OK):
+            raise RasterIOError(f"report folder {str(d)!r} is not writable ({str(probe)!r} is read-only)")
+        try:  # access() says yes to root even on a read-only mount: try a file
+            fd, name = tempfile.mkstemp(prefix=".write-test.", suffix=".part", dir=probe)
+            os.close(fd)
+            os.unlink(name)
+        except OSError as err:
+            raise RasterIOError(f"report folder {str(d)!r} is not writable: "
+                                f"{write_failure_reason(err, probe / 'x')}") from err
 
     def discard_root(self) -> None:
         """Remove the output folder if this workspace created it and it is empty (after a failure)."""
@@ -222,9 +233,11 @@ class Workspace:
 
     # ------------------------------------------------------------------ artefacts (rectify.formats)
     def load_gcps(self, path: StrPath) -> formats.GcpTable:
-        """Read a GCP CSV or QGIS ``.points`` file (an input of the job)."""
+        """Read a GCP file (an input of the job); its CRS is checked at once (:func:`check_table_crs`)."""
         self.add_inputs(path)
-        return formats.read_gcps(path)
+        g = formats.read_gcps(path)
+        check_table_crs(path, g.crs, g.target, g.ids)
+        return g
 
     def save_gcps(self, path: StrPath, gcps: formats.GcpTable) -> Path:
         """Write a GCP CSV through :meth:`output`."""
@@ -242,7 +255,9 @@ class Workspace:
     def load_control(self, path: StrPath) -> formats.ControlTable:
         """Read a stereo control CSV (an input of the job)."""
         self.add_inputs(path)
-        return formats.read_control(path)
+        c = formats.read_control(path)
+        check_table_crs(path, c.crs, c.xyz[:, :2], c.ids)
+        return c
 
     def save_control(self, path: StrPath, control: formats.ControlTable) -> Path:
         """Write a stereo control CSV through :meth:`output`."""
@@ -260,12 +275,33 @@ class Workspace:
     def load_transform(self, path: StrPath) -> formats.TransformFile:
         """Read a transform JSON file (an input of the job): the model, its CRS and residuals."""
         self.add_inputs(path)
-        return formats.read_transform(path)
+        tf = formats.read_transform(path)
+        check_table_crs(path, tf.crs, None)
+        return tf
 
     def save_transform(self, path: StrPath, model: Any, *, table: ResidualTable | None = None,
                        crs: str | None = None, extra: dict[str, Any] | None = None) -> Path:
         """Write a transform JSON file through :meth:`output` (:func:`rectify.formats.transform_document`)."""
         return self.write_text(path, formats.transform_text(model, table=table, crs=crs, extra=extra))
+
+
+def check_table_crs(path: StrPath, crs: str | None, xy: Any, ids: Any = None) -> None:
+    """Check the CRS of a file when it is read, before any work: it exists (PROJ knows it) and the
+    coordinates ``xy`` (N, 2) can be in it (:func:`rectify.crs.check_area_of_use`; NaN rows skipped).
+
+    Raises
+    ------
+    CRSError
+        Naming the file, the CRS and the first offending point.
+    """
+    if crs is None:
+        return
+    try:
+        parse_crs(crs)
+        if xy is not None:
+            check_area_of_use(crs, xy, ids)
+    except CRSError as err:
+        raise CRSError(f"{str(path)!r}: {err}") from err
 
 
 def _write(tmp: Path, text: str) -> None:

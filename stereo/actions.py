@@ -178,7 +178,9 @@ def orient(*, camera: PathArg, output: PathArg, matches: PathArg | None = None,
     cam = ws.load_camera(camera)
     cam_r = ws.load_camera(camera_right) if camera_right else None
     n_matched = rmse = None
-    if images is not None:
+    if images is not None:  # check the cameras against the photos before matching
+        ws.check_camera_image(cam, images[0], "left")
+        ws.check_camera_image(cam_r or cam, images[1], "right")
         res = _match(images[0], images[1], matcher=matcher)
         m = res.matches
         n_matched, rmse = len(m), res.rmse_px
@@ -187,6 +189,8 @@ def orient(*, camera: PathArg, output: PathArg, matches: PathArg | None = None,
         m = ws.load_matches(matches)
     if len(m) == 0:
         raise InvalidInputError("no tie points")
+    ws.check_points_in_frame(cam, m.left, m.ids, "left tie points")
+    ws.check_points_in_frame(cam_r or cam, m.right, m.ids, "right tie points")
     ro = RelativeOrientation.from_pixels(m.left, m.right, cam, camera_right=cam_r, system=opts.system,
                                          robust=opts.robust, initial=opts.initial, ids=m.ids)
     # the cameras travel with the orientation, so `stereo model` needs no --camera
@@ -264,6 +268,11 @@ def model(ro_json: PathArg, *, matches: PathArg, output: PathArg, camera: PathAr
     ctrl = ws.load_control(control) if control else None
     if opts.check_ids and ctrl is None:
         raise InvalidInputError("--check needs --control")
+    for side, px in (("left", m.left), ("right", m.right)):
+        ws.check_points_in_frame(cam, px, m.ids, f"{side} tie points")
+    if ctrl is not None:
+        for side, px in (("left", ctrl.left), ("right", ctrl.right)):
+            ws.check_points_in_frame(cam, px, ctrl.ids, f"{side} control image points")
     result = build_model(cam.photo_from_pixel(m.left), cam.photo_from_pixel(m.right), geom, ids=m.ids,
                          control=ctrl, control_mm=_control_mm(ctrl, cam), options=opts,
                          pixel_size_mm=cam.pixel_size_mm)
@@ -410,6 +419,12 @@ def run(left: PathArg, right: PathArg, *, camera: PathArg | Camera, out_dir: Pat
     ws.plan_run()
     cam = camera if isinstance(camera, Camera) else ws.load_camera(camera)
     ctrl = ws.load_control(control) if isinstance(control, (str, Path)) else control
+    # the camera against both photos and the control image points, before matching
+    ws.check_camera_image(cam, left, "left")
+    ws.check_camera_image(cam, right, "right")
+    if ctrl is not None:
+        for side, px in (("left", ctrl.left), ("right", ctrl.right)):
+            ws.check_points_in_frame(cam, px, ctrl.ids, f"{side} control image points")
     t0 = time.perf_counter()
     mr = _match(left, right, progress, matcher)
     m = mr.matches

@@ -25,7 +25,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from rectify.errors import InvalidInputError
+from rectify.camera import Camera
+from rectify.errors import CalibrationError, InvalidInputError
+from rectify.io import raster_info
 from rectify.workspace import StrPath, Workspace
 
 from .formats import (
@@ -118,6 +120,42 @@ class PairWorkspace(Workspace):
         if self._created_root and self.root is not None:
             with contextlib.suppress(OSError):
                 shutil.rmtree(self._created_top or self.root)
+
+    # ------------------------------------------------------------------ consistency of the inputs
+    def check_camera_image(self, camera: Camera, image: StrPath, which: str = "image") -> None:
+        """Refuse a camera whose ``width`` x ``height`` differ from the size of ``image`` (read from its header).
+
+        Raises
+        ------
+        CalibrationError
+            Naming both sizes, the image and which photo it is (``"left"``, ``"right"``).
+        """
+        info = raster_info(str(image))
+        if (info.width, info.height) != (camera.width, camera.height):
+            raise CalibrationError(
+                f"the camera is {camera.width} x {camera.height} px but the {which} image {str(image)!r} is "
+                f"{info.width} x {info.height} px: wrong camera file for this photo (or a resized photo)")
+
+    @staticmethod
+    def check_points_in_frame(camera: Camera, pixel: Any, ids: Any, what: str, *, tolerance_px: float = 1.0) -> None:
+        """Refuse measured pixels outside the camera's frame (by more than ``tolerance_px``).
+
+        Raises
+        ------
+        InvalidInputError
+            Naming the number of points outside, the first ids with their positions and the frame size.
+        """
+        px = np.asarray(pixel, dtype=np.float64).reshape(-1, 2)
+        lo, t = -0.5 - tolerance_px, tolerance_px
+        out = ((px[:, 0] < lo) | (px[:, 1] < lo) | (px[:, 0] > camera.width - 0.5 + t)
+               | (px[:, 1] > camera.height - 0.5 + t)) & np.isfinite(px).all(axis=1)
+        if out.any():
+            idx = np.flatnonzero(out)
+            names = [str(ids[i]) if ids is not None else f"#{i + 1}" for i in idx[:3]]
+            where = ", ".join(f"{n} ({px[i, 0]:.1f}, {px[i, 1]:.1f})" for n, i in zip(names, idx[:3], strict=True))
+            raise InvalidInputError(
+                f"{len(idx)} {what} outside the camera's {camera.width} x {camera.height} px frame, e.g. {where}: "
+                "wrong camera file, or points measured on another image size")
 
     # ------------------------------------------------------------------ stereo artefacts
     # (matches, control, camera and GCP files: the load_*/save_* methods of rectify.workspace.Workspace)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import os
+import re
 import stat
 import subprocess
 from pathlib import Path
@@ -77,7 +78,7 @@ def _fill(d: Path, leave: int = 0) -> Path:
     return filler
 
 
-# ----------------------------------------------------------------------------------------- 1. writers
+# --- 1. writers
 @pytest.mark.parametrize("cog", [False, True])
 def test_warp_disk_full_fails_and_cleans_up(noise_scene, small_disk, cog):
     d, src, gcps = noise_scene
@@ -86,7 +87,8 @@ def test_warp_disk_full_fails_and_cleans_up(noise_scene, small_disk, cog):
     r = CliRunner().invoke(rectify_cli, ["warp", str(src), str(out), "--gcps", str(gcps), "--method", "affine"]
                            + (["--cog"] if cog else []))
     _one_line_error(r)
-    assert "no space left on device" in r.output and str(out) in r.output
+    # without --cog the write itself fails (ENOSPC); a COG (body + copy) is refused before work
+    assert ("no space left on device" if not cog else "space left on device") in r.output and str(out) in r.output
     assert ".part" not in r.output  # the destination is named, not the temporary file
     assert _entries(small_disk) == []
     assert _hash(src, gcps) == before
@@ -119,7 +121,7 @@ def test_csv_and_ply_writers_disk_full(small_disk):
     assert _entries(small_disk) == [filler.name]
 
 
-# ----------------------------------------------------------------------------------------- 2. umask
+# --- 2. umask
 @pytest.mark.parametrize("mask", [0o022, 0o002])
 def test_outputs_follow_the_umask(noise_scene, mask):
     d, src, gcps = noise_scene
@@ -137,7 +139,7 @@ def test_outputs_follow_the_umask(noise_scene, mask):
     assert stat.S_IMODE((d / "rep").stat().st_mode) == 0o777 & ~mask
 
 
-# ----------------------------------------------------------------------------------------- 3. outputs vs inputs, all or none, SIGTERM
+# --- 3. outputs vs inputs, all or none, SIGTERM
 def _stereo_cli():
     from stereo.cli.main import cli
 
@@ -238,7 +240,7 @@ def test_sigterm_removes_temporaries(tmp_path):
     assert _hash(src, gcps) == before
 
 
-# ----------------------------------------------------------------------------------------- 7. wrong JSON types, option ranges
+# --- 7. wrong JSON types, option ranges
 _CAM = {"focal_length_mm": 50.0, "pixel_size_mm": 0.01, "width": 1000, "height": 800}
 
 
@@ -320,3 +322,176 @@ def test_numeric_options_out_of_range(tmp_path, monkeypatch, cli_name, args):
     assert r.exit_code == 2, r.output
     assert "Invalid value" in r.output and "Traceback" not in r.output
     assert _entries(tmp_path) == names
+
+
+# --- 4. check before working
+def _pair(tmp_path, size=(400, 300)):
+    """Two small noise photos and a camera of their size."""
+    import json
+
+    rng = np.random.default_rng(3)
+    paths = []
+    for name in ("l.tif", "r.tif"):
+        img = (rng.random((size[1], size[0])) * 255).astype(np.uint8)
+        write_raster(tmp_path / name, img, Affine(1, 0, 0, 0, 1.0000001, 0), None)
+        paths.append(tmp_path / name)
+    cam = tmp_path / "cam.json"
+    cam.write_text(json.dumps({"focal_length_mm": 50.0, "pixel_size_mm": 0.01, "width": size[0], "height": size[1]}))
+    return paths[0], paths[1], cam
+
+
+def test_report_folder_under_a_file_is_refused_before_work(noise_scene):
+    d, src, gcps = noise_scene
+    (d / "afile").write_text("x")
+    names, before = _entries(d), _hash(src, gcps)
+    r = CliRunner().invoke(rectify_cli, ["fit", str(gcps), "-o", str(d / "t.json"), "--report",
+                                         str(d / "afile" / "rep")])
+    _one_line_error(r)
+    assert "report folder" in r.output and "is a file" in r.output
+    assert _entries(d) == names and _hash(src, gcps) == before
+
+
+def test_report_folder_on_a_read_only_mount(noise_scene, small_disk):
+    d, src, gcps = noise_scene
+    subprocess.run(["mount", "-o", "remount,ro", str(small_disk)], check=True)
+    names = _entries(d)
+    r = CliRunner().invoke(rectify_cli, ["fit", str(gcps), "-o", str(d / "t.json"), "--report",
+                                         str(small_disk / "rep")])
+    _one_line_error(r)
+    assert "report folder" in r.output and "not writable" in r.output
+    assert _entries(d) == names and _entries(small_disk) == []
+
+
+def test_stereo_run_control_crs_checked_before_matching(tmp_path):
+    left, right, cam = _pair(tmp_path)
+    ctrl = tmp_path / "ctrl.csv"
+    ctrl.write_text("# crs=EPSG:999999\nid,col_left,row_left,col_right,row_right,x,y,z\nc1,10,10,5,10,1,2,3\n")
+    before, names = _hash(left, right, cam, ctrl), _entries(tmp_path)
+    r = CliRunner().invoke(_stereo_cli(), ["run", str(left), str(right), "--camera", str(cam), "--control", str(ctrl),
+                                           "-o", str(tmp_path / "out")])
+    _one_line_error(r)
+    assert "CRSError" in r.output and "EPSG:999999" in r.output and "ctrl.csv" in r.output
+    assert _entries(tmp_path) == names and _hash(left, right, cam, ctrl) == before
+    # UTM metres labelled EPSG:4326
+    ctrl.write_text("# crs=EPSG:4326\nid,col_left,row_left,col_right,row_right,x,y,z\n"
+                    "c1,10,10,5,10,500100,4400200,30\n")
+    r = CliRunner().invoke(_stereo_cli(), ["run", str(left), str(right), "--camera", str(cam), "--control", str(ctrl),
+                                           "-o", str(tmp_path / "out")])
+    _one_line_error(r)
+    assert "c1" in r.output and "not a longitude/latitude" in r.output
+    assert _entries(tmp_path) == names
+
+
+def test_stereo_run_failure_leaves_no_folder(tmp_path):
+    """Noise photos give no tie points: the run fails after matching and leaves no output folder."""
+    left, right, cam = _pair(tmp_path)
+    before, names = _hash(left, right, cam), _entries(tmp_path)
+    r = CliRunner().invoke(_stereo_cli(), ["run", str(left), str(right), "--camera", str(cam),
+                                           "-o", str(tmp_path / "new" / "out")])
+    _one_line_error(r)
+    assert _entries(tmp_path) == names and _hash(left, right, cam) == before
+
+
+# --- 5. inconsistent geometry
+def test_camera_size_differs_from_the_images(tmp_path):
+    left, right, cam = _pair(tmp_path, size=(400, 300))
+    import json
+
+    cam.write_text(json.dumps({"focal_length_mm": 50.0, "pixel_size_mm": 0.01, "width": 300, "height": 400}))
+    before, names = _hash(left, right, cam), _entries(tmp_path)
+    for args in (["orient", str(left), str(right), "--camera", str(cam), "-o", str(tmp_path / "ro.json")],
+                 ["run", str(left), str(right), "--camera", str(cam), "-o", str(tmp_path / "out")]):
+        r = CliRunner().invoke(_stereo_cli(), args)
+        _one_line_error(r)
+        assert "300 x 400 px" in r.output and "400 x 300 px" in r.output and "l.tif" in r.output
+        assert _entries(tmp_path) == names
+    assert _hash(left, right, cam) == before
+
+
+def test_tie_points_outside_the_camera_frame(tmp_path):
+    import json
+
+    cam = tmp_path / "cam.json"
+    cam.write_text(json.dumps({"focal_length_mm": 50.0, "pixel_size_mm": 0.01, "width": 400, "height": 300}))
+    m = tmp_path / "m.csv"
+    m.write_text("id,col_left,row_left,col_right,row_right\n" + "".join(
+        f"t{i},{100 + 40 * i},{50 + 20 * i},{90 + 40 * i},{55 + 20 * i}\n" for i in range(12)))
+    before, names = _hash(cam, m), _entries(tmp_path)
+    r = CliRunner().invoke(_stereo_cli(), ["orient", "--camera", str(cam), "--matches", str(m),
+                                           "-o", str(tmp_path / "ro.json")])
+    _one_line_error(r)
+    assert "outside the camera's 400 x 300 px frame" in r.output and "t8" in r.output
+    assert _entries(tmp_path) == names and _hash(cam, m) == before
+
+
+@pytest.mark.parametrize("crs, message", [("EPSG:4326", "not a longitude/latitude"), ("EPSG:999999", "unknown CRS"),
+                                          ("EPSG:32633", "outside the area of use")])
+def test_gcp_crs_checked_when_read(noise_scene, crs, message):
+    d, src, gcps = noise_scene
+    text = gcps.read_text().replace("# crs=EPSG:32618", f"# crs={crs}")
+    if crs == "EPSG:32633":  # metres of the northern zone with the sign of the southern hemisphere
+        text = text.replace(",43", ",-43").replace(",44", ",-44")
+    gcps.write_text(text)
+    before, names = _hash(src, gcps), _entries(d)
+    for cli, args in ((rectify_cli, ["fit", str(gcps), "-o", str(d / "t.json")]),
+                      (rectify_cli, ["warp", str(src), str(d / "o.tif"), "--gcps", str(gcps)])):
+        r = CliRunner().invoke(cli, args)
+        _one_line_error(r)
+        assert "CRSError" in r.output and message in r.output and "gcps.csv" in r.output, r.output
+    assert _entries(d) == names and _hash(src, gcps) == before
+
+
+def test_resect_gcp_crs_checked_when_read(tmp_path):
+    import json
+
+    cam = tmp_path / "cam.json"
+    cam.write_text(json.dumps({"focal_length_mm": 50.0, "pixel_size_mm": 0.01, "width": 400, "height": 300}))
+    g = tmp_path / "g.csv"
+    g.write_text("# crs=EPSG:4326\nid,col,row,x,y,z\n" + "".join(
+        f"p{i},{50 + 60 * i},{40 + 30 * i},{500000 + 10 * i},{4400000 + 7 * i},{100 + i}\n" for i in range(6)))
+    before, names = _hash(cam, g), _entries(tmp_path)
+    r = CliRunner().invoke(_stereo_cli(), ["resect", "--camera", str(cam), "--gcps", str(g), "-o",
+                                           str(tmp_path / "eo.json")])
+    _one_line_error(r)
+    assert "not a longitude/latitude" in r.output and "p0" in r.output
+    assert _entries(tmp_path) == names and _hash(cam, g) == before
+
+
+# --- 6. planned outputs
+def test_warp_refuses_a_grid_above_max_pixels(noise_scene):
+    d, src, gcps = noise_scene
+    before, names = _hash(src, gcps), _entries(d)
+    r = CliRunner().invoke(rectify_cli, ["warp", str(src), str(d / "o.tif"), "--gcps", str(gcps), "--method", "affine",
+                                         "--resolution", "0.001"])
+    _one_line_error(r)
+    assert "400000 x 400000" in r.output and "2e+09" in r.output and "--max-pixels" in r.output
+    r = CliRunner().invoke(rectify_cli, ["warp", str(src), str(d / "o.tif"), "--gcps", str(gcps), "--method", "affine",
+                                         "--max-pixels", "1000"])
+    _one_line_error(r)
+    assert "401 x 401" in r.output
+    assert _entries(d) == names and _hash(src, gcps) == before
+
+
+def test_warp_refuses_an_output_larger_than_the_free_space(noise_scene, small_disk):
+    d, src, gcps = noise_scene
+    before = _hash(src, gcps)
+    r = CliRunner().invoke(rectify_cli, ["warp", str(src), str(small_disk / "o.tif"), "--gcps", str(gcps),
+                                         "--method", "affine", "--resolution", "0.25"])
+    _one_line_error(r)
+    assert "not enough space left on device" in r.output and "MB are free" in r.output
+    assert re.search(r"output grid of \d+ x \d+ px", r.output)
+    assert _entries(small_disk) == [] and _hash(src, gcps) == before
+
+
+def test_warp_refuses_a_horizon_inside_the_frame(noise_scene):
+    from rectify.formats import write_transform
+    from rectify.transforms import Homography
+
+    d, src, gcps = noise_scene
+    t = d / "t.json"
+    write_transform(t, Homography(np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.01, -1.0]])))
+    before, names = _hash(src, t), _entries(d)
+    r = CliRunner().invoke(rectify_cli, ["warp", str(src), str(d / "o.tif"), "--transform", str(t)])
+    _one_line_error(r)
+    assert "horizon of the transform crosses the source frame" in r.output and "400 x 400" in r.output
+    assert _entries(d) == names and _hash(src, t) == before
