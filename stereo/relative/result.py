@@ -25,8 +25,8 @@ from rectify.points import as_pair
 from rectify.residuals import ResidualTable, rms
 from rectify.rotation import angles_from_matrix
 
-from .solver import RelativeOptions, precision, solve, validate
-from .systems import SYSTEMS, _evaluate, _rays, get_system
+from .solver import RelativeOptions, choose_frame, precision, solve, validate
+from .systems import _evaluate, _rays, get_system
 
 logger = logging.getLogger(__name__)
 
@@ -202,6 +202,7 @@ class RelativeOrientation:
         opts = options or RelativeOptions()
         prob = validate(left_mm, right_mm, focal_length_mm=focal_length_mm, system=system, robust=robust,
                         initial=initial, ids=ids, weights=weights, pixel_size_mm=pixel_size_mm)
+        prob = choose_frame(prob, opts)  # dobrynin-pimshina: photo frames turned to put the base along x
         sol = solve(prob, opts)
         pr = precision(prob, sol, opts)
         sys_ = prob.system
@@ -251,17 +252,17 @@ class RelativeOrientation:
     @property
     def rotation_left(self) -> NDArray[np.float64]:
         """(3, 3) left photo vector (x, y, -f) -> model frame."""
-        return SYSTEMS[self.system].geometry(self.elements)[0]
+        return get_system(self.system).geometry(self.elements)[0]
 
     @property
     def rotation_right(self) -> NDArray[np.float64]:
         """(3, 3) right photo vector (x, y, -f) -> model frame."""
-        return SYSTEMS[self.system].geometry(self.elements)[1]
+        return get_system(self.system).geometry(self.elements)[1]
 
     @property
     def base(self) -> NDArray[np.float64]:
         """(3,) unit base, right projection centre minus left, model frame."""
-        return SYSTEMS[self.system].geometry(self.elements)[2]
+        return get_system(self.system).geometry(self.elements)[2]
 
     @property
     def relative_rotation(self) -> NDArray[np.float64]:
@@ -297,7 +298,7 @@ class RelativeOrientation:
         """Residual vertical parallax (N,), mm, of other tie points under this orientation."""
         lm, r = as_pair(left_mm, right_mm, names=("left_mm", "right_mm"))
         f1, f2 = self.focal_length_mm
-        return _evaluate(SYSTEMS[self.system], self.elements, _rays(lm, f1), _rays(r, f2), jac=False).parallax
+        return _evaluate(get_system(self.system), self.elements, _rays(lm, f1), _rays(r, f2), jac=False).parallax
 
     def to_system(self, system: str) -> NDArray[np.float64]:
         """Elements (5,) of the same relative geometry in another system (no re-adjustment)."""
@@ -311,7 +312,7 @@ class RelativeOrientation:
         propagation is exact to first order since both forms parametrise the
         same five degrees of freedom.
         """
-        sys_ = SYSTEMS[self.system]
+        sys_ = get_system(self.system)
 
         def conv(p):
             R1, R2, b = sys_.geometry(p)

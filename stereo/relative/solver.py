@@ -16,7 +16,7 @@ import logging
 import math
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import cv2
@@ -28,12 +28,12 @@ from rectify.errors import ConvergenceError, EstimationError, InvalidInputError,
 from rectify.points import as_ids, as_pair, as_weights
 from rectify.robust import ROBUST_METHODS, get_psi, irls
 
-from .systems import System, _evaluate, _focals, _rays, _unit, get_system
+from .systems import System, _evaluate, _focals, _rays, _unit, dobrynin_pimshina_for_base, get_system
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["INITIAL_METHODS", "Precision", "Problem", "RelativeOptions", "Solution", "precision",
-           "relative_from_essential", "solve", "validate"]
+           "relative_from_essential", "solve", "validate", "choose_frame"]
 
 #: initial values of the adjustment (see :meth:`stereo.relative.RelativeOrientation.from_points`)
 INITIAL_METHODS = ("auto", "zero", "essential")
@@ -350,6 +350,26 @@ class Solution:
     irls_iterations: int
     scale: float | None
     initial: str
+
+
+def choose_frame(prob: Problem, opts: RelativeOptions) -> Problem:
+    """For the dobrynin-pimshina system, turn the photo frames so that the base runs along +x
+    (:func:`~stereo.relative.systems.dobrynin_pimshina_for_base`, from the essential-matrix base);
+    other systems, given start values and turned systems are kept."""
+    sys_ = prob.system
+    if sys_.name != "dobrynin-pimshina" or prob.initial == "given":
+        return prob
+    pix = prob.pixel_size_mm or _DEFAULT_PIXEL_MM
+    try:
+        _, bl, _ = relative_from_essential(prob.left_mm, prob.right_mm, prob.focal_length_mm,
+                                           threshold_mm=opts.ransac_threshold_px * pix, rng_seed=opts.rng_seed)
+    except EstimationError:
+        return prob  # the solver names the problem
+    turned = dobrynin_pimshina_for_base(bl)
+    if turned is not sys_:
+        logger.info("dobrynin-pimshina: base %s in the left photo frame; photo frames turned by %d degrees",
+                    np.round(_unit(bl), 3).tolist(), turned.turn_deg)
+    return replace(prob, system=turned)
 
 
 def solve(prob: Problem, opts: RelativeOptions) -> Solution:

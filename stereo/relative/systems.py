@@ -80,6 +80,14 @@ class System:
     names: tuple[str, ...]
     order: str
     fixed: tuple[str, ...]
+    turn_deg: int = 0
+
+    @property
+    def turn(self) -> NDArray[np.float64]:
+        """(3, 3) rotation of the photo frames by ``turn_deg`` about their z axis (photo vector -> turned
+        photo vector); the elements refer to the turned frames (identity for ``turn_deg = 0``)."""
+        c, s = round(math.cos(math.radians(self.turn_deg))), round(math.sin(math.radians(self.turn_deg)))
+        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
     # --------------------------------------------------------------- geometry
     def geometry(self, p: ArrayLike) -> tuple[NDArray, NDArray, NDArray]:
@@ -113,6 +121,9 @@ class System:
             b, db[0], _ = _base(p[0], 0.0)
             dR1[1], dR1[2] = d1[0], d1[1]
             dR2[3], dR2[4] = d2[1], d2[2]
+            if self.turn_deg:  # elements of the turned photo frames: R = R' Q
+                Q = self.turn
+                R1, R2, dR1, dR2 = R1 @ Q, R2 @ Q, dR1 @ Q, dR2 @ Q
         return R1, R2, b, dR1, dR2, db
 
     # ------------------------------------------------------------- conversion
@@ -148,6 +159,9 @@ class System:
             M = _rot("y", a1) @ _rot("z", k1)
             a2, w2, k2 = angles_from_matrix(M @ Rr, "phi-omega-kappa")
             return np.array([a1, k1, a2, w2, k2])
+        if self.turn_deg:  # the relative geometry in the turned photo frames
+            Q = self.turn
+            Rr, bc = Q @ Rr @ Q.T, Q @ bc
         # dobrynin-pimshina, from the parametrisation (seed 000, eq. 4):
         #   chi1 = 0   <=> model X is normal to the left image's y axis: X = (cos a1, 0, sin a1);
         #   omega2 = 0 <=> model Y is normal to the right optical axis z2;
@@ -210,10 +224,32 @@ SYSTEMS: dict[str, System] = {
 }
 
 
+#: The dobrynin-pimshina system on photo frames turned by 90, 180 or 270 degrees about z (issue 12): its
+#: model X axis lies in the left photo's xz plane (chi1 = 0), so a base along the photo y axis (pairs from
+#: adjacent strips) or against x has no solution in the unturned frames. Chosen automatically
+#: (:func:`dobrynin_pimshina_for_base`); the names are stored in the relative orientation JSON.
+TURNED_SYSTEMS: dict[str, System] = {
+    f"dobrynin-pimshina-rot{t}": System(f"dobrynin-pimshina-rot{t}", SYSTEMS["dobrynin-pimshina"].names,
+                                        "omega-alpha-chi", ("nu", "chi1", "omega2"), turn_deg=t)
+    for t in (90, 180, 270)}
+
+
+def dobrynin_pimshina_for_base(base_left: ArrayLike) -> System:
+    """The dobrynin-pimshina system whose turned photo frames put ``base_left`` (left photo frame) nearest
+    to +x: unturned when the base runs along +x, turned by 270 degrees for +y, 90 for -y, 180 for -x."""
+    b = np.asarray(base_left, dtype=np.float64).reshape(3)
+    along = {0: b[0], 90: -b[1], 180: -b[0], 270: b[1]}  # x component of Rz(t) b
+    t = max(along, key=lambda k: along[k])
+    return SYSTEMS["dobrynin-pimshina"] if t == 0 else TURNED_SYSTEMS[f"dobrynin-pimshina-rot{t}"]
+
+
 def get_system(system: str | System) -> System:
-    """The :class:`System` named ``system`` (or ``system`` itself)."""
+    """The :class:`System` named ``system`` (or ``system`` itself); the turned dobrynin-pimshina
+    systems (:data:`TURNED_SYSTEMS`) are found too."""
     if isinstance(system, System):
         return system
+    if str(system) in TURNED_SYSTEMS:
+        return TURNED_SYSTEMS[str(system)]
     try:
         return SYSTEMS[str(system)]
     except KeyError:
