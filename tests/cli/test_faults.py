@@ -495,3 +495,36 @@ def test_warp_refuses_a_horizon_inside_the_frame(noise_scene):
     _one_line_error(r)
     assert "horizon of the transform crosses the source frame" in r.output and "400 x 400" in r.output
     assert _entries(d) == names and _hash(src, t) == before
+
+
+# --- 10. one sigma0 for relative orientation
+def test_orient_console_and_report_print_one_sigma0(tmp_path):
+    import json
+
+    from rectify.camera import Camera
+    from tests.support.stereo_support import simulate_pair
+
+    sim = simulate_pair("vertical", n=120, noise_px=0.5, outlier_fraction=0.05, rng=7)
+    cam = Camera(focal_length_mm=120.0, pixel_size_mm=0.144, width=640, height=1152)
+    lp, rp = cam.pixel_from_photo(sim.left_mm), cam.pixel_from_photo(sim.right_mm)
+    inside = ((lp >= 0) & (lp <= [639, 1151]) & (rp >= 0) & (rp <= [639, 1151])).all(axis=1)
+    lp, rp = lp[inside], rp[inside]
+    m = tmp_path / "m.csv"
+    m.write_text("id,col_left,row_left,col_right,row_right\n" + "".join(
+        f"t{i},{a[0]!r},{a[1]!r},{b[0]!r},{b[1]!r}\n" for i, (a, b) in enumerate(zip(lp.tolist(), rp.tolist(),
+                                                                                  strict=True))))
+    cj = tmp_path / "cam.json"
+    cj.write_text(json.dumps(cam.to_dict()))
+    r = CliRunner().invoke(_stereo_cli(), ["orient", "--camera", str(cj), "--matches", str(m), "-o",
+                                           str(tmp_path / "ro.json"), "--robust", "tukey", "--report",
+                                           str(tmp_path / "rep")])
+    assert r.exit_code == 0, r.output
+    got = re.search(r"sigma0 ([0-9.]+) um = ([0-9.]+) px \(vertical parallax, (\d+) - 5 redundancy", r.output)
+    assert got, r.output
+    um, px, n_used = float(got.group(1)), float(got.group(2)), int(got.group(3))
+    doc = json.loads((tmp_path / "rep" / "report.json").read_text())
+    table = doc["tables"][0]["summary"]
+    assert table["n_fit"] == n_used and table["units"] == "px"
+    assert abs(table["sigma0"] - px) < 0.0006
+    assert abs(doc["summary"]["sigma0_mm"] * 1000 - um) < 0.006
+    assert n_used < len(lp)  # the outliers are excluded
