@@ -39,6 +39,9 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "correlation_heatmap_figure",
     "height_bars_figure",
+    "height_difference_map_figure",
+    "pair_matches_figure",
+    "readable_map_ticks",
     "histogram_qq_figure",
     "match_figures",
     "nice_number",
@@ -307,6 +310,8 @@ def residual_vector_figure(table: ResidualTable, image_shape: Sequence[int] | No
         ax.set_ylim(y0, y1)
     ax.set_aspect("equal")
     ax.ticklabel_format(axis="both", style="plain", useOffset=False)  # full map coordinates
+    if not y_down:
+        readable_map_ticks(ax)
     xl, yl = ("column x", "row y") if position_units == "px" else ("X", "Y")
     ax.set_xlabel(f"{xl} ({position_units})")
     ax.set_ylabel(f"{yl} ({position_units})")
@@ -744,3 +749,113 @@ def study_figures(results: StudyResults) -> dict[str, Figure]:
     ax.set_title(f"5. Speed ({s['n_points']:,} points, ratio {s['ratio']:.2f})")
     figs["speed"] = fig
     return figs
+
+
+# --------------------------------------------------------------------------- map ticks, pair figures (issue 12)
+def _coordinate_label(v: float, _pos: int | None = None) -> str:
+    """A map coordinate for a tick: thin-space thousands groups for large values (500 200, 4 399 800)."""
+    if abs(v) >= 1e4:
+        return f"{v:,.0f}".replace(",", "\u2009")
+    return f"{v:.6g}"
+
+
+def readable_map_ticks(ax) -> None:
+    """Full map coordinates on at most 6 ticks per axis, thousands grouped, x labels turned 30 degrees."""
+    from matplotlib.ticker import FuncFormatter, MaxNLocator
+
+    for axis in (ax.xaxis, ax.yaxis):
+        axis.set_major_locator(MaxNLocator(nbins=6))
+        axis.set_major_formatter(FuncFormatter(_coordinate_label))
+    ax.tick_params(axis="x", labelrotation=30)
+    for label in ax.get_xticklabels():
+        label.set_horizontalalignment("right")
+
+
+def height_difference_map_figure(xy: ArrayLike, dz: ArrayLike, ids: Sequence[str], *, units: str = "m",
+                                 std: ArrayLike | None = None, title: str | None = None) -> Figure:
+    """Map of height differences at check points: dZ = estimated - reference at the points' ground X, Y,
+    coloured on a symmetric diverging scale, each labelled with its value (and dZ / predicted std)."""
+    p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    d = np.asarray(dz, dtype=np.float64).reshape(-1)
+    if len(p) != len(d) or len(ids) != len(d):
+        raise ShapeError(f"`xy`, `dz` and `ids` must have one row per point; got {len(p)}, {len(d)}, {len(ids)}")
+    if len(d) == 0:
+        raise InvalidInputError("no check points for the height-difference map")
+    fig = _new_figure(8.0, 6.4)
+    ax = fig.add_subplot()
+    lim = float(np.nanmax(np.abs(d))) if np.isfinite(d).any() else 1.0
+    lim = lim if lim > 0 else 1.0
+    sc = ax.scatter(p[:, 0], p[:, 1], c=d, cmap="RdBu_r", vmin=-lim, vmax=lim, s=70, edgecolors="k", linewidths=0.5)
+    sd = None if std is None else np.asarray(std, dtype=np.float64).reshape(-1)
+    for i in range(len(d)):
+        txt = f"{ids[i]}: {d[i]:+.3g}"
+        if sd is not None and np.isfinite(sd[i]) and sd[i] > 0:
+            txt += f" ({d[i] / sd[i]:+.1f}\u03c3)"
+        ax.annotate(txt, (p[i, 0], p[i, 1]), textcoords="offset points", xytext=(5, 4), fontsize=7)
+    cb = fig.colorbar(sc, ax=ax, shrink=0.85)
+    cb.set_label(f"dZ = estimated - reference ({units})")
+    ax.set_aspect("equal", adjustable="datalim")
+    readable_map_ticks(ax)
+    ax.set_xlabel(f"X ({units})")
+    ax.set_ylabel(f"Y ({units})")
+    rms_txt = float(np.sqrt(np.nanmean(d ** 2)))
+    ax.set_title(_wrap(title or f"Height differences at {len(d)} check points (RMS {rms_txt:.3g} {units}, "
+                       f"mean {float(np.nanmean(d)):+.3g} {units})", fig, 10), fontsize=10, loc="left")
+    ax.grid(True, alpha=0.25)
+    return fig
+
+
+def pair_matches_figure(left: NDArray | None, right: NDArray | None, left_px: ArrayLike, right_px: ArrayLike, *,
+                        outlier: ArrayLike | None = None, shapes: Sequence[Sequence[int]] | None = None,
+                        max_lines: int = 300, title: str | None = None) -> Figure:
+    """The tie points over the two images side by side: kept points green, rejected red, and lines joining
+    an even sample of at most ``max_lines`` pairs. Images may be None (frames only; give ``shapes``)."""
+    pl = np.asarray(left_px, dtype=np.float64).reshape(-1, 2)
+    pr = np.asarray(right_px, dtype=np.float64).reshape(-1, 2)
+    if pl.shape != pr.shape:
+        raise ShapeError(f"left and right points differ in shape: {pl.shape} and {pr.shape}")
+    out = np.zeros(len(pl), bool) if outlier is None else np.asarray(outlier, dtype=bool).reshape(-1)
+    imgs = [left, right]
+    hw = []
+    for k, im in enumerate(imgs):
+        if im is not None:
+            hw.append(tuple(np.asarray(im).shape[:2]))
+        elif shapes is not None:
+            hw.append(tuple(int(v) for v in shapes[k][:2]))
+        else:
+            pts = pl if k == 0 else pr
+            hw.append((int(np.nanmax(pts[:, 1])) + 1, int(np.nanmax(pts[:, 0])) + 1) if len(pts) else (1, 1))
+    (h1, w1), (h2, w2) = hw
+    gap = 0.03 * max(w1, w2)
+    fig = _new_figure(11.0, 11.0 * max(h1, h2) / (w1 + w2 + gap) + 1.2)
+    ax = fig.add_subplot()
+    for k, (im, off) in enumerate(((imgs[0], 0.0), (imgs[1], w1 + gap))):
+        h, w = hw[k]
+        if im is not None:
+            a = np.asarray(im)
+            step = max(1, int(math.ceil(max(a.shape[:2]) / MAX_BACKGROUND_PX)))
+            ax.imshow(a[::step, ::step], cmap="gray" if a.ndim == 2 else None,
+                      extent=(off - 0.5, off + w - 0.5, h - 0.5, -0.5))
+        ax.plot([off - 0.5, off + w - 0.5, off + w - 0.5, off - 0.5, off - 0.5],
+                [-0.5, -0.5, h - 0.5, h - 0.5, -0.5], "k-", lw=0.8)
+    q = pr + [w1 + gap, 0.0]
+    idx = np.flatnonzero(~out)
+    if len(idx) > max_lines:
+        idx = idx[np.linspace(0, len(idx) - 1, max_lines).round().astype(int)]
+    for i in idx:
+        ax.plot([pl[i, 0], q[i, 0]], [pl[i, 1], q[i, 1]], "-", color="#2ca02c", lw=0.4, alpha=0.5)
+    for pts in (pl, q):
+        ax.scatter(pts[~out, 0], pts[~out, 1], s=4, c="#2ca02c")
+        if out.any():
+            ax.scatter(pts[out, 0], pts[out, 1], s=10, c=_OUTLIER_COLOUR, marker="x", linewidths=0.7)
+    ax.set_xlim(-0.5 - gap / 2, w1 + gap + w2)
+    ax.set_ylim(max(h1, h2) - 0.5, -0.5)
+    ax.set_aspect("equal")
+    ax.set_axis_off()
+    handles = [Line2D([], [], marker="o", ls="", color="#2ca02c", label=f"kept ({int((~out).sum())})")]
+    if out.any():
+        handles.append(Line2D([], [], marker="x", ls="", color=_OUTLIER_COLOUR, label=f"rejected ({int(out.sum())})"))
+    ax.legend(handles=handles, loc="lower center", bbox_to_anchor=(0.5, -0.06), ncol=2, fontsize=8)
+    ax.set_title(_wrap(title or f"{len(pl)} tie points over the left and right images "
+                       f"(lines: {len(idx)} of the kept pairs)", fig, 11), fontsize=11)
+    return fig

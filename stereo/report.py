@@ -28,7 +28,14 @@ from numpy.typing import ArrayLike
 from rectify import io as rio
 from rectify.camera import Camera
 from rectify.errors import InvalidInputError, ShapeError
-from rectify.plots import correlation_heatmap_figure, height_bars_figure, residual_vector_figure
+from rectify.geodesy import map_from_enu
+from rectify.plots import (
+    correlation_heatmap_figure,
+    height_bars_figure,
+    height_difference_map_figure,
+    pair_matches_figure,
+    residual_vector_figure,
+)
 from rectify.report import write_report
 from rectify.residuals import ResidualTable
 
@@ -41,7 +48,8 @@ if TYPE_CHECKING:  # type hints only: stereo.model does not depend on the report
 logger = logging.getLogger(__name__)
 
 __all__ = ["absolute_orientation_figures", "relative_orientation_figures", "write_orient_report",
-           "write_pair_report", "write_resect_report", "write_stereo_report"]
+           "write_pair_report", "write_resect_report", "write_stereo_report", "absolute_table_in_ground",
+           "pair_figures"]
 
 
 def relative_orientation_figures(correlation_names: Sequence[str], correlation_matrix: ArrayLike, *,
@@ -202,9 +210,69 @@ def write_stereo_report(out_dir: str | os.PathLike, *, title: str,
                         principal_point_px=pps or None)
 
 
+def absolute_table_in_ground(model: StereoModel) -> ResidualTable | None:
+    """The absolute orientation's residual table with coordinates in the ground CRS.
+
+    Estimated in the topocentric frame, the table holds local ENU offsets; here ``observed`` and
+    ``adjusted`` are taken back to the control CRS (so the report shows map coordinates and the
+    residuals dX, dY, dZ are map-frame differences). Each row gets the standard deviation of its
+    residual (``std``, so that the normalised residuals and the Q-Q plot are unitless and standard
+    normal under the model): for check points the predicted ground standard error (their error is
+    the estimate's), for control points that times the square root of the average redundancy
+    ``(n - 7) / n`` (a fitted point's residual is smaller than its error).
+    """
+    if model.absolute is None or model.ground is None:
+        return None
+    t = model.absolute.residuals
+    obs, adj = t.observed, t.adjusted
+    origin = (model.frame or {}).get("origin_lon_lat_h")
+    if model.frame.get("name") == "topocentric" and model.crs and origin is not None:
+        obs, adj = map_from_enu(obs, model.crs, origin), map_from_enu(adj, model.crs, origin)
+    std = None
+    if model.ground_std is not None:
+        rows = [model.ids.index(i) for i in t.ids]
+        var = np.sum(np.square(model.ground_std[rows]), axis=1)
+        n_obs = int(t.extra.get("n_equations", 3 * t.n))
+        red = max(n_obs - t.n_params, 1) / max(n_obs, 1)
+        std = np.sqrt(np.where(np.asarray(t.check, dtype=bool), var, var * red))
+    units = model.summary.get("ground_unit", t.units)
+    return ResidualTable(step=t.step, ids=t.ids, observed=obs, adjusted=adj, units=units, components=t.components,
+                         weights=t.weights, outlier=t.outlier, check=t.check, std=std, n_params=t.n_params,
+                         sigma0=t.sigma0, extra=dict(t.extra, coordinates="ground CRS"))
+
+
+def pair_figures(model: StereoModel, ro: Any = None, *, camera: Camera | None = None,
+                 left_image: Any = None, right_image: Any = None) -> dict[str, Figure]:
+    """The pair's extra figures: the tie points over both images (with ``ro`` and ``camera``) and the
+    height-difference map at the check points (with an absolute orientation and check points)."""
+    figs: dict[str, Figure] = {}
+    if ro is not None and camera is not None and len(ro.left_mm):
+        pl = camera.pixel_from_photo(ro.left_mm)
+        pr = camera.pixel_from_photo(ro.right_mm)
+        figs["tie points over the images"] = pair_matches_figure(
+            left_image, right_image, pl, pr, outlier=ro.outlier,
+            shapes=((camera.height, camera.width), (camera.height, camera.width)))
+    t = absolute_table_in_ground(model)
+    if t is not None and np.asarray(t.check, dtype=bool).any():
+        c = np.asarray(t.check, dtype=bool)
+        rows = [model.ids.index(i) for i, k in zip(t.ids, c, strict=True) if k]
+        sd = None if model.ground_std is None else model.ground_std[rows, 2]
+        figs["height differences at check points"] = height_difference_map_figure(
+            t.observed[c, :2], t.residual[c, 2], [i for i, k in zip(t.ids, c, strict=True) if k], units=t.units,
+            std=sd)
+    return figs
+
+
+def _overview(path: str | os.PathLike | None) -> Any:
+    if path is None:
+        return None
+    data, valid, _ = rio.read_overview(Path(path), 2048)
+    return rio.to_uint8(data, valid)
+
+
 def write_pair_report(model: StereoModel, out_dir: str | os.PathLike, *, title: str, ro: Any = None,
                       left_image: str | os.PathLike | None = None, camera: Camera | None = None,
-                      overwrite: bool = False) -> Path:
+                      overwrite: bool = False, right_image: str | os.PathLike | None = None) -> Path:
     """QA report of a pair run with :func:`stereo.report.write_stereo_report`.
 
     Relative orientation: vertical-parallax table over the left image (drawn on
@@ -213,6 +281,11 @@ def write_pair_report(model: StereoModel, out_dir: str | os.PathLike, *, title: 
     control points' ground positions (GeoJSON too when the model has a CRS,
     EPSG code or WKT) and height bars; the intersection table. ``model.tables``
     must start with ``ro.residual_table()`` when ``ro`` is given.
+
+    Issue 12: the absolute-orientation table is in the ground CRS with per-point residual standard
+    deviations (:func:`absolute_table_in_ground`), map axes have readable ticks, and
+    :func:`pair_figures` adds the tie points over both images and the height-difference map at the
+    check points.
     """
     tables = list(model.tables)
     rel = corr = None
@@ -223,22 +296,22 @@ def write_pair_report(model: StereoModel, out_dir: str | os.PathLike, *, title: 
             corr = (list(ro.names), c)
     absolute = gxy = None
     if model.absolute is not None and model.ground is not None:
-        absolute = model.absolute.residuals
-        tables = [t for t in tables if t is not absolute]
+        tables = [t for t in tables if t is not model.absolute.residuals]
+        absolute = absolute_table_in_ground(model)
+        assert absolute is not None
         rows = [model.ids.index(i) for i in absolute.ids]
         gxy = model.ground[rows, :2]
     img = shape = pp = None
     if camera is not None:
         shape = (camera.height, camera.width)
         pp = camera.pixel_from_photo(np.zeros((1, 2)))[0]
-    if left_image is not None:
-        # a bounded overview for the plot background (drawn over the full-resolution extent)
-        data, valid, _ = rio.read_overview(Path(left_image), 2048)
-        img = rio.to_uint8(data, valid)
+    # bounded overviews for the plot backgrounds (drawn over the full-resolution extent)
+    img = _overview(left_image)
+    figs = pair_figures(model, ro, camera=camera, left_image=img, right_image=_overview(right_image))
     return write_stereo_report(out_dir, title=title, relative=rel, correlation=corr, absolute=absolute,
                                absolute_ground_xy=gxy, tables=tables, summary=model.summary,
                                crs=model.crs or None, left_image_shape=shape, left_image=img,
-                               principal_point_px=pp, overwrite=overwrite)
+                               principal_point_px=pp, overwrite=overwrite, figures=figs)
 
 
 def write_orient_report(ro: RelativeOrientation, camera: Camera, out_dir: str | os.PathLike, *, title: str,
