@@ -102,10 +102,9 @@ class OrientResult:
                    f"{s['n_outliers']} outliers, {s['iterations']} iterations"
                    + (f" + {s['irls_iterations']} reweightings ({o.robust})" if o.robust != "none" else "")
                    + f", start: {s['initial']}")
-        sig = "n/a (no redundancy)" if ro.sigma0_mm is None else \
-            f"{ro.sigma0_mm * 1000:.2f} um = {ro.sigma0_mm / cam.pixel_size_mm:.3f} px"
         out.append(f"residual vertical parallax: RMSE {s['rms_parallax_px']:.3f} px "
-                   f"({s['rms_parallax_mm'] * 1000:.2f} um); sigma0 {sig}; condition number {ro.condition_number:.3g}")
+                   f"({s['rms_parallax_mm'] * 1000:.2f} um); sigma0 {sigma0_text(ro, cam.pixel_size_mm)}; "
+                   f"condition number {ro.condition_number:.3g}")
         std = ro.std_errors
         for i, name in enumerate(ro.names):
             se = "" if std is None else f" +- {math.degrees(std[i]):.5f}"
@@ -131,6 +130,28 @@ def matcher_config(*, detector: str = PAIR_MATCHER.detector, verify: str = PAIR_
     return replace(PAIR_MATCHER, detector=detector, verify=verify, refine=refine,
                    max_matches=PAIR_MATCHER.max_matches if max_matches is None else max_matches,
                    max_keypoints=PAIR_MATCHER.max_keypoints if max_keypoints is None else max_keypoints)
+
+
+def parallax_sigma0_mm(ro: RelativeOrientation) -> float | None:
+    """The sigma0 of a relative orientation that the console and the report both print, mm.
+
+    sigma0 = sqrt(sum w q^2 / (n_used - 5)) over the residual vertical parallaxes q of the points
+    used (outliers excluded; w the final robust weights, 1 without a robust estimator): the sigma0
+    of the report's residual table (:meth:`RelativeOrientation.residual_table`). ``None`` without
+    redundancy (5 points). ``ro.sigma0_mm`` (one photo coordinate) is a different figure, kept in
+    the JSON for the weighting of the model.
+    """
+    s = ro.residual_table(units="mm").sigma0
+    return float(s) if s is not None and math.isfinite(s) else None
+
+
+def sigma0_text(ro: RelativeOrientation, pixel_size_mm: float | None) -> str:
+    """``"7.96 um = 0.055 px (parallax, 444 - 5 redundancy)"``, the one printed sigma0 (:func:`parallax_sigma0_mm`)."""
+    s = parallax_sigma0_mm(ro)
+    if s is None:
+        return "n/a (no redundancy)"
+    px = f" = {s / pixel_size_mm:.3f} px" if pixel_size_mm else ""
+    return f"{s * 1000:.2f} um{px} (vertical parallax, {ro.n_used} - 5 redundancy, outliers excluded)"
 
 
 def _match(left: PathArg, right: PathArg, progress: Progress | None = None,
@@ -383,7 +404,7 @@ class RunResult:
         n_ctrl_file = s.get("n_control_file_points", 0)
         out = [f"{s['n_matches']} matches; relative orientation ({s['ro_system']}) on "
                f"{s['n_matches'] + n_ctrl_file} points ({s['n_matches']} matches + {n_ctrl_file} control-file "
-               f"points): {s['ro_n_used']} used, sigma0 {s['ro_sigma0_mm'] * 1000:.2f} um"]
+               f"points): {s['ro_n_used']} used, sigma0 {sigma0_text(self.ro, self.ro.pixel_size_mm)}"]
         out += self.model.summary_lines(tie_note="kept by the relative orientation")
         out.append(f"outputs in {self.out_dir}: points.ply, points.csv, orientation.json, relative.json, "
                    "matches.csv, report/")
@@ -448,7 +469,8 @@ def run(left: PathArg, right: PathArg, *, camera: PathArg | Camera, out_dir: Pat
                          control=ctrl, control_mm=cmm, options=opts, pixel_size_mm=cam.pixel_size_mm)
     summary = dict(result.summary)
     summary.update({"n_matches": n, "match_rmse_px": mr.rmse_px, "t_match_s": t_match,
-                    "ro_sigma0_mm": ro.sigma0_mm, "ro_n_used": ro.n_used, "ro_system": ro.system})
+                    "ro_sigma0_mm": ro.sigma0_mm, "ro_sigma0_parallax_mm": parallax_sigma0_mm(ro),
+                    "ro_n_used": ro.n_used, "ro_system": ro.system})
     if extra_summary:
         summary.update(extra_summary)
     result = replace(result, summary=summary, tables=[ro.residual_table()] + result.tables)
