@@ -29,7 +29,8 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
 from rectify.errors import InvalidInputError, RasterIOError, ShapeError
-from rectify.io import write_raster
+from rectify.fileutil import atomic_output
+from rectify.io import MaskPolicy, TiledWriter
 
 logger = logging.getLogger(__name__)
 
@@ -205,9 +206,15 @@ class DsmResult:
 
     def write(self, path: StrPath, *, overwrite: bool = False) -> Path:
         """Write the DSM GeoTIFF: band 1 height (nodata -9999), band 2 point count, band 3 fill mask (1 filled)."""
-        data = np.dstack([self.height.astype(np.float32), self.count.astype(np.float32),
-                          self.filled.astype(np.float32)])
-        return write_raster(path, data, self.transform, self.crs, nodata=DSM_NODATA, overwrite=overwrite)
+        H, W = self.height.shape
+        with atomic_output(path, overwrite=overwrite) as tmp, \
+                TiledWriter(tmp, W, H, 3, "float32", self.transform, self.crs, MaskPolicy("nodata", DSM_NODATA),
+                            tile=256) as w:
+            for r0 in range(0, H, 512):
+                r1 = min(r0 + 512, H)
+                w.write(np.dstack([self.height[r0:r1].astype(np.float32), self.count[r0:r1].astype(np.float32),
+                                   self.filled[r0:r1].astype(np.float32)]), 0, r0)
+        return Path(path)
 
 
 class DsmGrid:
@@ -261,6 +268,7 @@ class DsmGrid:
         self.max_spread = float(max_spread)
         self.n_despiked = 0
         self.n_spread = 0
+        self._done = False
         self._z0: float | None = None
         shape = (self.height, self.width)
         self._count = np.zeros(shape, np.uint16)
@@ -282,6 +290,8 @@ class DsmGrid:
     def add(self, xyz: ArrayLike) -> int:
         """Add points (N, 3); returns how many fell inside the grid."""
         p, _ = _check_xyz(xyz, None)
+        if self._done:
+            raise InvalidInputError("this DsmGrid already gave its result: it takes no more points")
         fc = (p[:, 0] - self.x0) / self.cell
         fr = (self.y1 - p[:, 1]) / self.cell
         r0, c0 = np.rint(fr).astype(np.int64), np.rint(fc).astype(np.int64)
@@ -331,38 +341,54 @@ class DsmGrid:
         :attr:`n_spread`). With ``despike_cells`` > 0, cells whose height differs from the median of
         their 5 x 5 neighbourhood by more than ``despike_cells`` cell sides are removed next
         (matching blunders); the removed count is in :attr:`n_despiked`.
+
+        The result is computed in the grid's own buffers (about 1 extra byte per cell), so the grid
+        is consumed: it takes no more points afterwards.
         """
         if isinstance(max_hole_cells, bool) or not isinstance(max_hole_cells, int) or max_hole_cells < 0:
             raise InvalidInputError(f"`max_hole_cells` must be an integer >= 0; got {max_hole_cells!r}")
-        z0 = self._z0 if self._z0 is not None else 0.0
+        if self._done:
+            raise InvalidInputError("this DsmGrid already gave its result")
+        self._done = True
+        z0 = np.float32(self._z0 if self._z0 is not None else 0.0)
         has = self._w > 0
-        wsafe = np.where(has, self._w, np.float32(1))
-        mean = self._wz / wsafe
-        if self.statistic == "mean":
-            h = np.where(has, mean + z0, np.nan)
-        else:
-            h = np.where(has, self._acc.astype(np.float64) + z0, np.nan)
-        self.n_spread = 0
-        if self.max_spread > 0 and has.any():
-            var = np.maximum(self._wzz / wsafe - mean * mean, 0)
-            wide = has & (var > (self.max_spread * self.cell) ** 2)
-            self.n_spread = int(wide.sum())
-            h[wide] = np.nan
-            has &= ~wide
+        h = self._wz  # becomes the height, in place
+        wide_n = 0
+        for r0 in range(0, self.height, 1024):  # by row blocks: small temporaries
+            sl = slice(r0, r0 + 1024)
+            w, m = self._w[sl], has[sl]
+            np.divide(h[sl], w, out=h[sl], where=m)
+            if self.max_spread > 0:
+                var = np.divide(self._wzz[sl], w, out=np.zeros_like(w), where=m) - h[sl] * h[sl]
+                wide = m & (var > np.float32((self.max_spread * self.cell) ** 2))
+                wide_n += int(wide.sum())
+                m &= ~wide
+            if self.statistic != "mean":
+                h[sl] = self._acc[sl]
+            h[sl] += z0
+            h[sl][~m] = np.nan
+        self.n_spread = wide_n
+        del self._w, self._wzz
+        if self.statistic != "mean":
+            del self._acc
         self.n_despiked = 0
         if despike_cells > 0 and has.any():
             idx = ndimage.distance_transform_edt(~has, return_distances=False, return_indices=True)
             med = ndimage.median_filter(h[idx[0], idx[1]], size=5, mode="nearest")
+            del idx
             spike = has & (np.abs(h - med) > despike_cells * self.cell)
             self.n_despiked = int(spike.sum())
             h[spike] = np.nan
-            has = has & ~spike
+            has &= ~spike
         filled = np.zeros(h.shape, bool)
         if max_hole_cells > 0 and has.any() and not has.all():
-            h, filled = _fill_holes(h, has, max_hole_cells)
-        out = np.where(np.isfinite(h), h, DSM_NODATA).astype(np.float32)
-        count = np.where(has | filled, self._count, 0).astype(np.uint16)
-        return DsmResult(out, count, filled, self.transform, self.crs)
+            hf, filled = _fill_holes(h.astype(np.float64), has, max_hole_cells)
+            h[filled] = hf[filled]
+            del hf
+        h[~(has | filled)] = DSM_NODATA
+        count = self._count
+        count[~(has | filled)] = 0
+        return DsmResult(h, count, filled, self.transform, self.crs)
 
 
 def _fill_holes(h: NDArray[np.float64], has: NDArray[np.bool_], max_cells: int

@@ -129,11 +129,11 @@ def save_picture(path: StrPath, grid: NDArray, *, title: str, cmap: str = "virid
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    g = np.asarray(grid, dtype=np.float64)
+    a = np.asarray(grid)
+    step = max(1, int(math.ceil(max(a.shape) / 1500)))
+    g = a[::step, ::step].astype(np.float64)  # decimated first: no full-size copy of a large grid
     if nodata is not None:
         g = np.where(g == nodata, np.nan, g)
-    step = max(1, int(math.ceil(max(g.shape) / 1500)))
-    g = g[::step, ::step]
     fig, ax = plt.subplots(figsize=(6, 6 * g.shape[0] / max(g.shape[1], 1) + 0.5))
     ok = np.isfinite(g)
     vmin, vmax = (np.percentile(g[ok], [1, 99]) if ok.any() else (0, 1))

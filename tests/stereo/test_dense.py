@@ -163,6 +163,8 @@ def test_dsm_grid_mean_count_and_holes(tmp_path):
         DsmGrid((0, 0, 0, 1), 1.0)
     with pytest.raises(ShapeError):
         g.add(np.zeros((3, 2)))
+    with pytest.raises(InvalidInputError, match="already gave its result"):
+        g.add(pts[:3])
 
 
 def test_dsm_grid_radius_spread_and_despike():
