@@ -4,7 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from .. import io as rio
+from ..errors import EstimationError
 from .match import MatcherConfig, MatchResult, ProgressFn, _match_whole
 from .tiled import _match_tiled
 
@@ -40,8 +43,33 @@ def match_images(left_path: str | Path, right_path: str | Path, *, config: Match
     il = rio.raster_info(left_path)
     ir = rio.raster_info(right_path)
     big = max(il.width, il.height, ir.width, ir.height) > cfg.tiled_above_px
+    if big:  # a blank raster fails in a second, before the coarse pass reads it whole
+        for path, info, side in ((left_path, il, "left"), (right_path, ir, "right")):
+            if max(info.width, info.height) > cfg.tiled_above_px:
+                _refuse_blank(path, side)
     if not big:
         L, lv = rio.read_window(left_path, 0, 0, il.width, il.height)
         R, rv = rio.read_window(right_path, 0, 0, ir.width, ir.height)
         return _match_whole(L, lv, R, rv, cfg, progress, (str(left_path), str(right_path)))
     return _match_tiled(left_path, right_path, il, ir, cfg, progress)
+
+
+#: side of the nearest-neighbour overview read to refuse a blank large raster before matching
+BLANK_CHECK_PX = 512
+
+
+def _refuse_blank(path: str | Path, side: str) -> None:
+    """Raise :class:`EstimationError` when a bounded overview of ``path`` holds one value (or no valid pixel).
+
+    The overview is a nearest-neighbour decimation to at most :data:`BLANK_CHECK_PX` px (GDAL reads
+    only the sampled rows), so a blank 400-megapixel raster is refused in about a second instead of
+    after the area-averaged coarse pass has streamed every pixel.
+    """
+    data, valid, _ = rio.read_overview(path, BLANK_CHECK_PX)
+    v = data[valid] if valid is not None and valid.shape == data.shape[:2] else data.reshape(-1, data.shape[-1])
+    if v.size == 0:
+        raise EstimationError(f"the {side} image {str(path)!r} has no valid pixel (all nodata or masked)")
+    lo, hi = float(np.min(v)), float(np.max(v))
+    if lo == hi:
+        raise EstimationError(f"the {side} image {str(path)!r} is blank: every pixel of a {data.shape[1]} x "
+                              f"{data.shape[0]} overview is {lo:g}; nothing to match")

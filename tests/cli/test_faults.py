@@ -528,3 +528,47 @@ def test_orient_console_and_report_print_one_sigma0(tmp_path):
     assert abs(table["sigma0"] - px) < 0.0006
     assert abs(doc["summary"]["sigma0_mm"] * 1000 - um) < 0.006
     assert n_used < len(lp)  # the outliers are excluded
+
+
+# --- 9. library warnings, a huge blank raster
+def test_not_georeferenced_warning_hidden_unless_verbose(tmp_path):
+    import sys
+
+    img = (np.random.default_rng(5).random((64, 64)) * 255).astype(np.uint8)
+    import rasterio
+
+    plain = tmp_path / "plain.tif"
+    with rasterio.open(plain, "w", driver="GTiff", width=64, height=64, count=1, dtype="uint8") as ds:
+        ds.write(img, 1)
+    gcps = tmp_path / "g.csv"
+    gcps.write_text("id,col,row,x,y\n" + "".join(f"p{i},{c},{r},{2 * c},{2 * r}\n" for i, (c, r) in
+                                                  enumerate([(1, 1), (60, 2), (3, 60), (62, 61), (30, 30)])))
+    base = [sys.executable, "-c", "from rectify.cli.main import cli; cli()"]
+    args = ["warp", str(plain), str(tmp_path / "o.tif"), "--gcps", str(gcps), "--method", "affine"]
+    quiet = subprocess.run(base + args, capture_output=True, text=True)
+    assert quiet.returncode == 0, quiet.stderr
+    assert "Warning" not in quiet.stderr, quiet.stderr
+    loud = subprocess.run(base + ["-v"] + args + ["--overwrite"], capture_output=True, text=True)
+    assert loud.returncode == 0 and "NotGeoreferencedWarning" in loud.stderr
+
+
+def test_huge_blank_raster_fails_fast(tmp_path):
+    import time
+
+    from rectify.io import MaskPolicy, TiledWriter
+
+    blank = tmp_path / "blank.tif"
+    z = np.full((1024, 1024, 1), 7, np.uint8)
+    with TiledWriter(blank, 6000, 6000, 1, "uint8", Affine(1, 0, 0, 0, 1.0000001, 0), None, MaskPolicy("none"),
+                     tile=1024) as w:
+        for r in range(0, 6000, 1024):
+            for c in range(0, 6000, 1024):
+                w.write(z[:min(1024, 6000 - r), :min(1024, 6000 - c)], c, r)
+    before, names = _hash(blank), _entries(tmp_path)
+    t0 = time.perf_counter()
+    r = CliRunner().invoke(rectify_cli, ["match", str(blank), str(blank), "-o", str(tmp_path / "m.csv")])
+    dt = time.perf_counter() - t0
+    _one_line_error(r)
+    assert "is blank" in r.output and "blank.tif" in r.output and " 7;" in r.output
+    assert dt < 20  # the coarse pass (a full read) is never started
+    assert _entries(tmp_path) == names and _hash(blank) == before
