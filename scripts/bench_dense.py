@@ -10,9 +10,13 @@ is written to ``--work`` as tiled GeoTIFFs, strip by strip, then matched tile by
 :func:`stereo.dense.matching.match_rasters` in a child process, which prints its peak resident memory
 (VmHWM), time, density and the bad-1.0 share on a sample of pixels.
 
+``--size N --chain``: the whole :func:`stereo.dense.pipeline.run_dense` chain on that pair taken as two
+nadir frame photos (normal case, matching, points to LAS, DSM with a cell of ``--dsm-cell`` ground
+pixels), in a child process that prints its peak resident memory.
+
 Usage:
     nice python scripts/bench_dense.py [--repeat 7]
-    nice python scripts/bench_dense.py --size 10000 [--work /tmp/bench_dense]
+    nice python scripts/bench_dense.py --size 10000 [--work /tmp/bench_dense] [--chain [--dsm-cell 2]]
 """
 
 from __future__ import annotations
@@ -192,18 +196,100 @@ def large(size: int, work: Path) -> None:
           f"peak memory {res['peak_mb']:.0f} MB (VmHWM of the matching process)")
 
 
+CHILD_CHAIN = r"""
+import json, sys, time
+sys.path.insert(0, {root!r})
+from stereo.dense.pipeline import DenseOptions, run_dense
+t = time.perf_counter()
+res = run_dense({eo_l!r}, {left!r}, {right!r}, {out!r}, right_orientation={eo_r!r}, matches={ties!r},
+                options=DenseOptions(cloud_format="las", dsm_cell={cell!r}, measure_parallax=False))
+dt = time.perf_counter() - t
+peak = float("nan")
+with open("/proc/self/status") as f:
+    for line in f:
+        if line.startswith("VmHWM:"):
+            peak = int(line.split()[1]) / 1024
+print("\n".join(res.summary_lines()))
+print(json.dumps({{"seconds": dt, "peak_mb": peak}}))
+"""
+
+
+def chain(size: int, work: Path, cell_gsd: float) -> None:
+    """run_dense on the synthetic pair taken as two nadir frame photos (identity rotations, base along x).
+
+    The right camera's principal point is offset by 2000 px along x, so that the photos' 8..40 px
+    disparities are parallaxes of 2008..2040 px: a flying height of 3000 m, a base of about 600 m and
+    a relief of about 50 m (ground pixel 0.3 m).
+    """
+    from rectify.camera import Camera
+    from stereo.formats import write_exterior
+    from stereo.resection import ExteriorOrientation
+
+    work.mkdir(parents=True, exist_ok=True)
+    t = time.perf_counter()
+    lp, rp = make_pair(work, size)
+    print(f"synthetic {size} x {size} pair in {work} ({time.perf_counter() - t:.0f} s to write)")
+    pix, f_mm, shift = 0.012, 120.0, 2000.0
+    f_px, H = f_mm / pix, 3000.0
+    base = (shift + 24.0) * H / f_px
+    cam_l = Camera(focal_length_mm=f_mm, pixel_size_mm=pix, width=size, height=size)
+    cam_r = Camera(focal_length_mm=f_mm, pixel_size_mm=pix, width=size, height=size,
+                   principal_point_mm=(shift * pix, 0.0))
+    paths = {}
+    for name, cam, x in (("l", cam_l, 0.0), ("r", cam_r, base)):
+        eo = ExteriorOrientation(position=np.array([500_000.0 + x, 5_000_000.0, H]), rotation=np.eye(3),
+                                 focal_length_mm=f_mm, sigma0=0.0, crs="EPSG:32633")
+        paths[name] = work / f"eo_{name}.json"
+        paths[name].unlink(missing_ok=True)
+        write_exterior(paths[name], eo, camera=cam.to_dict())
+    # tie points from the known disparity: a 20 x 20 lattice
+    g = np.linspace(0.05 * size, 0.95 * size, 20)
+    xs, ys = (a.ravel() for a in np.meshgrid(g, g))
+    d = disparity_field(xs, ys)
+    for _ in range(3):
+        d = disparity_field(xs - d, ys)
+    ties = work / "ties.csv"
+    ties.write_text("id,col_left,row_left,col_right,row_right\n" + "".join(
+        f"{i},{a},{b},{a - dd},{b}\n" for i, (a, b, dd) in enumerate(zip(xs, ys, d, strict=True))))
+    out = work / "dense"
+    if out.exists():
+        import shutil
+
+        shutil.rmtree(out)
+    cell = cell_gsd * H / f_px
+    code = CHILD_CHAIN.format(root=str(ROOT), eo_l=str(paths["l"]), eo_r=str(paths["r"]), left=str(lp),
+                              right=str(rp), out=str(out), ties=str(ties), cell=cell)
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    if res.returncode:
+        print(res.stderr[-3000:])
+        raise SystemExit(1)
+    lines = res.stdout.strip().splitlines()
+    print("\n".join(lines[:-1]))
+    r = json.loads(lines[-1])
+    print(f"run_dense {size} x {size} (DSM cell {cell:.2f} m = {cell_gsd:g} ground pixels): time {r['seconds']:.0f} s, "
+          f"peak memory {r['peak_mb']:.0f} MB (VmHWM of the run_dense process)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=7, help="timed runs of each matcher (alternating)")
     ap.add_argument("--size", type=int, default=0, help="run the tiled N x N synthetic benchmark instead")
     ap.add_argument("--work", type=Path, default=None, help="folder for the large pair (default: a temporary one)")
+    ap.add_argument("--chain", action="store_true",
+                    help="with --size: the whole run_dense chain (normal case, matching, points, LAS, DSM)")
+    ap.add_argument("--dsm-cell", type=float, default=2.0, help="with --chain: DSM cell in ground pixels")
     a = ap.parse_args()
     if a.size:
+        def go(work: Path) -> None:
+            if a.chain:
+                chain(a.size, work, a.dsm_cell)
+            else:
+                large(a.size, work)
         if a.work is not None:
-            large(a.size, a.work)
+            go(a.work)
         else:
             with tempfile.TemporaryDirectory() as tmp:
-                large(a.size, Path(tmp))
+                go(Path(tmp))
         return
     motorcycle(a.repeat)
     cones()
