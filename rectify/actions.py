@@ -92,14 +92,16 @@ class MatchRun:
         lines = [f"detected: {s['n_detected_left']} left, {s['n_detected_right']} right keypoints "
                  f"({o.detector}{', tiled' if res.tiled else ''})",
                  f"matched: {s['n_matched']} (ratio test + mutual check)"]
-        refined = (f"refined: {s['n_refined']} converged, {s['n_refine_failed']} dropped (least-squares matching"
+        keep = self.config.keep_unrefined and not res.tiled
+        refined = (f"refined: {s['n_refined']} converged, {s['n_refine_failed']} "
+                   f"{'kept unrefined (empty score)' if keep else 'dropped'} (least-squares matching"
                    f"{', per tile, before verification' if res.tiled else ''})")
         if o.refine and res.tiled:  # tiled path: candidates are refined in their tile, then verified together
             lines.append(refined)
         lines.append(f"verified: {s['n_verified']} ({o.verify})")
         if o.refine and not res.tiled:
             lines.append(refined)
-        expected = s["n_verified"] - (s["n_refine_failed"] if o.refine and not res.tiled else 0)
+        expected = s["n_verified"] - (s["n_refine_failed"] if o.refine and not res.tiled and not keep else 0)
         if res.n_duplicates:
             lines.append(f"duplicates: {res.n_duplicates} removed (a left or right position used twice; "
                          "the output is one-to-one, best score kept)")

@@ -720,7 +720,8 @@ def read_matches(path: StrPath) -> Matches:
 
 
 def matches_text(matches: Matches) -> str:
-    """The matches CSV text: positions with 6 decimals (1e-6 px), scores with 6 significant digits."""
+    """The matches CSV text: positions with 6 decimals (1e-6 px), scores with 6 significant digits (empty
+    for a NaN score: a match the refinement could not refine, kept at its raw position)."""
     buf = io.StringIO()
     cols = ["id", "col_left", "row_left", "col_right", "row_right"]
     if matches.score is not None:
@@ -728,8 +729,8 @@ def matches_text(matches: Matches) -> str:
     buf.write(",".join(cols) + "\n")
     for i in range(len(matches)):
         vals = [matches.ids[i]] + [f"{v:.6f}" for v in (*matches.left[i], *matches.right[i])]
-        if matches.score is not None:
-            vals.append(f"{matches.score[i]:.6g}")
+        if matches.score is not None:  # NaN (a match kept unrefined) is written empty
+            vals.append(f"{matches.score[i]:.6g}" if math.isfinite(matches.score[i]) else "")
         buf.write(",".join(vals) + "\n")
     return buf.getvalue()
 

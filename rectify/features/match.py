@@ -83,6 +83,10 @@ class MatcherConfig:
         bounded too while matches still spread over the whole overlap.
     min_inliers : int
         Fewer verified matches than this means the images do not overlap.
+    keep_unrefined : bool
+        Keep verified matches whose refinement does not converge, at their unrefined positions and with
+        an empty (NaN) score, instead of dropping them (issue 12: on wide-baseline pairs the square LSM
+        window fails where the affine distortion is strong, and those matches are good). Whole-image mode.
     lsm : LsmConfig
         Refinement options.
     percentiles : (float, float)
@@ -108,6 +112,7 @@ class MatcherConfig:
     max_candidates: int = 200000
     max_tiles: int = 100
     min_inliers: int = 15
+    keep_unrefined: bool = True
     lsm: LsmConfig = field(default_factory=LsmConfig)
     percentiles: tuple[float, float] = (0.5, 99.5)
     seed: int = 0
@@ -178,7 +183,8 @@ class MatchResult:
     n_verified : int
         Matches consistent with the verification model (before the final cap).
     n_refined, n_refine_failed : int
-        Matches refined by LSM, and dropped because refinement did not converge.
+        Matches refined by LSM, and those whose refinement did not converge: kept at their raw positions
+        with a NaN score (``MatcherConfig.keep_unrefined``, whole-image mode) or dropped.
     rmse_px : float
         Verification residual RMSE of the returned matches, px.
     rmse_raw_px : float
@@ -485,7 +491,11 @@ def _finish(pl, pr, ratio, Lg, Rg, cfg: MatcherConfig, ver0: Verification | None
         lr = _refine(Lg, Rg, pl, pr, ver0, cfg, progress)
         ok = lr.converged
         n_ref, n_fail = int(ok.sum()), int((~ok).sum())
-        pl, pr, raw_pr, score = pl[ok], lr.right[ok], raw_pr[ok], lr.std_px[ok]
+        if cfg.keep_unrefined:  # flagged by a NaN score, at the raw (verified) position
+            pr = np.where(ok[:, None], lr.right, pr)
+            score = np.where(ok, lr.std_px, np.nan)
+        else:
+            pl, pr, raw_pr, score = pl[ok], lr.right[ok], raw_pr[ok], lr.std_px[ok]
     return pl, pr, raw_pr, score, n_ref, n_fail
 
 

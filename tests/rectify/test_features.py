@@ -121,7 +121,8 @@ def test_refinement_halves_position_error_on_known_homography(k):
     left, right, valid = _synthetic_pair(H, seed=k + 1)
     err = {}
     for refine in (False, True):
-        r = match_arrays(left, right, right_valid=valid, config=MatcherConfig(refine=refine))
+        # keep_unrefined=False: the refined positions only (failures kept unrefined are the default)
+        r = match_arrays(left, right, right_valid=valid, config=MatcherConfig(refine=refine, keep_unrefined=False))
         e = np.linalg.norm(_apply(H, r.matches.left) - r.matches.right, axis=1)
         err[refine] = float(np.sqrt(np.mean(e ** 2)))
         assert len(e) > 200
