@@ -36,7 +36,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from rectify import lsq
-from rectify.errors import EstimationError, InvalidInputError, ShapeError
+from rectify.errors import ConvergenceError, EstimationError, InvalidInputError, ShapeError
 from rectify.points import as_ids, as_mask, as_points
 from rectify.residuals import ResidualTable
 from rectify.robust import ROBUST_METHODS, irls
@@ -402,7 +402,9 @@ class AbsoluteOrientation:
         adj = _Adjustment(c, max_iterations=max_iterations, tol=tol)
         x, N, iters, conv, w_final, outl_obs = _solve(adj, robust)
         if not conv:
-            raise EstimationError(f"absolute orientation did not converge in {max_iterations} iterations")
+            raise ConvergenceError(f"absolute orientation did not converge in {max_iterations} iterations; "
+                                   f"largest residuals: {_largest_residuals(adj, x, c.ids)} (check these "
+                                   "control points)", iterations=iters)
         s, R, T, cov, sigma0 = _precision(adj, x, N, w_final)
         return cls._result(c, adj, s, R, T, cov, sigma0, w_final, outl_obs, iters, conv, units)
 
@@ -614,6 +616,18 @@ class _Adjustment:
         pred, _ = _design(self.m_c[self.obs_pt], xk[0], xk[1:4])
         pred = pred + xk[4:7]
         return self.whiten(pred[rows, self.obs_c] - self.gobs[self.obs_pt, self.obs_c])
+
+
+def _largest_residuals(adj: _Adjustment, x: NDArray, ids: tuple[str, ...], k: int = 3) -> str:
+    """``"G4 12.3, G7 8.1, G1 2.2 (ground units)"``: the points with the largest residual vectors at ``x``."""
+    rows = np.arange(adj.n_obs)
+    pred, _ = _design(adj.m_c[adj.obs_pt], x[0], x[1:4])
+    v = pred[rows, adj.obs_c] + x[4:7][adj.obs_c] - adj.gobs[adj.obs_pt, adj.obs_c]
+    sq = np.zeros(len(adj.m_c))
+    np.add.at(sq, adj.obs_pt, v * v)
+    used = np.unique(adj.obs_pt)
+    order = used[np.argsort(-sq[used])][:k]
+    return ", ".join(f"{ids[i]} {math.sqrt(sq[i]):.4g}" for i in order) + " (ground units)"
 
 
 def _solve(adj: _Adjustment, robust: str) -> tuple[NDArray, NDArray, int, bool, NDArray, NDArray]:

@@ -31,6 +31,7 @@ from rectify.residuals import rms
 from .formats import exterior_dict
 from .model import ModelOptions, StereoModel, build_model
 from .relative import RelativeGeometry, RelativeOrientation
+from .relative.degenerate import check_base
 from .report import write_orient_report, write_pair_report, write_resect_report
 from .resection import ExteriorOrientation
 from .resection import resect as resect_points
@@ -212,6 +213,9 @@ def orient(*, camera: PathArg, output: PathArg, matches: PathArg | None = None,
         raise InvalidInputError("no tie points")
     ws.check_points_in_frame(cam, m.left, m.ids, "left tie points")
     ws.check_points_in_frame(cam_r or cam, m.right, m.ids, "right tie points")
+    cam2 = cam_r or cam
+    check_base(cam.photo_from_pixel(m.left), cam2.photo_from_pixel(m.right),
+               (cam.focal_length_mm, cam2.focal_length_mm), cam.pixel_size_mm)
     ro = RelativeOrientation.from_pixels(m.left, m.right, cam, camera_right=cam_r, system=opts.system,
                                          robust=opts.robust, initial=opts.initial, ids=m.ids)
     # the cameras travel with the orientation, so `stereo model` needs no --camera
@@ -457,6 +461,7 @@ def run(left: PathArg, right: PathArg, *, camera: PathArg | Camera, out_dir: Pat
         right_px = np.vstack([right_px, ctrl.right])
         ids_all += list(ctrl.ids)
     left_mm, right_mm = cam.photo_from_pixel(left_px), cam.photo_from_pixel(right_px)
+    check_base(left_mm, right_mm, cam.focal_length_mm, cam.pixel_size_mm)  # "no base" before the adjustment
     ro = RelativeOrientation.from_points(left_mm, right_mm, focal_length_mm=(cam.focal_length_mm,
                                          cam.focal_length_mm), system=opts.ro_system, robust=opts.ro_robust,
                                          ids=ids_all, pixel_size_mm=cam.pixel_size_mm)

@@ -30,7 +30,7 @@ import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
 from rectify import lsq
-from rectify.errors import EstimationError, InvalidInputError, ShapeError
+from rectify.errors import ConvergenceError, EstimationError, InvalidInputError, ShapeError
 from rectify.points import as_ids, as_mask, as_pair
 from rectify.residuals import ResidualTable
 from rectify.rotation import (
@@ -479,8 +479,13 @@ def _solve(prob: _Problem, params: NDArray, *, max_iterations: int, tol: float
             conv = True
             break
     if not conv:
-        raise EstimationError(f"space resection did not converge in {max_iterations} iterations "
-                              f"(last correction {np.abs(dp).max():.3g})")
+        pred, _ = _collinearity(params, prob.Gc[fit])
+        v = np.linalg.norm(x[fit] - pred, axis=1)
+        ids = np.asarray(prob.ids)[fit]
+        worst = ", ".join(f"{ids[i]} {v[i]:.4g}" for i in np.argsort(-v)[:3])
+        raise ConvergenceError(f"space resection did not converge in {max_iterations} iterations "
+                               f"(last correction {np.abs(dp).max():.3g}); largest residuals: {worst} mm "
+                               "(check these control points)", iterations=it)
     return params, N, it
 
 

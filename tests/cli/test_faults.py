@@ -572,3 +572,108 @@ def test_huge_blank_raster_fails_fast(tmp_path):
     assert "is blank" in r.output and "blank.tif" in r.output and " 7;" in r.output
     assert dt < 20  # the coarse pass (a full read) is never started
     assert _entries(tmp_path) == names and _hash(blank) == before
+
+
+# --- 8. degenerate cases named
+def _matches_csv(path, left, right):
+    path.write_text("id,col_left,row_left,col_right,row_right\n" + "".join(
+        f"t{i},{a[0]!r},{a[1]!r},{b[0]!r},{b[1]!r}\n" for i, (a, b) in enumerate(zip(left.tolist(), right.tolist(),
+                                                                                  strict=True))))
+
+
+@pytest.mark.parametrize("kind", ["identical", "rotation"])
+def test_orient_without_base_is_named(tmp_path, kind):
+    import json
+
+    from rectify.camera import Camera
+    from rectify.rotation import matrix_from_angles
+
+    cam = Camera(focal_length_mm=120.0, pixel_size_mm=0.144, width=640, height=1152)
+    rng = np.random.default_rng(2)
+    left_mm = rng.uniform([-40, -75], [40, 75], (150, 2))
+    if kind == "identical":
+        right_mm = left_mm.copy()
+    else:  # the camera turned about its projection centre
+        rays = np.column_stack([left_mm, np.full(len(left_mm), -120.0)]) @ matrix_from_angles(0.01, -0.02, 0.05)
+        right_mm = -120.0 * rays[:, :2] / rays[:, 2:3] + rng.normal(0, 0.144 * 0.1, left_mm.shape)
+    m = tmp_path / "m.csv"
+    _matches_csv(m, cam.pixel_from_photo(left_mm), cam.pixel_from_photo(right_mm))
+    cj = tmp_path / "cam.json"
+    cj.write_text(json.dumps(cam.to_dict()))
+    before, names = _hash(m, cj), _entries(tmp_path)
+    r = CliRunner().invoke(_stereo_cli(), ["orient", "--camera", str(cj), "--matches", str(m), "-o",
+                                           str(tmp_path / "ro.json")])
+    _one_line_error(r)
+    assert "no base: the images show no parallax" in r.output
+    assert ("identical images" if kind == "identical" else "pure rotation") in r.output
+    assert _entries(tmp_path) == names and _hash(m, cj) == before
+
+
+def test_relative_orientation_of_real_pairs_is_not_called_baseless():
+    from stereo.relative.degenerate import check_base
+    from tests.support.stereo_support import simulate_pair
+
+    for kind in ("vertical", "convergent", "kappa180"):
+        sim = simulate_pair(kind, n=150, noise_px=0.5, outlier_fraction=0.1, rng=4)
+        check_base(sim.left_mm, sim.right_mm, 120.0, 0.144)  # no exception
+
+
+def test_stereo_run_on_one_photo_twice(tmp_path):
+    import shutil
+
+    rng = np.random.default_rng(9)
+    img = (rng.random((300, 400)) * 255).astype(np.uint8)
+    import cv2
+
+    img = cv2.GaussianBlur(img, (0, 0), 1.5)
+    left = tmp_path / "l.tif"
+    write_raster(left, img, Affine(1, 0, 0, 0, 1.0000001, 0), None)
+    right = tmp_path / "r.tif"
+    shutil.copy(left, right)
+    cam = tmp_path / "cam.json"
+    cam.write_text('{"focal_length_mm": 50.0, "pixel_size_mm": 0.01, "width": 400, "height": 300}')
+    before, names = _hash(left, right, cam), _entries(tmp_path)
+    r = CliRunner().invoke(_stereo_cli(), ["run", str(left), str(right), "--camera", str(cam), "-o",
+                                           str(tmp_path / "out")])
+    _one_line_error(r)
+    assert "no base: the images show no parallax (identical images" in r.output, r.output
+    assert _entries(tmp_path) == names and _hash(left, right, cam) == before
+
+
+def test_resect_with_collinear_control(tmp_path):
+    cam = tmp_path / "cam.json"
+    cam.write_text('{"focal_length_mm": 50.0, "pixel_size_mm": 0.01, "width": 400, "height": 300}')
+    g = tmp_path / "g.csv"
+    g.write_text("# crs=EPSG:32618\nid,col,row,x,y,z\n" + "".join(
+        f"p{i},{50 + 50 * i},{40 + 30 * i},{500000 + 10 * i},{4400000 + 7 * i},{100 + 2 * i}\n" for i in range(6)))
+    before, names = _hash(cam, g), _entries(tmp_path)
+    r = CliRunner().invoke(_stereo_cli(), ["resect", "--camera", str(cam), "--gcps", str(g), "-o",
+                                           str(tmp_path / "eo.json")])
+    _one_line_error(r)
+    assert "collinear" in r.output
+    assert _entries(tmp_path) == names and _hash(cam, g) == before
+
+
+def test_non_convergence_names_the_largest_residuals():
+    from rectify.errors import ConvergenceError
+    from rectify.rotation import matrix_from_angles
+    from stereo.absolute import AbsoluteOrientation
+    from stereo.resection import ExteriorOrientation
+
+    rng = np.random.default_rng(1)
+    model = rng.uniform(-1, 1, (8, 3))
+    R = matrix_from_angles(0.3, -0.2, 1.0)
+    ground = 500.0 * model @ R.T + [1000.0, 2000.0, 300.0]
+    ground[5] += [40.0, -30.0, 25.0]  # one bad control point
+    ids = [f"G{i}" for i in range(8)]
+    with pytest.raises(ConvergenceError, match=r"largest residuals: G5 ") as e:
+        AbsoluteOrientation.from_points(model, ground, ids=ids, max_iterations=2, tol=0.0)
+    assert e.value.iterations == 2
+    f = 120.0
+    G = np.column_stack([rng.uniform(-500, 500, (8, 2)), rng.uniform(0, 80, 8)])
+    C = np.array([20.0, -30.0, 1500.0])
+    d = G - C
+    photo = -f * d[:, :2] / d[:, 2:3]
+    photo[3] += [0.5, -0.4]
+    with pytest.raises(ConvergenceError, match=r"largest residuals: G3 .* mm"):
+        ExteriorOrientation.from_points(photo, G, focal_length_mm=f, ids=ids, max_iterations=2, tol=0.0)
