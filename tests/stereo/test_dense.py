@@ -134,6 +134,38 @@ def test_match_pair_bad_input():
         match_pair(img, img, options="fast")
 
 
+def test_collisions_mark_the_hidden_background():
+    """Background (d 2) left of a foreground (d 6): the background pixels whose right pixels the
+    foreground covers are hidden; the first one (right pixel -2, claimed by nobody else) is not."""
+    from stereo.dense.matching import _collisions
+
+    d = np.array([[2, 2, 2, 2, 2, 6, 6, 6, 6, 6]], np.float32)
+    hidden = _collisions(d, 1.0)
+    assert hidden.tolist() == [[False, True, True, True, True, False, False, False, False, False]]
+    # a smooth slope hides nothing
+    assert not _collisions(np.linspace(2, 6, 40, dtype=np.float32)[None, :], 1.0).any()
+
+
+def test_right_reference_check_and_border_rule():
+    """The exact left-right check (second SGBM) and the collision test agree on a textured pair; no
+    disparity within ``border_px`` of nodata."""
+    H, W = 96, 160
+    src = _texture(H, W + 40, seed=3)
+    xs = np.arange(W)[None, :].repeat(H, 0).astype(np.float32)
+    ys = np.arange(H)[:, None].repeat(W, 1).astype(np.float32)
+    L = np.ascontiguousarray(src[:, 20:W + 20])
+    R = cv2.remap(src, xs + 20 + 9.5, ys, cv2.INTER_CUBIC)
+    lv = np.ones((H, W), bool)
+    lv[:, :30] = False
+    a = match_pair(L, R, left_valid=lv, disparity_range=(0, 20), options=MatchOptions(right_check="sgbm"))
+    b = match_pair(L, R, left_valid=lv, disparity_range=(0, 20))
+    for res in (a, b):
+        assert np.abs(res.disparity[res.valid] - 9.5).max() < 1.0 and res.density > 0.6
+        assert not res.valid[:, :34].any()
+    with pytest.raises(InvalidInputError, match="right_check"):
+        MatchOptions(right_check="both")
+
+
 def test_fill_background_uses_smaller_neighbour():
     d = np.array([[5.0, np.nan, np.nan, 9.0]], np.float32)
     out, filled = fill_background(d, 10)
