@@ -174,14 +174,17 @@ class Workspace:
         self._staged = []
         try:
             yield self
-            for _tmp, dst in self._staged:
-                if dst.exists() and not self.overwrite:
-                    raise InvalidInputError(f"output {str(dst)!r} appeared while writing; pass --overwrite")
-            for tmp, dst in self._staged:
-                try:
-                    os.replace(tmp, dst)
-                except OSError as err:
-                    raise RasterIOError(f"cannot write {str(dst)!r}: {write_failure_reason(err, dst)}") from err
+            # the commit holds a lock on every destination folder, so two runs writing one output set
+            # commit one after the other: the set is all from one run, never a mix
+            with _folder_locks(dst.parent for _tmp, dst in self._staged):
+                for _tmp, dst in self._staged:
+                    if dst.exists() and not self.overwrite:
+                        raise InvalidInputError(f"output {str(dst)!r} appeared while writing; pass --overwrite")
+                for tmp, dst in self._staged:
+                    try:
+                        os.replace(tmp, dst)
+                    except OSError as err:
+                        raise RasterIOError(f"cannot write {str(dst)!r}: {write_failure_reason(err, dst)}") from err
         except BaseException:
             for tmp, _ in self._staged:
                 with contextlib.suppress(OSError):
@@ -283,6 +286,31 @@ class Workspace:
                        crs: str | None = None, extra: dict[str, Any] | None = None) -> Path:
         """Write a transform JSON file through :meth:`output` (:func:`rectify.formats.transform_document`)."""
         return self.write_text(path, formats.transform_text(model, table=table, crs=crs, extra=extra))
+
+
+@contextlib.contextmanager
+def _folder_locks(folders: Iterable[Path]) -> Iterator[None]:
+    """Hold an exclusive ``flock`` on each folder (in a fixed order); a no-op where flock is missing."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX
+        yield
+        return
+    fds: list[int] = []
+    try:
+        for d in sorted({(f if str(f) else Path(".")).resolve() for f in folders}):
+            try:
+                fd = os.open(d, os.O_RDONLY)
+            except OSError:
+                continue
+            fds.append(fd)
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        for fd in reversed(fds):
+            with contextlib.suppress(OSError):
+                fcntl.flock(fd, fcntl.LOCK_UN)
+            os.close(fd)
 
 
 def check_table_crs(path: StrPath, crs: str | None, xy: Any, ids: Any = None) -> None:

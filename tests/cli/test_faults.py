@@ -677,3 +677,42 @@ def test_non_convergence_names_the_largest_residuals():
     photo[3] += [0.5, -0.4]
     with pytest.raises(ConvergenceError, match=r"largest residuals: G3 .* mm"):
         ExteriorOrientation.from_points(photo, G, focal_length_mm=f, ids=ids, max_iterations=2, tol=0.0)
+
+
+def test_concurrent_runs_commit_one_after_the_other(tmp_path, monkeypatch):
+    """Two jobs writing one output set with --overwrite: each commits all its files under a folder lock,
+    so the set ends up from one run, never a mix."""
+    import threading
+    import time
+
+    import rectify.workspace as wsmod
+    from rectify.workspace import Workspace
+
+    order: list[tuple[str, str]] = []
+    real_replace = os.replace
+
+    def slow_replace(a, b):
+        order.append((threading.current_thread().name, Path(b).name))
+        time.sleep(0.05)
+        real_replace(a, b)
+
+    monkeypatch.setattr(wsmod.os, "replace", slow_replace)
+    barrier = threading.Barrier(2)
+
+    def job(tag: str) -> None:
+        ws = Workspace(overwrite=True)
+        with ws.transaction():
+            for name in ("a.txt", "b.txt", "c.txt"):
+                ws.write_text(tmp_path / name, tag)
+            barrier.wait()  # both commit at the same moment
+
+    threads = [threading.Thread(target=job, args=(t,), name=t) for t in ("one", "two")]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    who = [w for w, _ in order]
+    assert who in (["one"] * 3 + ["two"] * 3, ["two"] * 3 + ["one"] * 3), order
+    contents = {(tmp_path / n).read_text() for n in ("a.txt", "b.txt", "c.txt")}
+    assert len(contents) == 1
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
