@@ -344,7 +344,7 @@ def _match_window(L: NDArray[np.uint8], R: NDArray[np.uint8], lv: NDArray[np.boo
       within ``opts.lr_max_diff`` px. This removes the matches of pixels that are hidden in, or
       outside of, the right photo, which SGBM's built-in check lets through next to image borders;
     - disparities whose left pixel or right pixel lies within ``opts.border_px`` of an invalid pixel
-      or the window edge are dropped.
+      (or, in a window with invalid pixels, of the window edge) are dropped.
     """
     if L.ndim == 3 and not opts.colour:
         L = np.asarray(cv2.cvtColor(np.ascontiguousarray(L), cv2.COLOR_RGB2GRAY), dtype=np.uint8)
@@ -354,9 +354,11 @@ def _match_window(L: NDArray[np.uint8], R: NDArray[np.uint8], lv: NDArray[np.boo
     L = _noise_fill(L, lv, 1)
     R = _noise_fill(R, rv, 2)
     pad = num + 1
-    # padded on both sides: SGBM leaves the first ``num`` columns of its reference photo unmatched
-    Lp = cv2.copyMakeBorder(L, 0, 0, pad, pad, cv2.BORDER_REFLECT_101)
-    Rp = cv2.copyMakeBorder(R, 0, 0, pad, pad, cv2.BORDER_REFLECT_101)
+    # SGBM leaves the first ``num`` columns of its reference photo unmatched: padded on the left, and
+    # on the right too for the mirrored (right-reference) pass
+    two_pass = lr_check and opts.lr_max_diff >= 0 and opts.right_check == "sgbm"
+    Lp = cv2.copyMakeBorder(L, 0, 0, pad, pad if two_pass else 0, cv2.BORDER_REFLECT_101)
+    Rp = cv2.copyMakeBorder(R, 0, 0, pad, pad if two_pass else 0, cv2.BORDER_REFLECT_101)
     ch = 1 if L.ndim == 2 else L.shape[2]
     sgbm = _sgbm(opts, ch, 0, num)
     raw = sgbm.compute(Lp, Rp)[:, pad:pad + W]
@@ -372,7 +374,7 @@ def _match_window(L: NDArray[np.uint8], R: NDArray[np.uint8], lv: NDArray[np.boo
     d[~inside | ~rve[rows, ci]] = np.nan
     if lr_check and opts.lr_max_diff >= 0 and opts.right_check == "collision":
         d[_collisions(d, float(opts.lr_max_diff))] = np.nan
-    elif lr_check and opts.lr_max_diff >= 0 and np.isfinite(d).any():
+    elif two_pass and np.isfinite(d).any():
         raw_r = sgbm.compute(np.ascontiguousarray(Rp[:, ::-1]), np.ascontiguousarray(Lp[:, ::-1]))
         raw_r = raw_r[:, ::-1][:, pad:pad + W]
         dr = raw_r.astype(np.float32) / 16.0
