@@ -18,6 +18,7 @@ from typing import Any
 import click
 
 from ..errors import RectifyError
+from ..fileutil import write_failure_reason
 
 __all__ = ["overwrite_opt", "verbosity_opts", "report_opt", "handle_errors", "progress", "setup_logging",
            "VerbosityGroup", "subcommand_verbosity_params"]
@@ -135,6 +136,12 @@ def handle_errors(f: Callable) -> Callable:
             return f(*args, **kwargs)
         except RectifyError as err:
             raise click.ClickException(f"{type(err).__name__}: {err}") from err
+        except OSError as err:  # a file-system failure the library did not wrap: one line (traceback with -v)
+            if _verbose_level() > 0:
+                raise
+            where = f" {err.filename!r}" if getattr(err, "filename", None) else ""
+            raise click.ClickException(f"{type(err).__name__}:{where} {write_failure_reason(err, err.filename)}"
+                                       ) from err
 
     return wrapper
 
@@ -165,6 +172,14 @@ def progress(label: str, *, enabled: bool = True) -> Iterator[Callable[[int, int
     finally:
         if bar is not None:
             bar.__exit__(None, None, None)
+
+
+def _verbose_level() -> int:
+    """The -v count of the current click context's root (0 when outside click)."""
+    ctx = click.get_current_context(silent=True)
+    while ctx is not None and ctx.parent is not None:
+        ctx = ctx.parent
+    return int((ctx.obj or {}).get("verbose", 0)) if ctx is not None else 0
 
 
 def quiet_level() -> int:

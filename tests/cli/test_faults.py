@@ -716,3 +716,44 @@ def test_concurrent_runs_commit_one_after_the_other(tmp_path, monkeypatch):
     contents = {(tmp_path / n).read_text() for n in ("a.txt", "b.txt", "c.txt")}
     assert len(contents) == 1
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+def test_stereo_run_failing_while_writing_leaves_no_half_filled_folder(tmp_path, monkeypatch):
+    """The run gets as far as writing (matches stubbed with a simulated pair); the report then fails:
+    no file of the layout stays and the output folder the run created is removed."""
+    import json
+    from types import SimpleNamespace
+
+    import stereo.actions
+    from rectify.camera import Camera
+    from rectify.formats import Matches
+    from tests.support.stereo_support import simulate_pair
+
+    cam = Camera(focal_length_mm=120.0, pixel_size_mm=0.144, width=640, height=1152)
+    sim = simulate_pair("vertical", n=150, noise_px=0.3, rng=3)
+    lp, rp = cam.pixel_from_photo(sim.left_mm), cam.pixel_from_photo(sim.right_mm)
+    inside = ((lp >= 0) & (lp <= [639, 1151]) & (rp >= 0) & (rp <= [639, 1151])).all(axis=1)
+    m = Matches(tuple(f"t{i}" for i in range(int(inside.sum()))), lp[inside], rp[inside])
+    monkeypatch.setattr(stereo.actions, "_match", lambda *a, **k: SimpleNamespace(matches=m, rmse_px=0.3))
+
+    def boom(*a, **k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(stereo.actions, "write_pair_report", boom)
+    z = np.zeros((1152, 640), np.uint8)
+    for name in ("l.tif", "r.tif"):
+        write_raster(tmp_path / name, z, Affine(1, 0, 0, 0, 1.0000001, 0), None)
+    cj = tmp_path / "cam.json"
+    cj.write_text(json.dumps(cam.to_dict()))
+    names = _entries(tmp_path)
+    r = CliRunner().invoke(_stereo_cli(), ["run", str(tmp_path / "l.tif"), str(tmp_path / "r.tif"), "--camera",
+                                           str(cj), "-o", str(tmp_path / "new" / "out")])
+    _one_line_error(r)
+    assert "no space left on device" in r.output
+    assert _entries(tmp_path) == names
+    # into an existing folder: nothing of the layout is left in it
+    (tmp_path / "existing").mkdir()
+    r = CliRunner().invoke(_stereo_cli(), ["run", str(tmp_path / "l.tif"), str(tmp_path / "r.tif"), "--camera",
+                                           str(cj), "-o", str(tmp_path / "existing")])
+    _one_line_error(r)
+    assert _entries(tmp_path / "existing") == []
