@@ -25,7 +25,6 @@ from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from numpy.typing import ArrayLike, NDArray
-from scipy import stats
 
 from .errors import InvalidInputError, ShapeError
 from .residuals import ResidualTable
@@ -338,6 +337,9 @@ def histogram_qq_figure(table: ResidualTable, *, title: str | None = None) -> Fi
     """
     if table.n == 0:
         raise InvalidInputError(f"table {table.step!r} has no points to plot")
+    # local import: scipy.stats takes about 1.4 s to import, which every command would pay at start-up
+    from scipy import stats
+
     fig = _new_figure(10.0, 4.2)
     ax1, ax2 = fig.subplots(1, 2)
     nz = table.normalised

@@ -7,7 +7,10 @@ homography, so every verified match can be scored (correct = within 1 px of
 the truth) and its spread measured (share of 500-px cells of the overlap that
 hold a correct match).
 
-    python scripts/bench_match.py [--size 8000] [--work /tmp/bench_match] [--large 33000] [--skip-peer]
+    python scripts/bench_match.py [--size 8000] [--work /tmp/bench_match] [--large 33000] [--skip-peer] [--orient]
+
+``--size 2000`` is the ordinary-image case of issue 12 (targets: ``rectify match`` within 1.5x of the
+peer; with ``--orient``, ``stereo orient LEFT RIGHT`` within 2x of SIFT + findEssentialMat + recoverPose).
 
 ``--large N`` also generates an N x N scene (> 32767 px: OpenCV's remap and
 warpPerspective refuse it) and its warped copy, matches them with
@@ -45,6 +48,22 @@ p1 = np.float64([k1[g.queryIdx].pt for g in good]); p2 = np.float64([k2[g.trainI
 H, mask = cv2.findHomography(p1, p2, cv2.USAC_MAGSAC, 1.5, maxIters=10000, confidence=0.9999)
 inl = mask.ravel().astype(bool)
 np.savez(out, left=p1[inl], right=p2[inl], n_kp=np.array([len(k1), len(k2)]), n_matched=len(good))
+'''
+
+
+ORIENT_BASELINE = r'''
+import sys, json, numpy as np, cv2
+l, r, f_px, out = sys.argv[1], sys.argv[2], float(sys.argv[3]), sys.argv[4]
+a = cv2.imread(l, cv2.IMREAD_GRAYSCALE); b = cv2.imread(r, cv2.IMREAD_GRAYSCALE)
+s = cv2.SIFT_create()
+k1, d1 = s.detectAndCompute(a, None); k2, d2 = s.detectAndCompute(b, None)
+m = cv2.FlannBasedMatcher(dict(algorithm=1, trees=4), dict(checks=64)).knnMatch(d1, d2, k=2)
+good = [x[0] for x in m if len(x) == 2 and x[0].distance < 0.8 * x[1].distance]
+p1 = np.float64([k1[g.queryIdx].pt for g in good]); p2 = np.float64([k2[g.trainIdx].pt for g in good])
+K = np.array([[f_px, 0, a.shape[1] / 2], [0, f_px, a.shape[0] / 2], [0, 0, 1.0]])
+E, mask = cv2.findEssentialMat(p1, p2, K, method=cv2.USAC_MAGSAC, prob=0.999, threshold=1.0)
+n, R, t, mask2 = cv2.recoverPose(E, p1, p2, K, mask=mask)
+json.dump({"n_matched": len(good), "n_inliers": int(n), "R": R.tolist(), "t": t.ravel().tolist()}, open(out, "w"))
 '''
 
 
@@ -112,6 +131,30 @@ def run_pair(work: Path, size: int, skip_peer: bool) -> dict:
     return res
 
 
+def run_orient(work: Path, size: int) -> dict:
+    """``stereo orient LEFT RIGHT`` (match with fundamental verification, then relative orientation) against
+    OpenCV SIFT + FLANN + findEssentialMat (USAC MAGSAC) + recoverPose on the pair of :func:`run_pair`."""
+    d = work / f"pair{size}"
+    f_px, pix_mm = 1.2 * size, 0.01
+    cam = d / "camera.json"
+    cam.write_text(json.dumps({"focal_length_mm": f_px * pix_mm, "pixel_size_mm": pix_mm, "width": size,
+                               "height": size}))
+    res: dict = {"size": size}
+    m = timed(["stereo", "orient", str(d / "left.tif"), str(d / "right.tif"), "--camera", str(cam), "-o",
+               str(d / "ro.json"), "--overwrite"], d / "orient_ours.log")
+    print((d / "orient_ours.log").read_text(), flush=True)
+    res["ours"] = m
+    script = d / "orient_baseline.py"
+    script.write_text(ORIENT_BASELINE)
+    m = timed([sys.executable, str(script), str(d / "left.tif"), str(d / "right.tif"), str(f_px),
+               str(d / "orient_peer.json")], d / "orient_peer.log")
+    res["peer"] = {**m, **{k: v for k, v in json.loads((d / "orient_peer.json").read_text()).items()
+                           if k.startswith("n_")}}
+    res["ratio_time_ours_over_peer"] = round(res["ours"]["wall_s"] / res["peer"]["wall_s"], 3)
+    print("orient", json.dumps(res), flush=True)
+    return res
+
+
 def run_large(work: Path, size: int) -> dict:
     import cv2
     from make_large_scene import generate
@@ -155,11 +198,15 @@ def main() -> None:
     ap.add_argument("--large", type=int, default=0, help="also match an N x N scene (e.g. 33000)")
     ap.add_argument("--skip-peer", action="store_true")
     ap.add_argument("--skip-pair", action="store_true")
+    ap.add_argument("--orient", action="store_true",
+                    help="also time `stereo orient LEFT RIGHT` against SIFT + findEssentialMat + recoverPose")
     a = ap.parse_args()
     a.work.mkdir(parents=True, exist_ok=True)
     out = {"machine": {"cpus": os.cpu_count(), "load_avg_at_start": os.getloadavg()}}
     if not a.skip_pair:
         out["pair"] = run_pair(a.work, a.size, a.skip_peer)
+    if a.orient:
+        out["orient"] = run_orient(a.work, a.size)
     if a.large:
         out["large"] = run_large(a.work, a.large)
     print(json.dumps(out, indent=1))

@@ -122,15 +122,20 @@ class OrientResult:
 #: The matcher of a stereo pair: fundamental-matrix verification (a homography drops most matches of a
 #: pair with relief); the other options are :class:`rectify.features.MatcherConfig`'s defaults.
 PAIR_MATCHER = MatcherConfig(verify="fundamental")
+#: The matcher of ``stereo orient LEFT RIGHT``: a relative orientation needs no more than a few thousand
+#: well-spread tie points (its precision saturates long before), so at most 12000 keypoints per image and
+#: 4000 matches (issue 12: about a third of the time on a 2000 x 2000 pair; figures in docs/features.md).
+#: ``stereo run`` keeps :data:`PAIR_MATCHER`: its matches are its model points.
+ORIENT_MATCHER = replace(PAIR_MATCHER, max_keypoints=12000, max_matches=4000)
 
 
-def matcher_config(*, detector: str = PAIR_MATCHER.detector, verify: str = PAIR_MATCHER.verify,
-                   refine: bool = PAIR_MATCHER.refine, max_matches: int | None = None,
-                   max_keypoints: int | None = None) -> MatcherConfig:
-    """The pair matcher with the commands' options (None: :data:`PAIR_MATCHER`'s value)."""
-    return replace(PAIR_MATCHER, detector=detector, verify=verify, refine=refine,
-                   max_matches=PAIR_MATCHER.max_matches if max_matches is None else max_matches,
-                   max_keypoints=PAIR_MATCHER.max_keypoints if max_keypoints is None else max_keypoints)
+def matcher_config(*, detector: str | None = None, verify: str | None = None, refine: bool | None = None,
+                   max_matches: int | None = None, max_keypoints: int | None = None,
+                   base: MatcherConfig = PAIR_MATCHER) -> MatcherConfig:
+    """``base`` (:data:`PAIR_MATCHER` or :data:`ORIENT_MATCHER`) with the commands' options (None: the base's)."""
+    given: dict[str, Any] = {"detector": detector, "verify": verify, "refine": refine, "max_matches": max_matches,
+                             "max_keypoints": max_keypoints}
+    return replace(base, **{k: v for k, v in given.items() if v is not None})
 
 
 def parallax_sigma0_mm(ro: RelativeOrientation) -> float | None:
@@ -182,7 +187,7 @@ def orient(*, camera: PathArg, output: PathArg, matches: PathArg | None = None,
     report_dir : path, optional
         QA report folder.
     matcher : MatcherConfig, optional
-        Matcher options with ``images`` (default :data:`PAIR_MATCHER`, fundamental-matrix verification).
+        Matcher options with ``images`` (default :data:`ORIENT_MATCHER`, fundamental-matrix verification).
 
     Raises
     ------
@@ -203,7 +208,7 @@ def orient(*, camera: PathArg, output: PathArg, matches: PathArg | None = None,
     if images is not None:  # check the cameras against the photos before matching
         ws.check_camera_image(cam, images[0], "left")
         ws.check_camera_image(cam_r or cam, images[1], "right")
-        res = _match(images[0], images[1], matcher=matcher)
+        res = _match(images[0], images[1], matcher=matcher or ORIENT_MATCHER)
         m = res.matches
         n_matched, rmse = len(m), res.rmse_px
     else:

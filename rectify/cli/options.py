@@ -71,18 +71,19 @@ def verbosity_opts(f: Callable) -> Callable:
     return f
 
 
-def matcher_opts(default_verify: str) -> Callable[[Callable], Callable]:
-    """--detector, --verify, --refine/--no-refine, --max-matches, --max-keypoints (choices and defaults from
-    :class:`rectify.features.MatcherConfig`); the command gets them as keyword arguments of those names."""
-    from ..features import DETECTORS, VERIFY_METHODS, MatcherConfig
+def matcher_opts(defaults: Any) -> Callable[[Callable], Callable]:
+    """--detector, --verify, --refine/--no-refine, --max-matches, --max-keypoints (choices from the library,
+    defaults shown from ``defaults``, a :class:`rectify.features.MatcherConfig`); the command gets them as
+    keyword arguments of those names (None for the two counts when not given)."""
+    from ..features import DETECTORS, VERIFY_METHODS
 
-    d = MatcherConfig()
+    d = defaults
 
     def deco(f: Callable) -> Callable:
         for opt in reversed([
             click.option("--detector", type=click.Choice(list(DETECTORS)), default=d.detector, show_default=True,
                          help="Keypoint detector."),
-            click.option("--verify", type=click.Choice(list(VERIFY_METHODS)), default=default_verify,
+            click.option("--verify", type=click.Choice(list(VERIFY_METHODS)), default=d.verify,
                          show_default=True, help="Geometric verification of the matches (OpenCV USAC MAGSAC++)."),
             click.option("--refine/--no-refine", default=d.refine, show_default=True,
                          help="Least-squares matching refinement of the positions."),

@@ -272,11 +272,13 @@ def match_descriptors(left: Features, right: Features, *, ratio: float = 0.8, mu
             rat_.append(r)
     li, ri, rat = np.array(li_, np.int64), np.array(ri_, np.int64), np.array(rat_, np.float64)
     if mutual and li.size:
-        back = matcher.knnMatch(dr, dl, k=1)
+        # back-match only the right descriptors that are candidates (about half of them on ordinary pairs)
+        cand = np.unique(ri)
+        back = matcher.knnMatch(np.ascontiguousarray(dr[cand]), dl, k=1)
         best = np.full(len(right), -1, dtype=np.int64)
         for m in back:
             if m:
-                best[m[0].queryIdx] = m[0].trainIdx
+                best[cand[m[0].queryIdx]] = m[0].trainIdx
         ok = best[ri] == li
         li, ri, rat = li[ok], ri[ok], rat[ok]
     # one right point per left point and vice versa (keep the best ratio)

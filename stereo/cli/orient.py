@@ -7,7 +7,7 @@ import click
 from rectify.cli.options import echo, handle_errors, matcher_opts, overwrite_opt, report_opt
 from rectify.robust import ROBUST_METHODS
 
-from ..actions import PAIR_MATCHER, OrientOptions, matcher_config
+from ..actions import ORIENT_MATCHER, OrientOptions, matcher_config
 from ..actions import orient as orient_action
 from ..relative import INITIAL_METHODS, SYSTEMS
 
@@ -32,7 +32,7 @@ _D = OrientOptions()
               help="Initial values: zero angles, OpenCV's five-point essential matrix, or zero then essential.")
 @click.option("--matches-out", type=click.Path(dir_okay=False), default=None,
               help="With LEFT RIGHT: also write the matches CSV here.")
-@matcher_opts(PAIR_MATCHER.verify)
+@matcher_opts(ORIENT_MATCHER)
 @report_opt
 @overwrite_opt
 @handle_errors
@@ -56,7 +56,8 @@ def orient(images, camera_path, camera_right_path, matches_path, output, system,
                            report_dir=report_dir, overwrite=overwrite,
                            options=OrientOptions(system=system, robust=robust, initial=initial),
                            matcher=matcher_config(detector=detector, verify=verify, refine=refine,
-                                                  max_matches=max_matches, max_keypoints=max_keypoints))
+                                                  max_matches=max_matches, max_keypoints=max_keypoints,
+                                                  base=ORIENT_MATCHER))
     for line in result.summary_lines():
         echo(line)
 

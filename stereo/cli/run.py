@@ -29,7 +29,7 @@ _D = ModelOptions()
 @click.option("--control-sigma-px", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Image precision of the control/check points, pixels (default: estimated from the absolute "
                    "orientation).")
-@matcher_opts(PAIR_MATCHER.verify)
+@matcher_opts(PAIR_MATCHER)
 @overwrite_opt
 @handle_errors
 def run(left, right, camera_path, out_dir, control_path, check_ids, frame, method, robust, control_sigma_px,

@@ -9,7 +9,7 @@ import pytest
 
 from rectify.formats import ControlTable
 from rectify.residuals import rms
-from stereo.actions import PAIR_MATCHER, matcher_config
+from stereo.actions import ORIENT_MATCHER, PAIR_MATCHER, matcher_config
 from stereo.cli.main import cli as stereo_cli
 from stereo.model import ModelOptions, build_model, match_control
 from stereo.relative import RelativeGeometry, RelativeOrientation
@@ -66,6 +66,10 @@ def test_pair_matcher_defaults_and_options():
     assert (c.detector, c.verify, c.refine, c.max_matches, c.max_keypoints) == ("orb", "homography", False, 500,
                                                                                  3000)
     assert matcher_config() == PAIR_MATCHER
+    # stereo orient LEFT RIGHT: capped keypoints and matches (speed; a relative orientation needs few)
+    assert (ORIENT_MATCHER.verify, ORIENT_MATCHER.max_keypoints, ORIENT_MATCHER.max_matches) == ("fundamental",
+                                                                                              12000, 4000)
+    assert matcher_config(base=ORIENT_MATCHER, max_matches=100).max_keypoints == 12000
     from click.testing import CliRunner
 
     for cmd in ("run", "orient"):
