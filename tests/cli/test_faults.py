@@ -757,3 +757,15 @@ def test_stereo_run_failing_while_writing_leaves_no_half_filled_folder(tmp_path,
                                            str(cj), "-o", str(tmp_path / "existing")])
     _one_line_error(r)
     assert _entries(tmp_path / "existing") == []
+
+
+def test_report_on_a_full_disk(noise_scene, small_disk):
+    """The report cannot be written: one line naming the space, no transform, no report folder left."""
+    d, src, gcps = noise_scene
+    filler = _fill(small_disk)
+    names, before = _entries(d), _hash(gcps)
+    r = CliRunner().invoke(rectify_cli, ["fit", str(gcps), "-o", str(d / "t.json"), "--method", "affine",
+                                         "--report", str(small_disk / "rep")])
+    _one_line_error(r)
+    assert "no space left on device" in r.output and "rep" in r.output
+    assert _entries(d) == names and _entries(small_disk) == [filler.name] and _hash(gcps) == before
