@@ -66,6 +66,11 @@ __all__ = ["DenseOptions", "DenseResult", "run_dense"]
 StrPath = str | Path
 Progress = Callable[[str, int, int], None]
 
+#: GDAL block cache while run_dense reads and writes its rasters, MB
+GDAL_CACHE_MB = 64
+#: disparity window side of one intersection batch (its temporaries are about 1 kB per pixel)
+TRIANGULATION_TILE = 512
+
 
 @dataclass(frozen=True)
 class DenseOptions:
@@ -396,7 +401,10 @@ def run_dense(
     rep_files: list[Path] = []
     made_rep = False
     try:
-        with ws.transaction(), contextlib.ExitStack() as stack:
+        # GDAL's block cache (default 5 % of the RAM) would hold the rasters read and written here:
+        # bounded, so that memory stays that of the tiles whatever the photo size
+        with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB * 1024 * 1024), ws.transaction(), \
+                contextlib.ExitStack() as stack:
             paths: dict[str, Path] = {}
             for n in names:
                 paths[n] = stack.enter_context(ws.output(out / n))
@@ -486,7 +494,7 @@ def _triangulate_all(rect: EpipolarRectification, paths: dict[str, Path], grid: 
     with WindowReader(paths["disparity.tif"]) as rd, WindowReader(paths["confidence.tif"]) as rc, \
             WindowReader(paths["left_normal.tif"]) as rl, warnings.catch_warnings():
         warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
-        windows = list(iter_windows(rd.width, rd.height, opts.tile))
+        windows = list(iter_windows(rd.width, rd.height, min(opts.tile, TRIANGULATION_TILE)))
         for i, (c0, r0, w, h) in enumerate(windows):
             d, _ = rd.read(c0, r0, w, h)
             cf, _ = rc.read(c0, r0, w, h)
