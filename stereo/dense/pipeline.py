@@ -465,7 +465,7 @@ def run_dense(
                 with ws.output(rep / "dz_histogram.png") as tmp:
                     save_histogram(tmp, comparison)
                 with ws.output(rep / "dz.png") as tmp:
-                    save_picture(tmp, dz, title="DSM - reference DEM", cmap="RdBu_r", label="dz")
+                    save_picture(tmp, dz, title="DSM - reference DEM", cmap="RdBu_r", label="dz", symmetric=True)
                 rep_files += [rep / "dz_histogram.png", rep / "dz.png"]
     except BaseException:
         if made_rep:

@@ -122,8 +122,8 @@ def compare_with_dem(dsm: DsmResult, dem_path: StrPath, *, blunder_factor: float
 
 
 def save_picture(path: StrPath, grid: NDArray, *, title: str, cmap: str = "viridis", label: str = "",
-                 nodata: float | None = None) -> Path:
-    """A PNG picture of a grid (NaN or ``nodata`` transparent)."""
+                 nodata: float | None = None, symmetric: bool = False) -> Path:
+    """A PNG picture of a grid (NaN or ``nodata`` transparent); ``symmetric``: colour limits +-v (0 in the middle)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -137,6 +137,9 @@ def save_picture(path: StrPath, grid: NDArray, *, title: str, cmap: str = "virid
     fig, ax = plt.subplots(figsize=(6, 6 * g.shape[0] / max(g.shape[1], 1) + 0.5))
     ok = np.isfinite(g)
     vmin, vmax = (np.percentile(g[ok], [1, 99]) if ok.any() else (0, 1))
+    if symmetric:
+        vmax = max(abs(float(vmin)), abs(float(vmax)), 1e-9)
+        vmin = -vmax
     im = ax.imshow(g, cmap=cmap, vmin=vmin, vmax=vmax, interpolation="nearest")
     ax.set_title(title)
     ax.set_axis_off()
