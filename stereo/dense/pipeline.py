@@ -426,8 +426,8 @@ def run_dense(
                                   "--dsm-cell")
             lo, hi = np.percentile(sample, 0.1, axis=0), np.percentile(sample, 99.9, axis=0)
             span = hi - lo
-            bounds = (lo[0] - 0.05 * span[0] - cell, lo[1] - 0.05 * span[1] - cell, hi[0] + 0.05 * span[0] + cell,
-                      hi[1] + 0.05 * span[1] + cell)
+            bounds = (lo[0] - 0.02 * span[0] - cell, lo[1] - 0.02 * span[1] - cell, hi[0] + 0.02 * span[0] + cell,
+                      hi[1] + 0.02 * span[1] + cell)
             grid = DsmGrid(bounds, cell, statistic=opts.dsm_statistic, crs=crs, radius=opts.dsm_radius,
                            max_spread=opts.dsm_max_spread)
             n_pts = _triangulate_all(rect, paths, grid, transform, opts, suffix, crs, frame, prog("points"))
