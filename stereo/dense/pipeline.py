@@ -207,7 +207,8 @@ def _tie_points(matches: StrPath | None, left: StrPath, right: StrPath, doc: dic
     else:
         from rectify.features import MatcherConfig, match_images
 
-        res = match_images(left, right, config=MatcherConfig(verify="fundamental"))
+        # LSM-refined matches only: the raw positions of the others would dominate the parallax figure
+        res = match_images(left, right, config=MatcherConfig(verify="fundamental", keep_unrefined=False))
         tl, tr, ids = res.matches.left, res.matches.right, res.matches.ids
     out = {str(p.get("id")) for p in doc.get("points", []) if isinstance(p, dict) and p.get("outlier")}
     keep = np.array([str(i) not in out for i in ids], bool) if matches is not None else np.ones(len(ids), bool)
