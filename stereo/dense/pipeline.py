@@ -69,7 +69,7 @@ Progress = Callable[[str, int, int], None]
 #: GDAL block cache while run_dense reads and writes its rasters, MB
 GDAL_CACHE_MB = 64
 #: disparity window side of one intersection batch (its temporaries are about 1 kB per pixel)
-TRIANGULATION_TILE = 512
+TRIANGULATION_TILE = 256
 
 
 @dataclass(frozen=True)
