@@ -22,6 +22,10 @@ from .errors import InvalidInputError
 from .features import DETECTORS, VERIFY_METHODS, MatcherConfig, MatchResult, match_images
 from .formats import TIFF_SUFFIXES, GcpTable, has_embedded_gcps
 from .io import raster_info
+from .mosaic import MosaicOptions, MosaicResult
+from .mosaic import mosaic as mosaic
+from .ortho import OrthoOptions
+from .ortho import ortho_from_files as ortho
 from .report import write_fit_report, write_match_report, write_warp_report
 from .transforms import METHODS, FitResult, fit_gcps
 from .transforms.quality import GcpGeometry, geographic_lines, judge_gcp_geometry
@@ -36,6 +40,7 @@ from .warp import (
 from .workspace import Workspace, check_table_crs
 
 __all__ = [
+    "ortho", "OrthoOptions", "mosaic", "MosaicOptions", "MosaicResult",
     "DETECTORS", "VERIFY_METHODS", "METHOD_NAMES", "RESAMPLING_NAMES",
     "MatchOptions", "MatchRun", "match",
     "FitOptions", "FitRun", "fit",

@@ -620,3 +620,12 @@ def read_overview_average(path: str | Path, max_size: int, *, bands: list[int] |
         except RasterioError as err:
             raise RasterIOError(f"cannot read overview of {str(path)!r}: {err}") from err
     return data, valid, 0.5 * (ds.width / w + ds.height / h)
+
+
+def bound_gdal_cache(mb: int = 64) -> None:
+    """Bound GDAL's block cache (``GDAL_CACHEMAX``, MB) unless the user set it.
+
+    GDAL reads the setting once, at its first block access, so long tiled jobs call this before
+    any pixel IO; it keeps their memory bounded by the tiles rather than by the cache.
+    """
+    os.environ.setdefault("GDAL_CACHEMAX", str(int(mb)))

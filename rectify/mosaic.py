@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 
 from .errors import CRSError, InvalidInputError
 from .georef import Grid
+from .io import bound_gdal_cache
 
 __all__ = ["MosaicOptions", "MosaicResult", "mosaic"]
 
@@ -246,6 +247,7 @@ def mosaic(orthos: Sequence[str | Path], dst: str | Path, *, resolution: float |
     CRSError
         Inputs in different CRSs (reproject them first) or without a CRS.
     """
+    bound_gdal_cache()  # before any pixel IO
     import rasterio
     from affine import Affine
 

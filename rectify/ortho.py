@@ -48,6 +48,7 @@ from .camera import Camera
 from .datum import Dem, bilinear
 from .errors import CRSError, InvalidInputError, RasterIOError, ShapeError
 from .georef import Grid
+from .io import bound_gdal_cache
 
 __all__ = ["SensorModel", "FrameModel", "RPCModel", "OrthoOptions", "OrthoResult", "orthorectify",
            "read_exterior", "ortho_grid", "VISIBILITY_OUTSIDE", "VISIBILITY_OCCLUDED", "VISIBILITY_VISIBLE"]
@@ -1020,6 +1021,7 @@ def ortho_from_files(src: str | Path, dst: str | Path, dem_path: str | Path, *, 
     InvalidInputError
         Neither or both of ``rpc`` and ``camera``/``exterior``, bad files.
     """
+    bound_gdal_cache()  # before any pixel IO
     from .io import raster_info
     from .residuals import ResidualTable
 

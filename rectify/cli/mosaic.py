@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import click
 
+from ..actions import MosaicOptions
+from ..actions import mosaic as run_mosaic
 from .options import echo, handle_errors, overwrite_opt, progress
 
 
@@ -19,11 +21,6 @@ from .options import echo, handle_errors, overwrite_opt, progress
 @handle_errors
 def mosaic(orthos, dst, resolution, feather, cog, threads, overwrite):
     """Mosaic the orthophotos ORTHOS (one CRS) into the GeoTIFF given by -o."""
-    import os
-
-    os.environ.setdefault("GDAL_CACHEMAX", "64")
-    from ..mosaic import MosaicOptions
-    from ..mosaic import mosaic as run_mosaic
 
     opts = MosaicOptions(feather_px=feather, cog=cog, threads=threads)
     with progress("mosaicking", enabled=True) as cb:

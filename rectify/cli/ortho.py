@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import click
 
+from ..actions import OrthoOptions
+from ..actions import ortho as ortho_from_files
 from .options import echo, handle_errors, overwrite_opt, progress, report_opt
 
 
@@ -39,10 +41,6 @@ from .options import echo, handle_errors, overwrite_opt, progress, report_opt
 def ortho(src, dst, dem_path, rpc, camera, exterior, eo_crs, gcps, refinement, dst_crs, resolution, undulation,
           geoid, resampling, true_ortho, cog, threads, report_dir, overwrite):
     """Orthorectify SRC over a DEM into the GeoTIFF given by -o."""
-    import os
-
-    os.environ.setdefault("GDAL_CACHEMAX", "64")
-    from ..ortho import OrthoOptions, ortho_from_files
 
     opts = OrthoOptions(resampling=resampling, cog=cog, threads=threads, true_ortho=true_ortho)
     rpc_arg = True if rpc == "__image__" else (rpc or False)

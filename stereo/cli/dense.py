@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import os
 
 import click
 
@@ -50,8 +49,6 @@ def dense(orientation, left, right, out_dir, right_orientation, camera, matches,
     """Resample LEFT and RIGHT into the normal case from ORIENTATION (ro.json of `stereo orient`, or
     the left exterior orientation with --right-orientation), match them densely and write the point
     cloud and the DSM."""
-    # GDAL reads GDAL_CACHEMAX once, at its first block access: bound it before any pixel IO
-    os.environ.setdefault("GDAL_CACHEMAX", "64")
     opts = DenseOptions(matching=dataclasses.replace(_D.matching, tile=tile), cloud_format=cloud, dsm_cell=dsm_cell,
                         dsm_statistic=dsm_stat, fill_holes=fill_holes, min_confidence=min_confidence,
                         reference_dem=reference_dem, despike_cells=despike)

@@ -39,7 +39,7 @@ from rectify.camera import Camera
 from rectify.errors import InvalidInputError, StereoError
 from rectify.fileutil import read_json
 from rectify.formats import read_control, read_matches
-from rectify.io import WindowReader, iter_windows
+from rectify.io import WindowReader, bound_gdal_cache, iter_windows
 from rectify.report import json_safe
 from rectify.workspace import Workspace
 
@@ -334,6 +334,7 @@ def run_dense(
     InvalidInputError, RasterIOError, CRSError, StereoError, EstimationError
         One-line messages; nothing is left in ``out_dir`` on an error.
     """
+    bound_gdal_cache()  # before any pixel IO
     t0 = time.perf_counter()
     opts = options or DenseOptions()
     if not isinstance(opts, DenseOptions):
