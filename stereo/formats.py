@@ -26,6 +26,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -224,6 +225,9 @@ def _check_numbers(d: dict[str, Any], key: str, shape: tuple[int, ...], path: Pa
 def exterior_dict(eo: ExteriorOrientation, *, camera: dict[str, Any] | None = None) -> dict[str, Any]:
     """The exterior orientation JSON as a dict: format, version, ``eo.to_dict()`` and the camera."""
     d = eo.to_dict()
+    s0 = d.get("sigma0_mm")
+    if s0 is not None and not math.isfinite(float(s0)):
+        d["sigma0_mm"] = None  # not adjusted (no redundancy): JSON null, not NaN
     if camera is not None:
         d["camera"] = camera
     return _versioned(EXTERIOR_FORMAT, d)

@@ -197,3 +197,19 @@ def test_reads_release_0_1_0_points():
     assert o["frame"]["name"] == "topocentric" and len(o["frame"]["origin_lon_lat_h"]) == 3
     assert o["summary"]["n_points"] == 90 and o["summary"]["n_control"] == 30
     assert o["crs"].startswith('PROJCRS["Lo25"') and o["absolute"]["scale"] > 0
+
+
+def test_exterior_orientation_without_sigma0_round_trips(tmp_path):
+    """An orientation that was not adjusted has sigma0 NaN: written as null, read back as NaN."""
+    import dataclasses
+    import json as _json
+
+    from stereo.formats import read_exterior, write_exterior
+
+    eo = read_exterior(OLD / "eo.json")
+    eo = dataclasses.replace(eo, sigma0=float("nan"))
+    p = write_exterior(tmp_path / "eo.json", eo)
+    assert _json.loads(p.read_text())["sigma0_mm"] is None
+    back = read_exterior(p)
+    assert np.isnan(back.sigma0)
+    np.testing.assert_allclose(back.position, eo.position, rtol=0, atol=1e-9)
