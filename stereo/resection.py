@@ -319,41 +319,8 @@ def resect(
     tol: float = 1e-10,
     crs: str | None = None,
 ) -> ExteriorOrientation:
-    """Space resection by collinearity least squares (:meth:`ExteriorOrientation.from_points`).
-
-    Parameters
-    ----------
-    photo_mm : (N, 2) array_like
-        Photo coordinates (mm, x right, y up, from the nominal principal point).
-    ground : (N, 3) array_like
-        Ground coordinates of the same points.
-    focal_length_mm : float
-        Principal distance (the initial value when ``free_interior``).
-    principal_point_mm : (2,) array_like
-        (x0, y0), mm (initial value when ``free_interior``).
-    ids : sequence of str, optional
-    check : (N,) bool, optional
-        Check points: not used in the fit, residuals reported.
-    free_interior : bool
-        Also estimate f, x0, y0 (at least 5 control points).
-    initial : {"pnp", "dlt"}
-        Direct solution for the initial values.
-    max_iterations, tol : int, float
-        Gauss-Newton limits (tol on the largest correction: rad, ground units, mm).
-    crs : str, optional
-        Recorded in the result.
-
-    Returns
-    -------
-    ExteriorOrientation
-
-    Raises
-    ------
-    EstimationError
-        Too few points (3 for the exterior elements, 5 with the interior
-        elements free), collinear control, failed initial solution, singular
-        normal equations or no convergence.
-    """
+    """Space resection by collinearity least squares: the function form of
+    :meth:`ExteriorOrientation.from_points`, with the same parameters, result and errors."""
     return ExteriorOrientation.from_points(
         photo_mm, ground, focal_length_mm=focal_length_mm, principal_point_mm=principal_point_mm, ids=ids,
         check=check, free_interior=free_interior, initial=initial, max_iterations=max_iterations, tol=tol, crs=crs)
