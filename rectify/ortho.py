@@ -31,7 +31,6 @@ the sensor, or the image centre for RPCs, in ``crs``).
 
 from __future__ import annotations
 
-import concurrent.futures as cf
 import logging
 import math
 import threading
@@ -49,6 +48,7 @@ from .datum import Dem, bilinear
 from .errors import CRSError, InvalidInputError, RasterIOError, ShapeError
 from .georef import Grid
 from .io import bound_gdal_cache
+from .warp import run_tiles
 
 __all__ = ["SensorModel", "FrameModel", "RPCModel", "OrthoOptions", "OrthoResult", "orthorectify",
            "read_exterior", "ortho_grid", "VISIBILITY_OUTSIDE", "VISIBILITY_OCCLUDED", "VISIBILITY_VISIBLE"]
@@ -787,36 +787,12 @@ class _Engine:
 
 
 def _run(engine: _Engine, writer, windows, threads: int, progress) -> int:
-    total, done, n_empty = len(windows), 0, 0
-    if progress:
-        progress(0, total)
-    max_inflight = 2 * threads + 1
-    with cf.ThreadPoolExecutor(max_workers=threads, thread_name_prefix="ortho") as pool:
-        it = iter(windows)
-        pending: dict[cf.Future, tuple[int, int, int, int]] = {}
-        for win in it:
-            pending[pool.submit(engine.tile, *win)] = win
-            if len(pending) >= max_inflight:
-                break
-        try:
-            while pending:
-                finished, _ = cf.wait(pending, return_when=cf.FIRST_COMPLETED)
-                for fut in finished:
-                    c, r, w, h = pending.pop(fut)
-                    data, empty = fut.result()
-                    n_empty += int(empty)
-                    writer.write(data, c, r)
-                    done += 1
-                    if progress:
-                        progress(done, total)
-                    nxt = next(it, None)
-                    if nxt is not None:
-                        pending[pool.submit(engine.tile, *nxt)] = nxt
-        except BaseException:
-            for f in pending:
-                f.cancel()
-            raise
-    return n_empty
+    def write(res: tuple[Any, bool], c: int, r: int) -> bool:
+        data, empty = res
+        writer.write(data, c, r)
+        return empty
+
+    return run_tiles(engine.tile, write, windows, threads, progress, name="ortho")
 
 
 def _margin_px(model: SensorModel, dem: Dem, grid: Grid, h_range: tuple[float, float]) -> int:

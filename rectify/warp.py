@@ -544,37 +544,52 @@ def check_free_space(dst: str | Path, grid: Grid, bands: int, dtype: np.dtype, o
             f"{free / 1e6:,.1f} MB are free in {str(folder)!r}")
 
 
-def _run_tiles(engine: _Engine, writer, windows, threads: int, progress) -> int:
+def run_tiles(tile: Callable[..., Any], write: Callable[[Any, int, int], bool], windows, threads: int, progress,
+              *, name: str = "tile") -> int:
+    """Compute output windows on a thread pool and write each as it finishes; return the empty-tile count.
+
+    ``tile(c, r, w, h)`` computes one window; ``write(result, c, r)`` writes it (on this thread, so the
+    writer needs no lock) and returns whether the tile was empty. At most ``2 * threads + 1`` tiles are
+    in flight, which bounds memory; on any error the pending tiles are cancelled. Shared by the warp,
+    orthophoto and mosaic engines.
+    """
     total, done, n_empty = len(windows), 0, 0
     if progress:
         progress(0, total)
     max_inflight = 2 * threads + 1
-    with cf.ThreadPoolExecutor(max_workers=threads, thread_name_prefix="warp") as pool:
+    with cf.ThreadPoolExecutor(max_workers=threads, thread_name_prefix=name) as pool:
         it = iter(windows)
         pending: dict[cf.Future, tuple[int, int, int, int]] = {}
         for win in it:
-            pending[pool.submit(engine.tile, *win)] = win
+            pending[pool.submit(tile, *win)] = win
             if len(pending) >= max_inflight:
                 break
         try:
             while pending:
                 finished, _ = cf.wait(pending, return_when=cf.FIRST_COMPLETED)
                 for fut in finished:
-                    c, r, w, h = pending.pop(fut)
-                    data, valid, empty = fut.result()
-                    n_empty += int(empty)
-                    writer.write(data, c, r, valid)
+                    c, r, _w, _h = pending.pop(fut)
+                    n_empty += int(write(fut.result(), c, r))
                     done += 1
                     if progress:
                         progress(done, total)
                     nxt = next(it, None)
                     if nxt is not None:
-                        pending[pool.submit(engine.tile, *nxt)] = nxt
+                        pending[pool.submit(tile, *nxt)] = nxt
         except BaseException:
             for f in pending:
                 f.cancel()
             raise
     return n_empty
+
+
+def _run_tiles(engine: _Engine, writer, windows, threads: int, progress) -> int:
+    def write(res: tuple[Any, Any, bool], c: int, r: int) -> bool:
+        data, valid, empty = res
+        writer.write(data, c, r, valid)
+        return empty
+
+    return run_tiles(engine.tile, write, windows, threads, progress, name="warp")
 
 
 def warp_array(image: ArrayLike, source_from_target: Callable[[NDArray], NDArray] | ArrayLike,
