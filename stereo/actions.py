@@ -28,6 +28,7 @@ from rectify.formats import ControlTable
 from rectify.report import json_safe
 from rectify.residuals import rms
 
+from .dense.pipeline import DenseOptions, DenseResult, run_dense
 from .formats import exterior_dict
 from .model import ModelOptions, StereoModel, build_model
 from .relative import RelativeGeometry, RelativeOrientation
@@ -407,6 +408,7 @@ class RunResult:
     ro: RelativeOrientation
     out_dir: Path
     report: Path | None = None
+    dense: DenseResult | None = None
 
     def summary_lines(self) -> list[str]:
         s = self.model.summary
@@ -416,14 +418,17 @@ class RunResult:
                f"points): {s['ro_n_used']} used, sigma0 {sigma0_text(self.ro, self.ro.pixel_size_mm)}"]
         out += self.model.summary_lines(tie_note="kept by the relative orientation")
         out.append(f"outputs in {self.out_dir}: points.ply, points.csv, orientation.json, relative.json, "
-                   "matches.csv, report/")
+                   "matches.csv, report/" + (", dense/" if self.dense is not None else ""))
+        if self.dense is not None:
+            out += [f"dense: {line}" for line in self.dense.summary_lines()]
         return out
 
 
 def run(left: PathArg, right: PathArg, *, camera: PathArg | Camera, out_dir: PathArg,
         control: PathArg | ControlTable | None = None, overwrite: bool = False, options: ModelOptions | None = None,
         report: bool = True, title: str = "stereo run", extra_summary: dict[str, Any] | None = None,
-        progress: Progress | None = None, matcher: MatcherConfig | None = None) -> RunResult:
+        progress: Progress | None = None, matcher: MatcherConfig | None = None,
+        dense: DenseOptions | None = None) -> RunResult:
     """``stereo run``: match, orient, intersect, orient absolutely; write everything into ``out_dir``.
 
     Every output of the layout (:data:`stereo.workspace.RUN_LAYOUT`) and the report folder are
@@ -442,11 +447,18 @@ def run(left: PathArg, right: PathArg, *, camera: PathArg | Camera, out_dir: Pat
         ``ro_system``/``ro_robust`` for the relative orientation, the rest for the model.
     matcher : MatcherConfig, optional
         Matcher options (default :data:`PAIR_MATCHER`, fundamental-matrix verification).
+    dense : DenseOptions, optional
+        Also run the dense chain (``stereo run --dense``: :func:`stereo.dense.pipeline.run_dense`) on
+        the orientation just written, into ``out_dir/dense``. It runs after the pair's files are
+        committed; if it fails, the pair's files stay and ``dense/`` is left out.
     """
     opts = options or ModelOptions()
     inputs = [left, right] + [p for p in (camera, control) if isinstance(p, (str, Path))]
     ws = PairWorkspace.for_run(out_dir, overwrite=overwrite, inputs=tuple(inputs), report=report)
     ws.plan_run()
+    dense_dir = Path(out_dir) / "dense"
+    if dense is not None and dense_dir.exists() and not overwrite:
+        raise InvalidInputError(f"output {str(dense_dir)!r} exists; pass --overwrite to replace it")
     cam = camera if isinstance(camera, Camera) else ws.load_camera(camera)
     ctrl = ws.load_control(control) if isinstance(control, (str, Path)) else control
     # the camera against both photos and the control image points, before matching
@@ -488,13 +500,19 @@ def run(left: PathArg, right: PathArg, *, camera: PathArg | Camera, out_dir: Pat
     ws.prepare()
     with ws.transaction():
         ws.save_matches(ws.layout_path("matches"), m)
-        ws.save_relative(ws.layout_path("relative"), ro)
+        # the camera travels with the orientation (as in `stereo orient`): `stereo model`/`dense` need no --camera
+        ws.save_relative(ws.layout_path("relative"), ro, extra={"camera": cam.to_dict()})
         ws.save_model(result, points_path=ws.layout_path("points"), csv_path=ws.layout_path("points_csv"),
                       orientation_path=ws.layout_path("orientation"), model_ply_path=ws.layout_path("model_points"))
         if ws.report_dir is not None:
             report_path = write_pair_report(result, ws.report_dir, title=title, ro=ro, left_image=left, camera=cam,
                                             overwrite=overwrite, right_image=right)
-    return RunResult(result, ro, Path(out_dir), report_path)
+    dres = None
+    if dense is not None:
+        dres = run_dense(ws.layout_path("relative"), left, right, dense_dir, matches=ws.layout_path("matches"),
+                         control=control if isinstance(control, (str, Path)) else None, options=dense,
+                         overwrite=overwrite)
+    return RunResult(result, ro, Path(out_dir), report_path, dres)
 
 
 # ---------------------------------------------------------------------- demo

@@ -175,7 +175,11 @@ class StereoModel:
                     line += f"; {ts['n_outliers']} outliers"
                 line += f"; sigma0 {self.absolute.sigma0:.3f}" + ("" if s.get("absolute_weighted") else f" {u}")
                 if s.get("control_sigma_source") == "estimated":
-                    line += " (1 by construction: the control image precision is scaled to it)"
+                    if abs(self.absolute.sigma0 - 1.0) < 1e-6:
+                        line += " (1 by construction: the control image precision is scaled to it)"
+                    else:  # a robust fit reweights after the precision was scaled on the least-squares fit
+                        line += (" (the control image precision is scaled to give 1 in a least-squares fit; "
+                                 "the robust fit's reweighting moves it)")
                 out.append(line)
             else:
                 out.append(f"{t.step}: {t.summary_line()}")

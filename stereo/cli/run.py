@@ -7,7 +7,7 @@ import click
 from rectify.cli.options import echo, handle_errors, matcher_opts, overwrite_opt, progress
 from rectify.robust import ROBUST_METHODS
 
-from ..actions import PAIR_MATCHER, matcher_config
+from ..actions import PAIR_MATCHER, DenseOptions, matcher_config
 from ..actions import run as run_action
 from ..intersection import METHODS
 from ..model import FRAMES, ModelOptions
@@ -29,11 +29,13 @@ _D = ModelOptions()
 @click.option("--control-sigma-px", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Image precision of the control/check points, pixels (default: estimated from the absolute "
                    "orientation).")
+@click.option("--dense", is_flag=True, default=False,
+              help="Also run the dense chain (stereo dense, default options) into OUTDIR/dense: point cloud and DSM.")
 @matcher_opts(PAIR_MATCHER)
 @overwrite_opt
 @handle_errors
 def run(left, right, camera_path, out_dir, control_path, check_ids, frame, method, robust, control_sigma_px,
-        detector, verify, refine, max_matches, max_keypoints, overwrite):
+        dense, detector, verify, refine, max_matches, max_keypoints, overwrite):
     """Run the stereo pipeline on LEFT and RIGHT into OUTDIR."""
     checks = tuple(s.strip() for s in check_ids.split(",") if s.strip())
     opts = ModelOptions(intersection=method, frame=frame, robust=robust, check_ids=checks,
@@ -42,6 +44,7 @@ def run(left, right, camera_path, out_dir, control_path, check_ids, frame, metho
                              max_keypoints=max_keypoints)
     with progress("matching") as cb:
         result = run_action(left, right, camera=camera_path, out_dir=out_dir, control=control_path, options=opts,
-                            overwrite=overwrite, progress=cb, matcher=matcher)
+                            overwrite=overwrite, progress=cb, matcher=matcher,
+                            dense=DenseOptions() if dense else None)
     for line in result.summary_lines():
         echo(line)
