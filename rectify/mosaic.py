@@ -34,6 +34,7 @@ from numpy.typing import NDArray
 from .errors import CRSError, InvalidInputError
 from .georef import Grid
 from .io import bound_gdal_cache
+from .warp import worker_count
 
 __all__ = ["MosaicOptions", "MosaicResult", "mosaic"]
 
@@ -60,9 +61,7 @@ class MosaicOptions:
 
     @property
     def n_threads(self) -> int:
-        import os
-
-        return self.threads or (os.cpu_count() or 1)
+        return worker_count(self.threads)
 
 
 @dataclass(frozen=True)

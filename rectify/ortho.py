@@ -48,7 +48,7 @@ from .datum import Dem, bilinear
 from .errors import CRSError, InvalidInputError, RasterIOError, ShapeError
 from .georef import Grid
 from .io import bound_gdal_cache
-from .warp import run_tiles
+from .warp import run_tiles, worker_count
 
 __all__ = ["SensorModel", "FrameModel", "RPCModel", "OrthoOptions", "OrthoResult", "orthorectify",
            "read_exterior", "ortho_grid", "VISIBILITY_OUTSIDE", "VISIBILITY_OCCLUDED", "VISIBILITY_VISIBLE"]
@@ -256,9 +256,7 @@ class OrthoOptions:
 
     @property
     def n_threads(self) -> int:
-        import os
-
-        return self.threads or (os.cpu_count() or 1)
+        return worker_count(self.threads)
 
 
 @dataclass(frozen=True)

@@ -138,7 +138,7 @@ class WarpOptions:
 
     @property
     def n_threads(self) -> int:
-        return self.threads or (os.cpu_count() or 1)
+        return worker_count(self.threads)
 
 
 @dataclass(frozen=True)
@@ -542,6 +542,11 @@ def check_free_space(dst: str | Path, grid: Grid, bands: int, dtype: np.dtype, o
             f"x {bands} band(s) {np.dtype(dtype).name} is {raw / 1e6:,.1f} MB uncompressed and needs about "
             f"{need / 1e6:,.1f} MB{' (COG: uncompressed body + copy)' if opts.cog else ''}; "
             f"{free / 1e6:,.1f} MB are free in {str(folder)!r}")
+
+
+def worker_count(threads: int | None) -> int:
+    """Threads of a tiled engine: ``threads`` when given, else every core."""
+    return threads or (os.cpu_count() or 1)
 
 
 def run_tiles(tile: Callable[..., Any], write: Callable[[Any, int, int], bool], windows, threads: int, progress,
