@@ -35,23 +35,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from stereo.dense.matching import match_pair, sgbm_baseline  # noqa: E402  (after the sys.path set-up)
+from tests.support.stereo_support import occlusion_from_truth  # noqa: E402
 
 CONES = ROOT / ".." / "shared" / "data" / "dense_cones"
-
-
-def occlusion_from_truth(gt: np.ndarray) -> np.ndarray:
-    """Occluded (or unknown) pixels of a left true disparity: those hidden by a larger disparity in the right."""
-    H, W = gt.shape
-    yy, xx = np.mgrid[0:H, 0:W]
-    known = np.isfinite(gt)
-    d = np.where(known, gt, -1)
-    xt = np.rint(xx - d).astype(int)
-    ok = known & (xt >= 0) & (xt < W)
-    zb = np.full((H, W), -1.0)
-    np.maximum.at(zb, (yy[ok], xt[ok]), d[ok])
-    occ = np.ones((H, W), bool)
-    occ[ok] = zb[yy[ok], xt[ok]] > d[ok] + 1.0
-    return occ | ~known
 
 
 def alternate(fns: dict, repeat: int) -> dict[str, tuple[object, float]]:

@@ -19,6 +19,7 @@ from stereo.dense.epipolar import normal_frame, rectify_pair
 from stereo.dense.matching import MatchOptions, fill_background, match_pair
 from stereo.dense.products import DsmGrid, PlyWriter, point_writer
 from stereo.dense.triangulate import triangulate_disparity
+from tests.support.stereo_support import occlusion_from_truth
 
 CAM = Camera(focal_length_mm=120.0, pixel_size_mm=0.144, width=320, height=240)
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
@@ -258,27 +259,13 @@ def test_point_writers_roundtrip(tmp_path):
     pw2.close()
 
 
-def _occlusion_from_truth(gt):
-    H, W = gt.shape
-    yy, xx = np.mgrid[0:H, 0:W]
-    known = np.isfinite(gt)
-    d = np.where(known, gt, -1)
-    xt = np.rint(xx - d).astype(int)
-    ok = known & (xt >= 0) & (xt < W)
-    zb = np.full((H, W), -1.0)
-    np.maximum.at(zb, (yy[ok], xt[ok]), d[ok])
-    occ = np.ones((H, W), bool)
-    occ[ok] = zb[yy[ok], xt[ok]] > d[ok] + 1.0
-    return occ | ~known
-
-
 def test_motorcycle_bad2_and_density():
     """Middlebury 2014 Motorcycle (scikit-image): bad-2.0 <= 5 % at density >= 90 % on non-occluded pixels."""
     from skimage import data
 
     left, right, gt = data.stereo_motorcycle()
     res = match_pair(left, right)
-    m = ~_occlusion_from_truth(gt)
+    m = ~occlusion_from_truth(gt)
     v = res.valid & m
     density = v.sum() / m.sum()
     bad2 = (np.abs(res.disparity - gt) > 2)[v].mean()

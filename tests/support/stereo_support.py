@@ -123,3 +123,18 @@ def simulate_pair(kind: str = "vertical", *, n: int = 200, noise_px: float = 0.0
         x2[j] += np.column_stack([np.cos(ang), np.sin(ang)]) * mag[:, None]
         outl[j] = True
     return SimulatedPair(x1, x2, R1.T @ R2, _unit(R1.T @ (C2 - C1)), outl, f, pixel_size_mm)
+
+
+def occlusion_from_truth(gt: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Occluded (or unknown) pixels of a left true disparity: those hidden by a larger disparity in the right."""
+    H, W = gt.shape
+    yy, xx = np.mgrid[0:H, 0:W]
+    known = np.isfinite(gt)
+    d = np.where(known, gt, -1)
+    xt = np.rint(xx - d).astype(int)
+    ok = known & (xt >= 0) & (xt < W)
+    zb = np.full((H, W), -1.0)
+    np.maximum.at(zb, (yy[ok], xt[ok]), d[ok])
+    occ = np.ones((H, W), bool)
+    occ[ok] = zb[yy[ok], xt[ok]] > d[ok] + 1.0
+    return occ | ~known
