@@ -27,7 +27,7 @@ from typing import Any
 
 from .errors import InvalidInputError, RasterIOError, RectifyError
 
-__all__ = ["check_output", "atomic_output", "atomic_write_text", "read_json", "write_failure_reason",
+__all__ = ["check_output", "atomic_output", "atomic_write_text", "read_json", "read_text", "write_failure_reason",
            "apply_umask", "current_umask", "make_temp", "NO_SPACE"]
 
 NO_SPACE = "no space left on device"
@@ -152,6 +152,23 @@ def atomic_write_text(path: str | os.PathLike[str], text: str, *, overwrite: boo
     return Path(path)
 
 
+def read_text(path: str | Path, what: str = "file") -> str:
+    """Read a text file; ``what`` names it in errors ("camera file", ...).
+
+    Raises
+    ------
+    RasterIOError
+        If the file is missing or unreadable.
+    """
+    p = Path(path)
+    try:
+        return p.read_text()
+    except FileNotFoundError as err:
+        raise RasterIOError(f"cannot read {what} {str(p)!r}: file not found") from err
+    except (OSError, UnicodeDecodeError) as err:
+        raise RasterIOError(f"cannot read {what} {str(p)!r}: {err}") from err
+
+
 def read_json(path: str | os.PathLike[str], what: str = "JSON file") -> Any:
     """Parse a JSON file; ``what`` names it in errors ("camera file", ...).
 
@@ -163,12 +180,7 @@ def read_json(path: str | os.PathLike[str], what: str = "JSON file") -> Any:
         If it is not valid JSON.
     """
     p = Path(path)
-    try:
-        text = p.read_text()
-    except FileNotFoundError as err:
-        raise RasterIOError(f"cannot read {what} {str(p)!r}: file not found") from err
-    except (OSError, UnicodeDecodeError) as err:
-        raise RasterIOError(f"cannot read {what} {str(p)!r}: {err}") from err
+    text = read_text(p, what)
     try:
         return json.loads(text)
     except json.JSONDecodeError as err:

@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from rectify.errors import CalibrationError, InvalidInputError, RasterIOError, ShapeError
+from rectify.fileutil import read_text
 
 logger = logging.getLogger(__name__)
 
@@ -237,12 +238,7 @@ def detect_chessboards(paths: Sequence[str | Path], board: Chessboard, *, refine
 # ---------------------------------------------------------------------- CSV files
 def _read_rows(path: str | Path, what: str) -> tuple[list[str], list[list[str]]]:
     p = Path(path)
-    try:
-        text = p.read_text()
-    except FileNotFoundError as err:
-        raise RasterIOError(f"cannot read {what} {str(p)!r}: file not found") from err
-    except (OSError, UnicodeDecodeError) as err:
-        raise RasterIOError(f"cannot read {what} {str(p)!r}: {err}") from err
+    text = read_text(p, what)
     lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
     if not lines:
         raise InvalidInputError(f"{what} {str(p)!r} is empty")
