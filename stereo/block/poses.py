@@ -144,8 +144,8 @@ def body_rotation(heading: ArrayLike, pitch: ArrayLike, roll: ArrayLike, *,
     if np.any(bad):
         i = np.flatnonzero(bad.reshape(-1))[0]
         raise InvalidInputError(
-            f"pitch {float(p.reshape(-1)[i])!r} and roll {float(r.reshape(-1)[i])!r} rad admit no orthogonal platform axes "
-            "(seed 004 needs |pitch|, |roll| < 90 deg and |tan(pitch) tan(roll)| <= 1)")
+            f"pitch {float(p.reshape(-1)[i])!r} and roll {float(r.reshape(-1)[i])!r} rad admit no orthogonal "
+            "platform axes (seed 004 needs |pitch|, |roll| < 90 deg and |tan(pitch) tan(roll)| <= 1)")
     g = np.arccos(c)  # horizontal angle from the forward axis to the right-wing axis, clockwise
     fwd = np.stack([np.cos(p) * np.sin(h), np.cos(p) * np.cos(h), np.sin(p)], axis=-1)
     right = np.stack([np.cos(r) * np.sin(h + g), np.cos(r) * np.cos(h + g), -np.sin(r)], axis=-1)
@@ -377,9 +377,10 @@ def read_pose_csv(path: StrPath, *, camera: str | None = None, boresight_rad: Ar
             parse_crs(crs)
         except CRSError as err:
             raise CRSError(f"{str(p)!r} line {crs_line}: {err}") from err
-    rows, lines, _, fields = _rows(text, p)
+    rows, lines, _ = _rows(text, p)
     if not rows:
         raise InvalidInputError(f"{str(p)!r} has a header but no pose rows")
+    fields = list(rows[0].keys())
     has_opk = any(f in fields for f in _OPK)
     has_nav = any(f in fields for f in _NAV)
     if has_opk and has_nav:
@@ -445,7 +446,7 @@ def read_pose_csv(path: StrPath, *, camera: str | None = None, boresight_rad: Ar
 
 
 def _fmt(v: float) -> str:
-    return repr(float(v))
+    return repr(float(v) + 0.0)  # + 0.0: no "-0.0"
 
 
 def pose_csv_text(poses: Sequence[Pose], *, crs: str | None, angles: str = "deg",
