@@ -60,7 +60,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from rectify.camera import Camera
 from rectify.crs import parse_crs
-from rectify.errors import CalibrationError, CRSError, InvalidInputError, RectifyError, ShapeError
+from rectify.errors import CRSError, InvalidInputError, RectifyError, ShapeError
 from rectify.fileutil import atomic_write_text, read_json
 from rectify.formats import _need, _no_duplicates, _num, _read_text, _rows
 from rectify.rotation import angles_from_matrix, matrix_from_angles, rot_x, rot_y, rot_z
@@ -631,6 +631,8 @@ def _opensfm_camera(key: str, obj: Any, path: Path) -> Camera:
         if "focal" not in obj:
             raise InvalidInputError(f"{str(path)!r}: {where} ({pt}) lacks 'focal'")
         f = _num_of(obj["focal"], f"{where} focal", path)
+        if f <= 0:
+            raise InvalidInputError(f"{str(path)!r}: {where} focal must be > 0; got {f!r}")
         cx = cy = 0.0
     else:
         missing = [k for k in ("focal_x", "focal_y") if k not in obj]
@@ -638,7 +640,9 @@ def _opensfm_camera(key: str, obj: Any, path: Path) -> Camera:
             raise InvalidInputError(f"{str(path)!r}: {where} ({pt}) lacks {missing}")
         fx = _num_of(obj["focal_x"], f"{where} focal_x", path)
         fy = _num_of(obj["focal_y"], f"{where} focal_y", path)
-        if fx <= 0 or fy <= 0 or abs(fx - fy) > FOCAL_ASPECT_TOLERANCE * max(fx, fy):
+        if fx <= 0 or fy <= 0:
+            raise InvalidInputError(f"{str(path)!r}: {where} focal_x and focal_y must be > 0; got {fx!r}, {fy!r}")
+        if abs(fx - fy) > FOCAL_ASPECT_TOLERANCE * max(fx, fy):
             raise InvalidInputError(f"{str(path)!r}: {where} has focal_x {fx!r} and focal_y {fy!r}; the frame camera "
                                     f"model needs square pixels (one focal length, within "
                                     f"{FOCAL_ASPECT_TOLERANCE:.1%})")
@@ -648,18 +652,13 @@ def _opensfm_camera(key: str, obj: Any, path: Path) -> Camera:
         f = 0.5 * (fx + fy)
         cx = _num_of(obj.get("c_x", 0.0), f"{where} c_x", path)
         cy = _num_of(obj.get("c_y", 0.0), f"{where} c_y", path)
-    if f <= 0:
-        raise InvalidInputError(f"{str(path)!r}: {where} focal must be > 0; got {f!r}")
     keys = {"perspective": ("k1", "k2"), "brown": ("k1", "k2", "k3", "p1", "p2"), "radial": ("k1", "k2"),
             "simple_radial": ("k1",)}[pt]
     dist = {k: _num_of(obj.get(k, 0.0), f"{where} {k}", path) for k in keys}
     doc = {"focal_length_px": f * size,
            "principal_point_px": [cx * size + (w - 1) / 2.0, cy * size + (h - 1) / 2.0],
            "width": w, "height": h, "distortion": {k: v for k, v in dist.items() if v != 0.0}}
-    try:
-        return Camera.from_dict(doc)
-    except CalibrationError as err:
-        raise InvalidInputError(f"{str(path)!r}: {where}: {err}") from err
+    return Camera.from_dict(doc)
 
 
 def _reference(rec: dict[str, Any], path: Path) -> NDArray[np.float64] | None:

@@ -122,7 +122,6 @@ def test_small_angles_agree_with_omega_phi_kappa(convention, heading_deg):
     assert opk[0] == pytest.approx(p * math.cos(h) + r * math.sin(h), abs=tol)
     assert opk[1] == pytest.approx(-p * math.sin(h) + r * math.cos(h), abs=tol)
     assert math.remainder(opk[2] + h, 2 * math.pi) == pytest.approx(0.0, abs=tol)
-    assert abs(math.remainder(opk[2] + h, 2 * math.pi)) > 0 or heading_deg == 0.0  # (not an identity)
 
 
 def test_boresight_is_applied_after_the_body_rotation():
@@ -580,6 +579,17 @@ def _cam(rec, **kw):
     ("nanrot", {}, r"shot 'IMG_0001\.JPG' rotation must be a finite number; got nan"),
     ("notrans", {}, r"shot 'IMG_0002\.JPG' lacks rotation/translation"),
     ("badpoint", {}, r"point '100' lacks coordinates"),
+    ("BLOCK", {"index": True}, r"reconstruction index True out of range"),
+    ("camnotdict", {}, r"camera 'brown cam' must be an object; got 3"),
+    ("perspnofocal", {}, r"camera 'persp cam' \(perspective\) lacks 'focal'"),
+    ("perspzero", {}, r"camera 'persp cam' focal must be > 0; got 0\.0"),
+    ("negfocal", {}, r"camera 'brown cam' focal_x and focal_y must be > 0; got -0\.85, -0\.85"),
+    ("emptyname", {}, r"shot '': a pose needs a non-empty image name"),
+    ("badgps", {}, r"shot 'IMG_0003\.JPG' gps_position must be a list of 3 numbers; got 'here'"),
+    ("baddop", {}, r"shot 'IMG_0003\.JPG' gps_dop must be a finite number; got 'x'"),
+    ("pointsnotdict", {}, r"reconstruction 0 'points' must be an object"),
+    ("badref", {}, r"reference_lla must hold latitude, longitude and altitude; got \{'latitude': 1\.0\}"),
+    ("farref", {}, r"reference_lla latitude 91\.0 / longitude 14\.0 out of range"),
 ])
 def test_opensfm_bad_input(tmp_path, doc, kwargs, pattern):
     rec, _ = _synthetic_block()
@@ -597,6 +607,16 @@ def test_opensfm_bad_input(tmp_path, doc, kwargs, pattern):
         "nanrot": lambda r: r["shots"]["IMG_0001.JPG"].update(rotation=[0, float("nan"), 1]),
         "notrans": lambda r: r["shots"]["IMG_0002.JPG"].pop("translation"),
         "badpoint": lambda r: r["points"]["100"].pop("coordinates"),
+        "camnotdict": lambda r: r["cameras"].update({"brown cam": 3}),
+        "perspnofocal": lambda r: r["cameras"]["persp cam"].pop("focal"),
+        "perspzero": lambda r: r["cameras"]["persp cam"].update(focal=0.0),
+        "negfocal": lambda r: _cam(r, focal_x=-0.85, focal_y=-0.85),
+        "emptyname": lambda r: r["shots"].update({"": r["shots"]["IMG_0000.JPG"]}),
+        "badgps": lambda r: r["shots"]["IMG_0003.JPG"].update(gps_position="here"),
+        "baddop": lambda r: r["shots"]["IMG_0003.JPG"].update(gps_dop="x"),
+        "pointsnotdict": lambda r: r.update(points=[1, 2]),
+        "badref": lambda r: r.update(reference_lla={"latitude": 1.0}),
+        "farref": lambda r: r.update(reference_lla={"latitude": 91.0, "longitude": 14.0, "altitude": 0.0}),
     }
     if isinstance(doc, str):
         doc = _with(rec, mutations[doc])
@@ -619,6 +639,24 @@ def test_opensfm_unreadable(tmp_path):
     with pytest.raises(InvalidInputError, match=r"'.*reference_lla\.json': the reference must hold latitude, "
                                                 r"longitude and altitude"):
         read_opensfm(q)
+
+
+def test_opensfm_partial_colours_and_no_points(tmp_path):
+    rec, _ = _synthetic_block()
+    del rec["points"]["105"]["color"]
+    p = tmp_path / "r.json"
+    p.write_text(json.dumps([rec]))
+    r = read_opensfm(p)
+    assert r.colors is None and r.points.shape == (40, 3)
+    del rec["points"]
+    p.write_text(json.dumps([rec]))
+    r = read_opensfm(p)
+    assert r.points.shape == (0, 3) and r.point_ids == () and r.colors is None
+
+
+def test_pose_table_checks_sigma_shape():
+    with pytest.raises(ShapeError, match=r"sigma must have shape \(1, 6\); got \(2, 6\)"):
+        PoseTable((_pose("a", [0, 0, 0], [0, 0, 0]),), None, np.zeros((2, 6)), "deg", "omega-phi-kappa")
 
 
 def test_camera_type_is_rectify_camera():
