@@ -22,6 +22,9 @@ Navigation angles
 axis) towards east; ``pitch`` is the elevation of the forward axis above the horizontal plane
 (nose up positive); ``roll`` is the depression of the right-wing axis below the horizontal plane
 (right wing down positive), the sign of Applanix POS and of most aerial GNSS/INS exports.
+An INS measures heading from true north and tilts from the local vertical (seed 004); in a map
+projection, grid north differs from true north by the meridian convergence, which must be
+subtracted from the heading before it is given here (this module does not do it).
 
 Two definitions of the roll angle are offered (``convention``):
 
