@@ -444,11 +444,13 @@ def to_ground(
         raise EstimationError(f"too few points for the block's absolute orientation: {len(c_ids)} control "
                               f"point(s) and {len(g_imgs)} GNSS centre(s); at least 3 non-collinear are needed")
     if nf == len(ids) or nf < 2:
-        sv = np.linalg.svd(model[full] - model[full].mean(axis=0), compute_uv=False) if nf else np.zeros(3)
-        if nf < 3 or not sv[0] > 0 or sv[1] <= 1e-6 * sv[0]:
-            raise EstimationError(f"the {nf} control points and GNSS centres {ids} are collinear or too few "
-                                  f"(singular values {np.round(sv, 6).tolist()}): the rotation about their "
-                                  "line is undetermined; add control off that line")
+        for what, pts in (("block", model[full]), ("ground", ground[full])):
+            sv = np.linalg.svd(pts - pts.mean(axis=0), compute_uv=False) if nf else np.zeros(3)
+            if nf < 3 or not sv[0] > 0 or sv[1] <= 1e-6 * sv[0]:
+                raise EstimationError(
+                    f"the control points and GNSS centres {ids} are collinear or too few in the {what} frame "
+                    f"(singular values {np.round(sv, 6).tolist()}): the rotation about their line is "
+                    "undetermined; add control off that line")
     ao = AbsoluteOrientation.from_points(model, ground, ids=ids, robust=robust)
     s, R, T = ao.scale, ao.rotation, ao.translation
     poses = tuple(Pose(p.image, p.camera, s * R @ p.position + T, _orthonormal(R @ p.rotation)) for p in block.poses)

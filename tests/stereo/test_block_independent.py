@@ -1,0 +1,260 @@
+"""Independent models (stereo.block.independent) on small synthetic blocks with known truth."""
+
+from __future__ import annotations
+
+import math
+from functools import cache
+from typing import NamedTuple
+
+import numpy as np
+import pytest
+
+from rectify.camera import Camera
+from rectify.rotation import matrix_from_angles
+from stereo.block.independent import (
+    GroundBlock,
+    ModelBlock,
+    independent_models,
+    to_ground,
+)
+from stereo.block.types import Pose, Tracks, project_pixel
+
+H = 250.0         # flying height above the datum, m
+CAM = Camera(focal_length_mm=50.0, pixel_size_mm=0.02, width=2000, height=1500)
+CAMS = {"c": CAM}
+BASE = 75.0       # forward overlap 62 % of the 200 m footprint
+STRIP = 90.0      # side overlap 40 % of the 150 m footprint
+
+
+def terrain(xy: np.ndarray) -> np.ndarray:
+    """Heights with relief (about +-30 m over a few hundred metres)."""
+    x, y = xy[:, 0], xy[:, 1]
+    return 20.0 * np.sin(x / 70.0) * np.cos(y / 90.0) + 0.04 * x - 0.03 * y
+
+
+class Block(NamedTuple):
+    poses: list[Pose]
+    ground: np.ndarray       # (n_points, 3) true points, ground frame
+    tracks: Tracks
+    blunder: np.ndarray      # (M,) bool, observations moved by 15-60 px
+
+
+def make_block(strips: int = 2, per_strip: int = 4, *, noise_px: float = 0.0, blunders: float = 0.0,
+               seed: int = 0, n_points: int = 3000, kappa_flip: bool = False):
+    """True poses and points and the tracks of a small block of `strips` x `per_strip` images.
+
+    Footprint 200 m x 150 m (on the datum), bases of BASE along x, strips STRIP apart along y;
+    attitudes within 1 degree, positions within a few metres of the plan.
+    """
+    rng = np.random.default_rng(seed)
+    poses = []
+    for s in range(strips):
+        for k in range(per_strip):
+            ang = np.radians(rng.uniform(-1.0, 1.0, 3))
+            if kappa_flip and s % 2 == 1:
+                ang[2] += math.pi
+            pos = np.array([BASE * k, STRIP * s, H]) + rng.normal(0, 2.0, 3)
+            poses.append(Pose(f"s{s}i{k}", "c", pos, matrix_from_angles(*ang)))
+    xmin, xmax = -100.0, BASE * (per_strip - 1) + 100.0
+    ymin, ymax = -75.0, STRIP * (strips - 1) + 75.0
+    xy = np.column_stack([rng.uniform(xmin, xmax, n_points), rng.uniform(ymin, ymax, n_points)])
+    ground = np.column_stack([xy, terrain(xy)])
+    pt, im, px = [], [], []
+    for i, p in enumerate(poses):
+        uv = project_pixel(CAM, p, ground)
+        inside = np.isfinite(uv).all(axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] <= CAM.width - 1) \
+            & (uv[:, 1] >= 0) & (uv[:, 1] <= CAM.height - 1)
+        idx = np.flatnonzero(inside)
+        pt.append(idx)
+        im.append(np.full(len(idx), i))
+        px.append(uv[idx])
+    pt_a, im_a, px_a = np.concatenate(pt), np.concatenate(im), np.concatenate(px)
+    keep = np.bincount(pt_a, minlength=n_points)[pt_a] >= 2
+    pt_a, im_a, px_a = pt_a[keep], im_a[keep], px_a[keep]
+    order = np.lexsort((im_a, pt_a))                      # the order Tracks keeps
+    pt_a, im_a, px_a = pt_a[order], im_a[order], px_a[order]
+    px_a = px_a + rng.normal(0, noise_px, px_a.shape) if noise_px else px_a
+    bad = np.zeros(len(px_a), dtype=bool)
+    if blunders:
+        bad = rng.random(len(px_a)) < blunders
+        ang = rng.uniform(0, 2 * math.pi, bad.sum())
+        r = rng.uniform(15.0, 60.0, bad.sum())
+        px_a[bad] += np.column_stack([r * np.cos(ang), r * np.sin(ang)])
+    ids = tuple(f"p{i}" for i in range(n_points))
+    tracks = Tracks(tuple(p.image for p in poses), ids, pt_a, im_a, px_a,
+                    np.full(len(pt_a), max(noise_px, 0.3)))
+    return Block(poses, ground, tracks, bad)
+
+
+def gnss_of(poses):
+    return [p.image for p in poses], np.array([p.position for p in poses])
+
+
+def run(b: Block, **kw) -> tuple[ModelBlock, GroundBlock]:
+    block = independent_models(CAMS, ["c"] * len(b.tracks.images), b.tracks, **kw)
+    return block, to_ground(block, gnss=gnss_of(b.poses))
+
+
+def pose_errors(truth, got) -> tuple[float, float]:
+    """Largest position error (ground units) and rotation error (deg) over the images."""
+    by = {p.image: p for p in got}
+    dpos = max(float(np.linalg.norm(by[p.image].position - p.position)) for p in truth)
+    # rotation angle of R_true^T R_got from its skew part (precise for small angles)
+    dang = 0.0
+    for p in truth:
+        D = p.rotation.T @ by[p.image].rotation
+        w = np.array([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]]) / 2
+        dang = max(dang, float(np.degrees(np.arcsin(min(1.0, np.linalg.norm(w))))))
+    return dpos, dang
+
+
+def point_errors(b: Block, gb: GroundBlock) -> tuple[np.ndarray, np.ndarray]:
+    """Errors (K,) of the triangulated points and which tracks (P,) have one."""
+    idx = np.array([int(i[1:]) for i in gb.point_ids])
+    ok = np.isfinite(gb.points).all(axis=1)
+    return np.linalg.norm(gb.points[ok] - b.ground[idx[ok]], axis=1), ok
+
+
+@cache
+def cached(**kw) -> Block:
+    return make_block(**kw)
+
+
+# --------------------------------------------------------------------------- known answers
+def test_exact_block_is_recovered():
+    b = cached()
+    block, gb = run(b)
+    dpos, dang = pose_errors(b.poses, gb.poses)
+    assert dpos < 1e-6 * H
+    assert dang < 1e-6
+    e, ok = point_errors(b, gb)
+    assert e.max() < 1e-6 * H
+    # every track seen twice or more is a point, every observation is used
+    assert ok.sum() == int((b.tracks.rays_per_point() >= 2).sum())
+    assert block.obs_used.all()
+    assert np.nanmax(block.residual_px) < 1e-6
+    assert len(block.tree) == len(b.poses) - 1 == len(block.joins)
+    assert all(j.rms_base < 1e-9 for j in block.joins)
+    assert gb.gnss_residuals.shape == (8, 3) and np.abs(gb.gnss_residuals).max() < 1e-6 * H
+
+
+def test_noisy_block_within_tolerance():
+    """0.3 px of image noise: poses within 2e-3 of the flying height and 0.1 deg, points likewise."""
+    b = cached(noise_px=0.3)
+    block, gb = run(b)
+    dpos, dang = pose_errors(b.poses, gb.poses)
+    assert dpos < 2e-3 * H
+    assert dang < 0.1
+    e, ok = point_errors(b, gb)
+    assert np.median(e) < 1e-3 * H
+    assert np.percentile(e, 95) < 2.5e-3 * H
+    res = block.residual_px[np.isfinite(block.residual_px)]
+    assert 0.15 < float(np.sqrt(np.mean(res ** 2))) < 0.6
+    assert block.obs_used.mean() > 0.99
+    # the joins are precise to about 1e-3 of the base
+    assert all(j.rms_base < 5e-3 for j in block.joins[1:])
+
+
+def test_three_strips():
+    b = cached(strips=3, noise_px=0.3)
+    block, gb = run(b)
+    assert len(block.poses) == 12
+    dpos, dang = pose_errors(b.poses, gb.poses)
+    assert dpos < 3e-3 * H
+    assert dang < 0.15
+    e, _ = point_errors(b, gb)
+    assert np.median(e) < 1.5e-3 * H
+
+
+def test_opposite_strips_kappa_180():
+    """The second strip flown the other way (kappa + 180 deg): cross-strip models still orient."""
+    b = cached(noise_px=0.3, kappa_flip=True)
+    _, gb = run(b)
+    dpos, dang = pose_errors(b.poses, gb.poses)
+    assert dpos < 2e-3 * H
+    assert dang < 0.1
+
+
+def test_spanning_tree_uses_cross_strip_links():
+    b = cached(strips=3)
+    block = independent_models(CAMS, ["c"] * 12, b.tracks)
+    names = b.tracks.images
+    tree = block.tree
+    assert len(tree) == 11
+    seen = set(tree[0])
+    for left, right in tree[1:]:
+        assert left in seen and right not in seen        # each model adds one new image
+        seen.add(right)
+    assert seen == set(range(12))
+    strip = [n[:2] for n in names]
+    cross = [(a, c) for a, c in tree if strip[a] != strip[c]]
+    assert len(cross) >= 2                               # 3 strips need at least 2 links
+    # the first model is the pair with the most common points
+    counts = np.zeros((12, 12), dtype=int)
+    for t in range(b.tracks.n_points):
+        ims = b.tracks.obs_image[b.tracks.obs_point == t]
+        counts[np.ix_(ims, ims)] += 1
+    np.fill_diagonal(counts, 0)
+    assert counts[tree[0]] == counts.max()
+    assert [(j.left, j.right) for j in block.joins] == [(names[a], names[c]) for a, c in tree]
+
+
+def test_blunders_are_rejected():
+    """10 % of the observations moved by 15-60 px: the block still comes out right."""
+    b = cached(noise_px=0.3, blunders=0.1)
+    block, gb = run(b)
+    dpos, dang = pose_errors(b.poses, gb.poses)
+    assert dpos < 2e-3 * H
+    assert dang < 0.1
+    used = block.obs_used
+    assert used[~b.blunder].mean() > 0.9                # good observations kept
+    assert used[b.blunder].mean() < 0.25                # most blunders rejected (not those along the epipolar line)
+    e, ok = point_errors(b, gb)
+    multi = block.n_rays[ok] >= 3
+    assert np.median(e) < 1e-3 * H
+    assert np.percentile(e[multi], 95) < 3e-3 * H
+    assert sum(j.n_relative_outliers for j in block.joins) > 0
+
+
+def test_control_points_instead_of_gnss():
+    b = cached(noise_px=0.3)
+    block = independent_models(CAMS, ["c"] * 8, b.tracks)
+    rays = b.tracks.rays_per_point()
+    ids = [b.tracks.point_ids[t] for t in np.flatnonzero(rays >= 3)[::25]]
+    xyz = b.ground[[int(i[1:]) for i in ids]]
+    gb = to_ground(block, control=(ids, xyz))
+    dpos, dang = pose_errors(b.poses, gb.poses)
+    assert dpos < 2e-3 * H
+    assert dang < 0.1
+    assert gb.control_ids == tuple(ids) and gb.control_residuals.shape == (len(ids), 3)
+    assert gb.gnss_images == () and gb.gnss_residuals.shape == (0, 3)
+    both = to_ground(block, control=(ids, xyz), gnss=gnss_of(b.poses[:2]))
+    assert both.residuals.n == len(ids) + 2
+    assert any(i.startswith("gnss:") for i in both.residuals.ids)
+    assert "control" in "\n".join(both.summary_lines())
+
+
+def test_given_pairs_and_progress():
+    b = cached()
+    pairs = [(0, 1), (1, 2), (2, 3), (1, 5), (4, 5), (5, 6), (6, 7), (0, 4)]   # (0, 4) closes a loop
+    calls = []
+    block = independent_models(CAMS, ["c"] * 8, b.tracks, pairs=pairs, progress=lambda i, n: calls.append((i, n)))
+    assert block.tree == ((0, 1), (1, 2), (2, 3), (1, 5), (5, 4), (5, 6), (6, 7))
+    assert calls[-1] == (8, 8) and len(calls) == 8
+    gb = to_ground(block, gnss=gnss_of(b.poses))
+    assert pose_errors(b.poses, gb.poses)[0] < 1e-6 * H
+
+
+def test_results_are_frozen_and_summarised():
+    b = cached()
+    block, gb = run(b)
+    with pytest.raises(ValueError):
+        block.points[0, 0] = 1.0
+    with pytest.raises(AttributeError):
+        block.points = None  # type: ignore[misc]
+    lines = block.summary_lines()
+    assert lines[0].startswith("independent models: 8 images, 7 models")
+    assert len(lines) == 2 + 7
+    assert gb.summary_lines()[0].startswith("block to ground: scale")
+    assert block.images == b.tracks.images
+    assert block.n_points == int(np.isfinite(block.points).all(axis=1).sum())
