@@ -258,6 +258,9 @@ class WarpRunOptions:
         Worker threads (default: all cores).
     max_pixels : float
         Refuse an output grid with more pixels (default :data:`rectify.warp.DEFAULT_MAX_PIXELS`, 2e9).
+    scheduler : str, optional
+        Where the tiles run: ``threads``, ``processes[:N]`` or ``tcp://HOST:PORT`` (default:
+        ``$RECTIFY_SCHEDULER``, else ``threads``; :mod:`rectify.distributed`).
     """
 
     method: str = "homography"
@@ -268,6 +271,7 @@ class WarpRunOptions:
     cog: bool = False
     threads: int | None = None
     max_pixels: float = DEFAULT_MAX_PIXELS
+    scheduler: str | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -331,7 +335,7 @@ def warp(ws: Workspace, src: str | Path, dst: str | Path, *, gcps_path: str | Pa
     ws.check_report_dir()
     info = raster_info(src)
     wopts = WarpOptions(resampling=options.resampling, cog=options.cog, threads=options.threads,
-                        max_pixels=options.max_pixels)
+                        max_pixels=options.max_pixels, scheduler=options.scheduler)
     if gcps_path is not None:
         gcps = ws.load_gcps(gcps_path)
         if options.gcp_crs:  # --gcp-crs overrides the file's CRS: the coordinates must fit it too

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .distributed import Scheduler, resolve_scheduler
 from .errors import CRSError, InvalidInputError
 from .georef import Grid
 from .io import bound_gdal_cache
@@ -43,15 +44,19 @@ logger = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class MosaicOptions:
-    """Options of :func:`mosaic`: feathering width (output pixels), tiles, threads, compression, COG."""
+    """Options of :func:`mosaic`: feathering width (output pixels), tiles, threads, compression, COG, and the
+    scheduler (``threads``, ``processes[:N]``, ``tcp://HOST:PORT``; None: ``$RECTIFY_SCHEDULER``, else threads)."""
 
     feather_px: float = 16.0
     tile_px: int = 512
     threads: int | None = None
     compress: str = "zstd"
     cog: bool = False
+    scheduler: Scheduler | str | None = None
 
     def __post_init__(self) -> None:
+        if self.scheduler is not None:
+            resolve_scheduler(self.scheduler)  # a bad value fails here, before any work
         if not math.isfinite(self.feather_px) or self.feather_px < 0:
             raise InvalidInputError(f"feather_px must be >= 0; got {self.feather_px!r}")
         if self.tile_px < 16 or self.tile_px % 16:
@@ -130,6 +135,39 @@ class _Engine:
         self._all: list = []
         self._lock = threading.Lock()
         self.counts = np.zeros(len(inputs), np.int64)
+
+    # ---------------------------------------------------------------- shipping to Dask workers
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        for k in ("_local", "_all", "_lock"):
+            state.pop(k, None)
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._local = threading.local()
+        self._all = []
+        self._lock = threading.Lock()
+
+    def portable(self) -> _Engine:
+        """A copy for Dask workers: orthophotos by absolute path, no open files, counts reset."""
+        import copy
+        import dataclasses
+        import os
+
+        eng = copy.copy(self)
+        eng.inputs = [dataclasses.replace(i, path=os.path.abspath(i.path)) for i in self.inputs]
+        eng.counts = np.zeros(len(self.inputs), np.int64)
+        return eng
+
+    def stats(self) -> NDArray[np.int64]:
+        """Output pixels each input dominated in the tiles this engine computed."""
+        return self.counts.copy()
+
+    def merge_stats(self, stats: NDArray[np.int64]) -> None:
+        """Add another copy's :meth:`stats` (a Dask task's) to this engine's."""
+        with self._lock:
+            self.counts += np.asarray(stats, dtype=np.int64)
 
     def _ds(self, i: int):
         d = getattr(self._local, "ds", None)
@@ -256,6 +294,7 @@ def mosaic(orthos: Sequence[str | Path], dst: str | Path, *, resolution: float |
     from .ortho import _run
 
     opts = options or MosaicOptions()
+    sched = resolve_scheduler(opts.scheduler)
     t0 = time.perf_counter()
     paths = [str(p) for p in orthos]
     if not paths:
@@ -312,7 +351,8 @@ def mosaic(orthos: Sequence[str | Path], dst: str | Path, *, resolution: float |
                 with TiledWriter(body, grid.width, grid.height, inputs[0].count, dtype.name, grid.transform, crs,
                                  MaskPolicy("nodata", nodata), tile=tile,
                                  compress="none" if opts.cog else opts.compress, threads=opts.n_threads) as writer:
-                    _run(engine, writer, windows, opts.n_threads, progress)  # type: ignore[arg-type]
+                    _run(engine, writer, windows, opts.n_threads, progress, scheduler=sched, workdir=tmp.parent,
+                         name="mosaic")
                 if opts.cog:
                     translate_to_cog(body, tmp, compress=opts.compress, threads=opts.n_threads, tile=tile)
             finally:

@@ -45,10 +45,11 @@ from numpy.typing import NDArray
 
 from .camera import Camera
 from .datum import Dem, bilinear
+from .distributed import Scheduler, resolve_scheduler, run_windows
 from .errors import CRSError, InvalidInputError, RasterIOError, ShapeError
 from .georef import Grid
 from .io import bound_gdal_cache
-from .warp import run_tiles, worker_count
+from .warp import worker_count
 
 __all__ = ["SensorModel", "FrameModel", "RPCModel", "OrthoOptions", "OrthoResult", "orthorectify",
            "read_exterior", "ortho_grid", "VISIBILITY_OUTSIDE", "VISIBILITY_OCCLUDED", "VISIBILITY_VISIBLE"]
@@ -233,6 +234,8 @@ class OrthoOptions:
     true_ortho : z-buffer (line-of-sight) visibility and the visibility band
     map_step_px : spacing of the exactly transformed points for CRS changes
     max_window_px : largest source window read for one tile (bigger tiles are split)
+    scheduler : where the tiles run: ``threads``, ``processes[:N]`` or ``tcp://HOST:PORT``; None:
+        ``$RECTIFY_SCHEDULER``, else ``threads`` (:mod:`rectify.distributed`; same output bytes on every one)
     """
 
     resampling: str = "bilinear"
@@ -243,8 +246,11 @@ class OrthoOptions:
     true_ortho: bool = False
     map_step_px: int = 16
     max_window_px: int = 8192
+    scheduler: Scheduler | str | None = None
 
     def __post_init__(self) -> None:
+        if self.scheduler is not None:
+            resolve_scheduler(self.scheduler)  # a bad value fails here, before any work
         if self.resampling not in ("nearest", "bilinear", "cubic"):
             raise InvalidInputError(f"unknown resampling {self.resampling!r}; expected nearest, bilinear or cubic")
         if self.tile_px < 16 or self.tile_px % 16 or self.tile_px > 4096:
@@ -462,6 +468,44 @@ class _Engine:
 
         self.same_model = same_crs(grid.crs, model.crs)
         self.same_dem = same_crs(grid.crs, dem.crs)
+
+    # ---------------------------------------------------------------- shipping to Dask workers
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        for k in ("_local", "_readers", "_lock", "stats_lock"):
+            state.pop(k, None)
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._local = threading.local()
+        self._readers = []
+        self._lock = threading.Lock()
+        self.stats_lock = threading.Lock()
+
+    def portable(self) -> _Engine:
+        """A copy for Dask workers: image and DEM by absolute path, no open readers, statistics reset."""
+        import copy
+        import dataclasses
+        import os
+
+        eng = copy.copy(self)
+        eng.src = os.path.abspath(self.src)
+        eng.dem = dataclasses.replace(self.dem, path=os.path.abspath(self.dem.path))
+        eng.hmin, eng.hmax, eng.max_shift, eng.n_occluded = math.inf, -math.inf, 0.0, 0
+        return eng
+
+    def stats(self) -> tuple[float, float, float, int]:
+        """Heights met, largest relief shift and occluded pixels of the tiles this engine computed."""
+        return self.hmin, self.hmax, self.max_shift, self.n_occluded
+
+    def merge_stats(self, stats: tuple[float, float, float, int]) -> None:
+        """Add another copy's :meth:`stats` (a Dask task's) to this engine's."""
+        lo, hi, shift, occluded = stats
+        with self.stats_lock:
+            self.hmin, self.hmax = min(self.hmin, lo), max(self.hmax, hi)
+            self.max_shift = max(self.max_shift, shift)
+            self.n_occluded += int(occluded)
 
     def reader(self):
         r = getattr(self._local, "reader", None)
@@ -784,13 +828,17 @@ class _Engine:
         return img.astype(self.dtype), valid
 
 
-def _run(engine: _Engine, writer, windows, threads: int, progress) -> int:
+def _run(engine: Any, writer, windows, threads: int, progress, *, scheduler: Scheduler | str | None = None,
+         workdir: str | Path = ".", name: str = "ortho") -> int:
+    """Compute the windows with ``engine.tile`` (-> (data, empty)) on the scheduler; write each (the ortho and
+    mosaic engines)."""
     def write(res: tuple[Any, bool], c: int, r: int) -> bool:
         data, empty = res
         writer.write(data, c, r)
         return empty
 
-    return run_tiles(engine.tile, write, windows, threads, progress, name="ortho")
+    return run_windows(engine, write, windows, threads=threads, progress=progress, scheduler=scheduler,
+                       workdir=workdir, name=name)
 
 
 def _margin_px(model: SensorModel, dem: Dem, grid: Grid, h_range: tuple[float, float]) -> int:
@@ -847,6 +895,7 @@ def orthorectify(src: str | Path, dst: str | Path, model: SensorModel, dem: Dem,
     from .io import MaskPolicy, TiledWriter, raster_info, translate_to_cog
 
     opts = options or OrthoOptions()
+    sched = resolve_scheduler(opts.scheduler)
     t0 = time.perf_counter()
     src = str(src)
     for p in (src, dem.path):
@@ -886,7 +935,8 @@ def orthorectify(src: str | Path, dst: str | Path, model: SensorModel, dem: Dem,
                 with TiledWriter(body, grid.width, grid.height, count, dtype.name, grid.transform, grid.crs,
                                  MaskPolicy("nodata", nodata), tile=tile,
                                  compress="none" if opts.cog else opts.compress, threads=opts.n_threads) as writer:
-                    n_empty = _run(engine, writer, windows, opts.n_threads, progress)
+                    n_empty = _run(engine, writer, windows, opts.n_threads, progress, scheduler=sched,
+                                   workdir=tmp.parent)
                 nad = _nadir_in(model, str(grid.crs))
                 tags = {"ORTHO_MODEL": type(model).__name__, "ORTHO_DEM": Path(dem.path).name,
                         "ORTHO_NADIR_X": repr(float(nad[0])), "ORTHO_NADIR_Y": repr(float(nad[1]))}

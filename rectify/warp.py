@@ -28,6 +28,7 @@ internal mask, following the source (:class:`rectify.io.MaskPolicy`).
 from __future__ import annotations
 
 import concurrent.futures as cf
+import copy
 import logging
 import os
 import shutil
@@ -44,6 +45,7 @@ import rasterio
 from numpy.typing import ArrayLike, NDArray
 
 from .crs import crs_to_string, get_transformer, same_crs, transform_xy
+from .distributed import Scheduler, resolve_scheduler, run_windows
 from .errors import CRSError, EstimationError, InvalidInputError, RasterIOError
 from .fileutil import atomic_output, check_output
 from .formats import GcpTable
@@ -109,6 +111,10 @@ class WarpOptions:
     max_pixels : float
         Refuse an output grid with more pixels than this (``rectify warp --max-pixels``), before
         any pixel is written: a degenerate transform or a tiny resolution can ask for billions.
+    scheduler : rectify.distributed.Scheduler, str or None
+        Where the tiles run: ``threads`` (a local thread pool), ``processes[:N]`` (a local Dask
+        cluster), ``tcp://HOST:PORT`` (an existing Dask cluster); None: ``$RECTIFY_SCHEDULER``, else
+        ``threads``. Every scheduler writes the same bytes (:mod:`rectify.distributed`).
     """
 
     resampling: str = "bilinear"
@@ -121,8 +127,11 @@ class WarpOptions:
     max_window_px: int = 8192
     cache_mb: int = 64
     max_pixels: float = DEFAULT_MAX_PIXELS
+    scheduler: Scheduler | str | None = None
 
     def __post_init__(self) -> None:
+        if self.scheduler is not None:
+            resolve_scheduler(self.scheduler)  # a bad value fails here, before any work
         if not self.max_pixels > 0:
             raise InvalidInputError(f"max_pixels must be > 0; got {self.max_pixels!r}")
         if self.resampling not in RESAMPLING_NAMES:
@@ -286,6 +295,25 @@ class _Engine:
         self._local = threading.local()
         self._readers: list = []
         self._lock = threading.Lock()
+
+    # ----------------------------------------------------------------- shipping to Dask workers
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        for k in ("_local", "_readers", "_lock"):
+            state.pop(k, None)
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._local = threading.local()
+        self._readers = []
+        self._lock = threading.Lock()
+
+    def portable(self) -> _Engine:
+        """A copy for Dask workers: the source by absolute path, no open readers."""
+        eng = copy.copy(self)
+        eng.src = os.path.abspath(self.src)
+        return eng
 
     def reader(self):
         r = getattr(self._local, "reader", None)
@@ -481,6 +509,7 @@ def warp_raster(src: str | Path, dst: str | Path, source_from_world: Callable[[N
     """
 
     opts = options or WarpOptions()
+    sched = resolve_scheduler(opts.scheduler)
     t0 = time.perf_counter()
     src = str(src)
     if Path(dst).resolve() == Path(src).resolve():
@@ -507,7 +536,8 @@ def warp_raster(src: str | Path, dst: str | Path, source_from_world: Callable[[N
                 with TiledWriter(body, grid.width, grid.height, count, dtype.name, grid.transform, crs, policy,
                                  tile=tile, compress="none" if opts.cog else opts.compress,
                                  threads=opts.n_threads, colorinterp=colorinterp) as writer:
-                    n_empty = _run_tiles(engine, writer, windows, opts.n_threads, progress)
+                    n_empty = _run_tiles(engine, writer, windows, opts.n_threads, progress, scheduler=sched,
+                                         workdir=tmp.parent)
                 if opts.cog:
                     translate_to_cog(body, tmp, compress=opts.compress, threads=opts.n_threads, tile=tile)
             finally:
@@ -588,13 +618,15 @@ def run_tiles(tile: Callable[..., Any], write: Callable[[Any, int, int], bool], 
     return n_empty
 
 
-def _run_tiles(engine: _Engine, writer, windows, threads: int, progress) -> int:
+def _run_tiles(engine: _Engine, writer, windows, threads: int, progress, *, scheduler: Scheduler | str | None = None,
+               workdir: str | Path = ".") -> int:
     def write(res: tuple[Any, Any, bool], c: int, r: int) -> bool:
         data, valid, empty = res
         writer.write(data, c, r, valid)
         return empty
 
-    return run_tiles(engine.tile, write, windows, threads, progress, name="warp")
+    return run_windows(engine, write, windows, threads=threads, progress=progress, scheduler=scheduler,
+                       workdir=workdir, name="warp")
 
 
 def warp_array(image: ArrayLike, source_from_target: Callable[[NDArray], NDArray] | ArrayLike,

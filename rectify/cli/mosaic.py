@@ -6,7 +6,7 @@ import click
 
 from ..actions import MosaicOptions
 from ..actions import mosaic as run_mosaic
-from .options import echo, handle_errors, overwrite_opt, progress
+from .options import echo, handle_errors, overwrite_opt, progress, scheduler_opt
 
 
 @click.command(short_help="Mosaic orthophotos: nearest-nadir seamlines, feathering, one GeoTIFF or COG.")
@@ -17,12 +17,13 @@ from .options import echo, handle_errors, overwrite_opt, progress
               help="Blend width across seams, output pixels (0: hard seams).")
 @click.option("--cog", is_flag=True, default=False, help="Write a Cloud Optimized GeoTIFF.")
 @click.option("--threads", type=click.IntRange(1, 256), default=None, help="Worker threads (default: all cores).")
+@scheduler_opt
 @overwrite_opt
 @handle_errors
-def mosaic(orthos, dst, resolution, feather, cog, threads, overwrite):
+def mosaic(orthos, dst, resolution, feather, cog, threads, scheduler, overwrite):
     """Mosaic the orthophotos ORTHOS (one CRS) into the GeoTIFF given by -o."""
 
-    opts = MosaicOptions(feather_px=feather, cog=cog, threads=threads)
+    opts = MosaicOptions(feather_px=feather, cog=cog, threads=threads, scheduler=scheduler)
     with progress("mosaicking", enabled=True) as cb:
         res = run_mosaic(list(orthos), dst, resolution=resolution, options=opts, overwrite=overwrite, progress=cb)
     for line in res.summary_lines():

@@ -20,13 +20,32 @@ import click
 from ..errors import RectifyError
 from ..fileutil import write_failure_reason
 
-__all__ = ["overwrite_opt", "verbosity_opts", "report_opt", "handle_errors", "progress", "setup_logging",
-           "VerbosityGroup", "subcommand_verbosity_params"]
+__all__ = ["overwrite_opt", "verbosity_opts", "report_opt", "scheduler_opt", "handle_errors", "progress",
+           "setup_logging", "VerbosityGroup", "subcommand_verbosity_params"]
 
 overwrite_opt = click.option("--overwrite", is_flag=True, default=False,
                              help="Replace existing outputs (never done without it).")
 report_opt = click.option("--report", "report_dir", type=click.Path(file_okay=False), default=None,
                           help="Write residual tables, plots and an HTML report into this folder.")
+
+
+def _check_scheduler(ctx: click.Context, param: click.Parameter, value: str | None) -> str | None:
+    """Refuse a bad --scheduler at parse time (exit 2, one line); the library checks it again."""
+    if value is None:
+        return None
+    from ..distributed import resolve_scheduler
+
+    try:
+        resolve_scheduler(value)
+    except RectifyError as err:
+        raise click.BadParameter(str(err), ctx=ctx, param=param) from err
+    return value
+
+
+scheduler_opt = click.option(
+    "--scheduler", default=None, metavar="threads|processes[:N]|tcp://HOST:PORT", callback=_check_scheduler,
+    help="Where the tiles run: local threads (default), N local Dask worker processes, or an existing Dask "
+         "cluster; default from $RECTIFY_SCHEDULER, else threads. Every choice writes the same pixels.")
 
 
 def setup_logging(verbose: int, quiet: int) -> None:

@@ -6,7 +6,7 @@ import click
 
 from ..actions import OrthoOptions
 from ..actions import ortho as ortho_from_files
-from .options import echo, handle_errors, overwrite_opt, progress, report_opt
+from .options import echo, handle_errors, overwrite_opt, progress, report_opt, scheduler_opt
 
 
 @click.command(short_help="Orthorectify an image with a DEM (RPC or frame camera), optionally a true ortho.")
@@ -35,14 +35,15 @@ from .options import echo, handle_errors, overwrite_opt, progress, report_opt
               help="Occluded ground gets nodata; adds a visibility band (0 outside, 1 occluded, 2 visible).")
 @click.option("--cog", is_flag=True, default=False, help="Write a Cloud Optimized GeoTIFF.")
 @click.option("--threads", type=click.IntRange(1, 256), default=None, help="Worker threads (default: all cores).")
+@scheduler_opt
 @report_opt
 @overwrite_opt
 @handle_errors
 def ortho(src, dst, dem_path, rpc, camera, exterior, eo_crs, gcps, refinement, dst_crs, resolution, undulation,
-          geoid, resampling, true_ortho, cog, threads, report_dir, overwrite):
+          geoid, resampling, true_ortho, cog, threads, scheduler, report_dir, overwrite):
     """Orthorectify SRC over a DEM into the GeoTIFF given by -o."""
 
-    opts = OrthoOptions(resampling=resampling, cog=cog, threads=threads, true_ortho=true_ortho)
+    opts = OrthoOptions(resampling=resampling, cog=cog, threads=threads, true_ortho=true_ortho, scheduler=scheduler)
     rpc_arg = True if rpc == "__image__" else (rpc or False)
     with progress("orthorectifying", enabled=True) as cb:
         run = ortho_from_files(src, dst, dem_path, rpc=rpc_arg, camera=camera, exterior=exterior, eo_crs=eo_crs,

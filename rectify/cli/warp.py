@@ -7,7 +7,7 @@ import click
 from ..actions import METHOD_NAMES, RESAMPLING_NAMES, WarpRunOptions
 from ..actions import warp as warp_action
 from ..workspace import Workspace
-from .options import echo, handle_errors, overwrite_opt, progress, report_opt
+from .options import echo, handle_errors, overwrite_opt, progress, report_opt, scheduler_opt
 
 _D = WarpRunOptions()
 
@@ -33,11 +33,12 @@ _D = WarpRunOptions()
 @click.option("--threads", type=click.IntRange(1, 256), default=None, help="Worker threads (default: all cores).")
 @click.option("--max-pixels", type=click.FloatRange(min=1), default=_D.max_pixels, show_default=True,
               help="Refuse an output grid with more pixels than this (before any work).")
+@scheduler_opt
 @report_opt
 @overwrite_opt
 @handle_errors
 def warp(src, dst, gcps_path, transform_path, method, gcp_crs, dst_crs, resolution, resampling, cog, threads,
-         max_pixels, report_dir, overwrite):
+         max_pixels, scheduler, report_dir, overwrite):
     """Rectify SRC into the GeoTIFF DST.
 
     The transform comes from GCPs (--gcps, fitted with --method), from a
@@ -51,7 +52,8 @@ def warp(src, dst, gcps_path, transform_path, method, gcp_crs, dst_crs, resoluti
     if report_dir is not None and transform_path is not None:
         raise click.UsageError("--report needs --gcps (a saved transform has no residuals to report)")
     opts = WarpRunOptions(method=method, gcp_crs=gcp_crs, dst_crs=dst_crs, resolution=resolution,
-                          resampling=resampling, cog=cog, threads=threads, max_pixels=max_pixels)
+                          resampling=resampling, cog=cog, threads=threads, max_pixels=max_pixels,
+                          scheduler=scheduler)
     ws = Workspace(overwrite=overwrite, inputs=[src, gcps_path, transform_path], report_dir=report_dir)
     with progress("warping", enabled=True) as cb:
         run = warp_action(ws, src, dst, gcps_path=gcps_path, transform_path=transform_path, options=opts,

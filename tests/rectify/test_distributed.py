@@ -1,0 +1,282 @@
+"""rectify.distributed: the tiled steps on a Dask cluster write what the local thread pool writes.
+
+A module-scoped 2-worker LocalCluster (processes, one thread each) is reached by its address, as a
+user's cluster would be (``tcp://HOST:PORT``); the ``processes:N`` path (a cluster started for the
+run) is driven end to end by ``tests/cli/test_scheduler.py``.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+from affine import Affine
+
+from rectify.datum import Dem
+from rectify.distributed import ENV_VAR, Scheduler, SchedulerError, resolve_scheduler
+from rectify.errors import InvalidInputError
+from rectify.georef import Grid
+from rectify.io import write_raster
+from rectify.mosaic import MosaicOptions, mosaic
+from rectify.ortho import OrthoOptions, orthorectify
+from rectify.warp import WarpOptions, warp_raster
+from tests.rectify.test_ortho import _flat_ortho, frame_scene
+from tests.support.rectify_support import cog_problems
+
+distributed = pytest.importorskip("distributed")
+
+# distributed may warn while workers shut down (a killed worker, closing comms): only here, narrowly
+pytestmark = [pytest.mark.filterwarnings("ignore::ResourceWarning"),
+              pytest.mark.filterwarnings("ignore:.*[Cc]lient.*:UserWarning"),
+              pytest.mark.filterwarnings("ignore:.*[Ww]orker.*:UserWarning"),
+              pytest.mark.filterwarnings("ignore:.*[Cc]omm.*:UserWarning")]
+
+CRS = "EPSG:32618"
+H = np.array([[1.02, 0.05, 3.0], [-0.04, 0.98, -5.0], [1e-5, 2e-5, 1.0]])  # output world -> source pixel
+
+
+class Homography:
+    """World (x, y) -> source pixel through ``H`` (has a matrix: the analytic warpPerspective path)."""
+
+    matrix = H
+
+    def __call__(self, p):
+        h = np.c_[np.asarray(p, dtype=np.float64), np.ones(len(p))] @ H.T
+        return h[:, :2] / h[:, 2:]
+
+
+class Curved:
+    """A non-matrix mapping (the sparse grid + remap path): the homography plus a smooth bend."""
+
+    def __call__(self, p):
+        q = Homography()(p)
+        return q + np.column_stack([3 * np.sin(q[:, 1] / 90.0), 2 * np.cos(q[:, 0] / 70.0)])
+
+
+GRID = Grid(640, 520, Affine(1, 0, -20, 0, -1, 510), CRS)
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    lc = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0")
+    try:
+        yield lc
+    finally:
+        lc.close()
+
+
+@pytest.fixture(scope="module")
+def sources(tmp_path_factory):
+    """600 x 500 x 3 sources: uint8 with a nodata hole, float32 (NaN nodata)."""
+    d = tmp_path_factory.mktemp("dask_src")
+    rng = np.random.default_rng(17)
+    rr, cc = np.mgrid[0:500, 0:600]
+    smooth = np.stack([cc * 0.3 + rr * 0.1, 120 + 80 * np.sin(cc / 17.0) * np.cos(rr / 23.0), rr * 0.4], axis=-1)
+    img = np.clip(smooth + rng.normal(0, 6, smooth.shape), 1, 255).astype(np.uint8)
+    img[200:240, 300:380] = 0  # nodata hole: renormalised kernels next to it
+    write_raster(d / "u8.tif", img, Affine(1, 0, 0, 0, -1, 500), CRS, nodata=0)
+    f32 = (smooth * 10.0 + rng.normal(0, 3, smooth.shape)).astype(np.float32)
+    f32[100:130, 50:90] = np.nan
+    write_raster(d / "f32.tif", f32, Affine(1, 0, 0, 0, -1, 500), CRS, nodata=float("nan"))
+    return d
+
+
+def _read(path):
+    with rasterio.open(path) as ds:
+        return ds.read(), ds.read_masks(1), ds.profile
+
+
+def _assert_same(a_path, b_path, *, rtol=0.0):
+    a, ma, pa = _read(a_path)
+    b, mb, pb = _read(b_path)
+    assert a.shape == b.shape and a.dtype == b.dtype
+    assert (ma == mb).all()
+    for k in ("crs", "transform", "nodata", "blockxsize", "blockysize", "compress", "count"):
+        assert pa.get(k) == pb.get(k) or (k == "nodata" and np.isnan(pa[k]) and np.isnan(pb[k])), k
+    if rtol == 0.0:
+        np.testing.assert_array_equal(a, b)
+    else:
+        np.testing.assert_allclose(a, b, rtol=rtol, atol=0, equal_nan=True)
+
+
+# ----------------------------------------------------------------- scheduler choice
+def test_parse_scheduler_values():
+    assert Scheduler.parse("threads") == Scheduler()
+    assert Scheduler.parse(" Processes ") == Scheduler("processes")
+    assert Scheduler.parse("processes:3") == Scheduler("processes", workers=3)
+    s = Scheduler.parse("tcp://127.0.0.1:8786")
+    assert s.kind == "cluster" and s.address == "tcp://127.0.0.1:8786" and str(s) == "tcp://127.0.0.1:8786"
+    assert str(Scheduler.parse("processes:2")) == "processes:2"
+
+
+@pytest.mark.parametrize(("spec", "message"), [
+    ("gpu", "unknown scheduler 'gpu'; expected 'threads', 'processes', 'processes:N' or 'tcp://HOST:PORT'"),
+    ("processes:0", "bad scheduler 'processes:0': the worker count must be an integer in 1..1024"),
+    ("processes:two", "bad scheduler 'processes:two': the worker count must be an integer in 1..1024"),
+    ("tcp://", "bad scheduler address 'tcp://'; expected tcp://HOST:PORT"),
+    ("tcp://host:port", "bad scheduler address 'tcp://host:port'; expected tcp://HOST:PORT"),
+])
+def test_bad_scheduler_values_are_refused_in_one_line(spec, message):
+    with pytest.raises(InvalidInputError) as err:
+        Scheduler.parse(spec)
+    assert str(err.value) == message and "\n" not in str(err.value)
+    with pytest.raises(InvalidInputError):  # the options refuse it before any work
+        WarpOptions(scheduler=spec)
+    with pytest.raises(InvalidInputError):
+        OrthoOptions(scheduler=spec)
+    with pytest.raises(InvalidInputError):
+        MosaicOptions(scheduler=spec)
+
+
+def test_environment_variable(monkeypatch):
+    monkeypatch.delenv(ENV_VAR, raising=False)
+    assert resolve_scheduler(None) == Scheduler()
+    monkeypatch.setenv(ENV_VAR, "processes:2")
+    assert resolve_scheduler(None) == Scheduler("processes", workers=2)
+    assert resolve_scheduler("threads") == Scheduler()  # an explicit choice wins
+    monkeypatch.setenv(ENV_VAR, "cluster-please")
+    with pytest.raises(InvalidInputError, match=r"unknown scheduler in \$RECTIFY_SCHEDULER 'cluster-please'"):
+        resolve_scheduler(None)
+
+
+def test_unreachable_cluster_fails_quickly_and_leaves_nothing(sources, tmp_path):
+    import socket
+
+    with socket.socket() as s:  # a port with nothing listening
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    t0 = time.perf_counter()
+    sched = Scheduler("cluster", address=f"tcp://127.0.0.1:{port}", timeout_s=2.0)
+    with pytest.raises(SchedulerError) as err:
+        warp_raster(sources / "u8.tif", tmp_path / "out.tif", Homography(), GRID,
+                    options=WarpOptions(scheduler=sched))
+    assert time.perf_counter() - t0 < 20
+    msg = str(err.value)
+    assert msg.startswith(f"cannot reach the Dask scheduler 'tcp://127.0.0.1:{port}' within 2 s") and "\n" not in msg
+    assert list(tmp_path.iterdir()) == []  # no output, no temporary file, no block folder
+
+
+# ----------------------------------------------------------------- tiled equals whole
+@pytest.mark.parametrize(("source", "resampling", "mapping", "rtol"), [
+    ("u8.tif", "nearest", Homography, 0.0),
+    ("u8.tif", "bilinear", Curved, 0.0),
+    ("f32.tif", "bilinear", Homography, 1e-6),
+    ("f32.tif", "cubic", Curved, 1e-6),
+])
+def test_warp_on_the_cluster_equals_the_local_path(cluster, sources, tmp_path, source, resampling, mapping, rtol):
+    kw = dict(resampling=resampling, tile_px=64)
+    local = warp_raster(sources / source, tmp_path / "local.tif", mapping(), GRID, options=WarpOptions(**kw))
+    seen: list[tuple[int, int]] = []
+    remote = warp_raster(sources / source, tmp_path / "dask.tif", mapping(), GRID,
+                         options=WarpOptions(scheduler=cluster.scheduler_address, **kw),
+                         progress=lambda d, t: seen.append((d, t)))
+    _assert_same(tmp_path / "local.tif", tmp_path / "dask.tif", rtol=rtol)
+    assert (remote.n_tiles, remote.n_empty_tiles, remote.policy) == (local.n_tiles, local.n_empty_tiles, local.policy)
+    assert seen[0] == (0, 90) and seen[-1] == (90, 90) and len(seen) == 91
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dask.tif", "local.tif"]  # no block files left
+
+
+def test_cog_on_the_cluster(cluster, sources, tmp_path):
+    kw = dict(resampling="bilinear", tile_px=128, cog=True)
+    warp_raster(sources / "u8.tif", tmp_path / "local.tif", Homography(), GRID, options=WarpOptions(**kw))
+    warp_raster(sources / "u8.tif", tmp_path / "dask.tif", Homography(), GRID,
+                options=WarpOptions(scheduler=cluster.scheduler_address, **kw))
+    assert cog_problems(tmp_path / "dask.tif") == []
+    _assert_same(tmp_path / "local.tif", tmp_path / "dask.tif")
+
+
+@pytest.mark.parametrize(("resampling", "true_ortho"), [("nearest", True), ("bilinear", False), ("cubic", False)])
+def test_ortho_on_the_cluster_equals_the_local_path(cluster, tmp_path, resampling, true_ortho):
+    model = frame_scene(tmp_path)
+    dem = Dem.from_path(tmp_path / "dem.tif")
+    kw = dict(tile_px=64, resampling=resampling, true_ortho=true_ortho)
+    a = orthorectify(tmp_path / "frame.tif", tmp_path / "local.tif", model, dem, resolution=1.0,
+                     options=OrthoOptions(**kw))
+    b = orthorectify(tmp_path / "frame.tif", tmp_path / "dask.tif", model, dem, resolution=1.0,
+                     options=OrthoOptions(scheduler=cluster.scheduler_address, **kw))
+    _assert_same(tmp_path / "local.tif", tmp_path / "dask.tif", rtol=0.0 if resampling == "nearest" else 1e-6)
+    # the statistics gathered in the workers' tiles add up to the local run's
+    assert (b.dem_range, b.max_relief_shift, b.n_occluded, b.n_tiles, b.n_empty_tiles) == \
+        (a.dem_range, a.max_relief_shift, a.n_occluded, a.n_tiles, a.n_empty_tiles)
+    with rasterio.open(tmp_path / "dask.tif") as ds:
+        assert ds.tags()["ORTHO_MODEL"] == "FrameModel"
+
+
+def test_mosaic_on_the_cluster_equals_the_local_path(cluster, tmp_path):
+    _flat_ortho(tmp_path / "a.tif", 0, 100, 100.0, 30.0)
+    _flat_ortho(tmp_path / "b.tif", 40, 140, 200.0, 110.0)
+    ins = [tmp_path / "a.tif", tmp_path / "b.tif"]
+    a = mosaic(ins, tmp_path / "local.tif", options=MosaicOptions(feather_px=20, tile_px=16))
+    b = mosaic(ins, tmp_path / "dask.tif", options=MosaicOptions(feather_px=20, tile_px=16,
+                                                                   scheduler=cluster.scheduler_address))
+    _assert_same(tmp_path / "local.tif", tmp_path / "dask.tif")
+    assert a.share == b.share
+
+
+def test_a_failing_task_raises_its_error_and_leaves_nothing(cluster, sources, tmp_path):
+    """A task that raises (here: the source vanished between planning and computing) fails the run with
+    the task's own project error; no output and no block files remain."""
+    import shutil
+
+    src = tmp_path / "in" / "u8.tif"
+    src.parent.mkdir()
+    shutil.copy(sources / "u8.tif", src)
+
+    out = tmp_path / "out"
+    out.mkdir()
+    from rectify.errors import RasterIOError
+
+    def remove_source(done, total):
+        if done == 0:
+            src.unlink()
+
+    with pytest.raises(RasterIOError, match="raster not found"):
+        warp_raster(src, out / "dask.tif", Homography(), GRID,
+                    options=WarpOptions(tile_px=64, scheduler=Scheduler("cluster", address=cluster.scheduler_address,
+                                                                        retries=0)),
+                    progress=remove_source)
+    assert list(out.iterdir()) == []
+
+
+# ----------------------------------------------------------------- a worker lost mid-run
+def test_a_killed_worker_is_replaced_and_the_output_is_complete(sources, tmp_path, caplog):
+    import logging
+
+    caplog.set_level(logging.INFO, logger="distributed.scheduler")
+    kw = dict(resampling="cubic", tile_px=32)
+    warp_raster(sources / "f32.tif", tmp_path / "local.tif", Curved(), GRID, options=WarpOptions(**kw))
+    lc = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0")
+    try:
+        with distributed.Client(lc) as client:
+            pids = client.run(os.getpid)
+            victim_address, victim = sorted(pids.items())[0]
+            killed = []
+
+            def kill_one(done, total):
+                if not killed and done >= 8:  # tasks are queued on both workers: kill one mid-run
+                    os.kill(victim, signal.SIGKILL)
+                    killed.append(done)
+                    time.sleep(0.5)
+
+            r = warp_raster(sources / "f32.tif", tmp_path / "dask.tif", Curved(), GRID,
+                            options=WarpOptions(scheduler=lc.scheduler_address, **kw), progress=kill_one)
+            assert killed and killed[0] < r.n_tiles  # the kill happened before the end of the run
+            with pytest.raises(ProcessLookupError):
+                os.kill(victim, 0)
+            # the scheduler saw the worker go (its tasks, running or finished, are recomputed elsewhere)
+            assert any("Remove worker" in r.getMessage() and victim_address in r.getMessage()
+                       for r in caplog.records)
+            # the nanny started a new worker process in its place
+            deadline = time.time() + 20
+            while victim in client.run(os.getpid).values() or len(client.run(os.getpid)) < 2:
+                assert time.time() < deadline
+                time.sleep(0.2)
+    finally:
+        lc.close()
+    _assert_same(tmp_path / "local.tif", tmp_path / "dask.tif")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dask.tif", "local.tif"]
