@@ -43,6 +43,12 @@ def _track_sets(build) -> set[frozenset[tuple[int, int]]]:
     return {frozenset(s) for s in out.values()}
 
 
+def _pm(i: int, j: int, kp_i, kp_j, score=None) -> PairMatches:
+    """PairMatches from plain lists."""
+    s = np.zeros(0) if score is None else np.asarray(score, dtype=np.float64)
+    return PairMatches(i, j, np.asarray(kp_i, dtype=np.int64), np.asarray(kp_j, dtype=np.int64), s)
+
+
 def _kps(counts: list[int]) -> list[np.ndarray]:
     """Distinct positions: keypoint k of image i at (10 k, 7 i)."""
     return [np.column_stack([10.0 * np.arange(n), np.full(n, 7.0 * i)]) for i, n in enumerate(counts)]
@@ -59,9 +65,9 @@ def test_connected_labels_known_answer():
 def test_tracks_known_answer_and_conflicts():
     # image 0 keypoints 0..2, image 1 keypoints 0..2, image 2 keypoints 0..2
     kp = _kps([3, 3, 3])
-    m = [PairMatches(0, 1, [0, 1, 2], [0, 1, 2]),
-         PairMatches(1, 2, [0, 1], [0, 1]),
-         PairMatches(0, 2, [2], [0])]          # joins (0,0)-(1,0)-(2,0) with (0,2)-(1,2): a conflict
+    m = [_pm(0, 1, [0, 1, 2], [0, 1, 2]),
+         _pm(1, 2, [0, 1], [0, 1]),
+         _pm(0, 2, [2], [0])]          # joins (0,0)-(1,0)-(2,0) with (0,2)-(1,2): a conflict
     drop = build_tracks(kp, m, images=["a", "b", "c"], conflicts="drop")
     assert _track_sets(drop) == {frozenset({(0, 1), (1, 1), (2, 1)})}
     assert (drop.n_components, drop.n_conflicting, drop.n_split, drop.n_obs_dropped) == (2, 1, 0, 5)
@@ -76,7 +82,7 @@ def test_tracks_known_answer_and_conflicts():
 
 def test_tracks_min_rays_ranking_and_merge():
     kp = _kps([2, 2, 2])
-    m = [PairMatches(0, 1, [0, 1], [0, 1], [0.5, 0.2]), PairMatches(1, 2, [0], [0], [0.3])]
+    m = [_pm(0, 1, [0, 1], [0, 1], [0.5, 0.2]), _pm(1, 2, [0], [0], [0.3])]
     b = build_tracks(kp, m)
     assert b.tracks.rays_per_point().tolist() == [3, 2]          # more rays first
     assert_allclose(b.track_score, [0.4, 0.2])
@@ -84,7 +90,7 @@ def test_tracks_min_rays_ranking_and_merge():
     assert b3.tracks.n_points == 1 and b3.n_short == 1
     # two keypoints of image 0 at one position (two SIFT orientations) are one node: no conflict
     kp2 = [np.array([[5.0, 5.0], [5.0, 5.0]]), np.array([[1.0, 1.0]]), np.array([[2.0, 2.0]])]
-    mm = [PairMatches(0, 1, [0], [0]), PairMatches(0, 2, [1], [0])]
+    mm = [_pm(0, 1, [0], [0]), _pm(0, 2, [1], [0])]
     b = build_tracks(kp2, mm)
     assert b.n_conflicting == 0 and b.n_merged == 1 and b.tracks.rays_per_point().tolist() == [3]
 
@@ -96,13 +102,13 @@ def test_tracks_bad_inputs():
     with pytest.raises(InvalidInputError, match="min_rays must be >= 2; got 1"):
         build_tracks(kp, [], min_rays=1)
     with pytest.raises(InvalidInputError, match=r"keypoint index out of range 0\.\.1 for image '1'"):
-        build_tracks(kp, [PairMatches(0, 1, [0], [5])])
+        build_tracks(kp, [_pm(0, 1, [0], [5])])
     with pytest.raises(InvalidInputError, match="names image 4"):
-        build_tracks(kp, [PairMatches(0, 4, [0], [0])])
+        build_tracks(kp, [_pm(0, 4, [0], [0])])
     with pytest.raises(InvalidInputError, match=r"two different images; got \(1, 1\)"):
-        PairMatches(1, 1, [0], [0])
+        _pm(1, 1, [0], [0])
     with pytest.raises(InvalidInputError, match="one value per match"):
-        PairMatches(0, 1, [0, 1], [0])
+        _pm(0, 1, [0, 1], [0])
 
 
 def _reference_components(counts, edges):
@@ -143,7 +149,7 @@ def _pair_matches(edges, reverse=False):
         if reverse:
             (i, a), (j, b) = (j, b), (i, a)
         by_pair.setdefault((i, j), []).append((a, b))
-    return [PairMatches(i, j, [x[0] for x in v], [x[1] for x in v]) for (i, j), v in by_pair.items()]
+    return [_pm(i, j, [x[0] for x in v], [x[1] for x in v]) for (i, j), v in by_pair.items()]
 
 
 @settings(max_examples=80, deadline=None)
@@ -174,8 +180,8 @@ def test_union_find_property(data, rnd):
 def test_spread_keeps_best_per_cell_and_coverage():
     # two images 80 x 80, grid 2 x 2; tracks 0..2 all in the top-left cell of both images
     t = Tracks(("a", "b"), ("p", "q", "r", "s"),
-               [0, 0, 1, 1, 2, 2, 3, 3], [0, 1, 0, 1, 0, 1, 0, 1],
-               [[5, 5], [5, 5], [6, 6], [6, 6], [7, 7], [7, 7], [60, 60], [60, 10]])
+               np.array([0, 0, 1, 1, 2, 2, 3, 3]), np.array([0, 1, 0, 1, 0, 1, 0, 1]),
+               np.array([[5, 5], [5, 5], [6, 6], [6, 6], [7, 7], [7, 7], [60, 60], [60, 10]], dtype=float))
     res = spread_tracks(t, [[80, 80], [80, 80]], grid=(2, 2), per_cell=1, track_score=[0.5, 0.1, 0.9, 0.5])
     assert res.keep.tolist() == [False, True, False, True]
     assert res.points_per_image.tolist() == [2, 2]
@@ -249,7 +255,7 @@ def test_render_block_files_and_truth(block, tmp_path):
     terrain, poses, paths, _ = block
     assert [p.name for p in paths] == [f"{q.image}.png" for q in poses]
     img = cv2.imread(str(paths[0]), cv2.IMREAD_GRAYSCALE)
-    assert img.shape == (300, 400) and img.min() > 0 and img.std() > 20
+    assert img is not None and img.shape == (300, 400) and img.min() > 0 and img.std() > 20
     # a ray-cast ground point projects back to its pixel
     px = np.array([[10.0, 20.0], [200.0, 150.0], [390.0, 290.0]])
     g = terrain.ground_from_pixel(CAM, poses[0], px)
@@ -403,3 +409,18 @@ def test_block_split_policy_and_sizes(block):
     assert r.tracks.n_points <= 6 * 16 * 2
     assert math.isclose(sum(r.rays_histogram.values()), r.tracks.n_points)
     assert Path(paths[0]).exists()
+
+
+def test_block_large_images_detected_on_overviews(block):
+    # images above detect_max_px are detected on an overview: positions scaled back, sigma scaled,
+    # no refinement; the progress callback ends at (total, total)
+    terrain, poses, paths, _ = block
+    calls: list[tuple[int, int]] = []
+    opts = BlockMatchOptions(matcher=MatcherConfig(verify="fundamental", max_keypoints=2000, min_inliers=10),
+                             detect_max_px=200)
+    r = block_tie_points(paths[:3], cameras=CAM, poses=poses[:3], ground_z=terrain.mean_height, options=opts,
+                         progress=lambda d, t: calls.append((d, t)))
+    assert calls[-1][0] == calls[-1][1] and len(calls) >= 3 + len(r.pairs)
+    assert r.n_refined == 0 and set(np.unique(r.tracks.obs_sigma_px)) == {1.0}
+    err, _ = _true_errors(terrain, poses[:3], r.tracks)
+    assert np.median(err) < 1.5
