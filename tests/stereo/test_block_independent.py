@@ -8,11 +8,15 @@ from typing import NamedTuple
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from rectify.camera import Camera
+from rectify.errors import EstimationError, InvalidInputError, ShapeError, StereoError
 from rectify.rotation import matrix_from_angles
 from stereo.block.independent import (
     GroundBlock,
+    IndependentOptions,
     ModelBlock,
     independent_models,
     to_ground,
@@ -258,3 +262,131 @@ def test_results_are_frozen_and_summarised():
     assert gb.summary_lines()[0].startswith("block to ground: scale")
     assert block.images == b.tracks.images
     assert block.n_points == int(np.isfinite(block.points).all(axis=1).sum())
+
+
+# --------------------------------------------------------------------------- invariance
+def permuted(b: Block, perm: list[int]) -> Tracks:
+    """The same tracks with the images in the order ``perm`` (new index k is old image perm[k])."""
+    t = b.tracks
+    new_of_old = np.argsort(perm)
+    return Tracks(tuple(t.images[i] for i in perm), t.point_ids, t.obs_point, new_of_old[t.obs_image],
+                  t.obs_pixel, t.obs_sigma_px)
+
+
+@settings(max_examples=6, deadline=None)
+@given(st.permutations(list(range(8))))
+def test_result_does_not_depend_on_the_order_of_images(perm):
+    b = cached(noise_px=0.3)
+    _, ref = run(b)
+    tracks = permuted(b, perm)
+    block = independent_models(CAMS, ["c"] * 8, tracks)
+    gb = to_ground(block, gnss=gnss_of(b.poses))
+    by = {p.image: p for p in gb.poses}
+    for p in ref.poses:
+        np.testing.assert_allclose(by[p.image].position, p.position, atol=1e-6 * H)
+        np.testing.assert_allclose(by[p.image].rotation, p.rotation, atol=1e-8)
+    assert gb.point_ids == ref.point_ids
+    np.testing.assert_allclose(gb.points, ref.points, atol=1e-6 * H)
+
+
+# --------------------------------------------------------------------------- bad input
+def test_bad_camera_list():
+    t = cached().tracks
+    with pytest.raises(ShapeError, match="one camera per image"):
+        independent_models(CAMS, ["c"] * 7, t)
+    with pytest.raises(InvalidInputError, match="names camera 'x'"):
+        independent_models(CAMS, ["c"] * 7 + ["x"], t)
+    with pytest.raises(InvalidInputError, match="sequence of camera ids"):
+        independent_models(CAMS, "c", t)
+
+
+def test_one_image_is_not_a_block():
+    t = Tracks(("a",), (), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))
+    with pytest.raises(InvalidInputError, match="at least 2 images"):
+        independent_models(CAMS, ["c"], t)
+
+
+def test_disconnected_image_graph_names_components():
+    b = cached()
+    t = b.tracks
+    strip = np.array([int(n[1]) for n in t.images])[t.obs_image]
+    first_strip = np.bincount(t.obs_point[strip == 0], minlength=t.n_points) > 0
+    keep = ~((strip == 1) & first_strip[t.obs_point])     # no track spans both strips
+    cut = t.subset(keep)
+    with pytest.raises(StereoError, match=r"disconnected .*2 components \['s0i0', 's0i1', 's0i2', 's0i3'\]; "
+                                          r"\['s1i0', 's1i1', 's1i2', 's1i3'\]"):
+        independent_models(CAMS, ["c"] * 8, cut)
+
+
+def test_given_pairs_errors():
+    t = cached().tracks
+    with pytest.raises(StereoError, match=r"pair 's0i0'-'s1i3' has 0 common points; at least 12"):
+        independent_models(CAMS, ["c"] * 8, t, pairs=[(0, 1), (0, 7)])
+    with pytest.raises(StereoError, match="given pairs leave the image graph disconnected: 7 components"):
+        independent_models(CAMS, ["c"] * 8, t, pairs=[(0, 1)])
+    with pytest.raises(InvalidInputError, match=r"pair \(0, 8\): image indices"):
+        independent_models(CAMS, ["c"] * 8, t, pairs=[(0, 8)])
+    with pytest.raises(InvalidInputError, match=r"pair \(3, 3\)"):
+        independent_models(CAMS, ["c"] * 8, t, pairs=[(3, 3)])
+    with pytest.raises(InvalidInputError, match="two image indices"):
+        independent_models(CAMS, ["c"] * 8, t, pairs=[(0, 1, 2)])  # type: ignore[list-item]
+    with pytest.raises(InvalidInputError, match="`pairs` is empty"):
+        independent_models(CAMS, ["c"] * 8, t, pairs=[])
+
+
+def test_failed_relative_orientation_names_the_pair():
+    """Two identical photos (no base): the relative orientation fails, the pair is named."""
+    rng = np.random.default_rng(3)
+    px = rng.uniform([0, 0], [1999, 1499], (40, 2))
+    t = Tracks(("a", "b"), tuple(f"q{i}" for i in range(40)), np.repeat(np.arange(40), 2),
+               np.tile([0, 1], 40), np.repeat(px, 2, axis=0))
+    with pytest.raises(StereoError, match="relative orientation of pair 'a'-'b' failed: "):
+        independent_models(CAMS, ["c", "c"], t)
+
+
+def test_model_sharing_too_few_points():
+    t = cached().tracks
+    with pytest.raises(StereoError, match=r"model '.*'-'.*' shares \d+ tie points with the block so far; "
+                                          "at least 100000"):
+        independent_models(CAMS, ["c"] * 8, t, options=IndependentOptions(min_join_points=100000))
+
+
+@pytest.mark.parametrize("kw, msg", [
+    ({"min_common": 4}, "`min_common` must be >= 5"),
+    ({"min_join_points": 1}, "`min_join_points` must be >= 2"),
+    ({"robust": "bogus"}, "unknown robust option 'bogus'"),
+    ({"join_trim": 0.0}, "`join_trim` must be a finite number > 0"),
+    ({"outlier_floor_px": float("nan")}, "`outlier_floor_px` must be"),
+    ({"min_angle_rad": 2.0}, r"`min_angle_rad` must be in \[0, pi/2\)"),
+    ({"max_rejection_rounds": -1}, "`max_rejection_rounds` must be >= 0"),
+])
+def test_bad_options(kw, msg):
+    with pytest.raises(InvalidInputError, match=msg):
+        IndependentOptions(**kw)
+
+
+def test_to_ground_errors():
+    b = cached()
+    block = independent_models(CAMS, ["c"] * 8, b.tracks)
+    names, pos = gnss_of(b.poses)
+    with pytest.raises(EstimationError, match=r"too few points .*0 control point\(s\) and 2 GNSS centre\(s\)"):
+        to_ground(block, gnss=(names[:2], pos[:2]))
+    with pytest.raises(EstimationError, match="too few points"):
+        to_ground(block)
+    line = np.array([[0.0, 0, 0], [1, 1, 1], [2, 2, 2]])
+    with pytest.raises(EstimationError, match="collinear or too few in the ground frame"):
+        to_ground(block, gnss=(names[:3], line))
+    with pytest.raises(InvalidInputError, match=r"GNSS image\(s\) \['nope'\] are not images of the block"):
+        to_ground(block, gnss=(["nope", *names[1:]], pos))
+    with pytest.raises(ShapeError, match=r"GNSS positions must be finite with shape \(8, 3\)"):
+        to_ground(block, gnss=(names, pos[:7]))
+    with pytest.raises(InvalidInputError, match="duplicate GNSS image names"):
+        to_ground(block, gnss=([names[0]] * 8, pos))
+    with pytest.raises(InvalidInputError, match=r"control point\(s\) \['zz'\] are not tracks of the block"):
+        to_ground(block, control=(["zz"], [[0.0, 0, 0]]), gnss=(names, pos))
+    with pytest.raises(ShapeError, match=r"control coordinates must have shape \(2, 3\)"):
+        to_ground(block, control=(["p1", "p2"], [[0.0, 0, 0]]), gnss=(names, pos))
+    with pytest.raises(InvalidInputError, match="duplicate control point ids"):
+        to_ground(block, control=(["p1", "p1"], np.zeros((2, 3))), gnss=(names, pos))
+    with pytest.raises(InvalidInputError, match="unknown robust option 'bogus'"):
+        to_ground(block, gnss=(names, pos), robust="bogus")
