@@ -25,8 +25,9 @@
    track's *reference* observation (the one nearest its image's centre) stays fixed and every
    other observation of the track is refined against it, with the initial affine shape fitted to
    the neighbouring tracks of the same image pair. Observations whose refinement does not
-   converge keep their detected position and the unrefined sigma. Images detected on an overview
-   are not refined.
+   converge keep their detected position and the unrefined sigma (``sigma_px``); refined
+   observations, and the reference of a track with at least one refined observation, get
+   ``sigma_refined_px``. Images detected on an overview are not refined.
 
 The result :class:`BlockTiePoints` holds the tracks with a-priori sigmas, the pairs with their
 match counts, per-image counts and grid coverage, the histogram of rays per track and what was
@@ -600,8 +601,13 @@ def block_tie_points(image_paths: Sequence[str | Path], *, names: Sequence[str] 
     n_ref = n_fail = 0
     if cfg.refine and tracks.n_obs:
         pix, ok, n_try = _refine(tracks, paths, feats, cfg)
-        sigma = np.where(ok, opts.sigma_refined_px, sigma)
         n_ref, n_fail = int(ok.sum()), n_try - int(ok.sum())
+        # the reference defines the point its refined partners were matched to: it shares their sigma
+        sizes_ = np.array([f.size for f in feats], dtype=np.int64)
+        has_refined = np.bincount(tracks.obs_point[ok], minlength=tracks.n_points) > 0
+        ref = np.zeros(tracks.n_obs, dtype=bool)
+        ref[_reference_obs(tracks, sizes_)] = True
+        sigma = np.where(ok | (ref & has_refined[tracks.obs_point]), opts.sigma_refined_px, sigma)
     else:
         pix = tracks.obs_pixel
     tracks = Tracks(tracks.images, tracks.point_ids, tracks.obs_point, tracks.obs_image, pix, sigma)
