@@ -45,8 +45,8 @@ import numpy as np
 
 from .errors import InvalidInputError, RectifyError
 
-__all__ = ["ENV_VAR", "Scheduler", "SchedulerError", "BlockEngine", "resolve_scheduler", "run_windows",
-           "DEFAULT_RETRIES", "DEFAULT_CONNECT_TIMEOUT_S"]
+__all__ = ["ENV_VAR", "TIMEOUT_ENV_VAR", "Scheduler", "SchedulerError", "BlockEngine", "resolve_scheduler",
+           "run_windows", "DEFAULT_RETRIES", "DEFAULT_CONNECT_TIMEOUT_S"]
 
 logger = logging.getLogger(__name__)
 
@@ -54,8 +54,10 @@ logger = logging.getLogger(__name__)
 ENV_VAR = "RECTIFY_SCHEDULER"
 #: times Dask reruns a failed task (a task whose worker died is rerun by the scheduler as well)
 DEFAULT_RETRIES = 2
-#: seconds to wait for an existing cluster's scheduler before giving up
+#: seconds to wait for an existing cluster's scheduler before giving up (``$RECTIFY_SCHEDULER_TIMEOUT`` overrides)
 DEFAULT_CONNECT_TIMEOUT_S = 10.0
+#: environment variable: seconds to wait for a cluster's scheduler
+TIMEOUT_ENV_VAR = "RECTIFY_SCHEDULER_TIMEOUT"
 
 _SPEC_HELP = "expected 'threads', 'processes', 'processes:N' or 'tcp://HOST:PORT'"
 _ADDRESS = re.compile(r"^(tcp|tls|ucx|inproc)://[^\s/:]+(:\d{1,5})?/?$")
@@ -140,7 +142,7 @@ class Scheduler:
         if "://" in s:
             if not _ADDRESS.match(s):
                 raise InvalidInputError(f"bad {source} address {s!r}; expected tcp://HOST:PORT")
-            return cls("cluster", address=s.rstrip("/"))
+            return cls("cluster", address=s.rstrip("/"), timeout_s=_env_timeout())
         raise InvalidInputError(f"unknown {source} {s!r}; {_SPEC_HELP}")
 
     @property
@@ -152,6 +154,19 @@ class Scheduler:
         if self.kind == "processes":
             return "processes" if self.workers is None else f"processes:{self.workers}"
         return self.address if self.kind == "cluster" else "threads"  # type: ignore[return-value]
+
+
+def _env_timeout() -> float:
+    raw = os.environ.get(TIMEOUT_ENV_VAR, "").strip()
+    if not raw:
+        return DEFAULT_CONNECT_TIMEOUT_S
+    try:
+        value = float(raw)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise InvalidInputError(f"${TIMEOUT_ENV_VAR} must be a number of seconds > 0; got {raw!r}")
+    return value
 
 
 def resolve_scheduler(spec: Scheduler | str | None = None) -> Scheduler:

@@ -10,7 +10,6 @@ from __future__ import annotations
 import os
 import signal
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -139,6 +138,13 @@ def test_environment_variable(monkeypatch):
     monkeypatch.setenv(ENV_VAR, "processes:2")
     assert resolve_scheduler(None) == Scheduler("processes", workers=2)
     assert resolve_scheduler("threads") == Scheduler()  # an explicit choice wins
+    monkeypatch.setenv("RECTIFY_SCHEDULER_TIMEOUT", "3.5")
+    assert resolve_scheduler("tcp://10.1.2.3:8786").timeout_s == 3.5
+    monkeypatch.setenv("RECTIFY_SCHEDULER_TIMEOUT", "soon")
+    with pytest.raises(InvalidInputError, match=r"\$RECTIFY_SCHEDULER_TIMEOUT must be a number of seconds > 0; "
+                                                r"got 'soon'"):
+        resolve_scheduler("tcp://10.1.2.3:8786")
+    monkeypatch.delenv("RECTIFY_SCHEDULER_TIMEOUT")
     monkeypatch.setenv(ENV_VAR, "cluster-please")
     with pytest.raises(InvalidInputError, match=r"unknown scheduler in \$RECTIFY_SCHEDULER 'cluster-please'"):
         resolve_scheduler(None)
