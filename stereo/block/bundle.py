@@ -67,6 +67,8 @@ CONTROL_KINDS: tuple[str, ...] = ("full", "height", "plan")
 #: what precision to compute: everything (poses, interior, points, redundancy numbers), poses only, nothing
 COVARIANCE_MODES: tuple[str, ...] = ("full", "poses", "none")
 GROUPS: tuple[str, ...] = ("image", "gnss", "ins", "control")
+#: reweightings per IRLS stage (Huber, then the chosen psi) before the weights are frozen
+IRLS_STAGE_ITERATIONS = 12
 POSE_ELEMENTS: tuple[str, ...] = ("omega", "phi", "kappa", "x", "y", "z")
 
 
@@ -571,7 +573,7 @@ def _setup(cameras: Mapping[str, Camera], poses: Sequence[Pose], tracks: Tracks,
         pixel_size=np.array([c.pixel_size_mm for c in cams]),
         centre=np.array([[(c.width - 1) / 2.0, (c.height - 1) / 2.0] for c in cams]),
         sel=sel, obs_img=tracks.obs_image.copy(), obs_pt=tracks.obs_point.copy(), obs_px=tracks.obs_pixel.copy(),
-        obs_sigma=tracks.obs_sigma_px.copy(), pt_start=starts, pt_count=counts, dense_limit=options.dense_limit)
+        obs_sigma=tracks.obs_sigma_px * options.image_sigma_px, pt_start=starts, pt_count=counts, dense_limit=options.dense_limit)
     st = bs.State(angles=np.array([p.angles for p in ordered]).reshape(n, 3),
                   centres=np.array([p.position for p in ordered]).reshape(n, 3),
                   interior=np.array([interior_from_camera(c) for c in cams]), points=X)
@@ -652,19 +654,46 @@ def _combine(a: bs.Weights, b: bs.Weights) -> bs.Weights:
     return bs.Weights(a.image * b.image, a.gnss * b.gnss, a.ins * b.ins, a.control * b.control)
 
 
-def _robust_update(psi: object, res: bs.Residuals, base: bs.Weights, groups: tuple[str, ...],
-                   old: bs.Weights) -> bs.Weights:
-    out = bs.Weights(old.image.copy(), old.gnss.copy(), old.ins.copy(), old.control.copy())
+def _local_redundancy(prob: bs.Problem) -> F64:
+    """(M, 1) approximate redundancy of an image coordinate: (2 m - 3) / (2 m) for a point with m rays."""
+    m = prob.pt_count[prob.obs_pt].astype(np.float64)
+    return np.asarray(((2 * m - 3) / (2 * m))[:, None], dtype=np.float64)
+
+
+def _standardised(g: str, v: F64, w0: F64, rloc: F64, rbar: float) -> F64:
+    """Standardised residuals of a group before the robust scale: v / (sigma sqrt(r)); the image group gives
+    one value per observation (the RMS of its two coordinates), so a measurement is reweighted as a whole."""
+    if g == "image":
+        u = v * np.sqrt(w0) / np.sqrt(rloc)
+        return np.asarray(np.repeat(np.sqrt(np.mean(u ** 2, axis=1))[:, None], 2, axis=1), dtype=np.float64)
+    return np.asarray(v * np.sqrt(w0) / math.sqrt(rbar), dtype=np.float64)
+
+
+def _robust_scales(res: bs.Residuals, base: bs.Weights, groups: tuple[str, ...], rloc: F64,
+                   rbar: float) -> dict[str, float]:
+    """Scale of each group: max(1, robust scale of the standardised residuals), fixed during one IRLS run."""
+    out = {}
     for g in groups:
+        v, w0 = getattr(res, g), getattr(base, g)
+        used = w0 > 0
+        s = robust_scale(_standardised(g, v, w0, rloc, rbar), mask=used) if used.any() else 0.0
+        out[g] = max(1.0, s)
+    return out
+
+
+def _robust_update(psi: object, res: bs.Residuals, base: bs.Weights, scales: Mapping[str, float], rloc: F64,
+                   rbar: float, old: bs.Weights) -> bs.Weights:
+    """IRLS weights psi(u) / u of the standardised residuals u (divided by the group's scale)."""
+    out = bs.Weights(old.image.copy(), old.gnss.copy(), old.ins.copy(), old.control.copy())
+    for g, s in scales.items():
         v = getattr(res, g)
         w0 = getattr(base, g)
         if v.size == 0:
             continue
-        u = v * np.sqrt(w0)
         used = w0 > 0
-        s = robust_scale(u, mask=used) if used.any() else 0.0
-        s = max(s, 1e-3)
-        w = np.where(used, psi.weight(u / s), 1.0)  # type: ignore[attr-defined]
+        u = _standardised(g, v, w0, rloc, rbar) / s
+        # a floor keeps every point determined when all its rays are rejected
+        w = np.where(used, np.maximum(psi.weight(u), 1e-4), 1.0)  # type: ignore[attr-defined]
         setattr(out, g, w)
     return out
 
@@ -676,15 +705,27 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
     dense = prob.n_c <= options.dense_limit
     mu = 1e-4
     robust_on = psi is not None and robust_from_start
+    frozen = False
+    phase_it = 0
+    prev_cost = math.inf
+    settled = False
+    # a redescending psi starts from Huber's (convex) solution
+    cur_psi = psi if psi is None or robust_from_start or getattr(psi, "name", "") == "huber" else get_psi("huber")
     converged = False
     it = 0
     w = _combine(base, robust_w)
     nstep = math.inf
+    nobs = 2 * len(prob.obs_pt) + prob.g_pos.size + prob.i_ang.size + int(np.isfinite(prob.c_sigma).sum())
+    rbar = max(nobs - prob.n_c - 3 * prob.n_points, 1) / nobs
+    scales: dict[str, float] | None = None
+    rloc = _local_redundancy(prob)
     for it in range(1, options.max_iterations + 1):
         lin = bs.evaluate(prob, st, jacobian=True)
         dw = 0.0
         if robust_on:
-            new_rw = _robust_update(psi, lin.res, base, options.robust_groups, robust_w)
+            if scales is None:
+                scales = _robust_scales(lin.res, base, options.robust_groups, rloc, rbar)
+            new_rw = _robust_update(cur_psi, lin.res, base, scales, rloc, rbar, robust_w)
             dw = max(float(np.max(np.abs(new_rw.image - robust_w.image), initial=0.0)),
                      float(np.max(np.abs(new_rw.gnss - robust_w.gnss), initial=0.0)),
                      float(np.max(np.abs(new_rw.control - robust_w.control), initial=0.0)))
@@ -712,10 +753,20 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
                      it, cost, nstep, mu, dw)
         if not accepted:
             break
-        if psi is not None and not robust_on and nstep < 1e-2:
-            robust_on = True
+        if psi is not None and not robust_on and not frozen and nstep < 1e-2:
+            robust_on = True  # least squares has settled: start reweighting
             continue
-        if nstep < options.tolerance and (not robust_on or dw < 1e-2) and (psi is None or robust_on):
+        if robust_on:
+            phase_it += 1
+            settled = (nstep < 1e-2 and dw < 1e-2) or (abs(prev_cost - cost) <= 1e-5 * cost and dw < 0.05)
+            prev_cost = cost
+        if robust_on and (settled or phase_it >= IRLS_STAGE_ITERATIONS):
+            phase_it = 0
+            if cur_psi is not psi:
+                cur_psi = psi  # Huber has settled: switch to the redescending psi
+                continue
+            robust_on, frozen = False, True  # weights settled: converge with them fixed
+        if nstep < options.tolerance and (psi is None or frozen):
             converged = True
             break
     if not converged:
@@ -794,19 +845,21 @@ def _redundancy(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], ro
             r_gnss = np.clip(1.0 - w.gnss * hg, 0.0, 1.0)
     vtpv = {"image": float(np.sum(w.image * res.image ** 2)), "gnss": float(np.sum(w.gnss * res.gnss ** 2)),
             "ins": float(np.sum(w.ins * res.ins ** 2)), "control": float(np.sum(w.control * res.control ** 2))}
-    nobs = {"image": int(np.sum(w.image > 0)), "gnss": int(np.sum(w.gnss > 0)), "ins": int(np.sum(w.ins > 0)),
-            "control": int(np.sum(w.control > 0))}
+    # observations with a robust weight below 0.1 count as rejected
+    nobs = {"image": int(np.sum((w.image > 0) & (robust_w.image >= 0.1))),
+            "gnss": int(np.sum((w.gnss > 0) & (robust_w.gnss >= 0.1))), "ins": int(np.sum(w.ins > 0)),
+            "control": int(np.sum((w.control > 0) & (robust_w.control >= 0.1)))}
     r_tot = sum(nobs.values()) - u
     r: dict[str, float] = {}
     for g in GROUPS:
         r[g] = nobs[g] * r_tot / max(sum(nobs.values()), 1)  # proportional approximation
     if Qcc is not None:
         if points_needed == "all":
-            r["image"] = float(np.sum(r_img[w.image > 0]))
+            r["image"] = float(np.sum(r_img[robust_w.image >= 0.1]))
         if len(prob.c_pt):
             r["control"] = float(np.nansum(r_ctrl))
         if len(prob.g_img):
-            r["gnss"] = float(np.sum(r_gnss[w.gnss > 0]))
+            r["gnss"] = float(np.sum(r_gnss[(w.gnss > 0) & (robust_w.gnss >= 0.1)]))
         if len(prob.i_img):
             pidx = 6 * prob.i_img[:, None] + np.arange(3)
             qi = Qcc[pidx, pidx]

@@ -219,10 +219,7 @@ def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool) ->
     diag_p = np.diagonal(Cp, axis1=1, axis2=2).copy()
     if mu > 0:
         Cp = Cp + mu * diag_p[:, :, None] * np.eye(3)
-    try:
-        Cinv: F64 = np.asarray(np.linalg.inv(Cp), dtype=np.float64)
-    except np.linalg.LinAlgError:
-        Cinv = np.full_like(Cp, np.nan)
+    Cinv = inv3(Cp)
     with np.errstate(all="ignore"):
         rel = np.linalg.det(Cp) / np.prod(np.diagonal(Cp, axis1=1, axis2=2), axis=1)
     bad = ~np.isfinite(Cinv).all(axis=(1, 2)) | ~(rel > 1e-13)
@@ -258,6 +255,21 @@ def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool) ->
         diag_c = Ncc_s.diagonal().copy()
         S = (Ncc_s - red.tocsr() + sp.diags(mu * diag_c)).tocsc()
     return Normal(S, rhs, Cinv, bp, E, G, cidx, diag_c, diag_p, prob.pt_start)
+
+
+def inv3(A: F64) -> F64:
+    """Inverses of (P, 3, 3) matrices by the adjugate (NaN for a singular one, never raises)."""
+    a, b, c = A[:, 0, 0], A[:, 0, 1], A[:, 0, 2]
+    d, e, f = A[:, 1, 0], A[:, 1, 1], A[:, 1, 2]
+    g, h, i = A[:, 2, 0], A[:, 2, 1], A[:, 2, 2]
+    co = np.stack([e * i - f * h, c * h - b * i, b * f - c * e,
+                   f * g - d * i, a * i - c * g, c * d - a * f,
+                   d * h - e * g, b * g - a * h, a * e - b * d], axis=1).reshape(-1, 3, 3)
+    det = a * co[:, 0, 0] + b * co[:, 1, 0] + c * co[:, 2, 0]
+    with np.errstate(all="ignore"):
+        out = co / det[:, None, None]
+    out[~(np.abs(det) > 0)] = np.nan
+    return np.asarray(out, dtype=np.float64)
 
 
 def solve_reduced(ne: Normal) -> tuple[F64, F64]:

@@ -92,7 +92,7 @@ def make_block(seed: int = 0, *, strips: int = 3, images_per_strip: int = 6, for
                n_points: int = 600, image_noise_px: float = 0.5, gnss_noise_m: float = 0.05,
                ins_noise_rad: float | None = None, lever_arm_m: tuple[float, float, float] | None = None,
                control_noise_m: float = 0.01, blunder_fraction: float = 0.0,
-               blunder_px: tuple[float, float] = (15.0, 40.0),
+               blunder_px: tuple[float, float] = (15.0, 40.0), blunder_min_rays: int = 4,
                camera: Camera | None = None, n_check: int = 6, control_layout: str = "corners+centre",
                pose_perturbation: tuple[float, float] = (3.0, 0.01), point_perturbation_m: float = 2.0,
                margin_px: float = 10.0) -> SyntheticBlock:
@@ -118,8 +118,10 @@ def make_block(seed: int = 0, *, strips: int = 3, images_per_strip: int = 6, for
     lever_arm_m : (3,), optional
         GNSS lever arm in the camera frame, m.
     blunder_fraction : float
-        Fraction of the observations of points seen >= 3 times (at most one per point) given a
-        blunder of ``blunder_px`` (uniform range) pixels in a random direction.
+        Fraction of the observations given a blunder of ``blunder_px`` (uniform range) pixels in a
+        random direction, at most one per point and only on points seen at least
+        ``blunder_min_rays`` times (with three rays a blunder is detectable but not always
+        identifiable: the other rays may be rejected instead).
     camera : Camera, optional
         The true camera (default :func:`default_camera`).
     n_check : int
@@ -199,7 +201,7 @@ def make_block(seed: int = 0, *, strips: int = 3, images_per_strip: int = 6, for
     # blunders: at most one per point seen >= 3 times
     counts = np.bincount(pt, minlength=P)
     starts = np.cumsum(counts) - counts
-    cand_pts = np.flatnonzero(counts >= 3)
+    cand_pts = np.flatnonzero(counts >= blunder_min_rays)
     nb = int(round(blunder_fraction * M))
     nb = min(nb, len(cand_pts))
     bl_pts = rng.choice(cand_pts, nb, replace=False) if nb else np.zeros(0, np.int64)
