@@ -17,16 +17,18 @@ weight in both solvers (our ``obs_sigma_px`` = 1, Ceres' trivial loss), so both 
 same sum of squares. Initial values (the same for both): true positions + N(0, 1 m), true
 attitudes + N(0, 1 mrad) per axis, true points + N(0, 0.5 m) in X, Y and N(0, 1 m) in Z.
 
-Datum (gauge), the same for both solvers
-----------------------------------------
-Images 0 and 1 (the first two of strip 1, 70 % overlap) are held fixed; their initial poses
-are their true poses (as if known from a previous adjustment), every other pose and every point
-is free. pycolmap: ``BundleAdjustmentConfig.set_constant_rig_from_world_pose`` on both frames
-(with two constant frames COLMAP adds no gauge fix of its own). Ours: the same two images fixed
-(see ``_ours_fixed_kwargs``). This holds 12 parameters for a 7-parameter datum; the 5 extra are
-true values, so the minimum is that of a free network to well below the noise, and it is the
-same minimum for both solvers. Interior orientation is fixed in both (SIMPLE_PINHOLE with
-``refine_focal_length = refine_principal_point = refine_extra_params = False``).
+Datum, the same for both solvers
+--------------------------------
+Five full ground control points (the tie points nearest to the four corners of the block, inset
+by 12 %, and to its centre; each seen in the most images available there) are held at their true
+coordinates, which are also their initial values; every pose and every other point is free.
+pycolmap: ``BundleAdjustmentConfig.add_constant_point`` (hard constraints; no gauge fix of its
+own, ``fixed_gauge`` stays ``UNSPECIFIED``). Ours: ``BlockControl`` with sigma 0.1 mm per
+coordinate, i.e. practically hard (the control group adds nothing measurable to the cost). This
+holds 15 coordinates for a 7-parameter datum; the 8 extra are true values, so both minimise the
+same image residuals under the same constraints. Neither has GNSS. Interior orientation is
+fixed in both (SIMPLE_PINHOLE with ``refine_focal_length = refine_principal_point =
+refine_extra_params = False``; ours without ``self_calibrate``).
 
 Conventions (checked numerically before every run)
 --------------------------------------------------
@@ -46,7 +48,9 @@ either solver's input. Final reprojection RMS (px, per coordinate: sqrt(sum r^2 
 computed here, by one function, from each solver's final poses and points, not from either
 solver's own report. ``--threads`` goes to Ceres' ``num_threads`` and to our solver (its worker
 option if it has one, and OMP/OpenBLAS/MKL thread counts in the subprocess environment of
-both). ``--iterations`` is the iteration limit of both (Ceres ``max_num_iterations``).
+both). ``--iterations`` is the iteration limit of both (Ceres ``max_num_iterations``, our
+``max_iterations``). Ours runs with ``covariance="none"`` by default (Ceres computes no
+covariance either); ``--ours-covariance poses|full`` times it with its precision output.
 Ceres keeps COLMAP's defaults otherwise (Levenberg-Marquardt, solver type auto-selected by
 COLMAP: dense Schur up to 50 images, sparse Schur up to 1000, SuiteSparse).
 
@@ -84,7 +88,7 @@ CAMERA = dict(focal_length_mm=100.0, pixel_size_mm=0.01, width=2000, height=1500
 
 #: name -> (strips, images per strip, points, max rays per point)
 BLOCKS = {"small": (7, 7, 7_800, 4), "large": (10, 50, 100_000, 5)}
-FIXED_IMAGES = (0, 1)
+CONTROL_SIGMA_M = 1e-4  # ours: sigma of the (practically fixed) control coordinates
 
 PIP_HINT = 'bench_bundle: pycolmap (the peer) is not installed; run  pip install -e ".[bench]"'
 
@@ -104,7 +108,7 @@ class Block:
     obs_point: np.ndarray  # (M,) int64, sorted by point then image
     obs_image: np.ndarray  # (M,) int64
     obs_pixel: np.ndarray  # (M, 2) ours: pixel centres at integers
-    fixed: np.ndarray  # (F,) int64 image indices held fixed
+    control: np.ndarray  # (K,) int64 point indices held at their true coordinates
 
     def save(self, path: Path) -> None:
         np.savez(path, **self.__dict__)
@@ -203,10 +207,19 @@ def make_block(name: str, seed: int, noise_px: float) -> Block:
 
     R0 = R @ rodrigues(rng.normal(0, 1e-3, (n, 3)))
     C0 = C + rng.normal(0, 1.0, (n, 3))
-    fixed = np.array(FIXED_IMAGES, dtype=np.int64)
-    R0[fixed], C0[fixed] = R[fixed], C[fixed]
     X0 = X + rng.normal(0, [0.5, 0.5, 1.0], X.shape)
-    return Block(R, C, X, R0, C0, X0, pt, im, obs, fixed)
+    # control: the points nearest to the inset corners and the centre, among those with most rays
+    rays = np.bincount(pt, minlength=n_points)
+    c_lo, c_hi = X[:, :2].min(0), X[:, :2].max(0)
+    a, b = c_lo + 0.12 * (c_hi - c_lo), c_hi - 0.12 * (c_hi - c_lo)
+    cand = np.flatnonzero(rays == rays.max())
+    control = []
+    for t in ([a[0], a[1]], [b[0], a[1]], [a[0], b[1]], [b[0], b[1]], (a + b) / 2):
+        d = np.linalg.norm(X[cand, :2] - np.asarray(t), axis=1)
+        control.append(int(cand[np.argmin(d)]))
+    control = np.array(control, dtype=np.int64)
+    X0[control] = X[control]
+    return Block(R, C, X, R0, C0, X0, pt, im, obs, control)
 
 
 def reprojection_rms(block: Block, R: np.ndarray, C: np.ndarray, X: np.ndarray) -> float:
@@ -332,8 +345,8 @@ def run_colmap(block: Block, iterations: int, threads: int) -> dict:
     config = pycolmap.BundleAdjustmentConfig()
     for i in range(len(block.R0)):
         config.add_image(i + 1)
-    for i in block.fixed:
-        config.set_constant_rig_from_world_pose(rec.image(int(i) + 1).frame_id)
+    for k in block.control:
+        config.add_constant_point(int(k) + 1)
     check = check_reconstruction(block, rec)
     if check > 1e-6:
         raise SystemExit(f"bench_bundle: the COLMAP reconstruction disagrees with the block by {check:.3g} px")
@@ -356,11 +369,7 @@ def run_colmap(block: Block, iterations: int, threads: int) -> dict:
                 label=f"pycolmap {pycolmap.__version__} (Ceres, {threads} threads)")
 
 
-def _ours_fixed_kwargs(block: Block) -> dict:  # pragma: no cover - filled in when the API lands
-    return {}
-
-
-def run_ours(block: Block, iterations: int, threads: int) -> dict:
+def run_ours(block: Block, iterations: int, threads: int, covariance: str = "none") -> dict:
     from stereo.block import bundle
     from stereo.block.types import Pose, Tracks
 
@@ -368,25 +377,33 @@ def run_ours(block: Block, iterations: int, threads: int) -> dict:
     n = len(block.R0)
     t0 = time.perf_counter()
     poses = [Pose(f"img{i:04d}", "cam", block.C0[i], block.R0[i]) for i in range(n)]
-    tracks = Tracks(tuple(p.image for p in poses), tuple(f"p{k}" for k in range(len(block.X0))),
-                    block.obs_point, block.obs_image, block.obs_pixel, np.ones(len(block.obs_point)))
+    ids = tuple(f"p{k}" for k in range(len(block.X0)))
+    tracks = Tracks(tuple(p.image for p in poses), ids, block.obs_point, block.obs_image, block.obs_pixel,
+                    np.ones(len(block.obs_point)))
+    control = bundle.BlockControl(tuple(ids[k] for k in block.control), block.X_true[block.control],
+                                  ("full",) * len(block.control), np.full((len(block.control), 3), CONTROL_SIGMA_M))
+    options = bundle.BundleOptions(max_iterations=iterations, covariance=covariance)
     t_build = time.perf_counter() - t0
-    options = bundle.BundleOptions(max_iterations=iterations)
     rss_before = _rss_mb()
     t0 = time.perf_counter()
-    res = bundle.adjust_bundle({"cam": cam}, poses, tracks, block.X0, options=options, **_ours_fixed_kwargs(block))
+    res = bundle.adjust_bundle({"cam": cam}, poses, tracks, block.X0, control=control, options=options)
     t_solve = time.perf_counter() - t0
     R = np.array([p.rotation for p in res.poses])
     C = np.array([p.position for p in res.poses])
+    solver = "dense Cholesky" if 6 * n <= options.dense_limit else "sparse LU"
     return dict(R=R, C=C, X=np.asarray(res.points), time=t_solve, build=t_build, rss_before=rss_before,
-                iterations=getattr(res, "iterations", None), detail="",
-                label=f"ours (threads {threads})")
+                iterations=res.iterations,
+                detail=f"{'converged' if res.converged else 'NOT converged'}, reduced system by {solver}, "
+                       f"covariance {covariance}, own RMS {res.rms_px:.4f} px",
+                label=f"ours (LM + Schur, BLAS threads {threads})")
 
 
 def worker(a: argparse.Namespace) -> int:
     block = Block.load(Path(a.data))
-    fn = run_colmap if a.worker == "colmap" else run_ours
-    out = fn(block, a.iterations, a.threads)
+    if a.worker == "colmap":
+        out = run_colmap(block, a.iterations, a.threads)
+    else:
+        out = run_ours(block, a.iterations, a.threads, a.ours_covariance)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kB on Linux
     np.savez(a.out, R=out.pop("R"), C=out.pop("C"), X=out.pop("X"))
     out["peak_rss"] = peak
@@ -399,7 +416,8 @@ def spawn(which: str, data: Path, out: Path, a: argparse.Namespace) -> dict:
     for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
         env[k] = str(a.threads)
     cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", which, "--data", str(data),
-           "--out", str(out), "--iterations", str(a.iterations), "--threads", str(a.threads)]
+           "--out", str(out), "--iterations", str(a.iterations), "--threads", str(a.threads),
+           "--ours-covariance", a.ours_covariance]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
     if proc.returncode != 0 or not lines:
@@ -421,6 +439,8 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2, help="threads of both solvers")
     ap.add_argument("--noise", type=float, default=0.7, help="image noise, px per coordinate")
     ap.add_argument("--only", choices=("ours", "colmap"), help="run one solver only")
+    ap.add_argument("--ours-covariance", choices=("none", "poses", "full"), default="none",
+                    help="precision output of our solver (timed with it)")
     ap.add_argument("--worker", choices=("ours", "colmap"), help=argparse.SUPPRESS)
     ap.add_argument("--data", help=argparse.SUPPRESS)
     ap.add_argument("--out", help=argparse.SUPPRESS)
@@ -435,7 +455,7 @@ def main(argv=None) -> int:
     print(f"# bench_bundle: our bundle adjustment vs pycolmap {pycolmap.__version__} (Ceres); seed {a.seed}, "
           f"noise {a.noise} px, <= {a.iterations} iterations, {a.threads} threads each; "
           f"{os.cpu_count()} CPUs, load {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
-    print("# datum: images 0 and 1 fixed at their true poses in both; interior orientation fixed; "
+    print("# datum: 5 control points held at their true coordinates in both; interior orientation fixed; "
           "RMS px per coordinate from each solver's final poses and points by one function; "
           "each solver in its own process\n")
     names = ("small", "large") if a.block == "both" else (a.block,)
@@ -465,13 +485,13 @@ def main(argv=None) -> int:
                     continue
                 r = res[w]
                 r["rms"] = reprojection_rms(block, r["R"], r["C"], r["X"])
-                r["pos_err"] = float(np.sqrt(np.mean(np.sum((r["C"] - block.C_true) ** 2, axis=1))))
+                r["pt_err"] = float(np.sqrt(np.mean(np.sum((r["X"] - block.X_true) ** 2, axis=1))))
                 print(f"  {r['label']}: {r['time']:.2f} s (input built in {r['build']:.1f} s), "
                       f"iterations {r['iterations']}, {r['detail']}".rstrip(", "))
             rows.append((name, res))
     print("\n| block | solver | RMS (px) | RMS / pycolmap | time (s) | time / pycolmap | "
-          "RSS before solve (MB) | peak RSS (MB) | peak / pycolmap | position RMS vs truth (m) | "
-          "max position diff vs pycolmap (m) |")
+          "RSS before solve (MB) | peak RSS (MB) | peak / pycolmap | point error vs truth, RMS (m) | "
+          "max diff vs pycolmap: centres, points (m) |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for name, res in rows:
         ref = res.get("colmap", {})
@@ -483,9 +503,10 @@ def main(argv=None) -> int:
                 print(f"| {name} | {w} | failed | | | | | | | | |")
                 continue
             rat = {k: f"{r[k] / ref[k]:.3f}" if k in ref else "-" for k in ("rms", "time", "peak_rss")}
-            diff = f"{np.abs(r['C'] - ref['C']).max():.4f}" if "C" in ref else "-"
+            diff = (f"{np.abs(r['C'] - ref['C']).max():.1e}, {np.abs(r['X'] - ref['X']).max():.1e}"
+                    if "C" in ref else "-")
             print(f"| {name} | {r['label']} | {r['rms']:.4f} | {rat['rms']} | {r['time']:.2f} | {rat['time']} | "
-                  f"{r['rss_before']:.0f} | {r['peak_rss']:.0f} | {rat['peak_rss']} | {r['pos_err']:.3f} | "
+                  f"{r['rss_before']:.0f} | {r['peak_rss']:.0f} | {rat['peak_rss']} | {r['pt_err']:.3f} | "
                   f"{diff} |")
     for name, res in rows:
         if "colmap" in res and "ours" in res and "error" not in res["colmap"] and "error" not in res["ours"]:

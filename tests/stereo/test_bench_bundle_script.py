@@ -34,7 +34,7 @@ def test_small_block_sizes_and_tracks(bb, block):
     # sorted by point, then image; no point twice in one image
     key = block.obs_point * 49 + block.obs_image
     assert np.all(np.diff(key) > 0)
-    assert np.array_equal(block.R0[block.fixed], block.R_true[block.fixed])
+    assert len(block.control) == 5 and np.array_equal(block.X0[block.control], block.X_true[block.control])
 
 
 def test_rms_at_truth_is_the_noise_and_start_is_perturbed(bb, block):
