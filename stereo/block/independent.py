@@ -66,6 +66,7 @@ from stereo.absolute import AbsoluteOrientation, similarity_from_points
 from stereo.intersection import intersect
 from stereo.relative import RelativeOrientation
 from stereo.relative.solver import RelativeOptions
+from stereo.relative.systems import get_system
 
 from .types import Pose, Tracks
 
@@ -130,6 +131,7 @@ class IndependentOptions:
         if self.robust not in ROBUST_METHODS:
             raise InvalidInputError(f"unknown robust option {self.robust!r}; expected one of "
                                     f"{list(ROBUST_METHODS)}")
+        get_system(self.system)  # raises naming an unknown system
         for name in ("outlier_floor_px", "join_trim", "join_floor", "max_residual_sigma"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
@@ -166,7 +168,8 @@ class ModelJoin:
     rms : float
         RMS 3D residual of the join's tie points (not outliers), block units.
     rms_base : float
-        ``rms`` relative to the model's base in the block (``rms / scale``), unitless.
+        ``rms`` relative to the model's base in the block (``rms / scale``): also the RMS in the
+        model's own units, whose base is 1.
     centre_residual : float
         Distance between the shared projection centre of the block and of the joined model,
         block units.
@@ -360,7 +363,7 @@ def independent_models(
     n = len(names)
     if n < 2:
         raise InvalidInputError(f"a block needs at least 2 images; got {n} ({list(names)})")
-    obs_mm = _photo_mm(cams, tracks)
+    obs_mm = _photo_mm(cams, camera_of, tracks)
     per_image = _obs_by_image(tracks, n)
     counts = _covisibility(tracks, n)
     tree = (_given_tree(pairs, counts, names, opts) if pairs is not None
@@ -480,25 +483,26 @@ def _cameras_of_images(cameras: Mapping[str, Camera], camera_of: Sequence[str], 
     return out
 
 
-def _photo_mm(cams: list[Camera], tracks: Tracks) -> NDArray[np.float64]:
+def _photo_mm(cams: list[Camera], camera_of: Sequence[str], tracks: Tracks) -> NDArray[np.float64]:
     """(M, 2) photo coordinates of every observation, distortion removed, mm."""
     out = np.empty((tracks.n_obs, 2))
-    by_cam: dict[int, list[int]] = {}
-    for i, c in enumerate(cams):
-        by_cam.setdefault(id(c), []).append(i)
-    for imgs in by_cam.values():
+    ids = np.array(list(camera_of), dtype=object)
+    for cid in sorted(set(camera_of)):
+        imgs = np.flatnonzero(ids == cid)
         m = np.isin(tracks.obs_image, imgs)
         if m.any():
-            out[m] = cams[imgs[0]].photo_from_pixel(tracks.obs_pixel[m])
+            out[m] = cams[int(imgs[0])].photo_from_pixel(tracks.obs_pixel[m])
     return out
 
 
 def _obs_by_image(tracks: Tracks, n: int) -> list[tuple[NDArray[np.int64], NDArray[np.int64]]]:
-    """Per image: (track indices ascending, observation rows)."""
+    """Per image: (track indices ascending, their observation rows)."""
+    order = np.argsort(tracks.obs_image, kind="stable")   # stable: rows stay sorted by track
+    bounds = np.concatenate([[0], np.cumsum(np.bincount(tracks.obs_image, minlength=n))])
     out = []
     for i in range(n):
-        rows = np.flatnonzero(tracks.obs_image == i)
-        out.append((tracks.obs_point[rows], rows))  # sorted by track: tracks are stored by track
+        rows = order[bounds[i]:bounds[i + 1]]
+        out.append((tracks.obs_point[rows], rows))
     return out
 
 
