@@ -67,6 +67,8 @@ CONTROL_KINDS: tuple[str, ...] = ("full", "height", "plan")
 #: what precision to compute: everything (poses, interior, points, redundancy numbers), poses only, nothing
 COVARIANCE_MODES: tuple[str, ...] = ("full", "poses", "none")
 GROUPS: tuple[str, ...] = ("image", "gnss", "ins", "control")
+#: sigma of the weak constraints on the initial projection centres that set a free network's datum, m
+FREE_NETWORK_SIGMA_M = 1.0
 #: reweightings per IRLS stage (Huber, then the chosen psi) before the weights are frozen
 IRLS_STAGE_ITERATIONS = 12
 POSE_ELEMENTS: tuple[str, ...] = ("omega", "phi", "kappa", "x", "y", "z")
@@ -246,7 +248,7 @@ class BundleOptions:
         only at control and check points) or ``none``.
     free_network : bool
         Allow a block without control and GNSS: the datum is then set by weak constraints of the
-        initial projection centres.
+        initial projection centres (sigma :data:`FREE_NETWORK_SIGMA_M`).
     dense_limit : int
         Solve the reduced camera system with a dense Cholesky factorisation up to this size,
         with a sparse LU beyond.
@@ -573,7 +575,8 @@ def _setup(cameras: Mapping[str, Camera], poses: Sequence[Pose], tracks: Tracks,
         pixel_size=np.array([c.pixel_size_mm for c in cams]),
         centre=np.array([[(c.width - 1) / 2.0, (c.height - 1) / 2.0] for c in cams]),
         sel=sel, obs_img=tracks.obs_image.copy(), obs_pt=tracks.obs_point.copy(), obs_px=tracks.obs_pixel.copy(),
-        obs_sigma=tracks.obs_sigma_px * options.image_sigma_px, pt_start=starts, pt_count=counts, dense_limit=options.dense_limit)
+        obs_sigma=tracks.obs_sigma_px * options.image_sigma_px, pt_start=starts, pt_count=counts,
+        dense_limit=options.dense_limit)
     st = bs.State(angles=np.array([p.angles for p in ordered]).reshape(n, 3),
                   centres=np.array([p.position for p in ordered]).reshape(n, 3),
                   interior=np.array([interior_from_camera(c) for c in cams]), points=X)
@@ -616,7 +619,7 @@ def _setup(cameras: Mapping[str, Camera], poses: Sequence[Pose], tracks: Tracks,
                 "points cannot fix shift, rotation and scale of the block; give control points (>= 2 plan, >= 3 "
                 "height) or GNSS positions (>= 3 images), or set free_network")
         free = True
-        ext = float(np.ptp(st.centres, axis=0).max()) or 1.0
+        ext = FREE_NETWORK_SIGMA_M
         prob.g_img = np.concatenate([prob.g_img, np.arange(n)])
         prob.g_pos = np.vstack([prob.g_pos, st.centres])
         prob.g_sigma = np.vstack([prob.g_sigma, np.full((n, 3), ext)])

@@ -95,7 +95,7 @@ def make_block(seed: int = 0, *, strips: int = 3, images_per_strip: int = 6, for
                blunder_px: tuple[float, float] = (15.0, 40.0), blunder_min_rays: int = 4,
                camera: Camera | None = None, n_check: int = 6, control_layout: str = "corners+centre",
                pose_perturbation: tuple[float, float] = (3.0, 0.01), point_perturbation_m: float = 2.0,
-               margin_px: float = 10.0) -> SyntheticBlock:
+               margin_px: float = 10.0, noise_seed: int | None = None) -> SyntheticBlock:
     """Make a block with known truth.
 
     Parameters
@@ -134,6 +134,9 @@ def make_block(seed: int = 0, *, strips: int = 3, images_per_strip: int = 6, for
         Standard deviation of the perturbation of the initial points.
     margin_px : float
         Points closer than this to the frame edge are not measured.
+    noise_seed : int, optional
+        Draw the measurement noise (image, GNSS, INS, control) from this seed, so that the same
+        geometry gets independent noise (Monte Carlo); default: from ``seed``.
     """
     if strips < 1 or images_per_strip < 2:
         raise InvalidInputError(f"make_block needs >= 1 strip of >= 2 images; got {strips} x {images_per_strip}")
@@ -197,7 +200,8 @@ def make_block(seed: int = 0, *, strips: int = 3, images_per_strip: int = 6, for
     X = X[keep_pt]
     P = len(X)
     M = len(pt)
-    meas = pix + rng.normal(0.0, image_noise_px, (M, 2))
+    nrng = rng if noise_seed is None else np.random.default_rng([seed, noise_seed])
+    meas = pix + nrng.normal(0.0, image_noise_px, (M, 2))
     # blunders: at most one per point seen >= 3 times
     counts = np.bincount(pt, minlength=P)
     starts = np.cumsum(counts) - counts
@@ -238,17 +242,17 @@ def make_block(seed: int = 0, *, strips: int = 3, images_per_strip: int = 6, for
     # no blunders on control and check points
     rows = np.array(ctrl + chk, dtype=np.int64)
     ctrl_true = X[rows]
-    ctrl_meas = ctrl_true + rng.normal(0.0, control_noise_m, ctrl_true.shape)
+    ctrl_meas = ctrl_true + nrng.normal(0.0, control_noise_m, ctrl_true.shape)
     control = BlockControl(tuple(ids[j] for j in rows), ctrl_meas, ("full",) * len(rows),
                            np.full((len(rows), 3), max(control_noise_m, 1e-6)),
                            np.array([False] * len(ctrl) + [True] * len(chk)))
     # GNSS
     lever = None if lever_arm_m is None else np.asarray(lever_arm_m, dtype=np.float64)
     ant = centres + (0.0 if lever is None else np.einsum("nij,j->ni", Rs, lever))
-    g_pos = ant + rng.normal(0.0, gnss_noise_m, ant.shape)
+    g_pos = ant + nrng.normal(0.0, gnss_noise_m, ant.shape)
     g_ang = g_sig = None
     if ins_noise_rad is not None:
-        g_ang = angles + rng.normal(0.0, ins_noise_rad, angles.shape)
+        g_ang = angles + nrng.normal(0.0, ins_noise_rad, angles.shape)
         g_sig = np.full((n_img, 3), ins_noise_rad)
     gnss = GnssObservations(tuple(names), g_pos, np.full((n_img, 3), max(gnss_noise_m, 1e-6)), lever, g_ang, g_sig)
     # perturbed start
