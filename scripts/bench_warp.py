@@ -6,7 +6,10 @@ One run measures, each in its own subprocess (wall time and peak RSS):
 1. ours: ``rectify warp SRC DST --transform affine.json --threads 2`` (bilinear);
 2. peer: ``rasterio.warp.reproject(..., num_threads=2)`` from the same source
    (whose rotated geotransform encodes the same affine map) onto the same
-   output grid, writing the same tiled DEFLATE GeoTIFF;
+   output grid, writing the same tiled ZSTD GeoTIFF, with the best settings
+   found for GDAL (``warp_mem_limit`` 256 MB and 1024 MB + ``OPTIMIZE_SIZE``,
+   a 512 MB block cache, ``GDAL_NUM_THREADS=2``): both are measured, the
+   fastest is the peer;
 3. ours with a homography (mild perspective) on the same source;
 4. ours on a raster wider than 32767 px (peak RSS must stay < 2 GB).
 
@@ -37,15 +40,20 @@ elif kind == "gdal":
     import rasterio
     from rasterio.warp import reproject
     from rasterio.enums import Resampling
-    src, dst, ref = sys.argv[2:5]
+    src, dst, ref, config = sys.argv[2:6]
+    cfg = json.loads(config)
     with rasterio.open(ref) as r:
         prof = dict(driver="GTiff", width=r.width, height=r.height, count=r.count, dtype=r.dtypes[0],
                     crs=r.crs, transform=r.transform, nodata=r.nodata, tiled=True, blockxsize=512,
                     blockysize=512, compress="zstd", ZSTD_LEVEL="1", predictor=2, interleave="pixel",
                     BIGTIFF="IF_SAFER", NUM_THREADS="2")  # the same creation options as rectify warp
-    with rasterio.open(src) as s, rasterio.open(dst, "w", **prof) as d:
+    # the warper's best settings found: large warp memory (chunks of whole output blocks), 2 warp threads,
+    # a block cache that holds the source rows a chunk needs, threaded compression
+    with rasterio.Env(GDAL_CACHEMAX=cfg["cache_mb"] * 1024 * 1024, GDAL_NUM_THREADS="2"), \
+            rasterio.open(src) as s, rasterio.open(dst, "w", **prof) as d:
         reproject(rasterio.band(s, list(range(1, s.count + 1))), rasterio.band(d, list(range(1, d.count + 1))),
-                  resampling=Resampling.bilinear, num_threads=2, src_nodata=s.nodata, dst_nodata=s.nodata)
+                  resampling=Resampling.bilinear, num_threads=2, warp_mem_limit=cfg["warp_mem_mb"],
+                  src_nodata=s.nodata, dst_nodata=s.nodata, **cfg.get("warp_options", {}))
 dt = time.perf_counter() - t0
 print(json.dumps({"seconds": dt, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 """
@@ -120,9 +128,18 @@ def main() -> None:
                                         str(work / "affine.json"), "--threads", "2", "--overwrite"])
     print("ours affine:", results["ours_affine"], flush=True)
     gdal = work / "gdal_affine.tif"
-    gdal.unlink(missing_ok=True)
-    results["gdal_affine"] = run_child(["gdal", str(src), str(gdal), str(ours)])
-    print("GDAL affine:", results["gdal_affine"], flush=True)
+    # GDAL's warper with the best settings found (each measured here; the fastest is the peer)
+    configs = {"warp memory 256 MB, cache 512 MB": {"warp_mem_mb": 256, "cache_mb": 512},
+               "warp memory 1024 MB, cache 512 MB, OPTIMIZE_SIZE": {"warp_mem_mb": 1024, "cache_mb": 512,
+                                                                    "warp_options": {"OPTIMIZE_SIZE": "TRUE"}}}
+    gdal_runs = {}
+    for label, cfg in configs.items():
+        gdal.unlink(missing_ok=True)
+        gdal_runs[label] = run_child(["gdal", str(src), str(gdal), str(ours), json.dumps(cfg)])
+        print(f"GDAL affine ({label}, 2 threads):", gdal_runs[label], flush=True)
+    best = min(gdal_runs, key=lambda k: gdal_runs[k]["seconds"])
+    results["gdal_affine"] = dict(gdal_runs[best], settings=best)
+    results["gdal_runs"] = gdal_runs
     results["ours_homography"] = run_child(["ours", "-q", "warp", str(src), str(work / "ours_h.tif"), "--transform",
                                             str(work / "homography.json"), "--threads", "2", "--overwrite"])
     print("ours homography:", results["ours_homography"], flush=True)
@@ -157,14 +174,16 @@ def main() -> None:
     print(f"| {n} x {n} x 3 uint8, bilinear, 2 threads | wall s | peak RSS MB |")
     print("|---|---|---|")
     print(f"| rectify warp (affine) | {oa['seconds']:.2f} | {oa['peak_rss_mb']:.0f} |")
-    print(f"| GDAL reproject (peer) | {ga['seconds']:.2f} | {ga['peak_rss_mb']:.0f} |")
+    for label, g in results["gdal_runs"].items():
+        print(f"| GDAL reproject, {label}, 2 threads{' (peer: fastest)' if label == ga['settings'] else ''} | "
+              f"{g['seconds']:.2f} | {g['peak_rss_mb']:.0f} |")
     print(f"| rectify warp (homography) | {oh['seconds']:.2f} | {oh['peak_rss_mb']:.0f} |")
     if "ours_wide" in results:
         w = results["ours_wide"]
         print(f"| rectify warp, {w['size'][0]} x {w['size'][1]} output from {a.wide} x 2000 | {w['seconds']:.2f} "
               f"| {w['peak_rss_mb']:.0f} |")
     print()
-    print(f"time ratio ours/GDAL = {oa['seconds'] / ga['seconds']:.3f} (target <= 0.35)")
+    print(f"time ratio ours/GDAL = {oa['seconds'] / ga['seconds']:.3f} (target <= 0.3; GDAL: {ga['settings']})")
     print(f"RSS ratio ours/GDAL = {oa['peak_rss_mb'] / ga['peak_rss_mb']:.3f} (target <= 1)")
     print(f"homography/affine time = {oh['seconds'] / oa['seconds']:.3f} (target <= 1.2)")
     if "ours_wide" in results:
