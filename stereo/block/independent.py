@@ -108,6 +108,13 @@ class IndependentOptions:
         Rounds of the final rejection (at most one observation per track and round).
     min_angle_rad : float
         Points whose rays meet at a smaller largest angle are left out (NaN), radians.
+    adjust : bool
+        After the sequential joins, adjust all models together (seed 002, 3.1.2): the 7
+        similarity parameters of every model but the first (the datum) and the block coordinates
+        of every tie point and projection centre, by weighted least squares on the model
+        coordinates (see :func:`_adjust_models`).
+    adjust_iterations : int
+        Most Gauss-Newton iterations of that adjustment.
     """
 
     min_common: int = 12
@@ -121,6 +128,8 @@ class IndependentOptions:
     max_residual_sigma: float = 5.0
     max_rejection_rounds: int = 5
     min_angle_rad: float = math.radians(1.0)
+    adjust: bool = True
+    adjust_iterations: int = 8
 
     def __post_init__(self) -> None:
         if int(self.min_common) < 5:
@@ -138,6 +147,8 @@ class IndependentOptions:
                 raise InvalidInputError(f"`{name}` must be a finite number > 0; got {v!r}")
         if not (math.isfinite(self.min_angle_rad) and 0 <= self.min_angle_rad < math.pi / 2):
             raise InvalidInputError(f"`min_angle_rad` must be in [0, pi/2); got {self.min_angle_rad!r}")
+        if int(self.adjust_iterations) < 1:
+            raise InvalidInputError(f"`adjust_iterations` must be >= 1; got {self.adjust_iterations!r}")
         if int(self.max_rejection_rounds) < 0:
             raise InvalidInputError(f"`max_rejection_rounds` must be >= 0; got {self.max_rejection_rounds!r}")
 
@@ -190,6 +201,42 @@ class ModelJoin:
 
 
 @dataclass(frozen=True, eq=False)
+class ModelAdjustment:
+    """The simultaneous adjustment of all models (seed 002, 3.1.2).
+
+    Attributes
+    ----------
+    iterations : int
+    converged : bool
+    sigma0 : float
+        Standard deviation of unit weight; the weights assume 1 pixel of image noise, so this
+        reads as the image noise in pixels.
+    n_observations : int
+        Model points (tie points and projection centres) taking part, each 3 coordinates.
+    n_rejected : int
+        Model points rejected as outliers (beyond ``join_trim`` robust scales).
+    rms : (n_models,) float64
+        RMS 3D residual of each model's points after the adjustment, block units.
+    rms_base : (n_models,) float64
+        The same relative to each model's base in the block (its RMS in model units).
+    """
+
+    iterations: int
+    converged: bool
+    sigma0: float
+    n_observations: int
+    n_rejected: int
+    rms: NDArray[np.float64]
+    rms_base: NDArray[np.float64]
+
+    def __post_init__(self) -> None:
+        for name in ("rms", "rms_base"):
+            a = np.array(getattr(self, name), dtype=np.float64, copy=True)
+            a.flags.writeable = False
+            object.__setattr__(self, name, a)
+
+
+@dataclass(frozen=True, eq=False)
 class ModelBlock:
     """A block oriented by independent models, in its own (arbitrary) model frame.
 
@@ -213,7 +260,9 @@ class ModelBlock:
         The models in join order as image indices (left, right): ``left`` in the block already,
         ``right`` new (for the first model both new).
     joins : tuple of ModelJoin
-        One per model, in ``tree`` order.
+        One per model, in ``tree`` order (the sequential join).
+    adjustment : ModelAdjustment or None
+        The simultaneous adjustment of all models (``options.adjust``; None with one model).
     """
 
     poses: tuple[Pose, ...]
@@ -224,6 +273,7 @@ class ModelBlock:
     obs_used: NDArray[np.bool_]
     tree: tuple[tuple[int, int], ...]
     joins: tuple[ModelJoin, ...]
+    adjustment: ModelAdjustment | None = None
 
     def __post_init__(self) -> None:
         for name in ("points", "n_rays", "residual_px", "obs_used"):
@@ -250,6 +300,11 @@ class ModelBlock:
                  f"{self.n_points} of {len(self.point_ids)} points triangulated, "
                  f"{int(self.obs_used.sum())} of {len(self.obs_used)} observations used",
                  f"image residuals: RMS {rms(res) if res.size else float('nan'):.3f} px"]
+        adj = self.adjustment
+        if adj is not None:
+            lines.append(f"model adjustment: {adj.iterations} iterations, sigma0 {adj.sigma0:.3g}, "
+                         f"{adj.n_rejected} of {adj.n_observations} model points rejected, largest model RMS "
+                         f"{float(np.max(adj.rms_base)):.3g} of the base")
         for j in self.joins:
             lines.append(f"  model {j.left}-{j.right}: {j.n_relative} points "
                          f"({j.n_relative_outliers} rejected), join on {j.n_join} points "
@@ -374,6 +429,8 @@ def independent_models(
     positions: dict[int, NDArray[np.float64]] = {}
     rotations: dict[int, NDArray[np.float64]] = {}
     joins: list[ModelJoin] = []
+    models: list[_Model] = []
+    sims: list[tuple[float, NDArray[np.float64], NDArray[np.float64]]] = []
     for k, (a, b) in enumerate(tree):
         model = _model(a, b, cams, tracks, obs_mm, per_image, opts)
         if k == 0:
@@ -390,16 +447,21 @@ def independent_models(
         g = s * model.points[keep] @ R.T + T
         block.add(model.tracks[keep], g, s * s * np.einsum("ij,njk,lk->nil", R, model.covariance[keep], R))
         joins.append(join)
+        models.append(model)
+        sims.append((s, R, T))
         logger.info("model %s-%s: %d points, join RMS %.3g of the base", names[a], names[b], model.n_relative,
                     join.rms_base)
         if progress is not None:
             progress(k + 1, total)
+    adjustment = None
+    if opts.adjust and len(models) > 1:
+        adjustment, positions, rotations = _adjust_models(tree, models, sims, block, positions, opts)
     poses = tuple(Pose(names[i], camera_of[i], positions[i], _orthonormal(rotations[i])) for i in range(n))
     points, n_rays, res_px, used = _multiray(poses, cams, tracks, obs_mm, opts)
     if progress is not None:
         progress(total, total)
     return ModelBlock(poses=poses, point_ids=tracks.point_ids, points=points, n_rays=n_rays, residual_px=res_px,
-                      obs_used=used, tree=tuple(tree), joins=tuple(joins))
+                      obs_used=used, tree=tuple(tree), joins=tuple(joins), adjustment=adjustment)
 
 
 def to_ground(
@@ -810,6 +872,164 @@ def _join(model: _Model, left: str, right: str, centre: NDArray[np.float64], blo
                      model.condition_number, nj,
                      int(outl[1:].sum()), float(s), rms_, rms_ / s, float(r[0]))
     return float(s), np.asarray(R), np.asarray(T), keep, join
+
+
+def _skew(v: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(N, 3) -> (N, 3, 3) cross-product matrices [v]x."""
+    out = np.zeros((len(v), 3, 3))
+    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    return out
+
+
+def _rodrigues(w: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Rotation matrix exp([w]x) of a rotation vector (3,), rad."""
+    t = float(np.linalg.norm(w))
+    K = _skew(w[None])[0]
+    if t < 1e-12:
+        return np.eye(3) + K
+    return np.eye(3) + math.sin(t) / t * K + (1 - math.cos(t)) / (t * t) * K @ K
+
+
+def _adjust_models(tree: Sequence[tuple[int, int]], models: Sequence[_Model],
+                   sims: Sequence[tuple[float, NDArray[np.float64], NDArray[np.float64]]], block: _BlockPoints,
+                   positions: dict[int, NDArray[np.float64]], opts: IndependentOptions
+                   ) -> tuple[ModelAdjustment, dict[int, NDArray[np.float64]], dict[int, NDArray[np.float64]]]:
+    """Simultaneous adjustment of independent models (seed 002, 3.1.2, eqs. 3.16-3.28).
+
+    Every model point (tie points and the two projection centres) gives the observation equation
+    ``X_i = s_j R_j m_ij + T_j`` in the block frame, weighted by the inverse covariance of the
+    intersected point carried into the block (the centres, exact in their model, get the median
+    variance of their model's points, as in the sequential join). The unknowns are the block
+    coordinates X_i of the tie points seen in two or more models and of every projection centre,
+    and the 7 parameters of every model but the first, which is held as the datum. Gauss-Newton;
+    the points are eliminated from the normal equations (their 3 x 3 blocks are inverted), the
+    reduced 7 (n - 1) system is solved and the points are back-substituted. Model points beyond
+    ``join_trim`` robust scales of the normalised residual are rejected after each iteration.
+    """
+    n_models = len(models)
+    P = len(block.count)
+    # observations: (model, unknown, model coordinates, model covariance)
+    rows_j, rows_u, rows_m, rows_c = [], [], [], []
+    for j, (mdl, (a, b)) in enumerate(zip(models, tree, strict=True)):
+        rows_j.append(np.full(len(mdl.tracks) + 2, j))
+        rows_u.append(np.concatenate([mdl.tracks, [P + a, P + b]]))
+        rows_m.append(np.vstack([mdl.points, np.zeros(3), mdl.base]))
+        lam = np.trace(mdl.covariance, axis1=1, axis2=2) / 3 if len(mdl.covariance) else np.ones(1)
+        c0 = np.eye(3) * max(float(np.median(lam)), 1e-300)
+        rows_c.append(np.concatenate([mdl.covariance, c0[None], c0[None]]))
+    oj = np.concatenate(rows_j)
+    ou = np.concatenate(rows_u)
+    om = np.concatenate(rows_m)
+    oc = np.concatenate(rows_c)
+    # only unknowns observed in two or more models constrain the models
+    seen = np.bincount(ou, minlength=P + len(positions))
+    keep = seen[ou] >= 2
+    oj, ou, om, oc = oj[keep], ou[keep], om[keep], oc[keep]
+    uniq, ou = np.unique(ou, return_inverse=True)
+    n_u = len(uniq)
+    s = np.array([x[0] for x in sims], dtype=np.float64)
+    R = np.stack([x[1] for x in sims])
+    T = np.stack([x[2] for x in sims])
+    X = np.empty((n_u, 3))
+    is_pt = uniq < P
+    X[is_pt] = block.get(uniq[is_pt])[0]
+    X[~is_pt] = np.array([positions[int(i - P)] for i in uniq[~is_pt]]).reshape(-1, 3)
+    # weights in the block frame, from the sequential similarities (scaled for conditioning)
+    Cb = (s[oj] ** 2)[:, None, None] * np.einsum("nij,njk,nlk->nil", R[oj], oc, R[oj])
+    W = np.linalg.inv(Cb)
+    W_unit = float(np.median(np.trace(W, axis1=1, axis2=2)))
+    W = W / W_unit
+    w = np.ones(len(oj))
+    # pairs of observations of the same unknown (for the reduced normal matrix)
+    order = np.argsort(ou, kind="stable")
+    cnt = np.bincount(ou, minlength=n_u)
+    pa_l, pb_l = [order], [order]
+    for off in range(1, int(cnt.max())):
+        same = ou[order[:-off]] == ou[order[off:]]
+        pa_l += [order[:-off][same], order[off:][same]]
+        pb_l += [order[off:][same], order[:-off][same]]
+    pa, pb = np.concatenate(pa_l), np.concatenate(pb_l)
+    eye3 = np.eye(3)
+    converged = False
+    iterations = 0
+    for it in range(1, int(opts.adjust_iterations) + 1):
+        iterations = it
+        sRm = s[oj, None] * np.einsum("nij,nj->ni", R[oj], om)
+        r = sRm + T[oj] - X[ou]
+        A = np.zeros((len(oj), 3, 7))
+        A[:, :, 0] = sRm
+        A[:, :, 1:4] = -_skew(sRm)
+        A[:, :, 4:7] = eye3
+        We = W * w[:, None, None]
+        Y = np.einsum("nki,nkl->nil", A, We)                      # A^T W, (n, 7, 3)
+        Npp = np.zeros((n_u, 3, 3))
+        gp = np.zeros((n_u, 3))
+        np.add.at(Npp, ou, We)
+        np.add.at(gp, ou, np.einsum("nij,nj->ni", We, r))
+        ok_u = np.linalg.det(Npp) > 0
+        Q = np.zeros_like(Npp)
+        Q[ok_u] = np.linalg.inv(Npp[ok_u])
+        Z = np.einsum("nij,njk->nik", Y, Q[ou])                    # (n, 7, 3)
+        S4 = np.zeros((n_models, n_models, 7, 7))
+        diag = np.einsum("nij,njk->nik", Y, A)
+        np.add.at(S4, (oj, oj), diag)
+        np.add.at(S4, (oj[pa], oj[pb]), -np.einsum("nij,nkj->nik", Z[pa], Y[pb]))
+        rhs = np.zeros((n_models, 7))
+        np.add.at(rhs, oj, -np.einsum("nij,nj->ni", Y, r) + np.einsum("nij,nj->ni", Z, gp[ou]))
+        S = S4.transpose(0, 2, 1, 3).reshape(7 * n_models, 7 * n_models)[7:, 7:]
+        try:
+            d = np.linalg.solve(S, rhs.reshape(-1)[7:])
+        except np.linalg.LinAlgError as err:
+            raise StereoError(f"the simultaneous adjustment of the {n_models} models is singular: {err}") from err
+        dp = np.vstack([np.zeros(7), d.reshape(-1, 7)])
+        back = gp.copy()
+        np.add.at(back, ou, np.einsum("nji,nj->ni", Y, dp[oj]))
+        dX = np.einsum("nij,nj->ni", Q, back)
+        s = s * np.exp(dp[:, 0])
+        R = np.stack([_rodrigues(dp[k, 1:4]) @ R[k] for k in range(n_models)])
+        T = T + dp[:, 4:7]
+        X = X + dX
+        step = max(float(np.abs(dp[:, :4]).max()),
+                   float(np.abs(dp[:, 4:]).max() / max(s.max(), 1e-300)),
+                   float(np.abs(dX).max() / max(s.max(), 1e-300)))
+        # robust: reject model points far beyond the robust scale of the normalised residuals
+        r = s[oj, None] * np.einsum("nij,nj->ni", R[oj], om) + T[oj] - X[ou]
+        e = np.sqrt(np.einsum("ni,nij,nj->n", r, W, r) / 3)
+        if opts.robust != "none":
+            live = w > 0
+            sc = robust_scale(e[live]) if live.any() else 0.0
+            far = (e > opts.join_trim * sc) & (np.linalg.norm(r, axis=1) > opts.join_floor * s[oj])
+            changed = bool(np.any(far & live) or np.any(~far & ~live))
+            w = np.where(far, 0.0, 1.0)
+        else:
+            changed = False
+        if step < 1e-10 and not changed:
+            converged = True
+            break
+    # results: residuals per model, sigma0, poses from the adjusted centres and model rotations
+    r = s[oj, None] * np.einsum("nij,nj->ni", R[oj], om) + T[oj] - X[ou]
+    e2 = np.einsum("ni,nij,nj->n", r, W, r) * W_unit
+    live = w > 0
+    dof = 3 * int(live.sum()) - 7 * (n_models - 1) - 3 * int(np.unique(ou[live]).size)
+    sigma0 = math.sqrt(float(e2[live].sum()) / dof) if dof > 0 else float("nan")
+    d2 = np.linalg.norm(r, axis=1) ** 2
+    rms_m = np.sqrt(np.bincount(oj[live], weights=d2[live], minlength=n_models)
+                    / np.maximum(np.bincount(oj[live], minlength=n_models), 1))
+    new_pos = dict(positions)
+    for k, u in enumerate(uniq):
+        if u >= P:
+            new_pos[int(u - P)] = X[k].copy()
+    rot_sum: dict[int, NDArray[np.float64]] = {}
+    for j, (mdl, (a, b)) in enumerate(zip(models, tree, strict=True)):
+        for img, Rm in ((a, mdl.rotation_left), (b, mdl.rotation_right)):
+            rot_sum[img] = rot_sum.get(img, np.zeros((3, 3))) + R[j] @ Rm
+    new_rot = {k: _orthonormal(v) for k, v in rot_sum.items()}
+    result = ModelAdjustment(iterations=iterations, converged=converged, sigma0=sigma0, n_observations=int(len(oj)),
+                             n_rejected=int((~live).sum()), rms=rms_m, rms_base=rms_m / s)
+    logger.info("model adjustment: %d iterations, sigma0 %.3g, %d model points rejected", iterations, sigma0,
+                result.n_rejected)
+    return result, new_pos, new_rot
 
 
 def _orthonormal(R: NDArray[np.float64]) -> NDArray[np.float64]:
