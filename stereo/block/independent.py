@@ -8,19 +8,28 @@ exterior orientation is put together pair by pair:
    of that graph (Prim's algorithm, started from the pair with the most common points), so both
    the forward overlap along a strip and the links across strips are used, always the strongest.
 2. **Models.** Each pair is oriented by :meth:`stereo.relative.RelativeOrientation.from_points`
-   on the photo coordinates of its common tracks (robust by default) and its model points are
-   intersected (:func:`stereo.intersection.intersect`). A model's frame has its origin at the
-   left projection centre and a unit base.
+   on the photo coordinates of its common tracks (robust by default; should the essential-matrix
+   start fail, by least squares from photo frames turned to the base, with trimming) and its
+   model points are intersected (:func:`stereo.intersection.intersect`). A model's frame has its
+   origin at the left projection centre and a unit base.
 3. **Join.** The first model's frame is the block frame. Each next model shares one image with
    the block (its left image, following the tree); a 7-parameter spatial similarity (model ->
    block) is estimated on the tie points already in the block (the mean of their earlier model
-   estimates) plus the shared projection centre, robustly (trimmed closed form, then
+   estimates) plus the shared projection centre, weighted by the inverse covariance of the
+   intersected points and robust (trimmed closed form, then
    :meth:`stereo.absolute.AbsoluteOrientation.from_points` with a psi function). The new image's
    pose and the model's points are then carried into the block frame.
-4. **Points.** At the end every track is intersected with all oriented rays (linear least squares,
+4. **Adjustment.** All models are then adjusted together (seed 002, 3.1.2): the similarity of
+   every model but the first and the block coordinates of the tie points and projection centres,
+   by weighted least squares on the model coordinates, outliers rejected. Each image's rotation
+   is the mean of its models' rotations.
+5. **Points.** At the end every track is intersected with all oriented rays (linear least squares,
    the point closest to all rays); observations with large image residuals are rejected one per
    track and round, and points left with fewer than two rays or a small intersection angle are
    NaN.
+
+The result is an initial orientation for a bundle adjustment: the errors of each relative
+orientation (model deformation) stay in the block.
 
 :func:`to_ground` then brings the whole block into the ground frame by one 7-parameter similarity
 to control points and/or GNSS projection centres.
@@ -28,8 +37,8 @@ to control points and/or GNSS projection centres.
 Frames
 ------
 model (block)
-    The first model's frame: its left projection centre at the origin, its left photo frame as
-    axes (``system="left-image"``), its base of length 1. Right-handed; arbitrary scale.
+    The first model's frame: its left projection centre at the origin, axes as its system of
+    relative orientation sets them, its base of length 1. Right-handed; arbitrary scale.
 ground
     The frame of the control and GNSS positions (right-handed, metric or not).
 photo
