@@ -27,6 +27,9 @@ from stereo.relative import RelativeOrientation
 H = 250.0         # flying height above the datum, m
 CAM = Camera(focal_length_mm=50.0, pixel_size_mm=0.02, width=2000, height=1500)
 CAMS = {"c": CAM}
+CAM2 = Camera(focal_length_mm=48.0, pixel_size_mm=0.02, width=2000, height=1500, principal_point_mm=(0.1, -0.05),
+              distortion={"k1": -0.05, "k2": 0.01, "p1": 1e-4})
+ALL_CAMS = {"c": CAM, "d": CAM2}
 BASE = 75.0       # forward overlap 62 % of the 200 m footprint
 STRIP = 90.0      # side overlap 40 % of the 150 m footprint
 # Tolerances for 0.3 px of image noise. Each relative orientation alone is good to about 0.04 deg
@@ -50,11 +53,12 @@ class Block(NamedTuple):
 
 
 def make_block(strips: int = 2, per_strip: int = 4, *, noise_px: float = 0.0, blunders: float = 0.0,
-               seed: int = 0, n_points: int = 3000, kappa_flip: bool = False):
+               seed: int = 0, n_points: int = 3000, kappa_flip: bool = False, two_cameras: bool = False):
     """True poses and points and the tracks of a small block of `strips` x `per_strip` images.
 
     Footprint 200 m x 150 m (on the datum), bases of BASE along x, strips STRIP apart along y;
-    attitudes within 1 degree, positions within a few metres of the plan.
+    attitudes within 1 degree, positions within a few metres of the plan. With ``two_cameras`` the
+    odd strips are taken with camera "d" (CAM2: another focal length, distortion).
     """
     rng = np.random.default_rng(seed)
     poses = []
@@ -64,14 +68,15 @@ def make_block(strips: int = 2, per_strip: int = 4, *, noise_px: float = 0.0, bl
             if kappa_flip and s % 2 == 1:
                 ang[2] += math.pi
             pos = np.array([BASE * k, STRIP * s, H]) + rng.normal(0, 2.0, 3)
-            poses.append(Pose(f"s{s}i{k}", "c", pos, matrix_from_angles(*ang)))
+            cam = "d" if two_cameras and s % 2 == 1 else "c"
+            poses.append(Pose(f"s{s}i{k}", cam, pos, matrix_from_angles(*ang)))
     xmin, xmax = -100.0, BASE * (per_strip - 1) + 100.0
     ymin, ymax = -75.0, STRIP * (strips - 1) + 75.0
     xy = np.column_stack([rng.uniform(xmin, xmax, n_points), rng.uniform(ymin, ymax, n_points)])
     ground = np.column_stack([xy, terrain(xy)])
     pt, im, px = [], [], []
     for i, p in enumerate(poses):
-        uv = project_pixel(CAM, p, ground)
+        uv = project_pixel(ALL_CAMS[p.camera], p, ground)
         inside = np.isfinite(uv).all(axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] <= CAM.width - 1) \
             & (uv[:, 1] >= 0) & (uv[:, 1] <= CAM.height - 1)
         idx = np.flatnonzero(inside)
@@ -276,6 +281,34 @@ def test_plain_least_squares_option():
     block, gb = run(b, options=IndependentOptions(robust="none"))
     assert pose_errors(b.poses, gb.poses)[0] < POS_TOL * H
     assert all(j.n_join_outliers == 0 for j in block.joins)
+
+
+def test_two_cameras_with_distortion():
+    """One camera per strip, the second with another focal length, principal point and distortion."""
+    b = cached(two_cameras=True)
+    camera_of = [p.camera for p in b.poses]
+    block = independent_models(ALL_CAMS, camera_of, b.tracks)
+    assert [p.camera for p in block.poses] == camera_of
+    gb = to_ground(block, gnss=gnss_of(b.poses))
+    dpos, dang = pose_errors(b.poses, gb.poses)
+    assert dpos < 1e-6 * H
+    assert dang < 1e-6
+    e, _ = point_errors(b, gb)
+    assert e.max() < 1e-6 * H
+
+
+def test_height_control_points():
+    """Control with X and Y unknown (height points) joins GNSS centres in the similarity."""
+    b = cached(noise_px=0.3)
+    block = independent_models(CAMS, ["c"] * 8, b.tracks)
+    ids = [b.tracks.point_ids[t] for t in np.flatnonzero(b.tracks.rays_per_point() >= 3)[::40]]
+    xyz = b.ground[[int(i[1:]) for i in ids]].copy()
+    xyz[:, :2] = np.nan
+    gb = to_ground(block, control=(ids, xyz), gnss=gnss_of(b.poses))
+    assert gb.similarity.extra["height_points"] == ids
+    dpos, dang = pose_errors(b.poses, gb.poses)
+    assert dpos < POS_TOL * H
+    assert dang < ANG_TOL_DEG
 
 
 def test_control_points_instead_of_gnss():
