@@ -81,7 +81,8 @@ from .types import Pose, Tracks
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["GroundBlock", "IndependentOptions", "ModelBlock", "ModelJoin", "independent_models", "to_ground"]
+__all__ = ["GroundBlock", "IndependentOptions", "ModelBlock", "ModelJoin", "independent_models", "to_ground",
+           "triangulate_tracks"]
 
 
 @dataclass(frozen=True)
@@ -537,6 +538,45 @@ def to_ground(
 
 
 # --------------------------------------------------------------------------- input
+def triangulate_tracks(cameras: Mapping[str, Camera], poses: Sequence[Pose], tracks: Tracks, *,
+                       options: IndependentOptions | None = None
+                       ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Intersect every track through known poses (linear multi-ray intersection with rejection).
+
+    The same intersection as the last step of :func:`independent_models`: each round drops the
+    worst observation of every track whose normalised image residual exceeds
+    ``options.max_residual_sigma`` times the robust scale; points with fewer than two accepted rays
+    or a largest intersection angle under ``options.min_angle_rad`` are NaN.
+
+    Parameters
+    ----------
+    cameras : mapping camera id -> Camera
+    poses : sequence of Pose
+        One per image of ``tracks`` (same order), ground frame.
+    tracks : Tracks
+
+    Returns
+    -------
+    points : (P, 3) float64
+        Ground frame; NaN where a track could not be intersected.
+    used : (M,) bool
+        Observations accepted.
+
+    Raises
+    ------
+    InvalidInputError
+        ``poses`` do not match ``tracks.images``, or a pose names an unknown camera.
+    """
+    opts = options or IndependentOptions()
+    if [p.image for p in poses] != list(tracks.images):
+        raise InvalidInputError(f"poses name images {[p.image for p in poses][:4]}, the tracks "
+                                f"{list(tracks.images)[:4]}: one pose per image, in the tracks' order")
+    camera_of = [p.camera for p in poses]
+    cams = _cameras_of_images(cameras, camera_of, tracks)
+    points, _n, _res, used = _multiray(poses, cams, tracks, _photo_mm(cams, camera_of, tracks), opts)
+    return points, used
+
+
 def _cameras_of_images(cameras: Mapping[str, Camera], camera_of: Sequence[str], tracks: Tracks) -> list[Camera]:
     if isinstance(camera_of, str):
         raise InvalidInputError(f"`camera_of` must be a sequence of camera ids, one per image; got the string "

@@ -2,8 +2,9 @@
 
 Figures (each a new :class:`matplotlib.figure.Figure`, no pyplot):
 
-- the block layout: image footprints on the mean point height, projection centres, tie points
-  coloured by the number of rays;
+- the block layout: image footprints on the median point height
+  (:func:`stereo.block.tracks_pairs.footprints`), projection centres, tie points coloured by the
+  number of rays;
 - rays per point (histogram) and tie points per image (bars);
 - image residuals per image (RMS bars, pixels) with the count of flagged observations;
 - precision per image (standard errors of the position and angles);
@@ -33,12 +34,12 @@ from rectify.plots import _new_figure, correlation_heatmap_figure, readable_map_
 from rectify.report import write_report
 from rectify.residuals import ResidualTable
 
+from .tracks_pairs import footprints
 from .types import Pose, Tracks
 
 __all__ = [
     "block_layout_figure",
     "ellipse_figure",
-    "footprints",
     "image_precision_figure",
     "image_residuals_figure",
     "rays_figure",
@@ -48,25 +49,6 @@ __all__ = [
 #: at most this many orientation elements are drawn in the correlation heat map
 MAX_CORRELATION_ELEMENTS = 60
 _ANGLE_NAMES = ("omega", "phi", "kappa")
-
-
-def footprints(cameras: Mapping[str, Camera], poses: Sequence[Pose], z: float) -> list[NDArray[np.float64]]:
-    """Ground footprint (4, 2) of each image: its corners' rays cut with the plane Z = ``z``.
-
-    A corner whose ray does not reach the plane (pointing upwards) gives NaN.
-    """
-    out = []
-    for p in poses:
-        cam = cameras[p.camera]
-        corners = np.array([[0.0, 0.0], [cam.width - 1.0, 0.0], [cam.width - 1.0, cam.height - 1.0],
-                            [0.0, cam.height - 1.0]])
-        rays = cam.rays_from_pixel(corners) @ p.rotation.T  # ground frame directions
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = (z - p.position[2]) / rays[:, 2]
-        xy = p.position[:2] + t[:, None] * rays[:, :2]
-        xy[~(t > 0)] = np.nan
-        out.append(xy)
-    return out
 
 
 def block_layout_figure(cameras: Mapping[str, Camera], poses: Sequence[Pose], points: ArrayLike,
@@ -89,10 +71,11 @@ def block_layout_figure(cameras: Mapping[str, Camera], poses: Sequence[Pose], po
     z = float(np.median(X[ok, 2])) if ok.any() else 0.0
     fig = _new_figure(8.0, 7.0)
     ax = fig.add_subplot()
-    for p, fp in zip(poses, footprints(cameras, poses, z), strict=True):
+    for p, fp in zip(poses, footprints(poses, cameras, z), strict=True):
         if np.isfinite(fp).all():
             ax.add_patch(Polygon(fp, closed=True, fill=False, lw=0.8, ec="#555555", alpha=0.7))
-        ax.annotate(p.image, (float(p.position[0]), float(p.position[1])), fontsize=6, ha="center", va="bottom", color="#333333")
+        ax.annotate(p.image, (float(p.position[0]), float(p.position[1])), fontsize=6, ha="center",
+                    va="bottom", color="#333333")
     C = np.array([p.position for p in poses]).reshape(-1, 3)
     if ok.any():
         sc = ax.scatter(X[ok, 0], X[ok, 1], c=r[ok], s=3, cmap="viridis", vmin=2, vmax=max(3.0, float(r[ok].max())),

@@ -7,6 +7,7 @@ import click
 from rectify.cli.options import VerbosityGroup, setup_logging, verbosity_opts
 
 from .. import __version__
+from .block import block
 from .calibrate import calibrate
 from .demo import demo
 from .dense import dense
@@ -29,5 +30,5 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
 
 
 # --- registered subcommands (one module each) ---
-for _command in (orient, model, resect, run, demo, calibrate, dense):
+for _command in (orient, model, resect, run, demo, calibrate, dense, block):
     cli.add_command(_command)

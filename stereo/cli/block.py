@@ -1,0 +1,141 @@
+"""``stereo block``: block triangulation (tie points, independent models or known poses, bundle adjustment)."""
+
+from __future__ import annotations
+
+import math
+
+import click
+
+from rectify.cli.options import echo, handle_errors, matcher_opts, overwrite_opt, progress
+from rectify.robust import ROBUST_METHODS
+
+from ..actions import matcher_config
+from ..block.bundle import INTERIOR_NAMES, BundleOptions
+from ..block.tracks import BLOCK_MATCHER, PAIR_STRATEGIES, BlockMatchOptions
+from ..block.workflow import BlockOptions, run_block
+
+_B = BundleOptions()
+_O = BlockOptions()
+#: interior elements estimated by --self-calibrate without --calibrate
+DEFAULT_SELF_CALIBRATION = ("f", "x0", "y0", "k1", "k2", "p1", "p2")
+
+
+class Floats(click.ParamType):
+    """One number (used for all three) or three comma-separated numbers, each > 0."""
+
+    name = "V|VX,VY,VZ"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, tuple):
+            return value
+        parts = [s.strip() for s in str(value).split(",")]
+        try:
+            nums = [float(s) for s in parts]
+        except ValueError:
+            self.fail(f"{value!r} is not one number or three comma-separated numbers", param, ctx)
+        if len(nums) == 1:
+            nums = nums * 3
+        if len(nums) != 3 or not all(math.isfinite(v) and v > 0 for v in nums):
+            self.fail(f"{value!r} must be one number or three comma-separated numbers, each > 0", param, ctx)
+        return tuple(nums)
+
+
+class Triple(click.ParamType):
+    """Three comma-separated finite numbers (any sign)."""
+
+    name = "A,B,C"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, tuple):
+            return value
+        try:
+            nums = tuple(float(s) for s in str(value).split(","))
+        except ValueError:
+            self.fail(f"{value!r} is not three comma-separated numbers", param, ctx)
+        if len(nums) != 3 or not all(math.isfinite(v) for v in nums):
+            self.fail(f"{value!r} must be three comma-separated finite numbers", param, ctx)
+        return nums
+
+
+def _radians(deg: tuple[float, float, float]) -> tuple[float, float, float]:
+    return (math.radians(deg[0]), math.radians(deg[1]), math.radians(deg[2]))
+
+
+def _ids(text: str) -> tuple[str, ...]:
+    return tuple(s.strip() for s in text.split(",") if s.strip())
+
+
+@click.command(short_help="Block triangulation: tie points, independent models, bundle adjustment with GNSS/INS.")
+@click.argument("images", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False))
+@click.option("--camera", "camera_path", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="Camera JSON for every image (optional with --poses reconstruction.json).")
+@click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output folder.")
+@click.option("--poses", "poses_path", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="Known poses: position/angle CSV or OpenSfM reconstruction.json.")
+@click.option("--control", "control_path", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="Block control CSV (id,image,col,row,x,y,z[,sx,sy,sz]).")
+@click.option("--check", "check_ids", default="", help="Comma-separated control ids used only as check points.")
+@click.option("--gnss-sigma", type=Floats(), default=None,
+              help="A-priori std of the GNSS projection centres, m (one value or sx,sy,sz): the pose file's "
+                   "positions become observations.")
+@click.option("--ins-sigma", type=Floats(), default=None,
+              help="A-priori std of the pose file's angles, degrees (one value or three): the angles become "
+                   "observations.")
+@click.option("--control-sigma", type=Floats(), default=",".join(map(str, _O.control_sigma_m)), show_default=True,
+              help="A-priori std of control coordinates where the file gives none, ground units.")
+@click.option("--control-sigma-px", type=click.FloatRange(min=0, min_open=True), default=_O.control_sigma_px,
+              show_default=True, help="A-priori std of the control points' image measurements, px.")
+@click.option("--self-calibrate", is_flag=True, default=False,
+              help="Estimate the interior orientation too (default elements: " + ",".join(DEFAULT_SELF_CALIBRATION)
+                   + ").")
+@click.option("--calibrate", "calibrate_names", default=None,
+              help=f"Comma-separated interior elements to estimate (of {','.join(INTERIOR_NAMES)}); implies "
+                   "--self-calibrate.")
+@click.option("--robust", type=click.Choice(list(ROBUST_METHODS)), default=_O.bundle.robust, show_default=True,
+              help="Robust M-estimation of the image observations.")
+@click.option("--variance-components/--no-variance-components", default=_O.bundle.variance_components,
+              show_default=True, help="Estimate a variance factor per observation group.")
+@click.option("--blunder-threshold", type=click.FloatRange(min=0, min_open=True), default=_B.blunder_threshold,
+              show_default=True, help="Flag observations whose standardised residual exceeds this.")
+@click.option("--free-network", is_flag=True, default=False,
+              help="Allow a block without control and GNSS (datum from the initial projection centres).")
+@click.option("--lever-arm", type=Triple(), default=None, help="GNSS antenna offset in the camera frame, m: lx,ly,lz.")
+@click.option("--boresight", type=Triple(), default=None,
+              help="Boresight angles of the camera in the INS body frame, degrees (navigation pose files).")
+@click.option("--ground-z", type=float, default=None, help="Mean terrain height for the footprints (default: "
+                                                           "from control).")
+@click.option("--pairs", "pair_strategy", type=click.Choice(list(PAIR_STRATEGIES)),
+              default=BlockMatchOptions().pair_strategy, show_default=True, help="How image pairs are chosen.")
+@click.option("--report/--no-report", "report", default=True, show_default=True, help="Write OUTDIR/report.")
+@matcher_opts(BLOCK_MATCHER)
+@overwrite_opt
+@handle_errors
+def block(images, camera_path, out_dir, poses_path, control_path, check_ids, gnss_sigma, ins_sigma, control_sigma,
+          control_sigma_px, self_calibrate, calibrate_names, robust, variance_components, blunder_threshold,
+          free_network, lever_arm, boresight, ground_z, pair_strategy, report, detector, verify, refine, max_matches,
+          max_keypoints, overwrite):
+    """Orient the block IMAGES... into OUTDIR: orientation.json, poses.csv, points (PLY, CSV, LAS),
+    observations.csv and the report."""
+    calib: tuple[str, ...] = ()
+    if calibrate_names:
+        calib = _ids(calibrate_names)
+    elif self_calibrate:
+        calib = DEFAULT_SELF_CALIBRATION
+    matcher = matcher_config(detector=detector, verify=verify, refine=refine, max_matches=max_matches,
+                             max_keypoints=max_keypoints, base=BLOCK_MATCHER)
+    opts = BlockOptions(
+        gnss_sigma_m=gnss_sigma,
+        ins_sigma_rad=None if ins_sigma is None else _radians(ins_sigma),
+        control_sigma_m=control_sigma, control_sigma_px=control_sigma_px, check_ids=_ids(check_ids),
+        lever_arm_m=lever_arm,
+        boresight_rad=None if boresight is None else _radians(boresight),
+        ground_z=ground_z,
+        match=BlockMatchOptions(matcher=matcher, pair_strategy=pair_strategy),
+        bundle=BundleOptions(robust=robust, self_calibrate=calib, variance_components=variance_components,
+                             blunder_threshold=blunder_threshold, free_network=free_network),
+        report=report)
+    with progress("block") as cb:
+        result = run_block(list(images), out_dir=out_dir, camera=camera_path, poses=poses_path,
+                           control=control_path, options=opts, overwrite=overwrite, progress=cb)
+    for line in result.summary_lines():
+        echo(line)
