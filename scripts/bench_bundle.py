@@ -42,13 +42,15 @@ Measurement
 -----------
 Each solver runs in its own subprocess (this script with ``--worker``), so its peak RSS
 (``resource.getrusage``: ``ru_maxrss``) is honest; the RSS before the solve (data loaded,
-imports done) is printed as well. Time is wall time of the adjustment call only (pycolmap:
-``create_default_bundle_adjuster`` + ``solve``; ours: ``adjust_bundle``), not the building of
+imports done) is printed as well. Time is wall time (and process CPU time, all threads, which is
+less sensitive to other load on a shared machine) of the adjustment call only (pycolmap:
+``create_default_ceres_bundle_adjuster`` + ``solve``; ours: ``adjust_bundle``), not the building of
 either solver's input. Final reprojection RMS (px, per coordinate: sqrt(sum r^2 / 2M)) is
 computed here, by one function, from each solver's final poses and points, not from either
-solver's own report. ``--threads`` goes to Ceres' ``num_threads`` and to our solver (its worker
-option if it has one, and OMP/OpenBLAS/MKL thread counts in the subprocess environment of
-both). ``--iterations`` is the iteration limit of both (Ceres ``max_num_iterations``, our
+solver's own report. ``--threads`` goes to Ceres' ``num_threads`` (its Jacobian evaluation and
+Schur elimination) and, as OMP/OpenBLAS/MKL thread counts in both workers' environment, to the
+BLAS/LAPACK under our solver (numpy, scipy; ``adjust_bundle`` has no thread option of its own).
+``--iterations`` is the iteration limit of both (Ceres ``max_num_iterations``, our
 ``max_iterations``). Ours runs with ``covariance="none"`` by default (Ceres computes no
 covariance either); ``--ours-covariance poses|full`` times it with its precision output.
 Ceres keeps COLMAP's defaults otherwise (Levenberg-Marquardt, solver type auto-selected by
@@ -351,10 +353,12 @@ def run_colmap(block: Block, iterations: int, threads: int) -> dict:
     if check > 1e-6:
         raise SystemExit(f"bench_bundle: the COLMAP reconstruction disagrees with the block by {check:.3g} px")
     rss_before = _rss_mb()
+    cpu0 = time.process_time()
     t0 = time.perf_counter()
     adjuster = pycolmap.create_default_ceres_bundle_adjuster(opts, config, rec)
     summary = adjuster.solve()
     t_solve = time.perf_counter() - t0
+    cpu = time.process_time() - cpu0
     n = len(block.R0)
     R, C = np.empty((n, 3, 3)), np.empty((n, 3))
     for i in range(n):
@@ -364,7 +368,7 @@ def run_colmap(block: Block, iterations: int, threads: int) -> dict:
     iters = cs.num_successful_steps + cs.num_unsuccessful_steps
     detail = (f"{str(cs.termination_type).split('.')[-1]}, {str(cs.linear_solver_type_used).split('.')[-1]}, "
               f"{cs.num_threads_used} threads used, {cs.num_successful_steps} successful steps")
-    return dict(R=R, C=C, X=X, time=t_solve, build=t_build, rss_before=rss_before,
+    return dict(R=R, C=C, X=X, time=t_solve, cpu=cpu, build=t_build, rss_before=rss_before,
                 iterations=iters, detail=f"{detail}; reconstruction check {check:.1e} px",
                 label=f"pycolmap {pycolmap.__version__} (Ceres, {threads} threads)")
 
@@ -385,13 +389,15 @@ def run_ours(block: Block, iterations: int, threads: int, covariance: str = "non
     options = bundle.BundleOptions(max_iterations=iterations, covariance=covariance)
     t_build = time.perf_counter() - t0
     rss_before = _rss_mb()
+    cpu0 = time.process_time()
     t0 = time.perf_counter()
     res = bundle.adjust_bundle({"cam": cam}, poses, tracks, block.X0, control=control, options=options)
     t_solve = time.perf_counter() - t0
+    cpu = time.process_time() - cpu0
     R = np.array([p.rotation for p in res.poses])
     C = np.array([p.position for p in res.poses])
     solver = "dense Cholesky" if 6 * n <= options.dense_limit else "sparse LU"
-    return dict(R=R, C=C, X=np.asarray(res.points), time=t_solve, build=t_build, rss_before=rss_before,
+    return dict(R=R, C=C, X=np.asarray(res.points), time=t_solve, cpu=cpu, build=t_build, rss_before=rss_before,
                 iterations=res.iterations,
                 detail=f"{'converged' if res.converged else 'NOT converged'}, reduced system by {solver}, "
                        f"covariance {covariance}, own RMS {res.rms_px:.4f} px",
@@ -486,13 +492,14 @@ def main(argv=None) -> int:
                 r = res[w]
                 r["rms"] = reprojection_rms(block, r["R"], r["C"], r["X"])
                 r["pt_err"] = float(np.sqrt(np.mean(np.sum((r["X"] - block.X_true) ** 2, axis=1))))
-                print(f"  {r['label']}: {r['time']:.2f} s (input built in {r['build']:.1f} s), "
-                      f"iterations {r['iterations']}, {r['detail']}".rstrip(", "))
+                load = os.getloadavg()[0]
+                print(f"  {r['label']}: {r['time']:.2f} s wall, {r['cpu']:.2f} s CPU (input built in "
+                      f"{r['build']:.1f} s), iterations {r['iterations']}, {r['detail']}; load after {load:.2f}")
             rows.append((name, res))
-    print("\n| block | solver | RMS (px) | RMS / pycolmap | time (s) | time / pycolmap | "
+    print("\n| block | solver | RMS (px) | RMS / pycolmap | time (s) | time / pycolmap | CPU (s) | CPU / pycolmap | "
           "RSS before solve (MB) | peak RSS (MB) | peak / pycolmap | point error vs truth, RMS (m) | "
           "max diff vs pycolmap: centres, points (m) |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name, res in rows:
         ref = res.get("colmap", {})
         if "error" in ref:
@@ -500,12 +507,13 @@ def main(argv=None) -> int:
         for w in which:
             r = res[w]
             if "error" in r:
-                print(f"| {name} | {w} | failed | | | | | | | | |")
+                print(f"| {name} | {w} | failed | | | | | | | | | | |")
                 continue
-            rat = {k: f"{r[k] / ref[k]:.3f}" if k in ref else "-" for k in ("rms", "time", "peak_rss")}
+            rat = {k: f"{r[k] / ref[k]:.3f}" if k in ref else "-" for k in ("rms", "time", "cpu", "peak_rss")}
             diff = (f"{np.abs(r['C'] - ref['C']).max():.1e}, {np.abs(r['X'] - ref['X']).max():.1e}"
-                    if "C" in ref else "-")
+                    if "C" in ref and w != "colmap" else "-")
             print(f"| {name} | {r['label']} | {r['rms']:.4f} | {rat['rms']} | {r['time']:.2f} | {rat['time']} | "
+                  f"{r['cpu']:.2f} | {rat['cpu']} | "
                   f"{r['rss_before']:.0f} | {r['peak_rss']:.0f} | {rat['peak_rss']} | {r['pt_err']:.3f} | "
                   f"{diff} |")
     for name, res in rows:
