@@ -50,6 +50,9 @@ computed here, by one function, from each solver's final poses and points, not f
 solver's own report. ``--threads`` goes to Ceres' ``num_threads`` (its Jacobian evaluation and
 Schur elimination) and, as OMP/OpenBLAS/MKL thread counts in both workers' environment, to the
 BLAS/LAPACK under our solver (numpy, scipy; ``adjust_bundle`` has no thread option of its own).
+``--blas-threads 1`` gives our solver one BLAS thread instead: OpenBLAS's threads spin-wait,
+and on a machine loaded beyond its cores a 2-thread Cholesky of a 294 x 294 matrix took 0.4 s
+instead of 0.5 ms (1 thread), which dominates our time there.
 ``--iterations`` is the iteration limit of both (Ceres ``max_num_iterations``, our
 ``max_iterations``). Ours runs with ``covariance="none"`` by default (Ceres computes no
 covariance either); ``--ours-covariance poses|full`` times it with its precision output.
@@ -419,10 +422,12 @@ def worker(a: argparse.Namespace) -> int:
 
 def spawn(which: str, data: Path, out: Path, a: argparse.Namespace) -> dict:
     env = dict(os.environ)
+    blas = a.threads if which == "colmap" or a.blas_threads is None else a.blas_threads
+    threads = blas if which == "ours" else a.threads
     for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
-        env[k] = str(a.threads)
+        env[k] = str(blas)
     cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", which, "--data", str(data),
-           "--out", str(out), "--iterations", str(a.iterations), "--threads", str(a.threads),
+           "--out", str(out), "--iterations", str(a.iterations), "--threads", str(threads),
            "--ours-covariance", a.ours_covariance]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
@@ -447,6 +452,9 @@ def main(argv=None) -> int:
     ap.add_argument("--only", choices=("ours", "colmap"), help="run one solver only")
     ap.add_argument("--ours-covariance", choices=("none", "poses", "full"), default="none",
                     help="precision output of our solver (timed with it)")
+    ap.add_argument("--blas-threads", type=int,
+                    help="BLAS threads of our solver if not --threads (OpenBLAS threads spin badly when the "
+                         "machine is loaded beyond its cores; 1 stays within the --threads budget)")
     ap.add_argument("--worker", choices=("ours", "colmap"), help=argparse.SUPPRESS)
     ap.add_argument("--data", help=argparse.SUPPRESS)
     ap.add_argument("--out", help=argparse.SUPPRESS)
