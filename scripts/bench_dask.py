@@ -53,9 +53,12 @@ if __name__ == "__main__":
     t_start = 0.0
     if cfg["workers"]:
         import distributed
+        import dask
         t0 = time.perf_counter()
-        cluster = distributed.LocalCluster(n_workers=cfg["workers"], threads_per_worker=1, processes=True,
-                                           dashboard_address=":0")
+        # as rectify's own processes:N cluster (rectify.distributed): glibc's adaptive mmap threshold kept
+        with dask.config.set({{"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}}):
+            cluster = distributed.LocalCluster(n_workers=cfg["workers"], threads_per_worker=1, processes=True,
+                                               dashboard_address=":0")
         client = distributed.Client(cluster)
         client.run(warm)
         t_start = time.perf_counter() - t0
