@@ -67,8 +67,12 @@ CONTROL_KINDS: tuple[str, ...] = ("full", "height", "plan")
 #: what precision to compute: everything (poses, interior, points, redundancy numbers), poses only, nothing
 COVARIANCE_MODES: tuple[str, ...] = ("full", "poses", "none")
 GROUPS: tuple[str, ...] = ("image", "gnss", "ins", "control")
-#: sigma of the weak constraints on the initial projection centres that set a free network's datum, m
-FREE_NETWORK_SIGMA_M = 1.0
+#: a free network's datum: the first image's pose and one coordinate of the second image's projection
+#: centre are held by pseudo-observations of this relative sigma (times the distance of the two centres;
+#: radians for the angles): seven minimum constraints, so the shape of the block is not constrained
+FREE_NETWORK_RELATIVE_SIGMA = 1e-7
+#: a free network iterates at least this often before it is declared not converged
+FREE_NETWORK_MIN_ITERATIONS = 300
 #: reweightings per IRLS stage (Huber, then the chosen psi) before the weights are frozen
 IRLS_STAGE_ITERATIONS = 12
 POSE_ELEMENTS: tuple[str, ...] = ("omega", "phi", "kappa", "x", "y", "z")
@@ -247,8 +251,11 @@ class BundleOptions:
         ``full`` (poses, interior, points, redundancy numbers), ``poses`` (poses and interior; points
         only at control and check points) or ``none``.
     free_network : bool
-        Allow a block without control and GNSS: the datum is then set by weak constraints of the
-        initial projection centres (sigma :data:`FREE_NETWORK_SIGMA_M`).
+        Allow a block without control and GNSS: the datum is then set by seven minimum constraints
+        (the first image's pose and the distance to the second image keep their initial values;
+        :func:`_minimum_constraints`), as a pair's model frame. Such a block converges more slowly
+        (its weak deformation modes are not damped by datum observations): it is given at least
+        :data:`FREE_NETWORK_MIN_ITERATIONS` iterations.
     dense_limit : int
         Solve the reduced camera system with a dense Cholesky factorisation up to this size,
         with a sparse LU beyond.
@@ -619,12 +626,9 @@ def _setup(cameras: Mapping[str, Camera], poses: Sequence[Pose], tracks: Tracks,
                 "points cannot fix shift, rotation and scale of the block; give control points (>= 2 plan, >= 3 "
                 "height) or GNSS positions (>= 3 images), or set free_network")
         free = True
-        ext = FREE_NETWORK_SIGMA_M
-        prob.g_img = np.concatenate([prob.g_img, np.arange(n)])
-        prob.g_pos = np.vstack([prob.g_pos, st.centres])
-        prob.g_sigma = np.vstack([prob.g_sigma, np.full((n, 3), ext)])
         if prob.lever is not None:
             raise InvalidInputError("free_network with a GNSS lever arm is not supported; give no lever arm")
+        _minimum_constraints(prob, st)
     # points in front of the cameras at the start
     lin = bs.evaluate(prob, st, jacobian=False)
     behind = np.flatnonzero(~(lin.res.depth > 0))
@@ -636,6 +640,30 @@ def _setup(cameras: Mapping[str, Camera], poses: Sequence[Pose], tracks: Tracks,
     info = _Info(cam_ids, cams, tracks.images, ordered, tracks, control, control_rows, check_rows, check_pt, gnss,
                  free)
     return prob, st, info
+
+
+def _minimum_constraints(prob: bs.Problem, st: bs.State) -> None:
+    """Hold the datum of a free network with seven minimum constraints (the pair's model frame).
+
+    Image 0 keeps its three angles and its projection centre; image 1 keeps the coordinate of its
+    projection centre along which it lies farthest from image 0 (the scale). The pseudo-observations
+    have sigma :data:`FREE_NETWORK_RELATIVE_SIGMA` times the distance of the two centres (metres) or
+    times one (radians); the other two coordinates of image 1 get a sigma 1e12 times larger (free).
+    """
+    base = st.centres[1] - st.centres[0]
+    d = float(np.linalg.norm(base))
+    if not d > 0:
+        raise EstimationError("free network: the first two images have the same projection centre; the scale "
+                              "of the block is undefined")
+    s = FREE_NETWORK_RELATIVE_SIGMA * d
+    sig1 = np.full(3, s * 1e12)
+    sig1[int(np.argmax(np.abs(base)))] = s
+    prob.g_img = np.concatenate([prob.g_img, [0, 1]]).astype(np.int64)
+    prob.g_pos = np.vstack([prob.g_pos, st.centres[:2]])
+    prob.g_sigma = np.vstack([prob.g_sigma, np.full(3, s), sig1])
+    prob.i_img = np.concatenate([prob.i_img, [0]]).astype(np.int64)
+    prob.i_ang = np.vstack([prob.i_ang.reshape(-1, 3), st.angles[:1]])
+    prob.i_sigma = np.vstack([prob.i_sigma.reshape(-1, 3), np.full((1, 3), FREE_NETWORK_RELATIVE_SIGMA)])
 
 
 # ---------------------------------------------------------------------------- iterations
@@ -722,7 +750,10 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
     rbar = max(nobs - prob.n_c - 3 * prob.n_points, 1) / nobs
     scales: dict[str, float] | None = None
     rloc = _local_redundancy(prob)
-    for it in range(1, options.max_iterations + 1):
+    # a free network keeps its weak deformation modes (no datum observations damp them), which the
+    # Levenberg-Marquardt damping of the nonlinear point depths makes converge linearly: more iterations
+    limit = max(options.max_iterations, FREE_NETWORK_MIN_ITERATIONS) if info.free_network else options.max_iterations
+    for it in range(1, limit + 1):
         lin = bs.evaluate(prob, st, jacobian=True)
         dw = 0.0
         if robust_on:
@@ -751,7 +782,7 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
                 break
             mu *= 10.0
         if progress is not None:
-            progress(it, options.max_iterations)
+            progress(it, limit)
         logger.debug("bundle iteration %d: cost %.6g, step %.3g sd, mu %.1e, weights change %.3g",
                      it, cost, nstep, mu, dw)
         if not accepted:
@@ -880,7 +911,8 @@ def _result(prob: bs.Problem, st: bs.State, info: _Info, factors: Mapping[str, f
     vtpv = sum(red.vtpv.values())
     s0 = math.sqrt(vtpv / r_tot) if r_tot > 0 else float("nan")
     s0v = s0 ** 2 if math.isfinite(s0) else 1.0
-    present = {"image": True, "gnss": len(prob.g_img) > 0 and not info.free_network, "ins": len(prob.i_img) > 0,
+    present = {"image": True, "gnss": len(prob.g_img) > 0 and not info.free_network,
+               "ins": len(prob.i_img) > (1 if info.free_network else 0),
                "control": len(prob.c_pt) > 0}
     sigma0_groups = {g: (math.sqrt(red.vtpv[g] / red.r[g]) if red.r[g] > 0 else float("nan"))
                      for g in GROUPS if present[g]}
@@ -946,7 +978,7 @@ def _result(prob: bs.Problem, st: bs.State, info: _Info, factors: Mapping[str, f
         check_ids = tuple(info.control.ids[i] for i in info.check_rows)
         check_err = st.points[info.check_pt] - info.control.xyz[info.check_rows]
         check_std = np.sqrt(point_std[info.check_pt] ** 2 + info.control.sigma_m[info.check_rows] ** 2)
-    gn = len(prob.g_img) - (n if info.free_network else 0)
+    gn = len(prob.g_img) - (2 if info.free_network else 0)  # the minimum constraints are no GNSS
     datum_lines, groups, cond, warns = datum_analysis(prob, st, info.free_network, red.Qcc, red.ne, point_std,
                                                        s0v, info.control, info.control_rows, gn)
     if not converged:

@@ -74,8 +74,9 @@ def datum_analysis(prob: Problem, st: State, free: bool, Qcc: NDArray | None, ne
     ctrl_txt = f"control at {k} points ({n_full} full, {n_h} height, {n_p} plan)"
     if free:
         groups.append("free network")
-        lines.append("datum: free network (no control, no GNSS): shift, rotation and scale are set by weak "
-                     "constraints on the initial projection centres; coordinates are not in the ground frame")
+        lines.append("datum: free network (no control, no GNSS): shift, rotation and scale are set by seven "
+                     "minimum constraints (the first image's pose and the distance to the second image, from the "
+                     "initial values); coordinates are in that model frame, not in the ground frame")
     elif has_gnss and not has_ctrl:
         lines.append(f"datum: GNSS positions of {n_gnss} images, no control")
         lines.append("GNSS and no control: the datum rests on GNSS alone; a GNSS bias would shift the whole "

@@ -245,7 +245,8 @@ def write_block_report(out_dir: str | os.PathLike, *, title: str, cameras: Mappi
                        pose_cov: ArrayLike | None = None, correlation: ArrayLike | None = None,
                        control_xy: ArrayLike | None = None, check_xy: ArrayLike | None = None,
                        check_cov_xy: ArrayLike | None = None, check_error_xy: ArrayLike | None = None,
-                       summary: Mapping[str, Any] | None = None, crs: str | None = None, units: str = "m",
+                       summary: Mapping[str, Any] | None = None, crs: str | None = None,
+                       ground_xy: Mapping[str, ArrayLike] | None = None, units: str = "m",
                        overwrite: bool = False) -> Path:
     """Write the QA report of a block adjustment into ``out_dir``; return the path of ``report.html``.
 
@@ -261,6 +262,9 @@ def write_block_report(out_dir: str | os.PathLike, *, title: str, cameras: Mappi
         Their covariance (the X, Y block draws the ellipses).
     correlation : (6n, 6n), optional
         Correlation of all orientation elements.
+    crs, ground_xy : optional
+        Ground CRS and, per table step, the plan coordinates (N, 2) of its points: those tables are
+        also written as GeoJSON. Without ``ground_xy`` the CRS is not passed on.
     """
     figs: dict[str, Figure] = {
         "block layout": block_layout_figure(cameras, poses, points, tracks.rays_per_point(), units=units,
@@ -277,4 +281,5 @@ def write_block_report(out_dir: str | os.PathLike, *, title: str, cameras: Mappi
     if correlation is not None and np.asarray(correlation).size:
         figs["correlation of the orientation elements"] = correlation_figure(poses, correlation)
     return write_report(out_dir, title=title, tables=list(tables), figures=figs, summary=dict(summary or {}),
-                        crs=crs, overwrite=overwrite)
+                        crs=crs if ground_xy else None, ground_xy=dict(ground_xy) if ground_xy else None,
+                        overwrite=overwrite)

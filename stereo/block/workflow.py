@@ -434,8 +434,10 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
         else:
             poses0, X0 = list(mb.poses), np.asarray(mb.points)
             initial = f"independent models ({len(mb.joins)} models), in the model frame of the first pair"
+        # every observation of a triangulated point stays: the intersection's rejections were made with
+        # the chained (approximate) poses, the bundle judges them again with its robust weights
         finite = np.asarray(np.isfinite(X0).all(axis=1), dtype=bool)
-        keep = np.asarray(mb.obs_used, dtype=bool) & finite[all_tracks.obs_point]
+        keep = finite[all_tracks.obs_point]
         sub = all_tracks.subset(keep)
         points0 = _points_of(sub.point_ids, all_tracks.point_ids, X0)
         all_tracks = sub
@@ -576,6 +578,11 @@ def _report(out: Path, res: BundleResult, tracks: Tracks, inp: _Inputs, summary:
         else:
             s = np.asarray(res.check_std, dtype=np.float64)[:, :2]
             chk_cov = np.stack([np.diag(v ** 2) for v in s])
+    ground: dict[str, Any] = {}
+    if ctrl_xy is not None and len(ctrl_xy) == len(res.control_ids):
+        ground["bundle: control points"] = ctrl_xy
+    if chk_xy is not None:
+        ground["bundle: check points (adjusted - given)"] = chk_xy
     rep = {**summary, "datum": " | ".join(res.datum),
            "sigma0_groups": dict(res.sigma0_groups), "variance_factors": dict(res.variance_factors)}
     # the workspace refused an existing report without --overwrite before any work: the folder is this job's
@@ -584,5 +591,5 @@ def _report(out: Path, res: BundleResult, tracks: Tracks, inp: _Inputs, summary:
                               tables=_tables(res, tracks, units), residual_px=res.residuals_px,
                               flagged=res.flagged, pose_std=res.pose_std, pose_cov=res.pose_covariance,
                               correlation=res.correlation, control_xy=ctrl_xy, check_xy=chk_xy,
-                              check_cov_xy=chk_cov, check_error_xy=chk_err, summary=rep, crs=inp.crs, units=units,
-                              overwrite=True)
+                              check_cov_xy=chk_cov, check_error_xy=chk_err, summary=rep,
+                              crs=inp.crs if ground else None, ground_xy=ground or None, units=units, overwrite=True)
