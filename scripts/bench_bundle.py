@@ -65,7 +65,8 @@ Usage::
 
     pip install -e ".[bench]"          # pycolmap, the peer
     python scripts/bench_bundle.py [--block small|large|both] [--seed 0] [--iterations 100]
-                                   [--threads 2] [--noise 0.7] [--only ours|colmap]
+                                   [--threads 2] [--blas-threads N] [--noise 0.7]
+                                   [--only ours|colmap] [--ours-covariance none|poses|full]
 """
 
 from __future__ import annotations
