@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import subprocess
 import sys
 import time
@@ -41,6 +42,11 @@ def vmhwm_mb():
             if line.startswith("VmHWM:"):
                 return int(line.split()[1]) / 1024
     return float("nan")
+
+def cpu_s():
+    import resource
+    u = resource.getrusage(resource.RUSAGE_SELF)
+    return u.ru_utime + u.ru_stime
 
 def warm():
     import rectify.ortho, rectify.warp  # noqa: F401  (imports are not part of the job)
@@ -65,6 +71,8 @@ if __name__ == "__main__":
         scheduler = cluster.scheduler_address
     else:
         scheduler = "threads"
+    cpu0 = sorted(client.run(cpu_s).items()) if client is not None else []
+    cpu_driver0 = cpu_s()
     t0 = time.perf_counter()
     if cfg["job"] == "warp":
         from rectify.formats import read_transform
@@ -86,12 +94,15 @@ if __name__ == "__main__":
         orthorectify(cfg["src"], cfg["out"], RPCModel(rpc, w, h), Dem.from_path(cfg["dem"]), grid=grid,
                      options=OrthoOptions(threads=2, scheduler=scheduler), overwrite=True)
     seconds = time.perf_counter() - t0
+    cpu_driver = cpu_s() - cpu_driver0
     workers = sorted(client.run(vmhwm_mb).values()) if client is not None else []
+    cpu1 = dict(client.run(cpu_s)) if client is not None else {{}}
+    worker_cpu = [cpu1[k] - v for k, v in cpu0 if k in cpu1]
     if client is not None:
         client.close()
         cluster.close()
     print(json.dumps({{"seconds": seconds, "startup_s": t_start, "driver_rss_mb": vmhwm_mb(),
-                      "worker_rss_mb": workers}}))
+                      "worker_rss_mb": workers, "driver_cpu_s": cpu_driver, "worker_cpu_s": worker_cpu}}))
 """
 
 
@@ -179,19 +190,22 @@ def main() -> None:
 
     chunk_mb = per_task * tile * tile * 3 / 1e6
     print()
-    print(f"| {n} x {n} source | scheduler | job s | cluster start s | peak RSS per worker MB | driver MB | "
-          f"identical to threads |")
-    print("|---|---|---|---|---|---|---|")
+    print(f"| {n} x {n} source | scheduler | job s | cluster start s | CPU s: driver / workers | "
+          f"peak RSS per worker MB | driver MB | identical to threads |")
+    print("|---|---|---|---|---|---|---|---|")
     for r in rows:
         wr = ", ".join(f"{v:.0f}" for v in r["worker_rss_mb"]) or "-"
+        wc = " + ".join(f"{v:.1f}" for v in r["worker_cpu_s"]) or "-"
         ident = "-" if r["workers"] == 0 else ("yes" if r["identical"] else "NO")
-        print(f"| {r['job']} | {r['label']} | {r['seconds']:.2f} | {r['startup_s']:.1f} | {wr} | "
-              f"{r['driver_rss_mb']:.0f} | {ident} |")
+        print(f"| {r['job']} | {r['label']} | {r['seconds']:.2f} | {r['startup_s']:.1f} | "
+              f"{r['driver_cpu_s']:.1f} / {wc} | {wr} | {r['driver_rss_mb']:.0f} | {ident} |")
     print()
     for job in jobs:
         t = {r["workers"]: r["seconds"] for r in rows if r["job"] == job}
+        cpu = {r["workers"]: r["driver_cpu_s"] + sum(r["worker_cpu_s"]) for r in rows if r["job"] == job}
         print(f"{job}: speedup 2 workers vs 1 = {t[1] / t[2]:.2f} (target >= 1.8); "
-              f"2 workers vs local threads = {t[0] / t[2]:.2f}")
+              f"2 workers vs local threads = {t[0] / t[2]:.2f}; CPU used per wall second: "
+              f"1 worker {cpu[1] / t[1]:.2f}, 2 workers {cpu[2] / t[2]:.2f} (of {os.cpu_count()} cores)")
     print(f"chunk: one task = up to {per_task} output tiles of {tile} x {tile} px, {chunk_mb:.1f} MB of uint8 "
           f"RGB output plus its source window; a worker holds one task at a time (1 thread)")
     (work / "bench_dask.json").write_text(json.dumps(rows, indent=2))
