@@ -750,6 +750,7 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
     rbar = max(nobs - prob.n_c - 3 * prob.n_points, 1) / nobs
     scales: dict[str, float] | None = None
     rloc = _local_redundancy(prob)
+    flat, last_cost = 0, math.inf
     # a free network keeps its weak deformation modes (no datum observations damp them), which the
     # Levenberg-Marquardt damping of the nonlinear point depths makes converge linearly: more iterations
     limit = max(options.max_iterations, FREE_NETWORK_MIN_ITERATIONS) if info.free_network else options.max_iterations
@@ -772,7 +773,7 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
             xc, xp = bs.solve_reduced(ne)
             nstep = max(float(np.max(np.abs(xc) * np.sqrt(ne.diag_c), initial=0.0)),
                         float(np.max(np.abs(xp) * np.sqrt(ne.diag_p), initial=0.0)))
-            trial = bs.apply_step(prob, st, xc, xp)
+            trial = bs.refine_points(prob, bs.apply_step(prob, st, xc, xp), w)
             tres = bs.evaluate(prob, trial, jacobian=False).res
             tcost = tres.cost(w) if (tres.depth > 0).all() else math.inf
             if tcost <= cost * (1 + 1e-12) or nstep < options.tolerance:
@@ -783,12 +784,18 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
             mu *= 10.0
         if progress is not None:
             progress(it, limit)
-        logger.debug("bundle iteration %d: cost %.6g, step %.3g sd, mu %.1e, weights change %.3g",
+        logger.debug("bundle iteration %d: cost %.12g, step %.3g sd, mu %.1e, weights change %.3g",
                      it, cost, nstep, mu, dw)
         if not accepted:
             break
-        if psi is not None and not robust_on and not frozen and nstep < 1e-2:
-            robust_on = True  # least squares has settled: start reweighting
+        # settled: the corrections are below the tolerance, or (with the weights unchanged) the weighted
+        # sum of squares has changed by at most 1e-8 relative in each of three iterations -- a weakly
+        # determined unknown, such as the depth of a two-ray point with a small intersection angle, can
+        # keep creeping by a few of its a-priori standard deviations without changing any residual
+        flat = flat + 1 if dw == 0.0 and abs(last_cost - cost) <= 1e-8 * max(cost, 1e-300) else 0
+        last_cost = cost
+        if psi is not None and not robust_on and not frozen and (nstep < 1e-2 or flat >= 3):
+            robust_on, flat = True, 0  # least squares has settled: start reweighting
             continue
         if robust_on:
             phase_it += 1
@@ -799,8 +806,8 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
             if cur_psi is not psi:
                 cur_psi = psi  # Huber has settled: switch to the redescending psi
                 continue
-            robust_on, frozen = False, True  # weights settled: converge with them fixed
-        if nstep < options.tolerance and (psi is None or frozen):
+            robust_on, frozen, flat = False, True, 0  # weights settled: converge with them fixed
+        if (nstep < options.tolerance or flat >= 3) and (psi is None or frozen):
             converged = True
             break
     if not converged:

@@ -99,12 +99,17 @@ def datum_analysis(prob: Problem, st: State, free: bool, Qcc: NDArray | None, ne
             hmask = used[:, 2]
             sz_ctrl = float(np.median(sz[prob.c_pt[hmask]])) if hmask.any() else float("nan")
             others = np.setdiff1d(np.arange(len(sz)), prob.c_pt)
-            j = int(others[np.argmax(sz[others])]) if len(others) else 0
+            # the 95th percentile, not the maximum: a stray two-ray point far outside the block would
+            # otherwise speak for the whole block
+            q95 = float(np.percentile(sz[others], 95)) if len(others) else float("nan")
+            j = int(others[np.argmin(np.abs(sz[others] - q95))]) if len(others) else 0
+            med = float(np.median(sz[others])) if len(others) else float("nan")
             d = float(np.min(np.linalg.norm(cxy - xy[j], axis=1))) if len(cxy) else float("nan")
             tail = ("heights in the block interior rest on the tie-point geometry; " if not has_gnss else
                     "heights between the control points rest on the tie-point geometry and GNSS; ")
-            lines.append(f"{where}: {tail}predicted height std grows to {sz[j]:.3f} m ({d:.0f} m from the "
-                         f"nearest control point), {sz_ctrl:.3f} m at the control points")
+            lines.append(f"{where}: {tail}predicted height std of the tie points: median {med:.3f} m, 95th "
+                         f"percentile {q95:.3f} m ({d:.0f} m from the nearest control point); {sz_ctrl:.3f} m at "
+                         f"the control points")
         else:
             lines.append(f"{where}: point precision not computed (covariance='full' gives predicted height std)")
     # conditioning and the weakest motion

@@ -97,6 +97,8 @@ def _ids(text: str) -> tuple[str, ...]:
               show_default=True, help="Estimate a variance factor per observation group.")
 @click.option("--blunder-threshold", type=click.FloatRange(min=0, min_open=True), default=_B.blunder_threshold,
               show_default=True, help="Flag observations whose standardised residual exceeds this.")
+@click.option("--max-iterations", type=click.IntRange(min=1), default=_O.bundle.max_iterations, show_default=True,
+              help="Iteration limit of the bundle adjustment.")
 @click.option("--free-network", is_flag=True, default=False,
               help="Allow a block without control and GNSS (datum from the initial projection centres).")
 @click.option("--lever-arm", type=Triple(), default=None, help="GNSS antenna offset in the camera frame, m: lx,ly,lz.")
@@ -112,7 +114,7 @@ def _ids(text: str) -> tuple[str, ...]:
 @handle_errors
 def block(images, camera_path, out_dir, poses_path, control_path, check_ids, gnss_sigma, ins_sigma, control_sigma,
           control_sigma_px, self_calibrate, calibrate_names, robust, variance_components, blunder_threshold,
-          free_network, lever_arm, boresight, ground_z, pair_strategy, report, detector, verify, refine, max_matches,
+          max_iterations, free_network, lever_arm, boresight, ground_z, pair_strategy, report, detector, verify, refine, max_matches,
           max_keypoints, overwrite):
     """Orient the block IMAGES... into OUTDIR: orientation.json, poses.csv, points (PLY, CSV, LAS),
     observations.csv and the report."""
@@ -132,7 +134,8 @@ def block(images, camera_path, out_dir, poses_path, control_path, check_ids, gns
         ground_z=ground_z,
         match=BlockMatchOptions(matcher=matcher, pair_strategy=pair_strategy),
         bundle=BundleOptions(robust=robust, self_calibrate=calib, variance_components=variance_components,
-                             blunder_threshold=blunder_threshold, free_network=free_network),
+                             blunder_threshold=blunder_threshold, free_network=free_network,
+                             max_iterations=max_iterations),
         report=report)
     with progress("block") as cb:
         result = run_block(list(images), out_dir=out_dir, camera=camera_path, poses=poses_path,

@@ -175,8 +175,10 @@ def test_datum_corner_control_without_gnss():
     assert "control only at the block edge" in text and "heights in the block interior rest on" in text
     ctrl_pts = [b.tracks.point_ids.index(i) for i in r.control_ids]
     sz_ctrl = np.median(r.point_std[ctrl_pts, 2])
-    assert r.point_std[:, 2].max() > 3 * sz_ctrl
-    assert f"{r.point_std[:, 2].max():.3f} m" in text
+    others = np.setdiff1d(np.arange(len(r.points)), ctrl_pts)
+    q95 = np.percentile(r.point_std[others, 2], 95)
+    assert q95 > 3 * sz_ctrl
+    assert f"95th percentile {q95:.3f} m" in text and f"{sz_ctrl:.3f} m at the control points" in text
     assert np.isfinite(r.condition_number) and r.condition_number > 1
     assert _norm_rms(r.check_errors, r.check_std) < 1.5
 

@@ -1,0 +1,170 @@
+"""``stereo block`` end to end on a rendered block (2 strips x 3 images of a textured terrain with relief).
+
+The images are rendered from known poses (:mod:`stereo.block.render`), so every output is compared
+with the truth: the adjusted projection centres, and the check points' ground coordinates.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from rectify.camera import Camera
+from rectify.rotation import angles_from_matrix
+from stereo.block.files import read_block_orientation
+from stereo.block.render import make_terrain, render_block, strip_poses
+from stereo.block.types import project_pixel
+from stereo.cli.main import cli
+from stereo.formats import read_points_csv
+
+CAM = Camera(focal_length_mm=20.0, pixel_size_mm=0.05, width=400, height=300)
+H_FLY = 100.0
+Z0 = 50.0
+GSD = H_FLY * CAM.pixel_size_mm / CAM.focal_length_mm  # 0.25 m
+CRS = "EPSG:32633"
+E0, N0 = 500000.0, 5000000.0  # the block sits at these map coordinates
+
+
+def _hashes(paths):
+    return {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in paths}
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    d = tmp_path_factory.mktemp("blockcli")
+    w, h = CAM.width * GSD, CAM.height * GSD
+    ext = (-w / 2 - 20, -(1 - 0.3) * h - h / 2 - 20, 2 * 0.4 * w + w / 2 + 20, h / 2 + 20)
+    terrain = make_terrain(ext, cell_m=GSD, base_height_m=Z0 - 3.0, relief_m=8.0, seed=3)
+    poses = strip_poses(CAM, n_strips=2, n_per_strip=3, flying_height_m=H_FLY, ground_z=Z0, alternate=True,
+                        angle_sigma_rad=0.01, seed=1, camera_id="camera")
+    images = render_block(CAM, poses, terrain, d)
+    (d / "camera.json").write_text(json.dumps(CAM.to_dict()))
+    rng = np.random.default_rng(5)
+    # GNSS positions (5 cm noise) in map coordinates, angles 0.5 deg off
+    lines = [f"# crs={CRS}", "# angles=deg", "image,x,y,z,omega,phi,kappa,sx,sy,sz"]
+    for p, path in zip(poses, images, strict=True):
+        pos = p.position + [E0, N0, 0.0] + rng.normal(0, 0.05, 3)
+        a = np.degrees(angles_from_matrix(p.rotation)) + rng.normal(0, 0.5, 3)
+        lines.append(",".join([path.name, *(f"{v:.4f}" for v in pos), *(f"{v:.6f}" for v in a),
+                               "0.05", "0.05", "0.05"]))
+    (d / "poses.csv").write_text("\n".join(lines) + "\n")
+    # control points on the terrain, measured in every image that sees them (0.2 px noise)
+    x0, y0, x1, y1 = ext
+    gx, gy = np.meshgrid(np.linspace(x0 + 40, x1 - 40, 4), np.linspace(y0 + 35, y1 - 35, 3))
+    xy = np.column_stack([gx.ravel(), gy.ravel()])
+    xyz = np.column_stack([xy, terrain.height(xy)])
+    rows = [f"# crs={CRS}", "id,image,col,row,x,y,z"]
+    for k, g in enumerate(xyz):
+        pid = f"C{k}"
+        seen = 0
+        for p, path in zip(poses, images, strict=True):
+            px = project_pixel(CAM, p, g[None])[0]
+            if np.isfinite(px).all() and 5 < px[0] < CAM.width - 6 and 5 < px[1] < CAM.height - 6:
+                px = px + rng.normal(0, 0.2, 2)
+                rows.append(f"{pid},{path.name},{px[0]:.3f},{px[1]:.3f},{g[0] + E0:.4f},{g[1] + N0:.4f},{g[2]:.4f}")
+                seen += 1
+    (d / "control.csv").write_text("\n".join(rows) + "\n")
+    return d, images, poses, xyz
+
+
+def _run(args):
+    return CliRunner().invoke(cli, args, catch_exceptions=False)
+
+
+def test_block_with_poses_gnss_and_control(scene, tmp_path):
+    d, images, poses, xyz = scene
+    inputs = [*images, d / "camera.json", d / "poses.csv", d / "control.csv"]
+    before = _hashes(inputs)
+    out = tmp_path / "out"
+    r = _run(["block", *map(str, images), "--camera", str(d / "camera.json"), "--poses", str(d / "poses.csv"),
+              "--gnss-sigma", "0.05", "--control", str(d / "control.csv"), "--check", "C1,C6,C10",
+              "--control-sigma", "0.01", "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    text = r.output
+    assert "bundle: 6 images" in text and "sigma0" in text and "check: 3 points" in text
+    assert "datum: GNSS positions of 6 images" in text
+    o = read_block_orientation(out / "orientation.json")
+    truth = {path.name: p for p, path in zip(poses, images, strict=True)}
+    err = np.array([q.position - truth[q.image].position - [E0, N0, 0.0] for q in o.poses])
+    # projection centres within 4 predicted standard deviations and a few centimetres
+    assert np.all(np.abs(err) < 4 * o.std_errors[:, 3:] + 0.02), (err, o.std_errors[:, 3:])
+    dang = np.array([angles_from_matrix(truth[q.image].rotation.T @ q.rotation) for q in o.poses])
+    assert np.degrees(np.abs(dang)).max() < 0.05
+    # check points: the adjusted ground coordinates against the truth, within 3 predicted std
+    rep = json.loads((out / "report" / "report.json").read_text())
+    chk = [t for t in rep["tables"] if t["step"].startswith("bundle: check")][0]
+    assert chk["summary"]["n_points"] == 3
+    pts = read_points_csv(out / "points.csv")
+    ids = list(pts.ids)
+    for k in (1, 6, 10):
+        i = ids.index(f"C{k}")
+        g = pts.xyz[i] - [E0, N0, 0.0]
+        assert np.all(np.abs(g - xyz[k]) < 3 * pts.std[i] + 0.01), (k, g - xyz[k], pts.std[i])
+    assert len(pts.ids) > 100
+    for name in ("orientation.json", "poses.csv", "points.ply", "points.csv", "points.las", "observations.csv",
+                 "report/report.html"):
+        assert (out / name).is_file()
+    assert _hashes(inputs) == before
+
+
+def test_block_without_poses_by_independent_models(scene, tmp_path):
+    d, images, poses, xyz = scene
+    out = tmp_path / "out"
+    r = _run(["block", *map(str, images), "--camera", str(d / "camera.json"), "--control", str(d / "control.csv"),
+              "--no-report", "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "initial orientation: independent models" in r.output
+    assert "datum: no GNSS, control at" in r.output
+    o = read_block_orientation(out / "orientation.json")
+    truth = {path.name: p for p, path in zip(poses, images, strict=True)}
+    err = np.array([q.position - truth[q.image].position - [E0, N0, 0.0] for q in o.poses])
+    assert np.abs(err).max() < 0.5, err
+    assert not (out / "report").exists()
+
+
+@pytest.mark.parametrize("case", ["one_image", "no_camera", "bad_sigma", "no_datum", "bad_check", "exists",
+                                  "bad_calibrate", "control_bad_value"])
+def test_block_bad_input(scene, tmp_path, case):
+    d, images, _poses, _xyz = scene
+    out = tmp_path / "out"
+    base = ["block", *map(str, images), "--camera", str(d / "camera.json"), "-o", str(out)]
+    args = {
+        "one_image": ["block", str(images[0]), "--camera", str(d / "camera.json"), "-o", str(out)],
+        "no_camera": ["block", *map(str, images), "-o", str(out)],
+        "bad_sigma": [*base, "--gnss-sigma", "0.05,-1,2"],
+        "no_datum": base,
+        "bad_check": [*base, "--control", str(d / "control.csv"), "--check", "nope"],
+        "exists": base,
+        "bad_calibrate": [*base, "--calibrate", "f,zoom"],
+        "control_bad_value": [*base, "--control", str(tmp_path / "c.csv")],
+    }[case]
+    expect = {"one_image": "at least 2 images", "no_camera": "no camera", "bad_sigma": "each > 0",
+              "no_datum": "datum defect", "bad_check": "check id(s) ['nope']", "exists": "exists",
+              "bad_calibrate": "unknown parameter 'zoom'", "control_bad_value": "is not a number"}[case]
+    if case == "exists":
+        out.mkdir()
+        (out / "orientation.json").write_text("{}")
+    if case == "control_bad_value":
+        (tmp_path / "c.csv").write_text("id,image,col,row,x,y,z\nA,x.png,1,zwei,1,2,3\n")
+    before = _hashes(images)
+    r = CliRunner().invoke(cli, args)
+    assert r.exit_code != 0
+    assert expect in r.output, r.output
+    assert "Traceback" not in r.output
+    if case == "exists":
+        assert sorted(p.name for p in out.iterdir()) == ["orientation.json"]
+    else:
+        assert not out.exists()
+    assert _hashes(images) == before
+
+
+def test_block_help_lists_the_options():
+    r = _run(["block", "--help"])
+    assert r.exit_code == 0
+    for opt in ("--poses", "--control", "--check", "--gnss-sigma", "--ins-sigma", "--self-calibrate", "--robust",
+                "--lever-arm", "--boresight", "--free-network", "--variance-components"):
+        assert opt in r.output
