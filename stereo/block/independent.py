@@ -465,7 +465,11 @@ def independent_models(
             progress(k + 1, total)
     adjustment = None
     if opts.adjust and len(models) > 1:
-        adjustment, positions, rotations = _adjust_models(tree, models, sims, block, positions, opts)
+        try:
+            adjustment, positions, rotations = _adjust_models(tree, models, sims, block, positions, opts)
+        except StereoError as err:
+            # the simultaneous adjustment only improves the sequential joins; the block stands without it
+            logger.warning("%s; the sequential joins are kept", err)
     poses = tuple(Pose(names[i], camera_of[i], positions[i], _orthonormal(rotations[i])) for i in range(n))
     points, n_rays, res_px, used = _multiray(poses, cams, tracks, obs_mm, opts)
     if progress is not None:

@@ -144,7 +144,7 @@ def test_summary_lines(run):
 
 
 def test_without_poses_independent_models_and_control(block, tmp_path):
-    blk = make_block(1, control_layout="corners+centre", n_check=4)
+    blk = make_block(1, control_layout="corners+centre", n_check=4, n_points=1500)
     images, cam, _poses, ctrl, ties, checks = _files(tmp_path, blk, gnss=False)
     res = run_block(images, out_dir=tmp_path / "o", camera=cam, control=ctrl, tracks=ties,
                     options=BlockOptions(check_ids=checks, bundle=BundleOptions(robust="tukey", image_sigma_px=0.5,
