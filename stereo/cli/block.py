@@ -114,8 +114,8 @@ def _ids(text: str) -> tuple[str, ...]:
 @handle_errors
 def block(images, camera_path, out_dir, poses_path, control_path, check_ids, gnss_sigma, ins_sigma, control_sigma,
           control_sigma_px, self_calibrate, calibrate_names, robust, variance_components, blunder_threshold,
-          max_iterations, free_network, lever_arm, boresight, ground_z, pair_strategy, report, detector, verify, refine, max_matches,
-          max_keypoints, overwrite):
+          max_iterations, free_network, lever_arm, boresight, ground_z, pair_strategy, report, detector, verify,
+          refine, max_matches, max_keypoints, overwrite):
     """Orient the block IMAGES... into OUTDIR: orientation.json, poses.csv, points (PLY, CSV, LAS),
     observations.csv and the report."""
     calib: tuple[str, ...] = ()
