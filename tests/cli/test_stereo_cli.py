@@ -166,7 +166,8 @@ def test_command_modules_are_thin():
     """Every ``stereo`` command module parses options and calls one action: it imports click, the shared
     options, the actions and the modules holding the choice lists, nothing that reads files or draws."""
     allowed = {"__future__", "click", "rectify.cli.options", "rectify.robust", "actions", "relative", "model",
-               "intersection", "absolute", "resection", "block.workflow", "block.bundle", "block.tracks"}
+               "intersection", "absolute", "resection", "block.workflow", "block.bundle", "block.tracks",
+               "math"}
     cli_dir = Path(stereo.cli.__file__).parent
     for name in ("orient", "model", "resect", "run", "demo", "block"):  # the pair layout (issue 11) and the block
         path = cli_dir / f"{name}.py"
