@@ -66,7 +66,9 @@ F64 = NDArray[np.float64]
 CONTROL_KINDS: tuple[str, ...] = ("full", "height", "plan")
 #: what precision to compute: everything (poses, interior, points, redundancy numbers), poses only, nothing
 COVARIANCE_MODES: tuple[str, ...] = ("full", "poses", "none")
-GROUPS: tuple[str, ...] = ("image", "gnss", "ins", "control")
+#: observation groups: tie-point image coordinates, control/check-point image coordinates ("marks", measured by
+#: hand or by a target detector with their own precision), GNSS centres, INS angles, control coordinates
+GROUPS: tuple[str, ...] = ("image", "marks", "gnss", "ins", "control")
 #: a free network's datum: the first image's pose and one coordinate of the second image's projection
 #: centre are held by pseudo-observations of this relative sigma (times the distance of the two centres;
 #: radians for the angles): seven minimum constraints, so the shape of the block is not constrained
@@ -637,6 +639,7 @@ def _setup(cameras: Mapping[str, Camera], poses: Sequence[Pose], tracks: Tracks,
         raise InvalidInputError(f"{len(behind)} observation(s) with the point behind the camera at the start, e.g. "
                                 f"point {tracks.point_ids[tracks.obs_point[i]]!r} in image "
                                 f"{tracks.images[tracks.obs_image[i]]!r} (depth {lin.res.depth[i]:.4g} m)")
+    prob.obs_mark = np.isin(prob.obs_pt, np.concatenate([prob.c_pt, check_pt]))
     info = _Info(cam_ids, cams, tracks.images, ordered, tracks, control, control_rows, check_rows, check_pt, gnss,
                  free)
     return prob, st, info
@@ -672,8 +675,14 @@ def _ones_weights(prob: bs.Problem) -> bs.Weights:
                       np.ones((len(prob.c_pt), 3)))
 
 
+def _image_factor(prob: bs.Problem, factors: Mapping[str, float]) -> F64:
+    """(M,) variance factor of each image observation: the tie points' or the control marks' group."""
+    mark = prob.obs_mark if len(prob.obs_mark) == len(prob.obs_pt) else np.zeros(len(prob.obs_pt), bool)
+    return np.where(mark, factors["marks"], factors["image"])
+
+
 def _base_weights(prob: bs.Problem, factors: Mapping[str, float]) -> bs.Weights:
-    si = prob.obs_sigma * factors["image"]
+    si = prob.obs_sigma * _image_factor(prob, factors)
     wi = np.repeat((1.0 / si ** 2)[:, None], 2, axis=1)
     wg = 1.0 / (prob.g_sigma * factors["gnss"]) ** 2
     wn = 1.0 / (prob.i_sigma * factors["ins"]) ** 2
@@ -884,10 +893,14 @@ def _redundancy(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], ro
             Qg = Qcc[pidx[:, :, None], pidx[:, None, :]]
             hg = np.einsum("gri,gij,grj->gr", lin.Jg, Qg, lin.Jg)
             r_gnss = np.clip(1.0 - w.gnss * hg, 0.0, 1.0)
-    vtpv = {"image": float(np.sum(w.image * res.image ** 2)), "gnss": float(np.sum(w.gnss * res.gnss ** 2)),
+    mk = prob.obs_mark[:, None] if len(prob.obs_mark) == M else np.zeros((M, 1), bool)
+    vi = w.image * res.image ** 2
+    vtpv = {"image": float(np.sum(np.where(mk, 0.0, vi))), "marks": float(np.sum(np.where(mk, vi, 0.0))),
+            "gnss": float(np.sum(w.gnss * res.gnss ** 2)),
             "ins": float(np.sum(w.ins * res.ins ** 2)), "control": float(np.sum(w.control * res.control ** 2))}
     # observations with a robust weight below 0.1 count as rejected
-    nobs = {"image": int(np.sum((w.image > 0) & (robust_w.image >= 0.1))),
+    used_img = (w.image > 0) & (robust_w.image >= 0.1)
+    nobs = {"image": int(np.sum(used_img & ~mk)), "marks": int(np.sum(used_img & mk)),
             "gnss": int(np.sum((w.gnss > 0) & (robust_w.gnss >= 0.1))), "ins": int(np.sum(w.ins > 0)),
             "control": int(np.sum((w.control > 0) & (robust_w.control >= 0.1)))}
     r_tot = sum(nobs.values()) - u
@@ -896,7 +909,9 @@ def _redundancy(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], ro
         r[g] = nobs[g] * r_tot / max(sum(nobs.values()), 1)  # proportional approximation
     if Qcc is not None:
         if points_needed == "all":
-            r["image"] = float(np.sum(r_img[robust_w.image >= 0.1]))
+            keep = robust_w.image >= 0.1
+            r["image"] = float(np.sum(r_img[keep & ~mk]))
+            r["marks"] = float(np.sum(r_img[keep & mk]))
         if len(prob.c_pt):
             r["control"] = float(np.nansum(r_ctrl))
         if len(prob.g_img):
@@ -906,7 +921,7 @@ def _redundancy(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], ro
             qi = Qcc[pidx, pidx]
             r["ins"] = float(np.sum(np.clip(1.0 - w.ins * qi, 0.0, 1.0)))
         if points_needed != "all":
-            r["image"] = r_tot - r["control"] - r["gnss"] - r["ins"]
+            r["image"] = r_tot - r["control"] - r["gnss"] - r["ins"] - r["marks"]
     return _Red(vtpv, r, nobs, Qcc, Qpp, Qsel, r_img, r_ctrl, r_gnss, res, w, ne, u)
 
 
@@ -918,7 +933,8 @@ def _result(prob: bs.Problem, st: bs.State, info: _Info, factors: Mapping[str, f
     vtpv = sum(red.vtpv.values())
     s0 = math.sqrt(vtpv / r_tot) if r_tot > 0 else float("nan")
     s0v = s0 ** 2 if math.isfinite(s0) else 1.0
-    present = {"image": True, "gnss": len(prob.g_img) > 0 and not info.free_network,
+    present = {"image": True, "marks": bool(len(prob.obs_mark) and prob.obs_mark.any()),
+               "gnss": len(prob.g_img) > 0 and not info.free_network,
                "ins": len(prob.i_img) > (1 if info.free_network else 0),
                "control": len(prob.c_pt) > 0}
     sigma0_groups = {g: (math.sqrt(red.vtpv[g] / red.r[g]) if red.r[g] > 0 else float("nan"))
@@ -955,9 +971,10 @@ def _result(prob: bs.Problem, st: bs.State, info: _Info, factors: Mapping[str, f
         for j, qj in red.Qpp_sel.items():
             point_std[j] = np.sqrt(np.clip(np.diag(s0v * qj), 0, None))
     # image observations: standardised residuals, flags
-    sig = prob.obs_sigma[:, None] * factors["image"]
-    s0i = sigma0_groups.get("image", s0)
-    s0i = max(s0i, 1.0) if math.isfinite(s0i) else 1.0  # the larger of the a-priori and a-posteriori sigma
+    sig = (prob.obs_sigma * _image_factor(prob, factors))[:, None]
+    s0g = np.where(prob.obs_mark, sigma0_groups.get("marks", s0), sigma0_groups.get("image", s0))[:, None]
+    # the larger of the a-priori and a-posteriori sigma, per group
+    s0i = np.where(np.isfinite(s0g), np.maximum(s0g, 1.0), 1.0)
     rr = red.r_img if np.isfinite(red.r_img).all() else np.full_like(red.r_img, max(red.r["image"], 1e-9)
                                                                       / max(red.n["image"], 1))
     with np.errstate(divide="ignore", invalid="ignore"):

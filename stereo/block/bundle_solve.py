@@ -57,6 +57,7 @@ class Problem:
     c_pt: I64 = field(default_factory=lambda: np.zeros(0, np.int64))
     c_xyz: F64 = field(default_factory=lambda: np.zeros((0, 3)))
     c_sigma: F64 = field(default_factory=lambda: np.zeros((0, 3)))   # inf = component not observed
+    obs_mark: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))  # (M,) control/check image obs
     dense_limit: int = 4000
 
     @property

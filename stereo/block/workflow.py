@@ -146,11 +146,15 @@ class BlockResult:
     report: Path | None
     timings_s: dict[str, float] = field(default_factory=dict)
     tie_lines: tuple[str, ...] = ()
+    n_points_written: int = 0
 
     def summary_lines(self) -> list[str]:
         out = list(self.tie_lines)
         out.append(f"initial orientation: {self.initial}")
         out.extend(self.bundle.summary_lines())
+        left = len(self.bundle.points) - self.n_points_written
+        out.append(f"points written: {self.n_points_written}" + (f" ({left} left out: fewer than two rays not "
+                                                                  "flagged as blunders)" if left else ""))
         out.extend(f"wrote {p}" for p in self.files)
         if self.report is not None:
             out.append(f"report: {self.report}")
@@ -469,10 +473,11 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
                         progress=progress)
     timings["bundle_s"] = time.perf_counter() - t2
     files, report_path = _write(ws, res, all_tracks, inp, names, n_tie, initial, timings)
+    n_written = int(_reliable(res, all_tracks).sum())
     n_ctrl = 0 if bcontrol is None else int((~bcontrol.check).sum())
     n_chk = 0 if bcontrol is None else int(bcontrol.check.sum())
     return BlockResult(res, all_tracks, n_tie, n_ctrl, n_chk, initial, Path(out_dir), tuple(files), report_path,
-                       timings, tie_lines)
+                       timings, tie_lines, n_written)
 
 
 def _tables(res: BundleResult, tracks: Tracks, units: str) -> list[ResidualTable]:
@@ -514,19 +519,29 @@ def _residual_mm(res: BundleResult, tracks: Tracks, inp: _Inputs) -> NDArray[np.
         return np.sqrt(ss / np.maximum(n, 1))
 
 
+def _reliable(res: BundleResult, tracks: Tracks) -> NDArray[np.bool_]:
+    """(P,) points written: finite and seen by at least two rays not flagged as blunders (a point whose
+    rays were flagged is not determined by the adjustment; it stays in ``observations.csv``)."""
+    X = np.asarray(res.points, dtype=np.float64)
+    good = ~np.asarray(res.flagged, dtype=bool)
+    n_good = np.bincount(tracks.obs_point[good], minlength=tracks.n_points)
+    return np.asarray(np.isfinite(X).all(axis=1) & (n_good >= 2), dtype=bool)
+
+
 def _write(ws: Workspace, res: BundleResult, tracks: Tracks, inp: _Inputs, names: tuple[str, ...], n_tie: int,
            initial: str, timings: dict[str, float]) -> tuple[list[Path], Path | None]:
     from ..dense.products import LasWriter
 
     root = Path(str(ws.root))
     X = np.asarray(res.points, dtype=np.float64)
-    ok = np.isfinite(X).all(axis=1)
+    ok = _reliable(res, tracks)
     ids = [tracks.point_ids[i] for i in np.flatnonzero(ok)]
     pstd = np.asarray(res.point_std, dtype=np.float64)
     std = pstd[ok] if np.isfinite(pstd[ok]).all() and ok.any() else None
     resid_mm = _residual_mm(res, tracks, inp)
     units = "m"
     summary: dict[str, Any] = {"images": len(names), "tie_points": n_tie, "points": int(ok.sum()),
+                               "points_left_out": int((~ok).sum()),
                                "observations": tracks.n_obs, "initial": initial,
                                "rms_image_px": res.rms_px, "sigma0": res.sigma0, "iterations": res.iterations,
                                "converged": res.converged, "condition_number": res.condition_number, **timings}
@@ -601,8 +616,9 @@ def _report(out: Path, res: BundleResult, tracks: Tracks, inp: _Inputs, summary:
     rep = {**summary, "datum": " | ".join(res.datum),
            "sigma0_groups": dict(res.sigma0_groups), "variance_factors": dict(res.variance_factors)}
     # the workspace refused an existing report without --overwrite before any work: the folder is this job's
+    shown = np.where(_reliable(res, tracks)[:, None], X, np.nan)
     return write_block_report(out, title=f"stereo block: {len(res.poses)} images", cameras=res.cameras,
-                              poses=res.poses, points=res.points, tracks=tracks,
+                              poses=res.poses, points=shown, tracks=tracks,
                               tables=_tables(res, tracks, units), residual_px=res.residuals_px,
                               flagged=res.flagged, pose_std=res.pose_std, pose_cov=res.pose_covariance,
                               correlation=res.correlation, control_xy=ctrl_xy, check_xy=chk_xy,

@@ -100,7 +100,7 @@ def test_outputs_are_written_and_read_back(run):
         np.testing.assert_allclose(p.position, q.position, atol=1e-9)
         np.testing.assert_allclose(p.rotation, q.rotation, atol=1e-12)
     pts = read_points_csv(out / "points.csv")
-    assert len(pts.ids) == len(res.bundle.point_ids)
+    assert len(pts.ids) == res.n_points_written > 0.95 * len(res.bundle.point_ids)
     las = laspy.read(out / "points.las")
     assert len(las.points) == len(pts.ids)
     np.testing.assert_allclose(np.column_stack([las.x, las.y, las.z]), pts.xyz, atol=2e-3)
