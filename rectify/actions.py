@@ -14,10 +14,8 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from .compare import StudyConfig, StudyResults, run_study, write_study
-from .demo import DemoResult, run_demo
 from .errors import InvalidInputError
 from .features import DETECTORS, VERIFY_METHODS, MatcherConfig, MatchResult, match_images
 from .formats import TIFF_SUFFIXES, GcpTable, has_embedded_gcps
@@ -26,7 +24,6 @@ from .mosaic import MosaicOptions, MosaicResult
 from .mosaic import mosaic as mosaic
 from .ortho import OrthoOptions
 from .ortho import ortho_from_files as ortho
-from .report import write_fit_report, write_match_report, write_warp_report
 from .transforms import METHODS, FitResult, fit_gcps
 from .transforms.quality import GcpGeometry, geographic_lines, judge_gcp_geometry
 from .warp import (
@@ -38,6 +35,10 @@ from .warp import (
     rectify_with_transform,
 )
 from .workspace import Workspace, check_table_crs
+
+if TYPE_CHECKING:  # matplotlib comes with these: imported where used, so `rectify warp` starts faster
+    from .compare import StudyConfig, StudyResults
+    from .demo import DemoResult
 
 __all__ = [
     "ortho", "OrthoOptions", "mosaic", "MosaicOptions", "MosaicResult",
@@ -146,6 +147,8 @@ def match(ws: Workspace, left: str | Path, right: str | Path, output: str | Path
     with ws.transaction():  # the matches and the report, all or none
         out = ws.save_matches(output, res.matches)
         if ws.report_dir is not None:
+            from .report import write_match_report
+
             report = write_match_report(ws.report_dir, res, left, right, overwrite=ws.overwrite)
     return MatchRun(res, options, cfg, out, report)
 
@@ -230,6 +233,8 @@ def fit(ws: Workspace, gcps_path: str | Path, output: str | Path, options: FitOp
     with ws.transaction():  # the transform and the report, all or none
         out = ws.save_transform(output, result.model, table=result.table, crs=gcps.crs)
         if ws.report_dir is not None:
+            from .report import write_fit_report
+
             report = write_fit_report(ws.report_dir, result, gcps, gcps_path=gcps_path, transform_path=out,
                                       overwrite=ws.overwrite)
     return FitRun(result, gcps, options, out, report, geometry)
@@ -356,6 +361,8 @@ def warp(ws: Workspace, src: str | Path, dst: str | Path, *, gcps_path: str | Pa
     report = None
     if ws.report_dir is not None:
         try:
+            from .report import write_warp_report
+
             report = write_warp_report(ws.report_dir, result, source_shape=(info.height, info.width),
                                        overwrite=ws.overwrite)
         except BaseException:  # all or none: the GeoTIFF this run wrote goes too
@@ -381,6 +388,8 @@ class CompareOptions:
 
     def config(self) -> StudyConfig:
         """The study configuration."""
+        from .compare import StudyConfig
+
         over: dict[str, Any] = {"n_configs": self.n_configs, "n_trials": self.n_trials,
                                 "n_speed_points": self.n_speed_points, "seed": self.seed}
         if self.full:
@@ -421,6 +430,8 @@ def compare(ws: Workspace, out_dir: str | Path, options: CompareOptions = Compar
     md = Path(out_dir) / "study.md"
     if md.exists() and not ws.overwrite:
         raise InvalidInputError(f"{str(md)!r} exists; pass --overwrite to replace it")
+    from .compare import run_study, write_study
+
     res = run_study(cfg, progress=progress)
     path = write_study(res, out_dir, overwrite=ws.overwrite)
     return CompareRun(res, path)
@@ -440,5 +451,7 @@ def demo(ws: Workspace, options: DemoOptions = DemoOptions(), *, progress: Progr
     """The embedded Landsat scene through a tilted frame and back into ``ws.root`` (see :mod:`rectify.demo`)."""
     if ws.root is None:
         raise InvalidInputError("the demo needs an output folder")
+    from .demo import run_demo
+
     return run_demo(ws.root, overwrite=ws.overwrite, pick_sigma_px=options.pick_sigma_px, seed=options.seed,
                     with_compare=options.with_compare, progress=progress)

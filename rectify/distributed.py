@@ -43,7 +43,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from .errors import InvalidInputError, RectifyError
+from .errors import InvalidInputError, SchedulerError
 
 __all__ = ["ENV_VAR", "TIMEOUT_ENV_VAR", "Scheduler", "SchedulerError", "BlockEngine", "resolve_scheduler",
            "run_windows", "DEFAULT_RETRIES", "DEFAULT_CONNECT_TIMEOUT_S"]
@@ -61,10 +61,6 @@ TIMEOUT_ENV_VAR = "RECTIFY_SCHEDULER_TIMEOUT"
 
 _SPEC_HELP = "expected 'threads', 'processes', 'processes:N' or 'tcp://HOST:PORT'"
 _ADDRESS = re.compile(r"^(tcp|tls|ucx|inproc)://[^\s/:]+(:\d{1,5})?/?$")
-
-
-class SchedulerError(RectifyError, OSError):
-    """A Dask scheduler cannot be reached or a cluster cannot be started."""
 
 
 @dataclass(frozen=True)

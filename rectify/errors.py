@@ -16,6 +16,7 @@ __all__ = [
     "RasterIOError",
     "StereoError",
     "CalibrationError",
+    "SchedulerError",
     "RectifyWarning",
     "WeakGeometryWarning",
     "NotGeoreferencedWarning",
@@ -77,6 +78,11 @@ class StereoError(RectifyError):
 
 class CalibrationError(StereoError):
     """Interior orientation (camera) is invalid or inconsistent."""
+
+
+class SchedulerError(RectifyError, OSError):
+    """A Dask scheduler cannot be reached, a cluster cannot be started, or it lost a task
+    (:mod:`rectify.distributed`)."""
 
 
 class RectifyWarning(UserWarning):
