@@ -66,6 +66,9 @@ F64 = NDArray[np.float64]
 CONTROL_KINDS: tuple[str, ...] = ("full", "height", "plan")
 #: what precision to compute: everything (poses, interior, points, redundancy numbers), poses only, nothing
 COVARIANCE_MODES: tuple[str, ...] = ("full", "poses", "none")
+#: variance components: a group's factor is estimated only from this much redundancy on, within these bounds
+VCE_MIN_REDUNDANCY = 2.0
+VCE_FACTOR_BOUNDS = (1e-3, 1e3)
 #: observation groups: tie-point image coordinates, control/check-point image coordinates ("marks", measured by
 #: hand or by a target detector with their own precision), GNSS centres, INS angles, control coordinates
 GROUPS: tuple[str, ...] = ("image", "marks", "gnss", "ins", "control")
@@ -500,10 +503,12 @@ def adjust_bundle(cameras: Mapping[str, Camera], poses: Sequence[Pose], tracks: 
         new = {}
         for g in GROUPS:
             vtpv, r = red.vtpv[g], red.r[g]
-            if r > 0.5:
+            if r >= VCE_MIN_REDUNDANCY:
                 new[g] = math.sqrt(vtpv / r)
         for g, f in new.items():
-            factors[g] *= f
+            # bounded: a group that fits (almost) exactly, e.g. error-free synthetic control, would
+            # otherwise get a factor near 0 and an infinite weight
+            factors[g] = min(max(factors[g] * f, VCE_FACTOR_BOUNDS[0]), VCE_FACTOR_BOUNDS[1])
         logger.debug("variance components round %d: %s", rnd, new)
         if all(abs(f - 1.0) < 0.01 for f in new.values()):
             break

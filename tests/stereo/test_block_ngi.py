@@ -1,0 +1,111 @@
+"""The real NGI aerial pair through ``stereo block`` reproduces ``stereo run`` (needs ../shared/data).
+
+Control: 8 DEM points projected into both photos with the aero-triangulated exterior orientations
+(as ``scripts/ngi_model_check.py`` does). ``stereo run`` orients the pair (relative + absolute
+orientation); ``stereo block`` matches the same two photos, orients them by independent models and
+adjusts them as a block of two. Both are compared with the DEM (every tie point's height) and the
+block's orientation with the aero-triangulation.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import rasterio
+from scipy import ndimage
+
+from rectify.camera import Camera
+from rectify.formats import ControlTable
+from rectify.residuals import rms
+from rectify.rotation import angles_from_matrix, matrix_from_angles
+from stereo.actions import run
+from stereo.block.files import read_block_orientation
+from stereo.block.workflow import BlockOptions, run_block
+from stereo.formats import read_points_csv
+from stereo.model import ModelOptions
+from stereo.resection import ExteriorOrientation
+
+LO25 = "+proj=tmerc +lat_0=0 +lon_0=25 +k=1 +x_0=0 +y_0=0 +datum=WGS84 +units=m"
+EO = {"0182": (-55094.504480, -3727407.037480, 5258.307930, -0.349216, 0.298484, -179.086702),
+      "0184": (-57710.435280, -3727433.893020, 5256.764790, 0.269761, -0.281937, -179.027883)}
+GROUND_PIXEL_M = 5.6
+
+pytestmark = pytest.mark.shared
+
+
+@pytest.fixture(scope="module")
+def ngi(ngi_pair, tmp_path_factory):
+    d = ngi_pair
+    out = tmp_path_factory.mktemp("ngi_block")
+    cam = Camera(focal_length_mm=120.0, pixel_size_mm=0.144, width=640, height=1152)
+    eos = {k: ExteriorOrientation(position=v[:3], rotation=matrix_from_angles(*np.radians(v[3:])),
+                                  focal_length_mm=120.0) for k, v in EO.items()}
+    with rasterio.open(d / "dem.tif") as src:
+        dem = src.read(1).astype(float)
+        T = src.transform
+
+    def dem_h(xy):
+        col, row = ~T * (xy[:, 0], xy[:, 1])
+        return ndimage.map_coordinates(dem, [np.asarray(row) - 0.5, np.asarray(col) - 0.5], order=1,
+                                       mode="constant", cval=np.nan)
+
+    rng = np.random.default_rng(0)
+    pts = []
+    while len(pts) < 8:
+        c = (eos["0182"].position[:2] + eos["0184"].position[:2]) / 2 + rng.uniform(-2500, 2500, 2) * [0.6, 1.0]
+        g = np.array([c[0], c[1], dem_h(c[None])[0]])
+        pl = cam.pixel_from_photo(eos["0182"].project(g[None]))[0]
+        pr = cam.pixel_from_photo(eos["0184"].project(g[None]))[0]
+        if np.isfinite(g[2]) and all(30 < p[0] < 610 and 30 < p[1] < 1122 for p in (pl, pr)):
+            pts.append((g, pl, pr))
+    ids = tuple(f"dem{i}" for i in range(len(pts)))
+    ctrl = ControlTable(ids, np.array([p[1] for p in pts]), np.array([p[2] for p in pts]),
+                        np.array([p[0] for p in pts]), crs=LO25)
+    left, right = d / "3324c_2015_1004_05_0182_RGB.tif", d / "3324c_2015_1004_05_0184_RGB.tif"
+    r = run(left, right, camera=cam, out_dir=out / "run", control=ctrl, options=ModelOptions(frame="topocentric"),
+            report=False)
+    lines = [f"# crs={LO25}", "id,image,col,row,x,y,z"]
+    for pid, (g, pl, pr) in zip(ids, pts, strict=True):
+        gg = ",".join(repr(float(v)) for v in g)
+        lines.append(f"{pid},{left.name},{float(pl[0])!r},{float(pl[1])!r},{gg}")
+        lines.append(f"{pid},{right.name},{float(pr[0])!r},{float(pr[1])!r},{gg}")
+    (out / "control.csv").write_text("\n".join(lines) + "\n")
+    (out / "camera.json").write_text(json.dumps(cam.to_dict()))
+    b = run_block([left, right], out_dir=out / "block", camera=out / "camera.json", control=out / "control.csv",
+                  options=BlockOptions(control_sigma_m=(0.5, 0.5, 0.5), control_sigma_px=0.5, report=False))
+    return out, r, b, dem_h, ids
+
+
+def test_block_heights_agree_with_the_dem_as_the_pair_does(ngi):
+    out, r, b, dem_h, ids = ngi
+    m = r.model
+    tie = ~m.is_control & ~np.isin(np.array(m.ids), ids)
+    dz_run = m.ground[tie, 2] - dem_h(m.ground[tie, :2])
+    dz_run = dz_run[np.isfinite(dz_run)]
+    pb = read_points_csv(out / "block" / "points.csv")
+    keep = ~np.isin(np.array(pb.ids), ids)
+    dz_blk = pb.xyz[keep, 2] - dem_h(pb.xyz[keep, :2])
+    dz_blk = dz_blk[np.isfinite(dz_blk)]
+    assert len(dz_blk) > 100  # the block keeps at most 6 tracks per 8 x 8 cell of each image
+    # robust figures (the DEM is 24 m and smoother than the surface): NMAD and the median
+    nmad = lambda a: 1.4826 * float(np.median(np.abs(a - np.median(a))))  # noqa: E731
+    assert nmad(dz_blk) < 1.5 * GROUND_PIXEL_M
+    assert abs(nmad(dz_blk) - nmad(dz_run)) < 0.25 * nmad(dz_run), (nmad(dz_blk), nmad(dz_run))
+    assert abs(float(np.median(dz_blk)) - float(np.median(dz_run))) < GROUND_PIXEL_M
+    assert rms(dz_blk[np.abs(dz_blk) < 50]) < 1.5 * GROUND_PIXEL_M
+
+
+def test_block_orientation_agrees_with_the_aerotriangulation(ngi):
+    out, _r, b, _dem_h, _ids = ngi
+    o = read_block_orientation(out / "block" / "orientation.json")
+    for p in o.poses:
+        key = "0182" if "0182" in p.image else "0184"
+        at = EO[key]
+        # the AT is a truth at about 1 px (5-6 m on the ground; README): positions within 3 ground pixels
+        assert np.linalg.norm(p.position - np.array(at[:3])) < 3 * GROUND_PIXEL_M, (p.image, p.position)
+        dR = matrix_from_angles(*np.radians(at[3:])).T @ p.rotation
+        assert math.degrees(np.abs(angles_from_matrix(dR)).max()) < 0.15
+    assert b.bundle.converged
