@@ -168,3 +168,34 @@ def test_block_help_lists_the_options():
     for opt in ("--poses", "--control", "--check", "--gnss-sigma", "--ins-sigma", "--self-calibrate", "--robust",
                 "--lever-arm", "--boresight", "--free-network", "--variance-components"):
         assert opt in r.output
+
+
+def test_block_with_opensfm_reconstruction(scene, tmp_path):
+    """Poses and a pixel camera from an OpenSfM reconstruction.json (local frame, no CRS)."""
+    import cv2
+
+    d, images, poses, _xyz = scene
+    s = max(CAM.width, CAM.height)
+    shots = {}
+    for p, path in zip(poses, images, strict=True):
+        R_cw = np.diag([1.0, -1.0, -1.0]) @ p.rotation.T          # world -> OpenCV camera axes
+        t = -R_cw @ p.position
+        rvec, _ = cv2.Rodrigues(R_cw)
+        shots[path.name] = {"camera": "v1", "rotation": rvec.ravel().tolist(), "translation": t.tolist()}
+    rec = [{"cameras": {"v1": {"projection_type": "perspective", "width": CAM.width, "height": CAM.height,
+                               "focal": CAM.focal_px / s, "k1": 0.0, "k2": 0.0}},
+            "shots": shots, "points": {}}]
+    (tmp_path / "reconstruction.json").write_text(json.dumps(rec))
+    # GNSS-like positions: the reconstruction's centres are observations with 5 cm, plus 3 control points
+    out = tmp_path / "out"
+    r = _run(["block", *map(str, images), "--poses", str(tmp_path / "reconstruction.json"), "--gnss-sigma", "0.05",
+              "--no-report", "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    o = read_block_orientation(out / "orientation.json")
+    assert set(o.cameras) == {"v1"} and o.cameras["v1"].pixel_camera
+    assert abs(o.cameras["v1"].focal_px - CAM.focal_px) < 1e-9
+    truth = {path.name: p for p, path in zip(poses, images, strict=True)}
+    err = np.array([q.position - truth[q.image].position for q in o.poses])
+    # error-free positions observed at 5 cm: the block stays within a few centimetres of them
+    assert np.abs(err).max() < 0.1, err
+    assert "datum: GNSS positions of 6 images, no control" in r.output
