@@ -1,11 +1,46 @@
 """Block triangulation: multi-image tie points, poses in, independent models, bundle adjustment.
 
+See ``docs/block.md``. The command ``stereo block`` runs :func:`stereo.block.workflow.run_block`.
+
 Modules
 -------
 types
     :class:`Pose` (one image's exterior orientation) and :class:`Tracks` (multi-image tie points).
+poses, files
+    Position/angle CSV, navigation angles, OpenSfM ``reconstruction.json``; block control CSV,
+    observations CSV, block orientation JSON.
+tracks, tracks_pairs, tracks_graph, render
+    Block tie points (pair selection, union-find tracks, even spread); rendered synthetic blocks.
+independent
+    Initial orientation by independent models; ``to_ground``; ``triangulate_tracks``.
+bundle, bundle_model, bundle_solve, bundle_datum, synthetic
+    The bundle adjustment and synthetic blocks with known truth.
+report, workflow
+    The QA report and ``run_block``.
 """
 
+from .bundle import BlockControl, BundleOptions, BundleResult, GnssObservations, adjust_bundle
+from .independent import independent_models, to_ground, triangulate_tracks
+from .poses import read_opensfm, read_pose_csv, write_pose_csv
+from .synthetic import SyntheticBlock, make_block
 from .types import Pose, Tracks, cameras_for, project_pixel
 
-__all__ = ["Pose", "Tracks", "cameras_for", "project_pixel"]
+__all__ = [
+    "BlockControl",
+    "BundleOptions",
+    "BundleResult",
+    "GnssObservations",
+    "Pose",
+    "SyntheticBlock",
+    "Tracks",
+    "adjust_bundle",
+    "cameras_for",
+    "independent_models",
+    "make_block",
+    "project_pixel",
+    "read_opensfm",
+    "read_pose_csv",
+    "to_ground",
+    "triangulate_tracks",
+    "write_pose_csv",
+]
