@@ -35,7 +35,7 @@ from .distributed import Scheduler, resolve_scheduler
 from .errors import CRSError, InvalidInputError
 from .georef import Grid
 from .io import bound_gdal_cache
-from .warp import worker_count
+from .warp import ProcessLocal, worker_count
 
 __all__ = ["MosaicOptions", "MosaicResult", "mosaic"]
 
@@ -128,7 +128,7 @@ def _describe(path: str) -> tuple[_Input, str, str]:
                 crs_to_string(ds.crs), ds.dtypes[0])
 
 
-class _Engine:
+class _Engine(ProcessLocal):
     def __init__(self, inputs: list[_Input], grid: Grid, dtype: np.dtype, nodata: float, feather: float):
         self.inputs, self.grid, self.dtype, self.nodata, self.feather = inputs, grid, dtype, nodata, feather
         self._local = threading.local()
@@ -137,17 +137,7 @@ class _Engine:
         self.counts = np.zeros(len(inputs), np.int64)
 
     # ---------------------------------------------------------------- shipping to Dask workers
-    def __getstate__(self) -> dict[str, Any]:
-        state = dict(self.__dict__)
-        for k in ("_local", "_all", "_lock"):
-            state.pop(k, None)
-        return state
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__dict__.update(state)
-        self._local = threading.local()
-        self._all = []
-        self._lock = threading.Lock()
+    _TRANSIENT = {"_local": threading.local, "_all": list, "_lock": threading.Lock}
 
     def portable(self) -> _Engine:
         """A copy for Dask workers: orthophotos by absolute path, no open files, counts reset."""

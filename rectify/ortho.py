@@ -49,7 +49,7 @@ from .distributed import Scheduler, resolve_scheduler, run_windows
 from .errors import CRSError, InvalidInputError, RasterIOError, ShapeError
 from .georef import Grid
 from .io import bound_gdal_cache
-from .warp import worker_count
+from .warp import ProcessLocal, worker_count
 
 __all__ = ["SensorModel", "FrameModel", "RPCModel", "OrthoOptions", "OrthoResult", "orthorectify",
            "read_exterior", "ortho_grid", "VISIBILITY_OUTSIDE", "VISIBILITY_OCCLUDED", "VISIBILITY_VISIBLE"]
@@ -448,7 +448,7 @@ def _knots(n: int, step: int) -> NDArray[np.float64]:
     return k
 
 
-class _Engine:
+class _Engine(ProcessLocal):
     def __init__(self, src: str, model: SensorModel, dem: Dem, grid: Grid, opts: OrthoOptions, dtype: np.dtype,
                  count: int, nodata: float, margin_px: int, h_ref: float):
         import cv2
@@ -470,18 +470,8 @@ class _Engine:
         self.same_dem = same_crs(grid.crs, dem.crs)
 
     # ---------------------------------------------------------------- shipping to Dask workers
-    def __getstate__(self) -> dict[str, Any]:
-        state = dict(self.__dict__)
-        for k in ("_local", "_readers", "_lock", "stats_lock"):
-            state.pop(k, None)
-        return state
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__dict__.update(state)
-        self._local = threading.local()
-        self._readers = []
-        self._lock = threading.Lock()
-        self.stats_lock = threading.Lock()
+    _TRANSIENT = {"_local": threading.local, "_readers": list, "_lock": threading.Lock,
+                  "stats_lock": threading.Lock}
 
     def portable(self) -> _Engine:
         """A copy for Dask workers: image and DEM by absolute path, no open readers, statistics reset."""

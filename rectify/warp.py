@@ -284,7 +284,28 @@ def _warp_channels(data: NDArray, **kw) -> NDArray:
     return np.concatenate(parts, axis=2)
 
 
-class _Engine:
+class ProcessLocal:
+    """Mixin of the tile engines shipped to Dask workers (warp, ortho, mosaic).
+
+    The attributes named in ``_TRANSIENT`` belong to one process (thread-locals, open readers, locks):
+    they are left out when the engine is pickled and made anew, by their factory, when it is unpickled.
+    """
+
+    _TRANSIENT: dict[str, Any] = {}
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        for k in self._TRANSIENT:
+            state.pop(k, None)
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        for k, make in self._TRANSIENT.items():
+            setattr(self, k, make())
+
+
+class _Engine(ProcessLocal):
     def __init__(self, src: str, mapping: _Mapping, grid: Grid, opts: WarpOptions, out_dtype: np.dtype,
                  count: int, fill: Any):
         info = raster_info(src)
@@ -297,17 +318,7 @@ class _Engine:
         self._lock = threading.Lock()
 
     # ----------------------------------------------------------------- shipping to Dask workers
-    def __getstate__(self) -> dict[str, Any]:
-        state = dict(self.__dict__)
-        for k in ("_local", "_readers", "_lock"):
-            state.pop(k, None)
-        return state
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__dict__.update(state)
-        self._local = threading.local()
-        self._readers = []
-        self._lock = threading.Lock()
+    _TRANSIENT = {"_local": threading.local, "_readers": list, "_lock": threading.Lock}
 
     def portable(self) -> _Engine:
         """A copy for Dask workers: the source by absolute path, no open readers."""
