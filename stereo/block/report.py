@@ -51,6 +51,16 @@ MAX_CORRELATION_ELEMENTS = 60
 _ANGLE_NAMES = ("omega", "phi", "kappa")
 
 
+def _plan_axes(ax: Any, units: str, title: str) -> None:
+    """Equal-scale plan axes X, Y in ground units, readable map ticks, legend and title."""
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel(f"X ({units})")
+    ax.set_ylabel(f"Y ({units})")
+    readable_map_ticks(ax)
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title(title, fontsize=11)
+
+
 def block_layout_figure(cameras: Mapping[str, Camera], poses: Sequence[Pose], points: ArrayLike,
                         rays: ArrayLike, *, units: str = "m", control_xy: ArrayLike | None = None,
                         check_xy: ArrayLike | None = None) -> Figure:
@@ -86,12 +96,7 @@ def block_layout_figure(cameras: Mapping[str, Camera], poses: Sequence[Pose], po
         if xy is not None and len(np.asarray(xy)):
             a = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
             ax.plot(a[:, 0], a[:, 1], style, ms=6, mfc="none", label=f"{label} ({len(a)})")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.set_xlabel(f"X ({units})")
-    ax.set_ylabel(f"Y ({units})")
-    readable_map_ticks(ax)
-    ax.legend(loc="best", fontsize=8)
-    ax.set_title(f"Block layout: footprints on Z = {z:.1f} {units}, tie points by rays", fontsize=11)
+    _plan_axes(ax, units, f"Block layout: footprints on Z = {z:.1f} {units}, tie points by rays")
     return fig
 
 
@@ -209,13 +214,8 @@ def ellipse_figure(poses: Sequence[Pose], pose_cov_xy: ArrayLike, *, check_xy: A
         if check_error_xy is not None:
             e = np.asarray(check_error_xy, dtype=np.float64).reshape(-1, 2) * mag
             ax.quiver(kxy[:, 0], kxy[:, 1], e[:, 0], e[:, 1], angles="xy", scale_units="xy", scale=1.0, width=0.003)
-    ax.set_aspect("equal", adjustable="datalim")
     ax.margins(0.1)
-    ax.set_xlabel(f"X ({units})")
-    ax.set_ylabel(f"Y ({units})")
-    readable_map_ticks(ax)
-    ax.legend(loc="best", fontsize=8)
-    ax.set_title(f"Error ellipses in plan (1 sigma), magnified x{mag:.3g}", fontsize=11)
+    _plan_axes(ax, units, f"Error ellipses in plan (1 sigma), magnified x{mag:.3g}")
     return fig
 
 
