@@ -199,3 +199,49 @@ def test_block_with_opensfm_reconstruction(scene, tmp_path):
     # error-free positions observed at 5 cm: the block stays within a few centimetres of them
     assert np.abs(err).max() < 0.1, err
     assert "datum: GNSS positions of 6 images, no control" in r.output
+
+
+def test_block_on_a_full_disk_leaves_nothing(scene, tmp_path):
+    """Outputs that do not fit: one line naming the cause, no output folder, no temporary file."""
+    import os
+    import subprocess
+
+    if os.geteuid() != 0:
+        pytest.skip("a small tmpfs needs root")
+    small = tmp_path / "small"
+    small.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(small)], capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs: {r.stderr.strip()}")
+    try:
+        d, images, _poses, _xyz = scene
+        out = small / "out"
+        res = CliRunner().invoke(cli, ["block", *map(str, images), "--camera", str(d / "camera.json"), "--poses",
+                                       str(d / "poses.csv"), "--gnss-sigma", "0.05", "-o", str(out)])
+        assert res.exit_code == 1, res.output
+        assert "no space left on device" in res.output and "Traceback" not in res.output
+        assert list(small.iterdir()) == []
+    finally:
+        subprocess.run(["umount", str(small)], capture_output=True)
+
+
+def test_block_interrupted_by_sigterm_leaves_nothing(scene, tmp_path):
+    """SIGTERM (as from `timeout` or a batch scheduler) mid-run: exit 143, no output folder."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    d, images, _poses, _xyz = scene
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-c", "from stereo.cli.main import cli; cli()", "block",
+                             *map(str, images), "--camera", str(d / "camera.json"), "--poses", str(d / "poses.csv"),
+                             "--gnss-sigma", "0.05", "-o", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    time.sleep(4.0)  # imports and matching under way
+    if proc.poll() is not None:
+        pytest.skip(f"the block ended before it could be interrupted (exit {proc.returncode})")
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, err.decode()
+    assert b"Traceback" not in err
+    assert not out.exists()
