@@ -14,7 +14,8 @@ Steps (each in its own module):
    by control and/or GNSS positions (:mod:`stereo.block.independent`);
 5. the bundle adjustment with the observation groups and their precisions
    (:mod:`stereo.block.bundle`);
-6. the outputs, all or none (the layout in :data:`BLOCK_LAYOUT`), and the report.
+6. the outputs, all or none (the layout in :data:`BLOCK_LAYOUT`, ``camera_<id>.json`` per camera),
+   and the report.
 """
 
 from __future__ import annotations
@@ -356,6 +357,14 @@ def plan_block(out_dir: StrPath, *, overwrite: bool, inputs: Sequence[StrPath | 
     return ws
 
 
+def camera_paths(out_dir: Path, cameras: Mapping[str, Camera]) -> list[Path]:
+    """``OUTDIR/camera_<id>.json`` of each camera (the adjusted interior orientation, camera JSON)."""
+    safe = {k: "".join(c if c.isalnum() or c in "-_." else "_" for c in k) for k in cameras}
+    if len(set(safe.values())) != len(safe):
+        raise InvalidInputError(f"camera ids {sorted(cameras)} do not give distinct file names")
+    return [out_dir / f"camera_{safe[k]}.json" for k in cameras]
+
+
 def _triangulated(cameras: Mapping[str, Camera], poses: Sequence[Pose], tracks: Tracks
                   ) -> tuple[Tracks, NDArray[np.float64]]:
     """Intersect the tracks through known poses; drop rays and tracks that do not intersect."""
@@ -407,6 +416,7 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
     cam_input = camera if isinstance(camera, (str, Path)) else None
     ws = plan_block(out_dir, overwrite=overwrite, inputs=[*images, cam_input, poses, control], report=opts.report)
     inp = _load_inputs(ws, names, camera, poses, control, opts)
+    ws.plan(*camera_paths(Path(out_dir), inp.cameras))
     if tracks is not None and tuple(tracks.images) != names:
         raise InvalidInputError(f"the given tracks name images {list(tracks.images)[:4]}, not the block's "
                                 f"{list(names)[:4]}")
@@ -584,6 +594,11 @@ def _write(ws: Workspace, res: BundleResult, tracks: Tracks, inp: _Inputs, names
             finally:
                 las.close()
         written.append(p)
+        from rectify.formats import camera_document
+
+        for (cid, cam), p in zip(res.cameras.items(), camera_paths(root, res.cameras), strict=True):
+            ws.write_json(p, {**camera_document(cam), "name": cid})
+            written.append(p)
         p = root / BLOCK_LAYOUT["observations"]
         w = np.min(np.asarray(res.weights, dtype=np.float64).reshape(-1, 2), axis=1)
         ws.write_text(p, observations_text(tracks, np.asarray(res.residuals_px), w, np.asarray(res.flagged)))

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from rectify.errors import EstimationError, InvalidInputError
+from rectify.formats import read_camera
 from rectify.rotation import angles_from_matrix
 from stereo.block.bundle import BundleOptions
 from stereo.block.files import read_block_control, read_block_orientation
@@ -90,6 +91,8 @@ def test_outputs_are_written_and_read_back(run):
     for name in BLOCK_LAYOUT.values():
         assert (out / name).is_file(), name
     assert (out / "report" / "report.html").is_file()
+    cam = read_camera(out / "camera_camera.json")
+    assert cam.focal_length_mm == blk.camera.focal_length_mm
     o = read_block_orientation(out / "orientation.json")
     assert [p.image for p in o.poses] == list(blk.tracks.images)
     assert o.crs == "EPSG:32633"
