@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 from rasterio.errors import NotGeoreferencedWarning
 
 from rectify.camera import Camera
+from rectify.distributed import resolve_scheduler
 from rectify.errors import InvalidInputError
 from rectify.features import MatcherConfig, match_images
 from rectify.formats import ControlTable
@@ -459,6 +460,8 @@ def run(left: PathArg, right: PathArg, *, camera: PathArg | Camera, out_dir: Pat
     dense_dir = Path(out_dir) / "dense"
     if dense is not None and dense_dir.exists() and not overwrite:
         raise InvalidInputError(f"output {str(dense_dir)!r} exists; pass --overwrite to replace it")
+    if dense is not None:  # the dense step's scheduler (or $RECTIFY_SCHEDULER) is checked before any work
+        resolve_scheduler(dense.scheduler)
     cam = camera if isinstance(camera, Camera) else ws.load_camera(camera)
     ctrl = ws.load_control(control) if isinstance(control, (str, Path)) else control
     # the camera against both photos and the control image points, before matching

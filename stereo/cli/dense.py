@@ -6,7 +6,7 @@ import dataclasses
 
 import click
 
-from rectify.cli.options import echo, handle_errors, overwrite_opt
+from rectify.cli.options import echo, handle_errors, overwrite_opt, scheduler_opt
 
 from ..dense.pipeline import DenseOptions, run_dense
 from ..dense.products import STATISTICS
@@ -42,16 +42,17 @@ _D = DenseOptions()
 @click.option("--despike", type=float, default=_D.despike_cells, show_default=True,
               help="Drop DSM cells farther than this many cell sides from their 5 x 5 median (0: off).")
 @click.option("--tile", type=int, default=_D.matching.tile, show_default=True, help="Tile side of the matcher, pixels.")
+@scheduler_opt
 @overwrite_opt
 @handle_errors
 def dense(orientation, left, right, out_dir, right_orientation, camera, matches, control, cloud, dsm_cell, dsm_stat,
-          fill_holes, min_confidence, reference_dem, despike, tile, overwrite):
+          fill_holes, min_confidence, reference_dem, despike, tile, scheduler, overwrite):
     """Resample LEFT and RIGHT into the normal case from ORIENTATION (ro.json of `stereo orient`, or
     the left exterior orientation with --right-orientation), match them densely and write the point
     cloud and the DSM."""
     opts = DenseOptions(matching=dataclasses.replace(_D.matching, tile=tile), cloud_format=cloud, dsm_cell=dsm_cell,
                         dsm_statistic=dsm_stat, fill_holes=fill_holes, min_confidence=min_confidence,
-                        reference_dem=reference_dem, despike_cells=despike)
+                        reference_dem=reference_dem, despike_cells=despike, scheduler=scheduler)
     result = run_dense(orientation, left, right, out_dir, right_orientation=right_orientation, camera=camera,
                        matches=matches, control=control, options=opts, overwrite=overwrite)
     for line in result.summary_lines():

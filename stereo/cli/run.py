@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from rectify.cli.options import echo, handle_errors, matcher_opts, overwrite_opt, progress
+from rectify.cli.options import echo, handle_errors, matcher_opts, overwrite_opt, progress, scheduler_opt
 from rectify.robust import ROBUST_METHODS
 
 from ..actions import PAIR_MATCHER, DenseOptions, matcher_config
@@ -32,11 +32,15 @@ _D = ModelOptions()
 @click.option("--dense", is_flag=True, default=False,
               help="Also run the dense chain (stereo dense, default options) into OUTDIR/dense: point cloud and DSM.")
 @matcher_opts(PAIR_MATCHER)
+@scheduler_opt
 @overwrite_opt
 @handle_errors
 def run(left, right, camera_path, out_dir, control_path, check_ids, frame, method, robust, control_sigma_px,
-        dense, detector, verify, refine, max_matches, max_keypoints, overwrite):
+        dense, detector, verify, refine, max_matches, max_keypoints, scheduler, overwrite):
     """Run the stereo pipeline on LEFT and RIGHT into OUTDIR."""
+    if scheduler is not None and not dense:
+        raise click.BadParameter("goes with --dense (the dense matching is the step that runs on Dask)",
+                                 param_hint="'--scheduler'")
     checks = tuple(s.strip() for s in check_ids.split(",") if s.strip())
     opts = ModelOptions(intersection=method, frame=frame, robust=robust, check_ids=checks,
                         control_sigma_px=control_sigma_px)
@@ -45,6 +49,6 @@ def run(left, right, camera_path, out_dir, control_path, check_ids, frame, metho
     with progress("matching") as cb:
         result = run_action(left, right, camera=camera_path, out_dir=out_dir, control=control_path, options=opts,
                             overwrite=overwrite, progress=cb, matcher=matcher,
-                            dense=DenseOptions() if dense else None)
+                            dense=DenseOptions(scheduler=scheduler) if dense else None)
     for line in result.summary_lines():
         echo(line)

@@ -30,6 +30,7 @@ from affine import Affine
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
+from rectify.distributed import Scheduler, resolve_scheduler, run_windows
 from rectify.errors import InvalidInputError, ShapeError, StereoError
 from rectify.io import MaskPolicy, TiledWriter, WindowReader, iter_windows, raster_info, read_overview
 
@@ -636,6 +637,84 @@ def _read(rd: WindowReader, c0: int, r0: int, w: int, h: int) -> tuple[NDArray, 
     return (out[:, :, 0] if bands == 1 else out), ov
 
 
+class _DenseTiles:
+    """The matcher of one tile of two rectified rasters, for :func:`rectify.distributed.run_windows`.
+
+    ``tile(c0, r0, w, h)`` matches the left window (with its overlap) against the right window moved
+    by the tile's disparity range and returns the disparity, confidence and filled flags of the
+    tile's core. It holds the photos' absolute paths (each copy opens them itself), the coarse
+    disparity, the tie points and the options: a copy pickles to a Dask worker whole.
+    """
+
+    def __init__(self, left_path: str, right_path: str, width: int, height: int, coarse: NDArray | None,
+                 k: float, ties: NDArray[np.float64] | None, rng: tuple[int, int] | None, opts: MatchOptions):
+        self.left_path, self.right_path = left_path, right_path
+        self.width, self.height = width, height
+        self.coarse, self.k, self.ties, self.rng, self.opts = coarse, k, ties, rng, opts
+        self._rl: WindowReader | None = None
+        self._rr: WindowReader | None = None
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["_rl"] = state["_rr"] = None  # never open files
+        return state
+
+    def portable(self) -> _DenseTiles:
+        return self  # paths are absolute; open readers are dropped when pickled
+
+    def close(self) -> None:
+        for name in ("_rl", "_rr"):
+            rd = getattr(self, name)
+            if rd is not None:
+                rd.close()
+                setattr(self, name, None)
+
+    def core_origin(self, c0: int, r0: int) -> tuple[int, int]:
+        o = self.opts.overlap
+        return (c0 if c0 == 0 else c0 + o), (r0 if r0 == 0 else r0 + o)
+
+    def _range(self, c0: int, r0: int, w: int, h: int) -> tuple[int, int]:
+        opts, k, ties = self.opts, self.k, self.ties
+        tr = None
+        if self.coarse is not None:
+            sub = self.coarse[int(r0 // k):int(math.ceil((r0 + h) / k)), int(c0 // k):int(math.ceil((c0 + w) / k))]
+            tr = _range_of(sub, opts)
+        if tr is None and ties is not None and len(ties):
+            inside = (ties[:, 0] >= c0) & (ties[:, 0] < c0 + w) & (ties[:, 1] >= r0) & (ties[:, 1] < r0 + h)
+            if inside.sum() >= 3:
+                tr = (int(math.floor(ties[inside, 2].min() - opts.margin_px)),
+                      int(math.ceil(ties[inside, 2].max() + opts.margin_px)))
+        if tr is None:
+            g = self.rng if self.rng is not None else (0, max(16, self.width // 3))
+            tr = (int(g[0] - opts.margin_px), int(g[1] + opts.margin_px))
+        return _clip_range(tr, opts)
+
+    def tile(self, c0: int, r0: int, w: int, h: int) -> tuple[NDArray[np.float32], NDArray[np.float32],
+                                                               NDArray[np.bool_]]:
+        opts = self.opts
+        if self._rl is None:
+            self._rl = WindowReader(self.left_path)
+        if self._rr is None:
+            self._rr = WindowReader(self.right_path)
+        lo, hi = self._range(c0, r0, w, h)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+            L, lv = _read(self._rl, c0, r0, w, h)
+            R, rv = _read(self._rr, c0 - lo, r0, w, h)
+        if lv.any() and rv.any():
+            d = _match_window(L, R, lv, rv, lo, hi, opts)
+            d, cf, fl = _post(d, _grey(L), opts, _grey(R), lo)
+        else:
+            d = np.full((h, w), np.nan, np.float32)
+            cf = np.zeros((h, w), np.float32)
+            fl = np.zeros((h, w), bool)
+        cc0, cr0 = self.core_origin(c0, r0)
+        cc1, cr1 = min(cc0 + opts.tile, self.width), min(cr0 + opts.tile, self.height)
+        sl_ = (slice(cr0 - r0, cr1 - r0), slice(cc0 - c0, cc1 - c0))
+        return (np.ascontiguousarray(d[sl_], dtype=np.float32), np.ascontiguousarray(cf[sl_], dtype=np.float32),
+                np.ascontiguousarray(fl[sl_], dtype=bool))
+
+
 def match_rasters(
     left_path: StrPath,
     right_path: StrPath,
@@ -646,6 +725,7 @@ def match_rasters(
     tie_points: ArrayLike | None = None,
     options: MatchOptions | None = None,
     progress: Callable[[int, int], None] | None = None,
+    scheduler: Scheduler | str | None = None,
 ) -> MatchStats:
     """Dense matching of two rectified rasters, tile by tile, into disparity and confidence GeoTIFFs.
 
@@ -662,10 +742,29 @@ def match_rasters(
         else the global one.
     options : MatchOptions, optional
     progress : callable(done, total), optional
+        Tiles done.
+    scheduler : Scheduler or str, optional
+        Where the tiles are matched (:func:`rectify.distributed.resolve_scheduler`): ``threads`` (the
+        default, one tile at a time in this process), ``processes[:N]`` (a local Dask cluster) or
+        ``tcp://HOST:PORT`` (an existing one); default ``$RECTIFY_SCHEDULER``, else ``threads``.
+        On Dask each task opens the two rasters by path and matches one tile; its disparity block is
+        written beside ``disparity_path`` and assembled here (the photos and the output folder must
+        be visible to every worker under the same paths).
+
+    Raises
+    ------
+    InvalidInputError, ShapeError
+        Bad inputs, options or scheduler.
+    StereoError
+        No disparity found anywhere.
+    SchedulerError
+        The Dask cluster cannot be started or reached, or lost a task.
     """
     opts = options or MatchOptions()
     if not isinstance(opts, MatchOptions):
         raise InvalidInputError(f"`options` must be a MatchOptions; got {type(opts).__name__}")
+    sched = resolve_scheduler(scheduler)  # a bad value fails before any work
+    scheduler = sched
     il, ir = raster_info(left_path), raster_info(right_path)
     if il.height != ir.height:
         raise InvalidInputError(f"rectified photos must have equal heights; got {il.height} and {ir.height}")
@@ -703,52 +802,38 @@ def match_rasters(
             Rs, rvs = _shifted_window(Rc, rvc, 0, size_l[1], -lo, size_l[0] - lo)
             coarse = _match_window(Lc, Rs, lvc, rvs, lo, hi, opts, lr_check=False) * k
     windows = list(iter_windows(il.width, il.height, opts.tile, opts.overlap))
-    n_valid = n_filled = 0
-    dlo, dhi = math.inf, -math.inf
-    with WindowReader(left_path) as rl, WindowReader(right_path) as rr, warnings.catch_warnings():
+    engine = _DenseTiles(str(Path(left_path).resolve()), str(Path(right_path).resolve()), il.width, il.height,
+                         coarse, k, ties, rng, opts)
+    acc = {"n_valid": 0, "n_filled": 0, "lo": math.inf, "hi": -math.inf}
+    with warnings.catch_warnings():
         warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
         tile_px = min(512, opts.tile)
         with TiledWriter(disparity_path, il.width, il.height, 1, "float32", Affine.identity(), None,
                          MaskPolicy("nodata", NODATA), tile=tile_px) as wd, \
                 TiledWriter(confidence_path, il.width, il.height, 2, "float32", Affine.identity(), None,
                             MaskPolicy("nodata", NODATA), tile=tile_px) as wc:
-            for i, (c0, r0, w, h) in enumerate(windows):
-                tr = None
-                if coarse is not None:
-                    sub = coarse[int(r0 // k):int(math.ceil((r0 + h) / k)), int(c0 // k):int(math.ceil((c0 + w) / k))]
-                    tr = _range_of(sub, opts)
-                if tr is None and ties is not None and len(ties):
-                    inside = (ties[:, 0] >= c0) & (ties[:, 0] < c0 + w) & (ties[:, 1] >= r0) & (ties[:, 1] < r0 + h)
-                    if inside.sum() >= 3:
-                        tr = (int(math.floor(ties[inside, 2].min() - opts.margin_px)),
-                              int(math.ceil(ties[inside, 2].max() + opts.margin_px)))
-                if tr is None:
-                    g = rng if rng is not None else (0, max(16, il.width // 3))
-                    tr = (int(g[0] - opts.margin_px), int(g[1] + opts.margin_px))
-                lo, hi = _clip_range(tr, opts)
-                L, lv = _read(rl, c0, r0, w, h)
-                R, rv = _read(rr, c0 - lo, r0, w, h)
-                if lv.any() and rv.any():
-                    d = _match_window(L, R, lv, rv, lo, hi, opts)
-                    d, cf, fl = _post(d, _grey(L), opts, _grey(R), lo)
-                else:
-                    d = np.full((h, w), np.nan, np.float32)
-                    cf = np.zeros((h, w), np.float32)
-                    fl = np.zeros((h, w), bool)
-                cc0, cr0 = c0 if c0 == 0 else c0 + opts.overlap, r0 if r0 == 0 else r0 + opts.overlap
-                cc1, cr1 = min(cc0 + opts.tile, il.width), min(cr0 + opts.tile, il.height)
-                sl_ = (slice(cr0 - r0, cr1 - r0), slice(cc0 - c0, cc1 - c0))
-                dc, cfc, flc = d[sl_], cf[sl_], fl[sl_]
+
+            def write(res: tuple[NDArray, NDArray, NDArray], c0: int, r0: int) -> bool:
+                dc, cfc, flc = res
+                cc0, cr0 = engine.core_origin(c0, r0)
                 ok = np.isfinite(dc)
-                n_valid += int(ok.sum())
-                n_filled += int(flc.sum())
+                acc["n_valid"] += int(ok.sum())
+                acc["n_filled"] += int(flc.sum())
                 if ok.any():
-                    dlo, dhi = min(dlo, float(dc[ok].min())), max(dhi, float(dc[ok].max()))
+                    acc["lo"] = min(acc["lo"], float(dc[ok].min()))
+                    acc["hi"] = max(acc["hi"], float(dc[ok].max()))
                 wd.write(np.where(ok, dc, NODATA).astype(np.float32)[:, :, None], cc0, cr0)
                 wc.write(np.dstack([np.where(ok, cfc, NODATA), flc.astype(np.float32)]).astype(np.float32),
                          cc0, cr0)
-                if progress is not None:
-                    progress(i + 1, len(windows))
+                return not ok.any()
+
+            try:
+                # one tile at a time on the local path (SGBM is multi-threaded itself); on Dask one tile per task
+                run_windows(engine, write, windows, threads=1, progress=progress, scheduler=scheduler,
+                            workdir=Path(disparity_path).resolve().parent, name="dense", windows_per_task=1)
+            finally:
+                engine.close()
+    n_valid, n_filled, dlo, dhi = int(acc["n_valid"]), int(acc["n_filled"]), float(acc["lo"]), float(acc["hi"])
     if n_valid == 0:
         raise StereoError("dense matching found no disparity: no texture, no overlap, or a wrong disparity range "
                           f"({rng!r})")
