@@ -11,6 +11,7 @@ from .block import block
 from .calibrate import calibrate
 from .demo import demo
 from .dense import dense
+from .dense_rpc import dense_rpc
 from .model import model
 from .orient import orient
 from .resect import resect
@@ -30,5 +31,5 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
 
 
 # --- registered subcommands (one module each) ---
-for _command in (orient, model, resect, run, demo, calibrate, dense, block):
+for _command in (orient, model, resect, run, demo, calibrate, dense, dense_rpc, block):
     cli.add_command(_command)
