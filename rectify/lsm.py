@@ -24,6 +24,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
+import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -33,6 +34,8 @@ from .points import as_pair
 __all__ = ["LsmConfig", "LsmResult", "bicubic", "bilinear", "refine_matches"]
 
 logger = logging.getLogger(__name__)
+
+SAMPLERS = ("lanczos", "keys")
 
 
 @dataclass(frozen=True)
@@ -56,6 +59,13 @@ class LsmConfig:
     max_std_px : float
         Matches whose estimated position standard deviation exceeds this are
         declared non-converged (flat, ill-conditioned windows).
+    sampler : {"lanczos", "keys"}
+        Resampling of the right window: OpenCV's ``remap`` with Lanczos-4
+        (8 x 8 taps) and a first-order correction of its 1/32-px coordinate
+        rounding (default: fast, and the most accurate: 0.004 px worst error
+        on known subpixel shifts of a smooth texture), or Keys cubic
+        convolution (a = -0.5, 0.013 px there) in numpy (3-4x slower). Images
+        with a side of 32 759 px or more always use Keys (remap's limit).
     """
 
     radius_px: int = 10
@@ -64,6 +74,7 @@ class LsmConfig:
     max_shift_px: float = 2.0
     min_corr: float = 0.6
     max_std_px: float = 0.5
+    sampler: str = "lanczos"
 
     def __post_init__(self) -> None:
         if int(self.radius_px) < 2:
@@ -76,6 +87,8 @@ class LsmConfig:
                 raise InvalidInputError(f"{name} must be a positive number; got {v!r}")
         if not (-1.0 <= self.min_corr <= 1.0):
             raise InvalidInputError(f"min_corr must be in [-1, 1]; got {self.min_corr!r}")
+        if self.sampler not in SAMPLERS:
+            raise InvalidInputError(f"sampler must be one of {SAMPLERS}; got {self.sampler!r}")
 
 
 class LsmResult(NamedTuple):
@@ -201,7 +214,7 @@ def _as_grey(img: ArrayLike, name: str) -> NDArray[np.float32]:
 
 def refine_matches(left_img: ArrayLike, right_img: ArrayLike, left_xy: ArrayLike, right_xy: ArrayLike,
                    *, affine: ArrayLike | None = None, config: LsmConfig | None = None,
-                   chunk: int = 2048, progress: Callable[[int, int], None] | None = None) -> LsmResult:
+                   chunk: int = 512, progress: Callable[[int, int], None] | None = None) -> LsmResult:
     """Refine right positions of matches by least-squares image matching.
 
     Parameters
@@ -253,8 +266,7 @@ def refine_matches(left_img: ArrayLike, right_img: ArrayLike, left_xy: ArrayLike
         if A0.shape != (n, 2, 2) or not np.isfinite(A0).all():
             raise ShapeError(f"`affine` must be finite (N, 2, 2) or (2, 2) with N={n}; got {np.shape(affine)}",
                              actual_shape=np.shape(affine), expected_shape=(n, 2, 2))
-    Lp = (np.pad(L, 2, mode="edge"), L.shape[0], L.shape[1])
-    Rp = (np.pad(R, 2, mode="edge"), R.shape[0], R.shape[1])
+    sample = _Sampler(R, cfg.sampler)
     out_r = pr.copy()
     conv = np.zeros(n, dtype=bool)
     std = np.full(n, np.nan)
@@ -264,7 +276,7 @@ def refine_matches(left_img: ArrayLike, right_img: ArrayLike, left_xy: ArrayLike
     chunk = max(1, int(chunk))
     for s in range(0, n, chunk):
         e = min(n, s + chunk)
-        res = _refine_chunk(Lp, Rp, pl[s:e], pr[s:e], np.array(A0[s:e]), cfg)
+        res = _refine_chunk(L, sample, pl[s:e], pr[s:e], np.array(A0[s:e]), cfg)
         out_r[s:e], conv[s:e], std[s:e], corr[s:e], iters[s:e], aff[s:e] = res
         if progress is not None:
             progress(e, n)
@@ -272,102 +284,194 @@ def refine_matches(left_img: ArrayLike, right_img: ArrayLike, left_xy: ArrayLike
     return LsmResult(out_r, conv, std, corr, iters, aff)
 
 
-def _refine_chunk(L: _Padded, R: _Padded, pl, pr, A, cfg: LsmConfig):
-    r = int(cfg.radius_px)
+class _Sampler:
+    """Samples the right image at windows of (x, y): OpenCV ``remap`` with Lanczos-4, or Keys in numpy.
+
+    ``remap`` rounds every coordinate to 1/32 px; :meth:`__call__` returns that rounding (``dx``, ``dy``;
+    None for Keys) so that the caller adds the first-order correction ``dx * dI/dx + dy * dI/dy`` with the
+    window gradients it computes anyway: the resampled window is then a smooth function of the unknowns, as
+    Gauss-Newton needs, and the rounding leaves no step pattern in the positions.
+    OpenCV's cubic kernel (a = -0.75) is not used: it shifts subpixel positions by up to 0.035 px.
+    """
+
+    def __init__(self, img: NDArray[np.float32], kind: str):
+        h, w = img.shape
+        self.h, self.w = h, w
+        # remap needs sides below 32767 (SHRT_MAX), padding included; larger images use the numpy path
+        self.kind = "keys" if kind == "keys" or max(h, w) + 8 >= 32767 else "lanczos"
+        self.p = 2 if self.kind == "keys" else 4      # the taps reach 2 (cubic) or 4 (Lanczos-4) px
+        self.pad = np.pad(img, self.p, mode="edge")   # edge-replicated outer taps, as bicubic() does
+
+    def __call__(self, xs: NDArray[np.float64], ys: NDArray[np.float64]):
+        if self.kind == "keys":
+            return _bicubic_padded(self.pad, self.h, self.w, xs, ys), None, None
+        inside = (xs >= 0) & (ys >= 0) & (xs <= self.w - 1) & (ys <= self.h - 1)
+        o = float(self.p)
+        m1, m2 = cv2.convertMaps((xs + o).astype(np.float32), (ys + o).astype(np.float32), cv2.CV_16SC2)
+        v = cv2.remap(self.pad, m1, m2, cv2.INTER_LANCZOS4, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+        v[~inside] = np.nan
+        frac = m2.astype(np.int32)
+        dx = xs + o - (m1[..., 0] + (frac & 31) * (1.0 / 32))
+        dy = ys + o - (m1[..., 1] + (frac >> 5) * (1.0 / 32))
+        return v, dx, dy
+
+
+def _window(r: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     g = np.arange(-r, r + 1, dtype=np.float64)
     uy, ux = np.meshgrid(g, g, indexing="ij")
-    ux = ux.ravel()[None, :]
-    uy = uy.ravel()[None, :]
+    return ux.ravel()[None, :], uy.ravel()[None, :]
+
+
+def _template(L: NDArray[np.float32], p0: NDArray[np.int64], r: int) -> NDArray[np.float64]:
+    """The (2r+1)^2 pixels around integer positions ``p0`` (m, P); NaN rows where the window leaves the image."""
+    h, w = L.shape
+    g = np.arange(-r, r + 1)
+    inside = (p0[:, 0] >= r) & (p0[:, 1] >= r) & (p0[:, 0] < w - r) & (p0[:, 1] < h - r)
+    c = np.clip(p0, r, [w - 1 - r, h - 1 - r])
+    rows = (c[:, 1, None] + g)[:, :, None]
+    cols = (c[:, 0, None] + g)[:, None, :]
+    T = L[rows, cols].reshape(len(p0), -1).astype(np.float64)
+    T[~inside] = np.nan
+    return T
+
+
+def _grad(W: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """np.gradient of windows (m, n, n) along columns and rows: central inside, one-sided at the edges."""
+    du = np.empty_like(W)
+    dv = np.empty_like(W)
+    np.subtract(W[:, :, 2:], W[:, :, :-2], out=du[:, :, 1:-1])
+    du[:, :, 1:-1] *= 0.5
+    np.subtract(W[:, :, 1], W[:, :, 0], out=du[:, :, 0])
+    np.subtract(W[:, :, -1], W[:, :, -2], out=du[:, :, -1])
+    np.subtract(W[:, 2:], W[:, :-2], out=dv[:, 1:-1])
+    dv[:, 1:-1] *= 0.5
+    np.subtract(W[:, 1], W[:, 0], out=dv[:, 0])
+    np.subtract(W[:, -1], W[:, -2], out=dv[:, -1])
+    return du, dv
+
+
+class _State:
+    """Unknowns of the matches of one chunk: right position t of the integer left pixel p0, affine A, gain, offset."""
+
+    def __init__(self, t, A, gain, off):
+        self.t, self.A, self.gain, self.off = t, A, gain, off
+
+    def coords(self, idx, ux, uy):
+        t, A = self.t[idx], self.A[idx]
+        xs = t[:, :1] + A[:, 0, :1] * ux + A[:, 0, 1:] * uy
+        ys = t[:, 1:] + A[:, 1, :1] * ux + A[:, 1, 1:] * uy
+        return xs, ys
+
+
+def _gauss_newton_step(T, st: _State, idx, sample: _Sampler, ux, uy, n1: int):
+    """One Gauss-Newton update of the matches ``idx`` (all of them at once). Returns the position steps,
+    the rows that failed numerically, the inverse normal matrices and the residuals before the update."""
+    xs, ys = st.coords(idx, ux, uy)
+    Rv, qx, qy = sample(xs, ys)
+    k, P = Rv.shape
+    du, dv = _grad(Rv.reshape(k, n1, n1))
+    du = du.reshape(k, P)
+    dv = dv.reshape(k, P)
+    Ainv = np.linalg.inv(st.A[idx])                                     # grad_x = A^-T grad_u
+    Gx = Ainv[:, 0, :1] * du + Ainv[:, 1, :1] * dv
+    Gy = Ainv[:, 0, 1:] * du + Ainv[:, 1, 1:] * dv
+    if qx is not None:    # remap's 1/32-px rounding, first order
+        Rv += qx * Gx + qy * Gy
+    gi = st.gain[idx][:, None]
+    Gx *= gi
+    Gy *= gi
+    res = T[idx] - (gi * Rv + st.off[idx][:, None])
+    bad = ~np.isfinite(res).all(axis=1)
+    J = np.empty((k, 8, P))
+    J[:, 0] = Gx
+    J[:, 1] = Gy
+    np.multiply(Gx, ux, out=J[:, 2])
+    np.multiply(Gx, uy, out=J[:, 3])
+    np.multiply(Gy, ux, out=J[:, 4])
+    np.multiply(Gy, uy, out=J[:, 5])
+    J[:, 6] = Rv
+    J[:, 7] = 1.0
+    if bad.any():
+        J[bad] = 0.0
+        res[bad] = 0.0
+    N = np.matmul(J, J.transpose(0, 2, 1))
+    c = np.matmul(J, res[:, :, None])[:, :, 0]
+    det = np.linalg.det(N)
+    bad |= ~np.isfinite(det) | (np.abs(det) < 1e-300)
+    N[bad] = np.eye(8)
+    Ni = np.linalg.inv(N)
+    dp = np.matmul(Ni, c[:, :, None])[:, :, 0]
+    st.t[idx] += dp[:, :2]
+    st.A[idx] += dp[:, 2:6].reshape(-1, 2, 2)
+    st.gain[idx] += dp[:, 6]
+    st.off[idx] += dp[:, 7]
+    return np.hypot(dp[:, 0], dp[:, 1]), bad, Ni, Rv, res
+
+
+def _refine_chunk(L: NDArray[np.float32], sample: _Sampler, pl, pr, A, cfg: LsmConfig):
+    r = int(cfg.radius_px)
+    n1 = 2 * r + 1
+    ux, uy = _window(r)
     m = len(pl)
     npx = ux.shape[1]
-    T = _bicubic_padded(*L, pl[:, :1] + ux, pl[:, 1:] + uy)                    # (m, P)
-    t = pr.copy()
-    A = A.copy()
+    # the window is centred on the nearest left pixel p0 (no resampling of the template); its partner t
+    # is refined, and the left point pl = p0 + d lands at t + A d under the same local affine model
+    p0 = np.rint(pl).astype(np.int64)
+    d = pl - p0
+    T = _template(L, p0, r)                                             # (m, P)
+    t0 = pr - np.einsum("kij,kj->ki", A, d)
+    st = _State(t0.copy(), A.copy(), np.ones(m), np.zeros(m))
     # initial radiometry from window statistics
-    R0 = _sample(R, t, A, ux, uy)
+    R0 = sample(*st.coords(slice(None), ux, uy))[0]
     active = np.isfinite(T).all(axis=1) & np.isfinite(R0).all(axis=1)
     Tz = np.where(active[:, None], T, 0.0)
     Rz = np.where(active[:, None], R0, 0.0)
     sr = Rz.std(axis=1)
     gain = np.where(active & (sr > 0), Tz.std(axis=1) / np.where(sr > 0, sr, 1.0), 1.0)
-    gain = np.where(gain > 0, gain, 1.0)
-    off = Tz.mean(axis=1) - gain * Rz.mean(axis=1)
+    st.gain = np.where(gain > 0, gain, 1.0)
+    st.off = Tz.mean(axis=1) - st.gain * Rz.mean(axis=1)
     done = np.zeros(m, dtype=bool)
     failed = ~active
     iters = np.zeros(m, dtype=np.int64)
+    s2 = np.full(m, np.nan)
+    corr = np.full(m, np.nan)
     Ninv = np.full((m, 8, 8), np.nan)
-    ssr = np.full(m, np.nan)
     for it in range(cfg.max_iter):
         idx = np.flatnonzero(~done & ~failed)
         if idx.size == 0:
             break
-        ti, Ai = t[idx], A[idx]
-        xs = ti[:, :1] + Ai[:, 0, :1] * ux + Ai[:, 0, 1:] * uy
-        ys = ti[:, 1:] + Ai[:, 1, :1] * ux + Ai[:, 1, 1:] * uy
-        Rv = _bicubic_padded(*R, xs, ys)
-        # gradients of the resampled window (consistent with the resampling), back to image axes
-        W = Rv.reshape(-1, 2 * r + 1, 2 * r + 1)
-        du = np.asarray(np.gradient(W, axis=2)).reshape(Rv.shape)
-        dv = np.asarray(np.gradient(W, axis=1)).reshape(Rv.shape)
-        Ainv = np.linalg.inv(Ai)                                      # grad_x = A^-T grad_u
-        Gx = Ainv[:, 0, :1] * du + Ainv[:, 1, :1] * dv
-        Gy = Ainv[:, 0, 1:] * du + Ainv[:, 1, 1:] * dv
-        gi = gain[idx][:, None]
-        res = T[idx] - (gi * Rv + off[idx][:, None])
-        J = np.stack([gi * Gx, gi * Gy, gi * Gx * ux, gi * Gx * uy, gi * Gy * ux, gi * Gy * uy,
-                      Rv, np.ones_like(Rv)], axis=2)                     # (k, P, 8)
-        bad = ~np.isfinite(res).all(axis=1)
-        J = np.nan_to_num(J)
-        res = np.nan_to_num(res)
-        N = np.einsum("kpi,kpj->kij", J, J)
-        c = np.einsum("kpi,kp->ki", J, res)
-        det = np.linalg.det(N)
-        bad |= ~np.isfinite(det) | (np.abs(det) < 1e-300)
-        N[bad] = np.eye(8)
-        try:
-            Ni = np.linalg.inv(N)
-        except np.linalg.LinAlgError:  # pragma: no cover - guarded by the det test
-            Ni = np.array([np.linalg.pinv(x) for x in N])
-        dp = np.einsum("kij,kj->ki", Ni, c)
-        t[idx, 0] += dp[:, 0]
-        t[idx, 1] += dp[:, 1]
-        A[idx, 0, 0] += dp[:, 2]
-        A[idx, 0, 1] += dp[:, 3]
-        A[idx, 1, 0] += dp[:, 4]
-        A[idx, 1, 1] += dp[:, 5]
-        gain[idx] += dp[:, 6]
-        off[idx] += dp[:, 7]
+        step, bad, Ni, Rv, res = _gauss_newton_step(T, st, idx, sample, ux, uy, n1)
         iters[idx] = it + 1
-        Ninv[idx] = Ni
-        ssr[idx] = np.sum(res * res, axis=1)
-        step = np.hypot(dp[:, 0], dp[:, 1])
-        moved = np.hypot(*(t[idx] - pr[idx]).T)
-        detA = np.abs(np.linalg.det(A[idx]))
-        failed[idx] |= bad | ~np.isfinite(step) | (moved > cfg.max_shift_px) | (detA < 1e-3) | (gain[idx] <= 0)
-        done[idx] |= (step < cfg.tol_px) & ~failed[idx]
+        moved = np.hypot(*(st.t[idx] - t0[idx]).T)
+        detA = np.abs(np.linalg.det(st.A[idx]))
+        failed[idx] |= (bad | ~np.isfinite(step) | (moved > cfg.max_shift_px) | (detA < 1e-3)
+                        | (st.gain[idx] <= 0))
+        fin = (step < cfg.tol_px) & ~failed[idx]
+        done[idx] |= fin
+        if fin.any():
+            # precision and correlation where the last update fell below tol_px (from its residuals)
+            j, f = idx[fin], np.flatnonzero(fin)
+            s2[j] = np.sum(res[f] * res[f], axis=1) / max(npx - 8, 1)
+            Ninv[j] = Ni[f]
+            a = T[j] - T[j].mean(axis=1, keepdims=True)
+            b = Rv[f] - Rv[f].mean(axis=1, keepdims=True)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                corr[j] = np.sum(a * b, axis=1) / np.sqrt(np.sum(a * a, axis=1) * np.sum(b * b, axis=1))
     conv = done & ~failed
-    # precision and correlation at the final estimate
+    right = pr.copy()
     std = np.full(m, np.nan)
-    corr = np.full(m, np.nan)
     if conv.any():
         idx = np.flatnonzero(conv)
-        Rv = _sample(R, t[idx], A[idx], ux, uy)
-        Ti = T[idx]
-        res = Ti - (gain[idx][:, None] * Rv + off[idx][:, None])
-        s2 = np.sum(res * res, axis=1) / max(npx - 8, 1)
-        var = s2[:, None] * np.stack([Ninv[idx, 0, 0], Ninv[idx, 1, 1]], axis=1)
-        std[idx] = np.sqrt(np.abs(var).sum(axis=1))
-        a = Ti - Ti.mean(axis=1, keepdims=True)
-        b = Rv - Rv.mean(axis=1, keepdims=True)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            corr[idx] = np.sum(a * b, axis=1) / np.sqrt(np.sum(a * a, axis=1) * np.sum(b * b, axis=1))
+        # right position of pl: t + A d; its covariance from that of (t, A): sigma0^2 G N^-1 G^T
+        di = d[idx]
+        G = np.zeros((len(idx), 2, 8))
+        G[:, 0, 0] = G[:, 1, 1] = 1.0
+        G[:, 0, 2:4] = di
+        G[:, 1, 4:6] = di
+        C = s2[idx, None, None] * (G @ Ninv[idx] @ G.transpose(0, 2, 1))
+        std[idx] = np.sqrt(np.abs(C[:, 0, 0]) + np.abs(C[:, 1, 1]))
         ok = np.isfinite(std[idx]) & (std[idx] <= cfg.max_std_px) & (corr[idx] >= cfg.min_corr)
         conv[idx] = ok
-    out = np.where(conv[:, None], t, pr)
-    return out, conv, np.where(conv, std, np.nan), corr, iters, A
-
-
-def _sample(R: _Padded, t, A, ux, uy):
-    xs = t[:, :1] + A[:, 0, :1] * ux + A[:, 0, 1:] * uy
-    ys = t[:, 1:] + A[:, 1, :1] * ux + A[:, 1, 1:] * uy
-    return _bicubic_padded(*R, xs, ys)
+        right[idx] = st.t[idx] + np.einsum("kij,kj->ki", st.A[idx], di)
+    right = np.where(conv[:, None], right, pr)
+    return right, conv, np.where(conv, std, np.nan), corr, iters, st.A
