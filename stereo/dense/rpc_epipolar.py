@@ -457,11 +457,14 @@ def resample_rectified(path: str | Path, S: NDArray[np.float64], col0: int, row0
     src = data[:, :, 0].astype(np.float32)
     mx = (ox - c0).astype(np.float32)
     my = (oy - r0).astype(np.float32)
-    out = cv2.remap(src, mx, my, flags[interpolation], borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    out = np.asarray(cv2.remap(src, mx, my, flags[interpolation], borderMode=cv2.BORDER_CONSTANT, borderValue=0),
+                     dtype=np.float32)
     # valid where every source pixel of the cubic kernel is valid
-    inval = (~valid).astype(np.uint8)
+    inval = np.asarray((~valid).astype(np.uint8))
     if interpolation != "nearest":
-        inval = cv2.dilate(inval, np.ones((3, 3) if interpolation == "linear" else (5, 5), np.uint8))
-    v = cv2.remap(inval, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=1) == 0
+        inval = np.asarray(cv2.dilate(inval, np.ones((3, 3) if interpolation == "linear" else (5, 5), np.uint8)),
+                           dtype=np.uint8)
+    v = np.asarray(cv2.remap(inval, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=1) == 0,
+                   dtype=bool)
     out[~v] = 0
     return out, v
