@@ -748,6 +748,7 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
              info: _Info, *, robust_from_start: bool) -> tuple[bs.State, bs.Weights, int, bool]:
     base = _base_weights(prob, factors)
     dense = prob.n_c <= options.dense_limit
+    banded = bs.use_banded(prob)
     mu = 1e-4
     robust_on = psi is not None and robust_from_start
     frozen = False
@@ -768,8 +769,10 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
     # a free network keeps its weak deformation modes (no datum observations damp them), which the
     # Levenberg-Marquardt damping of the nonlinear point depths makes converge linearly: more iterations
     limit = max(options.max_iterations, FREE_NETWORK_MIN_ITERATIONS) if info.free_network else options.max_iterations
+    lin: bs.Linear | None = None
     for it in range(1, limit + 1):
-        lin = bs.evaluate(prob, st, jacobian=True)
+        if lin is None:
+            lin = bs.evaluate(prob, st, jacobian=True)
         dw = 0.0
         if robust_on:
             if scales is None:
@@ -783,15 +786,17 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
         cost = lin.res.cost(w)
         accepted = False
         for _ in range(12):
-            ne = bs.normal(prob, lin, w, mu, dense=dense)
+            ne = bs.normal(prob, lin, w, mu, dense=dense, banded=banded)
             xc, xp = bs.solve_reduced(ne)
             nstep = max(float(np.max(np.abs(xc) * np.sqrt(ne.diag_c), initial=0.0)),
                         float(np.max(np.abs(xp) * np.sqrt(ne.diag_p), initial=0.0)))
             trial = bs.refine_points(prob, bs.apply_step(prob, st, xc, xp), w)
-            tres = bs.evaluate(prob, trial, jacobian=False).res
+            # with the Jacobians: an accepted trial is the next iteration's linearisation
+            tlin = bs.evaluate(prob, trial, jacobian=True)
+            tres = tlin.res
             tcost = tres.cost(w) if (tres.depth > 0).all() else math.inf
             if tcost <= cost * (1 + 1e-12) or nstep < options.tolerance:
-                st = trial
+                st, lin = trial, tlin
                 mu = max(mu / 10.0, 1e-10)
                 accepted = True
                 break

@@ -71,7 +71,7 @@ def rotation_axes(angles: NDArray[np.float64]) -> NDArray[np.float64]:
 
 def project(R: NDArray[np.float64], C: NDArray[np.float64], axes: NDArray[np.float64],
             interior: NDArray[np.float64], pixel_size: NDArray[np.float64], centre: NDArray[np.float64],
-            X: NDArray[np.float64], *, jacobian: bool = True
+            X: NDArray[np.float64], *, jacobian: bool = True, pose: bool = True, intrinsic: bool = True
             ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
                        NDArray[np.float64]]:
     """Project M observations and differentiate.
@@ -94,6 +94,10 @@ def project(R: NDArray[np.float64], C: NDArray[np.float64], axes: NDArray[np.flo
         Ground point, m.
     jacobian : bool
         Compute the derivatives.
+    pose, intrinsic : bool
+        With ``jacobian``: also the derivatives by the pose and by the interior vector (else those
+        two are returned empty, (0, 2, 6) and (0, 2, 8); the point derivatives alone are what the
+        intersection of the points with the cameras held needs).
 
     Returns
     -------
@@ -109,44 +113,54 @@ def project(R: NDArray[np.float64], C: NDArray[np.float64], axes: NDArray[np.flo
         d pixel / d interior vector.
     """
     d = X - C
-    p = np.einsum("mji,mj->mi", R, d)
-    p2 = p[:, 2]
+    p = np.matmul(d[:, None, :], R)[:, 0, :]  # R^T d
+    p0, p1, p2 = p[:, 0], p[:, 1], p[:, 2]
     w = 1.0 / p2
-    nx = -p[:, 0] * w
-    ny = p[:, 1] * w
+    nx = -p0 * w
+    ny = p1 * w
     f, x0, y0, k1, k2, k3, q1, q2 = (interior[:, i] for i in range(8))
     r2 = nx * nx + ny * ny
     rad = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xd = nx * rad + 2 * q1 * nx * ny + q2 * (r2 + 2 * nx * nx)
-    yd = ny * rad + q1 * (r2 + 2 * ny * ny) + 2 * q2 * nx * ny
+    nxy = nx * ny
+    xd = nx * rad + 2 * q1 * nxy + q2 * (r2 + 2 * nx * nx)
+    yd = ny * rad + q1 * (r2 + 2 * ny * ny) + 2 * q2 * nxy
     F = f / pixel_size
-    cx = centre[:, 0] + x0 / pixel_size
-    cy = centre[:, 1] - y0 / pixel_size
-    pix = np.column_stack([F * xd + cx, F * yd + cy])
+    pix = np.empty((len(X), 2))
+    pix[:, 0] = F * xd + centre[:, 0] + x0 / pixel_size
+    pix[:, 1] = F * yd + centre[:, 1] - y0 / pixel_size
     m = len(X)
+    z6, z8 = np.zeros((0, 2, 6)), np.zeros((0, 2, 8))
     if not jacobian:
-        z = np.zeros((0, 2, 6))
-        return pix, -p2, z, np.zeros((0, 2, 3)), np.zeros((0, 2, 8))
-    # d n / d p  (M, 2, 3)
-    dn = np.zeros((m, 2, 3))
-    dn[:, 0, 0] = -w
-    dn[:, 0, 2] = p[:, 0] * w * w
-    dn[:, 1, 1] = w
-    dn[:, 1, 2] = -p[:, 1] * w * w
-    # d n_d / d n  (M, 2, 2)
+        return pix, -p2, z6, np.zeros((0, 2, 3)), z8
+    # d n_d / d n  (M, 2, 2), times F
     drad = k1 + r2 * (2 * k2 + 3 * k3 * r2)
-    dd = np.empty((m, 2, 2))
-    dd[:, 0, 0] = rad + 2 * nx * nx * drad + 2 * q1 * ny + 6 * q2 * nx
-    dd[:, 0, 1] = 2 * nx * ny * drad + 2 * q1 * nx + 2 * q2 * ny
-    dd[:, 1, 0] = dd[:, 0, 1]
-    dd[:, 1, 1] = rad + 2 * ny * ny * drad + 6 * q1 * ny + 2 * q2 * nx
-    dd *= F[:, None, None]
-    q = np.einsum("mab,mbk->mak", dd, dn)  # d pixel / d p
-    J_point = np.einsum("mak,mjk->maj", q, R)  # d p / d X = R^T
+    a00 = F * (rad + 2 * nx * nx * drad + 2 * q1 * ny + 6 * q2 * nx)
+    a01 = F * (2 * nxy * drad + 2 * q1 * nx + 2 * q2 * ny)
+    a11 = F * (rad + 2 * ny * ny * drad + 6 * q1 * ny + 2 * q2 * nx)
+    # q = d pixel / d p = dd @ dn, dn = [[-w, 0, p0 w^2], [0, w, -p1 w^2]]
+    q = np.empty((m, 2, 3))
+    ww = w * w
+    u0, u1 = p0 * ww, -p1 * ww
+    q[:, 0, 0] = -w * a00
+    q[:, 0, 1] = w * a01
+    q[:, 0, 2] = a00 * u0 + a01 * u1
+    q[:, 1, 0] = -w * a01
+    q[:, 1, 1] = w * a11
+    q[:, 1, 2] = a01 * u0 + a11 * u1
+    J_point = np.matmul(q, R.transpose(0, 2, 1))  # d p / d X = R^T
+    if not pose:
+        return pix, -p2, z6, J_point, z8
     J_pose = np.empty((m, 2, 6))
-    for a in range(3):
-        J_pose[:, :, a] = np.einsum("maj,mj->ma", J_point, np.cross(d, axes[:, a]))
+    # d p / d angle_a = R^T (d x a_a) = p x (R^T a_a); q (p x b) = (q x p) . b
+    qx = np.empty((m, 2, 3))
+    qx[:, :, 0] = q[:, :, 1] * p2[:, None] - q[:, :, 2] * p1[:, None]
+    qx[:, :, 1] = q[:, :, 2] * p0[:, None] - q[:, :, 0] * p2[:, None]
+    qx[:, :, 2] = q[:, :, 0] * p1[:, None] - q[:, :, 1] * p0[:, None]
+    B = np.matmul(R.transpose(0, 2, 1), axes.transpose(0, 2, 1))  # columns R^T a_a
+    J_pose[:, :, :3] = np.matmul(qx, B)
     J_pose[:, :, 3:] = -J_point
+    if not intrinsic:
+        return pix, -p2, J_pose, J_point, z8
     J_int = np.empty((m, 2, 8))
     J_int[:, 0, 0] = xd / pixel_size
     J_int[:, 1, 0] = yd / pixel_size
@@ -158,8 +172,8 @@ def project(R: NDArray[np.float64], C: NDArray[np.float64], axes: NDArray[np.flo
     for col, rr in ((3, r2), (4, r4), (5, r4 * r2)):
         J_int[:, 0, col] = F * nx * rr
         J_int[:, 1, col] = F * ny * rr
-    J_int[:, 0, 6] = F * 2 * nx * ny
+    J_int[:, 0, 6] = F * 2 * nxy
     J_int[:, 1, 6] = F * (r2 + 2 * ny * ny)
     J_int[:, 0, 7] = F * (r2 + 2 * nx * nx)
-    J_int[:, 1, 7] = F * 2 * nx * ny
+    J_int[:, 1, 7] = F * 2 * nxy
     return pix, -p2, J_pose, J_point, J_int

@@ -31,6 +31,14 @@ __all__: list[str] = []
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
+#: Gauss-Newton steps of the point intersection after every camera step (:func:`refine_points`)
+REFINE_STEPS = 1
+#: the reduced system is factorised as a banded matrix (images in reverse Cuthill-McKee order) when that
+#: needs this many times fewer flops than a dense Cholesky ...
+BANDED_MIN_GAIN = 4.0
+#: ... and at most this many
+BANDED_MAX_FLOPS = 5e10
+
 
 @dataclass
 class Problem:
@@ -59,6 +67,8 @@ class Problem:
     c_sigma: F64 = field(default_factory=lambda: np.zeros((0, 3)))   # inf = component not observed
     obs_mark: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))  # (M,) control/check image obs
     dense_limit: int = 4000
+    #: index structures of the reduced camera system (built once, :func:`_structure`)
+    cache: dict[str, object] = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def n_cams(self) -> int:
@@ -137,17 +147,24 @@ def wrap(a: F64) -> F64:
     return np.asarray(-((-a + np.pi) % (2 * np.pi) - np.pi), dtype=np.float64)
 
 
-def evaluate(prob: Problem, st: State, *, jacobian: bool) -> Linear:
-    """Residuals (and Jacobians) of all groups at ``st``."""
+def evaluate(prob: Problem, st: State, *, jacobian: bool, points_only: bool = False) -> Linear:
+    """Residuals (and Jacobians) of all groups at ``st``; with ``points_only`` the image Jacobian by the
+    points alone (``Jc`` is then empty)."""
     R = rotations(st.angles)
     axes = rotation_axes(st.angles)
     oi = prob.obs_img
-    cam = prob.cam_of_image[oi]
-    pix, depth, Jpose, Jpt, Jint = project(R[oi], st.centres[oi], axes[oi], st.interior[cam],
-                                           prob.pixel_size[cam], prob.centre[cam], st.points[prob.obs_pt],
-                                           jacobian=jacobian)
+    want_c = jacobian and not points_only
+    if prob.n_cams == 1:  # one camera: its constants broadcast
+        intr, psz, cen = st.interior[:1], prob.pixel_size[:1], prob.centre[:1]
+    else:
+        cam = prob.cam_of_image[oi]
+        intr, psz, cen = st.interior[cam], prob.pixel_size[cam], prob.centre[cam]
+    pix, depth, Jpose, Jpt, Jint = project(np.take(R, oi, axis=0), np.take(st.centres, oi, axis=0),
+                                           np.take(axes, oi, axis=0) if want_c else axes[:0], intr, psz, cen,
+                                           np.take(st.points, prob.obs_pt, axis=0), jacobian=jacobian,
+                                           pose=want_c, intrinsic=want_c and prob.c > 0)
     v = prob.obs_px - pix
-    Jc = np.concatenate([Jpose, Jint[:, :, prob.sel]], axis=2) if jacobian else Jpose
+    Jc = np.concatenate([Jpose, Jint[:, :, prob.sel]], axis=2) if want_c and prob.c else Jpose
     gi = prob.g_img
     Jg = np.zeros((len(gi), 3, 6))
     if len(gi):
@@ -168,10 +185,27 @@ def evaluate(prob: Problem, st: State, *, jacobian: bool) -> Linear:
 
 
 @dataclass
+class Banded:
+    """A symmetric banded matrix in LAPACK's lower storage, its unknowns reordered.
+
+    ``ab[i - j, j] = S[order[i], order[j]]`` for ``0 <= i - j <= b`` (``order[k]`` is the original
+    index of reordered unknown k).
+    """
+
+    ab: F64          # (b + 1, n)
+    order: I64       # (n,)
+
+    def diagonal(self) -> F64:
+        out = np.empty(self.ab.shape[1])
+        out[self.order] = self.ab[0]
+        return out
+
+
+@dataclass
 class Normal:
     """Normal equations in Schur form."""
 
-    S: F64 | sp.csc_matrix     # reduced camera system (damped)
+    S: F64 | sp.csc_matrix | Banded   # reduced camera system (damped)
     rhs_c: F64                 # (n_c,)
     Cinv: F64                  # (P, 3, 3) inverse damped point blocks
     bp: F64                    # (P, 3)
@@ -181,29 +215,168 @@ class Normal:
     diag_c: F64                # (n_c,) undamped diagonal of N_cc
     diag_p: F64                # (P, 3) undamped diagonal of the point blocks
     starts: I64                # (P,) first observation of each point
+    point_sum: sp.csr_matrix   # (P, M) sums observations per point
 
 
 def _seg_sum(a: F64, prob: Problem) -> F64:
-    """Sum rows of ``a`` (M, ...) over the observations of each point (sorted, contiguous)."""
-    return np.asarray(np.add.reduceat(a, prob.pt_start, axis=0), dtype=np.float64)
+    """Sum rows of ``a`` (M, ...) over the observations of each point (a sparse aggregation, far faster
+    than ``np.add.reduceat`` over rows)."""
+    A = _point_sum(prob)
+    return np.asarray(A @ a.reshape(len(a), -1), dtype=np.float64).reshape((A.shape[0],) + a.shape[1:])
 
 
-def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool) -> Normal:
-    """Assemble the damped normal equations (``N + mu diag(N)``) and reduce them to the cameras."""
-    nc, P = prob.n_c, prob.n_points
+def _point_sum(prob: Problem) -> sp.csr_matrix:
+    """(P, M) 0/1 matrix summing observations per point (cached)."""
+    got = prob.cache.get("point_sum")
+    if got is None:
+        M = len(prob.obs_pt)
+        got = sp.csr_matrix((np.ones(M), (prob.obs_pt, np.arange(M))), shape=(prob.n_points, M))
+        prob.cache["point_sum"] = got
+    return got
+
+
+@dataclass
+class _Group:
+    """Points of one track length ``m`` (a chunk of them) and their observation pairs a < b."""
+
+    obs: I64              # (k * m,) observations, point-major
+    m: int
+    ia: I64               # (q,) pair slots a < b within a track
+    ib: I64
+    agg: sp.csr_matrix    # (K, q * k) image pair of every (slot, point), slot-major
+
+
+@dataclass
+class _Structure:
+    """Index structures of the reduced camera system, fixed for a problem.
+
+    The reduced system ``S = N_cc - sum_j W_j C_j^-1 W_j^T`` has, per point j, the blocks
+    ``G_a E_b^T`` of every pair (a, b) of its observations. Those of the pairs a < b are summed per
+    image pair (``groups``: the points grouped by track length, so each pair slot is one batched
+    product, summed into the image pairs by a sparse 0/1 matrix), those of a = b with ``N_cc`` per
+    image (``img_sum``); ``S`` is then one scatter (``rows``, ``cols``) of the image blocks, the
+    image-pair blocks and their transposes.
+    """
+
+    cidx: I64                  # (M, d) camera-side unknowns of each observation
+    n_pairs: int               # K image pairs
+    groups: list[_Group]
+    img_sum: list[tuple[int, int, sp.csr_matrix]]   # observation ranges and their (n, o1 - o0) image sums
+    rows: I64                  # (L,) row of every entry of S scattered (image blocks, pair blocks, transposes)
+    cols: I64                  # (L,)
+    band: tuple[I64, I64, int] | None = None   # banded lower storage: entries kept, their flat index, bandwidth
+    band_order: I64 | None = None              # reordered unknowns (original index of each)
+    band_gain: float = 1.0     # flops of a dense Cholesky / of the banded one
+
+
+def _structure(prob: Problem, chunk: int = 200_000) -> _Structure:
+    got = prob.cache.get("structure")
+    if isinstance(got, _Structure):
+        return got
     cidx = prob.cidx()
     d = cidx.shape[1]
+    M, n = len(prob.obs_pt), prob.n_images
+    img = prob.obs_img
+    parts = []
+    for m in np.unique(prob.pt_count):
+        if m < 2:
+            continue
+        st = prob.pt_start[prob.pt_count == m]
+        ia, ib = np.triu_indices(int(m), 1)
+        step = max(1, chunk // len(ia))
+        for k0 in range(0, len(st), step):
+            obs = (st[k0:k0 + step, None] + np.arange(m)).astype(np.int64)   # (k, m)
+            keys = (img[obs[:, ia]] * n + img[obs[:, ib]]).T.ravel()          # slot-major
+            parts.append((obs.ravel(), int(m), ia.astype(np.int64), ib.astype(np.int64), keys))
+    allkeys = np.concatenate([p[4] for p in parts]) if parts else np.zeros(0, np.int64)
+    uk, inv = np.unique(allkeys, return_inverse=True)
+    K = len(uk)
+    groups, pos = [], 0
+    for obs, m, ia, ib, keys in parts:
+        q = len(keys)
+        agg = sp.csr_matrix((np.ones(q), (inv[pos:pos + q], np.arange(q))), shape=(K, q))
+        groups.append(_Group(obs, m, ia, ib, agg))
+        pos += q
+    img_sum = []
+    for o0 in range(0, M, chunk):
+        o1 = min(M, o0 + chunk)
+        img_sum.append((o0, o1, sp.csr_matrix((np.ones(o1 - o0), (img[o0:o1], np.arange(o1 - o0))),
+                                              shape=(n, o1 - o0))))
+    # entries of S: the image blocks (d x d), the pair blocks and their transposes
+    cam_of = prob.cam_of_image
+    first = np.concatenate([6 * np.arange(n)[:, None] + np.arange(6),
+                            6 * n + prob.c * cam_of[:, None] + np.arange(prob.c)], axis=1).astype(np.int64)
+    ra, rb = first[uk // n], first[uk % n]                # (K, d)
+    rows = np.concatenate([np.broadcast_to(first[:, :, None], (n, d, d)).ravel(),
+                           np.broadcast_to(ra[:, :, None], (K, d, d)).ravel(),
+                           np.broadcast_to(rb[:, None, :], (K, d, d)).ravel()])
+    cols = np.concatenate([np.broadcast_to(first[:, None, :], (n, d, d)).ravel(),
+                           np.broadcast_to(rb[:, None, :], (K, d, d)).ravel(),
+                           np.broadcast_to(ra[:, :, None], (K, d, d)).ravel()])
+    out = _Structure(cidx, K, groups, img_sum, rows.astype(np.int64), cols.astype(np.int64))
+    if prob.c == 0 and n > 2:
+        _band(out, n, uk // n, uk % n)
+    prob.cache["structure"] = out
+    return out
+
+
+def _band(sx: _Structure, n: int, ia: I64, ib: I64) -> None:
+    """Banded storage of S (no interior unknowns): images in reverse Cuthill-McKee order of the image graph."""
+    from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+    A = sp.csr_matrix((np.ones(len(ia)), (ia, ib)), shape=(n, n))
+    perm = np.asarray(reverse_cuthill_mckee((A + A.T + sp.eye(n)).tocsr(), symmetric_mode=True), dtype=np.int64)
+    inv = np.empty(n, np.int64)
+    inv[perm] = np.arange(n)
+    bw = int(np.abs(inv[ia] - inv[ib]).max(initial=0))
+    nc = 6 * n
+    b = 6 * bw + 5
+    order = (6 * perm[:, None] + np.arange(6)).ravel().astype(np.int64)
+    pos = np.empty(nc, np.int64)
+    pos[order] = np.arange(nc)
+    r, c = pos[sx.rows], pos[sx.cols]
+    keep = np.flatnonzero(r >= c).astype(np.int64)
+    sx.band = (keep, ((r[keep] - c[keep]) * nc + c[keep]).astype(np.int64), b)
+    sx.band_order = order
+    sx.band_gain = (nc ** 3 / 3.0) / max(nc * (b + 1) ** 2, 1)
+
+
+def use_banded(prob: Problem) -> bool:
+    """Whether the iterations factorise the reduced system as a banded matrix: no self-calibration (its
+    interior unknowns couple every image of a camera), at least :data:`BANDED_MIN_GAIN` times fewer flops
+    than a dense Cholesky, and at most :data:`BANDED_MAX_FLOPS`."""
+    sx = _structure(prob)
+    if sx.band is None:
+        return False
+    b = sx.band[2]
+    return sx.band_gain >= BANDED_MIN_GAIN and prob.n_c * (b + 1) ** 2 <= BANDED_MAX_FLOPS
+
+
+def _outer(A: F64, B: F64) -> F64:
+    """(m, i, r) x (m, j, r) -> (m, i, j): sum_r A_ir B_jr."""
+    return np.asarray(np.matmul(A, B.transpose(0, 2, 1)), dtype=np.float64)
+
+
+def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool, banded: bool = False) -> Normal:
+    """Assemble the damped normal equations (``N + mu diag(N)``) and reduce them to the cameras.
+
+    The reduced system is dense (``dense``), a sparse CSC matrix, or with ``banded`` (when
+    :func:`banded_gain` allows) a :class:`Banded` matrix."""
+    nc, n = prob.n_c, prob.n_images
+    sx = _structure(prob)
+    cidx = sx.cidx
+    d = cidx.shape[1]
     Jc, Jp, wi, v = lin.Jc, lin.Jp, w.image, lin.res.image
-    WJc = Jc * wi[:, :, None]
-    Ncc_o = np.einsum("mri,mrj->mij", WJc, Jc)
-    E = np.einsum("mri,mrj->mij", WJc, Jp)
-    Cp: F64 = _seg_sum(np.einsum("mri,mrj->mij", Jp * wi[:, :, None], Jp), prob)
-    bp = _seg_sum(np.einsum("mri,mr->mi", Jp, wi * v), prob)
-    bc_o = np.einsum("mri,mr->mi", Jc, wi * v)
-    rhs: F64 = np.bincount(cidx.ravel(), weights=bc_o.ravel(), minlength=nc).astype(np.float64)
+    WJp = Jp * wi[:, :, None]
+    E = np.matmul(WJp.transpose(0, 2, 1), Jc).transpose(0, 2, 1).copy()   # (M, d, 3) = Jc^T W Jp
+    Cp: F64 = _seg_sum(np.matmul(WJp.transpose(0, 2, 1), Jp), prob)
+    wv = wi * v
+    bp = _seg_sum(np.matmul(wv[:, None, :], Jp)[:, 0, :], prob)
+    bc_o = np.matmul(wv[:, None, :], Jc)[:, 0, :]
+    del WJp
     # pose-only groups: GNSS positions and INS angles, 6x6 blocks per image
-    pose_blocks = np.zeros((prob.n_images, 6, 6))
-    pose_rhs = np.zeros((prob.n_images, 6))
+    pose_blocks = np.zeros((n, 6, 6))
+    pose_rhs = np.zeros((n, 6))
     if len(prob.g_img):
         WJg = lin.Jg * w.gnss[:, :, None]
         np.add.at(pose_blocks, prob.g_img, np.einsum("gri,grj->gij", WJg, lin.Jg))
@@ -212,7 +385,6 @@ def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool) ->
         idx = np.arange(3)
         np.add.at(pose_blocks, (prob.i_img[:, None], idx, idx), w.ins)
         np.add.at(pose_rhs, (prob.i_img[:, None], idx), w.ins * lin.res.ins)
-    rhs[: 6 * prob.n_images] += pose_rhs.ravel()
     if len(prob.c_pt):
         idx = np.arange(3)
         np.add.at(Cp, (prob.c_pt[:, None], idx, idx), w.control)
@@ -228,34 +400,49 @@ def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool) ->
         j = int(np.flatnonzero(bad)[0])
         raise EstimationError(f"object point index {j} is not determined by its rays (singular 3x3 normal block, "
                               f"relative determinant {rel[j]:.3g})")
-    G = np.einsum("mia,mab->mib", E, Cinv[prob.obs_pt])
-    rhs -= np.bincount(cidx.ravel(), weights=np.einsum("mia,ma->mi", G, bp[prob.obs_pt]).ravel(), minlength=nc)
-    shape3 = (len(cidx), d, 3)
-    rows = np.broadcast_to(cidx[:, :, None], shape3).ravel()
-    cols_r = np.broadcast_to((3 * prob.obs_pt[:, None] + np.arange(3))[:, None, :], shape3).ravel()
-    Es = sp.csr_matrix((E.ravel(), (rows, cols_r)), shape=(nc, 3 * P))
-    Gs = sp.csr_matrix((G.ravel(), (rows, cols_r)), shape=(nc, 3 * P))
-    red = (Gs @ Es.T).tocoo()
-    pb = np.arange(6 * prob.n_images).reshape(-1, 6)
-    pr = np.repeat(pb, 6, axis=1).ravel()
-    pc = np.tile(pb, (1, 6)).ravel()
-    if dense:
-        flat = (cidx[:, :, None] * nc + cidx[:, None, :]).ravel()
-        Ncc = np.asarray(np.bincount(flat, weights=Ncc_o.ravel(), minlength=nc * nc).reshape(nc, nc), dtype=np.float64)
-        Ncc[pr, pc] += pose_blocks.ravel()
-        diag_c = np.diag(Ncc).copy()
-        S: F64 | sp.csc_matrix = Ncc
-        S[red.row, red.col] -= red.data  # the product has unique entries
+    G = np.matmul(E, Cinv[prob.obs_pt])                                    # (M, d, 3) = E C^-1
+    rc = bc_o - np.matmul(G, bp[prob.obs_pt][:, :, None])[:, :, 0]
+    rhs: F64 = np.bincount(cidx.ravel(), weights=rc.ravel(), minlength=nc).astype(np.float64)
+    rhs[: 6 * n] += pose_rhs.ravel()
+    # undamped diagonal of N_cc
+    diag_c: F64 = np.bincount(cidx.ravel(), weights=np.einsum("mri,mr,mri->mi", Jc, wi, Jc).ravel(),
+                              minlength=nc).astype(np.float64)
+    diag_c[: 6 * n] += np.diagonal(pose_blocks, axis1=1, axis2=2).ravel()
+    # image blocks: sum over the image's observations of Jc^T W Jc - G E^T
+    dd = d * d
+    img_blk = np.zeros((n, dd))
+    for o0, o1, agg in sx.img_sum:
+        jc = Jc[o0:o1]
+        blk = _outer((jc * wi[o0:o1, :, None]).transpose(0, 2, 1), jc.transpose(0, 2, 1))
+        blk -= _outer(G[o0:o1], E[o0:o1])
+        img_blk += agg @ blk.reshape(-1, dd)
+    img_blk = img_blk.reshape(n, d, d)
+    img_blk[:, :6, :6] += pose_blocks
+    # image-pair blocks: sum over the pairs a < b of the tracks of G_a E_b^T (one product per pair slot)
+    pair_blk = np.zeros((sx.n_pairs, dd))
+    for g in sx.groups:
+        k = len(g.obs) // g.m
+        Gm = np.take(G, g.obs, axis=0).reshape(k, g.m, d, 3)
+        Em = np.take(E, g.obs, axis=0).reshape(k, g.m, d, 3).transpose(0, 1, 3, 2)
+        buf = np.empty((len(g.ia), k, d, d))
+        for s_, (a_, b_) in enumerate(zip(g.ia, g.ib, strict=True)):
+            np.matmul(Gm[:, a_], Em[:, b_], out=buf[s_])
+        pair_blk += g.agg @ buf.reshape(-1, dd)
+    vals = np.concatenate([img_blk.ravel(), -pair_blk.ravel(), -pair_blk.ravel()])
+    S: F64 | sp.csc_matrix | Banded
+    if banded and sx.band is not None and sx.band_order is not None:
+        keep, flat, b = sx.band
+        ab: F64 = np.bincount(flat, weights=vals[keep], minlength=(b + 1) * nc).astype(np.float64, copy=False).reshape(b + 1, nc)
+        if mu > 0:
+            ab[0] += mu * diag_c[sx.band_order]
+        S = Banded(ab, sx.band_order)
+    elif dense:
+        S = np.bincount(sx.rows * nc + sx.cols, weights=vals, minlength=nc * nc).astype(np.float64, copy=False).reshape(nc, nc)
         if mu > 0:
             S[np.diag_indices(nc)] += mu * diag_c
     else:
-        r2 = np.broadcast_to(cidx[:, :, None], Ncc_o.shape).ravel()
-        c2 = np.broadcast_to(cidx[:, None, :], Ncc_o.shape).ravel()
-        Ncc_s = sp.csr_matrix((np.concatenate([Ncc_o.ravel(), pose_blocks.ravel()]),
-                               (np.concatenate([r2, pr]), np.concatenate([c2, pc]))), shape=(nc, nc))
-        diag_c = Ncc_s.diagonal().copy()
-        S = (Ncc_s - red.tocsr() + sp.diags(mu * diag_c)).tocsc()
-    return Normal(S, rhs, Cinv, bp, E, G, cidx, diag_c, diag_p, prob.pt_start)
+        S = (sp.csr_matrix((vals, (sx.rows, sx.cols)), shape=(nc, nc)) + sp.diags(mu * diag_c)).tocsc()
+    return Normal(S, rhs, Cinv, bp, E, G, cidx, diag_c, diag_p, prob.pt_start, _point_sum(prob))
 
 
 def inv3(A: F64) -> F64:
@@ -276,12 +463,28 @@ def inv3(A: F64) -> F64:
 def solve_reduced(ne: Normal) -> tuple[F64, F64]:
     """Camera-side step (n_c,) and point step (P, 3) from the Schur form."""
     S = ne.S
-    dg = S.diagonal() if sp.issparse(S) else np.diag(S)
+    dg = S.diagonal() if sp.issparse(S) or isinstance(S, Banded) else np.diag(S)
     if not (dg > 0).all():
         k = int(np.flatnonzero(~(dg > 0))[0])
         raise EstimationError(f"camera-side unknown {k} has no influence on the observations (diagonal {dg[k]!r})")
     s = 1.0 / np.sqrt(dg)
-    if sp.issparse(S):
+    if isinstance(S, Banded):
+        so = s[S.order]
+        b = S.ab.shape[0] - 1
+        ab = S.ab * so[None, :]
+        for k in range(1, b + 1):
+            ab[k, :-k] *= so[k:]
+        ab[0] *= so
+        try:
+            cb = scipy.linalg.cholesky_banded(ab, lower=True, overwrite_ab=True, check_finite=False)
+        except np.linalg.LinAlgError as err:
+            raise EstimationError(f"reduced camera system is not positive definite ({err}); "
+                                  "the datum is not defined or an image is not determined") from err
+        xo = scipy.linalg.cho_solve_banded((cb, True), (ne.rhs_c * s)[S.order], check_finite=False)
+        xc = np.empty_like(xo)
+        xc[S.order] = xo
+        xc *= s
+    elif sp.issparse(S):
         Ss = sp.diags(s) @ S @ sp.diags(s)
         try:
             lu = spla.splu(sp.csc_matrix(Ss))
@@ -289,9 +492,10 @@ def solve_reduced(ne: Normal) -> tuple[F64, F64]:
             raise EstimationError(f"reduced camera system is singular ({err}); the datum is not defined") from err
         xc = lu.solve(ne.rhs_c * s) * s
     else:
-        Ss = S * s[:, None] * s[None, :]
+        Ss = S * s[:, None]
+        Ss *= s[None, :]
         try:
-            cf = scipy.linalg.cho_factor(Ss, lower=True, check_finite=False)
+            cf = scipy.linalg.cho_factor(Ss, lower=True, overwrite_a=True, check_finite=False)
         except np.linalg.LinAlgError as err:
             raise EstimationError(f"reduced camera system is not positive definite ({err}); "
                                   "the datum is not defined or an image is not determined") from err
@@ -304,11 +508,11 @@ def solve_reduced(ne: Normal) -> tuple[F64, F64]:
 def back_substitute(ne: Normal, xc: F64) -> F64:
     """Point steps dX_j = C_j^-1 (b_j - W_j^T dx_c), (P, 3)."""
     et = np.einsum("mia,mi->ma", ne.E, xc[ne.cidx])
-    acc = np.add.reduceat(et, ne.starts, axis=0)  # observations are sorted by point
+    acc = ne.point_sum @ et
     return np.asarray(np.einsum("pab,pb->pa", ne.Cinv, ne.bp - acc), dtype=np.float64)
 
 
-def refine_points(prob: Problem, st: State, w: Weights, *, iterations: int = 2) -> State:
+def refine_points(prob: Problem, st: State, w: Weights, *, iterations: int = REFINE_STEPS) -> State:
     """Gauss-Newton on the object points alone, the cameras held (intersection of every track).
 
     Run after each camera step, it settles the nonlinear point depths (two-ray points with small
@@ -319,10 +523,10 @@ def refine_points(prob: Problem, st: State, w: Weights, *, iterations: int = 2) 
     out = st.copy()
     eye = np.eye(3)
     for _ in range(iterations):
-        lin = evaluate(prob, out, jacobian=True)
+        lin = evaluate(prob, out, jacobian=True, points_only=True)
         Jp, wi, v = lin.Jp, w.image, lin.res.image
-        Cp: F64 = _seg_sum(np.einsum("mri,mrj->mij", Jp * wi[:, :, None], Jp), prob)
-        bp = _seg_sum(np.einsum("mri,mr->mi", Jp, wi * v), prob)
+        Cp: F64 = _seg_sum(np.matmul((Jp * wi[:, :, None]).transpose(0, 2, 1), Jp), prob)
+        bp = _seg_sum(np.matmul((wi * v)[:, None, :], Jp)[:, 0, :], prob)
         if len(prob.c_pt):
             idx = np.arange(3)
             np.add.at(Cp, (prob.c_pt[:, None], idx, idx), w.control)
