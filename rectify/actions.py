@@ -62,7 +62,8 @@ class MatchOptions:
     """Options of :func:`match`: detector, verification model, refinement, cap and USAC threshold (px).
 
     ``max_matches`` and ``threshold_px`` left at ``None`` take :class:`~rectify.features.MatcherConfig`'s
-    defaults (20000 matches, 1.5 px).
+    defaults (20000 matches, 1.5 px). ``scheduler`` says where the tiles of a large pair are searched
+    (``threads``, ``processes[:N]``, ``tcp://HOST:PORT``; ``None``: ``$RECTIFY_SCHEDULER``, else threads).
     """
 
     detector: str = "sift"
@@ -70,6 +71,7 @@ class MatchOptions:
     refine: bool = True
     max_matches: int | None = None
     threshold_px: float | None = None
+    scheduler: str | None = None
 
     def config(self) -> MatcherConfig:
         """The matcher configuration."""
@@ -142,7 +144,9 @@ def match(ws: Workspace, left: str | Path, right: str | Path, output: str | Path
     ws.plan(output)
     ws.check_report_dir()
     cfg = options.config()
-    res = match_images(left, right, config=cfg, progress=progress)
+    # the Dask tasks' block files go beside the output (on a cluster, a folder the workers share)
+    res = match_images(left, right, config=cfg, progress=progress, scheduler=options.scheduler,
+                       workdir=Path(output).resolve().parent)
     report = None
     with ws.transaction():  # the matches and the report, all or none
         out = ws.save_matches(output, res.matches)

@@ -7,7 +7,7 @@ import click
 from ..actions import DETECTORS, VERIFY_METHODS, MatchOptions
 from ..actions import match as match_action
 from ..workspace import Workspace
-from .options import echo, handle_errors, overwrite_opt, progress, report_opt
+from .options import echo, handle_errors, overwrite_opt, progress, report_opt, scheduler_opt
 
 _D = MatchOptions()
 
@@ -26,18 +26,19 @@ _D = MatchOptions()
 @click.option("--threshold", "threshold_px", type=click.FloatRange(min=0, min_open=True), default=None,
               help="USAC inlier threshold, px (default 1.5).")
 @report_opt
+@scheduler_opt
 @overwrite_opt
 @handle_errors
-def match(left, right, output, detector, verify, refine, max_matches, threshold_px, report_dir, overwrite):
+def match(left, right, output, detector, verify, refine, max_matches, threshold_px, report_dir, scheduler, overwrite):
     """Match LEFT against RIGHT and write the verified tie points to a CSV
     (id,col_left,row_left,col_right,row_right,score; pixel centres at integers).
 
     Large images (a side above 4096 px) are matched coarse-to-fine by tiles
-    with bounded memory. Prints the counts (detected, matched, verified) and
+    with bounded memory (their tiles on Dask with --scheduler). Prints the counts (detected, matched, verified) and
     the verification residual RMSE.
     """
     opts = MatchOptions(detector=detector, verify=verify, refine=refine, max_matches=max_matches,
-                        threshold_px=threshold_px)
+                        threshold_px=threshold_px, scheduler=scheduler)
     ws = Workspace(overwrite=overwrite, report_dir=report_dir)
     with progress("matching") as cb:
         run = match_action(ws, left, right, output, opts, progress=cb)

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import io as rio
+from ..distributed import Scheduler, resolve_scheduler
 from ..errors import EstimationError
 from .match import MatcherConfig, MatchResult, ProgressFn, _match_whole
 from .tiled import _match_tiled
@@ -15,7 +16,8 @@ __all__ = ["match_images"]
 
 
 def match_images(left_path: str | Path, right_path: str | Path, *, config: MatcherConfig | None = None,
-                 progress: ProgressFn | None = None) -> MatchResult:
+                 progress: ProgressFn | None = None, scheduler: Scheduler | str | None = None,
+                 workdir: str | Path | None = None) -> MatchResult:
     """Match two raster files (any format rasterio reads; any band count and dtype).
 
     Images whose sides are all <= ``config.tiled_above_px`` are read whole;
@@ -27,6 +29,15 @@ def match_images(left_path: str | Path, right_path: str | Path, *, config: Match
     left_path, right_path : path
     config : MatcherConfig, optional
     progress : callable(done, total), optional
+    scheduler : Scheduler or str, optional
+        Where the tiles of a large pair are searched (:func:`rectify.distributed.resolve_scheduler`):
+        ``threads`` (the default: one tile after the other in this process), ``processes[:N]`` (a
+        local Dask cluster) or ``tcp://HOST:PORT`` (an existing one); default ``$RECTIFY_SCHEDULER``,
+        else ``threads``. Every choice gives the same matches. Small pairs (matched whole) always
+        run in this process.
+    workdir : path, optional
+        Folder for the Dask tasks' block files (default the system's temporary folder; on a
+        cluster, a folder every worker can write and this process can read).
 
     Returns
     -------
@@ -38,8 +49,13 @@ def match_images(left_path: str | Path, right_path: str | Path, *, config: Match
         Unreadable file.
     EstimationError
         Blank images, or images that do not overlap.
+    InvalidInputError
+        A bad scheduler (or ``$RECTIFY_SCHEDULER``).
+    SchedulerError
+        The Dask cluster cannot be started or reached, or lost a task.
     """
     cfg = config or MatcherConfig()
+    sched = resolve_scheduler(scheduler)  # a bad value fails before any work
     il = rio.raster_info(left_path)
     ir = rio.raster_info(right_path)
     big = max(il.width, il.height, ir.width, ir.height) > cfg.tiled_above_px
@@ -51,7 +67,7 @@ def match_images(left_path: str | Path, right_path: str | Path, *, config: Match
         L, lv = rio.read_window(left_path, 0, 0, il.width, il.height)
         R, rv = rio.read_window(right_path, 0, 0, ir.width, ir.height)
         return _match_whole(L, lv, R, rv, cfg, progress, (str(left_path), str(right_path)))
-    return _match_tiled(left_path, right_path, il, ir, cfg, progress)
+    return _match_tiled(left_path, right_path, il, ir, cfg, progress, scheduler=sched, workdir=workdir)
 
 
 #: side of the nearest-neighbour overview read to refuse a blank large raster before matching

@@ -8,16 +8,21 @@ is read and searched (see :mod:`rectify.features` for the memory bound).
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
+import tempfile
 import time
 from dataclasses import replace
+from pathlib import Path
 from typing import Any, cast
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from .. import io as rio
+from ..distributed import Scheduler, resolve_scheduler, run_windows
 from ..lsm import refine_matches
 from .detect import Features, detect, grid_select
 from .match import (
@@ -77,12 +82,13 @@ def _coarse(left_path, right_path, il, ir, cfg: MatcherConfig):
     return H, err_full, lim_l, lim_r, vl, sl
 
 
-def _match_tiled(left_path, right_path, il, ir, cfg: MatcherConfig, progress) -> MatchResult:
+def _match_tiled(left_path, right_path, il, ir, cfg: MatcherConfig, progress, *,
+                 scheduler: Scheduler | str | None = None, workdir: str | Path | None = None) -> MatchResult:
+    sched = resolve_scheduler(scheduler)  # a bad value fails before any work
     t0 = time.perf_counter()
     H, err_full, lim_l, lim_r, ov_valid_l, sl = _coarse(left_path, right_path, il, ir, cfg)
     t1 = time.perf_counter()
     margin = cfg.search_margin_px + 4.0 * err_full
-    gate = margin
     n_all = math.ceil(il.width / cfg.tile_px) * math.ceil(il.height / cfg.tile_px)
     sparse = n_all > cfg.max_tiles
     if sparse:
@@ -93,89 +99,33 @@ def _match_tiled(left_path, right_path, il, ir, cfg: MatcherConfig, progress) ->
     n_tiles = len(tiles)
     quota = max(50, int(math.ceil(2.0 * cfg.max_matches / max(n_tiles, 1))))
     per_tile_kp = max(1500, min(cfg.max_keypoints, 4 * quota, int(4 * cfg.max_candidates / max(n_tiles, 1))))
-    store_l: list[NDArray] = []
-    store_r: list[NDArray] = []
-    store_raw: list[NDArray] = []
-    store_s: list[NDArray] = []
-    n_stored = 0
-    n_det_l = n_det_r = n_matched = n_ref = n_fail = 0
-    kw: dict[str, Any] = dict(detector=cfg.detector, cell_cap=cfg.cell_cap, percentiles=cfg.percentiles)
-    right = _RightTiles(right_path, ir, cfg, per_tile_kp, lim_r)
-    for k, (c0, r0, w, h) in enumerate(tiles):
+    # tiles with no valid overview pixel are skipped here (they would be skipped by the tile function)
+    windows = [t for t in tiles if _tile_has_data(ov_valid_l, sl, *t)]
+    n_skipped = n_tiles - len(windows)
+    engine = _TilePairs(str(Path(left_path).resolve()), str(Path(right_path).resolve()), il, ir, cfg, H, margin,
+                        sparse, quota, per_tile_kp, lim_l, lim_r)
+    store = _Store(il, cfg, {(c, r): i for i, (c, r, _w, _h) in enumerate(windows)})
+
+    def prog(done: int, total: int) -> None:
         if progress is not None:
-            progress(k, n_tiles)
-        core = _core(c0, r0, w, h, il, cfg)
-        if not _tile_has_data(ov_valid_l, sl, c0, r0, w, h):
-            continue
-        corners = np.array([[c0, r0], [c0 + w - 1, r0], [c0, r0 + h - 1], [c0 + w - 1, r0 + h - 1]], float)
-        pc = _apply_h(H, corners)
-        if not np.isfinite(pc).all():
-            continue
-        x0, y0 = np.floor(pc.min(axis=0) - margin).astype(int)
-        x1, y1 = np.ceil(pc.max(axis=0) + margin).astype(int)
-        x0, y0 = max(x0, 0), max(y0, 0)
-        x1, y1 = min(x1, ir.width - 1), min(y1, ir.height - 1)
-        if x1 - x0 < 32 or y1 - y0 < 32:
-            continue
-        if sparse:
-            Rd, Rv = rio.read_window(right_path, x0, y0, x1 - x0 + 1, y1 - y0 + 1)
-            if Rv.mean() < 0.02:
-                continue
-            fr = detect(Rd, valid=Rv, max_keypoints=3 * per_tile_kp, limits=lim_r,
-                        **kw).transformed(1.0, (x0, y0))
-            right.n_detected += len(fr)
-        else:
-            fr = right.features(x0, y0, x1, y1)
-        if len(fr) < 4:
-            continue
-        Ld, Lv = rio.read_window(left_path, c0, r0, w, h)
-        if Lv.mean() < 0.02:
-            continue
-        fl = detect(Ld, valid=Lv, max_keypoints=per_tile_kp, limits=lim_l, **kw)
-        n_det_l += len(fl)
-        if len(fl) < 4:
-            continue
-        pairs = match_descriptors(fl, fr, ratio=cfg.ratio, mutual=cfg.mutual)
-        pl = fl.xy[pairs.left] + [c0, r0]
-        pr = fr.xy[pairs.right]
-        ratio = pairs.ratio
-        inside = (pl[:, 0] >= core[0]) & (pl[:, 0] < core[2]) & (pl[:, 1] >= core[1]) & (pl[:, 1] < core[3])
-        ok = inside & (np.linalg.norm(_apply_h(H, pl) - pr, axis=1) < gate)
-        pl, pr, ratio = pl[ok], pr[ok], ratio[ok]
-        n_matched += len(pl)
-        if not len(pl):
-            continue
-        if len(pl) > quota:     # keep what the output can use, evenly over the tile core
-            keep = grid_select(pl - [c0, r0], -ratio, (h, w), quota, cell_cap=cfg.cell_cap)
-            pl, pr, ratio = pl[keep], pr[keep], ratio[keep]
-        raw = pr.copy()
-        score = ratio
-        if cfg.refine:
-            m = int(cfg.lsm.radius_px) + 4
-            bx0, by0 = np.floor(pr.min(axis=0)).astype(int) - m
-            bx1, by1 = np.ceil(pr.max(axis=0)).astype(int) + m
-            Rd, Rv = rio.read_window(right_path, bx0, by0, bx1 - bx0 + 1, by1 - by0 + 1)
-            Lg = _grey_float(Ld, Lv)
-            Rg = _grey_float(Rd, Rv)
-            A = _h_jacobian(H, pl)
-            lr = refine_matches(Lg, Rg, pl - [c0, r0], pr - [bx0, by0], affine=A, config=cfg.lsm)
-            okr = lr.converged
-            n_ref += int(okr.sum())
-            n_fail += int((~okr).sum())
-            pl, raw = pl[okr], raw[okr]
-            pr = lr.right[okr] + [bx0, by0]
-            score = lr.std_px[okr]
-        store_l.append(pl)
-        store_r.append(pr)
-        store_raw.append(raw)
-        store_s.append(score)
-        n_stored += len(pl)
-        if n_stored > 2 * cfg.max_candidates:
-            store_l, store_r, store_raw, store_s = _thin(store_l, store_r, store_raw, store_s, il, cfg)
-            n_stored = len(store_l[0])
+            progress(n_skipped + done, n_tiles)
+
+    if progress is not None:
+        progress(0, n_tiles)
+    try:
+        # the local path computes the tiles one after the other (one right-tile cache), as before; on Dask
+        # each task computes a few consecutive tiles with its own cache, and the driver takes the tiles'
+        # matches in tile order (the candidate thinning depends on it), so the result is the same
+        run_windows(engine, store.write, windows, threads=1, progress=prog, scheduler=sched,
+                    workdir=Path(workdir) if workdir is not None else Path(tempfile.gettempdir()), name="match")
+    finally:
+        engine.close()
     if progress is not None:
         progress(n_tiles, n_tiles)
-    n_det_r = right.n_detected
+    n_det_l, n_matched, n_ref, n_fail = store.n_det_l, store.n_matched, store.n_ref, store.n_fail
+    n_det_r = engine.n_detected_right()
+    n_stored = store.n_stored
+    store_l, store_r, store_raw, store_s = store.l, store.r, store.raw, store.s
     t2 = time.perf_counter()
     if n_stored > cfg.max_candidates:
         store_l, store_r, store_raw, store_s = _thin(store_l, store_r, store_raw, store_s, il, cfg)
@@ -200,6 +150,164 @@ def _match_tiled(left_path, right_path, il, ir, cfg: MatcherConfig, progress) ->
                    out_raw, *cand, True, ((il.height, il.width), (ir.height, ir.width)), timings, n_dup)
 
 
+class _Store:
+    """The driver's side: the tiles' matches taken in tile order (results arriving out of order wait),
+    with the candidate thinning of the sequential loop."""
+
+    def __init__(self, il, cfg: MatcherConfig, index: dict[tuple[int, int], int]):
+        self.il, self.cfg, self.index = il, cfg, index
+        self.pending: dict[int, Any] = {}
+        self.next = 0
+        self.l: list[NDArray] = []
+        self.r: list[NDArray] = []
+        self.raw: list[NDArray] = []
+        self.s: list[NDArray] = []
+        self.n_stored = 0
+        self.n_det_l = self.n_matched = self.n_ref = self.n_fail = 0
+
+    def write(self, res: Any, c0: int, r0: int) -> bool:
+        self.pending[self.index[(c0, r0)]] = res
+        while self.next in self.pending:
+            self._take(self.pending.pop(self.next))
+            self.next += 1
+        return res[1] is None
+
+    def _take(self, res: Any) -> None:
+        counts, pl, pr, raw, score = res
+        d_l, matched, ref, fail = (int(v) for v in counts)
+        self.n_det_l += d_l
+        self.n_matched += matched
+        self.n_ref += ref
+        self.n_fail += fail
+        if pl is None:
+            return
+        self.l.append(pl)
+        self.r.append(pr)
+        self.raw.append(raw)
+        self.s.append(score)
+        self.n_stored += len(pl)
+        if self.n_stored > 2 * self.cfg.max_candidates:
+            self.l, self.r, self.raw, self.s = _thin(self.l, self.r, self.raw, self.s, self.il, self.cfg)
+            self.n_stored = len(self.l[0])
+
+
+class _TilePairs:
+    """The search of one left tile in its predicted right window, for :func:`rectify.distributed.run_windows`.
+
+    ``tile(c0, r0, w, h)`` returns ``(counts, left, right, raw, score)``: the counts (left keypoints,
+    matches kept in the core, refined, failed refinements) and the tile's matches in full-resolution
+    pixels (None when the tile stores none). It holds the images' absolute paths, the coarse
+    homography and the configuration, never pixels; the right image's features come from a cache of
+    right tiles (each detected once per copy of the engine: once per Dask task).
+    """
+
+    def __init__(self, left_path: str, right_path: str, il, ir, cfg: MatcherConfig, H: NDArray[np.float64],
+                 margin: float, sparse: bool, quota: int, per_tile_kp: int, lim_l, lim_r):
+        self.left_path, self.right_path, self.il, self.ir, self.cfg = left_path, right_path, il, ir, cfg
+        self.H, self.margin, self.sparse, self.quota, self.per_tile_kp = H, margin, sparse, quota, per_tile_kp
+        self.lim_l, self.lim_r = lim_l, lim_r
+        self.right: _RightTiles | None = None
+        self.n_sparse_right = 0                      # right keypoints of the sparse windows
+        self.merged_right: dict[int, int] = {}       # right tile -> keypoints, from the Dask tasks
+
+    def portable(self) -> _TilePairs:
+        out = copy.copy(self)
+        out.right, out.n_sparse_right, out.merged_right = None, 0, {}
+        return out
+
+    def close(self) -> None:
+        pass
+
+    def stats(self) -> tuple[dict[int, int], int]:
+        return (dict(self.right.counts) if self.right is not None else {}), self.n_sparse_right
+
+    def merge_stats(self, stats: tuple[dict[int, int], int]) -> None:
+        counts, n_sparse = stats
+        self.merged_right.update(counts)   # a right tile detected by several tasks counts once
+        self.n_sparse_right += int(n_sparse)
+
+    def n_detected_right(self) -> int:
+        local = self.right.n_detected if self.right is not None else 0
+        return local + sum(self.merged_right.values()) + self.n_sparse_right
+
+    def tile(self, c0: int, r0: int, w: int, h: int) -> tuple[NDArray[np.int64], Any, Any, Any, Any]:
+        cfg, il, ir, H = self.cfg, self.il, self.ir, self.H
+        left_path, right_path = self.left_path, self.right_path
+        per_tile_kp, margin, gate = self.per_tile_kp, self.margin, self.margin
+        n_det_l = n_matched = n_ref = n_fail = 0
+
+        def out(pl=None, pr=None, raw=None, score=None):
+            return np.array([n_det_l, n_matched, n_ref, n_fail], np.int64), pl, pr, raw, score
+
+        if self.right is None:
+            self.right = _RightTiles(right_path, ir, cfg, per_tile_kp, self.lim_r)
+        # FLANN's randomised kd-trees draw from OpenCV's per-thread RNG: seeded per tile, so that a tile
+        # matches the same on any thread, process or machine (and whatever ran before it there)
+        cv2.setRNGSeed(_tile_seed(cfg.seed, c0, r0))
+        kw: dict[str, Any] = dict(detector=cfg.detector, cell_cap=cfg.cell_cap, percentiles=cfg.percentiles)
+        core = _core(c0, r0, w, h, il, cfg)
+        corners = np.array([[c0, r0], [c0 + w - 1, r0], [c0, r0 + h - 1], [c0 + w - 1, r0 + h - 1]], float)
+        pc = _apply_h(H, corners)
+        if not np.isfinite(pc).all():
+            return out()
+        x0, y0 = np.floor(pc.min(axis=0) - margin).astype(int)
+        x1, y1 = np.ceil(pc.max(axis=0) + margin).astype(int)
+        x0, y0 = max(x0, 0), max(y0, 0)
+        x1, y1 = min(x1, ir.width - 1), min(y1, ir.height - 1)
+        if x1 - x0 < 32 or y1 - y0 < 32:
+            return out()
+        if self.sparse:
+            Rd, Rv = rio.read_window(right_path, x0, y0, x1 - x0 + 1, y1 - y0 + 1)
+            if Rv.mean() < 0.02:
+                return out()
+            fr = detect(Rd, valid=Rv, max_keypoints=3 * per_tile_kp, limits=self.lim_r,
+                        **kw).transformed(1.0, (x0, y0))
+            self.n_sparse_right += len(fr)
+        else:
+            fr = self.right.features(x0, y0, x1, y1)
+        if len(fr) < 4:
+            return out()
+        Ld, Lv = rio.read_window(left_path, c0, r0, w, h)
+        if Lv.mean() < 0.02:
+            return out()
+        fl = detect(Ld, valid=Lv, max_keypoints=per_tile_kp, limits=self.lim_l, **kw)
+        n_det_l += len(fl)
+        if len(fl) < 4:
+            return out()
+        pairs = match_descriptors(fl, fr, ratio=cfg.ratio, mutual=cfg.mutual)
+        pl = fl.xy[pairs.left] + [c0, r0]
+        pr = fr.xy[pairs.right]
+        ratio = pairs.ratio
+        inside = (pl[:, 0] >= core[0]) & (pl[:, 0] < core[2]) & (pl[:, 1] >= core[1]) & (pl[:, 1] < core[3])
+        ok = inside & (np.linalg.norm(_apply_h(H, pl) - pr, axis=1) < gate)
+        pl, pr, ratio = pl[ok], pr[ok], ratio[ok]
+        n_matched += len(pl)
+        if not len(pl):
+            return out()
+        if len(pl) > self.quota:     # keep what the output can use, evenly over the tile core
+            keep = grid_select(pl - [c0, r0], -ratio, (h, w), self.quota, cell_cap=cfg.cell_cap)
+            pl, pr, ratio = pl[keep], pr[keep], ratio[keep]
+        raw = pr.copy()
+        score = ratio
+        if cfg.refine:
+            m = int(cfg.lsm.radius_px) + 4
+            bx0, by0 = np.floor(pr.min(axis=0)).astype(int) - m
+            bx1, by1 = np.ceil(pr.max(axis=0)).astype(int) + m
+            Rd, Rv = rio.read_window(right_path, bx0, by0, bx1 - bx0 + 1, by1 - by0 + 1)
+            Lg = _grey_float(Ld, Lv)
+            Rg = _grey_float(Rd, Rv)
+            A = _h_jacobian(H, pl)
+            lr = refine_matches(Lg, Rg, pl - [c0, r0], pr - [bx0, by0], affine=A, config=cfg.lsm)
+            okr = lr.converged
+            n_ref += int(okr.sum())
+            n_fail += int((~okr).sum())
+            pl, raw = pl[okr], raw[okr]
+            pr = lr.right[okr] + [bx0, by0]
+            score = lr.std_px[okr]
+        return out(np.asarray(pl, np.float64), np.asarray(pr, np.float64), np.asarray(raw, np.float64),
+                   np.asarray(score))
+
+
 class _RightTiles:
     """Right-image features by tiles, each tile detected once (keypoints of its core only) and kept in
     a least-recently-used cache bounded to ``cache_mb`` of descriptors."""
@@ -214,6 +322,7 @@ class _RightTiles:
         self.bytes = 0
         self.max_bytes = cache_mb * 2 ** 20
         self.n_detected = 0
+        self.counts: dict[int, int] = {}   # right tile -> keypoints kept (for the Dask tasks' statistics)
 
     def _tile(self, idx: int) -> Features:
         f = self.cache.pop(idx, None)
@@ -231,6 +340,7 @@ class _RightTiles:
                 inside = (f.xy[:, 0] >= x0) & (f.xy[:, 0] < x1) & (f.xy[:, 1] >= y0) & (f.xy[:, 1] < y1)
                 f = f.subset(np.flatnonzero(inside))
             self.n_detected += len(f)
+            self.counts[idx] = len(f)
             self.bytes += f.descriptors.nbytes
             while self.cache and self.bytes > self.max_bytes:
                 old = next(iter(self.cache))
@@ -249,6 +359,11 @@ class _RightTiles:
                 items.append(f.subset(np.flatnonzero(m)))
         return Features.concat(items, 128 if self.cfg.detector == "sift" else 32,
                                np.float32 if self.cfg.detector == "sift" else np.uint8)
+
+
+def _tile_seed(seed: int, c0: int, r0: int) -> int:
+    """The RNG seed of the tile at (c0, r0): the configuration's seed and the tile's origin."""
+    return (int(seed) * 1_000_003 + int(r0) * 65_537 + int(c0)) % 2_147_483_647
 
 
 def _pick_tiles(info, cfg: MatcherConfig) -> list[tuple[int, int, int, int]]:
