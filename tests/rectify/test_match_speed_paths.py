@@ -119,6 +119,7 @@ def test_guided_readmission_adds_correct_matches_only():
     assert len(on.matches) > len(off.matches)
     e = _errors(on)
     assert (e < 2.0).all()                               # no wrong match among the additions
+    assert on.matches.score is not None
     refined = np.isfinite(on.matches.score)
     assert np.median(e[refined]) < 0.1
     assert on.summary()["n_guided"] == on.n_guided
