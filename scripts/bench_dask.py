@@ -2,7 +2,9 @@
 """Benchmark the tiled steps on Dask: a warp and an orthophoto on 1 and 2 local worker processes, in one run.
 
 For each job (a SIZE x SIZE x 3 uint8 warp with an affine transform, bilinear, as ``scripts/bench_warp.py``;
-an RPC + DEM orthophoto of a SIZE x SIZE image, as ``scripts/bench_ortho.py``) and each scheduler, a child
+an RPC + DEM orthophoto of a SIZE x SIZE image, as ``scripts/bench_ortho.py``; with ``--jobs ...,dense``
+the dense matching (``stereo.dense.matching.match_rasters``, 1024 px tiles, one tile per task) of the
+synthetic normal-case pair of ``scripts/bench_dense.py``, ``--dense-size`` px) and each scheduler, a child
 process starts a ``distributed.LocalCluster`` of N worker processes (one thread each), imports the
 engine on the workers, then times the library call with ``scheduler=<the cluster's address>``
 (cluster start-up is reported apart). Peak memory: each worker's VmHWM (its peak resident set since it
@@ -12,6 +14,7 @@ default path, 2 threads) is run too, for reference. Outputs of every run are com
 
     nice python scripts/bench_dask.py --size 10000 --workdir /tmp/bench_dask
     python scripts/bench_dask.py --size 3000            # quick
+    python scripts/bench_dask.py --jobs dense --size 3000   # dense matching tiles
 
 The speedup printed is (time on 1 worker) / (time on 2 workers); target >= 1.8.
 """
@@ -49,7 +52,7 @@ def cpu_s():
     return u.ru_utime + u.ru_stime
 
 def warm():
-    import rectify.ortho, rectify.warp  # noqa: F401  (imports are not part of the job)
+    import rectify.ortho, rectify.warp, stereo.dense.matching  # noqa: F401  (imports are not part of the job)
     return vmhwm_mb()
 
 if __name__ == "__main__":
@@ -80,6 +83,10 @@ if __name__ == "__main__":
         tf = read_transform(cfg["transform"])
         rectify_with_transform(cfg["src"], cfg["out"], tf.model, model_crs=tf.crs,
                                options=WarpOptions(threads=2, scheduler=scheduler), overwrite=True)
+    elif cfg["job"] == "dense":
+        from stereo.dense.matching import match_rasters
+        match_rasters(cfg["left"], cfg["right"], cfg["out"], cfg["out"][:-4] + "_conf.tif",
+                      disparity_range=(0, 48), scheduler=scheduler)
     else:
         from affine import Affine
         import rasterio
@@ -135,11 +142,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--size", type=int, default=10000, help="source side in pixels (warp and ortho)")
     ap.add_argument("--workdir", type=Path, default=None)
-    ap.add_argument("--jobs", default="warp,ortho", help="comma-separated: warp, ortho")
+    ap.add_argument("--jobs", default="warp,ortho", help="comma-separated: warp, ortho, dense")
+    ap.add_argument("--dense-size", type=int, default=None,
+                    help="side of the dense matching pair (default --size; scripts/bench_dense.py's pair)")
     ap.add_argument("--keep", action="store_true", help="keep the outputs")
     a = ap.parse_args()
     import tempfile
 
+    import bench_dense
     import bench_ortho
     import bench_warp
     from affine import Affine
@@ -167,6 +177,11 @@ def main() -> None:
         o = bench_ortho.build(work, n)
         cfg["ortho"] = {"src": o["src"], "dem": o["dem"], "width": o["width"], "height": o["height"],
                         "transform_ortho": o["transform"], "crs": o["crs"]}
+    if "dense" in jobs:
+        dn = a.dense_size or n
+        (work / f"dense_{dn}").mkdir(exist_ok=True)
+        lp, rp = bench_dense.make_pair(work / f"dense_{dn}", dn)
+        cfg["dense"] = {"left": str(lp), "right": str(rp)}
     print(f"inputs built in {time.perf_counter() - t0:.1f} s in {work}", flush=True)
 
     tile, per_task = 512, 4
@@ -187,6 +202,7 @@ def main() -> None:
         if not a.keep:
             for w in (1, 2):
                 (work / f"{job}_{w}.tif").unlink(missing_ok=True)
+                (work / f"{job}_{w}_conf.tif").unlink(missing_ok=True)
 
     chunk_mb = per_task * tile * tile * 3 / 1e6
     print()

@@ -150,6 +150,14 @@ def test_environment_variable(monkeypatch):
         resolve_scheduler(None)
 
 
+def test_scheduler_error_lives_in_rectify_errors():
+    """``SchedulerError`` is in ``rectify.errors`` (a project error), re-exported by ``rectify.distributed``."""
+    from rectify import errors
+
+    assert SchedulerError is errors.SchedulerError and "SchedulerError" in errors.__all__
+    assert issubclass(SchedulerError, errors.RectifyError) and issubclass(SchedulerError, OSError)
+
+
 def test_unreachable_cluster_fails_quickly_and_leaves_nothing(sources, tmp_path):
     import socket
 
