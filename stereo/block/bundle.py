@@ -864,7 +864,7 @@ def _redundancy(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], ro
     """Residuals, weights, cofactors and redundancy numbers at the solution."""
     base = _base_weights(prob, factors)
     w = _combine(base, robust_w)
-    lin = bs.evaluate(prob, st, jacobian=True)
+    lin = bs.evaluate(prob, st, jacobian=bool(points_needed or options.variance_components))
     res = lin.res
     M = len(prob.obs_pt)
     u = prob.n_c + 3 * prob.n_points

@@ -151,13 +151,15 @@ def project(R: NDArray[np.float64], C: NDArray[np.float64], axes: NDArray[np.flo
     if not pose:
         return pix, -p2, z6, J_point, z8
     J_pose = np.empty((m, 2, 6))
-    # d p / d angle_a = R^T (d x a_a) = p x (R^T a_a); q (p x b) = (q x p) . b
-    qx = np.empty((m, 2, 3))
-    qx[:, :, 0] = q[:, :, 1] * p2[:, None] - q[:, :, 2] * p1[:, None]
-    qx[:, :, 1] = q[:, :, 2] * p0[:, None] - q[:, :, 0] * p2[:, None]
-    qx[:, :, 2] = q[:, :, 0] * p1[:, None] - q[:, :, 1] * p0[:, None]
-    B = np.matmul(R.transpose(0, 2, 1), axes.transpose(0, 2, 1))  # columns R^T a_a
-    J_pose[:, :, :3] = np.matmul(qx, B)
+    # d pixel / d angle_a = J_point . (d x a_a) = (J_point x d) . a_a, a_a the ground-frame axis of the angle
+    d0, d1, d2 = d[:, 0, None], d[:, 1, None], d[:, 2, None]
+    j0, j1, j2 = J_point[:, :, 0], J_point[:, :, 1], J_point[:, :, 2]
+    c0 = j1 * d2 - j2 * d1
+    c1 = j2 * d0 - j0 * d2
+    c2 = j0 * d1 - j1 * d0
+    for a in range(3):
+        ax = axes[:, a]
+        J_pose[:, :, a] = c0 * ax[:, 0, None] + c1 * ax[:, 1, None] + c2 * ax[:, 2, None]
     J_pose[:, :, 3:] = -J_point
     if not intrinsic:
         return pix, -p2, J_pose, J_point, z8

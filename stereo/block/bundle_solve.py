@@ -209,13 +209,23 @@ class Normal:
     rhs_c: F64                 # (n_c,)
     Cinv: F64                  # (P, 3, 3) inverse damped point blocks
     bp: F64                    # (P, 3)
-    E: F64                     # (M, d, 3) W blocks per observation
-    G: F64                     # (M, d, 3) E C^-1
+    Et: F64                    # (M, 3, d) W blocks per observation, transposed (Jp^T W Jc)
+    Gt: F64                    # (M, 3, d) (E C^-1)^T = C^-1 Et
     cidx: I64                  # (M, d)
     diag_c: F64                # (n_c,) undamped diagonal of N_cc
     diag_p: F64                # (P, 3) undamped diagonal of the point blocks
     starts: I64                # (P,) first observation of each point
     point_sum: sp.csr_matrix   # (P, M) sums observations per point
+
+    @property
+    def E(self) -> F64:
+        """(M, d, 3) W blocks per observation (a view)."""
+        return np.asarray(self.Et.transpose(0, 2, 1), dtype=np.float64)
+
+    @property
+    def G(self) -> F64:
+        """(M, d, 3) E C^-1 (a view)."""
+        return np.asarray(self.Gt.transpose(0, 2, 1), dtype=np.float64)
 
 
 def _seg_sum(a: F64, prob: Problem) -> F64:
@@ -262,6 +272,7 @@ class _Structure:
     n_pairs: int               # K image pairs
     groups: list[_Group]
     img_sum: list[tuple[int, int, sp.csr_matrix]]   # observation ranges and their (n, o1 - o0) image sums
+    img_first: I64             # (n, d) camera-side unknowns of each image
     rows: I64                  # (L,) row of every entry of S scattered (image blocks, pair blocks, transposes)
     cols: I64                  # (L,)
     band: tuple[I64, I64, int] | None = None   # banded lower storage: entries kept, their flat index, bandwidth
@@ -269,7 +280,7 @@ class _Structure:
     band_gain: float = 1.0     # flops of a dense Cholesky / of the banded one
 
 
-def _structure(prob: Problem, chunk: int = 200_000) -> _Structure:
+def _structure(prob: Problem, chunk: int = 20_000) -> _Structure:
     got = prob.cache.get("structure")
     if isinstance(got, _Structure):
         return got
@@ -313,7 +324,7 @@ def _structure(prob: Problem, chunk: int = 200_000) -> _Structure:
     cols = np.concatenate([np.broadcast_to(first[:, None, :], (n, d, d)).ravel(),
                            np.broadcast_to(rb[:, None, :], (K, d, d)).ravel(),
                            np.broadcast_to(ra[:, :, None], (K, d, d)).ravel()])
-    out = _Structure(cidx, K, groups, img_sum, rows.astype(np.int64), cols.astype(np.int64))
+    out = _Structure(cidx, K, groups, img_sum, first, rows.astype(np.int64), cols.astype(np.int64))
     if prob.c == 0 and n > 2:
         _band(out, n, uk // n, uk % n)
     prob.cache["structure"] = out
@@ -352,11 +363,6 @@ def use_banded(prob: Problem) -> bool:
     return sx.band_gain >= BANDED_MIN_GAIN and prob.n_c * (b + 1) ** 2 <= BANDED_MAX_FLOPS
 
 
-def _outer(A: F64, B: F64) -> F64:
-    """(m, i, r) x (m, j, r) -> (m, i, j): sum_r A_ir B_jr."""
-    return np.asarray(np.matmul(A, B.transpose(0, 2, 1)), dtype=np.float64)
-
-
 def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool, banded: bool = False) -> Normal:
     """Assemble the damped normal equations (``N + mu diag(N)``) and reduce them to the cameras.
 
@@ -368,12 +374,13 @@ def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool, ba
     d = cidx.shape[1]
     Jc, Jp, wi, v = lin.Jc, lin.Jp, w.image, lin.res.image
     WJp = Jp * wi[:, :, None]
-    E = np.matmul(WJp.transpose(0, 2, 1), Jc).transpose(0, 2, 1).copy()   # (M, d, 3) = Jc^T W Jp
-    Cp: F64 = _seg_sum(np.matmul(WJp.transpose(0, 2, 1), Jp), prob)
-    wv = wi * v
-    bp = _seg_sum(np.matmul(wv[:, None, :], Jp)[:, 0, :], prob)
-    bc_o = np.matmul(wv[:, None, :], Jc)[:, 0, :]
-    del WJp
+    WJpT = WJp.transpose(0, 2, 1)
+    Et = np.matmul(WJpT, Jc)                                               # (M, 3, d) = Jp^T W Jc
+    Cp: F64 = _seg_sum(np.matmul(WJpT, Jp), prob)
+    wv = (wi * v)[:, None, :]
+    bp = _seg_sum(np.matmul(wv, Jp)[:, 0, :], prob)
+    bc_o = np.matmul(wv, Jc)[:, 0, :]
+    del WJp, WJpT
     # pose-only groups: GNSS positions and INS angles, 6x6 blocks per image
     pose_blocks = np.zeros((n, 6, 6))
     pose_rhs = np.zeros((n, 6))
@@ -400,30 +407,30 @@ def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool, ba
         j = int(np.flatnonzero(bad)[0])
         raise EstimationError(f"object point index {j} is not determined by its rays (singular 3x3 normal block, "
                               f"relative determinant {rel[j]:.3g})")
-    G = np.matmul(E, Cinv[prob.obs_pt])                                    # (M, d, 3) = E C^-1
-    rc = bc_o - np.matmul(G, bp[prob.obs_pt][:, :, None])[:, :, 0]
+    Gt = np.matmul(np.take(Cinv, prob.obs_pt, axis=0), Et)               # (M, 3, d) = (E C^-1)^T
+    rc = bc_o - np.matmul(np.take(bp, prob.obs_pt, axis=0)[:, None, :], Gt)[:, 0, :]
     rhs: F64 = np.bincount(cidx.ravel(), weights=rc.ravel(), minlength=nc).astype(np.float64)
     rhs[: 6 * n] += pose_rhs.ravel()
-    # undamped diagonal of N_cc
-    diag_c: F64 = np.bincount(cidx.ravel(), weights=np.einsum("mri,mr,mri->mi", Jc, wi, Jc).ravel(),
-                              minlength=nc).astype(np.float64)
-    diag_c[: 6 * n] += np.diagonal(pose_blocks, axis1=1, axis2=2).ravel()
     # image blocks: sum over the image's observations of Jc^T W Jc - G E^T
     dd = d * d
-    img_blk = np.zeros((n, dd))
+    img_n = np.zeros((n, dd))
+    img_r = np.zeros((n, dd))
     for o0, o1, agg in sx.img_sum:
         jc = Jc[o0:o1]
-        blk = _outer((jc * wi[o0:o1, :, None]).transpose(0, 2, 1), jc.transpose(0, 2, 1))
-        blk -= _outer(G[o0:o1], E[o0:o1])
-        img_blk += agg @ blk.reshape(-1, dd)
+        img_n += agg @ np.matmul((jc * wi[o0:o1, :, None]).transpose(0, 2, 1), jc).reshape(-1, dd)
+        img_r += agg @ np.matmul(Gt[o0:o1].transpose(0, 2, 1), Et[o0:o1]).reshape(-1, dd)
+    # undamped diagonal of N_cc
+    diag_c: F64 = np.bincount(sx.img_first.ravel(), weights=img_n[:, ::d + 1].ravel(), minlength=nc).astype(np.float64)
+    diag_c[: 6 * n] += np.diagonal(pose_blocks, axis1=1, axis2=2).ravel()
+    img_blk = img_n - img_r
     img_blk = img_blk.reshape(n, d, d)
     img_blk[:, :6, :6] += pose_blocks
     # image-pair blocks: sum over the pairs a < b of the tracks of G_a E_b^T (one product per pair slot)
     pair_blk = np.zeros((sx.n_pairs, dd))
     for g in sx.groups:
         k = len(g.obs) // g.m
-        Gm = np.take(G, g.obs, axis=0).reshape(k, g.m, d, 3)
-        Em = np.take(E, g.obs, axis=0).reshape(k, g.m, d, 3).transpose(0, 1, 3, 2)
+        Gm = np.take(Gt, g.obs, axis=0).reshape(k, g.m, 3, d).transpose(0, 1, 3, 2)
+        Em = np.take(Et, g.obs, axis=0).reshape(k, g.m, 3, d)
         buf = np.empty((len(g.ia), k, d, d))
         for s_, (a_, b_) in enumerate(zip(g.ia, g.ib, strict=True)):
             np.matmul(Gm[:, a_], Em[:, b_], out=buf[s_])
@@ -432,17 +439,19 @@ def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool, ba
     S: F64 | sp.csc_matrix | Banded
     if banded and sx.band is not None and sx.band_order is not None:
         keep, flat, b = sx.band
-        ab: F64 = np.bincount(flat, weights=vals[keep], minlength=(b + 1) * nc).astype(np.float64, copy=False).reshape(b + 1, nc)
+        ab: F64 = np.bincount(flat, weights=vals[keep], minlength=(b + 1) * nc).astype(np.float64, copy=False)
+        ab = ab.reshape(b + 1, nc)
         if mu > 0:
             ab[0] += mu * diag_c[sx.band_order]
         S = Banded(ab, sx.band_order)
     elif dense:
-        S = np.bincount(sx.rows * nc + sx.cols, weights=vals, minlength=nc * nc).astype(np.float64, copy=False).reshape(nc, nc)
+        S = np.bincount(sx.rows * nc + sx.cols, weights=vals, minlength=nc * nc).astype(np.float64, copy=False)
+        S = S.reshape(nc, nc)
         if mu > 0:
             S[np.diag_indices(nc)] += mu * diag_c
     else:
         S = (sp.csr_matrix((vals, (sx.rows, sx.cols)), shape=(nc, nc)) + sp.diags(mu * diag_c)).tocsc()
-    return Normal(S, rhs, Cinv, bp, E, G, cidx, diag_c, diag_p, prob.pt_start, _point_sum(prob))
+    return Normal(S, rhs, Cinv, bp, Et, Gt, cidx, diag_c, diag_p, prob.pt_start, _point_sum(prob))
 
 
 def inv3(A: F64) -> F64:
@@ -507,7 +516,7 @@ def solve_reduced(ne: Normal) -> tuple[F64, F64]:
 
 def back_substitute(ne: Normal, xc: F64) -> F64:
     """Point steps dX_j = C_j^-1 (b_j - W_j^T dx_c), (P, 3)."""
-    et = np.einsum("mia,mi->ma", ne.E, xc[ne.cidx])
+    et = np.matmul(ne.Et, np.take(xc, ne.cidx)[:, :, None])[:, :, 0]
     acc = ne.point_sum @ et
     return np.asarray(np.einsum("pab,pb->pa", ne.Cinv, ne.bp - acc), dtype=np.float64)
 
