@@ -303,16 +303,17 @@ class _Sampler:
         self.pad = np.pad(img, self.p, mode="edge")   # edge-replicated outer taps, as bicubic() does
 
     def __call__(self, xs: NDArray[np.float64], ys: NDArray[np.float64]):
+        """Values (float32, NaN outside the image or on a NaN tap) and the rounding (dx, dy) or None."""
         if self.kind == "keys":
-            return _bicubic_padded(self.pad, self.h, self.w, xs, ys), None, None
+            return _bicubic_padded(self.pad, self.h, self.w, xs, ys).astype(np.float32), None, None
         inside = (xs >= 0) & (ys >= 0) & (xs <= self.w - 1) & (ys <= self.h - 1)
         o = float(self.p)
         m1, m2 = cv2.convertMaps((xs + o).astype(np.float32), (ys + o).astype(np.float32), cv2.CV_16SC2)
-        v = cv2.remap(self.pad, m1, m2, cv2.INTER_LANCZOS4, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+        v = cv2.remap(self.pad, m1, m2, cv2.INTER_LANCZOS4, borderMode=cv2.BORDER_REPLICATE)
         v[~inside] = np.nan
         frac = m2.astype(np.int32)
-        dx = xs + o - (m1[..., 0] + (frac & 31) * (1.0 / 32))
-        dy = ys + o - (m1[..., 1] + (frac >> 5) * (1.0 / 32))
+        dx = (xs + o - (m1[..., 0] + (frac & 31) * (1.0 / 32))).astype(np.float32)
+        dy = (ys + o - (m1[..., 1] + (frac >> 5) * (1.0 / 32))).astype(np.float32)
         return v, dx, dy
 
 
@@ -322,7 +323,7 @@ def _window(r: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     return ux.ravel()[None, :], uy.ravel()[None, :]
 
 
-def _template(L: NDArray[np.float32], p0: NDArray[np.int64], r: int) -> NDArray[np.float64]:
+def _template(L: NDArray[np.float32], p0: NDArray[np.int64], r: int) -> NDArray[np.float32]:
     """The (2r+1)^2 pixels around integer positions ``p0`` (m, P); NaN rows where the window leaves the image."""
     h, w = L.shape
     g = np.arange(-r, r + 1)
@@ -330,12 +331,12 @@ def _template(L: NDArray[np.float32], p0: NDArray[np.int64], r: int) -> NDArray[
     c = np.clip(p0, r, [w - 1 - r, h - 1 - r])
     rows = (c[:, 1, None] + g)[:, :, None]
     cols = (c[:, 0, None] + g)[:, None, :]
-    T = L[rows, cols].reshape(len(p0), -1).astype(np.float64)
+    T = L[rows, cols].reshape(len(p0), -1).astype(np.float32)
     T[~inside] = np.nan
     return T
 
 
-def _grad(W: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def _grad(W: NDArray[np.float32]) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """np.gradient of windows (m, n, n) along columns and rows: central inside, one-sided at the edges."""
     du = np.empty_like(W)
     dv = np.empty_like(W)
@@ -363,39 +364,43 @@ class _State:
         return xs, ys
 
 
-def _gauss_newton_step(T, st: _State, idx, sample: _Sampler, ux, uy, n1: int):
+def _gauss_newton_step(T, st: _State, idx, sample: _Sampler, ux, uy, n1: int, buf: NDArray[np.float32]):
     """One Gauss-Newton update of the matches ``idx`` (all of them at once). Returns the position steps,
-    the rows that failed numerically, the inverse normal matrices and the residuals before the update."""
+    the rows that failed numerically, the inverse normal matrices and the residuals before the update.
+
+    Windows, Jacobian and normal equations are float32 (their rounding moves a position by ~1e-7 px);
+    the coordinates, the unknowns and the solution are float64. ``buf`` holds the Jacobian (reused)."""
     xs, ys = st.coords(idx, ux, uy)
     Rv, qx, qy = sample(xs, ys)
     k, P = Rv.shape
     du, dv = _grad(Rv.reshape(k, n1, n1))
     du = du.reshape(k, P)
     dv = dv.reshape(k, P)
-    Ainv = np.linalg.inv(st.A[idx])                                     # grad_x = A^-T grad_u
+    Ainv = np.linalg.inv(st.A[idx]).astype(np.float32)                  # grad_x = A^-T grad_u
     Gx = Ainv[:, 0, :1] * du + Ainv[:, 1, :1] * dv
     Gy = Ainv[:, 0, 1:] * du + Ainv[:, 1, 1:] * dv
     if qx is not None:    # remap's 1/32-px rounding, first order
         Rv += qx * Gx + qy * Gy
-    gi = st.gain[idx][:, None]
+    gi = st.gain[idx][:, None].astype(np.float32)
     Gx *= gi
     Gy *= gi
-    res = T[idx] - (gi * Rv + st.off[idx][:, None])
+    res = T[idx] - (gi * Rv + st.off[idx][:, None].astype(np.float32))
     bad = ~np.isfinite(res).all(axis=1)
-    J = np.empty((k, 8, P))
+    ux32, uy32 = ux.astype(np.float32), uy.astype(np.float32)
+    J = buf[:k]
     J[:, 0] = Gx
     J[:, 1] = Gy
-    np.multiply(Gx, ux, out=J[:, 2])
-    np.multiply(Gx, uy, out=J[:, 3])
-    np.multiply(Gy, ux, out=J[:, 4])
-    np.multiply(Gy, uy, out=J[:, 5])
+    np.multiply(Gx, ux32, out=J[:, 2])
+    np.multiply(Gx, uy32, out=J[:, 3])
+    np.multiply(Gy, ux32, out=J[:, 4])
+    np.multiply(Gy, uy32, out=J[:, 5])
     J[:, 6] = Rv
     J[:, 7] = 1.0
     if bad.any():
         J[bad] = 0.0
         res[bad] = 0.0
-    N = np.matmul(J, J.transpose(0, 2, 1))
-    c = np.matmul(J, res[:, :, None])[:, :, 0]
+    N = np.matmul(J, J.transpose(0, 2, 1)).astype(np.float64)
+    c = np.matmul(J, res[:, :, None])[:, :, 0].astype(np.float64)
     det = np.linalg.det(N)
     bad |= ~np.isfinite(det) | (np.abs(det) < 1e-300)
     N[bad] = np.eye(8)
@@ -426,12 +431,13 @@ def _refine_chunk(L: NDArray[np.float32], sample: _Sampler, pl, pr, A, cfg: LsmC
     active = np.isfinite(T).all(axis=1) & np.isfinite(R0).all(axis=1)
     Tz = np.where(active[:, None], T, 0.0)
     Rz = np.where(active[:, None], R0, 0.0)
-    sr = Rz.std(axis=1)
+    sr = Rz.std(axis=1, dtype=np.float64)
     gain = np.where(active & (sr > 0), Tz.std(axis=1) / np.where(sr > 0, sr, 1.0), 1.0)
     st.gain = np.where(gain > 0, gain, 1.0)
     st.off = Tz.mean(axis=1) - st.gain * Rz.mean(axis=1)
     done = np.zeros(m, dtype=bool)
     failed = ~active
+    buf = np.empty((m, 8, npx), dtype=np.float32)
     iters = np.zeros(m, dtype=np.int64)
     s2 = np.full(m, np.nan)
     corr = np.full(m, np.nan)
@@ -440,7 +446,7 @@ def _refine_chunk(L: NDArray[np.float32], sample: _Sampler, pl, pr, A, cfg: LsmC
         idx = np.flatnonzero(~done & ~failed)
         if idx.size == 0:
             break
-        step, bad, Ni, Rv, res = _gauss_newton_step(T, st, idx, sample, ux, uy, n1)
+        step, bad, Ni, Rv, res = _gauss_newton_step(T, st, idx, sample, ux, uy, n1, buf)
         iters[idx] = it + 1
         moved = np.hypot(*(st.t[idx] - t0[idx]).T)
         detA = np.abs(np.linalg.det(st.A[idx]))
@@ -451,10 +457,10 @@ def _refine_chunk(L: NDArray[np.float32], sample: _Sampler, pl, pr, A, cfg: LsmC
         if fin.any():
             # precision and correlation where the last update fell below tol_px (from its residuals)
             j, f = idx[fin], np.flatnonzero(fin)
-            s2[j] = np.sum(res[f] * res[f], axis=1) / max(npx - 8, 1)
+            s2[j] = np.sum(np.square(res[f], dtype=np.float64), axis=1) / max(npx - 8, 1)
             Ninv[j] = Ni[f]
-            a = T[j] - T[j].mean(axis=1, keepdims=True)
-            b = Rv[f] - Rv[f].mean(axis=1, keepdims=True)
+            a = T[j] - T[j].mean(axis=1, dtype=np.float64, keepdims=True)
+            b = Rv[f] - Rv[f].mean(axis=1, dtype=np.float64, keepdims=True)
             with np.errstate(invalid="ignore", divide="ignore"):
                 corr[j] = np.sum(a * b, axis=1) / np.sqrt(np.sum(a * a, axis=1) * np.sum(b * b, axis=1))
     conv = done & ~failed
