@@ -31,6 +31,12 @@ __all__ = ["VERIFY_METHODS", "MatcherConfig", "MatchResult", "ProgressFn", "Veri
 
 ProgressFn = Callable[[int, int], None]
 
+#: FLANN kd-tree search effort (leaves checked) of the forward search and of the mutual back-check. The
+#: back-check only confirms a candidate (a miss there is recovered by the guided re-admission), so it
+#: searches less.
+FLANN_CHECKS = 64
+FLANN_BACK_CHECKS = 16
+
 
 class Verify(str, enum.Enum):
     HOMOGRAPHY = "homography"
@@ -281,9 +287,11 @@ def _match_descriptors(left: Features, right: Features, *, ratio: float, mutual:
     empty = _Pairs(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
     if len(left) < 2 or len(right) < 2:
         return empty, None
-    if left.descriptors.dtype == np.float32:
+    flann = left.descriptors.dtype == np.float32
+    matcher: cv2.DescriptorMatcher
+    if flann:
         index: dict[str, bool | int | float | str] = dict(algorithm=1, trees=4)
-        matcher: cv2.DescriptorMatcher = cv2.FlannBasedMatcher(index, dict(checks=64))
+        matcher = cv2.FlannBasedMatcher(index, dict(checks=FLANN_CHECKS))
     else:
         matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
     dl = np.ascontiguousarray(left.descriptors)
@@ -304,6 +312,8 @@ def _match_descriptors(left: Features, right: Features, *, ratio: float, mutual:
     if mutual and li.size:
         # back-match only the right descriptors that are candidates (about half of them on ordinary pairs)
         cand = np.unique(ri)
+        if flann:
+            matcher = cv2.FlannBasedMatcher(index, dict(checks=FLANN_BACK_CHECKS))
         back = matcher.knnMatch(np.ascontiguousarray(dr[cand]), dl, k=1)
         best = np.full(len(right), -1, dtype=np.int64)
         for m in back:
