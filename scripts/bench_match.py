@@ -68,14 +68,19 @@ json.dump({"n_matched": len(good), "n_inliers": int(n), "R": R.tolist(), "t": t.
 
 
 def timed(cmd: list[str], log: Path) -> dict:
-    """Run a command under /usr/bin/time; return wall time (s), peak RSS (GB), exit code."""
+    """Run a command under /usr/bin/time; return wall time (s), CPU time (user + system, s: less sensitive
+    to the other jobs on a shared machine), peak RSS (GB), exit code and the 1-minute load average before."""
+    load = os.getloadavg()[0]
     t0 = time.perf_counter()
     with open(log, "w") as f:
-        p = subprocess.run(["/usr/bin/time", "-f", "TIME %e %M", *cmd], stdout=f, stderr=subprocess.STDOUT)
+        p = subprocess.run(["/usr/bin/time", "-f", "TIME %e %M %U %S", *cmd], stdout=f, stderr=subprocess.STDOUT)
     wall = time.perf_counter() - t0
     txt = log.read_text()
-    rss = next((int(line.split()[2]) for line in txt.splitlines() if line.startswith("TIME ")), -1)
-    return {"wall_s": round(wall, 1), "peak_rss_gb": round(rss / 1024 ** 2, 3), "exit": p.returncode}
+    line = next((ln.split() for ln in txt.splitlines() if ln.startswith("TIME ")), None)
+    rss = int(line[2]) if line else -1
+    cpu = float(line[3]) + float(line[4]) if line and len(line) >= 5 else float("nan")
+    return {"wall_s": round(wall, 1), "cpu_s": round(cpu, 1), "peak_rss_gb": round(rss / 1024 ** 2, 3),
+            "exit": p.returncode, "load_before": round(load, 2)}
 
 
 def score(left: np.ndarray, right: np.ndarray, H: np.ndarray, size: int, cell: int = 500) -> dict:
@@ -127,6 +132,7 @@ def run_pair(work: Path, size: int, skip_peer: bool) -> dict:
                        "matched": int(z["n_matched"])}
         print("peer", json.dumps(res["peer"]), flush=True)
         res["ratio_time_ours_over_peer"] = round(res["ours"]["wall_s"] / res["peer"]["wall_s"], 3)
+        res["ratio_cpu_ours_over_peer"] = round(res["ours"]["cpu_s"] / res["peer"]["cpu_s"], 3)
         res["ratio_rss_ours_over_peer"] = round(res["ours"]["peak_rss_gb"] / res["peer"]["peak_rss_gb"], 3)
     return res
 
@@ -151,6 +157,7 @@ def run_orient(work: Path, size: int) -> dict:
     res["peer"] = {**m, **{k: v for k, v in json.loads((d / "orient_peer.json").read_text()).items()
                            if k.startswith("n_")}}
     res["ratio_time_ours_over_peer"] = round(res["ours"]["wall_s"] / res["peer"]["wall_s"], 3)
+    res["ratio_cpu_ours_over_peer"] = round(res["ours"]["cpu_s"] / res["peer"]["cpu_s"], 3)
     print("orient", json.dumps(res), flush=True)
     return res
 
@@ -200,13 +207,30 @@ def main() -> None:
     ap.add_argument("--skip-pair", action="store_true")
     ap.add_argument("--orient", action="store_true",
                     help="also time `stereo orient LEFT RIGHT` against SIFT + findEssentialMat + recoverPose")
+    ap.add_argument("--repeat", type=int, default=1,
+                    help="run the pair (and orient) comparison this many times (shared machines are noisy) and "
+                         "print one line per run")
     a = ap.parse_args()
     a.work.mkdir(parents=True, exist_ok=True)
-    out = {"machine": {"cpus": os.cpu_count(), "load_avg_at_start": os.getloadavg()}}
-    if not a.skip_pair:
-        out["pair"] = run_pair(a.work, a.size, a.skip_peer)
-    if a.orient:
-        out["orient"] = run_orient(a.work, a.size)
+    out: dict = {"machine": {"cpus": os.cpu_count(), "load_avg_at_start": os.getloadavg()}}
+    runs = []
+    for _ in range(max(1, a.repeat)):
+        if not a.skip_pair:
+            out["pair"] = run_pair(a.work, a.size, a.skip_peer)
+        if a.orient:
+            out["orient"] = run_orient(a.work, a.size)
+        runs.append({k: out[k] for k in ("pair", "orient") if k in out})
+    if len(runs) > 1:
+        out["runs"] = runs
+    for i, r in enumerate(runs):
+        cells = []
+        for k in ("pair", "orient"):
+            if k in r and "peer" in r[k]:
+                o, p_ = r[k]["ours"], r[k]["peer"]
+                cells.append(f"{k}: ours {o['wall_s']} s (cpu {o['cpu_s']}, load {o['load_before']}) "
+                             f"peer {p_['wall_s']} s (cpu {p_['cpu_s']}, load {p_['load_before']}) "
+                             f"ratio {r[k]['ratio_time_ours_over_peer']} (cpu {r[k]['ratio_cpu_ours_over_peer']})")
+        print(f"run {i + 1}: " + "; ".join(cells), flush=True)
     if a.large:
         out["large"] = run_large(a.work, a.large)
     print(json.dumps(out, indent=1))
