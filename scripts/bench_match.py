@@ -114,7 +114,7 @@ def run_pair(work: Path, size: int, skip_peer: bool) -> dict:
         print(f"generated {size}x{size} pair in {t['time_left_s'] + t['time_right_s']:.0f} s", flush=True)
     truth = json.loads((d / "truth.json").read_text())
     H = np.array(truth["H_right_from_left"])
-    res = {"size": size}
+    res: dict = {"size": size}
     ours_csv = d / "ours.csv"
     m = timed(["rectify", "match", str(d / "left.tif"), str(d / "right.tif"), "-o", str(ours_csv), "--overwrite"],
               d / "ours.log")
