@@ -222,7 +222,11 @@ def main() -> None:
         print(f"{job}: speedup 2 workers vs 1 = {t[1] / t[2]:.2f} (target >= 1.8); "
               f"2 workers vs local threads = {t[0] / t[2]:.2f}; CPU used per wall second: "
               f"1 worker {cpu[1] / t[1]:.2f}, 2 workers {cpu[2] / t[2]:.2f} (of {os.cpu_count()} cores)")
-    print(f"chunk: one task = up to {per_task} output tiles of {tile} x {tile} px, {chunk_mb:.1f} MB of uint8 "
+    if "dense" in jobs:
+        print("dense: one task = one matching tile (1024 px core + 48 px overlap), its disparity block written by "
+              "the worker; the driver does the coarse pass and writes disparity.tif and confidence.tif")
+    print(f"chunk (warp, ortho): one task = up to {per_task} output tiles of {tile} x {tile} px, {chunk_mb:.1f} MB "
+          f"of uint8 "
           f"RGB output plus its source window; a worker holds one task at a time (1 thread)")
     (work / "bench_dask.json").write_text(json.dumps(rows, indent=2))
 
