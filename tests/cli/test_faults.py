@@ -179,15 +179,15 @@ def test_output_equal_to_an_input_is_refused_even_with_overwrite(noise_scene):
 
 
 def test_fit_with_a_failing_report_writes_nothing(noise_scene, monkeypatch):
-    import rectify.actions
+    import rectify.report
 
     d, src, gcps = noise_scene
 
     def boom(*a, **k):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(rectify.actions, "write_fit_report", boom)
-    monkeypatch.setattr(rectify.actions, "write_warp_report", boom)
+    monkeypatch.setattr(rectify.report, "write_fit_report", boom)  # imported when the fit writes its report
+    monkeypatch.setattr(rectify.report, "write_warp_report", boom)
     names = _entries(d)
     r = CliRunner().invoke(rectify_cli, ["fit", str(gcps), "-o", str(d / "t.json"), "--report", str(d / "rep")])
     assert r.exit_code != 0 and _entries(d) == names
