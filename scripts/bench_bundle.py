@@ -48,11 +48,12 @@ less sensitive to other load on a shared machine) of the adjustment call only (p
 either solver's input. Final reprojection RMS (px, per coordinate: sqrt(sum r^2 / 2M)) is
 computed here, by one function, from each solver's final poses and points, not from either
 solver's own report. ``--threads`` goes to Ceres' ``num_threads`` (its Jacobian evaluation and
-Schur elimination) and, as OMP/OpenBLAS/MKL thread counts in both workers' environment, to the
-BLAS/LAPACK under our solver (numpy, scipy; ``adjust_bundle`` has no thread option of its own).
-``--blas-threads 1`` gives our solver one BLAS thread instead: OpenBLAS's threads spin-wait,
-and on a machine loaded beyond its cores a 2-thread Cholesky of a 294 x 294 matrix took 0.4 s
-instead of 0.5 ms (1 thread), which dominates our time there.
+Schur elimination) and, as OMP/OpenBLAS/MKL thread counts in both workers' environment, to our
+solver: ``adjust_bundle`` (``BundleOptions.threads`` None) runs its model evaluation and
+normal-equation assembly on as many threads as BLAS is set to use, and BLAS itself on one thread
+except in dense factorisations of 1500 unknowns or more. ``--blas-threads N`` gives our solver N
+threads instead (OpenBLAS's threads spin-wait: on a machine loaded beyond its cores a 2-thread
+Cholesky of a 294 x 294 matrix once took 0.4 s instead of 0.5 ms).
 ``--iterations`` is the iteration limit of both (Ceres ``max_num_iterations``, our
 ``max_iterations``). Ours runs with ``covariance="none"`` by default (Ceres computes no
 covariance either); ``--ours-covariance poses|full`` times it with its precision output.
@@ -400,12 +401,16 @@ def run_ours(block: Block, iterations: int, threads: int, covariance: str = "non
     cpu = time.process_time() - cpu0
     R = np.array([p.rotation for p in res.poses])
     C = np.array([p.position for p in res.poses])
-    solver = "dense Cholesky" if 6 * n <= options.dense_limit else "sparse LU"
+    from stereo.block import bundle_solve
+
+    prob = bundle._setup({"cam": cam}, poses, tracks, block.X0, control, None, options)[0]
+    solver = ("banded Cholesky (images in reverse Cuthill-McKee order)" if bundle_solve.use_banded(prob) else
+              "dense Cholesky" if prob.n_c <= options.dense_limit else "sparse LU")
     return dict(R=R, C=C, X=np.asarray(res.points), time=t_solve, cpu=cpu, build=t_build, rss_before=rss_before,
                 iterations=res.iterations,
                 detail=f"{'converged' if res.converged else 'NOT converged'}, reduced system by {solver}, "
                        f"covariance {covariance}, own RMS {res.rms_px:.4f} px",
-                label=f"ours (LM + Schur, BLAS threads {threads})")
+                label=f"ours (LM + Schur, {bundle.default_threads()} threads)")
 
 
 def worker(a: argparse.Namespace) -> int:
@@ -454,8 +459,7 @@ def main(argv=None) -> int:
     ap.add_argument("--ours-covariance", choices=("none", "poses", "full"), default="none",
                     help="precision output of our solver (timed with it)")
     ap.add_argument("--blas-threads", type=int,
-                    help="BLAS threads of our solver if not --threads (OpenBLAS threads spin badly when the "
-                         "machine is loaded beyond its cores; 1 stays within the --threads budget)")
+                    help="threads of our solver (BLAS environment and its own threads) if not --threads")
     ap.add_argument("--worker", choices=("ours", "colmap"), help=argparse.SUPPRESS)
     ap.add_argument("--data", help=argparse.SUPPRESS)
     ap.add_argument("--out", help=argparse.SUPPRESS)

@@ -39,11 +39,13 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from threadpoolctl import threadpool_info, threadpool_limits
 
 from rectify.camera import Camera
 from rectify.errors import ConvergenceError, EstimationError, InvalidInputError, ShapeError
@@ -80,6 +82,9 @@ FREE_NETWORK_RELATIVE_SIGMA = 1e-7
 FREE_NETWORK_MIN_ITERATIONS = 300
 #: reweightings per IRLS stage (Huber, then the chosen psi) before the weights are frozen
 IRLS_STAGE_ITERATIONS = 12
+#: converged also when the weighted sum of squares has settled (1e-8 relative) in an iteration whose
+#: corrections were all below this many a-priori standard deviations
+SETTLED_STEP = 1e-2
 POSE_ELEMENTS: tuple[str, ...] = ("omega", "phi", "kappa", "x", "y", "z")
 
 
@@ -263,7 +268,13 @@ class BundleOptions:
         :data:`FREE_NETWORK_MIN_ITERATIONS` iterations.
     dense_limit : int
         Solve the reduced camera system with a dense Cholesky factorisation up to this size,
-        with a sparse LU beyond.
+        with a sparse LU beyond (either replaced by a banded Cholesky, the images in reverse
+        Cuthill-McKee order, when that needs at least 4 times fewer operations).
+    threads : int or None
+        Threads of the model evaluation and the assembly of the normal equations (None: as many
+        as the BLAS library is set to use, i.e. ``OMP_NUM_THREADS`` / ``OPENBLAS_NUM_THREADS`` or
+        the CPU count). BLAS itself runs one thread, except in dense factorisations of reduced
+        systems from ``bundle_solve.BLAS_THREADS_MIN_UNKNOWNS`` unknowns on (with ``threads``).
     """
 
     image_sigma_px: float = 1.0
@@ -277,6 +288,7 @@ class BundleOptions:
     covariance: str = "full"
     free_network: bool = False
     dense_limit: int = 4000
+    threads: int | None = None
 
     def __post_init__(self) -> None:
         def pos(name: str) -> None:
@@ -298,6 +310,9 @@ class BundleOptions:
                                     f"expected a subset of {list(INTERIOR_NAMES)}")
         if len(set(self.self_calibrate)) != len(self.self_calibrate):
             raise InvalidInputError(f"BundleOptions.self_calibrate has duplicates: {self.self_calibrate!r}")
+        if self.threads is not None and (isinstance(self.threads, bool) or not isinstance(self.threads, int)
+                                         or self.threads < 1):
+            raise InvalidInputError(f"BundleOptions.threads must be None or an integer >= 1; got {self.threads!r}")
         for name in ("max_iterations", "dense_limit"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
@@ -486,6 +501,25 @@ def adjust_bundle(cameras: Mapping[str, Camera], poses: Sequence[Pose], tracks: 
         No convergence within ``max_iterations``; names the worst observations.
     """
     prob, st0, info = _setup(cameras, poses, tracks, points, control, gnss, options)
+    prob.threads = options.threads if options.threads is not None else default_threads()
+    prob.blas_threads = max(1, prob.threads)
+    # our threads call BLAS on tiny matrices: one BLAS thread (large dense factorisations get more, bs.blas)
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _adjust(prob, st0, info, options, progress)
+
+
+def default_threads() -> int:
+    """Threads of the bundle adjustment by default: as many as BLAS uses, at most the usable CPUs."""
+    blas = [int(i.get("num_threads", 1)) for i in threadpool_info() if i.get("user_api") == "blas"]
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not on Linux
+        cpus = os.cpu_count() or 1
+    return max(1, min(max(blas, default=1), cpus))
+
+
+def _adjust(prob: bs.Problem, st0: bs.State, info: _Info, options: BundleOptions,
+            progress: Callable[[int, int], None] | None) -> BundleResult:
     factors = {g: 1.0 for g in GROUPS}
     psi = get_psi(options.robust) if options.robust != "none" else None
     st = st0
@@ -770,6 +804,7 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
     # Levenberg-Marquardt damping of the nonlinear point depths makes converge linearly: more iterations
     limit = max(options.max_iterations, FREE_NETWORK_MIN_ITERATIONS) if info.free_network else options.max_iterations
     lin: bs.Linear | None = None
+    refine = False
     for it in range(1, limit + 1):
         if lin is None:
             lin = bs.evaluate(prob, st, jacobian=True)
@@ -787,10 +822,12 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
         accepted = False
         for _ in range(12):
             ne = bs.normal(prob, lin, w, mu, dense=dense, banded=banded)
-            xc, xp = bs.solve_reduced(ne)
+            xc, xp = bs.solve_reduced(ne, blas_threads=prob.blas_threads)
             nstep = max(float(np.max(np.abs(xc) * np.sqrt(ne.diag_c), initial=0.0)),
                         float(np.max(np.abs(xp) * np.sqrt(ne.diag_p), initial=0.0)))
-            trial = bs.refine_points(prob, bs.apply_step(prob, st, xc, xp), w)
+            trial = bs.apply_step(prob, st, xc, xp)
+            if refine:
+                trial = bs.refine_points(prob, trial, w)
             # with the Jacobians: an accepted trial is the next iteration's linearisation
             tlin = bs.evaluate(prob, trial, jacobian=True)
             tres = tlin.res
@@ -801,6 +838,8 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
                 accepted = True
                 break
             mu *= 10.0
+            # a rejected step: from now on the points are intersected again after every camera step
+            refine = True
         if progress is not None:
             progress(it, limit)
         logger.debug("bundle iteration %d: cost %.12g, step %.3g sd, mu %.1e, weights change %.3g",
@@ -810,7 +849,9 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
         # settled: the corrections are below the tolerance, or (with the weights unchanged) the weighted
         # sum of squares has changed by at most 1e-8 relative in each of three iterations -- a weakly
         # determined unknown, such as the depth of a two-ray point with a small intersection angle, can
-        # keep creeping by a few of its a-priori standard deviations without changing any residual
+        # keep creeping by a few of its a-priori standard deviations without changing any residual --
+        # or in one iteration whose corrections were all below SETTLED_STEP standard deviations (below
+        # that the steps of a large block are rounding noise of the solution: they no longer shrink)
         flat = flat + 1 if dw == 0.0 and abs(last_cost - cost) <= 1e-8 * max(cost, 1e-300) else 0
         last_cost = cost
         if psi is not None and not robust_on and not frozen and (nstep < 1e-2 or flat >= 3):
@@ -826,7 +867,7 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
                 cur_psi = psi  # Huber has settled: switch to the redescending psi
                 continue
             robust_on, frozen, flat = False, True, 0  # weights settled: converge with them fixed
-        if (nstep < options.tolerance or flat >= 3) and (psi is None or frozen):
+        if (nstep < options.tolerance or flat >= 3 or (flat >= 1 and nstep < SETTLED_STEP)) and (psi is None or frozen):
             converged = True
             break
     if not converged:
@@ -877,7 +918,7 @@ def _redundancy(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], ro
     if points_needed or options.variance_components:
         dense = prob.n_c <= options.dense_limit
         ne = bs.normal(prob, lin, w, 0.0, dense=dense)
-        Qcc = bs.inverse_reduced(ne.S)
+        Qcc = bs.inverse_reduced(ne.S, blas_threads=prob.blas_threads)
         if points_needed == "all":
             pts = np.arange(prob.n_points, dtype=np.int64)
         else:

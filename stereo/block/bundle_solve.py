@@ -14,13 +14,18 @@ track (vectorised, in chunks).
 
 from __future__ import annotations
 
+import threading
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
+from threadpoolctl import threadpool_limits
 
 from rectify.errors import EstimationError
 
@@ -38,6 +43,53 @@ REFINE_STEPS = 1
 BANDED_MIN_GAIN = 4.0
 #: ... and at most this many
 BANDED_MAX_FLOPS = 5e10
+#: dense factorisations from this order on run on the caller's BLAS threads, smaller ones on one
+BLAS_THREADS_MIN_UNKNOWNS = 1500
+#: observations per piece of the vectorised model evaluation and normal-equation assembly (cache-sized)
+CHUNK = 20_000
+
+T_ = TypeVar("T_")
+A_ = TypeVar("A_")
+_POOL: dict[int, ThreadPoolExecutor] = {}
+_POOL_LOCK = threading.Lock()
+
+
+def _pool(k: int) -> ThreadPoolExecutor:
+    with _POOL_LOCK:
+        ex = _POOL.get(k)
+        if ex is None:
+            ex = _POOL[k] = ThreadPoolExecutor(max_workers=k, thread_name_prefix="bundle")
+        return ex
+
+
+def _pmap(threads: int, fn: Callable[[A_], T_], items: Sequence[A_]) -> list[T_]:
+    """``[fn(x) for x in items]`` on ``threads`` threads (numpy and scipy release the GIL in their loops)."""
+    if threads <= 1 or len(items) <= 1:
+        return [fn(x) for x in items]
+    return list(_pool(threads).map(fn, items))
+
+
+def _psum(threads: int, fn: Callable[[A_], tuple[F64, ...]], items: Sequence[A_]) -> tuple[F64, ...]:
+    """Sums of the arrays ``fn(x)`` returns over ``items``, each thread summing its share in place."""
+    k = max(1, min(threads, len(items)))
+
+    def work(share: Sequence[A_]) -> tuple[F64, ...] | None:
+        acc: list[F64] | None = None
+        for x in share:
+            got = fn(x)
+            if acc is None:
+                acc = [np.array(a, dtype=np.float64) for a in got]
+            else:
+                for a, b in zip(acc, got, strict=True):
+                    a += b
+        return None if acc is None else tuple(acc)
+
+    parts = [p for p in _pmap(k, work, [items[i::k] for i in range(k)]) if p is not None]
+    out = list(parts[0])
+    for p in parts[1:]:
+        for a, b in zip(out, p, strict=True):
+            a += b
+    return tuple(out)
 
 
 @dataclass
@@ -67,6 +119,10 @@ class Problem:
     c_sigma: F64 = field(default_factory=lambda: np.zeros((0, 3)))   # inf = component not observed
     obs_mark: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))  # (M,) control/check image obs
     dense_limit: int = 4000
+    #: threads of the model evaluation and the normal-equation assembly
+    threads: int = 1
+    #: BLAS threads of large dense factorisations (:func:`blas`)
+    blas_threads: int = 1
     #: index structures of the reduced camera system (built once, :func:`_structure`)
     cache: dict[str, object] = field(default_factory=dict, repr=False, compare=False)
 
@@ -154,17 +210,35 @@ def evaluate(prob: Problem, st: State, *, jacobian: bool, points_only: bool = Fa
     axes = rotation_axes(st.angles)
     oi = prob.obs_img
     want_c = jacobian and not points_only
-    if prob.n_cams == 1:  # one camera: its constants broadcast
-        intr, psz, cen = st.interior[:1], prob.pixel_size[:1], prob.centre[:1]
-    else:
-        cam = prob.cam_of_image[oi]
-        intr, psz, cen = st.interior[cam], prob.pixel_size[cam], prob.centre[cam]
-    pix, depth, Jpose, Jpt, Jint = project(np.take(R, oi, axis=0), np.take(st.centres, oi, axis=0),
-                                           np.take(axes, oi, axis=0) if want_c else axes[:0], intr, psz, cen,
-                                           np.take(st.points, prob.obs_pt, axis=0), jacobian=jacobian,
+    M, d = len(oi), 6 + prob.c
+    pix = np.empty((M, 2))
+    depth = np.empty(M)
+    Jpt = np.empty((M, 2, 3)) if jacobian else np.zeros((0, 2, 3))
+    Jc = np.empty((M, 2, d)) if want_c else np.zeros((0, 2, 6))
+
+    def part(r: tuple[int, int]) -> None:
+        a, b = r
+        o = oi[a:b]
+        if prob.n_cams == 1:  # one camera: its constants broadcast
+            intr, psz, cen = st.interior[:1], prob.pixel_size[:1], prob.centre[:1]
+        else:
+            cam = prob.cam_of_image[o]
+            intr, psz, cen = st.interior[cam], prob.pixel_size[cam], prob.centre[cam]
+        px, dp, Jpose, Jp_, Jint = project(np.take(R, o, axis=0), np.take(st.centres, o, axis=0),
+                                           np.take(axes, o, axis=0) if want_c else axes[:0], intr, psz, cen,
+                                           np.take(st.points, prob.obs_pt[a:b], axis=0), jacobian=jacobian,
                                            pose=want_c, intrinsic=want_c and prob.c > 0)
+        pix[a:b] = px
+        depth[a:b] = dp
+        if jacobian:
+            Jpt[a:b] = Jp_
+        if want_c:
+            Jc[a:b, :, :6] = Jpose
+            if prob.c:
+                Jc[a:b, :, 6:] = Jint[:, :, prob.sel]
+
+    _pmap(prob.threads, part, [(a, min(M, a + CHUNK)) for a in range(0, M, CHUNK)])
     v = prob.obs_px - pix
-    Jc = np.concatenate([Jpose, Jint[:, :, prob.sel]], axis=2) if want_c and prob.c else Jpose
     gi = prob.g_img
     Jg = np.zeros((len(gi), 3, 6))
     if len(gi):
@@ -280,7 +354,7 @@ class _Structure:
     band_gain: float = 1.0     # flops of a dense Cholesky / of the banded one
 
 
-def _structure(prob: Problem, chunk: int = 20_000) -> _Structure:
+def _structure(prob: Problem, chunk: int = CHUNK) -> _Structure:
     got = prob.cache.get("structure")
     if isinstance(got, _Structure):
         return got
@@ -413,12 +487,14 @@ def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool, ba
     rhs[: 6 * n] += pose_rhs.ravel()
     # image blocks: sum over the image's observations of Jc^T W Jc - G E^T
     dd = d * d
-    img_n = np.zeros((n, dd))
-    img_r = np.zeros((n, dd))
-    for o0, o1, agg in sx.img_sum:
+
+    def img_part(r: tuple[int, int, sp.csr_matrix]) -> tuple[F64, F64]:
+        o0, o1, agg = r
         jc = Jc[o0:o1]
-        img_n += agg @ np.matmul((jc * wi[o0:o1, :, None]).transpose(0, 2, 1), jc).reshape(-1, dd)
-        img_r += agg @ np.matmul(Gt[o0:o1].transpose(0, 2, 1), Et[o0:o1]).reshape(-1, dd)
+        return (agg @ np.matmul((jc * wi[o0:o1, :, None]).transpose(0, 2, 1), jc).reshape(-1, dd),
+                agg @ np.matmul(Gt[o0:o1].transpose(0, 2, 1), Et[o0:o1]).reshape(-1, dd))
+
+    img_n, img_r = _psum(prob.threads, img_part, sx.img_sum)
     # undamped diagonal of N_cc
     diag_c: F64 = np.bincount(sx.img_first.ravel(), weights=img_n[:, ::d + 1].ravel(), minlength=nc).astype(np.float64)
     diag_c[: 6 * n] += np.diagonal(pose_blocks, axis1=1, axis2=2).ravel()
@@ -426,15 +502,17 @@ def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool, ba
     img_blk = img_blk.reshape(n, d, d)
     img_blk[:, :6, :6] += pose_blocks
     # image-pair blocks: sum over the pairs a < b of the tracks of G_a E_b^T (one product per pair slot)
-    pair_blk = np.zeros((sx.n_pairs, dd))
-    for g in sx.groups:
+
+    def pair_part(g: _Group) -> tuple[F64]:
         k = len(g.obs) // g.m
         Gm = np.take(Gt, g.obs, axis=0).reshape(k, g.m, 3, d).transpose(0, 1, 3, 2)
         Em = np.take(Et, g.obs, axis=0).reshape(k, g.m, 3, d)
         buf = np.empty((len(g.ia), k, d, d))
         for s_, (a_, b_) in enumerate(zip(g.ia, g.ib, strict=True)):
             np.matmul(Gm[:, a_], Em[:, b_], out=buf[s_])
-        pair_blk += g.agg @ buf.reshape(-1, dd)
+        return (g.agg @ buf.reshape(-1, dd),)
+
+    pair_blk = _psum(prob.threads, pair_part, sx.groups)[0] if sx.groups else np.zeros((sx.n_pairs, dd))
     vals = np.concatenate([img_blk.ravel(), -pair_blk.ravel(), -pair_blk.ravel()])
     S: F64 | sp.csc_matrix | Banded
     if banded and sx.band is not None and sx.band_order is not None:
@@ -469,8 +547,16 @@ def inv3(A: F64) -> F64:
     return np.asarray(out, dtype=np.float64)
 
 
-def solve_reduced(ne: Normal) -> tuple[F64, F64]:
-    """Camera-side step (n_c,) and point step (P, 3) from the Schur form."""
+def blas(threads: int, n: int) -> threadpool_limits:
+    """BLAS thread limit for a dense factorisation of order ``n``: ``threads`` from
+    :data:`BLAS_THREADS_MIN_UNKNOWNS` unknowns on, else one (elsewhere the adjustment runs BLAS on one
+    thread: its own threads call it on tiny matrices, where BLAS threads only spin)."""
+    return threadpool_limits(limits=threads if n >= BLAS_THREADS_MIN_UNKNOWNS else 1, user_api="blas")
+
+
+def solve_reduced(ne: Normal, *, blas_threads: int = 1) -> tuple[F64, F64]:
+    """Camera-side step (n_c,) and point step (P, 3) from the Schur form (a dense factorisation on
+    ``blas_threads`` BLAS threads if it is large)."""
     S = ne.S
     dg = S.diagonal() if sp.issparse(S) or isinstance(S, Banded) else np.diag(S)
     if not (dg > 0).all():
@@ -504,7 +590,8 @@ def solve_reduced(ne: Normal) -> tuple[F64, F64]:
         Ss = S * s[:, None]
         Ss *= s[None, :]
         try:
-            cf = scipy.linalg.cho_factor(Ss, lower=True, overwrite_a=True, check_finite=False)
+            with blas(blas_threads, len(s)):
+                cf = scipy.linalg.cho_factor(Ss, lower=True, overwrite_a=True, check_finite=False)
         except np.linalg.LinAlgError as err:
             raise EstimationError(f"reduced camera system is not positive definite ({err}); "
                                   "the datum is not defined or an image is not determined") from err
@@ -562,15 +649,17 @@ def apply_step(prob: Problem, st: State, xc: F64, xp: F64) -> State:
 
 
 # ------------------------------------------------------------------ cofactors
-def inverse_reduced(S: F64 | sp.csc_matrix) -> F64:
+def inverse_reduced(S: F64 | sp.csc_matrix, *, blas_threads: int = 1) -> F64:
     """Q_cc = S^-1 (dense), Jacobi-scaled for accuracy."""
     Sd = np.asarray(S.toarray() if sp.issparse(S) else S, dtype=np.float64)  # type: ignore[union-attr]
     s = 1.0 / np.sqrt(np.diag(Sd))
-    try:
-        cf = scipy.linalg.cho_factor(Sd * s[:, None] * s[None, :], lower=True, check_finite=False)
-    except np.linalg.LinAlgError as err:
-        raise EstimationError(f"reduced camera system is not positive definite ({err})") from err
-    Q = scipy.linalg.cho_solve(cf, np.eye(len(s)), check_finite=False)
+    with blas(blas_threads, len(s)):
+        try:
+            cf = scipy.linalg.cho_factor(Sd * s[:, None] * s[None, :], lower=True, overwrite_a=True,
+                                         check_finite=False)
+        except np.linalg.LinAlgError as err:
+            raise EstimationError(f"reduced camera system is not positive definite ({err})") from err
+        Q = scipy.linalg.cho_solve(cf, np.eye(len(s)), overwrite_b=True, check_finite=False)
     return np.asarray(Q * s[:, None] * s[None, :], dtype=np.float64)
 
 
