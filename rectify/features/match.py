@@ -645,6 +645,10 @@ def _match_whole(L, lv, R, rv, cfg: MatcherConfig, progress, names) -> MatchResu
         vl = np.concatenate([vl, fl.xy[extra.left]])
         vr = np.concatenate([vr, fr.xy[extra.right]])
         vratio = np.concatenate([vratio, extra.ratio])
+    # SIFT's repeated keypoints (one per orientation) are one match: refine it once
+    u = _one_to_one(vl, vr, vratio)
+    n_dup0 = len(vl) - len(u)
+    vl, vr, vratio = vl[u], vr[u], vratio[u]
     pre = int(math.ceil(1.25 * cfg.max_matches))
     if len(vl) > pre:       # refine only what can be returned (plus a reserve for failures)
         keep = grid_select(vl, -vratio, L.shape[:2], pre, cell_cap=cfg.cell_cap)
@@ -659,8 +663,8 @@ def _match_whole(L, lv, R, rv, cfg: MatcherConfig, progress, names) -> MatchResu
     tick(4, 4)
     timings = {"detect": t1 - t0, "match": t2 - t1, "verify": t3 - t2, "refine": t4 - t3, "total": t4 - t0}
     return _result(out_l, out_r, sc, ver, cfg, (len(fl), len(fr)), len(pairs.left), int(inl.sum()) + n_guided,
-                   n_ref, n_fail, raw, cand_l, cand_r, cand_inl, False, (L.shape[:2], R.shape[:2]), timings, n_dup,
-                   n_guided)
+                   n_ref, n_fail, raw, cand_l, cand_r, cand_inl, False, (L.shape[:2], R.shape[:2]), timings,
+                   n_dup0 + n_dup, n_guided)
 
 
 def _one_to_one(pl, pr, score, tol_px: float = 0.1):
