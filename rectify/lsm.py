@@ -20,7 +20,9 @@ All coordinates follow the project's pixel convention: the centre of pixel
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -214,7 +216,8 @@ def _as_grey(img: ArrayLike, name: str) -> NDArray[np.float32]:
 
 def refine_matches(left_img: ArrayLike, right_img: ArrayLike, left_xy: ArrayLike, right_xy: ArrayLike,
                    *, affine: ArrayLike | None = None, config: LsmConfig | None = None,
-                   chunk: int = 512, progress: Callable[[int, int], None] | None = None) -> LsmResult:
+                   chunk: int = 512, progress: Callable[[int, int], None] | None = None,
+                   workers: int | None = None) -> LsmResult:
     """Refine right positions of matches by least-squares image matching.
 
     Parameters
@@ -229,9 +232,12 @@ def refine_matches(left_img: ArrayLike, right_img: ArrayLike, left_xy: ArrayLike
         Initial local affine shape (d right / d left); identity by default.
     config : LsmConfig, optional
     chunk : int
-        Matches processed together (bounds memory: about
+        Matches processed together (bounds memory: about, per worker,
         ``chunk * (2r+1)^2 * 100`` bytes).
     progress : callable(done, total), optional
+    workers : int, optional
+        Threads refining chunks side by side (default: the CPU count, at most 4; 1 = serial). The
+        result does not depend on it.
 
     Returns
     -------
@@ -274,14 +280,35 @@ def refine_matches(left_img: ArrayLike, right_img: ArrayLike, left_xy: ArrayLike
     iters = np.zeros(n, dtype=np.int64)
     aff = np.array(A0, dtype=np.float64, copy=True)
     chunk = max(1, int(chunk))
-    for s in range(0, n, chunk):
-        e = min(n, s + chunk)
-        res = _refine_chunk(L, sample, pl[s:e], pr[s:e], np.array(A0[s:e]), cfg)
-        out_r[s:e], conv[s:e], std[s:e], corr[s:e], iters[s:e], aff[s:e] = res
-        if progress is not None:
-            progress(e, n)
+    spans = [(s, min(n, s + chunk)) for s in range(0, n, chunk)]
+
+    def run(span: tuple[int, int]):
+        s, e = span
+        return _refine_chunk(L, sample, pl[s:e], pr[s:e], np.array(A0[s:e]), cfg)
+
+    nw = max(1, min(int(workers) if workers else (os.cpu_count() or 1), len(spans), 4))
+    # chunks are independent; numpy and OpenCV release the GIL in the array work, so two threads use two cores
+    with ThreadPoolExecutor(nw) if nw > 1 else _Serial() as ex:
+        for (s, e), res in zip(spans, ex.map(run, spans), strict=True):
+            out_r[s:e], conv[s:e], std[s:e], corr[s:e], iters[s:e], aff[s:e] = res
+            if progress is not None:
+                progress(e, n)
     logger.debug("LSM: %d of %d matches converged", int(conv.sum()), n)
     return LsmResult(out_r, conv, std, corr, iters, aff)
+
+
+class _Serial:
+    """A stand-in for a one-thread executor: ``map`` in the calling thread."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        return None
+
+    @staticmethod
+    def map(fn, items):
+        return map(fn, items)
 
 
 class _Sampler:

@@ -134,3 +134,18 @@ def test_no_guided_readmission_with_a_fundamental_matrix():
     assert r.n_guided == 0
     with pytest.raises(Exception, match="guided_ratio"):
         MatcherConfig(guided_ratio=0.0)
+
+
+def test_threaded_chunks_give_the_serial_result():
+    L = _texture(200, seed=9)
+    t = np.array([0.41, 0.27])
+    R = _shifted(L, t)
+    rng = np.random.default_rng(1)
+    pl = rng.uniform(15, 185, size=(300, 2))
+    start = pl + t + rng.uniform(-0.4, 0.4, size=pl.shape)
+    seen = []
+    a = refine_matches(L, R, pl, start, chunk=37, workers=1)
+    b = refine_matches(L, R, pl, start, chunk=37, workers=3, progress=lambda d, n: seen.append((d, n)))
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x, y)
+    assert seen[-1] == (300, 300) and [d for d, _ in seen] == sorted(d for d, _ in seen)
