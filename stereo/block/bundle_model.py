@@ -113,8 +113,12 @@ def project(R: NDArray[np.float64], C: NDArray[np.float64], axes: NDArray[np.flo
         d pixel / d interior vector.
     """
     d = X - C
-    p = np.matmul(d[:, None, :], R)[:, 0, :]  # R^T d
-    p0, p1, p2 = p[:, 0], p[:, 1], p[:, 2]
+    d0, d1, d2 = d[:, 0], d[:, 1], d[:, 2]
+    Rc = [[R[:, i, j] for j in range(3)] for i in range(3)]
+    # p = R^T d, component by component (elementwise on columns is faster than batched 3x3 products)
+    p0 = d0 * Rc[0][0] + d1 * Rc[1][0] + d2 * Rc[2][0]
+    p1 = d0 * Rc[0][1] + d1 * Rc[1][1] + d2 * Rc[2][1]
+    p2 = d0 * Rc[0][2] + d1 * Rc[1][2] + d2 * Rc[2][2]
     w = 1.0 / p2
     nx = -p0 * w
     ny = p1 * w
@@ -132,34 +136,36 @@ def project(R: NDArray[np.float64], C: NDArray[np.float64], axes: NDArray[np.flo
     z6, z8 = np.zeros((0, 2, 6)), np.zeros((0, 2, 8))
     if not jacobian:
         return pix, -p2, z6, np.zeros((0, 2, 3)), z8
-    # d n_d / d n  (M, 2, 2), times F
+    # d n_d / d n  (2 x 2), times F
     drad = k1 + r2 * (2 * k2 + 3 * k3 * r2)
     a00 = F * (rad + 2 * nx * nx * drad + 2 * q1 * ny + 6 * q2 * nx)
     a01 = F * (2 * nxy * drad + 2 * q1 * nx + 2 * q2 * ny)
     a11 = F * (rad + 2 * ny * ny * drad + 6 * q1 * ny + 2 * q2 * nx)
     # q = d pixel / d p = dd @ dn, dn = [[-w, 0, p0 w^2], [0, w, -p1 w^2]]
-    q = np.empty((m, 2, 3))
     ww = w * w
     u0, u1 = p0 * ww, -p1 * ww
-    q[:, 0, 0] = -w * a00
-    q[:, 0, 1] = w * a01
-    q[:, 0, 2] = a00 * u0 + a01 * u1
-    q[:, 1, 0] = -w * a01
-    q[:, 1, 1] = w * a11
-    q[:, 1, 2] = a01 * u0 + a11 * u1
-    J_point = np.matmul(q, R.transpose(0, 2, 1))  # d p / d X = R^T
+    q = ((-w * a00, w * a01, a00 * u0 + a01 * u1),
+         (-w * a01, w * a11, a01 * u0 + a11 * u1))
+    # d pixel / d X = q R^T
+    J_point = np.empty((m, 2, 3))
+    Jr = []
+    for r in range(2):
+        qr = q[r]
+        row = [qr[0] * Rc[j][0] + qr[1] * Rc[j][1] + qr[2] * Rc[j][2] for j in range(3)]
+        for j in range(3):
+            J_point[:, r, j] = row[j]
+        Jr.append(row)
     if not pose:
         return pix, -p2, z6, J_point, z8
     J_pose = np.empty((m, 2, 6))
     # d pixel / d angle_a = J_point . (d x a_a) = (J_point x d) . a_a, a_a the ground-frame axis of the angle
-    d0, d1, d2 = d[:, 0, None], d[:, 1, None], d[:, 2, None]
-    j0, j1, j2 = J_point[:, :, 0], J_point[:, :, 1], J_point[:, :, 2]
-    c0 = j1 * d2 - j2 * d1
-    c1 = j2 * d0 - j0 * d2
-    c2 = j0 * d1 - j1 * d0
-    for a in range(3):
-        ax = axes[:, a]
-        J_pose[:, :, a] = c0 * ax[:, 0, None] + c1 * ax[:, 1, None] + c2 * ax[:, 2, None]
+    for r in range(2):
+        j0, j1, j2 = Jr[r]
+        c0 = j1 * d2 - j2 * d1
+        c1 = j2 * d0 - j0 * d2
+        c2 = j0 * d1 - j1 * d0
+        for a in range(3):
+            J_pose[:, r, a] = c0 * axes[:, a, 0] + c1 * axes[:, a, 1] + c2 * axes[:, a, 2]
     J_pose[:, :, 3:] = -J_point
     if not intrinsic:
         return pix, -p2, J_pose, J_point, z8

@@ -17,6 +17,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
 from typing import TypeVar
 
@@ -25,7 +26,7 @@ import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController
 
 from rectify.errors import EstimationError
 
@@ -52,6 +53,7 @@ T_ = TypeVar("T_")
 A_ = TypeVar("A_")
 _POOL: dict[int, ThreadPoolExecutor] = {}
 _POOL_LOCK = threading.Lock()
+_CONTROLLER: dict[str, ThreadpoolController] = {}
 
 
 def _pool(k: int) -> ThreadPoolExecutor:
@@ -349,6 +351,7 @@ class _Structure:
     img_first: I64             # (n, d) camera-side unknowns of each image
     rows: I64                  # (L,) row of every entry of S scattered (image blocks, pair blocks, transposes)
     cols: I64                  # (L,)
+    flat: I64                  # (L,) rows * n_c + cols
     band: tuple[I64, I64, int] | None = None   # banded lower storage: entries kept, their flat index, bandwidth
     band_order: I64 | None = None              # reordered unknowns (original index of each)
     band_gain: float = 1.0     # flops of a dense Cholesky / of the banded one
@@ -398,7 +401,8 @@ def _structure(prob: Problem, chunk: int = CHUNK) -> _Structure:
     cols = np.concatenate([np.broadcast_to(first[:, None, :], (n, d, d)).ravel(),
                            np.broadcast_to(rb[:, None, :], (K, d, d)).ravel(),
                            np.broadcast_to(ra[:, :, None], (K, d, d)).ravel()])
-    out = _Structure(cidx, K, groups, img_sum, first, rows.astype(np.int64), cols.astype(np.int64))
+    out = _Structure(cidx, K, groups, img_sum, first, rows.astype(np.int64), cols.astype(np.int64),
+                     (rows * prob.n_c + cols).astype(np.int64))
     if prob.c == 0 and n > 2:
         _band(out, n, uk // n, uk % n)
     prob.cache["structure"] = out
@@ -523,7 +527,7 @@ def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool, ba
             ab[0] += mu * diag_c[sx.band_order]
         S = Banded(ab, sx.band_order)
     elif dense:
-        S = np.bincount(sx.rows * nc + sx.cols, weights=vals, minlength=nc * nc).astype(np.float64, copy=False)
+        S = np.bincount(sx.flat, weights=vals, minlength=nc * nc).astype(np.float64, copy=False)
         S = S.reshape(nc, nc)
         if mu > 0:
             S[np.diag_indices(nc)] += mu * diag_c
@@ -547,11 +551,22 @@ def inv3(A: F64) -> F64:
     return np.asarray(out, dtype=np.float64)
 
 
-def blas(threads: int, n: int) -> threadpool_limits:
+def controller() -> ThreadpoolController:
+    """The thread-pool controller of the loaded BLAS libraries (found once: finding them takes milliseconds)."""
+    with _POOL_LOCK:
+        got = _CONTROLLER.get("c")
+        if got is None:
+            got = _CONTROLLER["c"] = ThreadpoolController()
+        return got
+
+
+def blas(threads: int, n: int) -> AbstractContextManager[object]:
     """BLAS thread limit for a dense factorisation of order ``n``: ``threads`` from
-    :data:`BLAS_THREADS_MIN_UNKNOWNS` unknowns on, else one (elsewhere the adjustment runs BLAS on one
+    :data:`BLAS_THREADS_MIN_UNKNOWNS` unknowns on, else unchanged (the adjustment runs BLAS on one
     thread: its own threads call it on tiny matrices, where BLAS threads only spin)."""
-    return threadpool_limits(limits=threads if n >= BLAS_THREADS_MIN_UNKNOWNS else 1, user_api="blas")
+    if n < BLAS_THREADS_MIN_UNKNOWNS or threads <= 1:
+        return nullcontext()
+    return controller().limit(limits=threads, user_api="blas")
 
 
 def solve_reduced(ne: Normal, *, blas_threads: int = 1) -> tuple[F64, F64]:
