@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import enum
 import math
+import os
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
@@ -288,21 +290,9 @@ def _match_descriptors(left: Features, right: Features, *, ratio: float, mutual:
     if len(left) < 2 or len(right) < 2:
         return empty, None
     flann = left.descriptors.dtype == np.float32
-    matcher: cv2.DescriptorMatcher
-    if flann:
-        index: dict[str, bool | int | float | str] = dict(algorithm=1, trees=4)
-        matcher = cv2.FlannBasedMatcher(index, dict(checks=FLANN_CHECKS))
-    else:
-        matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
     dl = np.ascontiguousarray(left.descriptors)
     dr = np.ascontiguousarray(right.descriptors)
-    knn = matcher.knnMatch(dl, dr, k=2)
-    fidx = np.full((len(left), 2), -1, dtype=np.int64)
-    fdist = np.full((len(left), 2), np.inf)
-    for m in knn:
-        for j, d in enumerate(m[:2]):
-            fidx[d.queryIdx, j] = d.trainIdx
-            fdist[d.queryIdx, j] = d.distance
+    fidx, fdist = _knn(dr, dl, 2, FLANN_CHECKS, flann)
     fwd = _Forward(fidx, fdist)
     a, b = fdist[:, 0], fdist[:, 1]
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -312,13 +302,9 @@ def _match_descriptors(left: Features, right: Features, *, ratio: float, mutual:
     if mutual and li.size:
         # back-match only the right descriptors that are candidates (about half of them on ordinary pairs)
         cand = np.unique(ri)
-        if flann:
-            matcher = cv2.FlannBasedMatcher(index, dict(checks=FLANN_BACK_CHECKS))
-        back = matcher.knnMatch(np.ascontiguousarray(dr[cand]), dl, k=1)
+        bidx, _ = _knn(dl, np.ascontiguousarray(dr[cand]), 1, FLANN_BACK_CHECKS, flann)
         best = np.full(len(right), -1, dtype=np.int64)
-        for m in back:
-            if m:
-                best[cand[m[0].queryIdx]] = m[0].trainIdx
+        best[cand] = bidx[:, 0]
         ok = best[ri] == li
         li, ri, rat = li[ok], ri[ok], rat[ok]
     # one right point per left point and vice versa (keep the best ratio)
@@ -328,6 +314,46 @@ def _match_descriptors(left: Features, right: Features, *, ratio: float, mutual:
         sel = order[first]
         li, ri, rat = li[sel], ri[sel], rat[sel]
     return _Pairs(li, ri, rat), fwd
+
+
+def _knn(train: NDArray, query: NDArray, k: int, checks: int, flann: bool
+         ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """The k nearest train descriptors of every query one: indices (-1 where absent) and distances.
+
+    Float descriptors: one FLANN index of 4 randomised kd-trees, searched by two threads (OpenCV releases
+    the GIL; the search only reads the index, so the result is that of one search). Binary ones: brute
+    force, Hamming norm."""
+    n = len(query)
+    idx = np.full((n, k), -1, dtype=np.int64)
+    dist = np.full((n, k), np.inf)
+    if not flann:
+        for m in cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(query, train, k=k):
+            for j, d in enumerate(m[:k]):
+                idx[d.queryIdx, j] = d.trainIdx
+                dist[d.queryIdx, j] = d.distance
+        return idx, dist
+    index = cv2.flann.Index(train, dict(algorithm=1, trees=4))
+    params: dict[str, bool | int | float | str] = {"checks": int(checks)}
+
+    def search(span: tuple[int, int]):
+        a, b = span
+        return index.knnSearch(query[a:b], k, params=params)
+
+    nw = 2 if n >= 4000 and (os.cpu_count() or 1) > 1 else 1
+    bounds = np.linspace(0, n, nw + 1).astype(int)
+    spans = list(zip(bounds[:-1], bounds[1:], strict=True))
+    if nw > 1:
+        with ThreadPoolExecutor(nw) as ex:
+            parts = list(ex.map(search, spans))
+    else:
+        parts = [search(spans[0])]
+    for (a, b), (ii, dd) in zip(spans, parts, strict=True):
+        ii = np.asarray(ii, dtype=np.int64).reshape(b - a, k)
+        dd = np.asarray(dd, dtype=np.float64).reshape(b - a, k)
+        ok = ii >= 0
+        idx[a:b] = np.where(ok, ii, -1)
+        dist[a:b] = np.where(ok, np.sqrt(np.maximum(dd, 0.0)), np.inf)   # FLANN's L2 is squared
+    return idx, dist
 
 
 def _guided(fl: Features, fr: Features, pairs: _Pairs, inl: NDArray[np.bool_], fwd: _Forward | None,
