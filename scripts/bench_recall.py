@@ -2,8 +2,8 @@
 
 A textured plane is seen frontally (left) and from a viewpoint turned by 20-60 degrees about the
 vertical axis (right), as in the Oxford "graf" sequence; the plane-induced homography is the truth.
-Ours: :func:`rectify.features.match_arrays` with the defaults (SIFT, homography verification,
-least-squares refinement). Peer, in the same run: OpenCV SIFT + FLANN ratio test 0.8 + USAC
+Ours: :func:`rectify.features.match_arrays` with the defaults (SIFT, homography verification, guided
+re-admission, least-squares refinement). Peer, in the same run: OpenCV SIFT + FLANN ratio test 0.8 + USAC
 MAGSAC++ ``findHomography`` (1.5 px). Scored: verified matches, correct ones (transfer error below
 ``--tol`` px against the truth), distinct correct ones (left positions 0.1 px apart: SIFT puts several
 keypoints at one position and the peer keeps them all, ours is one-to-one), median error of the
@@ -118,7 +118,7 @@ def main() -> None:
         try:
             r = match_arrays(img, right, right_valid=valid, config=MatcherConfig())
             ours = {**score(r.matches.left, r.matches.right, H, a.tol), "n_duplicates": r.n_duplicates,
-                    "refine_failed": r.n_refine_failed,
+                    "n_guided": r.n_guided, "refine_failed": r.n_refine_failed,
                     "unrefined_kept": int(np.isnan(r.matches.score).sum()) if r.matches.score is not None else 0}
         except RectifyError as err:
             ours = {"verified": 0, "correct": 0, "median_error_px": None, "error": str(err)}
