@@ -504,8 +504,10 @@ def adjust_bundle(cameras: Mapping[str, Camera], poses: Sequence[Pose], tracks: 
         No convergence within ``max_iterations``; names the worst observations.
     """
     prob, st0, info = _setup(cameras, poses, tracks, points, control, gnss, options)
-    prob.threads = options.threads if options.threads is not None else default_threads()
-    prob.blas_threads = max(1, prob.threads)
+    threads = options.threads if options.threads is not None else default_threads()
+    prob.blas_threads = max(1, threads)
+    # below some 100 000 observations the pieces are too few and too small to gain from threads
+    prob.threads = threads if len(prob.obs_pt) >= bs.THREADS_MIN_OBSERVATIONS else 1
     # our threads call BLAS on tiny matrices: one BLAS thread (large dense factorisations get more, bs.blas)
     with bs.controller().limit(limits=1, user_api="blas"):
         return _adjust(prob, st0, info, options, progress)

@@ -46,6 +46,8 @@ BANDED_MIN_GAIN = 4.0
 BANDED_MAX_FLOPS = 5e10
 #: dense factorisations from this order on run on the caller's BLAS threads, smaller ones on one
 BLAS_THREADS_MIN_UNKNOWNS = 1500
+#: the model evaluation and the normal-equation assembly run on threads from this many observations on
+THREADS_MIN_OBSERVATIONS = 100_000
 #: observations per piece of the vectorised model evaluation and normal-equation assembly (cache-sized)
 CHUNK = 20_000
 
@@ -286,7 +288,7 @@ class Normal:
     Cinv: F64                  # (P, 3, 3) inverse damped point blocks
     bp: F64                    # (P, 3)
     Et: F64                    # (M, 3, d) W blocks per observation, transposed (Jp^T W Jc)
-    Gt: F64                    # (M, 3, d) (E C^-1)^T = C^-1 Et
+    Gc: F64                    # (M, d, 3) E C^-1
     cidx: I64                  # (M, d)
     diag_c: F64                # (n_c,) undamped diagonal of N_cc
     diag_p: F64                # (P, 3) undamped diagonal of the point blocks
@@ -300,8 +302,8 @@ class Normal:
 
     @property
     def G(self) -> F64:
-        """(M, d, 3) E C^-1 (a view)."""
-        return np.asarray(self.Gt.transpose(0, 2, 1), dtype=np.float64)
+        """(M, d, 3) E C^-1."""
+        return self.Gc
 
 
 def _seg_sum(a: F64, prob: Problem) -> F64:
@@ -451,14 +453,14 @@ def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool, ba
     cidx = sx.cidx
     d = cidx.shape[1]
     Jc, Jp, wi, v = lin.Jc, lin.Jp, w.image, lin.res.image
-    WJp = Jp * wi[:, :, None]
-    WJpT = WJp.transpose(0, 2, 1)
+    # (batched products are several times faster on contiguous operands than on transposed views)
+    WJpT = np.ascontiguousarray((Jp * wi[:, :, None]).transpose(0, 2, 1))   # (M, 3, 2)
     Et = np.matmul(WJpT, Jc)                                               # (M, 3, d) = Jp^T W Jc
     Cp: F64 = _seg_sum(np.matmul(WJpT, Jp), prob)
     wv = (wi * v)[:, None, :]
     bp = _seg_sum(np.matmul(wv, Jp)[:, 0, :], prob)
     bc_o = np.matmul(wv, Jc)[:, 0, :]
-    del WJp, WJpT
+    del WJpT
     # pose-only groups: GNSS positions and INS angles, 6x6 blocks per image
     pose_blocks = np.zeros((n, 6, 6))
     pose_rhs = np.zeros((n, 6))
@@ -486,7 +488,9 @@ def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool, ba
         raise EstimationError(f"object point index {j} is not determined by its rays (singular 3x3 normal block, "
                               f"relative determinant {rel[j]:.3g})")
     Gt = np.matmul(np.take(Cinv, prob.obs_pt, axis=0), Et)               # (M, 3, d) = (E C^-1)^T
+    G = np.ascontiguousarray(Gt.transpose(0, 2, 1))                         # (M, d, 3) = E C^-1
     rc = bc_o - np.matmul(np.take(bp, prob.obs_pt, axis=0)[:, None, :], Gt)[:, 0, :]
+    del Gt
     rhs: F64 = np.bincount(cidx.ravel(), weights=rc.ravel(), minlength=nc).astype(np.float64)
     rhs[: 6 * n] += pose_rhs.ravel()
     # image blocks: sum over the image's observations of Jc^T W Jc - G E^T
@@ -495,8 +499,8 @@ def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool, ba
     def img_part(r: tuple[int, int, sp.csr_matrix]) -> tuple[F64, F64]:
         o0, o1, agg = r
         jc = Jc[o0:o1]
-        return (agg @ np.matmul((jc * wi[o0:o1, :, None]).transpose(0, 2, 1), jc).reshape(-1, dd),
-                agg @ np.matmul(Gt[o0:o1].transpose(0, 2, 1), Et[o0:o1]).reshape(-1, dd))
+        wjt = np.ascontiguousarray((jc * wi[o0:o1, :, None]).transpose(0, 2, 1))
+        return (agg @ np.matmul(wjt, jc).reshape(-1, dd), agg @ np.matmul(G[o0:o1], Et[o0:o1]).reshape(-1, dd))
 
     img_n, img_r = _psum(prob.threads, img_part, sx.img_sum)
     # undamped diagonal of N_cc
@@ -509,7 +513,7 @@ def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool, ba
 
     def pair_part(g: _Group) -> tuple[F64]:
         k = len(g.obs) // g.m
-        Gm = np.take(Gt, g.obs, axis=0).reshape(k, g.m, 3, d).transpose(0, 1, 3, 2)
+        Gm = np.take(G, g.obs, axis=0).reshape(k, g.m, d, 3)
         Em = np.take(Et, g.obs, axis=0).reshape(k, g.m, 3, d)
         buf = np.empty((len(g.ia), k, d, d))
         for s_, (a_, b_) in enumerate(zip(g.ia, g.ib, strict=True)):
@@ -533,7 +537,7 @@ def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool, ba
             S[np.diag_indices(nc)] += mu * diag_c
     else:
         S = (sp.csr_matrix((vals, (sx.rows, sx.cols)), shape=(nc, nc)) + sp.diags(mu * diag_c)).tocsc()
-    return Normal(S, rhs, Cinv, bp, Et, Gt, cidx, diag_c, diag_p, prob.pt_start, _point_sum(prob))
+    return Normal(S, rhs, Cinv, bp, Et, G, cidx, diag_c, diag_p, prob.pt_start, _point_sum(prob))
 
 
 def inv3(A: F64) -> F64:
@@ -552,7 +556,8 @@ def inv3(A: F64) -> F64:
 
 
 def controller() -> ThreadpoolController:
-    """The thread-pool controller of the loaded BLAS libraries (found once: finding them takes milliseconds)."""
+    """The thread-pool controller of the loaded BLAS libraries (found once, when this module is imported:
+    finding them takes some 30 ms)."""
     with _POOL_LOCK:
         got = _CONTROLLER.get("c")
         if got is None:
@@ -717,3 +722,6 @@ def track_cofactors(prob: Problem, ne: Normal, Qcc: F64, points: I64, *, chunk_p
     pstart = np.cumsum(counts) - counts
     Qpp = ne.Cinv[points] + np.add.reduceat(GtT, pstart, axis=0)
     return Qpp, T, obs
+
+
+controller()  # numpy's and scipy's BLAS are loaded (imported above)
