@@ -49,11 +49,10 @@ either solver's input. Final reprojection RMS (px, per coordinate: sqrt(sum r^2 
 computed here, by one function, from each solver's final poses and points, not from either
 solver's own report. ``--threads`` goes to Ceres' ``num_threads`` (its Jacobian evaluation and
 Schur elimination) and, as OMP/OpenBLAS/MKL thread counts in both workers' environment, to our
-solver: ``adjust_bundle`` (``BundleOptions.threads`` None) runs its model evaluation and
-normal-equation assembly on as many threads as BLAS is set to use (one below 100 000
-observations), and BLAS itself on one thread except in dense factorisations of 1500 unknowns or
-more. ``--blas-threads N`` gives our solver N
-threads instead (OpenBLAS's threads spin-wait: on a machine loaded beyond its cores a 2-thread
+solver: ``adjust_bundle`` (``BundleOptions.threads`` None: one thread; two were slower, the GIL
+is held between its numpy operations) runs BLAS on one thread except in dense factorisations of
+1500 unknowns or more, which get these. ``--blas-threads N`` gives our solver N BLAS threads
+instead (OpenBLAS's threads spin-wait: on a machine loaded beyond its cores a 2-thread
 Cholesky of a 294 x 294 matrix once took 0.4 s instead of 0.5 ms).
 ``--iterations`` is the iteration limit of both (Ceres ``max_num_iterations``, our
 ``max_iterations``). Ours runs with ``covariance="none"`` by default (Ceres computes no
@@ -411,14 +410,7 @@ def run_ours(block: Block, iterations: int, threads: int, covariance: str = "non
                 iterations=res.iterations,
                 detail=f"{'converged' if res.converged else 'NOT converged'}, reduced system by {solver}, "
                        f"covariance {covariance}, own RMS {res.rms_px:.4f} px",
-                label=f"ours (LM + Schur, {_ours_threads(len(block.obs_point))} threads)")
-
-
-def _ours_threads(n_obs: int) -> int:
-    """The threads our solver runs on (``BundleOptions.threads`` None)."""
-    from stereo.block import bundle, bundle_solve
-
-    return bundle.default_threads() if n_obs >= bundle_solve.THREADS_MIN_OBSERVATIONS else 1
+                label=f"ours (LM + Schur, 1 thread, BLAS {threads})")
 
 
 def worker(a: argparse.Namespace) -> int:

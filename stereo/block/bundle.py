@@ -274,10 +274,13 @@ class BundleOptions:
         with a sparse LU beyond (either replaced by a banded Cholesky, the images in reverse
         Cuthill-McKee order, when that needs at least 4 times fewer operations).
     threads : int or None
-        Threads of the model evaluation and the assembly of the normal equations (None: as many
-        as the BLAS library is set to use, i.e. ``OMP_NUM_THREADS`` / ``OPENBLAS_NUM_THREADS`` or
-        the CPU count). BLAS itself runs one thread, except in dense factorisations of reduced
-        systems from ``bundle_solve.BLAS_THREADS_MIN_UNKNOWNS`` unknowns on (with ``threads``).
+        Threads of the model evaluation and the assembly of the normal equations (None: one; the
+        work is many numpy operations on cache-sized pieces, and with two threads the 500-image
+        benchmark block took 20 % more time, not less: the GIL is held between the operations).
+        Used from ``bundle_solve.THREADS_MIN_OBSERVATIONS`` observations on. BLAS runs one thread,
+        except in dense factorisations of reduced systems from
+        ``bundle_solve.BLAS_THREADS_MIN_UNKNOWNS`` unknowns on, which get as many as BLAS is set to
+        use (``OMP_NUM_THREADS`` / ``OPENBLAS_NUM_THREADS``, else the CPU count).
     """
 
     image_sigma_px: float = 1.0
@@ -504,8 +507,8 @@ def adjust_bundle(cameras: Mapping[str, Camera], poses: Sequence[Pose], tracks: 
         No convergence within ``max_iterations``; names the worst observations.
     """
     prob, st0, info = _setup(cameras, poses, tracks, points, control, gnss, options)
-    threads = options.threads if options.threads is not None else default_threads()
-    prob.blas_threads = max(1, threads)
+    threads = options.threads if options.threads is not None else 1
+    prob.blas_threads = default_threads()
     # below some 100 000 observations the pieces are too few and too small to gain from threads
     prob.threads = threads if len(prob.obs_pt) >= bs.THREADS_MIN_OBSERVATIONS else 1
     # our threads call BLAS on tiny matrices: one BLAS thread (large dense factorisations get more, bs.blas)
@@ -514,7 +517,7 @@ def adjust_bundle(cameras: Mapping[str, Camera], poses: Sequence[Pose], tracks: 
 
 
 def default_threads() -> int:
-    """Threads of the bundle adjustment by default: as many as BLAS uses, at most the usable CPUs."""
+    """BLAS threads of large dense factorisations: as many as BLAS is set to use, at most the usable CPUs."""
     blas = [int(i.get("num_threads", 1)) for i in bs.controller().info() if i.get("user_api") == "blas"]
     try:
         cpus = len(os.sched_getaffinity(0))
@@ -830,6 +833,7 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
             xc, xp = bs.solve_reduced(ne, blas_threads=prob.blas_threads)
             nstep = max(float(np.max(np.abs(xc) * np.sqrt(ne.diag_c), initial=0.0)),
                         float(np.max(np.abs(xp) * np.sqrt(ne.diag_p), initial=0.0)))
+            del ne  # its per-observation blocks are the largest arrays: free them before the next ones
             trial = bs.apply_step(prob, st, xc, xp)
             if refine:
                 trial = bs.refine_points(prob, trial, w)

@@ -359,10 +359,11 @@ class _Structure:
     band_gain: float = 1.0     # flops of a dense Cholesky / of the banded one
 
 
-def _structure(prob: Problem, chunk: int = CHUNK) -> _Structure:
+def _structure(prob: Problem, chunk: int | None = None) -> _Structure:
     got = prob.cache.get("structure")
     if isinstance(got, _Structure):
         return got
+    chunk = CHUNK if chunk is None else chunk
     cidx = prob.cidx()
     d = cidx.shape[1]
     M, n = len(prob.obs_pt), prob.n_images
@@ -453,14 +454,27 @@ def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool, ba
     cidx = sx.cidx
     d = cidx.shape[1]
     Jc, Jp, wi, v = lin.Jc, lin.Jp, w.image, lin.res.image
-    # (batched products are several times faster on contiguous operands than on transposed views)
-    WJpT = np.ascontiguousarray((Jp * wi[:, :, None]).transpose(0, 2, 1))   # (M, 3, 2)
-    Et = np.matmul(WJpT, Jc)                                               # (M, 3, d) = Jp^T W Jc
-    Cp: F64 = _seg_sum(np.matmul(WJpT, Jp), prob)
-    wv = (wi * v)[:, None, :]
-    bp = _seg_sum(np.matmul(wv, Jp)[:, 0, :], prob)
-    bc_o = np.matmul(wv, Jc)[:, 0, :]
-    del WJpT
+    M = len(Jc)
+    pieces = [(a, min(M, a + CHUNK)) for a in range(0, M, CHUNK)]
+    Et = np.empty((M, 3, d))    # Jp^T W Jc
+    cp_o = np.empty((M, 3, 3))  # Jp^T W Jp
+    bp_o = np.empty((M, 3))
+    bc_o = np.empty((M, d))
+
+    def obs_part(r: tuple[int, int], cp_o: F64 = cp_o, bp_o: F64 = bp_o, bc_o: F64 = bc_o) -> None:
+        a, b = r
+        # (batched products are several times faster on contiguous operands than on transposed views)
+        wjpt = np.ascontiguousarray((Jp[a:b] * wi[a:b, :, None]).transpose(0, 2, 1))   # (m, 3, 2)
+        np.matmul(wjpt, Jc[a:b], out=Et[a:b])
+        np.matmul(wjpt, Jp[a:b], out=cp_o[a:b])
+        wv = (wi[a:b] * v[a:b])[:, None, :]
+        bp_o[a:b] = np.matmul(wv, Jp[a:b])[:, 0, :]
+        bc_o[a:b] = np.matmul(wv, Jc[a:b])[:, 0, :]
+
+    _pmap(prob.threads, obs_part, pieces)
+    Cp: F64 = _seg_sum(cp_o, prob)
+    bp = _seg_sum(bp_o, prob)
+    del cp_o, bp_o
     # pose-only groups: GNSS positions and INS angles, 6x6 blocks per image
     pose_blocks = np.zeros((n, 6, 6))
     pose_rhs = np.zeros((n, 6))
@@ -487,10 +501,18 @@ def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool, ba
         j = int(np.flatnonzero(bad)[0])
         raise EstimationError(f"object point index {j} is not determined by its rays (singular 3x3 normal block, "
                               f"relative determinant {rel[j]:.3g})")
-    Gt = np.matmul(np.take(Cinv, prob.obs_pt, axis=0), Et)               # (M, 3, d) = (E C^-1)^T
-    G = np.ascontiguousarray(Gt.transpose(0, 2, 1))                         # (M, d, 3) = E C^-1
-    rc = bc_o - np.matmul(np.take(bp, prob.obs_pt, axis=0)[:, None, :], Gt)[:, 0, :]
-    del Gt
+    G = np.empty((M, d, 3))     # E C^-1
+    rc = np.empty((M, d))       # camera-side right-hand side of each observation, reduced
+
+    def g_part(r: tuple[int, int], bc_o: F64 = bc_o) -> None:
+        a, b = r
+        pt = prob.obs_pt[a:b]
+        gt = np.matmul(np.take(Cinv, pt, axis=0), Et[a:b])                # (m, 3, d) = (E C^-1)^T
+        G[a:b] = gt.transpose(0, 2, 1)
+        rc[a:b] = bc_o[a:b] - np.matmul(np.take(bp, pt, axis=0)[:, None, :], gt)[:, 0, :]
+
+    _pmap(prob.threads, g_part, pieces)
+    del bc_o
     rhs: F64 = np.bincount(cidx.ravel(), weights=rc.ravel(), minlength=nc).astype(np.float64)
     rhs[: 6 * n] += pose_rhs.ravel()
     # image blocks: sum over the image's observations of Jc^T W Jc - G E^T

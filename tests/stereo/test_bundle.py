@@ -252,6 +252,7 @@ def test_no_convergence_names_the_worst_observations():
     ({"max_iterations": 0}, "max_iterations must be an integer >= 1; got 0"),
     ({"dense_limit": 1.5}, "dense_limit must be an integer >= 1; got 1.5"),
     ({"covariance": "some"}, "covariance must be one of .*got 'some'"),
+    ({"threads": 0}, "threads must be None or an integer >= 1; got 0"),
 ])
 def test_bad_options(kw, match):
     with pytest.raises(InvalidInputError, match=match):
@@ -382,6 +383,74 @@ def test_sparse_reduced_system_matches_dense(block):
     r1 = adjust_bundle(b.cameras, b.initial_poses, b.tracks, b.initial_points, **o,
                        options=BundleOptions(covariance="none", dense_limit=10))
     np.testing.assert_allclose(r1.points, r0.points, atol=1e-6)
+
+
+def test_reduced_system_equals_the_schur_complement_of_the_full_normal_matrix(block):
+    """The per-image-pair assembly of S (and its right-hand side) against N_cc - N_cp N_pp^-1 N_pc of the
+    full normal matrix, formed densely, with self-calibration (interior unknowns shared by all images)."""
+    from stereo.block.bundle import GROUPS, _base_weights, _setup
+
+    b = block
+    opts = BundleOptions(self_calibrate=("f", "k1"))
+    prob, st, _ = _setup(b.cameras, b.initial_poses, b.tracks, b.initial_points, b.control, b.gnss, opts)
+    w = _base_weights(prob, {g: 1.0 for g in GROUPS})
+    lin = bs.evaluate(prob, st, jacobian=True)
+    ne = bs.normal(prob, lin, w, 0.0, dense=True)
+    nc, P, M = prob.n_c, prob.n_points, len(prob.obs_pt)
+    A = np.zeros((2 * M, nc + 3 * P))
+    rows = np.arange(2 * M).reshape(M, 2)
+    cidx = prob.cidx()
+    A[rows[:, :, None], cidx[:, None, :]] = lin.Jc
+    A[rows[:, :, None], (nc + 3 * prob.obs_pt[:, None] + np.arange(3))[:, None, :]] = lin.Jp
+    Wd = w.image.ravel()
+    N = A.T @ (A * Wd[:, None])
+    bvec = A.T @ (Wd * lin.res.image.ravel())
+    gi = prob.g_img
+    for k, i in enumerate(gi):
+        J = lin.Jg[k]
+        N[6 * i:6 * i + 6, 6 * i:6 * i + 6] += J.T @ (J * w.gnss[k][:, None])
+        bvec[6 * i:6 * i + 6] += J.T @ (w.gnss[k] * lin.res.gnss[k])
+    for k, j in enumerate(prob.c_pt):
+        sl = slice(nc + 3 * j, nc + 3 * j + 3)
+        N[sl, sl] += np.diag(w.control[k])
+        bvec[sl] += w.control[k] * lin.res.control[k]
+    Ncc, Ncp, Npp = N[:nc, :nc], N[:nc, nc:], N[nc:, nc:]
+    S = Ncc - Ncp @ np.linalg.solve(Npp, Ncp.T)
+    rhs = bvec[:nc] - Ncp @ np.linalg.solve(Npp, bvec[nc:])
+    scale = np.sqrt(np.outer(np.diag(Ncc), np.diag(Ncc)))
+    assert np.abs((ne.S - S) / scale).max() < 1e-9
+    np.testing.assert_allclose(ne.diag_c, np.diag(Ncc), rtol=1e-12)
+    assert np.abs(ne.rhs_c - rhs).max() < 1e-8 * np.abs(rhs).max()
+
+
+def test_banded_reduced_system_matches_dense(block, monkeypatch):
+    b = block
+    o = {"control": b.control, "gnss": b.gnss}
+    r0 = adjust_bundle(b.cameras, b.initial_poses, b.tracks, b.initial_points, **o,
+                       options=BundleOptions(covariance="none"))
+    used = []
+    real = bs.use_banded
+    monkeypatch.setattr(bs, "BANDED_MIN_GAIN", 0.0)
+    monkeypatch.setattr(bs, "use_banded", lambda prob: used.append(real(prob)) or used[-1])
+    r1 = adjust_bundle(b.cameras, b.initial_poses, b.tracks, b.initial_points, **o,
+                       options=BundleOptions(covariance="none"))
+    assert used == [True]
+    np.testing.assert_allclose(r1.points, r0.points, atol=1e-6)
+    np.testing.assert_allclose(r1.residuals_px, r0.residuals_px, atol=1e-6)
+
+
+def test_threads_and_pieces_give_the_same_solution(block, monkeypatch):
+    b = block
+    o = {"control": b.control, "gnss": b.gnss}
+    r0 = adjust_bundle(b.cameras, b.initial_poses, b.tracks, b.initial_points, **o,
+                       options=BundleOptions(covariance="none"))
+    monkeypatch.setattr(bs, "CHUNK", 250)  # several pieces, several track-length groups each
+    monkeypatch.setattr(bs, "THREADS_MIN_OBSERVATIONS", 0)
+    for threads in (1, 3):
+        r = adjust_bundle(b.cameras, b.initial_poses, b.tracks, b.initial_points, **o,
+                          options=BundleOptions(covariance="none", threads=threads))
+        np.testing.assert_allclose(r.points, r0.points, atol=1e-7)
+        assert r.iterations == r0.iterations
 
 
 def test_progress_callback(block):
