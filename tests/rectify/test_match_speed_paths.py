@@ -149,3 +149,14 @@ def test_threaded_chunks_give_the_serial_result():
     for x, y in zip(a, b, strict=True):
         np.testing.assert_array_equal(x, y)
     assert seen[-1] == (300, 300) and [d for d, _ in seen] == sorted(d for d, _ in seen)
+
+
+def test_guided_readmission_only_tops_up_scarce_matches():
+    left, right, valid = _wide_pair()
+    full = match_arrays(left, right, right_valid=valid, config=MatcherConfig())
+    n0 = full.n_verified - full.n_guided                      # verified by USAC
+    none = match_arrays(left, right, right_valid=valid, config=MatcherConfig(guided_fill=max(1, n0 - 1)))
+    assert none.n_guided == 0
+    some = match_arrays(left, right, right_valid=valid, config=MatcherConfig(guided_fill=n0 + 5))
+    assert 0 < some.n_guided <= 5
+    assert (_errors(some) < 2.0).all()
