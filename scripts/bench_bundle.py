@@ -330,6 +330,11 @@ def check_reconstruction(block: Block, rec) -> float:
 
 # --------------------------------------------------------------------------- workers
 
+def _peak_mb() -> float:
+    """Peak RSS of this process so far, MB."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kB on Linux
+
+
 def _rss_mb() -> float:
     with open("/proc/self/statm") as fh:
         return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
@@ -363,6 +368,7 @@ def run_colmap(block: Block, iterations: int, threads: int) -> dict:
     adjuster = pycolmap.create_default_ceres_bundle_adjuster(opts, config, rec)
     summary = adjuster.solve()
     t_solve = time.perf_counter() - t0
+    peak = _peak_mb()  # before anything else is built in this process
     cpu = time.process_time() - cpu0
     n = len(block.R0)
     R, C = np.empty((n, 3, 3)), np.empty((n, 3))
@@ -373,7 +379,7 @@ def run_colmap(block: Block, iterations: int, threads: int) -> dict:
     iters = cs.num_successful_steps + cs.num_unsuccessful_steps
     detail = (f"{str(cs.termination_type).split('.')[-1]}, {str(cs.linear_solver_type_used).split('.')[-1]}, "
               f"{cs.num_threads_used} threads used, {cs.num_successful_steps} successful steps")
-    return dict(R=R, C=C, X=X, time=t_solve, cpu=cpu, build=t_build, rss_before=rss_before,
+    return dict(R=R, C=C, X=X, time=t_solve, cpu=cpu, build=t_build, rss_before=rss_before, peak_rss=peak,
                 iterations=iters, detail=f"{detail}; reconstruction check {check:.1e} px",
                 label=f"pycolmap {pycolmap.__version__} (Ceres, {threads} threads)")
 
@@ -398,6 +404,7 @@ def run_ours(block: Block, iterations: int, threads: int, covariance: str = "non
     t0 = time.perf_counter()
     res = bundle.adjust_bundle({"cam": cam}, poses, tracks, block.X0, control=control, options=options)
     t_solve = time.perf_counter() - t0
+    peak = _peak_mb()  # before anything else is built in this process
     cpu = time.process_time() - cpu0
     R = np.array([p.rotation for p in res.poses])
     C = np.array([p.position for p in res.poses])
@@ -407,7 +414,7 @@ def run_ours(block: Block, iterations: int, threads: int, covariance: str = "non
     solver = ("banded Cholesky (images in reverse Cuthill-McKee order)" if bundle_solve.use_banded(prob) else
               "dense Cholesky" if prob.n_c <= options.dense_limit else "sparse LU")
     return dict(R=R, C=C, X=np.asarray(res.points), time=t_solve, cpu=cpu, build=t_build, rss_before=rss_before,
-                iterations=res.iterations,
+                peak_rss=peak, iterations=res.iterations,
                 detail=f"{'converged' if res.converged else 'NOT converged'}, reduced system by {solver}, "
                        f"covariance {covariance}, own RMS {res.rms_px:.4f} px",
                 label=f"ours (LM + Schur, 1 thread, BLAS {threads})")
@@ -419,9 +426,7 @@ def worker(a: argparse.Namespace) -> int:
         out = run_colmap(block, a.iterations, a.threads)
     else:
         out = run_ours(block, a.iterations, a.threads, a.ours_covariance)
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kB on Linux
     np.savez(a.out, R=out.pop("R"), C=out.pop("C"), X=out.pop("X"))
-    out["peak_rss"] = peak
     print("RESULT " + json.dumps(out))
     return 0
 
