@@ -112,9 +112,12 @@ def project(R: NDArray[np.float64], C: NDArray[np.float64], axes: NDArray[np.flo
     J_int : (M, 2, 8)
         d pixel / d interior vector.
     """
-    d = X - C
-    d0, d1, d2 = d[:, 0], d[:, 1], d[:, 2]
-    Rc = [[R[:, i, j] for j in range(3)] for i in range(3)]
+    m = len(X)
+    # columns as contiguous rows: the elementwise work below is several times faster on them
+    dT = np.ascontiguousarray((X - C).T)
+    d0, d1, d2 = dT[0], dT[1], dT[2]
+    RT = np.ascontiguousarray(R.reshape(m, 9).T)
+    Rc = [[RT[3 * i + j] for j in range(3)] for i in range(3)]
     # p = R^T d, component by component (elementwise on columns is faster than batched 3x3 products)
     p0 = d0 * Rc[0][0] + d1 * Rc[1][0] + d2 * Rc[2][0]
     p1 = d0 * Rc[0][1] + d1 * Rc[1][1] + d2 * Rc[2][1]
@@ -129,10 +132,9 @@ def project(R: NDArray[np.float64], C: NDArray[np.float64], axes: NDArray[np.flo
     xd = nx * rad + 2 * q1 * nxy + q2 * (r2 + 2 * nx * nx)
     yd = ny * rad + q1 * (r2 + 2 * ny * ny) + 2 * q2 * nxy
     F = f / pixel_size
-    pix = np.empty((len(X), 2))
+    pix = np.empty((m, 2))
     pix[:, 0] = F * xd + centre[:, 0] + x0 / pixel_size
     pix[:, 1] = F * yd + centre[:, 1] - y0 / pixel_size
-    m = len(X)
     z6, z8 = np.zeros((0, 2, 6)), np.zeros((0, 2, 8))
     if not jacobian:
         return pix, -p2, z6, np.zeros((0, 2, 3)), z8
@@ -146,27 +148,29 @@ def project(R: NDArray[np.float64], C: NDArray[np.float64], axes: NDArray[np.flo
     u0, u1 = p0 * ww, -p1 * ww
     q = ((-w * a00, w * a01, a00 * u0 + a01 * u1),
          (-w * a01, w * a11, a01 * u0 + a11 * u1))
-    # d pixel / d X = q R^T
-    J_point = np.empty((m, 2, 3))
-    Jr = []
+    # d pixel / d X = q R^T (built as (2, 3, m) and returned as its (m, 2, 3) view)
+    JpT = np.empty((2, 3, m))
     for r in range(2):
         qr = q[r]
-        row = [qr[0] * Rc[j][0] + qr[1] * Rc[j][1] + qr[2] * Rc[j][2] for j in range(3)]
         for j in range(3):
-            J_point[:, r, j] = row[j]
-        Jr.append(row)
+            np.add(qr[0] * Rc[j][0], qr[1] * Rc[j][1], out=JpT[r, j])
+            JpT[r, j] += qr[2] * Rc[j][2]
+    J_point = JpT.transpose(2, 0, 1)
     if not pose:
         return pix, -p2, z6, J_point, z8
-    J_pose = np.empty((m, 2, 6))
+    JcT = np.empty((2, 6, m))
+    AT = np.ascontiguousarray(axes.reshape(m, 9).T)  # AT[3 a + k]: component k of the axis of angle a
     # d pixel / d angle_a = J_point . (d x a_a) = (J_point x d) . a_a, a_a the ground-frame axis of the angle
     for r in range(2):
-        j0, j1, j2 = Jr[r]
+        j0, j1, j2 = JpT[r]
         c0 = j1 * d2 - j2 * d1
         c1 = j2 * d0 - j0 * d2
         c2 = j0 * d1 - j1 * d0
         for a in range(3):
-            J_pose[:, r, a] = c0 * axes[:, a, 0] + c1 * axes[:, a, 1] + c2 * axes[:, a, 2]
-    J_pose[:, :, 3:] = -J_point
+            np.add(c0 * AT[3 * a], c1 * AT[3 * a + 1], out=JcT[r, a])
+            JcT[r, a] += c2 * AT[3 * a + 2]
+    np.negative(JpT, out=JcT[:, 3:])
+    J_pose = JcT.transpose(2, 0, 1)
     if not intrinsic:
         return pix, -p2, J_pose, J_point, z8
     J_int = np.empty((m, 2, 8))
