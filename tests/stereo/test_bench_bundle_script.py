@@ -76,3 +76,12 @@ def test_missing_pycolmap_is_one_line(bb, monkeypatch):
         bb.main(["--block", "small"])
     msg = str(exc.value.code)
     assert 'pip install -e ".[bench]"' in msg and "\n" not in msg
+
+
+def test_peak_rss_is_this_process_high_water_mark(bb):
+    """VmHWM of this process (not ru_maxrss, which Linux carries from a parent through fork and exec)."""
+    peak, now = bb._peak_mb(), bb._rss_mb()
+    assert peak >= now * 0.99 and peak > 10
+    a = np.ones(40_000_000 // 8)  # 40 MB touched
+    assert bb._peak_mb() >= bb._rss_mb() * 0.99 >= now + 30
+    del a
