@@ -328,6 +328,16 @@ class _Sampler:
         self.kind = "keys" if kind == "keys" or max(h, w) + 8 >= 32767 else "lanczos"
         self.p = 2 if self.kind == "keys" else 4      # the taps reach 2 (cubic) or 4 (Lanczos-4) px
         self.pad = np.pad(img, self.p, mode="edge")   # edge-replicated outer taps, as bicubic() does
+        self.nodata: NDArray | None = None
+        if self.kind == "lanczos":
+            nan = ~np.isfinite(self.pad)
+            if nan.any():
+                # a sample is invalid when a pixel of the cubic 4 x 4 footprint (-1..+2) is nodata, as with
+                # Keys: Lanczos-4 reaches 2 px further, into nodata filled by the mean of valid neighbours
+                k = np.ones((4, 4), np.uint8)
+                self.nodata = cv2.dilate(nan.astype(np.uint8), k, anchor=(1, 1), borderType=cv2.BORDER_CONSTANT,
+                                         borderValue=0)
+                self.pad = _fill_nodata(self.pad, nan, 2)
 
     def __call__(self, xs: NDArray[np.float64], ys: NDArray[np.float64]):
         """Values (float32, NaN outside the image or on a NaN tap) and the rounding (dx, dy) or None."""
@@ -338,10 +348,27 @@ class _Sampler:
         m1, m2 = cv2.convertMaps((xs + o).astype(np.float32), (ys + o).astype(np.float32), cv2.CV_16SC2)
         v = cv2.remap(self.pad, m1, m2, cv2.INTER_LANCZOS4, borderMode=cv2.BORDER_REPLICATE)
         v[~inside] = np.nan
+        if self.nodata is not None:
+            hp, wp = self.nodata.shape
+            v[self.nodata[np.clip(m1[..., 1], 0, hp - 1), np.clip(m1[..., 0], 0, wp - 1)] > 0] = np.nan
         frac = m2.astype(np.int32)
         dx = (xs + o - (m1[..., 0] + (frac & 31) * (1.0 / 32))).astype(np.float32)
         dy = (ys + o - (m1[..., 1] + (frac >> 5) * (1.0 / 32))).astype(np.float32)
         return v, dx, dy
+
+
+def _fill_nodata(img: NDArray[np.float32], nan: NDArray[np.bool_], steps: int) -> NDArray[np.float32]:
+    """``img`` with its NaN pixels within ``steps`` px of valid ones set to the mean of their valid 3 x 3
+    neighbours (step by step), the others to 0."""
+    out = np.where(nan, 0.0, img).astype(np.float32)
+    valid = (~nan).astype(np.float32)
+    for _ in range(steps):
+        s = cv2.boxFilter(out * valid, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+        c = cv2.boxFilter(valid, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+        new = (valid == 0) & (c > 0)
+        out[new] = s[new] / c[new]
+        valid[new] = 1.0
+    return out
 
 
 def _window(r: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -437,7 +464,11 @@ def _gauss_newton_step(T, st: _State, idx, sample: _Sampler, ux, uy, n1: int, bu
     st.A[idx] += dp[:, 2:6].reshape(-1, 2, 2)
     st.gain[idx] += dp[:, 6]
     st.off[idx] += dp[:, 7]
-    return np.hypot(dp[:, 0], dp[:, 1]), bad, Ni, Rv, res
+    return np.hypot(dp[:, 0], dp[:, 1]), bad, Ni, Rv, res, dp
+
+
+#: a two-cycle of position updates counts as converged when its steps are below this many ``tol_px``
+CYCLE_MAX_STEP = 4.0
 
 
 def _refine_chunk(L: NDArray[np.float32], sample: _Sampler, pl, pr, A, cfg: LsmConfig):
@@ -469,17 +500,29 @@ def _refine_chunk(L: NDArray[np.float32], sample: _Sampler, pl, pr, A, cfg: LsmC
     s2 = np.full(m, np.nan)
     corr = np.full(m, np.nan)
     Ninv = np.full((m, 8, 8), np.nan)
+    prev = np.full((m, 2), np.nan)        # the previous position update
     for it in range(cfg.max_iter):
         idx = np.flatnonzero(~done & ~failed)
         if idx.size == 0:
             break
-        step, bad, Ni, Rv, res = _gauss_newton_step(T, st, idx, sample, ux, uy, n1, buf)
+        step, bad, Ni, Rv, res, dp = _gauss_newton_step(T, st, idx, sample, ux, uy, n1, buf)
         iters[idx] = it + 1
         moved = np.hypot(*(st.t[idx] - t0[idx]).T)
         detA = np.abs(np.linalg.det(st.A[idx]))
         failed[idx] |= (bad | ~np.isfinite(step) | (moved > cfg.max_shift_px) | (detA < 1e-3)
                         | (st.gain[idx] <= 0))
-        fin = (step < cfg.tol_px) & ~failed[idx]
+        # a two-cycle (the update undoes the previous one, both small: remap's 1/32-px grid leaves the cost
+        # slightly rough at that scale) has converged too: at the midpoint of its two states
+        cyc = ((np.hypot(*(dp[:, :2] + prev[idx]).T) < cfg.tol_px) & (step < CYCLE_MAX_STEP * cfg.tol_px)
+               & ~failed[idx] & (step >= cfg.tol_px))
+        if cyc.any():
+            j, half = idx[cyc], 0.5 * dp[cyc]
+            st.t[j] -= half[:, :2]
+            st.A[j] -= half[:, 2:6].reshape(-1, 2, 2)
+            st.gain[j] -= half[:, 6]
+            st.off[j] -= half[:, 7]
+        prev[idx] = dp[:, :2]
+        fin = ((step < cfg.tol_px) | cyc) & ~failed[idx]
         done[idx] |= fin
         if fin.any():
             # precision and correlation where the last update fell below tol_px (from its residuals)
