@@ -351,6 +351,7 @@ class _Structure:
     groups: list[_Group]
     img_sum: list[tuple[int, int, sp.csr_matrix]]   # observation ranges and their (n, o1 - o0) image sums
     img_first: I64             # (n, d) camera-side unknowns of each image
+    pieces: list[tuple[int, int, int, sp.csr_matrix]]   # observation ranges, their first point, point sums
     rows: I64                  # (L,) row of every entry of S scattered (image blocks, pair blocks, transposes)
     cols: I64                  # (L,)
     flat: I64                  # (L,) rows * n_c + cols
@@ -393,6 +394,13 @@ def _structure(prob: Problem, chunk: int | None = None) -> _Structure:
         o1 = min(M, o0 + chunk)
         img_sum.append((o0, o1, sp.csr_matrix((np.ones(o1 - o0), (img[o0:o1], np.arange(o1 - o0))),
                                               shape=(n, o1 - o0))))
+    pieces = []
+    for o0 in range(0, M, chunk):
+        o1 = min(M, o0 + chunk)
+        p0 = int(prob.obs_pt[o0])
+        pts = prob.obs_pt[o0:o1] - p0
+        pieces.append((o0, o1, p0, sp.csr_matrix((np.ones(o1 - o0), (pts, np.arange(o1 - o0))),
+                                                 shape=(int(pts[-1]) + 1, o1 - o0))))
     # entries of S: the image blocks (d x d), the pair blocks and their transposes
     cam_of = prob.cam_of_image
     first = np.concatenate([6 * np.arange(n)[:, None] + np.arange(6),
@@ -404,7 +412,7 @@ def _structure(prob: Problem, chunk: int | None = None) -> _Structure:
     cols = np.concatenate([np.broadcast_to(first[:, None, :], (n, d, d)).ravel(),
                            np.broadcast_to(rb[:, None, :], (K, d, d)).ravel(),
                            np.broadcast_to(ra[:, :, None], (K, d, d)).ravel()])
-    out = _Structure(cidx, K, groups, img_sum, first, rows.astype(np.int64), cols.astype(np.int64),
+    out = _Structure(cidx, K, groups, img_sum, first, pieces, rows.astype(np.int64), cols.astype(np.int64),
                      (rows * prob.n_c + cols).astype(np.int64))
     if prob.c == 0 and n > 2:
         _band(out, n, uk // n, uk % n)
@@ -455,26 +463,27 @@ def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool, ba
     d = cidx.shape[1]
     Jc, Jp, wi, v = lin.Jc, lin.Jp, w.image, lin.res.image
     M = len(Jc)
-    pieces = [(a, min(M, a + CHUNK)) for a in range(0, M, CHUNK)]
     Et = np.empty((M, 3, d))    # Jp^T W Jc
-    cp_o = np.empty((M, 3, 3))  # Jp^T W Jp
-    bp_o = np.empty((M, 3))
-    bc_o = np.empty((M, d))
 
-    def obs_part(r: tuple[int, int], cp_o: F64 = cp_o, bp_o: F64 = bp_o, bc_o: F64 = bc_o) -> None:
-        a, b = r
+    def obs_part(r: tuple[int, int, int, sp.csr_matrix]) -> tuple[int, F64, F64, F64]:
+        """Et of the piece; its sums per point of Jp^T W Jp and Jp^T W v, its camera-side Jc^T W v."""
+        a, b, p0, agg = r
         # (batched products are several times faster on contiguous operands than on transposed views)
         wjpt = np.ascontiguousarray((Jp[a:b] * wi[a:b, :, None]).transpose(0, 2, 1))   # (m, 3, 2)
         np.matmul(wjpt, Jc[a:b], out=Et[a:b])
-        np.matmul(wjpt, Jp[a:b], out=cp_o[a:b])
         wv = (wi[a:b] * v[a:b])[:, None, :]
-        bp_o[a:b] = np.matmul(wv, Jp[a:b])[:, 0, :]
-        bc_o[a:b] = np.matmul(wv, Jc[a:b])[:, 0, :]
+        bc = np.matmul(wv, Jc[a:b])[:, 0, :]
+        return (p0, agg @ np.matmul(wjpt, Jp[a:b]).reshape(-1, 9), agg @ np.matmul(wv, Jp[a:b])[:, 0, :],
+                np.bincount(cidx[a:b].ravel(), weights=bc.ravel(), minlength=nc).astype(np.float64))
 
-    _pmap(prob.threads, obs_part, pieces)
-    Cp: F64 = _seg_sum(cp_o, prob)
-    bp = _seg_sum(bp_o, prob)
-    del cp_o, bp_o
+    Cp: F64 = np.zeros((prob.n_points, 3, 3))
+    bp = np.zeros((prob.n_points, 3))
+    rhs = np.zeros(nc)
+    cp9 = Cp.reshape(-1, 9)
+    for p0, cp_k, bp_k, rc_k in _pmap(prob.threads, obs_part, sx.pieces):
+        cp9[p0:p0 + len(cp_k)] += cp_k  # pieces are contiguous in the points (observations sorted by point)
+        bp[p0:p0 + len(bp_k)] += bp_k
+        rhs += rc_k
     # pose-only groups: GNSS positions and INS angles, 6x6 blocks per image
     pose_blocks = np.zeros((n, 6, 6))
     pose_rhs = np.zeros((n, 6))
@@ -502,18 +511,18 @@ def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool, ba
         raise EstimationError(f"object point index {j} is not determined by its rays (singular 3x3 normal block, "
                               f"relative determinant {rel[j]:.3g})")
     G = np.empty((M, d, 3))     # E C^-1
-    rc = np.empty((M, d))       # camera-side right-hand side of each observation, reduced
 
-    def g_part(r: tuple[int, int], bc_o: F64 = bc_o) -> None:
-        a, b = r
+    def g_part(r: tuple[int, int, int, sp.csr_matrix]) -> F64:
+        """G of the piece; its camera-side right-hand side G b_p, to be subtracted."""
+        a, b = r[0], r[1]
         pt = prob.obs_pt[a:b]
         gt = np.matmul(np.take(Cinv, pt, axis=0), Et[a:b])                # (m, 3, d) = (E C^-1)^T
         G[a:b] = gt.transpose(0, 2, 1)
-        rc[a:b] = bc_o[a:b] - np.matmul(np.take(bp, pt, axis=0)[:, None, :], gt)[:, 0, :]
+        gb = np.matmul(np.take(bp, pt, axis=0)[:, None, :], gt)[:, 0, :]
+        return np.asarray(np.bincount(cidx[a:b].ravel(), weights=gb.ravel(), minlength=nc), dtype=np.float64)
 
-    _pmap(prob.threads, g_part, pieces)
-    del bc_o
-    rhs: F64 = np.bincount(cidx.ravel(), weights=rc.ravel(), minlength=nc).astype(np.float64)
+    for rc_k in _pmap(prob.threads, g_part, sx.pieces):
+        rhs -= rc_k
     rhs[: 6 * n] += pose_rhs.ravel()
     # image blocks: sum over the image's observations of Jc^T W Jc - G E^T
     dd = d * d
