@@ -654,7 +654,11 @@ def solve_reduced(ne: Normal, *, blas_threads: int = 1) -> tuple[F64, F64]:
 
 def back_substitute(ne: Normal, xc: F64) -> F64:
     """Point steps dX_j = C_j^-1 (b_j - W_j^T dx_c), (P, 3)."""
-    et = np.matmul(ne.Et, np.take(xc, ne.cidx)[:, :, None])[:, :, 0]
+    M = len(ne.Et)
+    et = np.empty((M, 3))
+    for a in range(0, M, CHUNK):  # in pieces: no (M, d) temporaries
+        b = min(M, a + CHUNK)
+        et[a:b] = np.matmul(ne.Et[a:b], np.take(xc, ne.cidx[a:b])[:, :, None])[:, :, 0]
     acc = ne.point_sum @ et
     return np.asarray(np.einsum("pab,pb->pa", ne.Cinv, ne.bp - acc), dtype=np.float64)
 
