@@ -82,13 +82,13 @@ def score(left, right, H, tol):
 
 
 def peer(a, b):
-    s = cv2.SIFT_create()
+    s = cv2.SIFT.create()
     k1, d1 = s.detectAndCompute(a, None)
     k2, d2 = s.detectAndCompute(b, None)
     m = cv2.FlannBasedMatcher(dict(algorithm=1, trees=4), dict(checks=64)).knnMatch(d1, d2, k=2)
     good = [x[0] for x in m if len(x) == 2 and x[0].distance < 0.8 * x[1].distance]
-    p1 = np.float64([k1[g.queryIdx].pt for g in good]).reshape(-1, 2)
-    p2 = np.float64([k2[g.trainIdx].pt for g in good]).reshape(-1, 2)
+    p1 = np.array([k1[g.queryIdx].pt for g in good], dtype=np.float64).reshape(-1, 2)
+    p2 = np.array([k2[g.trainIdx].pt for g in good], dtype=np.float64).reshape(-1, 2)
     if len(p1) < 4:
         return p1[:0], p2[:0]
     H, mask = cv2.findHomography(p1, p2, cv2.USAC_MAGSAC, 1.5, maxIters=10000, confidence=0.9999)

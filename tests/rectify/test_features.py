@@ -76,7 +76,7 @@ def test_rotated_copy_offset_is_visible_without_correction():
     """Guard that the experiment detects a bias: raw OpenCV SIFT is 0.25 px off in x and y."""
     img = IMAGES["uint8-grey"]()
     h, w = img.shape
-    s = cv2.SIFT_create()
+    s = cv2.SIFT.create()
     k1, d1 = s.detectAndCompute(img, None)
     k2, d2 = s.detectAndCompute(img[::-1, ::-1].copy(), None)
     m = cv2.BFMatcher(cv2.NORM_L2, crossCheck=True).match(d1, d2)
@@ -110,7 +110,8 @@ def _synthetic_pair(H, seed):
     right = cv2.warpPerspective(base, H, (512, 512), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_CONSTANT,
                                 borderValue=np.nan)
     valid = np.isfinite(right)
-    right = cv2.GaussianBlur(np.nan_to_num(right), (0, 0), 0.8) + rng.normal(0, 2, right.shape).astype(np.float32)
+    noise = rng.normal(0, 2, size=np.shape(right)).astype(np.float32)
+    right = np.asarray(cv2.GaussianBlur(np.nan_to_num(right), (0, 0), 0.8)) + noise
     left = cv2.GaussianBlur(base, (0, 0), 0.5) + rng.normal(0, 2, base.shape).astype(np.float32)
     return left, right, valid
 
@@ -128,6 +129,7 @@ def test_refinement_halves_position_error_on_known_homography(k):
         assert len(e) > 200
         if refine:
             assert r.n_refined >= len(r.matches)
+            assert r.matches.score is not None
             assert np.isfinite(r.matches.score).all() and (r.matches.score < 0.5).all()
             assert r.rmse_px < r.rmse_raw_px
     assert err[True] <= 0.5 * err[False], err
@@ -208,6 +210,7 @@ def test_tiled_matching_recovers_known_homography_with_nodata(tmp_path):
     e = np.linalg.norm(_apply(H, r.matches.left) - r.matches.right, axis=1)
     assert np.sqrt(np.mean(e ** 2)) < 0.3
     assert r.matches.left[:, 0].min() > 150 - 1               # nothing from the nodata strip
+    assert r.verification.matrix is not None
     Hn = r.verification.matrix / r.verification.matrix[2, 2]
     corners = np.array([[200, 0], [w - 1, 0], [200, h - 1], [w - 1, h - 1]], float)
     assert np.abs(_apply(Hn, corners) - _apply(H, corners)).max() < 0.5
@@ -279,6 +282,7 @@ def test_verify_fundamental_residual_table_is_sampson():
     pr_noisy[:20] += 25                                          # outliers
     v = verify_matches(pl, pr_noisy, method="fundamental", threshold_px=1.0)
     assert not v.inliers[:20].any() and v.inliers[20:].mean() > 0.9
+    assert v.table is not None
     assert v.table.components == ("dx_left", "dy_left", "dx_right", "dy_right")
     np.testing.assert_allclose(v.table.norm, v.errors_px, rtol=1e-9)
     assert v.rmse_px < 0.3

@@ -84,7 +84,7 @@ def test_window_off_image_or_nan_does_not_converge():
 def test_wrong_partner_is_rejected():
     L = _texture(seed=1)
     R = _texture(seed=2)            # unrelated texture: no true partner
-    r = refine_matches(L, R, [[40.0, 40.0], [50, 50]], [[40.0, 40.0], [50, 50]])
+    r = refine_matches(L, R, [[40.0, 40.0], [50.0, 50.0]], [[40.0, 40.0], [50.0, 50.0]])
     assert not r.converged.any()
 
 

@@ -26,6 +26,7 @@ def test_unrefined_matches_are_kept_and_flagged(tmp_path):
     kept = match_arrays(left, right, right_valid=valid, config=MatcherConfig())
     dropped = match_arrays(left, right, right_valid=valid, config=MatcherConfig(keep_unrefined=False))
     assert kept.n_refine_failed > 0
+    assert kept.matches.score is not None
     flagged = np.isnan(kept.matches.score)
     assert flagged.any() and len(kept.matches) > len(dropped.matches)
     q = np.c_[kept.matches.left, np.ones(len(kept.matches))] @ H.T
@@ -35,6 +36,7 @@ def test_unrefined_matches_are_kept_and_flagged(tmp_path):
     p = tmp_path / "m.csv"
     p.write_text(matches_text(kept.matches))
     back = read_matches(p)
+    assert back.score is not None
     assert np.array_equal(np.isnan(back.score), flagged)
     assert ",\n" in p.read_text()               # the empty score column
     assert isinstance(back, Matches)
