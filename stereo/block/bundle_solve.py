@@ -48,6 +48,8 @@ BANDED_MAX_FLOPS = 5e10
 BLAS_THREADS_MIN_UNKNOWNS = 1500
 #: the model evaluation and the normal-equation assembly run on threads from this many observations on
 THREADS_MIN_OBSERVATIONS = 100_000
+#: observations per piece of the model evaluation
+EVAL_CHUNK = 5_000
 #: observations per piece of the vectorised model evaluation and normal-equation assembly (cache-sized)
 CHUNK = 20_000
 
@@ -241,7 +243,7 @@ def evaluate(prob: Problem, st: State, *, jacobian: bool, points_only: bool = Fa
             if prob.c:
                 Jc[a:b, :, 6:] = Jint[:, :, prob.sel]
 
-    _pmap(prob.threads, part, [(a, min(M, a + CHUNK)) for a in range(0, M, CHUNK)])
+    _pmap(prob.threads, part, [(a, min(M, a + EVAL_CHUNK)) for a in range(0, M, EVAL_CHUNK)])
     v = prob.obs_px - pix
     gi = prob.g_img
     Jg = np.zeros((len(gi), 3, 6))

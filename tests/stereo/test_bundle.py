@@ -445,6 +445,7 @@ def test_threads_and_pieces_give_the_same_solution(block, monkeypatch):
     r0 = adjust_bundle(b.cameras, b.initial_poses, b.tracks, b.initial_points, **o,
                        options=BundleOptions(covariance="none"))
     monkeypatch.setattr(bs, "CHUNK", 250)  # several pieces, several track-length groups each
+    monkeypatch.setattr(bs, "EVAL_CHUNK", 300)
     monkeypatch.setattr(bs, "THREADS_MIN_OBSERVATIONS", 0)
     for threads in (1, 3):
         r = adjust_bundle(b.cameras, b.initial_poses, b.tracks, b.initial_points, **o,
