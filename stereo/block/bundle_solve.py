@@ -3,9 +3,14 @@
 Unknowns are split into the *camera side* (6 orientation elements per image, omega, phi, kappa,
 Cx, Cy, Cz, then the self-calibrated interior parameters of each camera) and the object points
 (3 per point). The 3x3 point blocks are eliminated (Schur complement) and the reduced camera
-system ``S = N_cc - W C^-1 W^T`` is solved by a dense Cholesky factorisation when it is small
+system ``S = N_cc - W C^-1 W^T`` is assembled per image pair (:func:`normal`: the points grouped
+by track length, one batched product per pair of track positions, summed by fixed sparse 0/1
+matrices; index structures built once per problem, :func:`_structure`) and solved by a banded
+Cholesky factorisation (images in reverse Cuthill-McKee order) when that is at least
+:data:`BANDED_MIN_GAIN` times cheaper, else by a dense Cholesky factorisation when it is small
 and by a sparse LU factorisation (:func:`scipy.sparse.linalg.splu`) otherwise; the full normal
-matrix is never formed.
+matrix is never formed. The per-observation work runs on cache-sized pieces (:data:`CHUNK`,
+:data:`EVAL_CHUNK`), optionally on threads (``Problem.threads``).
 
 Cofactors (``Q = N^-1``) come from ``Q_cc = S^-1`` and the per-point back-substitution
 ``Q_pp,j = C_j^-1 + C_j^-1 W_j^T Q_cc W_j C_j^-1``, evaluated over the observation pairs of each
@@ -458,7 +463,7 @@ def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool, ba
     """Assemble the damped normal equations (``N + mu diag(N)``) and reduce them to the cameras.
 
     The reduced system is dense (``dense``), a sparse CSC matrix, or with ``banded`` (when
-    :func:`banded_gain` allows) a :class:`Banded` matrix."""
+    :func:`use_banded` allows) a :class:`Banded` matrix."""
     nc, n = prob.n_c, prob.n_images
     sx = _structure(prob)
     cidx = sx.cidx
@@ -668,10 +673,10 @@ def back_substitute(ne: Normal, xc: F64) -> F64:
 def refine_points(prob: Problem, st: State, w: Weights, *, iterations: int = REFINE_STEPS) -> State:
     """Gauss-Newton on the object points alone, the cameras held (intersection of every track).
 
-    Run after each camera step, it settles the nonlinear point depths (two-ray points with small
-    intersection angles) that otherwise force a large damping on the whole step, so the block's
-    weak modes converge in a few iterations instead of linearly. A point whose 3x3 block is
-    singular keeps its position. Returns a new state.
+    Run after each camera step once a step has been rejected (``bundle._iterate``), it settles the
+    nonlinear point depths (two-ray points with small intersection angles) that otherwise force a
+    large damping on the whole step, so the block's weak modes converge in a few iterations instead
+    of linearly. A point whose 3x3 block is singular keeps its position. Returns a new state.
     """
     out = st.copy()
     eye = np.eye(3)
