@@ -93,7 +93,9 @@ def test_block_heights_agree_with_the_dem_as_the_pair_does(ngi):
     # robust figures (the DEM is 24 m and smoother than the surface): NMAD and the median
     nmad = lambda a: 1.4826 * float(np.median(np.abs(a - np.median(a))))  # noqa: E731
     assert nmad(dz_blk) < 1.5 * GROUND_PIXEL_M
-    assert abs(nmad(dz_blk) - nmad(dz_run)) < 0.25 * nmad(dz_run), (nmad(dz_blk), nmad(dz_run))
+    # no worse than the pair pipeline (measured: NMAD 1.78-2.03 m for the block, 2.48-2.62 m for the pair; the
+    # block keeps fewer, evenly spread, LSM-refined points)
+    assert nmad(dz_blk) < 1.25 * nmad(dz_run), (nmad(dz_blk), nmad(dz_run))
     assert abs(float(np.median(dz_blk)) - float(np.median(dz_run))) < GROUND_PIXEL_M
     assert rms(dz_blk[np.abs(dz_blk) < 50]) < 1.5 * GROUND_PIXEL_M
 
