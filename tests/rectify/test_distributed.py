@@ -25,15 +25,13 @@ from rectify.mosaic import MosaicOptions, mosaic
 from rectify.ortho import OrthoOptions, orthorectify
 from rectify.warp import WarpOptions, warp_raster
 from tests.rectify.test_ortho import _flat_ortho, frame_scene
+from tests.support.dask_support import DASK_WARNING_FILTERS, local_cluster
 from tests.support.rectify_support import cog_problems
 
 distributed = pytest.importorskip("distributed")
 
 # distributed may warn while workers shut down (a killed worker, closing comms): only here, narrowly
-pytestmark = [pytest.mark.filterwarnings("ignore::ResourceWarning"),
-              pytest.mark.filterwarnings("ignore:.*[Cc]lient.*:UserWarning"),
-              pytest.mark.filterwarnings("ignore:.*[Ww]orker.*:UserWarning"),
-              pytest.mark.filterwarnings("ignore:.*[Cc]omm.*:UserWarning")]
+pytestmark = [*DASK_WARNING_FILTERS]
 
 CRS = "EPSG:32618"
 H = np.array([[1.02, 0.05, 3.0], [-0.04, 0.98, -5.0], [1e-5, 2e-5, 1.0]])  # output world -> source pixel
@@ -60,13 +58,7 @@ class Curved:
 GRID = Grid(640, 520, Affine(1, 0, -20, 0, -1, 510), CRS)
 
 
-@pytest.fixture(scope="module")
-def cluster():
-    lc = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0")
-    try:
-        yield lc
-    finally:
-        lc.close()
+cluster = pytest.fixture(scope="module")(local_cluster)
 
 
 @pytest.fixture(scope="module")

@@ -19,26 +19,18 @@ from rectify import io as rio
 from rectify.cli.main import cli
 from rectify.features import MatcherConfig, match_images
 from tests.rectify.test_features import _texture_image
+from tests.support.dask_support import DASK_WARNING_FILTERS, local_cluster
 
 distributed = pytest.importorskip("distributed")
 
-pytestmark = [pytest.mark.filterwarnings("ignore::ResourceWarning"),
-              pytest.mark.filterwarnings("ignore:.*[Cc]lient.*:UserWarning"),
-              pytest.mark.filterwarnings("ignore:.*[Ww]orker.*:UserWarning"),
-              pytest.mark.filterwarnings("ignore:.*[Cc]omm.*:UserWarning"),
+pytestmark = [*DASK_WARNING_FILTERS,
               pytest.mark.filterwarnings("ignore::rasterio.errors.NotGeoreferencedWarning")]
 
 H = np.array([[0.97, 0.05, 25.0], [-0.04, 1.01, -12.0], [1e-5, -2e-5, 1.0]])
 BASE = dict(tiled_above_px=400, tile_px=256, overlap_px=24, overview_px=320)
 
 
-@pytest.fixture(scope="module")
-def cluster():
-    lc = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0")
-    try:
-        yield lc
-    finally:
-        lc.close()
+cluster = pytest.fixture(scope="module")(local_cluster)
 
 
 @pytest.fixture(scope="module")

@@ -21,23 +21,15 @@ from stereo.cli.main import cli
 from stereo.dense.matching import NODATA, MatchOptions, match_rasters
 from stereo.dense.pipeline import DenseOptions
 from stereo.synthetic import make_scene, write_scene_inputs
+from tests.support.dask_support import DASK_WARNING_FILTERS, local_cluster
 
 distributed = pytest.importorskip("distributed")
 
-pytestmark = [pytest.mark.filterwarnings("ignore::ResourceWarning"),
-              pytest.mark.filterwarnings("ignore:.*[Cc]lient.*:UserWarning"),
-              pytest.mark.filterwarnings("ignore:.*[Ww]orker.*:UserWarning"),
-              pytest.mark.filterwarnings("ignore:.*[Cc]omm.*:UserWarning"),
+pytestmark = [*DASK_WARNING_FILTERS,
               pytest.mark.filterwarnings("ignore::rasterio.errors.NotGeoreferencedWarning")]
 
 
-@pytest.fixture(scope="module")
-def cluster():
-    lc = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0")
-    try:
-        yield lc
-    finally:
-        lc.close()
+cluster = pytest.fixture(scope="module")(local_cluster)
 
 
 def _texture(h, w, seed):
