@@ -194,6 +194,7 @@ class _Inputs:
     camera_of: tuple[str, ...]
     poses: list[Pose] | None
     pose_sigma: NDArray[np.float64] | None  # (n, 6) from the pose file
+    angle_system: str  # "omega-phi-kappa" or "navigation" (the pose file's angles)
     crs: str | None
     control: BlockControlTable | None
 
@@ -210,6 +211,7 @@ def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera
     pose_list: list[Pose] | None = None
     sigma = None
     crs = None
+    angle_system = "omega-phi-kappa"
     if poses is not None:
         ws.add_inputs(poses)
         if str(poses).lower().endswith(".json"):
@@ -217,15 +219,13 @@ def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera
             if not cameras:
                 cameras = dict(rec.cameras)
             pose_list = list(rec.poses)
-            if not camera:
-                pass
-            elif len(cameras) == 1:  # one camera given: every image uses it
+            if camera is not None and len(cameras) == 1:  # one camera given: every image uses it
                 only = next(iter(cameras))
                 pose_list = [Pose(p.image, only, p.position, p.rotation) for p in pose_list]
         else:
             table: PoseTable = read_pose_csv(poses, camera=DEFAULT_CAMERA if len(cameras) <= 1 else None,
                                              boresight_rad=opts.boresight_rad, lever_arm_m=opts.lever_arm_m)
-            pose_list, sigma, crs = list(table.poses), table.sigma, table.crs
+            pose_list, sigma, crs, angle_system = list(table.poses), table.sigma, table.crs, table.angle_system
             if len(cameras) == 1:
                 only = next(iter(cameras))
                 pose_list = [Pose(p.image, only, p.position, p.rotation) for p in pose_list]
@@ -266,7 +266,7 @@ def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera
                 raise InvalidInputError(f"the control file's CRS {ctrl.crs!r} differs from the pose file's {crs!r}")
     elif opts.check_ids:
         raise InvalidInputError(f"check ids {list(opts.check_ids)} given without a control file")
-    return _Inputs(cameras, camera_of, pose_list, sigma, crs, ctrl)
+    return _Inputs(cameras, camera_of, pose_list, sigma, angle_system, crs, ctrl)
 
 
 def _with_control(tracks: Tracks, ctrl: BlockControlTable | None, names: tuple[str, ...],
@@ -324,7 +324,10 @@ def _gnss(inp: _Inputs, opts: BlockOptions) -> GnssObservations | None:
     if opts.ins_sigma_rad is not None:
         sig_ang = np.tile(np.asarray(opts.ins_sigma_rad, dtype=np.float64), (n, 1))
     elif inp.pose_sigma is not None and np.isfinite(inp.pose_sigma[:, 3:]).all():
-        sig_ang = np.asarray(inp.pose_sigma[:, 3:], dtype=np.float64)
+        # a navigation file's sigmas are of heading, pitch and roll; for a near-nadir camera they are
+        # those of kappa, phi/omega and omega/phi: their mean is used for each of omega, phi, kappa
+        sa = np.asarray(inp.pose_sigma[:, 3:], dtype=np.float64)
+        sig_ang = sa if inp.angle_system == "omega-phi-kappa" else np.repeat(sa.mean(axis=1, keepdims=True), 3, 1)
     if sig_ang is not None:
         angles = np.array([p.angles for p in inp.poses])
     return GnssObservations(images=tuple(p.image for p in inp.poses),

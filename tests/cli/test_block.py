@@ -237,13 +237,16 @@ def test_block_interrupted_by_sigterm_leaves_nothing(scene, tmp_path):
     proc = subprocess.Popen([sys.executable, "-c", "from stereo.cli.main import cli; cli()", "block",
                              *map(str, images), "--camera", str(d / "camera.json"), "--poses", str(d / "poses.csv"),
                              "--gnss-sigma", "0.05", "-o", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    time.sleep(6.0)  # imports and matching under way
+    time.sleep(3.0)  # imports done, matching under way (the whole run takes about 6 s on an idle machine)
     if proc.poll() is not None:
         pytest.skip(f"the block ended before it could be interrupted (exit {proc.returncode})")
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=120)
-    assert not out.exists()
     if proc.returncode == -signal.SIGTERM:  # killed while still importing (a loaded machine): no handler yet
+        assert not out.exists()
         pytest.skip("the process was still starting up when it was interrupted")
+    if (out / "orientation.json").exists() and (out / "report" / "report.html").exists():
+        pytest.skip("the signal came after the outputs were committed")  # a race with a fast machine
+    assert not out.exists()
     assert proc.returncode == 143, err.decode()
     assert b"Traceback" not in err
