@@ -35,6 +35,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "scripts"))
+# the subprocesses (`rectify match`, ...) import this checkout's packages, whatever the editable install points at
+ENV = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)}
 
 BASELINE = r'''
 import sys, time, numpy as np, cv2
@@ -73,7 +75,8 @@ def timed(cmd: list[str], log: Path) -> dict:
     load = os.getloadavg()[0]
     t0 = time.perf_counter()
     with open(log, "w") as f:
-        p = subprocess.run(["/usr/bin/time", "-f", "TIME %e %M %U %S", *cmd], stdout=f, stderr=subprocess.STDOUT)
+        p = subprocess.run(["/usr/bin/time", "-f", "TIME %e %M %U %S", *cmd], stdout=f, stderr=subprocess.STDOUT,
+                           env=ENV)
     wall = time.perf_counter() - t0
     txt = log.read_text()
     line = next((ln.split() for ln in txt.splitlines() if ln.startswith("TIME ")), None)

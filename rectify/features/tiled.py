@@ -4,6 +4,12 @@ Both images are read as area-averaged overviews, matched and verified with a
 homography; then the left image is processed tile by tile and, for each
 tile, only the right window where the coarse homography predicts the partner
 is read and searched (see :mod:`rectify.features` for the memory bound).
+
+Which left tiles: all of them; or, for a scene much larger than ``max_matches`` needs (issue 17), a
+regular sub-grid of disjoint half-size tiles spread over the whole extent, enough for the requested
+matches with a margin (:func:`_budget_tiles`: at 8000 x 8000 px and 20 000 matches, 64 tiles of
+512 px, 30 % of the left image with their pads); or, above ``max_tiles`` tiles, an even sub-grid
+of half-size tiles (:func:`_pick_tiles`). The two sub-grids detect each tile's right window directly.
 """
 
 from __future__ import annotations
@@ -91,11 +97,21 @@ def _match_tiled(left_path, right_path, il, ir, cfg: MatcherConfig, progress, *,
     margin = cfg.search_margin_px + 4.0 * err_full
     n_all = math.ceil(il.width / cfg.tile_px) * math.ceil(il.height / cfg.tile_px)
     sparse = n_all > cfg.max_tiles
+    budget = None if sparse else _budget_tiles(il, cfg)
     if sparse:
         # search a sparse, even sub-grid of smaller tiles (3x as many, half the side: less area,
         # denser coverage); right windows are detected directly (little reuse between sparse tiles)
         cfg = replace(cfg, tile_px=max(128, cfg.tile_px // 2), max_tiles=3 * cfg.max_tiles)
-    tiles = _pick_tiles(il, cfg)
+        tiles = _pick_tiles(il, cfg)
+    elif budget is not None:
+        # the scene is much larger than the requested matches need: search only a regular sub-grid of
+        # disjoint half-size tiles spread over the whole extent (right windows detected directly)
+        tiles, cfg = budget
+        sparse = True
+        logger.info("match budget: %d tiles of %d px searched (%.0f %% of the left image)", len(tiles),
+                    cfg.tile_px, 100.0 * sum(w * h for _c, _r, w, h in tiles) / (il.width * il.height))
+    else:
+        tiles = _pick_tiles(il, cfg)
     n_tiles = len(tiles)
     quota = max(50, int(math.ceil(2.0 * cfg.max_matches / max(n_tiles, 1))))
     per_tile_kp = max(1500, min(cfg.max_keypoints, 4 * quota, int(4 * cfg.max_candidates / max(n_tiles, 1))))
@@ -378,6 +394,52 @@ def _pick_tiles(info, cfg: MatcherConfig) -> list[tuple[int, int, int, int]]:
         k += 1
     ox, oy = (nx - 1) % k // 2, (ny - 1) % k // 2
     return [t for i, t in enumerate(tiles) if (i // nx - oy) % k == 0 and (i % nx - ox) % k == 0]
+
+
+BUDGET_TILE_MATCHES = 500
+"""Candidate matches a budget tile (half of ``tile_px`` on a side) is counted on to supply."""
+BUDGET_MARGIN = 1.5
+"""The budget sub-grid has tiles for this many times ``max_matches`` candidates."""
+BUDGET_MAX_SHARE = 0.4
+"""The budget sub-grid is used only when its tiles cover at most this share of the left image."""
+BUDGET_MIN_TILES = 16
+"""The budget sub-grid has at least this many tiles (4 x 4 on a square image), for the spread."""
+
+
+def _budget_tiles(info, cfg: MatcherConfig) -> tuple[list[tuple[int, int, int, int]], MatcherConfig] | None:
+    """The budget sub-grid of a scene much larger than ``max_matches`` needs, or None.
+
+    ``nx`` x ``ny`` disjoint tiles of ``tile_px // 2`` (at least 128) on a side, enough for
+    ``BUDGET_MARGIN * max_matches`` candidates at ``BUDGET_TILE_MATCHES`` each (and at least
+    ``BUDGET_MIN_TILES``), with ``nx / ny`` close to the image's aspect ratio; tile ``i`` of a row
+    is centred at ``(i + 0.5) * width / nx`` (rows alike), so the tiles span the whole extent with
+    equal gaps. Each window is the tile plus a pad of ``lsm.radius_px + 6`` pixels (the
+    refinement's template support); the returned configuration has ``tile_px`` = the tile side and
+    ``overlap_px`` = the pad, so that :func:`_core` gives each window's tile back. None when the
+    grid would cover more than ``BUDGET_MAX_SHARE`` of the image or its padded windows would touch
+    (the scene is not large enough to be worth skipping pixels). Depends only on the image size and
+    the configuration.
+    """
+    side = max(128, cfg.tile_px // 2)
+    pad = int(cfg.lsm.radius_px) + 6
+    W, H = int(info.width), int(info.height)
+    need = max(BUDGET_MIN_TILES, math.ceil(BUDGET_MARGIN * cfg.max_matches / BUDGET_TILE_MATCHES))
+    nx = max(1, min(round(math.sqrt(need * W / H)), need))
+    ny = max(1, math.ceil(need / nx))
+    if nx * ny * side * side > BUDGET_MAX_SHARE * W * H:
+        return None
+    if W / nx < side + 2 * pad or H / ny < side + 2 * pad:
+        return None
+
+    def starts(n: int, extent: int) -> list[int]:
+        return [min(max(int(round((i + 0.5) * extent / n - side / 2)), 0), extent - side) for i in range(n)]
+
+    tiles = []
+    for y in starts(ny, H):
+        for x in starts(nx, W):
+            c0, r0 = max(x - pad, 0), max(y - pad, 0)
+            tiles.append((c0, r0, min(x + side + pad, W) - c0, min(y + side + pad, H) - r0))
+    return tiles, replace(cfg, tile_px=side, overlap_px=pad)
 
 
 def _core(c0, r0, w, h, info, cfg):
