@@ -88,7 +88,10 @@ class MatcherConfig:
         Full-resolution tiles searched at most. Beyond, the search is sparse:
         tiles of half the side, at most 3 x ``max_tiles`` of them on an even
         sub-grid (every k-th tile in each direction), so the time stays
-        bounded too while matches still spread over the whole overlap.
+        bounded too while matches still spread over the whole overlap. A scene
+        much larger than ``max_matches`` needs is searched on a budget grid
+        instead: disjoint tiles of half the side on a regular grid over the
+        whole image, enough for 1.5 x ``max_matches`` (``rectify.features.tiled``).
     min_inliers : int
         Fewer verified matches than this means the images do not overlap.
     guided : bool
