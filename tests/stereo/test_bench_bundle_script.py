@@ -82,6 +82,8 @@ def test_peak_rss_is_this_process_high_water_mark(bb):
     """VmHWM of this process (not ru_maxrss, which Linux carries from a parent through fork and exec)."""
     peak, now = bb._peak_mb(), bb._rss_mb()
     assert peak >= now * 0.99 and peak > 10
-    a = np.ones(40_000_000 // 8)  # 40 MB touched
-    assert bb._peak_mb() >= bb._rss_mb() * 0.99 >= now + 30
+    a = np.ones(200_000_000 // 8)  # 200 MB touched: far above the churn of a long test session
+    rss = bb._rss_mb()
+    assert bb._peak_mb() >= rss * 0.99
+    assert rss >= now + 150
     del a
