@@ -91,19 +91,11 @@ def section_reference(path: Path) -> None:
     if not path.is_file():
         print(f"[published calibration] skipped: {path} not found")
         return
-    vals = [float(t) for t in path.read_text().split()]
-    w, h, gc, gr, nv = (int(v) for v in vals[:5])
-    n, k = gc * gr, 6
-    obj = []
-    for _ in range(nv):
-        obj.append(np.array(vals[k:k + 3 * n]).reshape(n, 3))
-        k += 3 * n
-    views = []
-    for i in range(nv):
-        px = np.array(vals[k:k + 2 * n]).reshape(n, 2)
-        views.append(TargetView(f"v{i}", obj[i], px, tuple(str(j) for j in range(n))))
-        k += 2 * n
-    ref = vals[k:]
+    from calib1_bouguet import read_calib1  # the one reader of calib1.dat (a script beside this one)
+
+    data = read_calib1(path)
+    w, h, views, ref = data.width, data.height, data.views, [float(v) for v in data.published]
+    nv, (gc, gr) = len(views), data.grid
     cal = Calibration.from_views(views, w, h, distortion=("k1", "k2", "p1", "p2"))
     rms_cv, cv_vals, _ = _cv_calibrate(views, (w, h), flags=cv2.CALIB_FIX_K3)
     ci = cal.intrinsics

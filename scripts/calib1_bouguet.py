@@ -53,6 +53,7 @@ class Calib1(NamedTuple):
     height: int
     views: list[TargetView]
     published: F64  # fx fy cx cy k1 k2 p1 p2 errx erry
+    grid: tuple[int, int] = (0, 0)  # inner corners per row and column
 
 
 def read_calib1(path: Path) -> Calib1:
@@ -68,7 +69,7 @@ def read_calib1(path: Path) -> Calib1:
         px = np.array(vals[k:k + 2 * n]).reshape(n, 2)
         views.append(TargetView(f"v{i}", obj[i], px, tuple(str(j) for j in range(n))))
         k += 2 * n
-    return Calib1(w, h, views, np.array(vals[k:k + 10]))
+    return Calib1(w, h, views, np.array(vals[k:k + 10]), (gc, gr))
 
 
 # ------------------------------------------------------------------ the model, Bouguet's unknowns

@@ -4,20 +4,16 @@ RMS, the COLMAP conventions and the message when pycolmap is missing."""
 from __future__ import annotations
 
 import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "bench_bundle.py"
+from tests.support.scripts_support import load_script
 
 
 @pytest.fixture(scope="module")
 def bb():
-    spec = importlib.util.spec_from_file_location("bench_bundle", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("bench_bundle")
 
 
 @pytest.fixture(scope="module")

@@ -17,6 +17,7 @@ from stereo.calibration.model import Intrinsics, rodrigues, rotvec_from_matrix
 from stereo.calibration.result import Calibration, camera_from_dict, camera_to_dict
 from stereo.calibration.synthetic import DEFAULT_CAMERA, board_scene, field_scene
 from stereo.calibration.targets import TargetView, parse_pattern, parse_square, views_from_csv
+from tests.support.scripts_support import load_script
 
 SHARED = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 TRUTH = DEFAULT_CAMERA
@@ -244,30 +245,15 @@ def test_csv_views(tmp_path):
 
 
 # ------------------------------------------------------------ the published calibration
-def _read_calib1(path: Path):
-    vals = [float(t) for t in path.read_text().split()]
-    w, h, gc, gr, nv = (int(v) for v in vals[:5])
-    n, k = gc * gr, 6
-    obj, img = [], []
-    for _ in range(nv):
-        obj.append(np.array(vals[k:k + 3 * n]).reshape(n, 3))
-        k += 3 * n
-    for _ in range(nv):
-        img.append(np.array(vals[k:k + 2 * n]).reshape(n, 2))
-        k += 2 * n
-    return w, h, obj, img, vals[k:]
-
-
 @pytest.mark.shared
 def test_published_calibration_calib1():
     """Bouguet's calib1.dat: fc, cc, kc and the pixel error reproduced (k3 fixed at 0, as published)."""
     p = SHARED / "calibration_reference" / "calib1.dat"
     if not p.is_file():
         pytest.skip(f"published calibration not found at {p}")
-    w, h, obj, img, ref = _read_calib1(p)
-    views = [TargetView(f"v{i}", o, x, tuple(str(j) for j in range(len(o))))
-             for i, (o, x) in enumerate(zip(obj, img, strict=True))]
-    cal = Calibration.from_views(views, w, h, distortion=("k1", "k2", "p1", "p2"))
+    data = load_script("calib1_bouguet").read_calib1(p)
+    ref = [float(v) for v in data.published]
+    cal = Calibration.from_views(data.views, data.width, data.height, distortion=("k1", "k2", "p1", "p2"))
     i = cal.intrinsics
     assert [round(i.fx, 2), round(i.fy, 2), round(i.cx, 2), round(i.cy, 2)] == [809.95, 806.56, 362.00, 214.40]
     assert abs(i.fx - ref[0]) < 0.002 and abs(i.fy - ref[1]) < 0.002

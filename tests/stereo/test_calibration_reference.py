@@ -16,25 +16,18 @@ What is established (``scripts/calib1_bouguet.py``):
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from stereo.calibration.result import Calibration
+from tests.support.scripts_support import load_script
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "calib1_bouguet.py"
 NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")
 
 
 @pytest.fixture(scope="module")
 def cb():
-    spec = importlib.util.spec_from_file_location("calib1_bouguet", SCRIPT)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("calib1_bouguet")
 
 
 @pytest.fixture(scope="module")
