@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import subprocess
 from pathlib import Path
 
 import matplotlib
@@ -36,3 +37,19 @@ def dewitt(shared_data: Path) -> Path:
     if not p.is_dir():
         pytest.skip(f"Dewitt samples not found under {p}")
     return p
+
+
+@pytest.fixture()
+def small_disk(tmp_path: Path):
+    """A 200 KiB tmpfs (root only; skipped otherwise); unmounted at teardown."""
+    if os.geteuid() != 0:
+        pytest.skip("a small tmpfs needs root")
+    d = tmp_path / "small_disk"
+    d.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=200k", "tmpfs", str(d)], capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs: {r.stderr.strip()}")
+    try:
+        yield d
+    finally:
+        subprocess.run(["umount", str(d)], capture_output=True)

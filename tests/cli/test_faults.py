@@ -51,22 +51,6 @@ def noise_scene(tmp_path):
     return tmp_path, src, gcps
 
 
-@pytest.fixture()
-def small_disk(tmp_path):
-    """A 200 KiB tmpfs (root only; skipped otherwise); unmounted at teardown."""
-    if os.geteuid() != 0:
-        pytest.skip("a small tmpfs needs root")
-    d = tmp_path / "small_disk"
-    d.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=200k", "tmpfs", str(d)], capture_output=True, text=True)
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs: {r.stderr.strip()}")
-    try:
-        yield d
-    finally:
-        subprocess.run(["umount", str(d)], capture_output=True)
-
-
 def _fill(d: Path, leave: int = 0) -> Path:
     """Fill the file system of ``d`` up to ``leave`` bytes with one file (an existing, unrelated file)."""
     filler = d / "filler.bin"
