@@ -1,12 +1,14 @@
-"""``rectify``: the click group. Subcommands live one per module and are
-registered explicitly below."""
+"""``rectify``: the click group. Subcommands live one per module, are registered by name below and
+imported when they run."""
 
 from __future__ import annotations
 
 import click
 
 from .. import __version__
-from .options import VerbosityGroup, setup_logging, verbosity_opts
+from .options import VerbosityGroup, defer_import, setup_logging, verbosity_opts
+
+defer_import("boto3")  # rasterio imports it for AWS sessions; loaded only if one is used
 
 
 @click.group(cls=VerbosityGroup, context_settings={"help_option_names": ["-h", "--help"]})
@@ -21,25 +23,6 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
     setup_logging(verbose, quiet)
 
 
-# --- registered subcommands (one module each) ---
-from .warp import warp  # noqa: E402
-
-cli.add_command(warp)
-from .fit import fit  # noqa: E402
-
-cli.add_command(fit)
-from .match import match  # noqa: E402
-
-cli.add_command(match)
-from .demo import demo  # noqa: E402
-
-cli.add_command(demo)
-from .compare import compare  # noqa: E402
-
-cli.add_command(compare)
-from .ortho import ortho  # noqa: E402
-
-cli.add_command(ortho)
-from .mosaic import mosaic  # noqa: E402
-
-cli.add_command(mosaic)
+# --- registered subcommands (one module each, imported when run) ---
+for _name in ("warp", "fit", "match", "demo", "compare", "ortho", "mosaic"):
+    cli.add_lazy(_name, f"rectify.cli.{_name}:{_name}")

@@ -1,21 +1,14 @@
-"""``stereo``: the click group. Subcommands are registered explicitly below."""
+"""``stereo``: the click group. Subcommands are registered by name below and imported when they run."""
 
 from __future__ import annotations
 
 import click
 
-from rectify.cli.options import VerbosityGroup, setup_logging, verbosity_opts
+from rectify.cli.options import VerbosityGroup, defer_import, setup_logging, verbosity_opts
 
 from .. import __version__
-from .block import block
-from .calibrate import calibrate
-from .demo import demo
-from .dense import dense
-from .dense_rpc import dense_rpc
-from .model import model
-from .orient import orient
-from .resect import resect
-from .run import run
+
+defer_import("boto3")  # rasterio imports it for AWS sessions; loaded only if one is used
 
 
 @click.group(cls=VerbosityGroup, context_settings={"help_option_names": ["-h", "--help"]})
@@ -30,6 +23,8 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
     setup_logging(verbose, quiet)
 
 
-# --- registered subcommands (one module each) ---
-for _command in (orient, model, resect, run, demo, calibrate, dense, dense_rpc, block):
-    cli.add_command(_command)
+# --- registered subcommands (one module each, imported when run) ---
+for _name, _module in (("orient", "orient"), ("model", "model"), ("resect", "resect"), ("run", "run"),
+                       ("demo", "demo"), ("calibrate", "calibrate"), ("dense", "dense"),
+                       ("dense-rpc", "dense_rpc"), ("block", "block")):
+    cli.add_lazy(_name, f"stereo.cli.{_module}:{_module}")

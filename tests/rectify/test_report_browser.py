@@ -200,7 +200,7 @@ def _demo_report(group_module: str, tmp_path: Path) -> Path:
     from click.testing import CliRunner
 
     cli = importlib.import_module(group_module).cli
-    assert "demo" in cli.commands, f"`{group_module.split('.')[0]} demo` is not registered"
+    assert "demo" in cli.all_commands, f"`{group_module.split('.')[0]} demo` is not registered"
     out = tmp_path / "demo"
     res = CliRunner().invoke(cli, ["demo", "--out", str(out)], catch_exceptions=False)
     assert res.exit_code == 0, res.output
