@@ -235,6 +235,8 @@ def to_uint8(data: NDArray, valid: NDArray[np.bool_] | None = None, *,
     valid : (H, W) bool, optional
     """
     a = np.asarray(data)
+    if a.ndim == 2 and a.dtype in (np.uint8, np.uint16):
+        return _to_uint8_lut(a, valid, percentiles, limits)
     if a.ndim == 3:
         a = a.astype(np.float32).mean(axis=2)
     else:
@@ -256,6 +258,51 @@ def to_uint8(data: NDArray, valid: NDArray[np.bool_] | None = None, *,
     out = np.clip((a - lo) * (255.0 / (hi - lo)), 0, 255)
     out[~ok] = 0
     return out.astype(np.uint8)
+
+
+#: most pixels sampled for the stretch percentiles of :func:`to_uint8`
+STRETCH_SAMPLE = 1_000_000
+
+
+def _to_uint8_lut(a: NDArray, valid: NDArray[np.bool_] | None, percentiles: tuple[float, float],
+                  limits: tuple[float, float] | None) -> NDArray[np.uint8]:
+    """:func:`to_uint8` of one uint8/uint16 band: percentiles from a histogram, the stretch as a look-up table
+    (the same values, about 10x faster than the float path)."""
+    if limits is None:
+        sample = a.ravel() if valid is None else a[valid]
+        if sample.size == 0:
+            return np.zeros(a.shape, dtype=np.uint8)
+        if sample.size > STRETCH_SAMPLE:
+            sample = sample[:: math.ceil(sample.size / STRETCH_SAMPLE)]
+        lo, hi = _histogram_percentiles(sample, percentiles)
+    else:
+        lo, hi = limits
+    if not hi > lo:
+        hi = lo + 1.0
+    levels = np.arange(256 if a.dtype == np.uint8 else 65536, dtype=np.float32)
+    lut = np.clip((levels - lo) * (255.0 / (hi - lo)), 0, 255).astype(np.uint8)
+    out = lut[a]
+    if valid is not None:
+        out[~valid] = 0
+    return out
+
+
+def _histogram_percentiles(sample: NDArray, q: tuple[float, float]) -> tuple[np.float64, np.float64]:
+    """``np.percentile(sample, q)`` of non-negative integers from their histogram: numpy's linear method
+    step by step (virtual index (n - 1) q, and its two-sided interpolation), so the values agree."""
+    cum = np.cumsum(np.bincount(sample))
+    n = int(cum[-1])
+    out = []
+    for p in q:
+        f = float(p) / 100.0
+        pos = (n - 1) * f
+        i0 = min(max(math.floor(pos), 0), n - 1)
+        i1 = min(i0 + 1, n - 1)
+        t = pos - math.floor(pos)
+        a = float(np.searchsorted(cum, i0, side="right"))
+        b = float(np.searchsorted(cum, i1, side="right"))
+        out.append(np.float64(b - (b - a) * (1.0 - t) if t >= 0.5 else a + (b - a) * t))
+    return out[0], out[1]    # numpy scalars, as np.percentile gives: the stretch then computes in float64
 
 
 # =============================================================================

@@ -20,6 +20,7 @@ All coordinates follow the project's pixel convention: the centre of pixel
 from __future__ import annotations
 
 import logging
+import math
 import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -72,7 +73,7 @@ class LsmConfig:
 
     radius_px: int = 10
     max_iter: int = 20
-    tol_px: float = 0.005
+    tol_px: float = 0.01
     max_shift_px: float = 2.0
     min_corr: float = 0.6
     max_std_px: float = 0.5
@@ -340,20 +341,37 @@ class _Sampler:
                 self.pad = _fill_nodata(self.pad, nan, 2)
 
     def __call__(self, xs: NDArray[np.float64], ys: NDArray[np.float64]):
-        """Values (float32, NaN outside the image or on a NaN tap) and the rounding (dx, dy) or None."""
+        """Values (float32, NaN outside the image or on a NaN tap) and the rounding (dx, dy) or None.
+
+        ``xs``, ``ys`` are (k, P) windows of affine images of a square grid (their extremes lie at the
+        window's corners: P = n * n)."""
         if self.kind == "keys":
             return _bicubic_padded(self.pad, self.h, self.w, xs, ys).astype(np.float32), None, None
-        inside = (xs >= 0) & (ys >= 0) & (xs <= self.w - 1) & (ys <= self.h - 1)
         o = float(self.p)
-        m1, m2 = cv2.convertMaps((xs + o).astype(np.float32), (ys + o).astype(np.float32), cv2.CV_16SC2)
-        v = cv2.remap(self.pad, m1, m2, cv2.INTER_LANCZOS4, borderMode=cv2.BORDER_REPLICATE)
-        v[~inside] = np.nan
+        X = (xs + o).astype(np.float32)
+        Y = (ys + o).astype(np.float32)
+        # remap rounds float maps to 1/32 px as cvRound(x * 32) (to nearest, ties to even: np.rint); * 32 is exact
+        X32 = np.rint(X * np.float32(32.0))
+        Y32 = np.rint(Y * np.float32(32.0))
+        v = cv2.remap(self.pad, X, Y, cv2.INTER_LANCZOS4, borderMode=cv2.BORDER_REPLICATE)
+        k, npx = xs.shape
+        n = int(round(math.sqrt(npx)))
+        corners = [0, n - 1, npx - n, npx - 1]
+        cx, cy = xs[:, corners], ys[:, corners]
+        edge = ~((cx >= 0) & (cy >= 0) & (cx <= self.w - 1) & (cy <= self.h - 1)).all(axis=1)
+        if edge.any():     # windows reaching outside the image: NaN there
+            e = np.flatnonzero(edge)
+            xe, ye = xs[e], ys[e]
+            ve = v[e]
+            ve[~((xe >= 0) & (ye >= 0) & (xe <= self.w - 1) & (ye <= self.h - 1))] = np.nan
+            v[e] = ve
         if self.nodata is not None:
             hp, wp = self.nodata.shape
-            v[self.nodata[np.clip(m1[..., 1], 0, hp - 1), np.clip(m1[..., 0], 0, wp - 1)] > 0] = np.nan
-        frac = m2.astype(np.int32)
-        dx = (xs + o - (m1[..., 0] + (frac & 31) * (1.0 / 32))).astype(np.float32)
-        dy = (ys + o - (m1[..., 1] + (frac >> 5) * (1.0 / 32))).astype(np.float32)
+            ix = np.clip(np.floor(X32 * (1.0 / 32)).astype(np.int64), 0, wp - 1)
+            iy = np.clip(np.floor(Y32 * (1.0 / 32)).astype(np.int64), 0, hp - 1)
+            v[self.nodata[iy, ix] > 0] = np.nan
+        dx = (xs + o - X32 * (1.0 / 32)).astype(np.float32)
+        dy = (ys + o - Y32 * (1.0 / 32)).astype(np.float32)
         return v, dx, dy
 
 
@@ -430,20 +448,28 @@ def _gauss_newton_step(T, st: _State, idx, sample: _Sampler, ux, uy, n1: int, bu
     du, dv = _grad(Rv.reshape(k, n1, n1))
     du = du.reshape(k, P)
     dv = dv.reshape(k, P)
-    Ainv = np.linalg.inv(st.A[idx]).astype(np.float32)                  # grad_x = A^-T grad_u
-    Gx = Ainv[:, 0, :1] * du + Ainv[:, 1, :1] * dv
-    Gy = Ainv[:, 0, 1:] * du + Ainv[:, 1, 1:] * dv
+    A = st.A[idx]
+    det = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        Ainv = (np.stack([A[:, 1, 1], -A[:, 0, 1], -A[:, 1, 0], A[:, 0, 0]], axis=1) / det[:, None]
+                ).astype(np.float32)[:, :, None]                       # rows: inverse (0,0) (0,1) (1,0) (1,1)
+    J = buf[:k]
+    Gx, Gy = J[:, 0], J[:, 1]                                           # grad_x = A^-T grad_u
+    np.multiply(Ainv[:, 0], du, out=Gx)
+    Gx += Ainv[:, 2] * dv
+    np.multiply(Ainv[:, 1], du, out=Gy)
+    Gy += Ainv[:, 3] * dv
     if qx is not None:    # remap's 1/32-px rounding, first order
-        Rv += qx * Gx + qy * Gy
+        qx *= Gx
+        qy *= Gy
+        Rv += qx
+        Rv += qy
     gi = st.gain[idx][:, None].astype(np.float32)
     Gx *= gi
     Gy *= gi
     res = T[idx] - (gi * Rv + st.off[idx][:, None].astype(np.float32))
     bad = ~np.isfinite(res).all(axis=1)
     ux32, uy32 = ux.astype(np.float32), uy.astype(np.float32)
-    J = buf[:k]
-    J[:, 0] = Gx
-    J[:, 1] = Gy
     np.multiply(Gx, ux32, out=J[:, 2])
     np.multiply(Gx, uy32, out=J[:, 3])
     np.multiply(Gy, ux32, out=J[:, 4])

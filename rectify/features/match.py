@@ -301,7 +301,9 @@ def _match_descriptors(left: Features, right: Features, *, ratio: float, mutual:
     flann = left.descriptors.dtype == np.float32
     dl = np.ascontiguousarray(left.descriptors)
     dr = np.ascontiguousarray(right.descriptors)
-    fidx, fdist = _knn(dr, dl, 2, FLANN_CHECKS, flann)
+    # the forward index (right descriptors) and the back-check's (left ones) are built side by side
+    index_r, index_l = _flann_indexes((dr, dl) if mutual else (dr,)) if flann else (None, None)
+    fidx, fdist = _knn(dr, dl, 2, FLANN_CHECKS, flann, index=index_r)
     fwd = _Forward(fidx, fdist)
     a, b = fdist[:, 0], fdist[:, 1]
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -311,7 +313,7 @@ def _match_descriptors(left: Features, right: Features, *, ratio: float, mutual:
     if mutual and li.size:
         # back-match only the right descriptors that are candidates (about half of them on ordinary pairs)
         cand = np.unique(ri)
-        bidx, _ = _knn(dl, np.ascontiguousarray(dr[cand]), 1, FLANN_BACK_CHECKS, flann)
+        bidx, _ = _knn(dl, np.ascontiguousarray(dr[cand]), 1, FLANN_BACK_CHECKS, flann, index=index_l)
         best = np.full(len(right), -1, dtype=np.int64)
         best[cand] = bidx[:, 0]
         ok = best[ri] == li
@@ -325,13 +327,37 @@ def _match_descriptors(left: Features, right: Features, *, ratio: float, mutual:
     return _Pairs(li, ri, rat), fwd
 
 
-def _knn(train: NDArray, query: NDArray, k: int, checks: int, flann: bool
+#: seed of OpenCV's RNG (per thread) before a FLANN index is built: its randomised kd-trees, hence the
+#: matches, are then the same on any thread, process or machine, whatever ran there before
+FLANN_SEED = 0x5EED
+
+
+def _flann_index(train: NDArray) -> Any:
+    """A FLANN index of 4 randomised kd-trees over float descriptors (N, D), built from a fixed seed."""
+    cv2.setRNGSeed(FLANN_SEED)
+    return cv2.flann.Index(train, dict(algorithm=1, trees=4))
+
+
+def _flann_indexes(trains: tuple[NDArray, ...]) -> tuple[Any, Any]:
+    """FLANN indexes of one or two descriptor sets, two built at once on two threads (OpenCV releases the
+    GIL; each build seeds its thread's RNG, so the indexes do not depend on the threads); (index, None)
+    for one set."""
+    if len(trains) == 1:
+        return _flann_index(trains[0]), None
+    if (os.cpu_count() or 1) > 1 and min(len(t) for t in trains) >= 4000:
+        with ThreadPoolExecutor(2) as ex:
+            a, b = ex.map(_flann_index, trains)
+        return a, b
+    return _flann_index(trains[0]), _flann_index(trains[1])
+
+
+def _knn(train: NDArray, query: NDArray, k: int, checks: int, flann: bool, *, index: Any = None
          ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
     """The k nearest train descriptors of every query one: indices (-1 where absent) and distances.
 
-    Float descriptors: one FLANN index of 4 randomised kd-trees, searched by two threads (OpenCV releases
-    the GIL; the search only reads the index, so the result is that of one search). Binary ones: brute
-    force, Hamming norm."""
+    Float descriptors: one FLANN index of 4 randomised kd-trees (``index``, built from ``train`` when
+    None), searched by two threads (OpenCV releases the GIL; the search only reads the index, so the
+    result is that of one search). Binary ones: brute force, Hamming norm."""
     n = len(query)
     idx = np.full((n, k), -1, dtype=np.int64)
     dist = np.full((n, k), np.inf)
@@ -341,7 +367,8 @@ def _knn(train: NDArray, query: NDArray, k: int, checks: int, flann: bool
                 idx[d.queryIdx, j] = d.trainIdx
                 dist[d.queryIdx, j] = d.distance
         return idx, dist
-    index = cv2.flann.Index(train, dict(algorithm=1, trees=4))
+    if index is None:
+        index = _flann_index(train)
     params: dict[str, bool | int | float | str] = {"checks": int(checks)}
 
     def search(span: tuple[int, int]):

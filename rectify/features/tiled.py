@@ -257,8 +257,8 @@ class _TilePairs:
 
         if self.right is None:
             self.right = _RightTiles(right_path, ir, cfg, per_tile_kp, self.lim_r)
-        # FLANN's randomised kd-trees draw from OpenCV's per-thread RNG: seeded per tile, so that a tile
-        # matches the same on any thread, process or machine (and whatever ran before it there)
+        # OpenCV's per-thread RNG seeded per tile (FLANN's index builds seed it themselves): a tile matches
+        # the same on any thread, process or machine (and whatever ran before it there)
         cv2.setRNGSeed(_tile_seed(cfg.seed, c0, r0))
         kw: dict[str, Any] = dict(detector=cfg.detector, cell_cap=cfg.cell_cap, percentiles=cfg.percentiles)
         core = _core(c0, r0, w, h, il, cfg)
