@@ -450,21 +450,33 @@ class TiledWriter:
         Compression threads.
     colorinterp : sequence, optional
         Band colour interpretation to record.
+    raw : bool
+        Take tiles already compressed elsewhere (:meth:`write_encoded`, tiles made by
+        :attr:`encoder`, e.g. on Dask workers) instead of pixels: GDAL creates the file without tiles
+        (``SPARSE_OK=TRUE``, and the internal-mask IFD when the policy is ``"mask"``) and is closed at
+        once; each tile's bytes are appended to the file as they come and the tile arrays are filled
+        at :meth:`close`. The file holds the same pixels and masks as the default mode's. Needs a
+        compression of :data:`rectify.tiffblocks.RAW_COMPRESSIONS`.
     """
 
     def __init__(self, path: str | Path, width: int, height: int, count: int, dtype: str, transform,
                  crs: str | None, policy: MaskPolicy, *, tile: int = 512, compress: str = "deflate",
-                 threads: int = 1, colorinterp=None):
+                 threads: int = 1, colorinterp=None, raw: bool = False):
 
         if tile % 16:
             raise InvalidInputError(f"tile size must be a multiple of 16; got {tile}")
         self.policy = policy
         self.path = str(path)
+        self.raw = bool(raw)
+        self.width, self.tile = int(width), int(tile)
         prof = _gtiff_profile(width, height, count, dtype, transform, crs,
                               policy.nodata if policy.kind == "nodata" else None,
                               tile=tile, compress=compress, threads=threads)
         if policy.kind == "alpha" and count == 4 and dtype == "uint8":
             prof["photometric"] = "RGB"
+        if self.raw:
+            self._open_raw(prof, colorinterp)
+            return
         try:
             with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True):
                 self._ds = rasterio.open(self.path, "w", **prof)
@@ -473,6 +485,61 @@ class TiledWriter:
         except (RasterioError, OSError) as err:
             raise RasterIOError(f"cannot create {self.path!r}: {err}") from err
 
+    def _open_raw(self, prof: dict, colorinterp) -> None:
+        """Raw mode: the file without tiles, the encoder of its tiles, and the appender."""
+        from .tiffblocks import TileAppender, TileEncoder
+
+        mask = self.policy.kind == "mask"
+        self._encoder = TileEncoder.from_profile(prof, mask=mask)
+        try:
+            with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), \
+                    rasterio.open(self.path, "w", SPARSE_OK="TRUE", **prof) as ds:
+                if colorinterp is not None and len(colorinterp) == ds.count:
+                    ds.colorinterp = list(colorinterp)
+                if mask:
+                    # creates the internal-mask IFD; an all-invalid block is never written under SPARSE_OK
+                    ds.write_mask(np.zeros((1, 1), np.uint8), window=Window(0, 0, 1, 1))
+        except (RasterioError, OSError) as err:
+            raise RasterIOError(f"cannot create {self.path!r}: {write_failure_reason(err, self.path)}") from err
+        self._appender = TileAppender(self.path)
+        lay = self._appender.layout
+        self._mask_ifd = None if lay.mask is None else lay.ifds.index(lay.mask)
+        image_tags, mask_tags = self._encoder.layout()
+        if lay.image.layout != image_tags or (mask and (lay.mask is None or lay.mask.layout != mask_tags)):
+            self._appender.abort()
+            raise RasterIOError(f"cannot write {self.path!r} from encoded tiles: GDAL created it with another tile "
+                                "layout than its encoder's")
+
+    @property
+    def encoder(self):
+        """The :class:`rectify.tiffblocks.TileEncoder` of this file's tiles (raw mode only; picklable)."""
+        if not self.raw:
+            raise InvalidInputError(f"{self.path!r} is not written in raw mode: it has no tile encoder")
+        return self._encoder
+
+    def write_encoded(self, col_off: int, row_off: int, encoded) -> None:
+        """Write a tile compressed by :attr:`encoder` (raw mode): its bytes are copied, not decoded.
+
+        Parameters
+        ----------
+        col_off, row_off : int
+            Top-left pixel of the window; multiples of the tile size.
+        encoded : EncodedTile or tuple
+            ``(tile bytes, mask tile bytes or None, ...)`` as :meth:`TileEncoder.encode` or
+            :meth:`TileEncoder.encode_window` return them ((n,) uint8 arrays or bytes).
+        """
+        from .tiffblocks import tile_index
+
+        if not self.raw:
+            raise InvalidInputError(f"{self.path!r} is not written in raw mode: write pixels with write()")
+        data, mask = encoded[0], encoded[1]
+        i = tile_index(col_off, row_off, self.tile, self.width)
+        self._appender.append(0, i, data)
+        if self._mask_ifd is not None:
+            if mask is None:
+                raise InvalidInputError(f"an encoded tile of {self.path!r} needs its mask tile (the policy is mask)")
+            self._appender.append(self._mask_ifd, i, mask)
+
     def write(self, data: NDArray, col_off: int, row_off: int, valid: NDArray[np.bool_] | None = None) -> None:
         """Write a tile ``(h, w, C)`` at (col_off, row_off); ``valid`` (h, w) for masks.
 
@@ -480,6 +547,9 @@ class TiledWriter:
         pixels; with an internal mask ``valid`` becomes the mask (None = all valid).
         """
 
+        if self.raw:
+            self.write_encoded(col_off, row_off, self._encoder.encode(data, valid))
+            return
         h, w = data.shape[:2]
         win = Window(col_off, row_off, w, h)
         try:
@@ -495,8 +565,15 @@ class TiledWriter:
         """Close the file and check that it was written whole.
 
         GDAL reports a failed flush (a full disk, most often) only on its own stderr, so the closed
-        file is opened again and every block of it must lie inside the file.
+        file is opened again and every block of it must lie inside the file. In raw mode the tile
+        arrays are written first.
         """
+        if self.raw:
+            if self._appender.closed:
+                return
+            self._appender.close()
+            verify_geotiff(self.path)
+            return
         if self._ds.closed:
             return
         try:
@@ -513,7 +590,10 @@ class TiledWriter:
             self.close()
             return
         with contextlib.suppress(Exception):  # failing already: close without masking the error
-            self._ds.close()
+            if self.raw:
+                self._appender.abort()
+            else:
+                self._ds.close()
 
 
 def verify_geotiff(path: str | Path) -> None:
