@@ -11,9 +11,13 @@ them with one callback (``write(result, col, row)``). :func:`run_windows` runs t
   never pixels), opens the sources itself, computes its windows with the very code the local path
   runs (same margins, same kernels) and writes them to a per-task block file (``.npz``, written to a
   temporary name and renamed: a retried task simply rewrites it) in a hidden folder beside the
-  output. The calling process reads each block as its task completes and writes its windows through
-  the engine's usual writer, inside the usual atomic output: the GeoTIFF/COG is assembled exactly as
-  on the local path, so the output is bit-identical to it.
+  output. The calling process reads each block as its task completes and writes its windows inside
+  the usual atomic output. With an ``encoder`` (the GeoTIFF writers of the warp, orthophoto and
+  mosaic steps: :class:`rectify.tiffblocks.TileEncoder`) the task also compresses each window into
+  the output's GeoTIFF tile on the worker, and the calling process only copies the compressed bytes
+  into the file (:meth:`rectify.io.TiledWriter.write_encoded`): it neither decodes nor compresses
+  pixels, so it does not compete with the workers for CPU. Either way the pixels and masks of the
+  output are those of the local path (the tiles are the very bytes GDAL writes there).
 
 Scheduler choice: the ``scheduler`` argument (``rectify warp/ortho/mosaic --scheduler``), else the
 environment variable :data:`ENV_VAR` (``RECTIFY_SCHEDULER``), else ``threads``.
@@ -206,7 +210,9 @@ Window = tuple[int, int, int, int]
 
 def run_windows(engine: BlockEngine, write: Callable[[Any, int, int], bool], windows: Sequence[Window], *,
                 threads: int, progress: Callable[[int, int], None] | None, scheduler: Scheduler | str | None,
-                workdir: str | Path, name: str = "tile", windows_per_task: int | None = None) -> int:
+                workdir: str | Path, name: str = "tile", windows_per_task: int | None = None,
+                encoder: Callable[[Any], Any] | None = None,
+                write_encoded: Callable[[Any, int, int], bool] | None = None) -> int:
     """Compute ``windows`` with ``engine.tile`` on the chosen scheduler; write each; return the empty count.
 
     Parameters
@@ -229,6 +235,14 @@ def run_windows(engine: BlockEngine, write: Callable[[Any, int, int], bool], win
         Label of the tasks and threads.
     windows_per_task : int, optional
         Windows per Dask task (default: up to 4, fewer on small jobs so every worker gets tasks).
+    encoder : callable(result) -> encoded, optional
+        Dask only (the local path ignores it and calls ``write``): a picklable function applied to
+        each window's result in the task, on the worker (e.g.
+        :meth:`rectify.tiffblocks.TileEncoder.encode_window`: the window compressed into the output's
+        GeoTIFF tile). Its value (a tuple of arrays, None and bools) goes to ``write_encoded``.
+    write_encoded : callable(encoded, col, row) -> bool, optional
+        With ``encoder``: writes one encoded window (on the calling thread) and returns whether it
+        was empty.
 
     Raises
     ------
@@ -237,14 +251,18 @@ def run_windows(engine: BlockEngine, write: Callable[[Any, int, int], bool], win
     RectifyError
         Whatever a task raised (re-raised here, after ``retries``).
     """
+    if (encoder is None) != (write_encoded is None):
+        raise InvalidInputError("run_windows needs both `encoder` and `write_encoded`, or neither")
     sched = resolve_scheduler(scheduler)
     if sched.is_local_threads:
         from .warp import run_tiles
 
         return run_tiles(engine.tile, write, list(windows), threads, progress, name=name)
+    if encoder is not None and write_encoded is not None:
+        write = write_encoded
     with _client(sched) as client:
         return _run_on_client(client, sched, engine, write, list(windows), progress, Path(workdir), name,
-                              windows_per_task)
+                              windows_per_task, encoder)
 
 
 # --------------------------------------------------------------------------- clients
@@ -325,7 +343,8 @@ def _worker_slots(client: Any) -> int:
 
 def _run_on_client(client: Any, sched: Scheduler, engine: BlockEngine, write: Callable[[Any, int, int], bool],
                    windows: list[Window], progress: Callable[[int, int], None] | None, workdir: Path, name: str,
-                   windows_per_task: int | None) -> int:
+                   windows_per_task: int | None, encoder: Callable[[Any], Any] | None = None) -> int:
+    """Run the windows as Dask tasks; ``write`` receives each window's result (encoded when ``encoder``)."""
     import distributed
 
     total, done, n_empty = len(windows), 0, 0
@@ -353,7 +372,7 @@ def _run_on_client(client: Any, sched: Scheduler, engine: BlockEngine, write: Ca
             return
         i, group = nxt
         path = str((blockdir / f"block-{i:06d}.npz").resolve())
-        fut = client.submit(_compute_block, portable, group, path, key=f"{name}-block-{run_id}-{i}",
+        fut = client.submit(_compute_block, portable, group, path, encoder, key=f"{name}-block-{run_id}-{i}",
                             retries=sched.retries, pure=False)
         futures[fut] = i
         if ac is not None:
@@ -400,8 +419,10 @@ def _result(fut: Any, sched: Scheduler) -> tuple[str, Any]:
         raise SchedulerError(f"Dask scheduler {str(sched)!r} lost task {fut.key!r}: {_one_line(err)}") from err
 
 
-def _compute_block(engine: BlockEngine, windows: list[Window], path: str) -> tuple[str, Any]:
-    """One Dask task: compute ``windows`` with a private copy of ``engine``; write them to ``path``.
+def _compute_block(engine: BlockEngine, windows: list[Window], path: str,
+                   encoder: Callable[[Any], Any] | None = None) -> tuple[str, Any]:
+    """One Dask task: compute ``windows`` with a private copy of ``engine`` (each result passed through
+    ``encoder`` when given); write them to ``path``.
 
     Runs on a worker. Idempotent: the block is written to a unique temporary name and renamed.
     """
@@ -409,8 +430,12 @@ def _compute_block(engine: BlockEngine, windows: list[Window], path: str) -> tup
 
     bound_gdal_cache()
     eng = copy.deepcopy(engine)  # a private copy: no statistics or open files shared with other tasks
+    results = []
     try:
-        results = [eng.tile(*w) for w in windows]
+        for w in windows:  # encoded window by window: the task holds one decoded window at a time
+            res = eng.tile(*w)
+            results.append(res if encoder is None else encoder(res))
+            del res
     finally:
         eng.close()
     stats_fn = getattr(eng, "stats", None)

@@ -340,7 +340,8 @@ def mosaic(orthos: Sequence[str | Path], dst: str | Path, *, resolution: float |
             try:
                 with TiledWriter(body, grid.width, grid.height, inputs[0].count, dtype.name, grid.transform, crs,
                                  MaskPolicy("nodata", nodata), tile=tile,
-                                 compress="none" if opts.cog else opts.compress, threads=opts.n_threads) as writer:
+                                 compress="none" if opts.cog else opts.compress, threads=opts.n_threads,
+                                 raw=not sched.is_local_threads) as writer:
                     _run(engine, writer, windows, opts.n_threads, progress, scheduler=sched, workdir=tmp.parent,
                          name="mosaic")
                 if opts.cog:

@@ -821,14 +821,20 @@ class _Engine(ProcessLocal):
 def _run(engine: Any, writer, windows, threads: int, progress, *, scheduler: Scheduler | str | None = None,
          workdir: str | Path = ".", name: str = "ortho") -> int:
     """Compute the windows with ``engine.tile`` (-> (data, empty)) on the scheduler; write each (the ortho and
-    mosaic engines)."""
+    mosaic engines). A raw ``writer`` (:class:`rectify.io.TiledWriter`, Dask schedulers) gets the tiles
+    compressed on the workers."""
     def write(res: tuple[Any, bool], c: int, r: int) -> bool:
         data, empty = res
         writer.write(data, c, r)
         return empty
 
+    def write_encoded(enc: tuple[Any, Any, bool], c: int, r: int) -> bool:
+        writer.write_encoded(c, r, enc)
+        return bool(enc[2])
+
     return run_windows(engine, write, windows, threads=threads, progress=progress, scheduler=scheduler,
-                       workdir=workdir, name=name)
+                       workdir=workdir, name=name, encoder=writer.encoder.encode_window if writer.raw else None,
+                       write_encoded=write_encoded if writer.raw else None)
 
 
 def _margin_px(model: SensorModel, dem: Dem, grid: Grid, h_range: tuple[float, float]) -> int:
@@ -924,7 +930,8 @@ def orthorectify(src: str | Path, dst: str | Path, model: SensorModel, dem: Dem,
             try:
                 with TiledWriter(body, grid.width, grid.height, count, dtype.name, grid.transform, grid.crs,
                                  MaskPolicy("nodata", nodata), tile=tile,
-                                 compress="none" if opts.cog else opts.compress, threads=opts.n_threads) as writer:
+                                 compress="none" if opts.cog else opts.compress, threads=opts.n_threads,
+                                 raw=not sched.is_local_threads) as writer:
                     n_empty = _run(engine, writer, windows, opts.n_threads, progress, scheduler=sched,
                                    workdir=tmp.parent)
                 nad = _nadir_in(model, str(grid.crs))

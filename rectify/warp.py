@@ -544,9 +544,11 @@ def warp_raster(src: str | Path, dst: str | Path, source_from_world: Callable[[N
                 atomic_output(dst, overwrite=overwrite) as tmp:
             body = tmp.with_name(tmp.name + ".body.tif") if opts.cog else tmp
             try:
+                # on Dask the workers compress the tiles and this process copies their bytes (raw mode)
                 with TiledWriter(body, grid.width, grid.height, count, dtype.name, grid.transform, crs, policy,
                                  tile=tile, compress="none" if opts.cog else opts.compress,
-                                 threads=opts.n_threads, colorinterp=colorinterp) as writer:
+                                 threads=opts.n_threads, colorinterp=colorinterp,
+                                 raw=not sched.is_local_threads) as writer:
                     n_empty = _run_tiles(engine, writer, windows, opts.n_threads, progress, scheduler=sched,
                                          workdir=tmp.parent)
                 if opts.cog:
@@ -636,8 +638,13 @@ def _run_tiles(engine: _Engine, writer, windows, threads: int, progress, *, sche
         writer.write(data, c, r, valid)
         return empty
 
+    def write_encoded(enc: tuple[Any, Any, bool], c: int, r: int) -> bool:
+        writer.write_encoded(c, r, enc)
+        return bool(enc[2])
+
     return run_windows(engine, write, windows, threads=threads, progress=progress, scheduler=scheduler,
-                       workdir=workdir, name="warp")
+                       workdir=workdir, name="warp", encoder=writer.encoder.encode_window if writer.raw else None,
+                       write_encoded=write_encoded if writer.raw else None)
 
 
 def warp_array(image: ArrayLike, source_from_target: Callable[[NDArray], NDArray] | ArrayLike,
