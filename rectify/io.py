@@ -13,7 +13,7 @@ import contextlib
 import logging
 import math
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -365,6 +365,7 @@ class WindowReader:
         self._ds = _open(self.path)
         self.policy = mask_policy(self.path)
         self.width, self.height, self.count = self._ds.width, self._ds.height, self._ds.count
+        self.dtype = np.dtype(self._ds.dtypes[0])
 
     def close(self) -> None:
         self._ds.close()
@@ -393,24 +394,37 @@ class WindowReader:
                                     f"{self.width} x {self.height} raster {self.path!r}")
         win = Window(col_off, row_off, width, height)
         try:
-            data = self._ds.read(window=win)
+            # GDAL writes the pixel-interleaved (h, w, C) layout itself through a band-first view (3-4x
+            # faster than reading (C, h, w) and transposing)
+            data = np.empty((height, width, self.count), dtype=self.dtype)
+            self._ds.read(window=win, out=data.transpose(2, 0, 1))
             pol = self.policy
             valid = None
             if pol.kind == "nodata":
                 nd = pol.nodata
                 if isinstance(nd, float) and math.isnan(nd):
-                    bad = np.isnan(data).all(axis=0)
+                    bad = _all_bands(data, np.isnan)
                 else:
-                    bad = (data == np.asarray(nd).astype(data.dtype)).all(axis=0)
+                    v = np.asarray(nd).astype(data.dtype)
+                    bad = _all_bands(data, lambda b: b == v)
                     if data.dtype.kind == "f":
-                        bad |= np.isnan(data).all(axis=0)
+                        bad |= _all_bands(data, np.isnan)
                 valid = None if not bad.any() else ~bad
             elif pol.kind in ("mask", "alpha"):
                 m = self._ds.dataset_mask(window=win) > 0
                 valid = None if m.all() else m
         except RasterioError as err:
             raise RasterIOError(f"cannot read window {win} of {self.path!r}: {err}") from err
-        return np.ascontiguousarray(np.moveaxis(data, 0, -1)), valid
+        return data, valid
+
+
+def _all_bands(data: NDArray, test: Callable[[NDArray], NDArray[np.bool_]]) -> NDArray[np.bool_]:
+    """(h, w) True where ``test`` holds in every band of ``data`` (h, w, C), band by band (numpy's
+    reduction over a short last axis is ten times slower)."""
+    out = np.array(test(data[..., 0]), dtype=bool)
+    for k in range(1, data.shape[2]):
+        out &= test(data[..., k])
+    return out
 
 
 def _gtiff_profile(width: int, height: int, count: int, dtype: str, transform, crs: str | None,

@@ -27,7 +27,6 @@ internal mask, following the source (:class:`rectify.io.MaskPolicy`).
 
 from __future__ import annotations
 
-import concurrent.futures as cf
 import copy
 import logging
 import os
@@ -44,6 +43,7 @@ import numpy as np
 import rasterio
 from numpy.typing import ArrayLike, NDArray
 
+from . import tilepool
 from .crs import crs_to_string, get_transformer, same_crs, transform_xy
 from .distributed import Scheduler, resolve_scheduler, run_windows
 from .errors import CRSError, EstimationError, InvalidInputError, RasterIOError
@@ -594,41 +594,15 @@ def worker_count(threads: int | None) -> int:
 
 def run_tiles(tile: Callable[..., Any], write: Callable[[Any, int, int], bool], windows, threads: int, progress,
               *, name: str = "tile") -> int:
-    """Compute output windows on a thread pool and write each as it finishes; return the empty-tile count.
+    """Compute output windows on ``threads`` threads and write each as it finishes; return the empty-tile count.
 
     ``tile(c, r, w, h)`` computes one window; ``write(result, c, r)`` writes it (on this thread, so the
-    writer needs no lock) and returns whether the tile was empty. At most ``2 * threads + 1`` tiles are
-    in flight, which bounds memory; on any error the pending tiles are cancelled. Shared by the warp,
-    orthophoto and mosaic engines.
+    writer needs no lock) and returns whether the tile was empty. Each thread works through its own run
+    of neighbouring windows (its source blocks stay in its reader's cache); at most ``2 * threads + 1``
+    tiles are in flight, which bounds memory; on any error the other threads stop. Shared by the warp,
+    orthophoto and mosaic engines (:func:`rectify.tilepool.run_tiles`).
     """
-    total, done, n_empty = len(windows), 0, 0
-    if progress:
-        progress(0, total)
-    max_inflight = 2 * threads + 1
-    with cf.ThreadPoolExecutor(max_workers=threads, thread_name_prefix=name) as pool:
-        it = iter(windows)
-        pending: dict[cf.Future, tuple[int, int, int, int]] = {}
-        for win in it:
-            pending[pool.submit(tile, *win)] = win
-            if len(pending) >= max_inflight:
-                break
-        try:
-            while pending:
-                finished, _ = cf.wait(pending, return_when=cf.FIRST_COMPLETED)
-                for fut in finished:
-                    c, r, _w, _h = pending.pop(fut)
-                    n_empty += int(write(fut.result(), c, r))
-                    done += 1
-                    if progress:
-                        progress(done, total)
-                    nxt = next(it, None)
-                    if nxt is not None:
-                        pending[pool.submit(tile, *nxt)] = nxt
-        except BaseException:
-            for f in pending:
-                f.cancel()
-            raise
-    return n_empty
+    return tilepool.run_tiles(tile, write, windows, threads, progress, name=name)
 
 
 def _run_tiles(engine: _Engine, writer, windows, threads: int, progress, *, scheduler: Scheduler | str | None = None,
