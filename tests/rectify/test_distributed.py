@@ -20,7 +20,7 @@ from rectify.datum import Dem
 from rectify.distributed import ENV_VAR, Scheduler, SchedulerError, resolve_scheduler
 from rectify.errors import InvalidInputError
 from rectify.georef import Grid
-from rectify.io import write_raster
+from rectify.io import TiledWriter, mask_policy, verify_geotiff, write_raster
 from rectify.mosaic import MosaicOptions, mosaic
 from rectify.ortho import OrthoOptions, orthorectify
 from rectify.warp import WarpOptions, warp_raster
@@ -61,9 +61,30 @@ GRID = Grid(640, 520, Affine(1, 0, -20, 0, -1, 510), CRS)
 cluster = pytest.fixture(scope="module")(local_cluster)
 
 
+@pytest.fixture()
+def writes(monkeypatch):
+    """Count the windows the calling process writes as pixels (``TiledWriter.write``) and as compressed tiles
+    (``write_encoded``): on Dask every window arrives compressed."""
+    counts = {"pixels": 0, "encoded": 0}
+    write, write_encoded = TiledWriter.write, TiledWriter.write_encoded
+
+    def pixels(self, *a, **k):
+        counts["pixels"] += 1
+        return write(self, *a, **k)
+
+    def encoded(self, *a, **k):
+        counts["encoded"] += 1
+        return write_encoded(self, *a, **k)
+
+    monkeypatch.setattr(TiledWriter, "write", pixels)
+    monkeypatch.setattr(TiledWriter, "write_encoded", encoded)
+    return counts
+
+
 @pytest.fixture(scope="module")
 def sources(tmp_path_factory):
-    """600 x 500 x 3 sources: uint8 with a nodata hole, float32 (NaN nodata)."""
+    """600 x 500 x 3 sources: uint8 with a nodata hole, uint8 without nodata (the output gets an internal mask),
+    float32 (NaN nodata)."""
     d = tmp_path_factory.mktemp("dask_src")
     rng = np.random.default_rng(17)
     rr, cc = np.mgrid[0:500, 0:600]
@@ -71,6 +92,7 @@ def sources(tmp_path_factory):
     img = np.clip(smooth + rng.normal(0, 6, smooth.shape), 1, 255).astype(np.uint8)
     img[200:240, 300:380] = 0  # nodata hole: renormalised kernels next to it
     write_raster(d / "u8.tif", img, Affine(1, 0, 0, 0, -1, 500), CRS, nodata=0)
+    write_raster(d / "u8m.tif", img, Affine(1, 0, 0, 0, -1, 500), CRS)
     f32 = (smooth * 10.0 + rng.normal(0, 3, smooth.shape)).astype(np.float32)
     f32[100:130, 50:90] = np.nan
     write_raster(d / "f32.tif", f32, Affine(1, 0, 0, 0, -1, 500), CRS, nodata=float("nan"))
@@ -79,14 +101,16 @@ def sources(tmp_path_factory):
 
 def _read(path):
     with rasterio.open(path) as ds:
-        return ds.read(), ds.read_masks(1), ds.profile
+        return ds.read(), ds.read_masks(1), ds.profile, ds.dataset_mask()
 
 
 def _assert_same(a_path, b_path, *, rtol=0.0):
-    a, ma, pa = _read(a_path)
-    b, mb, pb = _read(b_path)
+    for p in (a_path, b_path):
+        verify_geotiff(p)
+    a, ma, pa, da = _read(a_path)
+    b, mb, pb, db = _read(b_path)
     assert a.shape == b.shape and a.dtype == b.dtype
-    assert (ma == mb).all()
+    assert (ma == mb).all() and (da == db).all()
     for k in ("crs", "transform", "nodata", "blockxsize", "blockysize", "compress", "count"):
         assert pa.get(k) == pb.get(k) or (k == "nodata" and np.isnan(pa[k]) and np.isnan(pb[k])), k
     if rtol == 0.0:
@@ -168,36 +192,44 @@ def test_unreachable_cluster_fails_quickly_and_leaves_nothing(sources, tmp_path)
 
 
 # ----------------------------------------------------------------- tiled equals whole
-@pytest.mark.parametrize(("source", "resampling", "mapping", "rtol"), [
-    ("u8.tif", "nearest", Homography, 0.0),
-    ("u8.tif", "bilinear", Curved, 0.0),
-    ("f32.tif", "bilinear", Homography, 1e-6),
-    ("f32.tif", "cubic", Curved, 1e-6),
+@pytest.mark.parametrize(("source", "resampling", "mapping", "rtol", "policy"), [
+    ("u8.tif", "nearest", Homography, 0.0, "nodata"),
+    ("u8.tif", "bilinear", Curved, 0.0, "nodata"),
+    ("u8m.tif", "bilinear", Homography, 0.0, "mask"),
+    ("u8m.tif", "cubic", Curved, 0.0, "mask"),
+    ("f32.tif", "bilinear", Homography, 1e-6, "nodata"),
+    ("f32.tif", "cubic", Curved, 1e-6, "nodata"),
 ])
-def test_warp_on_the_cluster_equals_the_local_path(cluster, sources, tmp_path, source, resampling, mapping, rtol):
+def test_warp_on_the_cluster_equals_the_local_path(cluster, sources, tmp_path, writes, source, resampling, mapping,
+                                                   rtol, policy):
     kw = dict(resampling=resampling, tile_px=64)
     local = warp_raster(sources / source, tmp_path / "local.tif", mapping(), GRID, options=WarpOptions(**kw))
+    assert writes == {"pixels": 90, "encoded": 0}  # the local path writes pixels, as before
+    assert local.policy == policy == mask_policy(tmp_path / "local.tif").kind
     seen: list[tuple[int, int]] = []
     remote = warp_raster(sources / source, tmp_path / "dask.tif", mapping(), GRID,
                          options=WarpOptions(scheduler=cluster.scheduler_address, **kw),
                          progress=lambda d, t: seen.append((d, t)))
+    assert writes == {"pixels": 90, "encoded": 90}  # the Dask path: compressed tiles only
     _assert_same(tmp_path / "local.tif", tmp_path / "dask.tif", rtol=rtol)
     assert (remote.n_tiles, remote.n_empty_tiles, remote.policy) == (local.n_tiles, local.n_empty_tiles, local.policy)
     assert seen[0] == (0, 90) and seen[-1] == (90, 90) and len(seen) == 91
     assert sorted(p.name for p in tmp_path.iterdir()) == ["dask.tif", "local.tif"]  # no block files left
 
 
-def test_cog_on_the_cluster(cluster, sources, tmp_path):
+@pytest.mark.parametrize("source", ["u8.tif", "u8m.tif"])
+def test_cog_on_the_cluster(cluster, sources, tmp_path, writes, source):
     kw = dict(resampling="bilinear", tile_px=128, cog=True)
-    warp_raster(sources / "u8.tif", tmp_path / "local.tif", Homography(), GRID, options=WarpOptions(**kw))
-    warp_raster(sources / "u8.tif", tmp_path / "dask.tif", Homography(), GRID,
+    warp_raster(sources / source, tmp_path / "local.tif", Homography(), GRID, options=WarpOptions(**kw))
+    warp_raster(sources / source, tmp_path / "dask.tif", Homography(), GRID,
                 options=WarpOptions(scheduler=cluster.scheduler_address, **kw))
+    assert writes == {"pixels": 25, "encoded": 25}  # the COG body (uncompressed) from the workers' tiles
     assert cog_problems(tmp_path / "dask.tif") == []
     _assert_same(tmp_path / "local.tif", tmp_path / "dask.tif")
 
 
 @pytest.mark.parametrize(("resampling", "true_ortho"), [("nearest", True), ("bilinear", False), ("cubic", False)])
-def test_ortho_on_the_cluster_equals_the_local_path(cluster, tmp_path, resampling, true_ortho):
+def test_ortho_on_the_cluster_equals_the_local_path(cluster, tmp_path, writes, resampling, true_ortho):
     model = frame_scene(tmp_path)
     dem = Dem.from_path(tmp_path / "dem.tif")
     kw = dict(tile_px=64, resampling=resampling, true_ortho=true_ortho)
@@ -205,6 +237,7 @@ def test_ortho_on_the_cluster_equals_the_local_path(cluster, tmp_path, resamplin
                      options=OrthoOptions(**kw))
     b = orthorectify(tmp_path / "frame.tif", tmp_path / "dask.tif", model, dem, resolution=1.0,
                      options=OrthoOptions(scheduler=cluster.scheduler_address, **kw))
+    assert writes["encoded"] == writes["pixels"] == a.n_tiles
     _assert_same(tmp_path / "local.tif", tmp_path / "dask.tif", rtol=0.0 if resampling == "nearest" else 1e-6)
     # the statistics gathered in the workers' tiles add up to the local run's
     assert (b.dem_range, b.max_relief_shift, b.n_occluded, b.n_tiles, b.n_empty_tiles) == \
@@ -213,14 +246,18 @@ def test_ortho_on_the_cluster_equals_the_local_path(cluster, tmp_path, resamplin
         assert ds.tags()["ORTHO_MODEL"] == "FrameModel"
 
 
-def test_mosaic_on_the_cluster_equals_the_local_path(cluster, tmp_path):
+@pytest.mark.parametrize("cog", [False, True])
+def test_mosaic_on_the_cluster_equals_the_local_path(cluster, tmp_path, writes, cog):
     _flat_ortho(tmp_path / "a.tif", 0, 100, 100.0, 30.0)
     _flat_ortho(tmp_path / "b.tif", 40, 140, 200.0, 110.0)
     ins = [tmp_path / "a.tif", tmp_path / "b.tif"]
-    a = mosaic(ins, tmp_path / "local.tif", options=MosaicOptions(feather_px=20, tile_px=16))
-    b = mosaic(ins, tmp_path / "dask.tif", options=MosaicOptions(feather_px=20, tile_px=16,
+    a = mosaic(ins, tmp_path / "local.tif", options=MosaicOptions(feather_px=20, tile_px=16, cog=cog))
+    b = mosaic(ins, tmp_path / "dask.tif", options=MosaicOptions(feather_px=20, tile_px=16, cog=cog,
                                                                    scheduler=cluster.scheduler_address))
+    assert writes["encoded"] == writes["pixels"] > 0
     _assert_same(tmp_path / "local.tif", tmp_path / "dask.tif")
+    if cog:
+        assert cog_problems(tmp_path / "dask.tif") == []
     assert a.share == b.share
 
 
