@@ -9,9 +9,9 @@ them with one callback (``write(result, col, row)``). :func:`run_windows` runs t
   one thread each; ``tcp://HOST:PORT``: an existing cluster), one task per *block* (a few
   consecutive output windows). Each task receives the engine (its geometry and the source *paths*,
   never pixels), opens the sources itself, computes its windows with the very code the local path
-  runs (same margins, same kernels) and writes them to a per-task block file (``.npz``, written to a
-  temporary name and renamed: a retried task simply rewrites it) in a hidden folder beside the
-  output. The calling process reads each block as its task completes and writes its windows inside
+  runs (same margins, same kernels) and writes them to a per-task block file (``.npz``, or the
+  encoded windows' bytes end to end; written to a temporary name and renamed: a retried task simply
+  rewrites it) in a hidden folder beside the output. The calling process reads each block as its task completes and writes its windows inside
   the usual atomic output. With an ``encoder`` (the GeoTIFF writers of the warp, orthophoto and
   mosaic steps: :class:`rectify.tiffblocks.TileEncoder`) the task also compresses each window into
   the output's GeoTIFF tile on the worker, and the calling process only copies the compressed bytes
@@ -234,7 +234,8 @@ def run_windows(engine: BlockEngine, write: Callable[[Any, int, int], bool], win
     name : str
         Label of the tasks and threads.
     windows_per_task : int, optional
-        Windows per Dask task (default: up to 4, fewer on small jobs so every worker gets tasks).
+        Windows per Dask task (default: up to 4, or 8 with an ``encoder``; fewer on small jobs so every
+        worker gets tasks).
     encoder : callable(result) -> encoded, optional
         Dask only (the local path ignores it and calls ``write``): a picklable function applied to
         each window's result in the task, on the worker (e.g.
@@ -353,7 +354,8 @@ def _run_on_client(client: Any, sched: Scheduler, engine: BlockEngine, write: Ca
     if not windows:
         return 0
     slots = _worker_slots(client)
-    per_task = windows_per_task or max(1, min(4, total // (4 * slots)))
+    # encoded windows are small (one decoded window at a time in a task): longer tasks, fewer round trips
+    per_task = windows_per_task or max(1, min(8 if encoder is not None else 4, total // (4 * slots)))
     groups = _groups(windows, per_task)
     portable = engine.portable()
     merge = getattr(engine, "merge_stats", None)
@@ -384,10 +386,10 @@ def _run_on_client(client: Any, sched: Scheduler, engine: BlockEngine, write: Ca
         ac = distributed.as_completed(list(futures))
         for fut in ac:
             i = futures.pop(fut)
-            path, stats = _result(fut, sched)
+            path, stats, index = _result(fut, sched)
             if merge is not None and stats is not None:
                 merge(stats)
-            results = _load_block(Path(path))
+            results = _load_block(Path(path)) if index is None else _load_raw_block(Path(path), index)
             for (c, r, _w, _h), res in zip(groups[i], results, strict=True):
                 n_empty += int(write(res, c, r))
                 done += 1
@@ -405,7 +407,7 @@ def _run_on_client(client: Any, sched: Scheduler, engine: BlockEngine, write: Ca
     return n_empty
 
 
-def _result(fut: Any, sched: Scheduler) -> tuple[str, Any]:
+def _result(fut: Any, sched: Scheduler) -> tuple[str, Any, Any]:
     """A task's result; Dask's own failures (a task whose workers kept dying, a lost scheduler) become
     :class:`SchedulerError`, the task's errors are re-raised as they are."""
     import asyncio
@@ -413,18 +415,19 @@ def _result(fut: Any, sched: Scheduler) -> tuple[str, Any]:
     import distributed
 
     try:
-        path, stats = fut.result()
-        return str(path), stats
+        path, stats, index = fut.result()
+        return str(path), stats, index
     except (distributed.KilledWorker, asyncio.CancelledError, distributed.comm.CommClosedError) as err:
         raise SchedulerError(f"Dask scheduler {str(sched)!r} lost task {fut.key!r}: {_one_line(err)}") from err
 
 
 def _compute_block(engine: BlockEngine, windows: list[Window], path: str,
-                   encoder: Callable[[Any], Any] | None = None) -> tuple[str, Any]:
+                   encoder: Callable[[Any], Any] | None = None) -> tuple[str, Any, Any]:
     """One Dask task: compute ``windows`` with a private copy of ``engine`` (each result passed through
     ``encoder`` when given); write them to ``path``.
 
     Runs on a worker. Idempotent: the block is written to a unique temporary name and renamed.
+    Returns the path, the engine's statistics and, for a raw block (encoded windows of bytes), its index.
     """
     from .io import bound_gdal_cache
 
@@ -442,12 +445,16 @@ def _compute_block(engine: BlockEngine, windows: list[Window], path: str,
     stats = stats_fn() if stats_fn is not None else None
     target = Path(path)
     tmp = target.with_name(f"{target.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
+    index = None
     try:
-        _save_block(tmp, results)
+        if encoder is not None and all(_is_raw(res) for res in results):
+            index = _save_raw_block(tmp, results)
+        else:
+            _save_block(tmp, results)
         os.replace(tmp, target)
     finally:
         tmp.unlink(missing_ok=True)
-    return path, stats
+    return path, stats, index
 
 
 # --------------------------------------------------------------------------- block files
@@ -469,6 +476,56 @@ def _save_block(path: Path, results: list[Any]) -> None:
         arrays[f"w{i}_kinds"] = np.asarray("".join(kinds) + ("t" if isinstance(res, tuple) else "s"))
     with open(path, "wb") as fh:
         np.savez(fh, **arrays)  # type: ignore[arg-type]  # numpy's stub types allow_pickle as **kwds
+
+
+def _is_raw(res: Any) -> bool:
+    """A tuple of bytes, uint8 arrays, None and bools (an encoded window)."""
+    return isinstance(res, tuple) and all(
+        v is None or isinstance(v, (bool, np.bool_, bytes)) or (isinstance(v, np.ndarray) and v.dtype == np.uint8)
+        for v in res)
+
+
+def _save_raw_block(path: Path, results: list[tuple]) -> list[list[tuple[str, int]]]:
+    """Encoded windows (tuples of bytes, uint8 arrays, None, bools) -> their bytes end to end in one file.
+
+    Returns the index that :func:`_load_raw_block` needs: per window, per item, ``("a", nbytes)``,
+    ``("n", 0)`` (None) or ``("b", 0 or 1)``. The calling process reads the bytes back in one read,
+    without decoding anything (no ``.npz`` parsing or checksums).
+    """
+    index: list[list[tuple[str, int]]] = []
+    with open(path, "wb") as fh:
+        for res in results:
+            items: list[tuple[str, int]] = []
+            for v in res:
+                if v is None:
+                    items.append(("n", 0))
+                elif isinstance(v, (bool, np.bool_)):
+                    items.append(("b", int(bool(v))))
+                else:
+                    b = memoryview(v).cast("B") if isinstance(v, bytes) else np.ascontiguousarray(v).data.cast("B")
+                    fh.write(b)
+                    items.append(("a", b.nbytes))
+            index.append(items)
+    return index
+
+
+def _load_raw_block(path: Path, index: list[list[tuple[str, int]]]) -> list[tuple]:
+    """The windows of a raw block: uint8 arrays viewing the bytes read, None and bools."""
+    buf = np.fromfile(path, dtype=np.uint8)
+    out: list[tuple] = []
+    pos = 0
+    for items in index:
+        vals: list[Any] = []
+        for kind, n in items:
+            if kind == "a":
+                vals.append(buf[pos:pos + n])
+                pos += n
+            else:
+                vals.append(None if kind == "n" else bool(n))
+        out.append(tuple(vals))
+    if pos != buf.size:
+        raise SchedulerError(f"block file {str(path)!r} holds {buf.size} bytes; its task wrote {pos}")
+    return out
 
 
 def _load_block(path: Path) -> list[Any]:

@@ -184,7 +184,7 @@ def main() -> None:
         cfg["dense"] = {"left": str(lp), "right": str(rp)}
     print(f"inputs built in {time.perf_counter() - t0:.1f} s in {work}", flush=True)
 
-    tile, per_task = 512, 4
+    tile, per_task = 512, 8
     rows = []
     for job in jobs:
         ref = None
@@ -225,9 +225,9 @@ def main() -> None:
     if "dense" in jobs:
         print("dense: one task = one matching tile (1024 px core + 48 px overlap), its disparity block written by "
               "the worker; the driver does the coarse pass and writes disparity.tif and confidence.tif")
-    print(f"chunk (warp, ortho): one task = up to {per_task} output tiles of {tile} x {tile} px, {chunk_mb:.1f} MB "
-          f"of uint8 "
-          f"RGB output plus its source window; a worker holds one task at a time (1 thread)")
+    print(f"chunk (warp, ortho): one task = up to {per_task} output tiles of {tile} x {tile} px ({chunk_mb:.1f} MB "
+          f"of uint8 RGB output), computed and compressed one at a time by the worker (one decoded tile plus its "
+          f"source window in memory); the driver copies the compressed tiles into the GeoTIFF")
     (work / "bench_dask.json").write_text(json.dumps(rows, indent=2))
 
 
