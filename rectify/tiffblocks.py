@@ -384,8 +384,7 @@ class TileAppender:
             for i, d in enumerate(self.layout.ifds):
                 self._patch(d.offsets, self._offsets[i])
                 self._patch(d.byte_counts, self._counts[i])
-            self._fh.flush()
-            os.fsync(self._fh.fileno())
+            self._fh.flush()  # no fsync: as GDAL's own writer (a full disk fails the writes themselves)
         except OSError as err:
             self.abort()
             if isinstance(err, RasterIOError):
