@@ -5,19 +5,20 @@ output windows with one function per engine (``engine.tile(col, row, width, heig
 them with one callback (``write(result, col, row)``). :func:`run_windows` runs those windows
 
 - on a local thread pool (``threads``, the default: :func:`rectify.warp.run_tiles`, unchanged), or
-- as a Dask graph (``processes[:N]``: a :class:`distributed.LocalCluster` of N worker processes with
-  one thread each; ``tcp://HOST:PORT``: an existing cluster), one task per *block* (a few
+- as a Dask graph (``processes[:N]``: a :class:`distributed.LocalCluster` of N worker processes
+  with one thread each; ``tcp://HOST:PORT``: an existing cluster), one task per *block* (a few
   consecutive output windows). Each task receives the engine (its geometry and the source *paths*,
   never pixels), opens the sources itself, computes its windows with the very code the local path
   runs (same margins, same kernels) and writes them to a per-task block file (``.npz``, or the
-  encoded windows' bytes end to end; written to a temporary name and renamed: a retried task simply
-  rewrites it) in a hidden folder beside the output. The calling process reads each block as its task completes and writes its windows inside
-  the usual atomic output. With an ``encoder`` (the GeoTIFF writers of the warp, orthophoto and
-  mosaic steps: :class:`rectify.tiffblocks.TileEncoder`) the task also compresses each window into
-  the output's GeoTIFF tile on the worker, and the calling process only copies the compressed bytes
-  into the file (:meth:`rectify.io.TiledWriter.write_encoded`): it neither decodes nor compresses
-  pixels, so it does not compete with the workers for CPU. Either way the pixels and masks of the
-  output are those of the local path (the tiles are the very bytes GDAL writes there).
+  encoded windows' bytes end to end; written to a temporary name and renamed: a retried task
+  simply rewrites it) in a hidden folder beside the output. The calling process reads each block
+  as its task completes and writes its windows inside the usual atomic output. With an ``encoder``
+  (the GeoTIFF writers of the warp, orthophoto and mosaic steps:
+  :class:`rectify.tiffblocks.TileEncoder`) the task also compresses each window into the output's
+  GeoTIFF tile on the worker, and the calling process only copies the compressed bytes into the
+  file (:meth:`rectify.io.TiledWriter.write_encoded`): it neither decodes nor compresses pixels,
+  so it does not compete with the workers for CPU. Either way the pixels and masks of the output
+  are those of the local path (the tiles are the very bytes GDAL writes there).
 
 Scheduler choice: the ``scheduler`` argument (``rectify warp/ortho/mosaic --scheduler``), else the
 environment variable :data:`ENV_VAR` (``RECTIFY_SCHEDULER``), else ``threads``.
