@@ -433,6 +433,7 @@ def _compute_block(engine: BlockEngine, windows: list[Window], path: str,
     from .io import bound_gdal_cache
 
     bound_gdal_cache()
+    _bound_opencv_threads()
     eng = copy.deepcopy(engine)  # a private copy: no statistics or open files shared with other tasks
     results = []
     try:
@@ -456,6 +457,25 @@ def _compute_block(engine: BlockEngine, windows: list[Window], path: str,
     finally:
         tmp.unlink(missing_ok=True)
     return path, stats, index
+
+
+def _bound_opencv_threads() -> None:
+    """On a Dask worker, let OpenCV use as many threads as the worker has task slots.
+
+    A worker of N threads holds N cores' worth of tasks; OpenCV's own thread pool (remap, warpAffine,
+    ...) would otherwise spread every task over all the machine's cores, on top of the other workers.
+    Dask's nanny sets ``OMP_NUM_THREADS`` and the BLAS counts to the same end; OpenCV reads none of them.
+    """
+    try:
+        import distributed
+
+        n = int(distributed.get_worker().state.nthreads)
+    except (ImportError, ValueError, AttributeError):  # not on a worker
+        return
+    import cv2
+
+    if n >= 1 and cv2.getNumThreads() != n:
+        cv2.setNumThreads(n)
 
 
 # --------------------------------------------------------------------------- block files

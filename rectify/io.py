@@ -268,6 +268,8 @@ def _to_uint8_lut(a: NDArray, valid: NDArray[np.bool_] | None, percentiles: tupl
                   limits: tuple[float, float] | None) -> NDArray[np.uint8]:
     """:func:`to_uint8` of one uint8/uint16 band: percentiles from a histogram, the stretch as a look-up table
     (the same values, about 10x faster than the float path)."""
+    lo: float
+    hi: float      # np.float64 (a float) from the percentiles, as np.percentile gives
     if limits is None:
         sample = a.ravel() if valid is None else a[valid]
         if sample.size == 0:

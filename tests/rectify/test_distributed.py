@@ -286,6 +286,27 @@ def test_a_failing_task_raises_its_error_and_leaves_nothing(cluster, sources, tm
     assert list(out.iterdir()) == []
 
 
+def _opencv_threads_in_a_task() -> int:
+    import cv2
+
+    from rectify.distributed import _bound_opencv_threads
+
+    _bound_opencv_threads()
+    return cv2.getNumThreads()
+
+
+def test_opencv_uses_the_worker_threads_only(cluster):
+    """A worker of one thread runs OpenCV on one thread (not on every core, on top of the other workers);
+    outside a worker the setting is left alone."""
+    import cv2
+    import distributed
+
+    with distributed.Client(cluster) as client:
+        assert client.submit(_opencv_threads_in_a_task, pure=False).result() == 1
+    before = cv2.getNumThreads()
+    assert _opencv_threads_in_a_task() == before
+
+
 # ----------------------------------------------------------------- a worker lost mid-run
 def test_a_killed_worker_is_replaced_and_the_output_is_complete(sources, tmp_path, caplog):
     import logging
