@@ -25,9 +25,11 @@ size (windows at the right and bottom edges are smaller).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import struct
-from collections.abc import Iterable
+import warnings
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Any, BinaryIO, NamedTuple
 
@@ -474,6 +476,17 @@ class EncodedTile(NamedTuple):
     mask: NDArray[np.uint8] | None
 
 
+@contextlib.contextmanager
+def _no_georef_warning() -> Iterator[None]:
+    """Silence rasterio's NotGeoreferencedWarning for the in-memory one-tile files (on Dask workers it
+    would reach the user's console once per tile)."""
+    from rasterio.errors import NotGeoreferencedWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NotGeoreferencedWarning)
+        yield
+
+
 @dataclass(frozen=True, eq=False)
 class TileEncoder:
     """Compress output windows as one GeoTIFF's tiles (picklable: shipped to Dask workers).
@@ -555,9 +568,9 @@ class TileEncoder:
             raise ShapeError(f"`data` must be (h, w, {self.count}) with h, w in 1..{self.tile}; got {np.shape(data)}",
                              actual_shape=np.shape(data), expected_shape=(None, None, self.count))
         try:
-            with MemoryFile(ext=".tif") as mem:
+            with MemoryFile(ext=".tif") as mem, _no_georef_warning():
                 # the window as a whole w x h GeoTIFF of one (partial) tile: GDAL pads and predicts an edge
-                # tile exactly as in the full-size file
+                # tile exactly as in the full-size file (no geotransform: it only carries the tile's bytes)
                 with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), \
                         mem.open(driver="GTiff", width=w, height=h, NUM_THREADS="1", **self.creation) as ds:
                     ds.write(np.moveaxis(a.astype(self.dtype, copy=False), -1, 0))
@@ -601,7 +614,7 @@ class TileEncoder:
         import rasterio
         from rasterio.io import MemoryFile
 
-        with MemoryFile(ext=".tif") as mem:
+        with MemoryFile(ext=".tif") as mem, _no_georef_warning():
             with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), \
                     mem.open(driver="GTiff", width=16, height=16, NUM_THREADS="1", SPARSE_OK="TRUE",
                              **self.creation) as ds:

@@ -127,6 +127,19 @@ def test_encode_window_takes_both_result_forms():
         enc.encode_window((img,))
 
 
+def test_encoding_warns_nothing():
+    """The one-tile files in memory have no geotransform: rasterio's NotGeoreferencedWarning must not reach
+    the console of every Dask worker, once per tile."""
+    import warnings
+
+    prof = _profile(64, 64, 3, "uint8", None, tile=64, compress="zstd")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        enc = TileEncoder.from_profile(prof, mask=True)
+        enc.encode(_image(64, 64, 3, "uint8"), None)
+        enc.layout()
+
+
 def test_encoder_pickles_and_refuses_bad_input():
     import pickle
 
