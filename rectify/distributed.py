@@ -334,6 +334,23 @@ def _groups(windows: list[Window], per_task: int) -> list[list[Window]]:
     return [windows[i:i + per_task] for i in range(0, len(windows), per_task)]
 
 
+#: windows per task at most (encoded windows) and at least (the last tasks) in guided task sizes
+GUIDED_MAX, GUIDED_MIN = 32, 2
+
+
+def _guided_groups(windows: list[Window], slots: int) -> list[list[Window]]:
+    """Tasks of decreasing size (guided self-scheduling): each takes 1/(2 slots) of the windows still
+    unassigned, between :data:`GUIDED_MIN` and :data:`GUIDED_MAX`. Few tasks (each costs the scheduler
+    and the driver a few ms of CPU, taken from the workers on a small machine) and a short tail (the
+    last tasks are small, so the workers finish together)."""
+    out, i, n = [], 0, len(windows)
+    while i < n:
+        k = min(GUIDED_MAX, max(GUIDED_MIN, (n - i) // (2 * max(slots, 1))))
+        out.append(windows[i:i + k])
+        i += k
+    return out
+
+
 def _worker_slots(client: Any) -> int:
     with contextlib.suppress(Exception):
         info = client.scheduler_info().get("workers", {})
@@ -355,9 +372,14 @@ def _run_on_client(client: Any, sched: Scheduler, engine: BlockEngine, write: Ca
     if not windows:
         return 0
     slots = _worker_slots(client)
-    # encoded windows are small (one decoded window at a time in a task): longer tasks, fewer round trips
-    per_task = windows_per_task or max(1, min(8 if encoder is not None else 4, total // (4 * slots)))
-    groups = _groups(windows, per_task)
+    if windows_per_task:
+        groups = _groups(windows, windows_per_task)
+    elif encoder is not None:
+        # encoded windows are small (one decoded window at a time in a task): longer tasks, fewer round trips
+        groups = _guided_groups(windows, slots)
+    else:
+        groups = _groups(windows, max(1, min(4, total // (4 * slots))))
+    per_task = max(len(g) for g in groups)
     portable = engine.portable()
     merge = getattr(engine, "merge_stats", None)
     workdir.mkdir(parents=True, exist_ok=True)

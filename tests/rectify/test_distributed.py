@@ -344,3 +344,18 @@ def test_a_killed_worker_is_replaced_and_the_output_is_complete(sources, tmp_pat
         lc.close()
     _assert_same(tmp_path / "local.tif", tmp_path / "dask.tif")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["dask.tif", "local.tif"]
+
+
+def test_guided_task_sizes_cover_every_window_once_and_shrink():
+    from rectify.distributed import GUIDED_MAX, GUIDED_MIN, _guided_groups
+
+    for n in (0, 1, 5, 169, 484, 5000):
+        for slots in (1, 2, 8):
+            wins = [(i, 0, 1, 1) for i in range(n)]
+            groups = _guided_groups(wins, slots)
+            assert [w for g in groups for w in g] == wins
+            sizes = [len(g) for g in groups]
+            assert all(1 <= s <= GUIDED_MAX for s in sizes)
+            assert sizes == sorted(sizes, reverse=True)          # big tasks first, small ones at the end
+            assert all(s >= GUIDED_MIN for s in sizes[:-1])
+    assert len(_guided_groups([(i, 0, 1, 1) for i in range(484)], 2)) < 484 // 8   # fewer tasks than 8 per task
