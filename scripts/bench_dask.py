@@ -184,7 +184,9 @@ def main() -> None:
         cfg["dense"] = {"left": str(lp), "right": str(rp)}
     print(f"inputs built in {time.perf_counter() - t0:.1f} s in {work}", flush=True)
 
-    tile, per_task = 512, 8
+    from rectify.distributed import GUIDED_MAX, GUIDED_MIN
+
+    tile, per_task = 512, GUIDED_MAX
     rows = []
     for job in jobs:
         ref = None
@@ -225,9 +227,10 @@ def main() -> None:
     if "dense" in jobs:
         print("dense: one task = one matching tile (1024 px core + 48 px overlap), its disparity block written by "
               "the worker; the driver does the coarse pass and writes disparity.tif and confidence.tif")
-    print(f"chunk (warp, ortho): one task = up to {per_task} output tiles of {tile} x {tile} px ({chunk_mb:.1f} MB "
-          f"of uint8 RGB output), computed and compressed one at a time by the worker (one decoded tile plus its "
-          f"source window in memory); the driver copies the compressed tiles into the GeoTIFF")
+    print(f"chunk (warp, ortho): one task = {GUIDED_MIN} to {per_task} output tiles of {tile} x {tile} px (up to "
+          f"{chunk_mb:.1f} MB of uint8 RGB output; tasks shrink towards the end), computed and compressed one at a "
+          f"time by the worker (one decoded tile plus its source window in memory: the peak per worker does not "
+          f"grow with the task); the driver copies the compressed tiles into the GeoTIFF")
     (work / "bench_dask.json").write_text(json.dumps(rows, indent=2))
 
 
