@@ -17,13 +17,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from .errors import InvalidInputError
-from .features import DETECTORS, VERIFY_METHODS, MatcherConfig, MatchResult, match_images
 from .formats import TIFF_SUFFIXES, GcpTable, has_embedded_gcps
 from .io import raster_info
-from .mosaic import MosaicOptions, MosaicResult
-from .mosaic import mosaic as mosaic
-from .ortho import OrthoOptions
-from .ortho import ortho_from_files as ortho
 from .transforms import METHODS, FitResult, fit_gcps
 from .transforms.quality import GcpGeometry, geographic_lines, judge_gcp_geometry
 from .warp import (
@@ -39,6 +34,29 @@ from .workspace import Workspace, check_table_crs
 if TYPE_CHECKING:  # matplotlib comes with these: imported where used, so `rectify warp` starts faster
     from .compare import StudyConfig, StudyResults
     from .demo import DemoResult
+    from .features import DETECTORS, VERIFY_METHODS, MatcherConfig, MatchResult
+    from .mosaic import MosaicOptions, MosaicResult
+    from .mosaic import mosaic as mosaic
+    from .ortho import OrthoOptions
+    from .ortho import ortho_from_files as ortho
+
+#: names served from the modules that hold them, imported on first use (a command imports only its own
+#: step's code: ``rectify warp`` does not load the matcher, the orthophoto or the mosaic code)
+_LAZY = {"DETECTORS": ("features", "DETECTORS"), "VERIFY_METHODS": ("features", "VERIFY_METHODS"),
+         "ortho": ("ortho", "ortho_from_files"), "OrthoOptions": ("ortho", "OrthoOptions"),
+         "mosaic": ("mosaic", "mosaic"), "MosaicOptions": ("mosaic", "MosaicOptions"),
+         "MosaicResult": ("mosaic", "MosaicResult")}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        import importlib
+
+        module, attr = _LAZY[name]
+        value = getattr(importlib.import_module(f"{__package__}.{module}"), attr)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 __all__ = [
     "ortho", "OrthoOptions", "mosaic", "MosaicOptions", "MosaicResult",
@@ -75,6 +93,8 @@ class MatchOptions:
 
     def config(self) -> MatcherConfig:
         """The matcher configuration."""
+        from .features import MatcherConfig
+
         kw: dict[str, Any] = {"detector": self.detector, "verify": self.verify, "refine": self.refine}
         if self.max_matches is not None:
             kw["max_matches"] = self.max_matches
@@ -143,6 +163,8 @@ def match(ws: Workspace, left: str | Path, right: str | Path, output: str | Path
     ws.add_inputs(left, right)
     ws.plan(output)
     ws.check_report_dir()
+    from .features import match_images
+
     cfg = options.config()
     # the Dask tasks' block files go beside the output (on a cluster, a folder the workers share)
     res = match_images(left, right, config=cfg, progress=progress, scheduler=options.scheduler,
