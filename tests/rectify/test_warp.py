@@ -330,3 +330,15 @@ def test_dst_crs_through_pyproj(tmp_path):
         assert np.hypot(*(q - gcps.pixel[0])) < 2.0  # within the output pixel (about 1.3 frame px)
         frame = fr.read()
         assert (ds.read()[:, r0, c0] == frame[:, int(round(q[1])), int(round(q[0]))]).all()
+
+
+def test_block_cache_grows_with_the_threads_and_bad_sizes_are_refused():
+    from rectify.errors import InvalidInputError
+    from rectify.warp import CACHE_MB_PER_THREAD, WarpOptions
+
+    assert WarpOptions(threads=1).block_cache_mb == CACHE_MB_PER_THREAD
+    assert WarpOptions(threads=3).block_cache_mb == 3 * CACHE_MB_PER_THREAD
+    assert WarpOptions(threads=3, cache_mb=100).block_cache_mb == 100
+    for bad in (0, -5, float("nan")):
+        with pytest.raises(InvalidInputError, match="cache_mb must be >= 1"):
+            WarpOptions(cache_mb=bad)
