@@ -64,8 +64,9 @@ if __name__ == "__main__":
         import distributed
         import dask
         t0 = time.perf_counter()
-        # as rectify's own processes:N cluster (rectify.distributed): glibc's adaptive mmap threshold kept
-        with dask.config.set({{"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}}):
+        # the settings of rectify's own processes:N cluster (rectify.distributed.LOCAL_CLUSTER_CONFIG)
+        from rectify.distributed import LOCAL_CLUSTER_CONFIG
+        with dask.config.set(LOCAL_CLUSTER_CONFIG):
             cluster = distributed.LocalCluster(n_workers=cfg["workers"], threads_per_worker=1, processes=True,
                                                dashboard_address=":0")
         client = distributed.Client(cluster)
