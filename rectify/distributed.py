@@ -4,7 +4,7 @@ The tiled engines (:mod:`rectify.warp`, :mod:`rectify.ortho`, :mod:`rectify.mosa
 output windows with one function per engine (``engine.tile(col, row, width, height)``) and write
 them with one callback (``write(result, col, row)``). :func:`run_windows` runs those windows
 
-- on a local thread pool (``threads``, the default: :func:`rectify.warp.run_tiles`, unchanged), or
+- on local threads (``threads``, the default: :func:`rectify.tilepool.run_tiles`), or
 - as a Dask graph (``processes[:N]``: a :class:`distributed.LocalCluster` of N worker processes
   with one thread each; ``tcp://HOST:PORT``: an existing cluster), one task per *block* (a few
   consecutive output windows). Each task receives the engine (its geometry and the source *paths*,
@@ -12,11 +12,11 @@ them with one callback (``write(result, col, row)``). :func:`run_windows` runs t
   runs (same margins, same kernels) and writes them to a per-task block file (``.npz``, or the
   encoded windows' bytes end to end; written to a temporary name and renamed: a retried task
   simply rewrites it) in a hidden folder beside the output. The calling process reads each block
-  as its task completes and writes its windows inside the usual atomic output. With an ``encoder``
-  (the GeoTIFF writers of the warp, orthophoto and mosaic steps:
-  :class:`rectify.tiffblocks.TileEncoder`) the task also compresses each window into the output's
-  GeoTIFF tile on the worker, and the calling process only copies the compressed bytes into the
-  file (:meth:`rectify.io.TiledWriter.write_encoded`): it neither decodes nor compresses pixels,
+  as its task completes and writes its windows inside the usual atomic output. With a
+  ``raw_writer`` (the GeoTIFF writers of the warp, orthophoto and mosaic steps, in raw mode) the
+  task also compresses each window into the output's GeoTIFF tile on the worker
+  (:class:`rectify.tiffblocks.TileEncoder`), and the calling process only copies the compressed
+  bytes into the file (:meth:`rectify.io.TiledWriter.write_encoded`): it neither decodes nor compresses pixels,
   so it does not compete with the workers for CPU. Either way the pixels and masks of the output
   are those of the local path (the tiles are the very bytes GDAL writes there).
 
@@ -48,6 +48,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from . import tilepool
 from .errors import InvalidInputError, SchedulerError
 
 __all__ = ["ENV_VAR", "TIMEOUT_ENV_VAR", "Scheduler", "SchedulerError", "BlockEngine", "resolve_scheduler",
@@ -212,8 +213,7 @@ Window = tuple[int, int, int, int]
 def run_windows(engine: BlockEngine, write: Callable[[Any, int, int], bool], windows: Sequence[Window], *,
                 threads: int, progress: Callable[[int, int], None] | None, scheduler: Scheduler | str | None,
                 workdir: str | Path, name: str = "tile", windows_per_task: int | None = None,
-                encoder: Callable[[Any], Any] | None = None,
-                write_encoded: Callable[[Any, int, int], bool] | None = None) -> int:
+                raw_writer: Any = None) -> int:
     """Compute ``windows`` with ``engine.tile`` on the chosen scheduler; write each; return the empty count.
 
     Parameters
@@ -235,16 +235,13 @@ def run_windows(engine: BlockEngine, write: Callable[[Any, int, int], bool], win
     name : str
         Label of the tasks and threads.
     windows_per_task : int, optional
-        Windows per Dask task (default: up to 4, or 8 with an ``encoder``; fewer on small jobs so every
-        worker gets tasks).
-    encoder : callable(result) -> encoded, optional
-        Dask only (the local path ignores it and calls ``write``): a picklable function applied to
-        each window's result in the task, on the worker (e.g.
-        :meth:`rectify.tiffblocks.TileEncoder.encode_window`: the window compressed into the output's
-        GeoTIFF tile). Its value (a tuple of arrays, None and bools) goes to ``write_encoded``.
-    write_encoded : callable(encoded, col, row) -> bool, optional
-        With ``encoder``: writes one encoded window (on the calling thread) and returns whether it
-        was empty.
+        Windows per Dask task (default: up to 4; with a ``raw_writer``, tasks of decreasing size,
+        :func:`_guided_groups`; fewer on small jobs so every worker gets tasks).
+    raw_writer : rectify.io.TiledWriter, optional
+        A writer in raw mode. Dask only (the local path calls ``write``): each window's result
+        (``(data, valid, empty)`` or ``(data, empty)``) is compressed on the worker by
+        ``raw_writer.encoder.encode_window`` and its bytes copied into the file by
+        ``raw_writer.write_encoded``.
 
     Raises
     ------
@@ -253,15 +250,18 @@ def run_windows(engine: BlockEngine, write: Callable[[Any, int, int], bool], win
     RectifyError
         Whatever a task raised (re-raised here, after ``retries``).
     """
-    if (encoder is None) != (write_encoded is None):
-        raise InvalidInputError("run_windows needs both `encoder` and `write_encoded`, or neither")
     sched = resolve_scheduler(scheduler)
     if sched.is_local_threads:
-        from .warp import run_tiles
+        return tilepool.run_tiles(engine.tile, write, list(windows), threads, progress, name=name)
+    encoder = None
+    if raw_writer is not None:
+        encoder = raw_writer.encoder.encode_window
 
-        return run_tiles(engine.tile, write, list(windows), threads, progress, name=name)
-    if encoder is not None and write_encoded is not None:
-        write = write_encoded
+        def write_raw(encoded: tuple, c: int, r: int) -> bool:   # (tile, mask tile or None, empty)
+            raw_writer.write_encoded(c, r, encoded)
+            return bool(encoded[2])
+
+        write = write_raw
     with _client(sched) as client:
         return _run_on_client(client, sched, engine, write, list(windows), progress, Path(workdir), name,
                               windows_per_task, encoder)

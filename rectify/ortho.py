@@ -828,13 +828,8 @@ def _run(engine: Any, writer, windows, threads: int, progress, *, scheduler: Sch
         writer.write(data, c, r)
         return empty
 
-    def write_encoded(enc: tuple[Any, Any, bool], c: int, r: int) -> bool:
-        writer.write_encoded(c, r, enc)
-        return bool(enc[2])
-
     return run_windows(engine, write, windows, threads=threads, progress=progress, scheduler=scheduler,
-                       workdir=workdir, name=name, encoder=writer.encoder.encode_window if writer.raw else None,
-                       write_encoded=write_encoded if writer.raw else None)
+                       workdir=workdir, name=name, raw_writer=writer if writer.raw else None)
 
 
 def _margin_px(model: SensorModel, dem: Dem, grid: Grid, h_range: tuple[float, float]) -> int:

@@ -43,7 +43,6 @@ import numpy as np
 import rasterio
 from numpy.typing import ArrayLike, NDArray
 
-from . import tilepool
 from .crs import crs_to_string, get_transformer, same_crs, transform_xy
 from .distributed import Scheduler, resolve_scheduler, run_windows
 from .errors import CRSError, EstimationError, InvalidInputError, RasterIOError
@@ -603,19 +602,6 @@ def worker_count(threads: int | None) -> int:
     return threads or (os.cpu_count() or 1)
 
 
-def run_tiles(tile: Callable[..., Any], write: Callable[[Any, int, int], bool], windows, threads: int, progress,
-              *, name: str = "tile") -> int:
-    """Compute output windows on ``threads`` threads and write each as it finishes; return the empty-tile count.
-
-    ``tile(c, r, w, h)`` computes one window; ``write(result, c, r)`` writes it (on this thread, so the
-    writer needs no lock) and returns whether the tile was empty. Each thread works through its own run
-    of neighbouring windows (its source blocks stay in its reader's cache); at most ``2 * threads + 1``
-    tiles are in flight, which bounds memory; on any error the other threads stop. Shared by the warp,
-    orthophoto and mosaic engines (:func:`rectify.tilepool.run_tiles`).
-    """
-    return tilepool.run_tiles(tile, write, windows, threads, progress, name=name)
-
-
 def _run_tiles(engine: _Engine, writer, windows, threads: int, progress, *, scheduler: Scheduler | str | None = None,
                workdir: str | Path = ".") -> int:
     def write(res: tuple[Any, Any, bool], c: int, r: int) -> bool:
@@ -623,13 +609,8 @@ def _run_tiles(engine: _Engine, writer, windows, threads: int, progress, *, sche
         writer.write(data, c, r, valid)
         return empty
 
-    def write_encoded(enc: tuple[Any, Any, bool], c: int, r: int) -> bool:
-        writer.write_encoded(c, r, enc)
-        return bool(enc[2])
-
     return run_windows(engine, write, windows, threads=threads, progress=progress, scheduler=scheduler,
-                       workdir=workdir, name="warp", encoder=writer.encoder.encode_window if writer.raw else None,
-                       write_encoded=write_encoded if writer.raw else None)
+                       workdir=workdir, name="warp", raw_writer=writer if writer.raw else None)
 
 
 def warp_array(image: ArrayLike, source_from_target: Callable[[NDArray], NDArray] | ArrayLike,
