@@ -486,7 +486,7 @@ def _compute_block(engine: BlockEngine, windows: list[Window], path: str,
     tmp = target.with_name(f"{target.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
     index = None
     try:
-        if encoder is not None and all(_is_raw(res) for res in results):
+        if encoder is not None:
             index = _save_raw_block(tmp, results)
         else:
             _save_block(tmp, results)
@@ -536,13 +536,6 @@ def _save_block(path: Path, results: list[Any]) -> None:
         np.savez(fh, **arrays)  # type: ignore[arg-type]  # numpy's stub types allow_pickle as **kwds
 
 
-def _is_raw(res: Any) -> bool:
-    """A tuple of bytes, uint8 arrays, None and bools (an encoded window)."""
-    return isinstance(res, tuple) and all(
-        v is None or isinstance(v, (bool, np.bool_, bytes)) or (isinstance(v, np.ndarray) and v.dtype == np.uint8)
-        for v in res)
-
-
 def _save_raw_block(path: Path, results: list[tuple]) -> list[list[tuple[str, int]]]:
     """Encoded windows (tuples of bytes, uint8 arrays, None, bools) -> their bytes end to end in one file.
 
@@ -559,10 +552,13 @@ def _save_raw_block(path: Path, results: list[tuple]) -> list[list[tuple[str, in
                     items.append(("n", 0))
                 elif isinstance(v, (bool, np.bool_)):
                     items.append(("b", int(bool(v))))
-                else:
+                elif isinstance(v, bytes) or (isinstance(v, np.ndarray) and v.dtype == np.uint8):
                     b = memoryview(v).cast("B") if isinstance(v, bytes) else np.ascontiguousarray(v).data.cast("B")
                     fh.write(b)
                     items.append(("a", b.nbytes))
+                else:
+                    raise InvalidInputError(f"an encoded window holds bytes, uint8 arrays, None and bools; got "
+                                            f"{type(v).__name__}")
             index.append(items)
     return index
 

@@ -356,7 +356,7 @@ class _Sampler:
         X32 = np.rint(X * np.float32(32.0))
         Y32 = np.rint(Y * np.float32(32.0))
         v = cv2.remap(self.pad, X, Y, cv2.INTER_LANCZOS4, borderMode=cv2.BORDER_REPLICATE)
-        k, npx = xs.shape
+        npx = xs.shape[1]
         n = int(round(math.sqrt(npx)))
         corners = [0, n - 1, npx - n, npx - 1]
         cx, cy = xs[:, corners], ys[:, corners]
