@@ -82,7 +82,7 @@ class CalibrationError(StereoError):
 
 class SchedulerError(RectifyError, OSError):
     """A Dask scheduler cannot be reached, a cluster cannot be started, or it lost a task
-    (:mod:`rectify.distributed`)."""
+    (:mod:`rectify.raster.distributed`)."""
 
 
 class RectifyWarning(UserWarning):

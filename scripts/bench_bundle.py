@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Benchmark: our bundle adjustment (``stereo.block.bundle.adjust_bundle``) vs pycolmap's bundle
+"""Benchmark: our bundle adjustment (``stereo.block.bundle.adjust.adjust_bundle``) vs pycolmap's bundle
 adjuster (COLMAP on Ceres) on the same synthetic aerial block, in one run (issue 13).
 
 Blocks (``--block``)
@@ -87,8 +87,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rectify.camera import Camera
-from rectify.rotation import matrix_from_angles
+from rectify.geometry.camera import Camera
+from rectify.geometry.rotation import matrix_from_angles
 
 D_FLIP = np.diag([1.0, -1.0, -1.0])  # our photo axes (x right, y up, z back) <-> camera x right, y down, z fwd
 
@@ -395,7 +395,7 @@ def run_colmap(block: Block, iterations: int, threads: int) -> dict:
 
 
 def run_ours(block: Block, iterations: int, threads: int, covariance: str = "none") -> dict:
-    from stereo.block import bundle
+    from stereo.block.bundle import adjust as bundle
     from stereo.block.types import Pose, Tracks
 
     cam = Camera(**CAMERA)
@@ -418,7 +418,7 @@ def run_ours(block: Block, iterations: int, threads: int, covariance: str = "non
     cpu = time.process_time() - cpu0
     R = np.array([p.rotation for p in res.poses])
     C = np.array([p.position for p in res.poses])
-    from stereo.block import bundle_solve
+    from stereo.block.bundle import solve as bundle_solve
 
     prob = bundle._setup({"cam": cam}, poses, tracks, block.X0, control, None, options)[0]
     solver = ("banded Cholesky (images in reverse Cuthill-McKee order)" if bundle_solve.use_banded(prob) else

@@ -52,7 +52,7 @@ def cpu_s():
     return u.ru_utime + u.ru_stime
 
 def warm():
-    import rectify.ortho, rectify.warp, stereo.dense.matching  # noqa: F401  (imports are not part of the job)
+    import rectify.raster.ortho, rectify.raster.warp, stereo.dense.matching  # noqa: F401  (imports are not part of the job)
     return vmhwm_mb()
 
 if __name__ == "__main__":
@@ -64,8 +64,8 @@ if __name__ == "__main__":
         import distributed
         import dask
         t0 = time.perf_counter()
-        # the settings of rectify's own processes:N cluster (rectify.distributed.LOCAL_CLUSTER_CONFIG)
-        from rectify.distributed import LOCAL_CLUSTER_CONFIG
+        # the settings of rectify's own processes:N cluster (rectify.raster.distributed.LOCAL_CLUSTER_CONFIG)
+        from rectify.raster.distributed import LOCAL_CLUSTER_CONFIG
         with dask.config.set(LOCAL_CLUSTER_CONFIG):
             cluster = distributed.LocalCluster(n_workers=cfg["workers"], threads_per_worker=1, processes=True,
                                                dashboard_address=":0")
@@ -79,8 +79,8 @@ if __name__ == "__main__":
     cpu_driver0 = cpu_s()
     t0 = time.perf_counter()
     if cfg["job"] == "warp":
-        from rectify.formats import read_transform
-        from rectify.warp import WarpOptions, rectify_with_transform
+        from rectify.formats.common import read_transform
+        from rectify.raster.warp import WarpOptions, rectify_with_transform
         tf = read_transform(cfg["transform"])
         rectify_with_transform(cfg["src"], cfg["out"], tf.model, model_crs=tf.crs,
                                options=WarpOptions(threads=2, scheduler=scheduler), overwrite=True)
@@ -91,10 +91,10 @@ if __name__ == "__main__":
     else:
         from affine import Affine
         import rasterio
-        from rectify.datum import Dem
-        from rectify.georef import Grid
-        from rectify.ortho import OrthoOptions, RPCModel, orthorectify
-        from rectify.rpc import rpc_from_raster
+        from rectify.raster.dem import Dem
+        from rectify.raster.georef import Grid
+        from rectify.raster.ortho import OrthoOptions, RPCModel, orthorectify
+        from rectify.geometry.rpc import rpc_from_raster
         rpc = rpc_from_raster(cfg["src"])
         with rasterio.open(cfg["src"]) as ds:
             w, h = ds.width, ds.height
@@ -155,9 +155,9 @@ def main() -> None:
     import bench_warp
     from affine import Affine
 
-    from rectify.formats import write_transform
-    from rectify.georef import world_from_pixel_matrix
-    from rectify.transforms import AffineTransform
+    from rectify.formats.common import write_transform
+    from rectify.geometry.transforms import AffineTransform
+    from rectify.raster.georef import world_from_pixel_matrix
 
     work = a.workdir or Path(tempfile.mkdtemp(prefix="bench_dask_"))
     work.mkdir(parents=True, exist_ok=True)
@@ -185,7 +185,7 @@ def main() -> None:
         cfg["dense"] = {"left": str(lp), "right": str(rp)}
     print(f"inputs built in {time.perf_counter() - t0:.1f} s in {work}", flush=True)
 
-    from rectify.distributed import GUIDED_MAX, GUIDED_MIN
+    from rectify.raster.distributed import GUIDED_MAX, GUIDED_MIN
 
     tile, per_task = 512, GUIDED_MAX
     rows = []

@@ -10,7 +10,7 @@ is written to ``--work`` as tiled GeoTIFFs, strip by strip, then matched tile by
 :func:`stereo.dense.matching.match_rasters` in a child process, which prints its peak resident memory
 (VmHWM), time, density and the bad-1.0 share on a sample of pixels.
 
-``--size N --chain``: the whole :func:`stereo.dense.pipeline.run_dense` chain on that pair taken as two
+``--size N --chain``: the whole :func:`stereo.actions.dense.run_dense` chain on that pair taken as two
 nadir frame photos (normal case, matching, points to LAS, DSM with a cell of ``--dsm-cell`` ground
 pixels), in a child process that prints its peak resident memory.
 
@@ -112,7 +112,7 @@ def make_pair(work: Path, size: int, strip: int = 256) -> tuple[Path, Path]:
     import cv2
     from affine import Affine
 
-    from rectify.io import MaskPolicy, TiledWriter
+    from rectify.raster.io import MaskPolicy, TiledWriter
 
     lp, rp = work / "left.tif", work / "right.tif"
     if lp.exists() and rp.exists():
@@ -185,7 +185,7 @@ def large(size: int, work: Path) -> None:
 CHILD_CHAIN = r"""
 import json, sys, time
 sys.path.insert(0, {root!r})
-from stereo.dense.pipeline import DenseOptions, run_dense
+from stereo.actions.dense import DenseOptions, run_dense
 t = time.perf_counter()
 res = run_dense({eo_l!r}, {left!r}, {right!r}, {out!r}, right_orientation={eo_r!r}, matches={ties!r},
                 options=DenseOptions(cloud_format="las", dsm_cell={cell!r}, measure_parallax=False))
@@ -207,9 +207,9 @@ def chain(size: int, work: Path, cell_gsd: float) -> None:
     disparities are parallaxes of 2008..2040 px: a flying height of 3000 m, a base of about 600 m and
     a relief of about 50 m (ground pixel 0.3 m).
     """
-    from rectify.camera import Camera
-    from stereo.formats import write_exterior
-    from stereo.resection import ExteriorOrientation
+    from rectify.geometry.camera import Camera
+    from stereo.formats.orientation import write_exterior
+    from stereo.pair.resection import ExteriorOrientation
 
     work.mkdir(parents=True, exist_ok=True)
     t = time.perf_counter()

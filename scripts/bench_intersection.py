@@ -15,8 +15,8 @@ import time
 import cv2
 import numpy as np
 
-from rectify.rotation import matrix_from_angles
-from stereo.intersection import intersect, project
+from rectify.geometry.rotation import matrix_from_angles
+from stereo.pair.intersection import intersect, project
 
 
 def best_of(fn, k=3):

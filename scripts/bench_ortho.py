@@ -30,8 +30,8 @@ def build(work: Path, n: int) -> dict:
     from rasterio.windows import Window
 
     sys.path.insert(0, str(ROOT))
-    from rectify.crs import transform_xy
-    from rectify.rpc import RPC
+    from rectify.geometry.crs import transform_xy
+    from rectify.geometry.rpc import RPC
 
     gsd = 1.0
     half = n / 2 * gsd
@@ -66,8 +66,8 @@ def build(work: Path, n: int) -> dict:
             ds.write(z.astype("float32"), 1)
     # output grid: the footprint at the DEM's heights, 1 m, aligned
     sys.path.insert(0, str(ROOT))
-    from rectify.datum import Dem
-    from rectify.ortho import RPCModel, ortho_grid
+    from rectify.raster.dem import Dem
+    from rectify.raster.ortho import RPCModel, ortho_grid
 
     grid = ortho_grid(RPCModel(rpc, n, n), Dem.from_path(dem), dst_crs=CRS, resolution=gsd)
     return {"src": str(src), "dem": str(dem), "width": grid.width, "height": grid.height,
@@ -91,10 +91,10 @@ t0 = time.perf_counter()
 os.environ.setdefault("GDAL_CACHEMAX", "64")
 sys.path.insert(0, {root!r})
 from affine import Affine
-from rectify.datum import Dem
-from rectify.georef import Grid
-from rectify.ortho import OrthoOptions, RPCModel, orthorectify
-from rectify.rpc import rpc_from_raster
+from rectify.raster.dem import Dem
+from rectify.raster.georef import Grid
+from rectify.raster.ortho import OrthoOptions, RPCModel, orthorectify
+from rectify.geometry.rpc import rpc_from_raster
 import rasterio
 cfg = json.loads({cfg!r})
 rpc = rpc_from_raster(cfg["src"])

@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-from rectify.compare import SPEED_FRAME_PX, speed_scene
+from rectify.geometry.transforms.study import SPEED_FRAME_PX, speed_scene
 
 
 def main() -> None:

@@ -22,9 +22,9 @@ matplotlib.use("Agg")
 
 import numpy as np
 
-from rectify.plots import histogram_qq_figure, radial_figure, residual_vector_figure
-from rectify.report import write_report
-from rectify.residuals import ResidualTable
+from rectify.geometry.residuals import ResidualTable
+from rectify.report.builder import write_report
+from rectify.report.figures import histogram_qq_figure, radial_figure, residual_vector_figure
 
 DPI = 110
 

@@ -106,10 +106,10 @@ def main() -> None:
     a = ap.parse_args()
     from affine import Affine
 
-    from rectify.formats import write_transform
-    from rectify.georef import world_from_pixel_matrix
-    from rectify.io import raster_info
-    from rectify.transforms import AffineTransform, Homography
+    from rectify.formats.common import write_transform
+    from rectify.geometry.transforms import AffineTransform, Homography
+    from rectify.raster.georef import world_from_pixel_matrix
+    from rectify.raster.io import raster_info
 
     work = Path(a.workdir or tempfile.mkdtemp(prefix="bench_warp_"))
     work.mkdir(parents=True, exist_ok=True)

@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 
 from stereo.calibration.model import project_vector, rodrigues, rotvec_from_matrix
 from stereo.calibration.result import Calibration
-from stereo.calibration.targets import TargetView
+from stereo.features.targets import TargetView
 
 F64 = NDArray[np.float64]
 ROOT = Path(__file__).resolve().parents[1]

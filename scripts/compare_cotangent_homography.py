@@ -6,7 +6,7 @@ Writes study.md (Markdown tables), study.json and PNG plots for: 1. agreement
 on exact data, 2. accuracy under noise (Monte Carlo, Resurs-F and aerial
 frames), 3. first-order error propagation vs Monte Carlo, 4. conditioning
 near degenerate configurations, 5. speed. A thin wrapper of
-:func:`rectify.compare.run_study` (also ``rectify compare``).
+:func:`rectify.geometry.transforms.study.run_study` (also ``rectify compare``).
 
 Usage: python scripts/compare_cotangent_homography.py [--out study-output] [--configs 3000]
        [--trials 300] [--speed-points 1000000] [--seed 0] [--overwrite]
@@ -18,7 +18,8 @@ import argparse
 import logging
 import time
 
-from rectify.compare import StudyConfig, run_study, write_study
+from rectify.actions.compare import write_study
+from rectify.geometry.transforms.study import StudyConfig, run_study
 
 
 def main() -> None:

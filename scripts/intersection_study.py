@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from rectify.rotation import matrix_from_angles
-from stereo.intersection import METHODS, intersect, project
+from rectify.geometry.rotation import matrix_from_angles
+from stereo.pair.intersection import METHODS, intersect, project
 
 
 def aerial(rng, n, sigma_mm):

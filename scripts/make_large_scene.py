@@ -29,7 +29,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from rectify import io as rio  # noqa: E402  (after the sys.path set-up above)
+from rectify.raster import io as rio  # noqa: E402  (after the sys.path set-up above)
 
 BLOCK = 384
 

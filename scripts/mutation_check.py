@@ -188,7 +188,7 @@ MUTATIONS: tuple[Mutation, ...] = (
     _m("S17", "collinearity (intersection.project): x without the minus sign",
        "[-focal_length_mm * p[:, 0] / p[:, 2]", "[focal_length_mm * p[:, 0] / p[:, 2]", T_CONV_S),
     # ------------------------------------------------------------------ stereo: shared least squares, formats
-    _m("S18", "normal equations (rectify.lsq, used by absolute orientation) weight rows by w^2",
+    _m("S18", "normal equations (rectify.geometry.lsq, used by absolute orientation) weight rows by w^2",
        "a * np.asarray(weights, dtype=np.float64).reshape(-1, 1)",
        "a * np.asarray(weights, dtype=np.float64).reshape(-1, 1) ** 2", T_CONV_S),
     _m("S19", "exterior orientation JSON: omega and phi values swapped",

@@ -23,12 +23,12 @@ from pathlib import Path
 
 import numpy as np
 
-from rectify.camera import Camera
-from rectify.rotation import matrix_from_angles
-from stereo.actions import run
-from stereo.dense.pipeline import DenseOptions, run_dense
-from stereo.formats import write_exterior
-from stereo.resection import ExteriorOrientation
+from rectify.geometry.camera import Camera
+from rectify.geometry.rotation import matrix_from_angles
+from stereo.actions.dense import DenseOptions, run_dense
+from stereo.actions.run import run
+from stereo.formats.orientation import write_exterior
+from stereo.pair.resection import ExteriorOrientation
 
 LO25 = "+proj=tmerc +lat_0=0 +lon_0=25 +k=1 +x_0=0 +y_0=0 +datum=WGS84 +units=m"
 EO = {"0182": (-55094.504480, -3727407.037480, 5258.307930, -0.349216, 0.298484, -179.086702),

@@ -18,13 +18,13 @@ import numpy as np
 import rasterio
 from scipy import ndimage
 
-from rectify.camera import Camera
-from rectify.formats import ControlTable
-from rectify.residuals import rms
-from rectify.rotation import matrix_from_angles
-from stereo.actions import run
-from stereo.model import ModelOptions
-from stereo.resection import ExteriorOrientation
+from rectify.formats.common import ControlTable
+from rectify.geometry.camera import Camera
+from rectify.geometry.residuals import rms
+from rectify.geometry.rotation import matrix_from_angles
+from stereo.actions.run import run
+from stereo.pair.model import ModelOptions
+from stereo.pair.resection import ExteriorOrientation
 
 LO25 = "+proj=tmerc +lat_0=0 +lon_0=25 +k=1 +x_0=0 +y_0=0 +datum=WGS84 +units=m"
 EO = {"0182": (-55094.504480, -3727407.037480, 5258.307930, -0.349216, 0.298484, -179.086702),

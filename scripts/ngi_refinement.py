@@ -24,8 +24,8 @@ sys.path.insert(0, str(ROOT / "scripts"))
 
 import ngi_geometry as g  # noqa: E402  (after the sys.path set-up above)
 
-from rectify.camera import Camera  # noqa: E402
 from rectify.features import MatcherConfig, match_images  # noqa: E402
+from rectify.geometry.camera import Camera  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data" / "ngi_strip05"
 

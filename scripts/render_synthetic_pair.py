@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import argparse
 
-from stereo.synthetic import make_scene, write_scene_inputs
+from stereo.actions.scene import make_scene, write_scene_inputs
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser()

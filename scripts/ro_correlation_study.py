@@ -54,8 +54,8 @@ def ngi_set(shared: Path):
     p = shared / "ngi_strip05"
     if not (p / "3324c_2015_1004_05_0182_RGB.tif").is_file():
         return None
-    from rectify.camera import Camera
     from rectify.features import MatcherConfig, match_images
+    from rectify.geometry.camera import Camera
 
     res = match_images(p / "3324c_2015_1004_05_0182_RGB.tif", p / "3324c_2015_1004_05_0184_RGB.tif",
                        config=MatcherConfig(verify="fundamental"))

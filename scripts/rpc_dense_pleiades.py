@@ -1,6 +1,6 @@
 """Issue 14, RPC pairs: the dense chain on the Pleiades crops of ../shared/data/pleiades_triplet.
 
-Runs :func:`stereo.dense.rpc_pipeline.run_dense_rpc` on a pair of the triplet (default images 2
+Runs :func:`stereo.actions.dense_rpc.run_dense_rpc` on a pair of the triplet (default images 2
 and 1, the first two of config.json) over the config's region of interest and prints the vertical
 parallax of the tie points after local epipolar resampling (RMS, worst tile, and before the
 pointing correction), the DSM's coverage of the ROI and the share of the ROI cells whose height
@@ -27,8 +27,8 @@ ISSUE_BAND_M = (2270.0, 2380.0)
 
 
 def main(argv: list[str] | None = None) -> int:
-    from rectify.rpc import rpc_from_raster
-    from stereo.dense.rpc_pipeline import RpcDenseOptions, roi_statistics, run_dense_rpc, triangulate_rpc
+    from rectify.geometry.rpc import rpc_from_raster
+    from stereo.actions.dense_rpc import RpcDenseOptions, roi_statistics, run_dense_rpc, triangulate_rpc
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=DATA)

@@ -13,9 +13,9 @@ seed's closed formulas are evaluated beside it.
    frames are horizontal.
 2. Coordinates of the control points on the rectified images:
    x0 = f (X - XS) / (ZS - Z), y0 = f (Y - YS) / (ZS - Z)   (mm);
-   and their pixels in the embedded GeoTIFF (rectify.georef).
+   and their pixels in the embedded GeoTIFF (rectify.raster.georef).
 3. Coordinates of determined points from the image by the cotangent four-point
-   method (rectify.transforms) fitted on four control points (a plane: the mean height).
+   method (rectify.geometry.transforms) fitted on four control points (a plane: the mean height).
 4. Stereo intersection with the seed's factor N = (Bx + x2 Bz / f) / (x1 - x2):
    X = N x1, Y = N y1, Z = -N f (from the left projection centre).
 5. X, Y, Z -> B, L, H by the seed's formulas (iterated tg B) and by pyproj.
@@ -30,8 +30,8 @@ import math
 
 import numpy as np
 
-from rectify.demo import demo_raster_path
-from rectify.geodesy import (
+from rectify.actions.demo import demo_raster_path
+from rectify.geometry.geodesy import (
     blh_from_geocentric_formula,
     ecef_from_enu,
     ecef_from_geodetic,
@@ -42,9 +42,9 @@ from rectify.geodesy import (
     geodetic_from_map,
     map_from_geodetic,
 )
-from rectify.georef import pixel_from_world, world_from_pixel
-from rectify.io import raster_info
-from rectify.transforms import CotangentFourPoint
+from rectify.geometry.transforms import CotangentFourPoint
+from rectify.raster.georef import pixel_from_world, world_from_pixel
+from rectify.raster.io import raster_info
 
 F_MM = 1000.0
 FLYING_HEIGHT_M = 700_000.0
@@ -92,7 +92,7 @@ def main() -> None:
     print(f"  image 1: x0 in [{p1[:, 0].min():.1f}, {p1[:, 0].max():.1f}] mm, "
           f"y0 in [{p1[:, 1].min():.1f}, {p1[:, 1].max():.1f}] mm (300 x 300 mm frame)")
     back = pixel_from_world(info.transform, en)
-    print(f"  pixels in the GeoTIFF (rectify.georef round trip): max error {np.abs(back - pix).max():.1e} px")
+    print(f"  pixels in the GeoTIFF (rectify.raster.georef round trip): max error {np.abs(back - pix).max():.1e} px")
 
     print("step 3: determined points from image 1 by the cotangent four-point method")
     ctrl = [int(np.argmin(p1[:, 0] + p1[:, 1])), int(np.argmax(p1[:, 0] - p1[:, 1])),

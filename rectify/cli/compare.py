@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import click
 
-from ..actions import CompareOptions
-from ..actions import compare as compare_action
-from ..workspace import Workspace
-from .options import echo, handle_errors, overwrite_opt, progress
+from rectify.actions.compare import CompareOptions
+from rectify.actions.compare import compare as compare_action
+from rectify.actions.workspace import Workspace
+from rectify.cli.options import echo, handle_errors, overwrite_opt, progress
 
 
 @click.command(short_help="Compare the cotangent four-point method with the homography (study).")

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import click
 
-from ..actions import demo as demo_action
-from ..workspace import Workspace
-from .options import echo, handle_errors, overwrite_opt, progress
+from rectify.actions.demo import demo as demo_action
+from rectify.actions.workspace import Workspace
+from rectify.cli.options import echo, handle_errors, overwrite_opt, progress
 
 
 @click.command(short_help="Rectify a simulated tilted frame of the embedded Landsat scene.")

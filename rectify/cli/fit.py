@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import click
 
-from ..actions import METHOD_NAMES, FitOptions
-from ..actions import fit as fit_action
-from ..workspace import Workspace
-from .options import echo, handle_errors, overwrite_opt, report_opt
+from rectify.actions.common import METHOD_NAMES
+from rectify.actions.fit import FitOptions
+from rectify.actions.fit import fit as fit_action
+from rectify.actions.workspace import Workspace
+from rectify.cli.options import echo, handle_errors, overwrite_opt, report_opt
 
 _D = FitOptions()
 

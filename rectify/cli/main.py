@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import click
 
-from .. import __version__
-from .options import VerbosityGroup, defer_import, setup_logging, verbosity_opts
+from rectify import __version__
+from rectify.cli.options import VerbosityGroup, defer_import, setup_logging, verbosity_opts
 
 defer_import("boto3")  # rasterio imports it for AWS sessions; loaded only if one is used
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import click
 
-from ..actions import MosaicOptions
-from ..actions import mosaic as run_mosaic
-from .options import echo, handle_errors, overwrite_opt, progress, scheduler_opt
+from rectify.cli.options import echo, handle_errors, overwrite_opt, progress, scheduler_opt
+from rectify.raster.mosaic import MosaicOptions
+from rectify.raster.mosaic import mosaic as run_mosaic
 
 
 @click.command(short_help="Mosaic orthophotos: nearest-nadir seamlines, feathering, one GeoTIFF or COG.")

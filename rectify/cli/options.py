@@ -17,8 +17,8 @@ from typing import Any
 
 import click
 
-from ..errors import RectifyError
-from ..fileutil import write_failure_reason
+from rectify.atomic import write_failure_reason
+from rectify.errors import RectifyError
 
 __all__ = ["overwrite_opt", "verbosity_opts", "report_opt", "scheduler_opt", "handle_errors", "progress",
            "setup_logging", "VerbosityGroup", "subcommand_verbosity_params"]
@@ -33,7 +33,7 @@ def _check_scheduler(ctx: click.Context, param: click.Parameter, value: str | No
     """Refuse a bad --scheduler at parse time (exit 2, one line); the library checks it again."""
     if value is None:
         return None
-    from ..distributed import resolve_scheduler
+    from rectify.raster.distributed import resolve_scheduler
 
     try:
         resolve_scheduler(value)
@@ -66,7 +66,7 @@ def setup_logging(verbose: int, quiet: int) -> None:
 
 def _hide_library_warnings() -> None:
     """Hide third-party warnings (rasterio, GDAL, numpy, matplotlib); the project's own stay visible."""
-    from ..errors import RectifyWarning
+    from rectify.errors import RectifyWarning
 
     warnings.filterwarnings("ignore")
     warnings.filterwarnings("default", category=RectifyWarning)
@@ -94,7 +94,7 @@ def matcher_opts(defaults: Any) -> Callable[[Callable], Callable]:
     """--detector, --verify, --refine/--no-refine, --max-matches, --max-keypoints (choices from the library,
     defaults shown from ``defaults``, a :class:`rectify.features.MatcherConfig`); the command gets them as
     keyword arguments of those names (None for the two counts when not given)."""
-    from ..features import DETECTORS, VERIFY_METHODS
+    from rectify.features import DETECTORS, VERIFY_METHODS
 
     d = defaults
 

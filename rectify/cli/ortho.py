@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import click
 
-from ..actions import OrthoOptions
-from ..actions import ortho as ortho_from_files
-from .options import echo, handle_errors, overwrite_opt, progress, report_opt, scheduler_opt
+from rectify.cli.options import echo, handle_errors, overwrite_opt, progress, report_opt, scheduler_opt
+from rectify.raster.ortho import OrthoOptions, ortho_from_files
 
 
 @click.command(short_help="Orthorectify an image with a DEM (RPC or frame camera), optionally a true ortho.")

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import click
 
-from ..actions import METHOD_NAMES, RESAMPLING_NAMES, WarpRunOptions
-from ..actions import warp as warp_action
-from ..workspace import Workspace
-from .options import echo, handle_errors, overwrite_opt, progress, report_opt, scheduler_opt
+from rectify.actions.common import METHOD_NAMES
+from rectify.actions.warp import WarpRunOptions
+from rectify.actions.warp import warp as warp_action
+from rectify.actions.workspace import Workspace
+from rectify.cli.options import echo, handle_errors, overwrite_opt, progress, report_opt, scheduler_opt
+from rectify.raster.warp import RESAMPLING_NAMES
 
 _D = WarpRunOptions()
 

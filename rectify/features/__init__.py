@@ -6,7 +6,7 @@ Pipeline (:func:`match_images`)::
       -> detect (SIFT | ORB | AKAZE), bias-free subpixel positions, even spread (cap per grid cell)
       -> match (ratio test + mutual check; FLANN for float, Hamming brute force for binary)
       -> verify (OpenCV USAC MAGSAC++: homography | fundamental | none)
-      -> refine (least-squares matching, :mod:`rectify.lsm`) -> re-verify -> even selection
+      -> refine (least-squares matching, :mod:`rectify.features.lsm`) -> re-verify -> even selection
 
 Small images (both sides <= ``MatcherConfig.tiled_above_px``) are matched whole.
 Larger ones go coarse-to-fine: both images are read as area-averaged overviews
@@ -33,12 +33,12 @@ match    descriptor matching, geometric verification, whole-image matching (:fun
 tiled    coarse-to-fine matching of large rasters by tiles, bounded memory
 images   :func:`match_images`: two raster files, whole or tiled
 
-The report figures of a match are :func:`rectify.plots.match_figures`.
+The report figures of a match are :func:`rectify.report.figures.match_figures`.
 """
 
-from .detect import DETECTORS, SIFT_OFFSET_PX, Detector, Features, akaze_available, detect, grid_select
-from .images import match_images
-from .match import (
+from rectify.features.detect import DETECTORS, SIFT_OFFSET_PX, Detector, Features, akaze_available, detect, grid_select
+from rectify.features.images import match_images
+from rectify.features.match import (
     VERIFY_METHODS,
     MatcherConfig,
     MatchResult,

@@ -34,8 +34,8 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .. import io as rio
-from ..errors import EstimationError, InvalidInputError
+from rectify.errors import EstimationError, InvalidInputError
+from rectify.raster import io as rio
 
 __all__ = ["DETECTORS", "SIFT_OFFSET_PX", "Detector", "Features", "akaze_available", "detect", "grid_select"]
 

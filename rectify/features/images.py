@@ -6,11 +6,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import io as rio
-from ..distributed import Scheduler, resolve_scheduler
-from ..errors import EstimationError
-from .match import MatcherConfig, MatchResult, ProgressFn, _match_whole
-from .tiled import _match_tiled
+from rectify.errors import EstimationError
+from rectify.features.match import MatcherConfig, MatchResult, ProgressFn, _match_whole
+from rectify.features.tiled import _match_tiled
+from rectify.raster import io as rio
+from rectify.raster.distributed import Scheduler, resolve_scheduler
 
 __all__ = ["match_images"]
 
@@ -30,7 +30,7 @@ def match_images(left_path: str | Path, right_path: str | Path, *, config: Match
     config : MatcherConfig, optional
     progress : callable(done, total), optional
     scheduler : Scheduler or str, optional
-        Where the tiles of a large pair are searched (:func:`rectify.distributed.resolve_scheduler`):
+        Where the tiles of a large pair are searched (:func:`rectify.raster.distributed.resolve_scheduler`):
         ``threads`` (the default: one tile after the other in this process), ``processes[:N]`` (a
         local Dask cluster) or ``tcp://HOST:PORT`` (an existing one); default ``$RECTIFY_SCHEDULER``,
         else ``threads``. Every choice gives the same matches. Small pairs (matched whole) always

@@ -21,12 +21,12 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..errors import EstimationError, InvalidInputError
-from ..formats import Matches
-from ..lsm import LsmConfig, refine_matches
-from ..points import as_pair
-from ..residuals import ResidualTable, rms
-from .detect import DETECTORS, Features, detect, grid_select
+from rectify.errors import EstimationError, InvalidInputError
+from rectify.features.detect import DETECTORS, Features, detect, grid_select
+from rectify.features.lsm import LsmConfig, refine_matches
+from rectify.formats.common import Matches
+from rectify.geometry.points import as_pair
+from rectify.geometry.residuals import ResidualTable, rms
 
 __all__ = ["VERIFY_METHODS", "MatcherConfig", "MatchResult", "ProgressFn", "Verification", "Verify", "match_arrays",
            "match_descriptors", "verify_matches"]

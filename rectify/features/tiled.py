@@ -27,11 +27,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .. import io as rio
-from ..distributed import Scheduler, resolve_scheduler, run_windows
-from ..lsm import refine_matches
-from .detect import Features, detect, grid_select
-from .match import (
+from rectify.features.detect import Features, detect, grid_select
+from rectify.features.lsm import refine_matches
+from rectify.features.match import (
     MatcherConfig,
     MatchResult,
     _apply_h,
@@ -44,6 +42,8 @@ from .match import (
     _verify_checked,
     match_descriptors,
 )
+from rectify.raster import io as rio
+from rectify.raster.distributed import Scheduler, resolve_scheduler, run_windows
 
 logger = logging.getLogger(__name__)
 
@@ -208,7 +208,7 @@ class _Store:
 
 
 class _TilePairs:
-    """The search of one left tile in its predicted right window, for :func:`rectify.distributed.run_windows`.
+    """The search of one left tile in its predicted right window, for :func:`rectify.raster.distributed.run_windows`.
 
     ``tile(c0, r0, w, h)`` returns ``(counts, left, right, raw, score)``: the counts (left keypoints,
     matches kept in the core, refined, failed refinements) and the tile's matches in full-resolution
@@ -443,7 +443,7 @@ def _budget_tiles(info, cfg: MatcherConfig) -> tuple[list[tuple[int, int, int, i
 
 
 def _core(c0, r0, w, h, info, cfg):
-    """Core (no-overlap) rectangle [x0, y0, x1, y1) of a window from :func:`rectify.io.iter_windows`."""
+    """Core (no-overlap) rectangle [x0, y0, x1, y1) of a window from :func:`rectify.raster.io.iter_windows`."""
     cx = 0 if c0 == 0 else c0 + cfg.overlap_px
     cy = 0 if r0 == 0 else r0 + cfg.overlap_px
     return cx - 0.5, cy - 0.5, min(cx + cfg.tile_px, info.width) - 0.5, min(cy + cfg.tile_px, info.height) - 0.5

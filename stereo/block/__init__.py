@@ -1,6 +1,6 @@
 """Block triangulation: multi-image tie points, poses in, independent models, bundle adjustment.
 
-See ``docs/block.md``. The command ``stereo block`` runs :func:`stereo.block.workflow.run_block`.
+See ``docs/block.md``. The command ``stereo block`` runs :func:`stereo.actions.block.run_block`.
 
 Modules
 -------
@@ -18,29 +18,3 @@ bundle, bundle_model, bundle_solve, bundle_datum, synthetic
 report, workflow
     The QA report and ``run_block``.
 """
-
-from .bundle import BlockControl, BundleOptions, BundleResult, GnssObservations, adjust_bundle
-from .independent import independent_models, to_ground, triangulate_tracks
-from .poses import read_opensfm, read_pose_csv, write_pose_csv
-from .synthetic import SyntheticBlock, make_block
-from .types import Pose, Tracks, cameras_for, project_pixel
-
-__all__ = [
-    "BlockControl",
-    "BundleOptions",
-    "BundleResult",
-    "GnssObservations",
-    "Pose",
-    "SyntheticBlock",
-    "Tracks",
-    "adjust_bundle",
-    "cameras_for",
-    "independent_models",
-    "make_block",
-    "project_pixel",
-    "read_opensfm",
-    "read_pose_csv",
-    "to_ground",
-    "triangulate_tracks",
-    "write_pose_csv",
-]

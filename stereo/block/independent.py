@@ -10,14 +10,14 @@ exterior orientation is put together pair by pair:
 2. **Models.** Each pair is oriented by :meth:`stereo.relative.RelativeOrientation.from_points`
    on the photo coordinates of its common tracks (robust by default; should the essential-matrix
    start fail, by least squares from photo frames turned to the base, with trimming) and its
-   model points are intersected (:func:`stereo.intersection.intersect`). A model's frame has its
+   model points are intersected (:func:`stereo.pair.intersection.intersect`). A model's frame has its
    origin at the left projection centre and a unit base.
 3. **Join.** The first model's frame is the block frame. Each next model shares one image with
    the block (its left image, following the tree); a 7-parameter spatial similarity (model ->
    block) is estimated on the tie points already in the block (the mean of their earlier model
    estimates) plus the shared projection centre, weighted by the inverse covariance of the
    intersected points and robust (trimmed closed form, then
-   :meth:`stereo.absolute.AbsoluteOrientation.from_points` with a psi function). The new image's
+   :meth:`stereo.pair.absolute.AbsoluteOrientation.from_points` with a psi function). The new image's
    pose and the model's points are then carried into the block frame.
 4. **Adjustment.** All models are then adjusted together (seed 002, 3.1.2): the similarity of
    every model but the first and the block coordinates of the tie points and projection centres,
@@ -59,7 +59,6 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 
-from rectify.camera import Camera
 from rectify.errors import (
     EstimationError,
     InvalidInputError,
@@ -68,16 +67,16 @@ from rectify.errors import (
     StereoError,
     WeakGeometryWarning,
 )
-from rectify.residuals import ResidualTable, rms
-from rectify.robust import ROBUST_METHODS, robust_scale
-from rectify.rotation import rot_z
-from stereo.absolute import AbsoluteOrientation, similarity_from_points
-from stereo.intersection import intersect
+from rectify.geometry.camera import Camera
+from rectify.geometry.residuals import ResidualTable, rms
+from rectify.geometry.robust import ROBUST_METHODS, robust_scale
+from rectify.geometry.rotation import rot_z
+from stereo.block.types import Pose, Tracks
+from stereo.pair.absolute import AbsoluteOrientation, similarity_from_points
+from stereo.pair.intersection import intersect
 from stereo.relative import RelativeOrientation
 from stereo.relative.solver import RelativeOptions
 from stereo.relative.systems import get_system
-
-from .types import Pose, Tracks
 
 logger = logging.getLogger(__name__)
 
@@ -100,7 +99,7 @@ class IndependentOptions:
         System of relative orientation (see :mod:`stereo.relative`).
     robust : str
         Psi function of the relative orientations and of the joins (``"none"`` for plain least
-        squares), one of :data:`rectify.robust.ROBUST_METHODS`.
+        squares), one of :data:`rectify.geometry.robust.ROBUST_METHODS`.
     relative : RelativeOptions or None
         Numerical options of the relative orientations.
     outlier_floor_px : float
@@ -497,7 +496,7 @@ def to_ground(
     gnss : (images, positions), optional
         Image names and their projection centres in the ground frame (n, 3).
     robust : str
-        Psi function of the similarity (:data:`rectify.robust.ROBUST_METHODS`).
+        Psi function of the similarity (:data:`rectify.geometry.robust.ROBUST_METHODS`).
 
     Returns
     -------

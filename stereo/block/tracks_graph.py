@@ -33,8 +33,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from rectify.errors import InvalidInputError, ShapeError
-
-from .types import Tracks
+from stereo.block.types import Tracks
 
 __all__ = ["CONFLICT_POLICIES", "PairMatches", "SpreadResult", "TrackBuild", "build_tracks", "connected_labels",
            "grid_coverage", "rays_histogram", "spread_tracks"]

@@ -34,13 +34,12 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from rectify import io as rio
-from rectify.camera import Camera
 from rectify.errors import EstimationError, InvalidInputError
 from rectify.features.detect import Features, detect
 from rectify.features.match import match_descriptors, verify_matches
-
-from .types import Pose
+from rectify.geometry.camera import Camera
+from rectify.raster import io as rio
+from stereo.block.types import Pose
 
 logger = logging.getLogger(__name__)
 

@@ -7,14 +7,14 @@ ground
     frame), metres. Poses, points, control and GNSS positions are all in it.
 photo
     Millimetres from the principal point, x right, y up; the projection centre at (0, 0, +f),
-    so an image point is the vector (x, y, -f) (see :mod:`rectify.camera`).
+    so an image point is the vector (x, y, -f) (see :mod:`rectify.geometry.camera`).
 pixel
     (N, 2) float64, x = column right, y = row down, pixel centres at integers.
 
 A pose's ``rotation`` takes a photo vector (x, y, -f) into the ground frame
-(R = Rx(omega) Ry(phi) Rz(kappa), :mod:`rectify.rotation`), so a ground point P projects by
+(R = Rx(omega) Ry(phi) Rz(kappa), :mod:`rectify.geometry.rotation`), so a ground point P projects by
 ``p = R.T @ (P - C); x = x0 - f p0 / p2; y = y0 - f p1 / p2`` and then through the camera's
-distortion to pixels (:meth:`rectify.camera.Camera.pixel_from_photo`).
+distortion to pixels (:meth:`rectify.geometry.camera.Camera.pixel_from_photo`).
 """
 
 from __future__ import annotations
@@ -25,9 +25,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from rectify.camera import Camera
 from rectify.errors import InvalidInputError, ShapeError
-from rectify.rotation import angles_from_matrix, check_rotation
+from rectify.geometry.camera import Camera
+from rectify.geometry.rotation import angles_from_matrix, check_rotation
 
 __all__ = ["Pose", "Tracks", "cameras_for", "project_pixel"]
 

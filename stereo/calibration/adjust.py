@@ -17,7 +17,7 @@ columns costs one projection of all points.
 After convergence: ``sigma0^2 = v^T W v / (n - u)``, the covariance
 ``sigma0^2 (J^T W J)^-1``, standard errors and correlations. Robust
 estimation (``robust="huber"`` etc.) reweights points by the M-estimators of
-:mod:`rectify.robust` on the residual length standardised by the MAD scale.
+:mod:`rectify.geometry.robust` on the residual length standardised by the MAD scale.
 """
 
 from __future__ import annotations
@@ -31,9 +31,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rectify.errors import CalibrationError, ConvergenceError, InvalidInputError
-from rectify.robust import get_psi, robust_scale
-
-from .model import INTERIOR_NAMES, project_vector, rodrigues
+from rectify.geometry.robust import get_psi, robust_scale
+from stereo.calibration.model import INTERIOR_NAMES, project_vector, rodrigues
 
 logger = logging.getLogger(__name__)
 

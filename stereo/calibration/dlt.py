@@ -40,8 +40,7 @@ import scipy.optimize
 from numpy.typing import ArrayLike, NDArray
 
 from rectify.errors import CalibrationError, EstimationError, InvalidInputError, ShapeError
-
-from .model import CV_FROM_PHOTO
+from stereo.calibration.model import CV_FROM_PHOTO
 
 logger = logging.getLogger(__name__)
 

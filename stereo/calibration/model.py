@@ -24,7 +24,7 @@ With ``x = Xc / Zc``, ``y = Yc / Zc`` and the point of symmetry of distortion
 
 This is OpenCV's model (``cv2.projectPoints``) when the point of symmetry is the
 principal point, so the coefficients compare directly with OpenCV's and with
-:class:`rectify.camera.Camera`.
+:class:`rectify.geometry.camera.Camera`.
 """
 
 from __future__ import annotations

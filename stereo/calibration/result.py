@@ -32,12 +32,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rectify.errors import CalibrationError, InvalidInputError
-from rectify.rotation import angles_from_matrix
-
-from .adjust import Adjustment, Observations, adjust, free_parameters
-from .model import CV_FROM_PHOTO, Intrinsics, rodrigues
-from .start import Start, initial_orientation
-from .targets import TargetView, check_inside
+from rectify.geometry.rotation import angles_from_matrix
+from stereo.calibration.adjust import Adjustment, Observations, adjust, free_parameters
+from stereo.calibration.model import CV_FROM_PHOTO, Intrinsics, rodrigues
+from stereo.calibration.start import Start, initial_orientation
+from stereo.features.targets import TargetView, check_inside
 
 logger = logging.getLogger(__name__)
 

@@ -27,12 +27,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rectify.errors import CalibrationError, InvalidInputError
-from rectify.rotation import angles_from_matrix
-
-from .adjust import Adjustment, Observations, adjust, free_parameters
-from .model import CV_FROM_PHOTO, Intrinsics, rodrigues, rotvec_from_matrix
-from .result import Calibration, camera_to_dict
-from .targets import TargetView
+from rectify.geometry.rotation import angles_from_matrix
+from stereo.calibration.adjust import Adjustment, Observations, adjust, free_parameters
+from stereo.calibration.model import CV_FROM_PHOTO, Intrinsics, rodrigues, rotvec_from_matrix
+from stereo.calibration.result import Calibration, camera_to_dict
+from stereo.features.targets import TargetView
 
 logger = logging.getLogger(__name__)
 

@@ -17,13 +17,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rectify.errors import CalibrationError, EstimationError
-
-from .dlt import DLT, interior_from_homographies, perspective_strength, pose_from_homography
-from .model import rotvec_from_matrix
-from .targets import TargetView
+from stereo.calibration.dlt import DLT, interior_from_homographies, perspective_strength, pose_from_homography
+from stereo.calibration.model import rotvec_from_matrix
+from stereo.features.targets import TargetView
 
 try:  # issue 11 moves the planar transforms into a package
-    from rectify.transforms import Homography
+    from rectify.geometry.transforms import Homography
 except ImportError:  # pragma: no cover - before the move
     from rectify.projective import Homography  # type: ignore[no-redef]
 

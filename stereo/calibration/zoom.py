@@ -27,9 +27,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from rectify.errors import CalibrationError, InvalidInputError
-
-from .model import Intrinsics
-from .result import Calibration
+from stereo.calibration.model import Intrinsics
+from stereo.calibration.result import Calibration
 
 logger = logging.getLogger(__name__)
 

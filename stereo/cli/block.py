@@ -7,12 +7,11 @@ import math
 import click
 
 from rectify.cli.options import echo, handle_errors, matcher_opts, overwrite_opt, progress
-from rectify.robust import ROBUST_METHODS
-
-from ..actions import matcher_config
-from ..block.bundle import INTERIOR_NAMES, BundleOptions
-from ..block.tracks import BLOCK_MATCHER, PAIR_STRATEGIES, BlockMatchOptions
-from ..block.workflow import BlockOptions, run_block
+from rectify.geometry.robust import ROBUST_METHODS
+from stereo.actions.block import BlockOptions, run_block
+from stereo.actions.common import matcher_config
+from stereo.block.bundle.adjust import INTERIOR_NAMES, BundleOptions
+from stereo.features.tracks import BLOCK_MATCHER, PAIR_STRATEGIES, BlockMatchOptions
 
 _B = BundleOptions()
 _O = BlockOptions()

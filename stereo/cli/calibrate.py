@@ -37,7 +37,7 @@ def calibrate(images, pattern, square, points_path, field_path, right_glob, size
               distortion, symmetry, robust, report_dir, overwrite):
     """Calibrate a camera: interior orientation (f or fx/fy, principal point, Brown k1..k3, p1, p2) with standard
     errors, by a least-squares adjustment of all views. IMAGES with --chessboard, or --points [--field] --size."""
-    from ..calibration.workflow import calibrate_images, calibrate_points, calibrate_rig_images
+    from stereo.actions.calibrate import calibrate_images, calibrate_points, calibrate_rig_images
 
     dist = () if distortion.strip().lower() == "none" else tuple(d.strip() for d in distortion.split(",") if d.strip())
     model = {"equal_focal": equal_focal, "distortion": dist, "symmetry": symmetry,

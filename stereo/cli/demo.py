@@ -5,8 +5,7 @@ from __future__ import annotations
 import click
 
 from rectify.cli.options import echo, handle_errors, overwrite_opt, progress
-
-from ..actions import demo as demo_action
+from stereo.actions.demo import demo as demo_action
 
 
 @click.command(short_help="Run the whole stereo chain on a synthetic pair and compare with the truth.")

@@ -7,9 +7,8 @@ import dataclasses
 import click
 
 from rectify.cli.options import echo, handle_errors, overwrite_opt, scheduler_opt
-
-from ..dense.pipeline import DenseOptions, run_dense
-from ..dense.products import STATISTICS
+from stereo.actions.dense import DenseOptions, run_dense
+from stereo.dense.dsm import STATISTICS
 
 _D = DenseOptions()
 

@@ -5,8 +5,7 @@ from __future__ import annotations
 import click
 
 from rectify.cli.options import echo, handle_errors, overwrite_opt
-
-from ..dense.rpc_pipeline import RpcDenseOptions, run_dense_rpc
+from stereo.actions.dense_rpc import RpcDenseOptions, run_dense_rpc
 
 _D = RpcDenseOptions()
 

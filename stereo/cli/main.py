@@ -5,8 +5,7 @@ from __future__ import annotations
 import click
 
 from rectify.cli.options import VerbosityGroup, defer_import, setup_logging, verbosity_opts
-
-from .. import __version__
+from stereo import __version__
 
 defer_import("boto3")  # rasterio imports it for AWS sessions; loaded only if one is used
 

@@ -5,12 +5,11 @@ from __future__ import annotations
 import click
 
 from rectify.cli.options import echo, handle_errors, overwrite_opt, report_opt
-from rectify.robust import ROBUST_METHODS
-
-from ..absolute import DEFORMATION_ORDERS
-from ..actions import model as model_action
-from ..intersection import METHODS
-from ..model import FRAMES, ModelOptions
+from rectify.geometry.robust import ROBUST_METHODS
+from stereo.actions.model import model as model_action
+from stereo.pair.absolute import DEFORMATION_ORDERS
+from stereo.pair.intersection import METHODS
+from stereo.pair.model import FRAMES, ModelOptions
 
 _D = ModelOptions()
 

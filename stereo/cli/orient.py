@@ -5,11 +5,11 @@ from __future__ import annotations
 import click
 
 from rectify.cli.options import echo, handle_errors, matcher_opts, overwrite_opt, report_opt
-from rectify.robust import ROBUST_METHODS
-
-from ..actions import ORIENT_MATCHER, OrientOptions, matcher_config
-from ..actions import orient as orient_action
-from ..relative import INITIAL_METHODS, SYSTEMS
+from rectify.geometry.robust import ROBUST_METHODS
+from stereo.actions.common import ORIENT_MATCHER, matcher_config
+from stereo.actions.orient import OrientOptions
+from stereo.actions.orient import orient as orient_action
+from stereo.relative import INITIAL_METHODS, SYSTEMS
 
 _D = OrientOptions()
 

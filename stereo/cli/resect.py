@@ -5,10 +5,9 @@ from __future__ import annotations
 import click
 
 from rectify.cli.options import echo, handle_errors, overwrite_opt, report_opt
-
-from ..actions import ResectOptions
-from ..actions import resect as resect_action
-from ..resection import INITIAL_METHODS
+from stereo.actions.resect import ResectOptions
+from stereo.actions.resect import resect as resect_action
+from stereo.pair.resection import INITIAL_METHODS
 
 _D = ResectOptions()
 

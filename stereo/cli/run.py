@@ -5,12 +5,12 @@ from __future__ import annotations
 import click
 
 from rectify.cli.options import echo, handle_errors, matcher_opts, overwrite_opt, progress, scheduler_opt
-from rectify.robust import ROBUST_METHODS
-
-from ..actions import PAIR_MATCHER, DenseOptions, matcher_config
-from ..actions import run as run_action
-from ..intersection import METHODS
-from ..model import FRAMES, ModelOptions
+from rectify.geometry.robust import ROBUST_METHODS
+from stereo.actions.common import PAIR_MATCHER, matcher_config
+from stereo.actions.dense import DenseOptions
+from stereo.actions.run import run as run_action
+from stereo.pair.intersection import METHODS
+from stereo.pair.model import FRAMES, ModelOptions
 
 _D = ModelOptions()
 

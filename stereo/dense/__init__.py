@@ -5,7 +5,7 @@ Modules
 epipolar     the rectifying rotations/homographies of a frame pair, streamed resampling, maps back
 matching     semi-global matching (OpenCV StereoSGBM) with LR check, sub-pixel, speckle removal,
              confidence and an edge-aware fill; tiled for bounded memory
-triangulate  disparity -> 3D by intersection through the original cameras (:mod:`stereo.intersection`)
+triangulate  disparity -> 3D by intersection through the original cameras (:mod:`stereo.pair.intersection`)
 products     LAS/LAZ and PLY point clouds, DSM GeoTIFF, disparity and confidence rasters
 report       pictures, coverage and the height-difference statistics against a reference DEM
 pipeline     :func:`run_dense`: the whole chain behind ``stereo dense``

@@ -18,7 +18,7 @@ rectified pixel (col, row)
 
 Without lens distortion the map from a rectified pixel to the original pixel is a homography
 ``H = A R.T N B`` (``B``: rectified pixel -> normal photo vector; ``A``: photo vector -> pixel);
-with distortion the exact map goes through :meth:`rectify.camera.Camera.pixel_from_photo`.
+with distortion the exact map goes through :meth:`rectify.geometry.camera.Camera.pixel_from_photo`.
 """
 
 from __future__ import annotations
@@ -36,12 +36,12 @@ import rasterio
 from affine import Affine
 from numpy.typing import ArrayLike, NDArray
 
-from rectify.camera import Camera
 from rectify.errors import InvalidInputError, ShapeError, StereoError
-from rectify.io import MaskPolicy, TiledWriter, WindowReader, iter_windows, raster_info
-from rectify.lsm import LsmConfig, refine_matches
-from rectify.points import as_pair
-from rectify.rotation import check_rotation
+from rectify.features.lsm import LsmConfig, refine_matches
+from rectify.geometry.camera import Camera
+from rectify.geometry.points import as_pair
+from rectify.geometry.rotation import check_rotation
+from rectify.raster.io import MaskPolicy, TiledWriter, WindowReader, iter_windows, raster_info
 
 logger = logging.getLogger(__name__)
 
@@ -304,7 +304,7 @@ def rectify_pair(
     """
     for name, cam in (("camera_left", camera_left), ("camera_right", camera_right)):
         if not isinstance(cam, Camera):
-            raise InvalidInputError(f"`{name}` must be a rectify.camera.Camera; got {type(cam).__name__}")
+            raise InvalidInputError(f"`{name}` must be a rectify.geometry.camera.Camera; got {type(cam).__name__}")
     N = normal_frame(rotation_left, rotation_right, base)
     R1 = np.array(rotation_left, dtype=np.float64)
     R2 = np.array(rotation_right, dtype=np.float64)
@@ -581,7 +581,7 @@ def tie_parallax(rect: EpipolarRectification, tie_left: ArrayLike, tie_right: Ar
     """Vertical parallax of tie points after the normal-case resampling.
 
     The tie points are mapped through the rectification; with the resampled photos given, each
-    right position is also re-measured by least-squares matching (:mod:`rectify.lsm`, shift and
+    right position is also re-measured by least-squares matching (:mod:`rectify.features.lsm`, shift and
     affine shape) in the resampled photos, tile by tile, so the figure includes the resampling.
     The re-measurement uses the window of the matcher's LSM (``LsmConfig().radius_px``, 10 px) by
     default: the tie points were measured with it, and another window measures another point

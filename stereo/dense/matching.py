@@ -30,9 +30,9 @@ from affine import Affine
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
-from rectify.distributed import Scheduler, resolve_scheduler, run_windows
 from rectify.errors import InvalidInputError, ShapeError, StereoError
-from rectify.io import MaskPolicy, TiledWriter, WindowReader, iter_windows, raster_info, read_overview
+from rectify.raster.distributed import Scheduler, resolve_scheduler, run_windows
+from rectify.raster.io import MaskPolicy, TiledWriter, WindowReader, iter_windows, raster_info, read_overview
 
 logger = logging.getLogger(__name__)
 
@@ -638,7 +638,7 @@ def _read(rd: WindowReader, c0: int, r0: int, w: int, h: int) -> tuple[NDArray, 
 
 
 class _DenseTiles:
-    """The matcher of one tile of two rectified rasters, for :func:`rectify.distributed.run_windows`.
+    """The matcher of one tile of two rectified rasters, for :func:`rectify.raster.distributed.run_windows`.
 
     ``tile(c0, r0, w, h)`` matches the left window (with its overlap) against the right window moved
     by the tile's disparity range and returns the disparity, confidence and filled flags of the
@@ -744,7 +744,7 @@ def match_rasters(
     progress : callable(done, total), optional
         Tiles done.
     scheduler : Scheduler or str, optional
-        Where the tiles are matched (:func:`rectify.distributed.resolve_scheduler`): ``threads`` (the
+        Where the tiles are matched (:func:`rectify.raster.distributed.resolve_scheduler`): ``threads`` (the
         default, one tile at a time in this process), ``processes[:N]`` (a local Dask cluster) or
         ``tcp://HOST:PORT`` (an existing one); default ``$RECTIFY_SCHEDULER``, else ``threads``.
         On Dask each task opens the two rasters by path and matches one tile; its disparity block is

@@ -22,7 +22,7 @@ Per tile:
 5. :func:`resample_rectified`: a window of the rectified frame read from the original raster
    (by a window of it) with bicubic interpolation, and its validity mask.
 
-Coordinates: pixels are (N, 2) (col, row), pixel centres at integers (see :mod:`rectify.rpc`). The
+Coordinates: pixels are (N, 2) (col, row), pixel centres at integers (see :mod:`rectify.geometry.rpc`). The
 local ground frame (:class:`LocalFrame`) is a linear function of (lon, lat, h) in metres, so an
 affine camera in it is an affine camera in (lon, lat, h).
 """
@@ -39,7 +39,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from rectify.errors import EstimationError, InvalidInputError, ShapeError
-from rectify.io import read_window
+from rectify.raster.io import read_window
 
 __all__ = ["AffineCamera", "AffineRectification", "LocalFrame", "TileParallax", "affine_fundamental",
            "fit_affine_camera", "fit_affine_pair", "rectify_affine", "resample_rectified", "tile_parallax"]

@@ -3,7 +3,7 @@
 A disparity ``d`` at rectified left pixel (col, row) pairs the rectified right pixel (col - d, row).
 Both are mapped back to *ideal photo coordinates of the original photos*
 (:meth:`EpipolarRectification.photo_from_rectified`) and intersected by
-:func:`stereo.intersection.intersect` with the original rotations and base (not a Q matrix).
+:func:`stereo.pair.intersection.intersect` with the original rotations and base (not a Q matrix).
 Corresponding rectified pixels lie on one row, so the two rays meet exactly and the default
 ``midpoint`` method equals the photo-metric ``least-squares`` one; ``least-squares`` may be asked for.
 """
@@ -18,9 +18,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from rectify.errors import InvalidInputError, ShapeError
-
-from ..intersection import METHODS, intersect
-from .epipolar import EpipolarRectification
+from stereo.dense.epipolar import EpipolarRectification
+from stereo.pair.intersection import METHODS, intersect
 
 logger = logging.getLogger(__name__)
 
@@ -75,7 +74,7 @@ def triangulate_disparity(
     mask : (h, w) bool, optional
         Pixels to use (besides finite disparity).
     method : str
-        Intersection method (:data:`stereo.intersection.METHODS`).
+        Intersection method (:data:`stereo.pair.intersection.METHODS`).
     transform : callable, optional
         Applied to the (N, 3) points (e.g. an absolute orientation to the ground).
 

@@ -52,7 +52,7 @@ for) the essential matrix of OpenCV's five-point solver with USAC (MAGSAC) and
 ``recoverPose`` gives the relative rotation and base, which are converted into
 the chosen system by :meth:`System.elements_from_relative`. Its inlier mask is
 the RANSAC first filter of robust estimation, followed by IRLS
-(:func:`rectify.robust.irls`).
+(:func:`rectify.geometry.robust.irls`).
 
 Modules
 -------
@@ -64,9 +64,9 @@ Modules
   dict form) and :class:`RelativeGeometry` (what intersection needs of it).
 """
 
-from .result import RelativeGeometry, RelativeOrientation, WesternForm
-from .solver import INITIAL_METHODS, RelativeOptions, relative_from_essential
-from .systems import SYSTEMS, PrecisionStructure, System, coplanarity, precision_structure
+from stereo.relative.result import RelativeGeometry, RelativeOrientation, WesternForm
+from stereo.relative.solver import INITIAL_METHODS, RelativeOptions, relative_from_essential
+from stereo.relative.systems import SYSTEMS, PrecisionStructure, System, coplanarity, precision_structure
 
 __all__ = [
     "INITIAL_METHODS",

@@ -2,7 +2,7 @@
 
 :class:`RelativeOrientation` holds the estimate, its precision and per-point residuals, converts
 it to other systems and to Wolf & Dewitt's omega-phi-kappa form, and gives its dict form (the
-content of the relative orientation JSON, :mod:`stereo.formats`). :class:`RelativeGeometry` is what
+content of the relative orientation JSON, :mod:`stereo.formats.orientation`). :class:`RelativeGeometry` is what
 intersection needs of it, built one way: from that dict form.
 """
 
@@ -18,15 +18,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from rectify import lsq
-from rectify.camera import Camera
 from rectify.errors import InvalidInputError
-from rectify.points import as_pair
-from rectify.residuals import ResidualTable, rms
-from rectify.rotation import angles_from_matrix
-
-from .solver import RelativeOptions, choose_frame, precision, solve, validate
-from .systems import _evaluate, _rays, get_system
+from rectify.geometry import lsq
+from rectify.geometry.camera import Camera
+from rectify.geometry.points import as_pair
+from rectify.geometry.residuals import ResidualTable, rms
+from rectify.geometry.rotation import angles_from_matrix
+from stereo.relative.solver import RelativeOptions, choose_frame, precision, solve, validate
+from stereo.relative.systems import _evaluate, _rays, get_system
 
 logger = logging.getLogger(__name__)
 
@@ -161,7 +160,7 @@ class RelativeOrientation:
         ----------
         left_mm, right_mm : (N, 2) float64
             Photo coordinates of N >= 5 tie points, mm, x right, y up, origin
-            at the principal point (see :meth:`rectify.camera.Camera.photo_from_pixel`).
+            at the principal point (see :meth:`rectify.geometry.camera.Camera.photo_from_pixel`).
         focal_length_mm : float or (float, float)
             Principal distance of both cameras, or (left, right).
         system : {"basis", "left-image", "dobrynin-pimshina"}
@@ -222,7 +221,7 @@ class RelativeOrientation:
     @classmethod
     def from_pixels(cls, left_px: ArrayLike, right_px: ArrayLike, camera: Camera, *,
                     camera_right: Camera | None = None, **kwargs: Any) -> RelativeOrientation:
-        """Like :meth:`from_points` for pixel coordinates (N, 2) and :class:`rectify.camera.Camera` objects.
+        """Like :meth:`from_points` for pixel coordinates (N, 2) and :class:`rectify.geometry.camera.Camera` objects.
 
         Pixels go to photo mm through the camera (principal point, distortion);
         the pixel size of the left camera is used for pixel figures.
@@ -376,7 +375,7 @@ class RelativeOrientation:
         return out
 
     def to_dict(self) -> dict[str, Any]:
-        """The dict form of the relative orientation JSON (see :mod:`stereo.formats` and ``docs/formats.md``)."""
+        """The dict form of the relative orientation JSON (see :mod:`stereo.formats.orientation` and ``docs/formats.md``)."""
         corr = self.correlation
         std = self.std_errors
         wf = self.western()
@@ -422,7 +421,7 @@ class RelativeGeometry:
     """What intersection needs from a relative orientation: the two rotations, the base, the focal lengths.
 
     Built one way, from the relative orientation's dict form (:meth:`RelativeOrientation.to_dict`, which
-    is also the content of the relative orientation JSON read by :func:`stereo.formats.read_relative`).
+    is also the content of the relative orientation JSON read by :func:`stereo.formats.orientation.read_relative`).
 
     Attributes
     ----------

@@ -7,7 +7,7 @@
    or given ones), Gauss-Newton on the weighted coplanarity equations, robust reweighting (IRLS),
    the cheirality test -> :class:`Solution`;
 3. :func:`precision`: normal equations, condition numbers, sigma0 with the redundancy n - 5,
-   covariance and outlier flags (:mod:`rectify.lsq`) -> :class:`Precision`.
+   covariance and outlier flags (:mod:`rectify.geometry.lsq`) -> :class:`Precision`.
 """
 
 from __future__ import annotations
@@ -23,12 +23,11 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from rectify import lsq
 from rectify.errors import ConvergenceError, EstimationError, InvalidInputError, WeakGeometryWarning
-from rectify.points import as_ids, as_pair, as_weights
-from rectify.robust import ROBUST_METHODS, get_psi, irls
-
-from .systems import System, _evaluate, _focals, _rays, _unit, dobrynin_pimshina_for_base, get_system
+from rectify.geometry import lsq
+from rectify.geometry.points import as_ids, as_pair, as_weights
+from rectify.geometry.robust import ROBUST_METHODS, get_psi, irls
+from stereo.relative.systems import System, _evaluate, _focals, _rays, _unit, dobrynin_pimshina_for_base, get_system
 
 logger = logging.getLogger(__name__)
 

@@ -15,10 +15,10 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from rectify import lsq
 from rectify.errors import EstimationError, InvalidInputError
-from rectify.points import as_pair
-from rectify.rotation import angles_from_matrix, check_rotation
+from rectify.geometry import lsq
+from rectify.geometry.points import as_pair
+from rectify.geometry.rotation import angles_from_matrix, check_rotation
 
 __all__ = ["SYSTEMS", "PrecisionStructure", "System", "coplanarity", "get_system", "precision_structure"]
 

@@ -1,6 +1,6 @@
 """``stereo block`` end to end on a rendered block (2 strips x 3 images of a textured terrain with relief).
 
-The images are rendered from known poses (:mod:`stereo.block.render`), so every output is compared
+The images are rendered from known poses (:mod:`tests.support.block_render`), so every output is compared
 with the truth: the adjusted projection centres, and the check points' ground coordinates.
 """
 
@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from rectify.camera import Camera
-from rectify.rotation import angles_from_matrix
-from stereo.block.files import read_block_orientation
-from stereo.block.render import make_terrain, render_block, strip_poses
+from rectify.geometry.camera import Camera
+from rectify.geometry.rotation import angles_from_matrix
 from stereo.block.types import project_pixel
 from stereo.cli.main import cli
-from stereo.formats import read_points_csv
+from stereo.formats.block import read_block_orientation
+from stereo.formats.orientation import read_points_csv
+from tests.support.block_render import make_terrain, render_block, strip_poses
 
 CAM = Camera(focal_length_mm=20.0, pixel_size_mm=0.05, width=400, height=300)
 H_FLY = 100.0

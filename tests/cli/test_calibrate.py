@@ -11,9 +11,9 @@ from click.testing import CliRunner
 
 from stereo.calibration.model import Intrinsics, rodrigues
 from stereo.calibration.result import camera_from_dict
-from stereo.calibration.synthetic import board_scene, field_scene, rig_scene
-from stereo.calibration.targets import Chessboard
 from stereo.cli.main import cli
+from stereo.features.targets import Chessboard
+from tests.support.calibration_synthetic import board_scene, field_scene, rig_scene
 
 CAM = Intrinsics(fx=420.0, fy=420.0, cx=161.0, cy=118.0, width=320, height=240)
 BOARD = Chessboard(7, 5, 1.0)

@@ -1,4 +1,4 @@
-"""``rectify compare`` and the study library (rectify.compare) on tiny sizes."""
+"""``rectify compare`` and the study library (rectify.actions.compare) on tiny sizes."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import pytest
 from click.testing import CliRunner
 
 from rectify.cli.main import cli
-from rectify.compare import StudyConfig, run_study
 from rectify.errors import InvalidInputError
+from rectify.geometry.transforms.study import StudyConfig, run_study
 
 ARGS = ["--configs", "30", "--trials", "8", "--speed-points", "2000", "--seed", "3"]
 
@@ -67,7 +67,7 @@ def test_study_config_validation():
 
 
 def test_comparison_summary_for_demo():
-    from rectify.compare import comparison_summary
+    from rectify.geometry.transforms.study import comparison_summary
 
     d = comparison_summary(n_configs=10, n_trials=5, n_speed_points=1000)
     assert d["agreement_max_rel"] < 1e-8 and d["printed_eq2_median_rel"] > 1e-2
@@ -76,8 +76,8 @@ def test_comparison_summary_for_demo():
 
 
 def test_summary_lines_are_labelled_with_units():
-    from rectify.compare import comparison_summary, summary_lines
-    from rectify.demo import _compare_lines
+    from rectify.actions.demo import _compare_lines
+    from rectify.geometry.transforms.study import comparison_summary, summary_lines
 
     d = comparison_summary(n_configs=10, n_trials=5, n_speed_points=1000)
     lines = summary_lines(d)

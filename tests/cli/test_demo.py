@@ -6,7 +6,7 @@ import rasterio
 from click.testing import CliRunner
 
 from rectify.cli.main import cli
-from rectify.io import raster_info
+from rectify.raster.io import raster_info
 
 
 def test_demo(tmp_path):

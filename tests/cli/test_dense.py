@@ -11,9 +11,9 @@ import pytest
 import rasterio
 from click.testing import CliRunner
 
+from stereo.actions.scene import make_scene, render
 from stereo.cli.main import cli
-from stereo.formats import write_exterior
-from stereo.synthetic import make_scene, render
+from stereo.formats.orientation import write_exterior
 
 
 @pytest.fixture(scope="module")

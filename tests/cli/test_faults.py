@@ -17,7 +17,7 @@ from affine import Affine
 from click.testing import CliRunner
 
 from rectify.cli.main import cli as rectify_cli
-from rectify.io import write_raster
+from rectify.raster.io import write_raster
 
 
 def _hash(*paths: Path) -> list[str]:
@@ -92,8 +92,8 @@ def test_fit_json_disk_full(noise_scene, small_disk):
 
 def test_csv_and_ply_writers_disk_full(small_disk):
     from rectify.errors import RasterIOError
-    from rectify.formats import Matches, write_matches
-    from stereo.formats import write_ply
+    from rectify.formats.common import Matches, write_matches
+    from stereo.formats.orientation import write_ply
 
     filler = _fill(small_disk)
     n = 2000
@@ -163,15 +163,15 @@ def test_output_equal_to_an_input_is_refused_even_with_overwrite(noise_scene):
 
 
 def test_fit_with_a_failing_report_writes_nothing(noise_scene, monkeypatch):
-    import rectify.report
+    import rectify.report.builder
 
     d, src, gcps = noise_scene
 
     def boom(*a, **k):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(rectify.report, "write_fit_report", boom)  # imported when the fit writes its report
-    monkeypatch.setattr(rectify.report, "write_warp_report", boom)
+    monkeypatch.setattr(rectify.report.builder, "write_fit_report", boom)  # imported when the fit writes its report
+    monkeypatch.setattr(rectify.report.builder, "write_warp_report", boom)
     names = _entries(d)
     r = CliRunner().invoke(rectify_cli, ["fit", str(gcps), "-o", str(d / "t.json"), "--report", str(d / "rep")])
     assert r.exit_code != 0 and _entries(d) == names
@@ -276,7 +276,7 @@ def test_exterior_json_with_wrong_types(tmp_path):
     import json
 
     from rectify.errors import InvalidInputError
-    from stereo.formats import read_exterior
+    from stereo.formats.orientation import read_exterior
 
     p = tmp_path / "eo.json"
     for key, value in [("position", "1,2,3"), ("focal_length_mm", "150"), ("principal_point_mm", 0.0)]:
@@ -468,8 +468,8 @@ def test_warp_refuses_an_output_larger_than_the_free_space(noise_scene, small_di
 
 
 def test_warp_refuses_a_horizon_inside_the_frame(noise_scene):
-    from rectify.formats import write_transform
-    from rectify.transforms import Homography
+    from rectify.formats.common import write_transform
+    from rectify.geometry.transforms import Homography
 
     d, src, gcps = noise_scene
     t = d / "t.json"
@@ -485,7 +485,7 @@ def test_warp_refuses_a_horizon_inside_the_frame(noise_scene):
 def test_orient_console_and_report_print_one_sigma0(tmp_path):
     import json
 
-    from rectify.camera import Camera
+    from rectify.geometry.camera import Camera
     from tests.support.stereo_support import simulate_pair
 
     sim = simulate_pair("vertical", n=120, noise_px=0.5, outlier_fraction=0.05, rng=7)
@@ -539,7 +539,7 @@ def test_not_georeferenced_warning_hidden_unless_verbose(tmp_path):
 def test_huge_blank_raster_fails_fast(tmp_path):
     import time
 
-    from rectify.io import MaskPolicy, TiledWriter
+    from rectify.raster.io import MaskPolicy, TiledWriter
 
     blank = tmp_path / "blank.tif"
     z = np.full((1024, 1024, 1), 7, np.uint8)
@@ -569,8 +569,8 @@ def _matches_csv(path, left, right):
 def test_orient_without_base_is_named(tmp_path, kind):
     import json
 
-    from rectify.camera import Camera
-    from rectify.rotation import matrix_from_angles
+    from rectify.geometry.camera import Camera
+    from rectify.geometry.rotation import matrix_from_angles
 
     cam = Camera(focal_length_mm=120.0, pixel_size_mm=0.144, width=640, height=1152)
     rng = np.random.default_rng(2)
@@ -640,9 +640,9 @@ def test_resect_with_collinear_control(tmp_path):
 
 def test_non_convergence_names_the_largest_residuals():
     from rectify.errors import ConvergenceError
-    from rectify.rotation import matrix_from_angles
-    from stereo.absolute import AbsoluteOrientation
-    from stereo.resection import ExteriorOrientation
+    from rectify.geometry.rotation import matrix_from_angles
+    from stereo.pair.absolute import AbsoluteOrientation
+    from stereo.pair.resection import ExteriorOrientation
 
     rng = np.random.default_rng(1)
     model = rng.uniform(-1, 1, (8, 3))
@@ -669,8 +669,8 @@ def test_concurrent_runs_commit_one_after_the_other(tmp_path, monkeypatch):
     import threading
     import time
 
-    import rectify.workspace as wsmod
-    from rectify.workspace import Workspace
+    import rectify.actions.workspace as wsmod
+    from rectify.actions.workspace import Workspace
 
     order: list[tuple[str, str]] = []
     real_replace = os.replace
@@ -708,9 +708,9 @@ def test_stereo_run_failing_while_writing_leaves_no_half_filled_folder(tmp_path,
     import json
     from types import SimpleNamespace
 
-    import stereo.actions
-    from rectify.camera import Camera
-    from rectify.formats import Matches
+    import stereo.actions.common
+    from rectify.formats.common import Matches
+    from rectify.geometry.camera import Camera
     from tests.support.stereo_support import simulate_pair
 
     cam = Camera(focal_length_mm=120.0, pixel_size_mm=0.144, width=640, height=1152)
@@ -718,12 +718,12 @@ def test_stereo_run_failing_while_writing_leaves_no_half_filled_folder(tmp_path,
     lp, rp = cam.pixel_from_photo(sim.left_mm), cam.pixel_from_photo(sim.right_mm)
     inside = ((lp >= 0) & (lp <= [639, 1151]) & (rp >= 0) & (rp <= [639, 1151])).all(axis=1)
     m = Matches(tuple(f"t{i}" for i in range(int(inside.sum()))), lp[inside], rp[inside])
-    monkeypatch.setattr(stereo.actions, "_match", lambda *a, **k: SimpleNamespace(matches=m, rmse_px=0.3))
+    monkeypatch.setattr(stereo.actions.common, "_match", lambda *a, **k: SimpleNamespace(matches=m, rmse_px=0.3))
 
     def boom(*a, **k):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(stereo.actions, "write_pair_report", boom)
+    monkeypatch.setattr(stereo.actions.common, "write_pair_report", boom)
     z = np.zeros((1152, 640), np.uint8)
     for name in ("l.tif", "r.tif"):
         write_raster(tmp_path / name, z, Affine(1, 0, 0, 0, 1.0000001, 0), None)

@@ -11,10 +11,10 @@ import pytest
 from click.testing import CliRunner
 
 from rectify.cli.main import cli
-from rectify.formats import GcpTable
-from rectify.io import write_raster
-from rectify.transforms import AffineTransform, fit_gcps
-from rectify.transforms.quality import hull_area, judge_gcp_geometry, metres_per_degree
+from rectify.formats.common import GcpTable
+from rectify.geometry.transforms import AffineTransform, fit_gcps
+from rectify.geometry.transforms.quality import hull_area, judge_gcp_geometry, metres_per_degree
+from rectify.raster.io import write_raster
 
 A = np.array([[29.0, 6.0, 500100.0], [5.0, -31.0, 4399900.0], [0, 0, 1]])
 

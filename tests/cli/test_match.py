@@ -8,9 +8,9 @@ import numpy as np
 import skimage.data as skd
 from click.testing import CliRunner
 
-from rectify import io as rio
 from rectify.cli.main import cli
-from rectify.formats import read_matches
+from rectify.formats.common import read_matches
+from rectify.raster import io as rio
 
 
 def _pair(tmp_path):

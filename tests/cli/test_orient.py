@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from rectify.camera import Camera
-from rectify.formats import Matches, write_matches
+from rectify.formats.common import Matches, write_matches
+from rectify.geometry.camera import Camera
 from stereo.cli.main import cli
 from tests.support.stereo_support import simulate_pair
 

@@ -11,8 +11,8 @@ from affine import Affine
 from click.testing import CliRunner
 
 from rectify.cli.main import cli
-from rectify.rotation import matrix_from_angles
-from rectify.rpc import RPC
+from rectify.geometry.rotation import matrix_from_angles
+from rectify.geometry.rpc import RPC
 
 CRS = "EPSG:32632"
 E0, N0 = 500_000.0, 5_000_000.0
@@ -49,8 +49,8 @@ def frame(tmp_path):
 
 @pytest.fixture()
 def rpc_scene(tmp_path):
-    from rectify.crs import transform_xy
-    from rectify.datum import Dem
+    from rectify.geometry.crs import transform_xy
+    from rectify.raster.dem import Dem
 
     _dem(tmp_path / "dem.tif")
     lon0, lat0 = transform_xy(CRS, "EPSG:4326", [[E0, N0]])[0]

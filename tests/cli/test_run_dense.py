@@ -8,8 +8,8 @@ import numpy as np
 import rasterio
 from click.testing import CliRunner
 
+from stereo.actions.scene import make_scene, write_scene_inputs
 from stereo.cli.main import cli
-from stereo.synthetic import make_scene, write_scene_inputs
 
 
 def test_run_dense_writes_the_pair_and_the_surface(tmp_path):

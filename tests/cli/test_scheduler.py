@@ -7,9 +7,9 @@ from affine import Affine
 from click.testing import CliRunner
 
 from rectify.cli.main import cli
-from rectify.formats import write_transform
-from rectify.io import write_raster
-from rectify.transforms.matrix import AffineTransform
+from rectify.formats.common import write_transform
+from rectify.geometry.transforms.matrix import AffineTransform
+from rectify.raster.io import write_raster
 
 # distributed may warn while its local cluster shuts down: only here, narrowly
 pytestmark = [pytest.mark.filterwarnings("ignore::ResourceWarning"),

@@ -13,11 +13,11 @@ import pytest
 from click.testing import CliRunner
 
 import stereo.cli
-from rectify.formats import Matches, write_matches
+from rectify.formats.common import Matches, write_matches
+from stereo.actions.scene import make_scene
 from stereo.cli.main import cli
-from stereo.formats import relative_json_text
+from stereo.formats.orientation import relative_json_text
 from stereo.relative import RelativeOrientation
-from stereo.synthetic import make_scene
 from tests.support.rectify_support import verify_report
 
 
@@ -165,7 +165,7 @@ def test_orient_then_model_without_camera_option(tmp_path, scene):
 def test_command_modules_are_thin():
     """Every ``stereo`` command module parses options and calls one action: it imports click, the shared
     options, the actions and the modules holding the choice lists, nothing that reads files or draws."""
-    allowed = {"__future__", "click", "rectify.cli.options", "rectify.robust", "actions", "relative", "model",
+    allowed = {"__future__", "click", "rectify.cli.options", "rectify.geometry.robust", "actions", "relative", "model",
                "intersection", "absolute", "resection", "block.workflow", "block.bundle", "block.tracks",
                "math", "dense.rpc_pipeline"}
     cli_dir = Path(stereo.cli.__file__).parent

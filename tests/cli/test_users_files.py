@@ -13,12 +13,12 @@ import pytest
 import skimage.data as skd
 from click.testing import CliRunner
 
-from rectify import io as rio
 from rectify.cli.main import cli
 from rectify.errors import InvalidInputError
 from rectify.features.match import _one_to_one
-from rectify.formats import read_gcps, read_matches, read_transform
-from rectify.io import write_raster
+from rectify.formats.common import read_gcps, read_matches, read_transform
+from rectify.raster import io as rio
+from rectify.raster.io import write_raster
 
 H_TRUE = np.array([[1.1, 0.05, 10.0], [-0.02, 0.95, 20.0], [1e-4, -5e-5, 1.0]])
 
@@ -191,7 +191,7 @@ def _geojson(path, style):
 
 @pytest.mark.parametrize("kind", ["geojson-colrow", "geojson-qgis", "gpkg", "embedded", "embedded-auto"])
 def test_gcp_files_rectify_end_to_end(tmp_path, kind):
-    from rectify.formats import GcpTable, write_gcps_gpkg
+    from rectify.formats.common import GcpTable, write_gcps_gpkg
 
     src = _frame(tmp_path, gcps=list(zip(PIX, _tgt(), strict=True)) if kind.startswith("embedded") else None)
     args_gcps: list[str] = []

@@ -8,7 +8,7 @@ from affine import Affine
 from click.testing import CliRunner
 
 from rectify.cli.main import cli
-from rectify.io import write_raster
+from rectify.raster.io import write_raster
 from tests.support.rectify_support import cog_problems
 
 T = Affine(30.0, 0.0, 500000.0, 0.0, -30.0, 4400000.0)
@@ -66,8 +66,8 @@ def test_warp_gcps_report_and_cog(scene):
 
 def test_warp_transform_json(scene):
     d, src, gcps, A = scene
-    from rectify.formats import write_transform
-    from rectify.transforms import AffineTransform
+    from rectify.formats.common import write_transform
+    from rectify.geometry.transforms import AffineTransform
 
     # small coordinates keep the matrix well scaled
     m = np.vstack([A, [0, 0, 1]])

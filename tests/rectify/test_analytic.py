@@ -1,4 +1,4 @@
-"""Tests of rectify.analytic (seed 001, eq. 1)."""
+"""Tests of rectify.geometry.analytic (seed 001, eq. 1)."""
 
 from __future__ import annotations
 
@@ -10,11 +10,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
-from rectify.analytic import TiltedFrame
-from rectify.camera import Camera
 from rectify.errors import InvalidInputError
-from rectify.rotation import matrix_from_angles
-from rectify.transforms import CotangentFourPoint, Homography
+from rectify.geometry.analytic import TiltedFrame
+from rectify.geometry.camera import Camera
+from rectify.geometry.rotation import matrix_from_angles
+from rectify.geometry.transforms import CotangentFourPoint, Homography
 from tests.support.transforms_support import rectify_tilted
 
 F = 1000.0  # Resurs-F: f = 1000 mm, 300 x 300 mm frame

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from rectify.camera import NOMINAL_PIXEL_SIZE_MM, Camera
 from rectify.errors import CalibrationError, InvalidInputError
-from rectify.formats import read_camera, write_camera
+from rectify.formats.common import read_camera, write_camera
+from rectify.geometry.camera import NOMINAL_PIXEL_SIZE_MM, Camera
 from stereo.calibration.model import Intrinsics
 from stereo.calibration.result import camera_to_dict
 

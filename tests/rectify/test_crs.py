@@ -1,11 +1,19 @@
-"""rectify.crs: parsing, the cached transformer door, errcheck."""
+"""rectify.geometry.crs: parsing, the cached transformer door, errcheck."""
 
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from rectify.crs import crs_to_string, get_transformer, is_geographic, parse_crs, same_crs, transform_xy, transform_xyz
 from rectify.errors import CRSError, ShapeError
+from rectify.geometry.crs import (
+    crs_to_string,
+    get_transformer,
+    is_geographic,
+    parse_crs,
+    same_crs,
+    transform_xy,
+    transform_xyz,
+)
 
 
 def test_parse_and_string():
@@ -67,7 +75,7 @@ def test_xyz_gk():
 
 
 def test_unit_label():
-    from rectify.crs import unit_label
+    from rectify.geometry.crs import unit_label
 
     assert unit_label("EPSG:32618") == "m"
     assert unit_label("EPSG:4326") == "degree"

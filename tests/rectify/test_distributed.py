@@ -1,4 +1,4 @@
-"""rectify.distributed: the tiled steps on a Dask cluster write what the local thread pool writes.
+"""rectify.raster.distributed: the tiled steps on a Dask cluster write what the local thread pool writes.
 
 A module-scoped 2-worker LocalCluster (processes, one thread each) is reached by its address, as a
 user's cluster would be (``tcp://HOST:PORT``); the ``processes:N`` path (a cluster started for the
@@ -16,14 +16,14 @@ import pytest
 import rasterio
 from affine import Affine
 
-from rectify.datum import Dem
-from rectify.distributed import ENV_VAR, Scheduler, SchedulerError, resolve_scheduler
 from rectify.errors import InvalidInputError
-from rectify.georef import Grid
-from rectify.io import TiledWriter, mask_policy, verify_geotiff, write_raster
-from rectify.mosaic import MosaicOptions, mosaic
-from rectify.ortho import OrthoOptions, orthorectify
-from rectify.warp import WarpOptions, warp_raster
+from rectify.raster.dem import Dem
+from rectify.raster.distributed import ENV_VAR, Scheduler, SchedulerError, resolve_scheduler
+from rectify.raster.georef import Grid
+from rectify.raster.io import TiledWriter, mask_policy, verify_geotiff, write_raster
+from rectify.raster.mosaic import MosaicOptions, mosaic
+from rectify.raster.ortho import OrthoOptions, orthorectify
+from rectify.raster.warp import WarpOptions, warp_raster
 from tests.rectify.test_ortho import _flat_ortho, frame_scene
 from tests.support.dask_support import DASK_WARNING_FILTERS, local_cluster
 from tests.support.rectify_support import cog_problems
@@ -167,7 +167,7 @@ def test_environment_variable(monkeypatch):
 
 
 def test_scheduler_error_lives_in_rectify_errors():
-    """``SchedulerError`` is in ``rectify.errors`` (a project error), re-exported by ``rectify.distributed``."""
+    """``SchedulerError`` is in ``rectify.errors`` (a project error), re-exported by ``rectify.raster.distributed``."""
     from rectify import errors
 
     assert SchedulerError is errors.SchedulerError and "SchedulerError" in errors.__all__
@@ -289,7 +289,7 @@ def test_a_failing_task_raises_its_error_and_leaves_nothing(cluster, sources, tm
 def _opencv_threads_in_a_task() -> int:
     import cv2
 
-    from rectify.distributed import _bound_opencv_threads
+    from rectify.raster.distributed import _bound_opencv_threads
 
     _bound_opencv_threads()
     return cv2.getNumThreads()
@@ -347,7 +347,7 @@ def test_a_killed_worker_is_replaced_and_the_output_is_complete(sources, tmp_pat
 
 
 def test_guided_task_sizes_cover_every_window_once_and_shrink():
-    from rectify.distributed import GUIDED_MAX, GUIDED_MIN, _guided_groups
+    from rectify.raster.distributed import GUIDED_MAX, GUIDED_MIN, _guided_groups
 
     for n in (0, 1, 5, 169, 484, 5000):
         for slots in (1, 2, 8):

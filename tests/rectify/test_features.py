@@ -14,7 +14,6 @@ import skimage.data as skd
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rectify import io as rio
 from rectify.errors import EstimationError, InvalidInputError, RasterIOError
 from rectify.features import (
     DETECTORS,
@@ -27,6 +26,7 @@ from rectify.features import (
     match_images,
     verify_matches,
 )
+from rectify.raster import io as rio
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -1,4 +1,4 @@
-"""rectify.formats: round trips for every image-side format, and the files of release 0.1.0."""
+"""rectify.formats.common: round trips for every image-side format, and the files of release 0.1.0."""
 
 from __future__ import annotations
 
@@ -10,8 +10,7 @@ import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
 from rectify import errors
-from rectify.camera import Camera
-from rectify.formats import (
+from rectify.formats.common import (
     CAMERA_VERSION,
     REPORT_VERSION,
     TRANSFORM_VERSION,
@@ -34,8 +33,9 @@ from rectify.formats import (
     write_residuals,
     write_transform,
 )
-from rectify.residuals import ResidualTable
-from rectify.transforms import METHODS, fit_gcps
+from rectify.geometry.camera import Camera
+from rectify.geometry.residuals import ResidualTable
+from rectify.geometry.transforms import METHODS, fit_gcps
 
 OLD = Path(__file__).resolve().parents[1] / "data" / "release_0_1_0"
 EPSG = "EPSG:32618"
@@ -129,7 +129,7 @@ def test_residuals_round_trip(tmp_path):
 
 
 def test_report_json_round_trip(tmp_path):
-    from rectify.report import write_report
+    from rectify.report.builder import write_report
 
     t = ResidualTable("tiny fit", ["a", "b", "c"], np.zeros((3, 2)), np.ones((3, 2)), "px")
     out = write_report(tmp_path / "rep", title="round trip", tables=[t], summary={"n": 3})
@@ -228,7 +228,7 @@ def test_reads_release_0_1_0_report():
 
 # ------------------------------------------------------------------ through a workspace
 def test_workspace_load_save_round_trips(tmp_path):
-    from rectify.workspace import Workspace
+    from rectify.actions.workspace import Workspace
 
     g = gcp_table()
     cam = Camera(120.0, 0.144, 640, 1152)

@@ -11,12 +11,20 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
 from rectify import errors
-from rectify.camera import Camera
-from rectify.fileutil import atomic_output, atomic_write_text, check_output
-from rectify.formats import Matches, read_control, read_gcps, read_matches, write_gcps, write_matches
-from rectify.points import as_pair, as_points, check_distinct, check_no_three_collinear, check_not_collinear
-from rectify.residuals import ResidualTable
-from rectify.rotation import ORDERS, angles_from_matrix, check_rotation, matrix_from_angles, rot_x, rot_y, rot_z
+from rectify.atomic import atomic_output, atomic_write_text, check_output
+from rectify.formats.common import Matches, read_control, read_gcps, read_matches, write_gcps, write_matches
+from rectify.geometry.camera import Camera
+from rectify.geometry.points import as_pair, as_points, check_distinct, check_no_three_collinear, check_not_collinear
+from rectify.geometry.residuals import ResidualTable
+from rectify.geometry.rotation import (
+    ORDERS,
+    angles_from_matrix,
+    check_rotation,
+    matrix_from_angles,
+    rot_x,
+    rot_y,
+    rot_z,
+)
 
 angle = st.floats(-3.0, 3.0)
 mid_angle = st.floats(-1.5, 1.5)
@@ -314,7 +322,7 @@ def test_atomic_output_leaves_nothing_on_error(tmp_path):
 
 
 def test_ids_and_masks():
-    from rectify.points import as_ids, as_mask
+    from rectify.geometry.points import as_ids, as_mask
 
     assert as_ids(None, 3) == ("1", "2", "3")
     assert as_ids([7, "a"], 2) == ("7", "a")
@@ -330,7 +338,7 @@ def test_ids_and_masks():
 
 
 def test_read_json_errors(tmp_path):
-    from rectify.fileutil import read_json
+    from rectify.atomic import read_json
 
     p = tmp_path / "a.json"
     p.write_text('{"k": [1, 2]}')

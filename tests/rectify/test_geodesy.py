@@ -1,4 +1,4 @@
-"""rectify.geodesy: geodetic <-> geocentric <-> ENU through pyproj; seed 001 / 004 formulas."""
+"""rectify.geometry.geodesy: geodetic <-> geocentric <-> ENU through pyproj; seed 001 / 004 formulas."""
 
 import math
 
@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
 from rectify.errors import CRSError, InvalidInputError, ShapeError
-from rectify.geodesy import (
+from rectify.geometry.geodesy import (
     Ellipsoid,
     blh_from_geocentric_formula,
     ecef_from_enu,

@@ -1,4 +1,4 @@
-"""rectify.georef: the half-pixel shift, grids, resolution as GDAL suggests."""
+"""rectify.raster.georef: the half-pixel shift, grids, resolution as GDAL suggests."""
 
 import numpy as np
 import pytest
@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
 from rectify.errors import InvalidInputError, ShapeError
-from rectify.georef import (
+from rectify.raster.georef import (
     Grid,
     boundary_pixels,
     output_grid,

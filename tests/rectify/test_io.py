@@ -8,7 +8,7 @@ import rasterio
 from rasterio.transform import from_origin
 
 from rectify.errors import InvalidInputError, RasterIOError
-from rectify.io import iter_windows, raster_info, read_overview, read_window, to_uint8
+from rectify.raster.io import iter_windows, raster_info, read_overview, read_window, to_uint8
 
 
 @pytest.fixture()

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from rectify.errors import InvalidInputError, ShapeError
-from rectify.lsm import LsmConfig, bilinear, refine_matches
+from rectify.features.lsm import LsmConfig, bilinear, refine_matches
 
 
 def _texture(n: int = 96, seed: int = 3) -> np.ndarray:

@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-import rectify.actions
-from rectify import io as rio
+import rectify.actions.common
 from rectify.cli.main import cli
 from rectify.features import MatcherConfig, match_images
+from rectify.raster import io as rio
 from tests.rectify.test_features import _texture_image
 from tests.support.dask_support import DASK_WARNING_FILTERS, local_cluster
 
@@ -77,8 +77,8 @@ def test_tiled_matching_on_dask_equals_threads(pair, cluster, tmp_path, extra):
 
 def test_rectify_match_scheduler_cli(pair, cluster, tmp_path, monkeypatch):
     """``rectify match --scheduler tcp://...`` writes the CSV the local run writes (tiling forced)."""
-    config = rectify.actions.MatchOptions.config
-    monkeypatch.setattr(rectify.actions.MatchOptions, "config",
+    config = rectify.actions.match.MatchOptions.config
+    monkeypatch.setattr(rectify.actions.match.MatchOptions, "config",
                         lambda self: MatcherConfig(**{**config(self).__dict__, **BASE}))
     outs = {}
     for label, extra in (("threads", []), ("dask", ["--scheduler", cluster.scheduler_address])):

@@ -10,7 +10,7 @@ import pytest
 import skimage.data as skd
 
 from rectify.features import MatcherConfig, match_arrays
-from rectify.lsm import LsmConfig, _Sampler, refine_matches
+from rectify.features.lsm import LsmConfig, _Sampler, refine_matches
 
 
 def _texture(n: int = 96, seed: int = 3) -> np.ndarray:

@@ -15,12 +15,12 @@ import pytest
 import rasterio
 from affine import Affine
 
-from rectify.camera import Camera
-from rectify.datum import Dem, bilinear
 from rectify.errors import CRSError, InvalidInputError, RasterIOError
-from rectify.georef import Grid, pixel_from_world
-from rectify.ortho import FrameModel, OrthoOptions, RPCModel, orthorectify, read_exterior
-from rectify.rotation import matrix_from_angles
+from rectify.geometry.camera import Camera
+from rectify.geometry.rotation import matrix_from_angles
+from rectify.raster.dem import Dem, bilinear
+from rectify.raster.georef import Grid, pixel_from_world
+from rectify.raster.ortho import FrameModel, OrthoOptions, RPCModel, orthorectify, read_exterior
 
 CRS = "EPSG:32632"
 E0, N0 = 500_000.0, 5_000_000.0
@@ -150,7 +150,7 @@ def test_frame_ortho_dem_in_other_crs_and_cog(tmp_path):
 
     model = frame_scene(tmp_path)
     # the same surface written in EPSG:4326: resample the UTM DEM at lon/lat cell centres
-    from rectify.crs import transform_xy
+    from rectify.geometry.crs import transform_xy
     surf = surface(tmp_path / "dem.tif")
     ll0 = transform_xy(CRS, "EPSG:4326", [[E0 - 300, N0 - 300]])[0]
     ll1 = transform_xy(CRS, "EPSG:4326", [[E0 + 300, N0 + 300]])[0]
@@ -218,8 +218,8 @@ def test_true_ortho_wall(tmp_path):
 
 
 def test_rpc_ortho_geolocation(tmp_path):
-    from rectify.crs import transform_xy
-    from rectify.rpc import RPC
+    from rectify.geometry.crs import transform_xy
+    from rectify.geometry.rpc import RPC
 
     lon0, lat0 = transform_xy(CRS, "EPSG:4326", [[E0, N0]])[0]
     # 200 x 200 px at ~1 m; 0.3 px per m of height across track (about 17 degrees off nadir)
@@ -320,7 +320,7 @@ def _flat_ortho(path: Path, x0: float, x1: float, value: float, nadir_x: float, 
 
 
 def test_mosaic_nearest_nadir_and_feathering(tmp_path):
-    from rectify.mosaic import MosaicOptions, mosaic
+    from rectify.raster.mosaic import MosaicOptions, mosaic
 
     _flat_ortho(tmp_path / "a.tif", 0, 100, 100.0, 30.0)
     _flat_ortho(tmp_path / "b.tif", 40, 140, 200.0, 110.0)
@@ -342,7 +342,7 @@ def test_mosaic_nearest_nadir_and_feathering(tmp_path):
 
 
 def test_mosaic_fills_occluded_pixels_from_the_next_image(tmp_path):
-    from rectify.mosaic import MosaicOptions, mosaic
+    from rectify.raster.mosaic import MosaicOptions, mosaic
 
     vis = np.full((40, 100), 2, np.uint8)
     vis[:, 10:20] = 1  # occluded in a: the nearest image there, but hidden
@@ -356,7 +356,7 @@ def test_mosaic_fills_occluded_pixels_from_the_next_image(tmp_path):
 
 
 def test_mosaic_bad_input(tmp_path):
-    from rectify.mosaic import mosaic
+    from rectify.raster.mosaic import mosaic
 
     _flat_ortho(tmp_path / "a.tif", 0, 100, 100.0, 30.0)
     with rasterio.open(tmp_path / "other.tif", "w", driver="GTiff", width=4, height=4, count=1, dtype="float32",
@@ -417,8 +417,8 @@ def overlap_shift(a_path: Path, b_path: Path, patch: int = 64) -> tuple[np.ndarr
 def test_ngi_pair_orthophotos_coincide(tmp_path):
     import json
 
-    from rectify.mosaic import mosaic
-    from rectify.ortho import ortho_from_files
+    from rectify.raster.mosaic import mosaic
+    from rectify.raster.ortho import ortho_from_files
 
     if not (NGI / "dem.tif").is_file():
         pytest.skip(f"NGI pair not found under {NGI}")
@@ -444,7 +444,7 @@ def test_ngi_pair_orthophotos_coincide(tmp_path):
 # ----------------------------------------------------------------- internals with stated tolerances
 def test_interpolated_projection_matches_exact(tmp_path):
     """The per-tile projection (sparse grid x 4 heights, cubic in h) is within 1e-3 px of the exact one."""
-    from rectify.ortho import PROJECTION_TOLERANCE_PX, _Engine, ortho_grid
+    from rectify.raster.ortho import PROJECTION_TOLERANCE_PX, _Engine, ortho_grid
 
     model = FrameModel(Camera(focal_length_mm=10.0, pixel_size_mm=0.01, width=240, height=200),
                        [E0 + 30, N0 - 20, 800.0], matrix_from_angles(0.06, -0.05, 0.35), CRS)
@@ -467,7 +467,7 @@ def test_interpolated_projection_matches_exact(tmp_path):
 
 
 def test_dem_undulation_and_geoid(tmp_path):
-    from rectify.datum import geoid_undulation
+    from rectify.raster.dem import geoid_undulation
 
     write_dem(tmp_path / "dem.tif", hills)
     plain = Dem.from_path(tmp_path / "dem.tif")

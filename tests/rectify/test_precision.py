@@ -17,8 +17,8 @@ import math
 
 import numpy as np
 
-from rectify.formats import GcpTable
-from rectify.transforms import fit_gcps
+from rectify.formats.common import GcpTable
+from rectify.geometry.transforms import fit_gcps
 
 H_TRUE = np.array([[0.9, 0.12, 35.0], [-0.08, 1.05, 20.0], [2e-4, -1.5e-4, 1.0]])
 

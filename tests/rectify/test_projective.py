@@ -1,4 +1,4 @@
-"""Tests of rectify.transforms: homography, cotangent four-point method, affine,
+"""Tests of rectify.geometry.transforms: homography, cotangent four-point method, affine,
 polynomials, the registry, GCP fitting and transform JSON."""
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
 from rectify.errors import EstimationError, InvalidInputError, RasterIOError, ShapeError
-from rectify.formats import GcpTable, read_transform, write_transform
-from rectify.transforms import (
+from rectify.formats.common import GcpTable, read_transform, write_transform
+from rectify.geometry.transforms import (
     METHODS,
     PAIRS,
     AffineTransform,
@@ -200,7 +200,7 @@ def test_cotangent_near_base_line_is_stable_with_any_pair():
 
 
 def test_cotangent_raises_when_no_pair_is_conditioned(monkeypatch):
-    import rectify.transforms.cotangent as proj
+    import rectify.geometry.transforms.cotangent as proj
 
     monkeypatch.setattr(proj, "COT_MAX_REL_ERROR", 1e-20)
     with pytest.raises(EstimationError, match=r"no well-conditioned base pair: the best \(pair"):

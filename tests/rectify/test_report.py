@@ -1,4 +1,4 @@
-"""Tests of rectify.report (write_report, GeoJSON) and rectify.plots (figure helpers)."""
+"""Tests of rectify.report.builder (write_report, GeoJSON) and rectify.report.figures (figure helpers)."""
 
 from __future__ import annotations
 
@@ -17,8 +17,8 @@ from hypothesis import strategies as st
 from matplotlib.figure import Figure
 
 from rectify.errors import CRSError, InvalidInputError, RasterIOError, ShapeError
-from rectify.plots import nice_number, standardised_components
-from rectify.report import (
+from rectify.geometry.residuals import ResidualTable
+from rectify.report.builder import (
     correlation_heatmap_figure,
     format_number,
     height_bars_figure,
@@ -30,7 +30,7 @@ from rectify.report import (
     slugify,
     write_report,
 )
-from rectify.residuals import ResidualTable
+from rectify.report.figures import nice_number, standardised_components
 
 GCP_STEP = "GCP fit (homography)"
 RO_STEP = "relative orientation"
@@ -589,7 +589,7 @@ def test_verify_report_on_shared_report(report_dir: Path):
 
 def test_ground_unit_residuals_drawn_on_map_axes(tmp_path: Path):
     """Residuals in metres are map-frame (north up): drawn at ground positions, or flipped over the image."""
-    import rectify.report as rep
+    import rectify.report.builder as rep
 
     t = make_gcp_table()
     tm = ResidualTable("map fit", t.ids, t.observed, t.adjusted, "m", position_px=t.position_px)

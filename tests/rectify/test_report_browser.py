@@ -6,7 +6,7 @@ Chromium runs fully offline on ``file://`` URLs with networking features disable
 
 Console messages are captured from Chromium's own log (``--enable-logging=stderr``
 prints every page console message as an ``INFO:CONSOLE`` line); the page's
-inline render check (in ``rectify.report``) marks the body with the number of
+inline render check (in ``rectify.report.builder``) marks the body with the number of
 decoded images and each section with ``data-rendered``, read back with
 ``--dump-dom``. A screenshot of each page is saved next to it (and copied to
 ``$RECTIFY_REPORT_SCREENSHOT_DIR`` when set).
@@ -25,9 +25,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rectify.report import write_report
-from rectify.residuals import ResidualTable
-from stereo.report import write_stereo_report
+from rectify.geometry.residuals import ResidualTable
+from rectify.report.builder import write_report
+from stereo.report.pair import write_stereo_report
 from tests.support.rectify_support import verify_report
 
 RUN_TIMEOUT_S = 45

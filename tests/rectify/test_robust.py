@@ -1,4 +1,4 @@
-"""rectify.robust: psi functions, robust scale, IRLS, generic RANSAC."""
+"""rectify.geometry.robust: psi functions, robust scale, IRLS, generic RANSAC."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
 from rectify.errors import EstimationError, InvalidInputError, ShapeError
-from rectify.robust import (
+from rectify.geometry.robust import (
     PSI_FUNCTIONS,
     Andrews,
     Hampel,

@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from rectify.errors import ConvergenceError, EstimationError, InvalidInputError, RasterIOError, ShapeError
-from rectify.rpc import GDAL_PIXEL_OFFSET, RPC, RPCRefinement, fit_rpc, read_rpc
+from rectify.geometry.rpc import GDAL_PIXEL_OFFSET, RPC, RPCRefinement, fit_rpc, read_rpc
 
 SHARED = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 M_PER_DEG = 111_320.0
@@ -150,7 +150,7 @@ def _write_dem(path: Path, rpc: RPC, z0: float = 300.0, amp: float = 60.0) -> No
 
 
 def test_localize_on_dem_agrees_with_gdal_rpc_dem(tmp_path):
-    from rectify.datum import Dem
+    from rectify.raster.dem import Dem
 
     rpc = synthetic_rpc()
     _write_dem(tmp_path / "dem.tif", rpc)
@@ -164,7 +164,7 @@ def test_localize_on_dem_agrees_with_gdal_rpc_dem(tmp_path):
 
 
 def test_localize_on_dem_clear_error_outside(tmp_path):
-    from rectify.datum import Dem
+    from rectify.raster.dem import Dem
 
     rpc = synthetic_rpc()
     _write_dem(tmp_path / "dem.tif", rpc)

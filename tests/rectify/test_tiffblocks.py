@@ -1,4 +1,4 @@
-"""rectify.tiffblocks: tiles compressed in memory are GDAL's own tiles; appended and indexed, they make a GeoTIFF
+"""rectify.raster.tiffblocks: tiles compressed in memory are GDAL's own tiles; appended and indexed, they make a GeoTIFF
 with the pixels and masks that GDAL's writer gives (classic TIFF, BigTIFF, either byte order)."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ from affine import Affine
 from rasterio.windows import Window
 
 from rectify.errors import InvalidInputError, RasterIOError, ShapeError
-from rectify.io import MaskPolicy, TiledWriter, _gtiff_profile, verify_geotiff
-from rectify.tiffblocks import RAW_COMPRESSIONS, TileEncoder, append_tiles, read_tiff_layout, tile_index
+from rectify.raster.io import MaskPolicy, TiledWriter, _gtiff_profile, verify_geotiff
+from rectify.raster.tiffblocks import RAW_COMPRESSIONS, TileEncoder, append_tiles, read_tiff_layout, tile_index
 
 TRANSFORM = Affine(2.0, 0.0, 500000.0, 0.0, -2.0, 4400000.0)
 CRS = "EPSG:32618"

@@ -17,7 +17,6 @@ import cv2
 import numpy as np
 import pytest
 
-from rectify import io as rio
 from rectify.features import MatcherConfig, match_images
 from rectify.features.tiled import (
     BUDGET_MARGIN,
@@ -27,6 +26,7 @@ from rectify.features.tiled import (
     _budget_tiles,
     _core,
 )
+from rectify.raster import io as rio
 from tests.rectify.test_features import _texture_image
 from tests.support.dask_support import DASK_WARNING_FILTERS, local_cluster
 

@@ -1,4 +1,4 @@
-"""rectify.tilepool.run_tiles: every window written once on the calling thread, runs of neighbours per
+"""rectify.raster.tiles.run_tiles: every window written once on the calling thread, runs of neighbours per
 thread, bounded results in flight, the first error stops the work and is re-raised."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rectify.tilepool import run_tiles
+from rectify.raster.tiles import run_tiles
 
 
 def _grid(nx: int, ny: int, t: int = 16):

@@ -1,4 +1,4 @@
-"""``rectify.io.to_uint8``: the look-up-table path of one uint8/uint16 band gives exactly the float path's grey."""
+"""``rectify.raster.io.to_uint8``: the look-up-table path of one uint8/uint16 band gives exactly the float path's grey."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rectify import io as rio
+from rectify.raster import io as rio
 
 
 @settings(max_examples=150, deadline=None)

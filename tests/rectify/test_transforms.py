@@ -1,4 +1,4 @@
-"""Contract tests of rectify.transforms: every model implements the Transform interface
+"""Contract tests of rectify.geometry.transforms: every model implements the Transform interface
 (from_points, __call__, inverse, residuals, to_dict) and transform_from_dict rebuilds it."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 from numpy.testing import assert_allclose
 
 from rectify.errors import EstimationError, InvalidInputError
-from rectify.transforms import (
+from rectify.geometry.transforms import (
     METHODS,
     AffineTransform,
     CotangentFourPoint,
@@ -20,7 +20,7 @@ from rectify.transforms import (
     transform_from_dict,
     transform_to_dict,
 )
-from rectify.transforms.base import Transform as BaseTransform
+from rectify.geometry.transforms.base import Transform as BaseTransform
 
 H_TRUE = np.array([[1.1, 0.05, 10.0], [-0.02, 0.95, 20.0], [1e-4, -5e-5, 1.0]])
 SIZE = 1000.0

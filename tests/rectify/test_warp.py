@@ -1,4 +1,4 @@
-"""rectify.warp: the tiled resampling engine and GCP georectification."""
+"""rectify.raster.warp: the tiled resampling engine and GCP georectification."""
 
 from importlib.resources import files
 from pathlib import Path
@@ -14,10 +14,10 @@ from affine import Affine
 from numpy.testing import assert_allclose
 
 from rectify.errors import EstimationError, InvalidInputError, RasterIOError
-from rectify.formats import GcpTable
-from rectify.georef import Grid, pixel_from_world, world_from_pixel
-from rectify.io import read_window, write_raster
-from rectify.warp import WarpOptions, georectify, rectify_with_transform, warp_array, warp_raster
+from rectify.formats.common import GcpTable
+from rectify.raster.georef import Grid, pixel_from_world, world_from_pixel
+from rectify.raster.io import read_window, write_raster
+from rectify.raster.warp import WarpOptions, georectify, rectify_with_transform, warp_array, warp_raster
 from tests.support.rectify_support import cog_problems, tiff_ifds
 
 LANDSAT = Path(str(files("rectify") / "data" / "RGB.byte.tif"))
@@ -103,7 +103,7 @@ class _Shift:
     def __init__(self, t, dx=0.0, dy=0.0, matrix=True):
         self.t, self.d = t, np.array([dx, dy])
         if matrix:
-            from rectify.georef import pixel_from_world_matrix
+            from rectify.raster.georef import pixel_from_world_matrix
             m = pixel_from_world_matrix(t)
             m[:2, 2] += self.d
             self.matrix = m
@@ -294,7 +294,7 @@ def test_residual_units_follow_the_output_crs(tmp_path):
 
 def test_dst_crs_through_pyproj(tmp_path):
     """GCPs in UTM, output in geographic degrees: a known landmark lands at its lon/lat."""
-    from rectify.crs import transform_xy
+    from rectify.geometry.crs import transform_xy
 
     src, gcps, T = _tilted_frame(tmp_path)
     out = tmp_path / "geo.tif"
@@ -334,7 +334,7 @@ def test_dst_crs_through_pyproj(tmp_path):
 
 def test_block_cache_grows_with_the_threads_and_bad_sizes_are_refused():
     from rectify.errors import InvalidInputError
-    from rectify.warp import CACHE_MB_PER_THREAD, WarpOptions
+    from rectify.raster.warp import CACHE_MB_PER_THREAD, WarpOptions
 
     assert WarpOptions(threads=1).block_cache_mb == CACHE_MB_PER_THREAD
     assert WarpOptions(threads=3).block_cache_mb == 3 * CACHE_MB_PER_THREAD

@@ -6,8 +6,8 @@ import os
 
 import pytest
 
+from rectify.actions.workspace import Workspace
 from rectify.errors import InvalidInputError, RasterIOError
-from rectify.workspace import Workspace
 
 
 def test_transaction_writes_all_or_nothing(tmp_path):

@@ -9,8 +9,8 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
 from rectify.errors import EstimationError, InvalidInputError, ShapeError
-from rectify.rotation import matrix_from_angles
-from stereo.absolute import AbsoluteOrientation, similarity_from_points
+from rectify.geometry.rotation import matrix_from_angles
+from stereo.pair.absolute import AbsoluteOrientation, similarity_from_points
 
 
 def _dewitt(path):

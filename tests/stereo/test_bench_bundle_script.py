@@ -39,7 +39,7 @@ def test_rms_at_truth_is_the_noise_and_start_is_perturbed(bb, block):
 
 
 def test_projection_matches_project_pixel(bb, block):
-    from rectify.camera import Camera
+    from rectify.geometry.camera import Camera
     from stereo.block.types import Pose, project_pixel
 
     cam = Camera(**bb.CAMERA)

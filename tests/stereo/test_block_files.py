@@ -10,17 +10,17 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rectify.camera import Camera
 from rectify.errors import InvalidInputError, RasterIOError
-from rectify.rotation import matrix_from_angles
-from stereo.block.files import (
+from rectify.geometry.camera import Camera
+from rectify.geometry.rotation import matrix_from_angles
+from stereo.block.types import Pose, Tracks
+from stereo.formats.block import (
     BLOCK_FORMAT,
     block_orientation_text,
     observations_text,
     read_block_control,
     read_block_orientation,
 )
-from stereo.block.types import Pose, Tracks
 
 CAM = Camera(focal_length_mm=100.0, pixel_size_mm=0.01, width=2000, height=1500)
 

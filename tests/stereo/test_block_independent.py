@@ -11,9 +11,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rectify.camera import Camera
 from rectify.errors import EstimationError, InvalidInputError, ShapeError, StereoError
-from rectify.rotation import matrix_from_angles
+from rectify.geometry.camera import Camera
+from rectify.geometry.rotation import matrix_from_angles
 from stereo.block.independent import (
     GroundBlock,
     IndependentOptions,

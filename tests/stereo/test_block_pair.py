@@ -1,8 +1,8 @@
 """A pair is a block of two: ``stereo block`` on the pair of ``stereo run`` gives the same result.
 
 The synthetic pair of ``stereo demo`` (rendered photos, DEM control with 0.2 px picking noise) runs
-through :func:`stereo.actions.run`; its matches and its control file (as a block control CSV) then
-run through :func:`stereo.block.workflow.run_block`. The two estimators differ (relative + absolute
+through :func:`stereo.actions.run.run`; its matches and its control file (as a block control CSV) then
+run through :func:`stereo.actions.block.run_block`. The two estimators differ (relative + absolute
 orientation against one bundle adjustment), the observations are the same: the points agree inside
 their joint predicted precision, and the check points agree with the truth equally well.
 """
@@ -14,14 +14,14 @@ import math
 import numpy as np
 import pytest
 
-from rectify.formats import read_control, read_matches
-from stereo.actions import run
-from stereo.block.bundle import BundleOptions
+from rectify.formats.common import read_control, read_matches
+from stereo.actions.block import BlockOptions, run_block
+from stereo.actions.run import run
+from stereo.actions.scene import make_scene, write_scene_inputs
+from stereo.block.bundle.adjust import BundleOptions
 from stereo.block.types import Tracks
-from stereo.block.workflow import BlockOptions, run_block
-from stereo.formats import read_points_csv
-from stereo.model import ModelOptions
-from stereo.synthetic import make_scene, write_scene_inputs
+from stereo.formats.orientation import read_points_csv
+from stereo.pair.model import ModelOptions
 
 
 def _rms(a):

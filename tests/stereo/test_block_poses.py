@@ -13,11 +13,12 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose, assert_array_equal
 from scipy.spatial.transform import Rotation
 
-from rectify.camera import Camera
 from rectify.errors import CRSError, InvalidInputError, RasterIOError, ShapeError
-from rectify.geodesy import enu_from_body
-from rectify.rotation import angles_from_matrix, matrix_from_angles, rot_x, rot_y, rot_z
-from stereo.block.poses import (
+from rectify.geometry.camera import Camera
+from rectify.geometry.geodesy import enu_from_body
+from rectify.geometry.rotation import angles_from_matrix, matrix_from_angles, rot_x, rot_y, rot_z
+from stereo.block.types import Pose, project_pixel
+from stereo.formats.poses import (
     DEFAULT_CAMERA_ID,
     OpenSfMReconstruction,
     PoseTable,
@@ -30,7 +31,6 @@ from stereo.block.poses import (
     rotation_from_rodrigues,
     write_pose_csv,
 )
-from stereo.block.types import Pose, project_pixel
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "block"
 D = np.deg2rad
@@ -74,7 +74,7 @@ def test_pitch_nose_up_and_roll_right_wing_down(convention):
 
 
 def test_seed004_matrix_is_geodesy_navigation_matrix_with_roll_sign_reversed():
-    """Seed 004 eqs. (6)-(10), as coded independently in rectify.geodesy (its roll raises the Y' axis)."""
+    """Seed 004 eqs. (6)-(10), as coded independently in rectify.geometry.geodesy (its roll raises the Y' axis)."""
     rng = np.random.default_rng(4)
     for h, p, r in zip(rng.uniform(0, 2 * np.pi, 20), rng.uniform(-0.6, 0.6, 20), rng.uniform(-0.6, 0.6, 20),
                        strict=True):
@@ -337,7 +337,7 @@ def test_write_bad_input(tmp_path):
         pose_csv_text([poses[0], poses[0]], crs=None)
     with pytest.raises(InvalidInputError, match=r"image name 'x,y' / camera id 'cam' cannot be written"):
         pose_csv_text([_pose("x,y", [1, 2, 3], [0, 0, 0])], crs=None)
-    with pytest.raises(InvalidInputError, match=r"poses must be a sequence of stereo.block.Pose"):
+    with pytest.raises(InvalidInputError, match=r"poses must be a sequence of stereo.block.types.Pose"):
         pose_csv_text([1], crs=None)  # type: ignore[list-item]
 
 

@@ -1,4 +1,4 @@
-"""The synthetic block of stereo.block.synthetic: truth, visibility, blunders, control, speed."""
+"""The synthetic block of tests.support.block_synthetic: truth, visibility, blunders, control, speed."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from rectify.errors import InvalidInputError
-from stereo.block.synthetic import default_camera, make_block
 from stereo.block.types import project_pixel
+from tests.support.block_synthetic import default_camera, make_block
 
 
 def test_block_layout_and_truth():

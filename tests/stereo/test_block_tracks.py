@@ -12,11 +12,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
-from rectify.camera import Camera
 from rectify.errors import EstimationError, InvalidInputError, RasterIOError
 from rectify.features.match import MatcherConfig
-from stereo.block.render import BlockTerrain, make_terrain, render_block, render_image, strip_poses
-from stereo.block.tracks import BlockMatchOptions, block_components, block_tie_points
+from rectify.geometry.camera import Camera
 from stereo.block.tracks_graph import (
     PairMatches,
     build_tracks,
@@ -27,6 +25,8 @@ from stereo.block.tracks_graph import (
 )
 from stereo.block.tracks_pairs import footprints, select_pairs
 from stereo.block.types import Pose, Tracks, project_pixel
+from stereo.features.tracks import BlockMatchOptions, block_components, block_tie_points
+from tests.support.block_render import BlockTerrain, make_terrain, render_block, render_image, strip_poses
 
 CAM = Camera(focal_length_mm=20.0, pixel_size_mm=0.05, width=400, height=300)
 H_FLY = 100.0          # flying height above the mean terrain, m

@@ -1,6 +1,6 @@
-"""``stereo.block.workflow.run_block`` on a synthetic block with known truth, through its files.
+"""``stereo.actions.block.run_block`` on a synthetic block with known truth, through its files.
 
-The synthetic block (:func:`stereo.block.synthetic.make_block`: 3 strips x 6 images, 60 % / 30 %
+The synthetic block (:func:`tests.support.block_synthetic.make_block`: 3 strips x 6 images, 60 % / 30 %
 overlap, relief, 0.5 px image noise, 5 cm GNSS noise) is written as the files a user gives: a
 position/angle CSV (GNSS positions with their sigma, perturbed angles), a block control CSV (the
 control points' image measurements and ground coordinates) and placeholder image files; its tie
@@ -17,15 +17,15 @@ import numpy as np
 import pytest
 
 from rectify.errors import EstimationError, InvalidInputError
-from rectify.formats import read_camera
-from rectify.rotation import angles_from_matrix
-from stereo.block.bundle import BundleOptions
-from stereo.block.files import read_block_control, read_block_orientation
-from stereo.block.poses import read_pose_csv
-from stereo.block.synthetic import make_block
+from rectify.formats.common import read_camera
+from rectify.geometry.rotation import angles_from_matrix
+from stereo.actions.block import BLOCK_LAYOUT, BlockOptions, run_block
+from stereo.block.bundle.adjust import BundleOptions
 from stereo.block.types import Tracks
-from stereo.block.workflow import BLOCK_LAYOUT, BlockOptions, run_block
-from stereo.formats import read_points_csv
+from stereo.formats.block import read_block_control, read_block_orientation
+from stereo.formats.orientation import read_points_csv
+from stereo.formats.poses import read_pose_csv
+from tests.support.block_synthetic import make_block
 
 
 def _files(tmp_path, blk, *, gnss=True, control=True, checks=True, pose_noise=True):

@@ -1,4 +1,4 @@
-"""Bundle adjustment of a block (stereo.block.bundle) on synthetic blocks with known truth."""
+"""Bundle adjustment of a block (stereo.block.bundle.adjust) on synthetic blocks with known truth."""
 
 from __future__ import annotations
 
@@ -7,14 +7,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rectify.camera import Camera
 from rectify.errors import ConvergenceError, EstimationError, InvalidInputError
-from rectify.rotation import matrix_from_angles
-from stereo.block import bundle_solve as bs
-from stereo.block.bundle import BlockControl, BundleOptions, GnssObservations, adjust_bundle
-from stereo.block.bundle_model import interior_from_camera, project, rotation_axes, rotations
-from stereo.block.synthetic import default_camera, make_block
+from rectify.geometry.camera import Camera
+from rectify.geometry.rotation import matrix_from_angles
+from stereo.block.bundle import solve as bs
+from stereo.block.bundle.adjust import BlockControl, BundleOptions, GnssObservations, adjust_bundle
+from stereo.block.bundle.model import interior_from_camera, project, rotation_axes, rotations
 from stereo.block.types import Pose, Tracks, project_pixel
+from tests.support.block_synthetic import default_camera, make_block
 
 DIST = Camera(focal_length_mm=100.0, pixel_size_mm=0.01, width=2000, height=1500, principal_point_mm=(0.03, -0.02),
               distortion={"k1": -0.08, "k2": 0.02, "k3": -0.01, "p1": 2e-4, "p2": -1e-4})
@@ -314,7 +314,7 @@ def test_bad_adjust_inputs(block):
         adjust_bundle(b.cameras, [*b.initial_poses, extra], b.tracks, b.initial_points, **ok)
     with pytest.raises(InvalidInputError, match="names camera 'cam', which is not given"):
         adjust_bundle({"other": b.camera}, b.initial_poses, b.tracks, b.initial_points, **ok)
-    with pytest.raises(InvalidInputError, match="camera 'cam' must be a rectify.camera.Camera; got str"):
+    with pytest.raises(InvalidInputError, match="camera 'cam' must be a rectify.geometry.camera.Camera; got str"):
         adjust_bundle({"cam": "x"}, b.initial_poses, b.tracks, b.initial_points, **ok)  # type: ignore[dict-item]
     with pytest.raises(InvalidInputError, match=r"`points` must have shape \(\d+, 3\).*got \(3, 3\)"):
         adjust_bundle(b.cameras, b.initial_poses, b.tracks, b.initial_points[:3], **ok)
@@ -388,7 +388,7 @@ def test_sparse_reduced_system_matches_dense(block):
 def test_reduced_system_equals_the_schur_complement_of_the_full_normal_matrix(block):
     """The per-image-pair assembly of S (and its right-hand side) against N_cc - N_cp N_pp^-1 N_pc of the
     full normal matrix, formed densely, with self-calibration (interior unknowns shared by all images)."""
-    from stereo.block.bundle import GROUPS, _base_weights, _setup
+    from stereo.block.bundle.adjust import GROUPS, _base_weights, _setup
 
     b = block
     opts = BundleOptions(self_calibrate=("f", "k1"))

@@ -11,12 +11,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from rectify.errors import CalibrationError, EstimationError, InvalidInputError
-from rectify.rotation import matrix_from_angles
+from rectify.geometry.rotation import matrix_from_angles
 from stereo.calibration.dlt import DLT, interior_from_homographies
 from stereo.calibration.model import Intrinsics, rodrigues, rotvec_from_matrix
 from stereo.calibration.result import Calibration, camera_from_dict, camera_to_dict
-from stereo.calibration.synthetic import DEFAULT_CAMERA, board_scene, field_scene
-from stereo.calibration.targets import TargetView, parse_pattern, parse_square, views_from_csv
+from stereo.features.targets import TargetView, parse_pattern, parse_square, views_from_csv
+from tests.support.calibration_synthetic import DEFAULT_CAMERA, board_scene, field_scene
 from tests.support.scripts_support import load_script
 
 SHARED = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
@@ -271,7 +271,7 @@ def test_real_chessboard_against_opencv():
     standard error of OpenCV's, standard errors equal to OpenCV's stdDeviationsIntrinsics within 1%."""
     import cv2
 
-    from stereo.calibration.targets import Chessboard, detect_chessboards
+    from stereo.features.targets import Chessboard, detect_chessboards
 
     folder = SHARED / "calibration_chessboard"
     paths = sorted(folder.glob("left*.jpg"))[:8]
@@ -298,7 +298,7 @@ def test_detect_chessboards_bad_input(tmp_path):
     import cv2
 
     from rectify.errors import RasterIOError
-    from stereo.calibration.targets import Chessboard, detect_chessboards
+    from stereo.features.targets import Chessboard, detect_chessboards
 
     (tmp_path / "junk.png").write_text("not an image")
     with pytest.raises(RasterIOError, match="cannot read image"):

@@ -23,8 +23,8 @@ import numpy as np
 import pytest
 
 from stereo.calibration.result import Calibration
-from stereo.calibration.synthetic import field_scene
-from stereo.calibration.targets import TargetView
+from stereo.features.targets import TargetView
+from tests.support.calibration_synthetic import field_scene
 
 DIST = ("k1", "k2", "p1", "p2")
 NOISE = 0.3

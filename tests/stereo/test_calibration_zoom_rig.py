@@ -12,8 +12,8 @@ from rectify.errors import CalibrationError, InvalidInputError
 from stereo.calibration.model import CV_FROM_PHOTO, rodrigues
 from stereo.calibration.result import Calibration, camera_from_dict
 from stereo.calibration.rig import RigCalibration
-from stereo.calibration.synthetic import board_scene, rig_scene, zoom_camera
 from stereo.calibration.zoom import ZoomModel
+from tests.support.calibration_synthetic import board_scene, rig_scene, zoom_camera
 
 DIST = ("k1", "k2", "p1", "p2")
 

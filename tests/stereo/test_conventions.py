@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from rectify.rotation import matrix_from_angles
-from stereo.absolute import AbsoluteOrientation
-from stereo.intersection import METHODS, intersect, n_factor_seed001, project
+from rectify.geometry.rotation import matrix_from_angles
+from stereo.pair.absolute import AbsoluteOrientation
+from stereo.pair.intersection import METHODS, intersect, n_factor_seed001, project
+from stereo.pair.resection import ExteriorOrientation, resect
 from stereo.relative import RelativeOrientation
-from stereo.resection import ExteriorOrientation, resect
 from tests.support.stereo_support import simulate_pair
 
 R1 = matrix_from_angles(0.03, 0.21, 0.12)

@@ -12,12 +12,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rectify.camera import Camera
 from rectify.errors import InvalidInputError, ShapeError, StereoError
-from rectify.rotation import matrix_from_angles
+from rectify.geometry.camera import Camera
+from rectify.geometry.rotation import matrix_from_angles
+from stereo.dense.dsm import DsmGrid, PlyWriter, point_writer
 from stereo.dense.epipolar import normal_frame, rectify_pair
 from stereo.dense.matching import MatchOptions, fill_background, match_pair
-from stereo.dense.products import DsmGrid, PlyWriter, point_writer
 from stereo.dense.triangulate import triangulate_disparity
 from tests.support.stereo_support import occlusion_from_truth
 
@@ -67,7 +67,7 @@ def test_triangulation_recovers_points_exactly():
         # the point of pixel (c0, r0) with disparity d lies on the same ray pair family; check via re-projection
         assert len(pts) == 1 and np.isfinite(pts.xyz).all()
     # exact: feed the fractional pixels through the same formulas
-    from stereo.dense.pipeline import _points_at
+    from stereo.actions.dense import _points_at
 
     xyz, ok = _points_at(rect, pix[0], d, None)
     assert ok.all()
@@ -247,7 +247,7 @@ def test_point_writers_roundtrip(tmp_path):
     pw = PlyWriter(tmp_path / "p.ply", comment="ground")
     pw.write(xyz, col)
     pw.close()
-    from stereo.formats import read_ply
+    from stereo.formats.orientation import read_ply
 
     cloud = read_ply(tmp_path / "p.ply")
     np.testing.assert_allclose(cloud.xyz, xyz)
@@ -297,9 +297,9 @@ def test_synthetic_dsm_within_half_gsd(tmp_path):
     RMSE <= 0.5 GSD (the issue's figure; measured 0.36), |median| < 0.1 GSD, NMAD < 0.35 GSD
     (measured 0.26) and no cell off by more than 3 GSD (matching blunders).
     """
-    from stereo.dense.pipeline import DenseOptions, run_dense
-    from stereo.formats import write_exterior
-    from stereo.synthetic import make_scene, render
+    from stereo.actions.dense import DenseOptions, run_dense
+    from stereo.actions.scene import make_scene, render
+    from stereo.formats.orientation import write_exterior
 
     sc = make_scene(3, size_px=320)
     cv2.imwrite(str(tmp_path / "l.png"), render(sc, "left"))

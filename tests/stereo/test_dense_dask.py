@@ -17,10 +17,10 @@ from affine import Affine
 from click.testing import CliRunner
 
 from rectify.errors import InvalidInputError
+from stereo.actions.dense import DenseOptions
+from stereo.actions.scene import make_scene, write_scene_inputs
 from stereo.cli.main import cli
 from stereo.dense.matching import NODATA, MatchOptions, match_rasters
-from stereo.dense.pipeline import DenseOptions
-from stereo.synthetic import make_scene, write_scene_inputs
 from tests.support.dask_support import DASK_WARNING_FILTERS, local_cluster
 
 distributed = pytest.importorskip("distributed")

@@ -13,9 +13,9 @@ import json
 
 import numpy as np
 
-from rectify.formats import read_matches
-from stereo.actions import run
-from stereo.dense.pipeline import DenseOptions
+from rectify.formats.common import read_matches
+from stereo.actions.dense import DenseOptions
+from stereo.actions.run import run
 
 CAMERA = {"focal_length_mm": 120.0, "pixel_size_mm": 0.144, "width": 640, "height": 1152}
 

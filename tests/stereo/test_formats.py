@@ -1,4 +1,4 @@
-"""stereo.formats: round trips of every stereo artefact, versions, and the files of release 0.1.0."""
+"""stereo.formats.orientation: round trips of every stereo artefact, versions, and the files of release 0.1.0."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
 from rectify.errors import InvalidInputError, RasterIOError
-from stereo.formats import (
+from stereo.formats.orientation import (
     EXTERIOR_FORMAT,
     FORMAT_VERSION,
     ORIENTATION_FORMAT,
@@ -30,8 +30,8 @@ from stereo.formats import (
     write_points_csv,
     write_relative,
 )
+from stereo.pair.resection import ExteriorOrientation, resect
 from stereo.relative import RelativeGeometry, RelativeOrientation
-from stereo.resection import ExteriorOrientation, resect
 from tests.support.stereo_support import simulate_pair
 
 OLD = Path(__file__).resolve().parents[1] / "data" / "release_0_1_0"
@@ -204,7 +204,7 @@ def test_exterior_orientation_without_sigma0_round_trips(tmp_path):
     import dataclasses
     import json as _json
 
-    from stereo.formats import read_exterior, write_exterior
+    from stereo.formats.orientation import read_exterior, write_exterior
 
     eo = read_exterior(OLD / "eo.json")
     eo = dataclasses.replace(eo, sigma0=float("nan"))

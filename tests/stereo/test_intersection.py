@@ -9,8 +9,8 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
 from rectify.errors import InvalidInputError, ShapeError, StereoError
-from rectify.rotation import matrix_from_angles
-from stereo.intersection import METHODS, intersect, intersect_relative, n_factor_seed001, project
+from rectify.geometry.rotation import matrix_from_angles
+from stereo.pair.intersection import METHODS, intersect, intersect_relative, n_factor_seed001, project
 
 I3 = np.eye(3)
 F = 120.0

@@ -6,18 +6,13 @@ import numpy as np
 import pytest
 
 from rectify.errors import EstimationError, InvalidInputError
-from rectify.formats import ControlTable
-from rectify.residuals import rms
-from stereo.formats import read_ply_xyz
-from stereo.model import (
-    ModelOptions,
-    build_model,
-    ground_unit,
-    match_control,
-)
+from rectify.formats.common import ControlTable
+from rectify.geometry.residuals import rms
+from stereo.actions.scene import LO25_CRS, make_scene
+from stereo.actions.workspace import PairWorkspace
+from stereo.formats.orientation import read_ply_xyz
+from stereo.pair.model import ModelOptions, build_model, ground_unit, match_control
 from stereo.relative import RelativeGeometry, RelativeOrientation
-from stereo.synthetic import LO25_CRS, make_scene
-from stereo.workspace import PairWorkspace
 
 
 @pytest.fixture(scope="module")

@@ -7,13 +7,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rectify.formats import ControlTable
-from rectify.residuals import rms
-from stereo.actions import ORIENT_MATCHER, PAIR_MATCHER, matcher_config
+from rectify.formats.common import ControlTable
+from rectify.geometry.residuals import rms
+from stereo.actions.common import ORIENT_MATCHER, PAIR_MATCHER, matcher_config
+from stereo.actions.scene import make_scene
 from stereo.cli.main import cli as stereo_cli
-from stereo.model import ModelOptions, build_model, match_control
+from stereo.pair.model import ModelOptions, build_model, match_control
 from stereo.relative import RelativeGeometry, RelativeOrientation
-from stereo.synthetic import make_scene
 
 
 @pytest.fixture(scope="module")
@@ -55,7 +55,7 @@ def test_robust_absolute_orientation_is_the_default(scene):
 def test_stereo_demo_keeps_least_squares():
     import inspect
 
-    import stereo.actions as sa
+    import stereo.actions.common as sa
 
     assert 'robust="none"' in inspect.getsource(sa.demo)
 

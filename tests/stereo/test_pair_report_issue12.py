@@ -9,13 +9,13 @@ import csv
 import numpy as np
 import pytest
 
-from rectify.formats import ControlTable
-from rectify.plots import residual_vector_figure, standardised_components
-from rectify.residuals import rms
-from stereo.model import ModelOptions, build_model, match_control
+from rectify.formats.common import ControlTable
+from rectify.geometry.residuals import rms
+from rectify.report.figures import residual_vector_figure, standardised_components
+from stereo.actions.scene import make_scene
+from stereo.pair.model import ModelOptions, build_model, match_control
 from stereo.relative import RelativeGeometry, RelativeOrientation
-from stereo.report import absolute_table_in_ground, write_pair_report
-from stereo.synthetic import make_scene
+from stereo.report.pair import absolute_table_in_ground, write_pair_report
 
 
 @pytest.fixture(scope="module")

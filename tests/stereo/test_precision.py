@@ -24,11 +24,11 @@ import math
 
 import numpy as np
 
-from rectify.rotation import angles_from_matrix, matrix_from_angles
-from stereo.absolute import AbsoluteOrientation
-from stereo.intersection import intersect
+from rectify.geometry.rotation import angles_from_matrix, matrix_from_angles
+from stereo.pair.absolute import AbsoluteOrientation
+from stereo.pair.intersection import intersect
+from stereo.pair.resection import ExteriorOrientation, resect
 from stereo.relative import RelativeOrientation
-from stereo.resection import ExteriorOrientation, resect
 from tests.support.stereo_support import simulate_pair
 
 

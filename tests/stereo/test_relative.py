@@ -11,7 +11,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
-from rectify.camera import Camera
 from rectify.errors import (
     ConvergenceError,
     EstimationError,
@@ -20,9 +19,10 @@ from rectify.errors import (
     WeakGeometryWarning,
 )
 from rectify.features import MatcherConfig, match_images
-from rectify.residuals import ResidualTable
-from rectify.rotation import matrix_from_angles
-from stereo.formats import relative_json_text, write_relative
+from rectify.geometry.camera import Camera
+from rectify.geometry.residuals import ResidualTable
+from rectify.geometry.rotation import matrix_from_angles
+from stereo.formats.orientation import relative_json_text, write_relative
 from stereo.relative import (
     SYSTEMS,
     RelativeOptions,

@@ -9,9 +9,9 @@ import pytest
 from numpy.testing import assert_allclose
 
 from rectify.errors import EstimationError, InvalidInputError, ShapeError
-from rectify.rotation import matrix_from_angles
-from stereo.formats import read_exterior
-from stereo.resection import ExteriorOrientation, resect
+from rectify.geometry.rotation import matrix_from_angles
+from stereo.formats.orientation import read_exterior
+from stereo.pair.resection import ExteriorOrientation, resect
 
 
 def _dewitt(path):

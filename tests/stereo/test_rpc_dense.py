@@ -2,7 +2,7 @@
 
 Synthetic pairs with known truth: two pushbroom cameras (perspective across the track, a line per
 time step along it, forward and backward pitch, some roll and yaw) over a known DEM; an RPC is
-fitted to each camera (:func:`rectify.rpc.fit_rpc`) and the images are rendered by ray casting
+fitted to each camera (:func:`rectify.geometry.rpc.fit_rpc`) and the images are rendered by ray casting
 onto the DEM, so the DSM can be checked cell by cell. The Pleiades crops of ``../shared`` are used
 when present.
 """
@@ -17,9 +17,9 @@ import pytest
 import rasterio
 from scipy import ndimage
 
-from rectify.crs import transform_xy
 from rectify.errors import EstimationError, InvalidInputError, RasterIOError, ShapeError
-from rectify.rpc import fit_rpc, rpc_from_raster
+from rectify.geometry.crs import transform_xy
+from rectify.geometry.rpc import fit_rpc, rpc_from_raster
 from stereo.dense.rpc_epipolar import (
     LocalFrame,
     affine_fundamental,
@@ -255,7 +255,7 @@ def test_bad_affine_inputs(synthetic_pair):
 # ---------------------------------------------------------------------------- the dense chain
 @pytest.fixture(scope="module")
 def synthetic_run(synthetic_pair, tmp_path_factory):
-    from stereo.dense.rpc_pipeline import RpcDenseOptions, run_dense_rpc
+    from stereo.actions.dense_rpc import RpcDenseOptions, run_dense_rpc
 
     out = tmp_path_factory.mktemp("rpcdense") / "out"
     res = run_dense_rpc(synthetic_pair["left"][0], synthetic_pair["right"][0], out, roi=(32, 32, 320, 320),
@@ -288,7 +288,7 @@ def test_synthetic_rpc_dsm_matches_the_truth(synthetic_run):
 
 
 def test_rpc_triangulation_recovers_ground_points(synthetic_pair):
-    from stereo.dense.rpc_pipeline import triangulate_rpc
+    from stereo.actions.dense_rpc import triangulate_rpc
 
     _, _, rl = synthetic_pair["left"]
     _, _, rr = synthetic_pair["right"]
@@ -304,7 +304,7 @@ def test_rpc_triangulation_recovers_ground_points(synthetic_pair):
 
 
 def test_bad_inputs_of_the_rpc_chain(synthetic_pair, tmp_path):
-    from stereo.dense.rpc_pipeline import RpcDenseOptions, run_dense_rpc
+    from stereo.actions.dense_rpc import RpcDenseOptions, run_dense_rpc
 
     left, right = synthetic_pair["left"][0], synthetic_pair["right"][0]
     with pytest.raises(InvalidInputError, match="roi"):
@@ -364,7 +364,7 @@ def test_pleiades_rpc_dsm(pleiades, tmp_path):
     """Issue 14 must-show on the Pleiades crops (images 2 and 1, the ROI of config.json): vertical
     parallax after local epipolar resampling <= 0.2 px, and plausible heights over >= 90 % of
     the region of interest."""
-    from stereo.dense.rpc_pipeline import RpcDenseOptions, roi_statistics, run_dense_rpc
+    from stereo.actions.dense_rpc import RpcDenseOptions, roi_statistics, run_dense_rpc
 
     cfg = json.loads((pleiades / "config.json").read_text())
     roi = tuple(cfg["roi"][k] for k in ("x", "y", "w", "h"))

@@ -1,4 +1,4 @@
-"""Tests of stereo.report (relative/absolute orientation figures, write_stereo_report).
+"""Tests of stereo.report.pair (relative/absolute orientation figures, write_stereo_report).
 
 Named test_stereo_report.py, not test_report.py: tests/ has no __init__.py, so two
 test modules with the same basename would clash under pytest's default import mode.
@@ -14,12 +14,8 @@ import pytest
 from matplotlib.figure import Figure
 
 from rectify.errors import InvalidInputError, ShapeError
-from rectify.residuals import ResidualTable
-from stereo.report import (
-    absolute_orientation_figures,
-    relative_orientation_figures,
-    write_stereo_report,
-)
+from rectify.geometry.residuals import ResidualTable
+from stereo.report.pair import absolute_orientation_figures, relative_orientation_figures, write_stereo_report
 
 NAMES = ["tau", "nu", "alpha2", "omega2", "kappa2"]
 

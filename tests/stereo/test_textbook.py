@@ -16,11 +16,11 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from rectify.rotation import matrix_from_angles
-from stereo.absolute import AbsoluteOrientation
-from stereo.intersection import intersect
+from rectify.geometry.rotation import matrix_from_angles
+from stereo.pair.absolute import AbsoluteOrientation
+from stereo.pair.intersection import intersect
+from stereo.pair.resection import resect
 from stereo.relative import RelativeOrientation
-from stereo.resection import resect
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "textbook"
 SYSTEMS = ("left-image", "basis", "dobrynin-pimshina")

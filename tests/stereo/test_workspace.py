@@ -1,4 +1,4 @@
-"""stereo.workspace and stereo.actions.run: outputs checked before work, all-or-nothing writes."""
+"""stereo.actions.workspace and stereo.actions.run.run: outputs checked before work, all-or-nothing writes."""
 
 from __future__ import annotations
 
@@ -7,11 +7,11 @@ import json
 import numpy as np
 import pytest
 
-import stereo.actions as actions
+import stereo.actions.common as actions
 from rectify.errors import EstimationError, InvalidInputError
-from stereo.formats import read_relative
-from stereo.synthetic import make_scene, write_scene_inputs
-from stereo.workspace import RUN_LAYOUT, PairWorkspace, model_outputs
+from stereo.actions.scene import make_scene, write_scene_inputs
+from stereo.actions.workspace import RUN_LAYOUT, PairWorkspace, model_outputs
+from stereo.formats.orientation import read_relative
 
 
 def test_model_outputs():

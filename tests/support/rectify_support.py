@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from rectify.errors import RasterIOError
-from rectify.report import _flatten, format_number
+from rectify.report.builder import _flatten, format_number
 
 __all__ = ["verify_report", "tiff_ifds", "cog_problems", "TiffIfd"]
 

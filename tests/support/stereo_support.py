@@ -12,7 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rectify.errors import EstimationError, InvalidInputError
-from rectify.rotation import matrix_from_angles
+from rectify.geometry.rotation import matrix_from_angles
 from stereo.relative import SYSTEMS
 
 __all__ = ["SimulatedPair", "simulate_pair"]

@@ -1,11 +1,11 @@
-"""Test support for the transforms side (rectify.transforms, rectify.analytic): helpers used only by tests."""
+"""Test support for the transforms side (rectify.geometry.transforms, rectify.geometry.analytic): helpers used only by tests."""
 
 from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from rectify.analytic import TiltedFrame
+from rectify.geometry.analytic import TiltedFrame
 
 __all__ = ["rectify_tilted"]
 

@@ -1,0 +1,96 @@
+"""``rectify fit``: a planar transform fitted to GCPs, written as a transform JSON (and a report)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from rectify.actions.common import check_method
+from rectify.actions.workspace import Workspace
+from rectify.formats.common import TIFF_SUFFIXES, GcpTable
+from rectify.geometry.transforms import METHODS, FitResult, fit_gcps
+from rectify.geometry.transforms.quality import GcpGeometry, geographic_lines, judge_gcp_geometry
+from rectify.raster.io import raster_info
+from rectify.report.builder import write_fit_report
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """Options of :func:`fit`: the model (a key of ``rectify.geometry.transforms.METHODS``) and the residual rows printed."""
+
+    method: str = "homography"
+    max_rows: int = 50
+    image: str | Path | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class FitRun:
+    """Result of :func:`fit`: the fitted model with its residual table (target units), files written."""
+
+    fit: FitResult
+    gcps: GcpTable
+    options: FitOptions
+    output: Path
+    report: Path | None = None
+    geometry: GcpGeometry | None = None
+
+    def summary_lines(self) -> list[str]:
+        """The residual table (degrees and metres in a geographic CRS), the cotangent control points, RMSE
+        (fit and check), the GCP geometry (with the image size) and the files."""
+        table = self.fit.table
+        if table.units.startswith("degree"):
+            lines = geographic_lines(table, max_rows=self.options.max_rows)
+        else:
+            lines = [table.format_text(max_rows=self.options.max_rows)]
+        if "control_ids" in table.extra:
+            lines.append(f"cotangent method: control points {', '.join(table.extra['control_ids'])} "
+                         "(best-conditioned quadrilateral); the other fit rows are reported as check points")
+        s = table.summary()
+        n_params = METHODS[self.options.method].n_params
+        lines.append(f"RMSE {s['rmse']:.4g} {table.units} (fit, n={s['n_fit']}, {n_params} parameters)"
+                     + (f"; check RMSE {s['rmse_check']:.4g} {table.units} (n={s['n_check']})"
+                        if s["n_check"] else ""))
+        if self.geometry is not None:
+            lines += self.geometry.summary_lines()
+        elif 2 * s["n_fit"] <= n_params:
+            lines.append(f"no redundancy: {s['n_fit']} GCPs determine the {n_params} {self.options.method} "
+                         "parameters exactly; the residuals are zero by construction and no error can be estimated")
+        lines.append(f"wrote {self.output}")
+        if self.report is not None:
+            lines.append(f"report: {self.report}")
+        return lines
+
+
+
+
+def fit(ws: Workspace, gcps_path: str | Path, output: str | Path, options: FitOptions = FitOptions()) -> FitRun:
+    """Fit a transform (source pixels -> target) to the GCP file ``gcps_path``; write the transform JSON.
+
+    Check points (``check = 1``) are withheld from the fit and reported separately. With the source image
+    (``options.image``, or the GCP file itself when it is a GeoTIFF with embedded GCPs) the GCP geometry
+    is judged over the image (:func:`rectify.geometry.transforms.quality.judge_gcp_geometry`).
+    """
+    check_method(options.method)
+    image = options.image
+    if image is None and Path(gcps_path).suffix.lower() in TIFF_SUFFIXES:
+        image = gcps_path
+    ws.add_inputs(gcps_path, image)
+    size = None
+    if image is not None:
+        info = raster_info(image)
+        size = (info.width, info.height)
+    ws.plan(output)
+    ws.check_report_dir()
+    gcps = ws.load_gcps(gcps_path)
+    result = fit_gcps(gcps, options.method)
+    geometry = None
+    if size is not None:
+        geometry = judge_gcp_geometry(gcps, options.method, *size, units=result.table.units)
+    report = None
+    with ws.transaction():  # the transform and the report, all or none
+        out = ws.save_transform(output, result.model, table=result.table, crs=gcps.crs)
+        if ws.report_dir is not None:
+
+            report = write_fit_report(ws.report_dir, result, gcps, gcps_path=gcps_path, transform_path=out,
+                                      overwrite=ws.overwrite)
+    return FitRun(result, gcps, options, out, report, geometry)

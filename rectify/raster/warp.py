@@ -1,0 +1,861 @@
+"""The resampling engine: tile-by-tile inverse mapping into a GeoTIFF.
+
+For every output tile (512 x 512 by default) the engine computes where its
+pixels come from in the source, reads only the source window they need
+(through :mod:`rectify.raster.io`), resamples it with OpenCV and writes the tile.
+Memory is bounded by the tile and window sizes, not by the image: rasters
+wider than OpenCV's 32767-pixel limit work because every OpenCV call sees
+only a tile and its window. Tiles are computed on a thread pool (OpenCV and
+GDAL release the GIL) and written by the calling thread.
+
+Mappings (output pixel -> source pixel):
+
+- a model with a ``(3, 3)`` ``matrix`` (affine, homography) is composed
+  analytically with the output grid and applied by ``cv2.warpAffine`` /
+  ``cv2.warpPerspective`` on the window -- no coordinate arrays at all;
+- any other callable (polynomials, the cotangent method, a change of CRS
+  through pyproj) is evaluated exactly on a sparse grid (every
+  ``WarpOptions.map_step_px`` output pixels) and interpolated bilinearly,
+  then applied by ``cv2.remap`` -- like GDAL's approximate transformer.
+
+Validity: an output pixel is valid when the source pixel nearest to its
+source position is valid (so the footprint reaches the outer pixel edges, as
+GDAL's); near invalid source pixels, bilinear weights are renormalised over
+the valid neighbours. Invalid pixels receive the nodata value, alpha 0 or an
+internal mask, following the source (:class:`rectify.raster.io.MaskPolicy`).
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import os
+import shutil
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import rasterio
+from numpy.typing import ArrayLike, NDArray
+
+from rectify.atomic import atomic_output, check_output
+from rectify.errors import CRSError, EstimationError, InvalidInputError, RasterIOError
+from rectify.formats.common import GcpTable
+from rectify.geometry.crs import crs_to_string, get_transformer, same_crs, transform_xy
+from rectify.geometry.residuals import ResidualTable
+from rectify.geometry.transforms import METHODS, FitResult, fit_gcps, method_of
+from rectify.raster.distributed import Scheduler, resolve_scheduler, run_windows
+from rectify.raster.georef import Grid, check_horizon, output_grid, world_from_pixel, world_from_pixel_matrix
+from rectify.raster.io import (
+    MaskPolicy,
+    TiledWriter,
+    WindowReader,
+    mask_policy,
+    open_raster,
+    raster_info,
+    translate_to_cog,
+)
+
+__all__ = ["RESAMPLING", "WarpOptions", "WarpResult", "warp_raster", "warp_array", "GeoRectification",
+           "georectify", "rectify_with_transform", "check_gcps_inside",
+           "gcps_outside", "outside_note", "check_free_space", "DEFAULT_MAX_PIXELS"]
+
+logger = logging.getLogger(__name__)
+
+#: resampling name -> (OpenCV flag, kernel radius in source pixels)
+RESAMPLING: dict[str, tuple[int, int]] = {}
+
+
+def _resampling_table() -> dict[str, tuple[int, int]]:
+
+    if not RESAMPLING:
+        RESAMPLING.update({"nearest": (cv2.INTER_NEAREST, 1), "bilinear": (cv2.INTER_LINEAR, 1),
+                           "cubic": (cv2.INTER_CUBIC, 2), "lanczos": (cv2.INTER_LANCZOS4, 4)})
+    return RESAMPLING
+
+
+RESAMPLING_NAMES = ("nearest", "bilinear", "cubic", "lanczos")
+_CV_LIMIT = 32767  # OpenCV's SHRT_MAX limit on remap/warp sizes
+#: default limit on the pixels of an output grid (``rectify warp --max-pixels``): 2e9, a 44721 px square
+DEFAULT_MAX_PIXELS = 2e9
+#: GDAL block cache per warp thread, MB (:attr:`WarpOptions.block_cache_mb`)
+CACHE_MB_PER_THREAD = 64
+#: compression ratio assumed when checking that an output fits on the disk
+ASSUMED_COMPRESSION = 4.0
+
+
+@dataclass(frozen=True)
+class WarpOptions:
+    """Options of the resampling engine.
+
+    Attributes
+    ----------
+    resampling : str
+        ``nearest``, ``bilinear``, ``cubic`` or ``lanczos``.
+    tile_px : int
+        Output tile (and GeoTIFF block) size, a multiple of 16.
+    threads : int or None
+        Worker threads; None = all cores (``os.cpu_count()``).
+    compress : str
+        GeoTIFF compression: ``zstd`` (default: fast, supported by GDAL >= 2.3
+        and so by QGIS), ``deflate``, ``lzw`` or ``none``.
+    cog : bool
+        Write a Cloud Optimized GeoTIFF (overviews, COG layout).
+    nodata : float or None
+        Force this nodata value for the output (default: follow the source:
+        its nodata, alpha band or mask; NaN for float rasters without any;
+        an internal mask for integer rasters without any).
+    map_step_px : int
+        Spacing of the exactly-evaluated points for non-matrix mappings.
+    max_window_px : int
+        Largest source window side read for one tile; bigger needs split the tile.
+    cache_mb : int or None
+        GDAL block cache limit while warping, MB (default: :data:`CACHE_MB_PER_THREAD` per worker
+        thread: each thread reads through its own dataset, and its neighbouring tiles reuse the source
+        blocks it decoded only if they stay cached; with 64 MB for two threads a 10 000 px warp decoded
+        a fifth of its source twice).
+    max_pixels : float
+        Refuse an output grid with more pixels than this (``rectify warp --max-pixels``), before
+        any pixel is written: a degenerate transform or a tiny resolution can ask for billions.
+    scheduler : rectify.raster.distributed.Scheduler, str or None
+        Where the tiles run: ``threads`` (a local thread pool), ``processes[:N]`` (a local Dask
+        cluster), ``tcp://HOST:PORT`` (an existing Dask cluster); None: ``$RECTIFY_SCHEDULER``, else
+        ``threads``. Every scheduler writes the same bytes (:mod:`rectify.raster.distributed`).
+    """
+
+    resampling: str = "bilinear"
+    tile_px: int = 512
+    threads: int | None = None
+    compress: str = "zstd"
+    cog: bool = False
+    nodata: float | None = None
+    map_step_px: int = 16
+    max_window_px: int = 8192
+    cache_mb: int | None = None
+    max_pixels: float = DEFAULT_MAX_PIXELS
+    scheduler: Scheduler | str | None = None
+
+    def __post_init__(self) -> None:
+        if self.scheduler is not None:
+            resolve_scheduler(self.scheduler)  # a bad value fails here, before any work
+        if not self.max_pixels > 0:
+            raise InvalidInputError(f"max_pixels must be > 0; got {self.max_pixels!r}")
+        if self.resampling not in RESAMPLING_NAMES:
+            raise InvalidInputError(f"unknown resampling {self.resampling!r}; expected one of {list(RESAMPLING_NAMES)}")
+        if self.tile_px < 16 or self.tile_px % 16 or self.tile_px > 4096:
+            raise InvalidInputError(f"tile_px must be a multiple of 16 in 16..4096; got {self.tile_px}")
+        if self.cache_mb is not None and not self.cache_mb >= 1:
+            raise InvalidInputError(f"cache_mb must be >= 1; got {self.cache_mb!r}")
+        if self.threads is not None and self.threads < 1:
+            raise InvalidInputError(f"threads must be >= 1; got {self.threads}")
+        if self.compress.lower() not in ("deflate", "lzw", "zstd", "none", "packbits", "lzma"):
+            raise InvalidInputError(f"unknown compression {self.compress!r}")
+        if self.map_step_px < 1 or self.max_window_px < 64 or self.max_window_px > _CV_LIMIT:
+            raise InvalidInputError(f"bad map_step_px {self.map_step_px} or max_window_px {self.max_window_px}")
+
+    @property
+    def n_threads(self) -> int:
+        return worker_count(self.threads)
+
+    @property
+    def block_cache_mb(self) -> int:
+        """GDAL's block cache while warping, MB (``cache_mb``, or :data:`CACHE_MB_PER_THREAD` per thread)."""
+        return int(self.cache_mb) if self.cache_mb is not None else CACHE_MB_PER_THREAD * self.n_threads
+
+
+@dataclass(frozen=True)
+class WarpResult:
+    """What :func:`warp_raster` wrote.
+
+    Attributes
+    ----------
+    path : Path
+    grid : Grid
+    n_tiles : int
+    n_empty_tiles : int
+        Tiles entirely outside the footprint.
+    seconds : float
+    policy : str
+        How invalid pixels are stored (``nodata``, ``mask``, ``alpha``).
+    nodata : float or None
+    """
+
+    path: Path
+    grid: Grid
+    n_tiles: int
+    n_empty_tiles: int
+    seconds: float
+    policy: str
+    nodata: float | None
+
+
+# --------------------------------------------------------------------------- mappings
+class _Mapping:
+    """Output pixel (col, row) -> source pixel, per tile."""
+
+    def __init__(self, grid: Grid, source_from_world: Callable, world_crs: str | None, step: int):
+        self.step = step
+        m = getattr(source_from_world, "matrix", None)
+        same = world_crs is None or grid.crs is None or same_crs(world_crs, grid.crs)
+        self.matrix = None
+        if m is not None and same:
+            mm = np.asarray(m, dtype=np.float64)
+            if mm.shape == (3, 3):
+                self.matrix = mm @ world_from_pixel_matrix(grid.transform)
+                self.matrix = self.matrix / self.matrix[2, 2] if abs(self.matrix[2, 2]) > 1e-300 else self.matrix
+        self.affine = self.matrix is not None and np.allclose(self.matrix[2, :2], 0.0, atol=1e-15)
+        self._grid = grid
+        self._f = source_from_world
+        self._crs = (grid.crs, world_crs) if not same else None
+
+    def points(self, pix: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Exact source positions (N, 2) of output pixels (N, 2); NaN where undefined."""
+        if self.matrix is not None:
+            h = pix @ self.matrix[:, :2].T + self.matrix[:, 2]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                out = h[:, :2] / h[:, 2:3]
+            out[~(h[:, 2] > 0)] = np.nan  # behind the horizon
+            return out
+        world = world_from_pixel(self._grid.transform, pix)
+        if self._crs is not None:
+            t = get_transformer(self._crs[0], self._crs[1])
+            x, y = t.transform(world[:, 0], world[:, 1])
+            world = np.column_stack([x, y])
+        ok = np.isfinite(world).all(axis=1)
+        out = np.full_like(world, np.nan)
+        if ok.any():
+            try:
+                out[ok] = np.asarray(self._f(world[ok]), dtype=np.float64)
+            except (EstimationError, InvalidInputError, FloatingPointError, ZeroDivisionError) as err:
+                raise InvalidInputError(f"the transform cannot map output pixels back to the source: {err}") \
+                    from err
+        return out
+
+    def dense(self, c0: int, r0: int, w: int, h: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Source x, y maps (h, w) float32 for a tile, by sparse exact points + bilinear interpolation."""
+        s = self.step
+        xs = np.unique(np.r_[np.arange(0, w, s), w - 1]).astype(np.float64)
+        ys = np.unique(np.r_[np.arange(0, h, s), h - 1]).astype(np.float64)
+        gx, gy = np.meshgrid(xs + c0, ys + r0)
+        src = self.points(np.column_stack([gx.ravel(), gy.ravel()])).reshape(len(ys), len(xs), 2)
+        # separable linear interpolation onto every pixel
+        out = []
+        for k in range(2):
+            v = src[:, :, k]
+            cols = np.arange(w, dtype=np.float64)
+            rows = np.arange(h, dtype=np.float64)
+            ix = np.clip(np.searchsorted(xs, cols, side="right") - 1, 0, max(len(xs) - 2, 0))
+            iy = np.clip(np.searchsorted(ys, rows, side="right") - 1, 0, max(len(ys) - 2, 0))
+            if len(xs) > 1:
+                fx = (cols - xs[ix]) / (xs[ix + 1] - xs[ix])
+                vx = v[:, ix] * (1 - fx) + v[:, np.minimum(ix + 1, len(xs) - 1)] * fx
+            else:
+                vx = np.repeat(v[:, :1], w, axis=1)
+            if len(ys) > 1:
+                fy = (rows - ys[iy]) / (ys[iy + 1] - ys[iy])
+                vv = vx[iy, :] * (1 - fy)[:, None] + vx[np.minimum(iy + 1, len(ys) - 1), :] * fy[:, None]
+            else:
+                vv = np.repeat(vx[:1, :], h, axis=0)
+            out.append(vv.astype(np.float32))
+        return out[0], out[1]
+
+
+# --------------------------------------------------------------------------- tile kernel
+def _fill_value(policy_kind: str, nodata: float | None, dtype: np.dtype) -> Any:
+    if policy_kind == "nodata" and nodata is not None:
+        return np.asarray(nodata).astype(dtype)[()]
+    return np.zeros((), dtype=dtype)[()]
+
+
+def _cv_dtype(a: NDArray) -> NDArray:
+    """OpenCV warps uint8, uint16, int16, float32, float64; others go through float64."""
+    if a.dtype in (np.uint8, np.uint16, np.int16, np.float32, np.float64):
+        return a
+    return a.astype(np.float64)
+
+
+def _apply(img: NDArray, *, M: NDArray | None, affine: bool, maps, size: tuple[int, int], interp: int,
+           border: int) -> NDArray:
+    """Warp ``img`` (h, w[, C<=4]) to ``size`` (w, h) with a 3x3 inverse map M or maps."""
+
+    if M is not None:
+        flags = interp | cv2.WARP_INVERSE_MAP
+        if affine:
+            return cv2.warpAffine(img, M[:2], size, flags=flags, borderMode=border, borderValue=0)
+        return cv2.warpPerspective(img, M, size, flags=flags, borderMode=border, borderValue=0)
+    return cv2.remap(img, maps[0], maps[1], interp, borderMode=border, borderValue=0)
+
+
+def _warp_channels(data: NDArray, **kw) -> NDArray:
+    """Warp (h, w, C) in chunks of at most 4 channels (OpenCV's limit for some kernels)."""
+    c = data.shape[2]
+    if c <= 4:
+        out = _apply(data if c > 1 else data[:, :, 0], **kw)
+        return out.reshape(out.shape[0], out.shape[1], c)
+    parts = [_apply(np.ascontiguousarray(data[:, :, i:i + 4]), **kw) for i in range(0, c, 4)]
+    parts = [p[:, :, None] if p.ndim == 2 else p for p in parts]
+    return np.concatenate(parts, axis=2)
+
+
+class ProcessLocal:
+    """Mixin of the tile engines shipped to Dask workers (warp, ortho, mosaic).
+
+    The attributes named in ``_TRANSIENT`` belong to one process (thread-locals, open readers, locks):
+    they are left out when the engine is pickled and made anew, by their factory, when it is unpickled.
+    """
+
+    _TRANSIENT: dict[str, Any] = {}
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        for k in self._TRANSIENT:
+            state.pop(k, None)
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        for k, make in self._TRANSIENT.items():
+            setattr(self, k, make())
+
+
+class _Engine(ProcessLocal):
+    def __init__(self, src: str, mapping: _Mapping, grid: Grid, opts: WarpOptions, out_dtype: np.dtype,
+                 count: int, fill: Any):
+        info = raster_info(src)
+        self.src, self.mapping, self.grid, self.opts = src, mapping, grid, opts
+        self.W, self.H = info.width, info.height
+        self.interp, self.radius = _resampling_table()[opts.resampling]
+        self.dtype, self.count, self.fill = out_dtype, count, fill
+        self._local = threading.local()
+        self._readers: list = []
+        self._lock = threading.Lock()
+
+    # ----------------------------------------------------------------- shipping to Dask workers
+    _TRANSIENT = {"_local": threading.local, "_readers": list, "_lock": threading.Lock}
+
+    def portable(self) -> _Engine:
+        """A copy for Dask workers: the source by absolute path, no open readers."""
+        eng = copy.copy(self)
+        eng.src = os.path.abspath(self.src)
+        return eng
+
+    def reader(self):
+        r = getattr(self._local, "reader", None)
+        if r is None:
+            r = WindowReader(self.src)
+            self._local.reader = r
+            with self._lock:
+                self._readers.append(r)
+        return r
+
+    def close(self) -> None:
+        for r in self._readers:
+            r.close()
+
+    # ----------------------------------------------------------------- one tile
+    def tile(self, c0: int, r0: int, w: int, h: int) -> tuple[NDArray, NDArray[np.bool_] | None, bool]:
+        """Compute one output tile -> (data (h, w, C), valid or None, empty)."""
+        m = self.mapping
+        if m.matrix is not None:
+            corners = np.array([[c0 - 0.5, r0 - 0.5], [c0 + w - 0.5, r0 - 0.5], [c0 - 0.5, r0 + h - 0.5],
+                                [c0 + w - 0.5, r0 + h - 0.5]])
+            sp = m.points(corners)
+            maps = None
+            if not np.isfinite(sp).all():  # tile crosses the horizon: fall back to exact maps
+                maps = self._exact_maps(c0, r0, w, h)
+                sp = np.column_stack([maps[0].ravel(), maps[1].ravel()])
+        else:
+            maps = m.dense(c0, r0, w, h)
+            sp = np.column_stack([maps[0].ravel(), maps[1].ravel()])
+        ok = np.isfinite(sp).all(axis=1)
+        ok &= (sp[:, 0] >= -0.5 - self.radius) & (sp[:, 0] <= self.W - 0.5 + self.radius) & \
+            (sp[:, 1] >= -0.5 - self.radius) & (sp[:, 1] <= self.H - 0.5 + self.radius)
+        if maps is not None and not ok.any():
+            return self._empty(w, h), np.zeros((h, w), bool), True
+        sel = sp[ok] if maps is not None else sp
+        lo = np.floor(np.nanmin(sel, axis=0)).astype(np.int64) - self.radius
+        hi = np.ceil(np.nanmax(sel, axis=0)).astype(np.int64) + self.radius
+        x0, y0 = max(int(lo[0]), 0), max(int(lo[1]), 0)
+        x1, y1 = min(int(hi[0]) + 1, self.W), min(int(hi[1]) + 1, self.H)
+        if x1 <= x0 or y1 <= y0:
+            return self._empty(w, h), np.zeros((h, w), bool), True
+        if (x1 - x0 > self.opts.max_window_px or y1 - y0 > self.opts.max_window_px) and max(w, h) > 16:
+            return self._split(c0, r0, w, h)
+        data, valid = self.reader().read(x0, y0, x1 - x0, y1 - y0)
+        return self._resample(data, valid, x0, y0, c0, r0, w, h, maps)
+
+    def _exact_maps(self, c0, r0, w, h):
+        gx, gy = np.meshgrid(np.arange(c0, c0 + w, dtype=np.float64), np.arange(r0, r0 + h, dtype=np.float64))
+        p = self.mapping.points(np.column_stack([gx.ravel(), gy.ravel()]))
+        return p[:, 0].reshape(h, w).astype(np.float32), p[:, 1].reshape(h, w).astype(np.float32)
+
+    def _empty(self, w: int, h: int) -> NDArray:
+        return np.full((h, w, self.count), self.fill, dtype=self.dtype)
+
+    def _split(self, c0, r0, w, h):
+        out = self._empty(w, h)
+        valid = np.zeros((h, w), bool)
+        hw, hh = max(w // 2, 1), max(h // 2, 1)
+        for cc, ww in ((c0, hw), (c0 + hw, w - hw)):
+            for rr, hgt in ((r0, hh), (r0 + hh, h - hh)):
+                if ww <= 0 or hgt <= 0:
+                    continue
+                d, v, empty = self.tile(cc, rr, ww, hgt)
+                out[rr - r0:rr - r0 + hgt, cc - c0:cc - c0 + ww] = d
+                valid[rr - r0:rr - r0 + hgt, cc - c0:cc - c0 + ww] = True if v is None else v
+        return out, (None if valid.all() else valid), not valid.any()
+
+    def _resample(self, data, valid, x0, y0, c0, r0, w, h, maps):
+
+        m = self.mapping
+        if maps is None:
+            # shift: output tile pixel (i, j) -> window pixel
+            T_out = np.array([[1.0, 0, c0], [0, 1.0, r0], [0, 0, 1.0]])
+            T_src = np.array([[1.0, 0, -x0], [0, 1.0, -y0], [0, 0, 1.0]])
+            M = T_src @ m.matrix @ T_out
+            kw = dict(M=M, affine=m.affine, maps=None, size=(w, h))
+        else:
+            kw = dict(M=None, affine=False, maps=(maps[0] - np.float32(x0), maps[1] - np.float32(y0)), size=(w, h))
+        src = _cv_dtype(data)
+        out = _warp_channels(src, interp=self.interp, border=cv2.BORDER_REPLICATE, **kw)
+        # footprint: nearest source pixel inside the window and valid
+        win_h, win_w = data.shape[:2]
+        full_inside = self._tile_inside(kw, win_w, win_h, x0, y0)
+        if valid is None and full_inside:
+            out_valid = None
+        else:
+            vm = np.full((win_h, win_w), 255, np.uint8) if valid is None else valid.astype(np.uint8) * 255
+            near = _apply(vm, interp=cv2.INTER_NEAREST, border=cv2.BORDER_CONSTANT, **kw)
+            out_valid = near > 0
+            if valid is not None and self.opts.resampling != "nearest":
+                # renormalise the kernel over valid neighbours near invalid source pixels
+                lin = _apply(valid.astype(np.float32), interp=self.interp, border=cv2.BORDER_CONSTANT, **kw)
+                edge = out_valid & (lin < 1.0 - 1e-6)
+                if edge.any():
+                    src0 = src.astype(np.float32) if src.dtype.kind in "ui" else src.copy()
+                    src0[~valid] = 0
+                    part = _warp_channels(src0, interp=self.interp, border=cv2.BORDER_CONSTANT, **kw)
+                    wgt = lin[edge].astype(np.float64)[:, None]
+                    vals = part[edge].astype(np.float64) / np.maximum(wgt, 1e-6)
+                    out = out.copy() if not out.flags.writeable else out
+                    out[edge] = _cast(vals, out.dtype)
+            if not out_valid.any():
+                return self._empty(w, h), out_valid, True
+        if out.dtype != self.dtype:
+            out = _cast(out, self.dtype)
+        if out_valid is not None:
+            out[~out_valid] = self.fill
+            if out_valid.all():
+                out_valid = None
+        return out, out_valid, False
+
+    def _tile_inside(self, kw, win_w, win_h, x0, y0) -> bool:
+        """True when every output pixel of the tile maps inside the source raster (not just the window)."""
+        h_, w_ = kw["size"][1], kw["size"][0]
+        if kw["M"] is not None:
+            c = np.array([[-0.5, -0.5, 1], [w_ - 0.5, -0.5, 1], [-0.5, h_ - 0.5, 1], [w_ - 0.5, h_ - 0.5, 1]])
+            p = c @ kw["M"].T
+            p = p[:, :2] / p[:, 2:3]
+        else:
+            p = np.column_stack([kw["maps"][0].ravel(), kw["maps"][1].ravel()]).astype(np.float64)
+            p = np.array([p.min(axis=0), p.max(axis=0)])
+        gx, gy = p[:, 0] + x0, p[:, 1] + y0
+        return bool(np.isfinite(p).all() and gx.min() >= 0 and gy.min() >= 0 and gx.max() <= self.W - 1
+                    and gy.max() <= self.H - 1)
+
+
+def _cast(a: NDArray, dtype: np.dtype) -> NDArray:
+    dt = np.dtype(dtype)
+    if dt.kind in "ui":
+        info = np.iinfo(dt)
+        return np.clip(np.rint(a), info.min, info.max).astype(dt)
+    return a.astype(dt)
+
+
+# --------------------------------------------------------------------------- public API
+def _output_policy(src: str, opts: WarpOptions):
+
+    info = raster_info(src)
+    dtype = np.dtype(info.dtype)
+    if opts.nodata is not None:
+        return MaskPolicy("nodata", float(opts.nodata)), dtype
+    pol = mask_policy(src)
+    if pol.kind != "none":
+        if pol.kind == "nodata" and pol.nodata is not None and dtype.kind in "ui":
+            ii = np.iinfo(dtype)
+            if not (ii.min <= pol.nodata <= ii.max):
+                return MaskPolicy("mask"), dtype
+        return pol, dtype
+    if dtype.kind == "f":
+        return MaskPolicy("nodata", float("nan")), dtype
+    return MaskPolicy("mask"), dtype
+
+
+def warp_raster(src: str | Path, dst: str | Path, source_from_world: Callable[[NDArray], NDArray],
+                grid: Grid, *, world_crs: str | None = None, options: WarpOptions | None = None,
+                overwrite: bool = False, progress: Callable[[int, int], None] | None = None) -> WarpResult:
+    """Resample a raster onto ``grid`` through an inverse mapping, tile by tile.
+
+    Parameters
+    ----------
+    src : path
+        Any raster rasterio reads (any band count; uint8, uint16, int16,
+        float32, ...). Never modified.
+    dst : path
+        Output GeoTIFF (tiled, compressed; COG with ``options.cog``). Written to
+        a temporary file renamed at the end: no partial file on error.
+    source_from_world : callable (N, 2) -> (N, 2)
+        Output world coordinates (x, y in ``world_crs``, or in the grid's CRS)
+        -> source pixels (col, row; centres at integers). A model with a
+        ``(3, 3)`` ``matrix`` attribute (affine, homography) is used
+        analytically.
+    grid : Grid
+        Output grid (size, geotransform, CRS).
+    world_crs : str, optional
+        CRS of the coordinates ``source_from_world`` expects, when it differs
+        from ``grid.crs`` (each output pixel then goes through pyproj).
+    options : WarpOptions
+    overwrite : bool
+        Replace an existing ``dst``.
+    progress : callable(done, total), optional
+        Called after each tile.
+
+    Returns
+    -------
+    WarpResult
+
+    Raises
+    ------
+    RasterIOError
+        Unreadable source, unwritable output.
+    InvalidInputError
+        Existing output without ``overwrite``, ``dst`` equal to ``src``, bad options.
+    """
+
+    opts = options or WarpOptions()
+    sched = resolve_scheduler(opts.scheduler)
+    t0 = time.perf_counter()
+    src = str(src)
+    if Path(dst).resolve() == Path(src).resolve():
+        raise InvalidInputError(f"output {str(dst)!r} is the input; the input is never modified")
+    check_output(dst, overwrite=overwrite)
+    with open_raster(src) as ds:
+        count, colorinterp = ds.count, list(ds.colorinterp)
+    policy, dtype = _output_policy(src, opts)
+    check_free_space(dst, grid, count + (1 if policy.kind == "mask" else 0), dtype, opts)
+    fill = _fill_value(policy.kind, policy.nodata, dtype)
+    mapping = _Mapping(grid, source_from_world, world_crs, opts.map_step_px)
+    engine = _Engine(src, mapping, grid, opts, dtype, count, fill)
+    tile = opts.tile_px
+    windows = [(c, r, min(tile, grid.width - c), min(tile, grid.height - r))
+               for r in range(0, grid.height, tile) for c in range(0, grid.width, tile)]
+    n_empty = 0
+    crs = grid.crs
+    try:
+        # bound GDAL's block cache (its default is 5% of RAM): tiles are written once, whole
+        with rasterio.Env(GDAL_CACHEMAX=opts.block_cache_mb * 1024 * 1024), \
+                atomic_output(dst, overwrite=overwrite) as tmp:
+            body = tmp.with_name(tmp.name + ".body.tif") if opts.cog else tmp
+            try:
+                # on Dask the workers compress the tiles and this process copies their bytes (raw mode)
+                with TiledWriter(body, grid.width, grid.height, count, dtype.name, grid.transform, crs, policy,
+                                 tile=tile, compress="none" if opts.cog else opts.compress,
+                                 threads=opts.n_threads, colorinterp=colorinterp,
+                                 raw=not sched.is_local_threads) as writer:
+                    n_empty = _run_tiles(engine, writer, windows, opts.n_threads, progress, scheduler=sched,
+                                         workdir=tmp.parent)
+                if opts.cog:
+                    translate_to_cog(body, tmp, compress=opts.compress, threads=opts.n_threads, tile=tile)
+            finally:
+                if opts.cog and body.exists():
+                    body.unlink()
+    finally:
+        engine.close()
+    dt = time.perf_counter() - t0
+    logger.info("warped %s -> %s: %d x %d, %d tiles (%d empty) in %.2f s", src, dst, grid.width, grid.height,
+                len(windows), n_empty, dt)
+    return WarpResult(Path(dst), grid, len(windows), n_empty, dt, policy.kind, policy.nodata)
+
+
+def check_free_space(dst: str | Path, grid: Grid, bands: int, dtype: np.dtype, opts: WarpOptions) -> None:
+    """Refuse an output that cannot fit on the destination's file system, before any work.
+
+    The bound is the uncompressed size divided by :data:`ASSUMED_COMPRESSION` (a compressed output
+    may turn out smaller; one that needs more than this fails when written, and is cleaned up). A
+    COG is first written uncompressed beside the destination, so it needs its full size in addition.
+    """
+    raw = float(grid.width) * float(grid.height) * bands * np.dtype(dtype).itemsize
+    compressed = raw if opts.compress.lower() == "none" else raw / ASSUMED_COMPRESSION
+    need = compressed + (raw if opts.cog else 0.0)
+    folder = Path(dst).parent if str(Path(dst).parent) else Path(".")
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return
+    if need > free:
+        raise RasterIOError(
+            f"not enough space left on device for {str(dst)!r}: the output grid of {grid.width} x {grid.height} px "
+            f"x {bands} band(s) {np.dtype(dtype).name} is {raw / 1e6:,.1f} MB uncompressed and needs about "
+            f"{need / 1e6:,.1f} MB{' (COG: uncompressed body + copy)' if opts.cog else ''}; "
+            f"{free / 1e6:,.1f} MB are free in {str(folder)!r}")
+
+
+def worker_count(threads: int | None) -> int:
+    """Threads of a tiled engine: ``threads`` when given, else every core."""
+    return threads or (os.cpu_count() or 1)
+
+
+def _run_tiles(engine: _Engine, writer, windows, threads: int, progress, *, scheduler: Scheduler | str | None = None,
+               workdir: str | Path = ".") -> int:
+    def write(res: tuple[Any, Any, bool], c: int, r: int) -> bool:
+        data, valid, empty = res
+        writer.write(data, c, r, valid)
+        return empty
+
+    return run_windows(engine, write, windows, threads=threads, progress=progress, scheduler=scheduler,
+                       workdir=workdir, name="warp", raw_writer=writer if writer.raw else None)
+
+
+def warp_array(image: ArrayLike, source_from_target: Callable[[NDArray], NDArray] | ArrayLike,
+               out_shape: tuple[int, int], *, resampling: str = "bilinear", fill: float = 0
+               ) -> NDArray:
+    """Warp an in-memory image (small; for demos and tests) by an inverse pixel mapping.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, C)
+    source_from_target : (3, 3) matrix or callable (N, 2) -> (N, 2)
+        Target pixel -> source pixel.
+    out_shape : (rows, cols)
+        At most 32767 each.
+
+    Returns
+    -------
+    (rows, cols[, C]) array of the image's dtype; ``fill`` outside the source.
+    """
+
+    a = np.asarray(image)
+    if a.ndim not in (2, 3):
+        raise InvalidInputError(f"`image` must be (H, W) or (H, W, C); got {a.shape}")
+    h, w = int(out_shape[0]), int(out_shape[1])
+    if not (0 < h <= _CV_LIMIT and 0 < w <= _CV_LIMIT) or max(a.shape[:2]) > _CV_LIMIT:
+        raise InvalidInputError(f"warp_array handles images up to {_CV_LIMIT} px; use warp_raster")
+    interp = _resampling_table()[resampling][0] if resampling in RESAMPLING_NAMES else None
+    if interp is None:
+        raise InvalidInputError(f"unknown resampling {resampling!r}")
+    if callable(source_from_target) and not hasattr(source_from_target, "matrix"):
+        gx, gy = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+        p = np.asarray(source_from_target(np.column_stack([gx.ravel(), gy.ravel()])))
+        mx, my = p[:, 0].reshape(h, w).astype(np.float32), p[:, 1].reshape(h, w).astype(np.float32)
+        return cv2.remap(_cv_dtype(a), mx, my, interp, borderMode=cv2.BORDER_CONSTANT,
+                         borderValue=fill).astype(a.dtype)
+    M = np.asarray(getattr(source_from_target, "matrix", source_from_target), dtype=np.float64)
+    if M.shape != (3, 3):
+        raise InvalidInputError(f"matrix must be (3, 3); got {M.shape}")
+    return cv2.warpPerspective(_cv_dtype(a), M, (w, h), flags=interp | cv2.WARP_INVERSE_MAP,
+                               borderMode=cv2.BORDER_CONSTANT, borderValue=fill).astype(a.dtype)
+
+
+# --------------------------------------------------------------------------- GCP georectification
+@dataclass(frozen=True, eq=False)
+class GeoRectification:
+    """Result of :func:`georectify` / :func:`rectify_with_transform`.
+
+    Attributes
+    ----------
+    fit : rectify.geometry.transforms.FitResult or None
+        The forward model (source pixels -> target) and its residual table.
+    warp : WarpResult
+    crs : str or None
+        Output CRS.
+    method : str
+    notes : tuple of str
+        One-line notes for the user (GCPs outside the source image).
+    """
+
+    fit: Any
+    warp: WarpResult
+    crs: str | None
+    method: str
+    notes: tuple[str, ...] = ()
+
+
+def gcps_outside(pixel: NDArray[np.float64], width: int, height: int) -> NDArray[np.bool_]:
+    """(N,) mask of the GCPs whose source pixel lies outside the ``width`` x ``height`` image."""
+    p = np.asarray(pixel, dtype=np.float64).reshape(-1, 2)
+    return np.asarray((p[:, 0] < -0.5) | (p[:, 0] > width - 0.5) | (p[:, 1] < -0.5) | (p[:, 1] > height - 0.5))
+
+
+def outside_note(pixel: NDArray[np.float64], ids, width: int, height: int) -> str | None:
+    """A one-line note naming the GCPs outside the source image (used for the fit, as ``rectify fit`` does),
+    or None when all are inside."""
+    out = gcps_outside(pixel, width, height)
+    if not out.any():
+        return None
+    i = int(np.flatnonzero(out)[0])
+    return (f"note: {int(out.sum())} GCP(s) outside the {width} x {height} image, used for the fit; first is "
+            f"{ids[i]!r} at (col, row) = {np.round(pixel[i], 3).tolist()}")
+
+
+def check_gcps_inside(pixel: NDArray[np.float64], ids, width: int, height: int) -> None:
+    """Raise InvalidInputError naming the first GCP outside the source image (for callers that need it)."""
+    note = outside_note(pixel, ids, width, height)
+    if note is not None:
+        raise InvalidInputError(note.removeprefix("note: ").replace(", used for the fit", ""))
+
+
+class _Inverse:
+    """Callable wrapper exposing a model's inverse (and its matrix when it has one)."""
+
+    def __init__(self, model):
+        self._m = model
+        if hasattr(model, "matrix"):
+            self.matrix = np.asarray(model.matrix, dtype=np.float64)
+
+    def __call__(self, pts):
+        return self._m(pts)
+
+
+def georectify(src: str | Path, dst: str | Path, gcps, *, method: str = "homography",
+               gcp_crs: str | None = None, dst_crs: str | None = None, resolution: float | None = None,
+               options: WarpOptions | None = None, overwrite: bool = False,
+               progress: Callable[[int, int], None] | None = None) -> GeoRectification:
+    """Fit a transform to GCPs and warp the source into a georeferenced GeoTIFF.
+
+    Parameters
+    ----------
+    src, dst : path
+    gcps : rectify.formats.common.GcpTable
+        ``pixel`` = source (col, row), ``target`` = map coordinates in
+        ``gcp_crs`` (or the table's CRS), or target pixels without a CRS.
+    method : str
+        ``homography``, ``cotangent``, ``affine``, ``poly2`` or ``poly3``.
+    gcp_crs, dst_crs : str, optional
+        The GCP CRS (overrides the file's) and the output CRS (default: the GCP
+        CRS). When they differ the GCP coordinates are transformed with pyproj
+        and the model is fitted in the output CRS.
+    resolution : float, optional
+        Output pixel size (output CRS units); default as GDAL suggests.
+
+    Returns
+    -------
+    GeoRectification
+
+    Raises
+    ------
+    EstimationError
+        Too few or degenerate GCPs.
+    InvalidInputError
+        Unknown method, existing output. GCPs outside the image are used (as by ``rectify fit``) and
+        named in ``notes``.
+    CRSError
+        Unknown CRS, or an output CRS without a GCP CRS.
+    """
+    m = METHODS.get(method)
+    if m is None:
+        raise InvalidInputError(f"unknown method {method!r}; expected one of {sorted(METHODS)}")
+    info = raster_info(src)
+    g_crs = gcp_crs or gcps.crs
+    g_crs = crs_to_string(g_crs) if g_crs else None
+    out_crs = crs_to_string(dst_crs) if dst_crs else g_crs
+    if out_crs is not None and g_crs is None:
+        raise CRSError("an output CRS needs the GCP CRS (a '# crs=' line in the GCP file or --gcp-crs)")
+    note = outside_note(gcps.pixel, gcps.ids, info.width, info.height)
+    if note is not None:  # accepted, as by 'rectify fit' (e.g. GCPs read off a larger scan); the summary says so
+        logger.info(note)
+    target = gcps.target
+    if g_crs is not None and out_crs is not None and g_crs != out_crs:
+        target = transform_xy(g_crs, out_crs, gcps.target)
+    # fit in a local frame (targets minus their rounded centroid): map coordinates of
+    # 1e5..1e7 m would otherwise dominate the conditioning of the normal equations
+    fit_rows = ~gcps.check
+    offset = np.round(target[fit_rows].mean(axis=0)) if fit_rows.any() else np.zeros(2)
+    local = GcpTable(gcps.ids, gcps.pixel, target - offset, gcps.z, gcps.check, out_crs)
+    fit_local = fit_gcps(local, method)  # residuals in the output CRS's unit (px without a CRS)
+    if method in ("poly2", "poly3"):
+        mask = fit_local.table.fit_mask
+        inverse_local = m.from_points(local.target[mask], local.pixel[mask])
+    else:
+        inverse_local = fit_local.model.inverse
+    forward = _Shifted(fit_local.model, offset, after=True)
+    inverse = _Shifted(inverse_local, offset, after=False)
+    t = fit_local.table
+    table_out = ResidualTable(step=t.step, ids=t.ids, observed=t.observed + offset, adjusted=t.adjusted + offset,
+                              units=t.units, weights=t.weights, outlier=t.outlier,
+                              check=t.check, position_px=t.position_px, n_params=t.n_params,
+                              extra=dict(t.extra, fit_offset=offset.tolist()))
+    fit = FitResult(forward, table_out, method)  # type: ignore[arg-type]  # maps like the model, shifted
+    opts = options or WarpOptions()
+    grid = output_grid(forward, info.width, info.height, resolution=resolution, crs=out_crs,
+                       y_up=out_crs is not None, max_pixels=opts.max_pixels)
+    res = warp_raster(src, dst, inverse, grid, options=opts, overwrite=overwrite, progress=progress)
+    return GeoRectification(fit, res, out_crs, method, notes=(note,) if note else ())
+
+
+class _Shifted:
+    """A model followed (``after``) or preceded by a translation of the target frame.
+
+    ``after=True``: p -> model(p) + offset (forward, source -> target).
+    ``after=False``: w -> model(w - offset) (inverse, target -> source).
+    Exposes ``matrix`` (3, 3) when the model has one, and ``model``/``offset``.
+    """
+
+    def __init__(self, model, offset: NDArray[np.float64], *, after: bool):
+        self.model, self.offset, self.after = model, np.asarray(offset, dtype=np.float64), after
+        m = getattr(model, "matrix", None)
+        if m is not None:
+            T = np.eye(3)
+            T[:2, 2] = self.offset if after else -self.offset
+            mm = T @ np.asarray(m) if after else np.asarray(m) @ T
+            self.matrix = mm / mm[2, 2] if abs(mm[2, 2]) > 1e-300 else mm
+
+    def __call__(self, pts):
+        p = np.asarray(pts, dtype=np.float64)
+        if self.after:
+            return np.asarray(self.model(p)) + self.offset
+        return np.asarray(self.model(p - self.offset))
+
+
+def rectify_with_transform(src: str | Path, dst: str | Path, model, *, model_crs: str | None = None,
+                           dst_crs: str | None = None, resolution: float | None = None,
+                           options: WarpOptions | None = None, overwrite: bool = False,
+                           progress: Callable[[int, int], None] | None = None) -> GeoRectification:
+    """Warp with a saved forward model (source pixels -> target in ``model_crs``).
+
+    With ``dst_crs`` different from ``model_crs`` the output grid is computed
+    from the footprint transformed through pyproj, and every output pixel is
+    mapped back through pyproj (sparse, interpolated) and the model's inverse.
+    """
+    info = raster_info(src)
+    m_crs = crs_to_string(model_crs) if model_crs else None
+    out_crs = crs_to_string(dst_crs) if dst_crs else m_crs
+    if out_crs is not None and m_crs is None:
+        raise CRSError("an output CRS needs the transform's CRS ('crs' in transform.json or --gcp-crs)")
+    inverse = model.inverse
+    if m_crs is not None and out_crs != m_crs:
+        t = get_transformer(m_crs, out_crs)
+
+        def forward(p):
+            w = np.asarray(model(p))
+            x, y = t.transform(w[:, 0], w[:, 1])
+            return np.column_stack([x, y])
+        world_crs = m_crs
+    else:
+        forward, world_crs = model, None
+    model_matrix = getattr(model, "matrix", None)
+    if model_matrix is not None:
+        check_horizon(model_matrix, info.width, info.height)
+    grid = output_grid(forward, info.width, info.height, resolution=resolution, crs=out_crs,
+                       y_up=out_crs is not None, max_pixels=(options or WarpOptions()).max_pixels)
+    res = warp_raster(src, dst, _Inverse(inverse), grid, world_crs=world_crs, options=options,
+                      overwrite=overwrite, progress=progress)
+    try:
+        name = method_of(model)
+    except InvalidInputError:
+        name = type(model).__name__
+    return GeoRectification(None, res, out_crs, name)

@@ -1,0 +1,643 @@
+"""``stereo block``: a block of images from tie points to an adjusted orientation, points and a report.
+
+Steps (each in its own module):
+
+1. the workspace checks every planned output and the report folder before any work;
+2. the inputs: one camera JSON for every image, or the cameras of an OpenSfM
+   ``reconstruction.json``; known poses from a position/angle CSV or the reconstruction
+   (:mod:`stereo.formats.poses`); the block control CSV (:mod:`stereo.formats.block`);
+3. block tie points: pairs from footprints (poses known) or all pairs / an overview match,
+   tracks by union-find, evenly spread (:mod:`stereo.features.tracks`); the control points'
+   image measurements join them as tracks of their own;
+4. initial orientation: with known poses the tracks are intersected through them; without,
+   a chain of independent models joined by 7-parameter similarities and brought to the ground
+   by control and/or GNSS positions (:mod:`stereo.block.independent`);
+5. the bundle adjustment with the observation groups and their precisions
+   (:mod:`stereo.block.bundle.adjust`);
+6. the outputs, all or none (the layout in :data:`BLOCK_LAYOUT`, ``camera_<id>.json`` per camera),
+   and the report.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from rectify.actions.workspace import StrPath, Workspace
+from rectify.errors import InvalidInputError
+from rectify.geometry.camera import Camera
+from rectify.geometry.residuals import ResidualTable, rms
+from stereo.block.bundle.adjust import BlockControl, BundleOptions, BundleResult, GnssObservations, adjust_bundle
+from stereo.block.independent import IndependentOptions, independent_models, to_ground, triangulate_tracks
+from stereo.block.types import Pose, Tracks
+from stereo.features.tracks import BlockMatchOptions, block_tie_points
+from stereo.formats.block import BlockControlTable, block_orientation_text, observations_text, read_block_control
+from stereo.formats.orientation import dump_ply, points_csv_text
+from stereo.formats.poses import PoseTable, pose_csv_text, read_opensfm, read_pose_csv
+from stereo.report.block import write_block_report
+
+__all__ = ["BLOCK_LAYOUT", "BlockOptions", "BlockResult", "run_block"]
+
+Progress = Callable[[int, int], None]
+
+#: the files of ``stereo block``'s output folder, by role
+BLOCK_LAYOUT = {
+    "orientation": "orientation.json",
+    "poses": "poses.csv",
+    "points": "points.ply",
+    "points_csv": "points.csv",
+    "points_las": "points.las",
+    "observations": "observations.csv",
+}
+_REPORT = "report"
+DEFAULT_CAMERA = "camera"
+
+
+@dataclass(frozen=True)
+class BlockOptions:
+    """Options of ``stereo block`` (the bundle's numerical options are in ``bundle``).
+
+    Attributes
+    ----------
+    gnss_sigma_m : (3,) float or None
+        A-priori standard deviations (x, y, z), metres, of the GNSS projection centres. When set
+        (or when the pose file has ``sx, sy, sz``), the positions of the pose file are
+        observations of the adjustment; otherwise they are only initial values.
+    ins_sigma_rad : (3,) float or None
+        A-priori standard deviations of the angles of the pose file (omega, phi, kappa), radians;
+        when set the angles are observations too.
+    control_sigma_m : (3,) float
+        Default a-priori standard deviations of control coordinates (x, y, z), ground units, where
+        the control file gives none.
+    control_sigma_px : float
+        A-priori standard deviation of the control points' image measurements, pixels.
+    tie_sigma_px : float
+        A-priori standard deviation of the tie-point measurements, pixels.
+    check_ids : tuple of str
+        Control ids withheld from the adjustment and used as check points.
+    lever_arm_m : (3,) float or None
+        GNSS antenna offset in the camera frame, metres (for a navigation pose file).
+    boresight_rad : (3,) float or None
+        Boresight angles of the camera in the INS body frame (for a navigation pose file).
+    ground_z : float or None
+        Mean terrain height for the footprints (default: from control, else 0 below the lowest
+        camera's flying height estimate).
+    match : BlockMatchOptions
+        Tie-point options.
+    bundle : BundleOptions
+        Adjustment options (image sigma, robust estimator, self-calibration, ...). The default is
+        Tukey's robust weights with variance components per group: a-priori sigmas of tie points,
+        GNSS and control are rarely known to better than a factor of two, and one wrong group sigma
+        would make every predicted standard error wrong. Up to 100 iterations: a start from
+        independent models can be metres off, and the robust stages come on top.
+    report : bool
+        Write the QA report into ``OUTDIR/report``.
+    """
+
+    gnss_sigma_m: tuple[float, float, float] | None = None
+    ins_sigma_rad: tuple[float, float, float] | None = None
+    control_sigma_m: tuple[float, float, float] = (0.05, 0.05, 0.05)
+    control_sigma_px: float = 1.0
+    tie_sigma_px: float = 1.0
+    check_ids: tuple[str, ...] = ()
+    lever_arm_m: tuple[float, float, float] | None = None
+    boresight_rad: tuple[float, float, float] | None = None
+    ground_z: float | None = None
+    match: BlockMatchOptions = field(default_factory=BlockMatchOptions)
+    bundle: BundleOptions = field(default_factory=lambda: BundleOptions(robust="tukey", variance_components=True,
+                                                                        max_iterations=100))
+    report: bool = True
+
+    def __post_init__(self) -> None:
+        for name in ("gnss_sigma_m", "ins_sigma_rad", "control_sigma_m"):
+            v = getattr(self, name)
+            if v is None:
+                continue
+            t = tuple(float(x) for x in v)
+            if len(t) != 3 or not all(math.isfinite(x) and x > 0 for x in t):
+                raise InvalidInputError(f"`{name}` must be three finite numbers > 0; got {v!r}")
+            object.__setattr__(self, name, t)
+        for name in ("control_sigma_px", "tie_sigma_px"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise InvalidInputError(f"`{name}` must be a finite number > 0; got {v!r}")
+        object.__setattr__(self, "check_ids", tuple(str(s) for s in self.check_ids))
+
+
+@dataclass(frozen=True, eq=False)
+class BlockResult:
+    """Result of :func:`run_block`: the adjustment, the inputs it used and the files written."""
+
+    bundle: BundleResult
+    tracks: Tracks
+    n_tie_points: int
+    n_control: int
+    n_check: int
+    initial: str
+    out_dir: Path
+    files: tuple[Path, ...]
+    report: Path | None
+    timings_s: dict[str, float] = field(default_factory=dict)
+    tie_lines: tuple[str, ...] = ()
+    n_points_written: int = 0
+
+    def summary_lines(self) -> list[str]:
+        out = list(self.tie_lines)
+        out.append(f"initial orientation: {self.initial}")
+        out.extend(self.bundle.summary_lines())
+        left = len(self.bundle.points) - self.n_points_written
+        out.append(f"points written: {self.n_points_written}" + (f" ({left} left out: fewer than two rays not "
+                                                                  "flagged as blunders)" if left else ""))
+        out.extend(f"wrote {p}" for p in self.files)
+        if self.report is not None:
+            out.append(f"report: {self.report}")
+        return out
+
+
+# --------------------------------------------------------------------------- inputs
+def _image_names(images: Sequence[StrPath]) -> tuple[str, ...]:
+    names = tuple(Path(p).name for p in images)
+    if len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise InvalidInputError(f"two images have the same file name {dup[:3]}: image names must be unique")
+    return names
+
+
+def _match_pose_names(names: Sequence[str], poses: Sequence[Pose], source: StrPath) -> list[Pose]:
+    """The pose of every image, in image order; a pose file names images by file name or by stem."""
+    by_name = {p.image: p for p in poses}
+    out = []
+    missing = []
+    for n in names:
+        p = by_name.get(n) or by_name.get(Path(n).stem)
+        if p is None:
+            missing.append(n)
+            continue
+        out.append(Pose(n, p.camera, p.position, p.rotation))
+    if missing:
+        raise InvalidInputError(f"{str(source)!r} has no pose for image(s) {missing[:5]}"
+                                f"{' ...' if len(missing) > 5 else ''} (it names {sorted(by_name)[:5]} ...)")
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class _Inputs:
+    cameras: dict[str, Camera]
+    camera_of: tuple[str, ...]
+    poses: list[Pose] | None
+    pose_sigma: NDArray[np.float64] | None  # (n, 6) from the pose file
+    angle_system: str  # "omega-phi-kappa" or "navigation" (the pose file's angles)
+    crs: str | None
+    control: BlockControlTable | None
+
+
+def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera | Mapping[str, Camera] | None,
+                 poses: StrPath | None, control: StrPath | None, opts: BlockOptions) -> _Inputs:
+    cameras: dict[str, Camera] = {}
+    if isinstance(camera, Camera):
+        cameras = {DEFAULT_CAMERA: camera}
+    elif isinstance(camera, Mapping):
+        cameras = dict(camera)
+    elif camera is not None:
+        cameras = {DEFAULT_CAMERA: ws.load_camera(camera)}
+    pose_list: list[Pose] | None = None
+    sigma = None
+    crs = None
+    angle_system = "omega-phi-kappa"
+    if poses is not None:
+        ws.add_inputs(poses)
+        if str(poses).lower().endswith(".json"):
+            rec = read_opensfm(poses)
+            if not cameras:
+                cameras = dict(rec.cameras)
+            pose_list = list(rec.poses)
+            if camera is not None and len(cameras) == 1:  # one camera given: every image uses it
+                only = next(iter(cameras))
+                pose_list = [Pose(p.image, only, p.position, p.rotation) for p in pose_list]
+        else:
+            table: PoseTable = read_pose_csv(poses, camera=DEFAULT_CAMERA if len(cameras) <= 1 else None,
+                                             boresight_rad=opts.boresight_rad, lever_arm_m=opts.lever_arm_m)
+            pose_list, sigma, crs, angle_system = list(table.poses), table.sigma, table.crs, table.angle_system
+            if len(cameras) == 1:
+                only = next(iter(cameras))
+                pose_list = [Pose(p.image, only, p.position, p.rotation) for p in pose_list]
+        order = {p.image: k for k, p in enumerate(pose_list)}
+        pose_list = _match_pose_names(names, pose_list, poses)
+        if sigma is not None:
+            idx = [order.get(n, order.get(Path(n).stem, 0)) for n in names]
+            sigma = np.asarray(sigma)[idx]
+    if not cameras:
+        raise InvalidInputError("no camera: give --camera CAM.json (or --poses with an OpenSfM reconstruction.json)")
+    if pose_list is not None:
+        camera_of = tuple(p.camera for p in pose_list)
+    elif len(cameras) == 1:
+        camera_of = (next(iter(cameras)),) * len(names)
+    else:
+        raise InvalidInputError(f"{len(cameras)} cameras but no poses to say which image uses which")
+    for n, c in zip(names, camera_of, strict=True):
+        if c not in cameras:
+            raise InvalidInputError(f"image {n!r} names camera {c!r}, which is not given (cameras: {sorted(cameras)})")
+    ctrl = None
+    if control is not None:
+        ws.add_inputs(control)
+        ctrl = read_block_control(control)
+        unknown = sorted({m for m in ctrl.meas_image if m not in names and Path(m).stem not in
+                          {Path(n).stem for n in names}})
+        if unknown:
+            raise InvalidInputError(f"{str(control)!r} measures points in image(s) {unknown[:5]} that are not in the "
+                                    f"block (images: {list(names)[:5]} ...)")
+        missing_checks = sorted(set(opts.check_ids) - set(ctrl.ids))
+        if missing_checks:
+            raise InvalidInputError(f"check id(s) {missing_checks} are not in {str(control)!r}")
+        if crs is None:
+            crs = ctrl.crs
+        elif ctrl.crs is not None and ctrl.crs != crs:
+            from rectify.geometry.crs import parse_crs
+
+            if parse_crs(ctrl.crs) != parse_crs(crs):
+                raise InvalidInputError(f"the control file's CRS {ctrl.crs!r} differs from the pose file's {crs!r}")
+    elif opts.check_ids:
+        raise InvalidInputError(f"check ids {list(opts.check_ids)} given without a control file")
+    return _Inputs(cameras, camera_of, pose_list, sigma, angle_system, crs, ctrl)
+
+
+def _with_control(tracks: Tracks, ctrl: BlockControlTable | None, names: tuple[str, ...],
+                  sigma_px: float) -> Tracks:
+    """Add the control points' image measurements to the tie tracks (as tracks of their own)."""
+    if ctrl is None or not len(ctrl.meas_id):
+        return tracks
+    clash = sorted(set(ctrl.ids) & set(tracks.point_ids))
+    if clash:
+        raise InvalidInputError(f"control id(s) {clash[:5]} clash with tie-point ids; rename them in the control file")
+    stem = {Path(n).stem: k for k, n in enumerate(names)}
+    idx = {n: k for k, n in enumerate(names)}
+    cidx = ctrl.index()
+    counts: dict[str, int] = {}
+    for m in ctrl.meas_id:
+        counts[m] = counts.get(m, 0) + 1
+    keep = [k for k, m in enumerate(ctrl.meas_id) if counts[m] >= 2]
+    used_ids = sorted({ctrl.meas_id[k] for k in keep}, key=lambda s: cidx[s])
+    new_index = {s: len(tracks.point_ids) + j for j, s in enumerate(used_ids)}
+    pt = np.concatenate([tracks.obs_point, [new_index[ctrl.meas_id[k]] for k in keep]]).astype(np.int64)
+    im = np.concatenate([tracks.obs_image, [idx.get(ctrl.meas_image[k], stem.get(Path(ctrl.meas_image[k]).stem, -1))
+                                            for k in keep]]).astype(np.int64)
+    px = np.vstack([tracks.obs_pixel, ctrl.meas_pixel[keep].reshape(-1, 2)])
+    sg = np.concatenate([tracks.obs_sigma_px, np.full(len(keep), float(sigma_px))])
+    return Tracks(tracks.images, tracks.point_ids + tuple(used_ids), pt, im, px, sg)
+
+
+def _block_control(ctrl: BlockControlTable | None, tracks: Tracks, opts: BlockOptions) -> BlockControl | None:
+    if ctrl is None:
+        return None
+    present = set(tracks.point_ids)
+    rows = [k for k, i in enumerate(ctrl.ids) if ctrl.kind[k] != "tie" and i in present]
+    if not rows:
+        return None
+    sig = ctrl.sigma_m[rows]
+    default = np.asarray(opts.control_sigma_m, dtype=np.float64)
+    sig = np.where(np.isfinite(sig), sig, default)
+    return BlockControl(ids=tuple(ctrl.ids[k] for k in rows), xyz=ctrl.xyz[rows],
+                        kind=tuple(ctrl.kind[k] for k in rows), sigma_m=sig,
+                        check=np.array([ctrl.ids[k] in opts.check_ids for k in rows], dtype=bool))
+
+
+def _gnss(inp: _Inputs, opts: BlockOptions) -> GnssObservations | None:
+    if inp.poses is None:
+        return None
+    n = len(inp.poses)
+    sig_pos = None
+    if opts.gnss_sigma_m is not None:
+        sig_pos = np.tile(np.asarray(opts.gnss_sigma_m, dtype=np.float64), (n, 1))
+    elif inp.pose_sigma is not None and np.isfinite(inp.pose_sigma[:, :3]).all():
+        sig_pos = np.asarray(inp.pose_sigma[:, :3], dtype=np.float64)
+    if sig_pos is None:
+        return None
+    angles = sig_ang = None
+    if opts.ins_sigma_rad is not None:
+        sig_ang = np.tile(np.asarray(opts.ins_sigma_rad, dtype=np.float64), (n, 1))
+    elif inp.pose_sigma is not None and np.isfinite(inp.pose_sigma[:, 3:]).all():
+        # a navigation file's sigmas are of heading, pitch and roll; for a near-nadir camera they are
+        # those of kappa, phi/omega and omega/phi: their mean is used for each of omega, phi, kappa
+        sa = np.asarray(inp.pose_sigma[:, 3:], dtype=np.float64)
+        sig_ang = sa if inp.angle_system == "omega-phi-kappa" else np.repeat(sa.mean(axis=1, keepdims=True), 3, 1)
+    if sig_ang is not None:
+        angles = np.array([p.angles for p in inp.poses])
+    return GnssObservations(images=tuple(p.image for p in inp.poses),
+                            position=np.array([p.position for p in inp.poses]), sigma_m=sig_pos,
+                            angles=angles, sigma_rad=sig_ang)
+
+
+# --------------------------------------------------------------------------- the job
+#: an image keeps at least this many rays after the intersection through initial poses (else all of them)
+MIN_RAYS_PER_IMAGE = 12
+#: above this many image observations the default full covariance (every point's) becomes "poses"
+FULL_COVARIANCE_MAX_OBS = 200_000
+
+
+def plan_block(out_dir: StrPath, *, overwrite: bool, inputs: Sequence[StrPath | None],
+               report: bool) -> Workspace:
+    """The workspace of a block job: every output of :data:`BLOCK_LAYOUT` and the report folder checked."""
+    root = Path(out_dir)
+    ws = Workspace(root, overwrite=overwrite, inputs=[p for p in inputs if p is not None],
+                   report_dir=root / _REPORT if report else None)
+    if root.exists() and not root.is_dir():
+        raise InvalidInputError(f"output {str(root)!r} exists and is not a folder")
+    parent = next((p for p in root.parents if p.exists()), Path("."))
+    if not root.exists() and not parent.is_dir():
+        raise InvalidInputError(f"output folder {str(parent)!r} is a file")
+    ws.plan(*(root / n for n in BLOCK_LAYOUT.values()))
+    ws.check_report_dir()
+    if ws.report_dir is not None and (ws.report_dir / "report.html").exists() and not overwrite:
+        raise InvalidInputError(f"report folder {str(ws.report_dir)!r} already holds a report; pass --overwrite")
+    return ws
+
+
+def camera_paths(out_dir: Path, cameras: Mapping[str, Camera]) -> list[Path]:
+    """``OUTDIR/camera_<id>.json`` of each camera (the adjusted interior orientation, camera JSON)."""
+    safe = {k: "".join(c if c.isalnum() or c in "-_." else "_" for c in k) for k in cameras}
+    if len(set(safe.values())) != len(safe):
+        raise InvalidInputError(f"camera ids {sorted(cameras)} do not give distinct file names")
+    return [out_dir / f"camera_{safe[k]}.json" for k in cameras]
+
+
+def _triangulated(cameras: Mapping[str, Camera], poses: Sequence[Pose], tracks: Tracks
+                  ) -> tuple[Tracks, NDArray[np.float64]]:
+    """Intersect the tracks through known poses; drop rays and tracks that do not intersect."""
+    X, used = triangulate_tracks(cameras, poses, tracks)
+    ok = np.asarray(np.isfinite(X).all(axis=1), dtype=bool)
+    keep = used & ok[tracks.obs_point]
+    sub = tracks.subset(keep)
+    where = {pid: k for k, pid in enumerate(tracks.point_ids)}
+    return sub, X[[where[p] for p in sub.point_ids]].reshape(-1, 3)
+
+
+def _points_of(ids: Sequence[str], all_ids: Sequence[str], X: NDArray[np.float64]) -> NDArray[np.float64]:
+    where = {pid: k for k, pid in enumerate(all_ids)}
+    return X[[where[p] for p in ids]].reshape(-1, 3)
+
+
+def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | Camera | Mapping[str, Camera] | None,
+              poses: StrPath | None = None, control: StrPath | None = None, options: BlockOptions | None = None,
+              overwrite: bool = False, progress: Progress | None = None,
+              tracks: Tracks | None = None) -> BlockResult:
+    """``stereo block``: tie points, initial orientation, bundle adjustment, outputs and report.
+
+    Parameters
+    ----------
+    images : sequence of paths
+        The block's images (at least 2); their file names are the image names.
+    out_dir : path
+        Output folder (layout :data:`BLOCK_LAYOUT` plus ``report/``).
+    camera : path, Camera or mapping id -> Camera, optional
+        One camera for every image, or the cameras by id (with poses that name them). Optional
+        when ``poses`` is an OpenSfM ``reconstruction.json``.
+    poses : path, optional
+        Position/angle CSV or OpenSfM ``reconstruction.json``: initial values, and GNSS/INS
+        observations with ``gnss_sigma_m``/``ins_sigma_rad`` or standard-deviation columns.
+    control : path, optional
+        Block control CSV.
+    tracks : Tracks, optional
+        Tie points already measured (the matching is skipped); its images must be the file names.
+
+    Raises
+    ------
+    InvalidInputError, EstimationError, ConvergenceError, RasterIOError
+        With a one-line reason; nothing is left at the output paths.
+    """
+    opts = options or BlockOptions()
+    if len(images) < 2:
+        raise InvalidInputError(f"a block needs at least 2 images; got {len(images)}")
+    names = _image_names(images)
+    cam_input = camera if isinstance(camera, (str, Path)) else None
+    ws = plan_block(out_dir, overwrite=overwrite, inputs=[*images, cam_input, poses, control], report=opts.report)
+    inp = _load_inputs(ws, names, camera, poses, control, opts)
+    ws.plan(*camera_paths(Path(out_dir), inp.cameras))
+    if tracks is not None and tuple(tracks.images) != names:
+        raise InvalidInputError(f"the given tracks name images {list(tracks.images)[:4]}, not the block's "
+                                f"{list(names)[:4]}")
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    tie_lines: tuple[str, ...] = ()
+    if tracks is None:
+        ground_z = opts.ground_z
+        if ground_z is None and inp.control is not None and np.isfinite(inp.control.xyz[:, 2]).any():
+            ground_z = float(np.nanmean(inp.control.xyz[:, 2]))
+        cams_by_image = {n: inp.cameras[c] for n, c in zip(names, inp.camera_of, strict=True)}
+        tp = block_tie_points([Path(p) for p in images], names=names, cameras=cams_by_image, poses=inp.poses,
+                              ground_z=ground_z, options=opts.match, progress=progress)
+        tie = tp.tracks
+        tie_lines = tuple(tp.summary_lines())
+    else:
+        tie = tracks
+    n_tie = tie.n_points
+    all_tracks = _with_control(tie, inp.control, names, opts.control_sigma_px)
+    timings["tie_points_s"] = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    if inp.poses is not None:
+        poses0: list[Pose] = list(inp.poses)
+        all_tracks, points0 = _triangulated(inp.cameras, poses0, all_tracks)
+        initial = "from the given poses (tracks intersected through them)"
+    else:
+        mb = independent_models(inp.cameras, inp.camera_of, all_tracks, options=IndependentOptions(),
+                                progress=progress)
+        ctrl0 = _block_control(inp.control, all_tracks, opts)
+        use = None if ctrl0 is None else ~ctrl0.check & np.array([k == "full" or k == "height" for k in ctrl0.kind])
+        if ctrl0 is not None and use is not None and use.any():
+            gb = to_ground(mb, control=([i for i, u in zip(ctrl0.ids, use, strict=True) if u], ctrl0.xyz[use]))
+            poses0, X0 = list(gb.poses), np.asarray(gb.points)
+            initial = (f"independent models ({len(mb.joins)} models), to the ground by {len(gb.control_ids)} "
+                       f"control points (7-parameter similarity)")
+        else:
+            poses0, X0 = list(mb.poses), np.asarray(mb.points)
+            initial = f"independent models ({len(mb.joins)} models), in the model frame of the first pair"
+        # the tracks are intersected again through the chained poses, with rejection; an image whose
+        # chained pose was too rough to keep a few of its rays keeps all rays to triangulated points:
+        # the bundle judges those again with its robust weights
+        finite = np.asarray(np.isfinite(X0).all(axis=1), dtype=bool)
+        X1, used = triangulate_tracks(inp.cameras, poses0, all_tracks)
+        ok1 = np.asarray(np.isfinite(X1).all(axis=1), dtype=bool)
+        keep = used & ok1[all_tracks.obs_point]
+        per_image = np.bincount(all_tracks.obs_image[keep], minlength=len(names))
+        for i in np.flatnonzero(per_image < MIN_RAYS_PER_IMAGE):
+            back = (all_tracks.obs_image == i) & (ok1 | finite)[all_tracks.obs_point]
+            keep |= back
+        X0 = np.where(ok1[:, None], X1, X0)
+        sub = all_tracks.subset(keep)
+        points0 = _points_of(sub.point_ids, all_tracks.point_ids, X0)
+        all_tracks = sub
+    timings["initial_s"] = time.perf_counter() - t1
+    bcontrol = _block_control(inp.control, all_tracks, opts)
+    gnss = _gnss(inp, opts)
+    bopts = opts.bundle
+    if bopts.covariance == "full" and all_tracks.n_obs > FULL_COVARIANCE_MAX_OBS:
+        from dataclasses import replace
+
+        bopts = replace(bopts, covariance="poses")
+    t2 = time.perf_counter()
+    res = adjust_bundle(inp.cameras, poses0, all_tracks, points0, control=bcontrol, gnss=gnss, options=bopts,
+                        progress=progress)
+    timings["bundle_s"] = time.perf_counter() - t2
+    files, report_path = _write(ws, res, all_tracks, inp, names, n_tie, initial, timings)
+    n_written = int(_reliable(res, all_tracks).sum())
+    n_ctrl = 0 if bcontrol is None else int((~bcontrol.check).sum())
+    n_chk = 0 if bcontrol is None else int(bcontrol.check.sum())
+    return BlockResult(res, all_tracks, n_tie, n_ctrl, n_chk, initial, Path(out_dir), tuple(files), report_path,
+                       timings, tie_lines, n_written)
+
+
+def _tables(res: BundleResult, tracks: Tracks, units: str) -> list[ResidualTable]:
+    """Residual tables of the report: image observations, control, check points, GNSS centres."""
+    ids = [f"{tracks.point_ids[p]}@{tracks.images[i]}" for p, i in zip(tracks.obs_point, tracks.obs_image,
+                                                                       strict=True)]
+    v = np.asarray(res.residuals_px, dtype=np.float64)
+    w = np.min(np.asarray(res.weights, dtype=np.float64).reshape(-1, 2), axis=1)
+    out = [ResidualTable("bundle: image observations", ids, tracks.obs_pixel, tracks.obs_pixel + v, "px",
+                         weights=w, outlier=res.flagged, position_px=tracks.obs_pixel, sigma0=res.sigma0,
+                         extra={"sigma0_unit_weight": res.sigma0})]
+    comps = ("dX", "dY", "dZ")
+    if len(res.control_ids):
+        r = np.nan_to_num(np.asarray(res.control_residuals, dtype=np.float64))
+        out.append(ResidualTable("bundle: control points", res.control_ids, np.zeros_like(r), r, units,
+                                 components=comps,
+                                 outlier=np.array([c in res.flagged_control for c in res.control_ids], dtype=bool)))
+    if len(res.check_ids):
+        e = np.asarray(res.check_errors, dtype=np.float64)
+        sd = np.linalg.norm(np.asarray(res.check_std, dtype=np.float64).reshape(-1, 3), axis=1)
+        out.append(ResidualTable("bundle: check points (adjusted - given)", res.check_ids, np.zeros_like(e), e, units,
+                                 components=comps, check=np.ones(len(e), dtype=bool),
+                                 std=np.where(sd > 0, sd, np.nan)))
+    if len(res.gnss_residuals):
+        g = np.asarray(res.gnss_residuals, dtype=np.float64)
+        out.append(ResidualTable("bundle: GNSS projection centres", [p.image for p in res.poses][: len(g)],
+                                 np.zeros_like(g), g, units, components=comps))
+    return out
+
+
+def _residual_mm(res: BundleResult, tracks: Tracks, inp: _Inputs) -> NDArray[np.float64]:
+    """RMS image residual of each point over its rays, mm in the photo (pixels x pixel size)."""
+    pix = np.array([inp.cameras[c].pixel_size_mm for c in inp.camera_of])[tracks.obs_image]
+    v = np.asarray(res.residuals_px, dtype=np.float64) * pix[:, None]
+    ok = ~np.asarray(res.flagged, dtype=bool)
+    ss = np.bincount(tracks.obs_point[ok], weights=np.sum(v[ok] ** 2, axis=1), minlength=tracks.n_points)
+    n = np.bincount(tracks.obs_point[ok], minlength=tracks.n_points)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.sqrt(ss / np.maximum(n, 1))
+
+
+def _reliable(res: BundleResult, tracks: Tracks) -> NDArray[np.bool_]:
+    """(P,) points written: finite and seen by at least two rays not flagged as blunders (a point whose
+    rays were flagged is not determined by the adjustment; it stays in ``observations.csv``)."""
+    X = np.asarray(res.points, dtype=np.float64)
+    good = ~np.asarray(res.flagged, dtype=bool)
+    n_good = np.bincount(tracks.obs_point[good], minlength=tracks.n_points)
+    return np.asarray(np.isfinite(X).all(axis=1) & (n_good >= 2), dtype=bool)
+
+
+def _write(ws: Workspace, res: BundleResult, tracks: Tracks, inp: _Inputs, names: tuple[str, ...], n_tie: int,
+           initial: str, timings: dict[str, float]) -> tuple[list[Path], Path | None]:
+    from stereo.dense.dsm import LasWriter
+
+    root = Path(str(ws.root))
+    X = np.asarray(res.points, dtype=np.float64)
+    ok = _reliable(res, tracks)
+    ids = [tracks.point_ids[i] for i in np.flatnonzero(ok)]
+    pstd = np.asarray(res.point_std, dtype=np.float64)
+    std = pstd[ok] if np.isfinite(pstd[ok]).all() and ok.any() else None
+    resid_mm = _residual_mm(res, tracks, inp)
+    units = "m"
+    summary: dict[str, Any] = {"images": len(names), "tie_points": n_tie, "points": int(ok.sum()),
+                               "points_left_out": int((~ok).sum()),
+                               "observations": tracks.n_obs, "initial": initial,
+                               "rms_image_px": res.rms_px, "sigma0": res.sigma0, "iterations": res.iterations,
+                               "converged": res.converged, "condition_number": res.condition_number, **timings}
+    ck_err = np.asarray(res.check_errors, dtype=np.float64).reshape(-1, 3)
+    if len(ck_err):
+        ck_std = np.asarray(res.check_std, dtype=np.float64).reshape(-1, 3)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            summary["check_rmse_xyz_m"] = [rms(ck_err[:, k]) for k in range(3)]
+            summary["check_normalised_rms"] = rms((ck_err / ck_std)[np.isfinite(ck_err / ck_std)])
+    ws.prepare()
+    written: list[Path] = []
+    report_path = None
+    wkt = None
+    if inp.crs is not None:
+        from rectify.geometry.crs import parse_crs
+
+        wkt = parse_crs(inp.crs).to_wkt()
+    with ws.transaction():
+        p = root / BLOCK_LAYOUT["orientation"]
+        ws.write_text(p, block_orientation_text(res.cameras, res.poses, std_errors=res.pose_std, crs=inp.crs,
+                                                sigma0={"all": res.sigma0, **res.sigma0_groups},
+                                                datum=list(res.datum) + [f"WARNING: {w}" for w in res.warnings],
+                                                summary=summary))
+        written.append(p)
+        p = root / BLOCK_LAYOUT["poses"]
+        ws.write_text(p, pose_csv_text(res.poses, crs=inp.crs, angles="deg", std=res.pose_std))
+        written.append(p)
+        p = root / BLOCK_LAYOUT["points"]
+        with ws.output(p) as tmp:
+            dump_ply(tmp, X[ok], comment=f"stereo block points, crs {inp.crs or 'local'}")
+        written.append(p)
+        p = root / BLOCK_LAYOUT["points_csv"]
+        ws.write_text(p, points_csv_text(ids, X[ok], resid_mm[ok], std=std, crs=inp.crs))
+        written.append(p)
+        p = root / BLOCK_LAYOUT["points_las"]
+        with ws.output(p) as tmp:
+            las = LasWriter(tmp, X[ok].min(axis=0) if ok.any() else np.zeros(3), crs_wkt=wkt)
+            try:
+                las.write(X[ok])
+            finally:
+                las.close()
+        written.append(p)
+        from rectify.formats.common import camera_document
+
+        for (cid, cam), p in zip(res.cameras.items(), camera_paths(root, res.cameras), strict=True):
+            ws.write_json(p, {**camera_document(cam), "name": cid})
+            written.append(p)
+        p = root / BLOCK_LAYOUT["observations"]
+        w = np.min(np.asarray(res.weights, dtype=np.float64).reshape(-1, 2), axis=1)
+        ws.write_text(p, observations_text(tracks, np.asarray(res.residuals_px), w, np.asarray(res.flagged)))
+        written.append(p)
+        if ws.report_dir is not None:
+            report_path = _report(ws.report_dir, res, tracks, inp, summary, units)
+    return written, report_path
+
+
+def _report(out: Path, res: BundleResult, tracks: Tracks, inp: _Inputs, summary: dict[str, Any],
+            units: str) -> Path:
+    pid = {p: k for k, p in enumerate(res.point_ids)}
+    X = np.asarray(res.points, dtype=np.float64)
+    ctrl_xy = X[[pid[i] for i in res.control_ids if i in pid]][:, :2] if len(res.control_ids) else None
+    chk_xy = chk_cov = chk_err = None
+    if len(res.check_ids):
+        rows = [pid[i] for i in res.check_ids]
+        chk_xy = X[rows][:, :2]
+        chk_err = np.asarray(res.check_errors, dtype=np.float64)[:, :2]
+        if res.point_covariance is not None:
+            chk_cov = np.asarray(res.point_covariance)[rows][:, :2, :2]
+        else:
+            s = np.asarray(res.check_std, dtype=np.float64)[:, :2]
+            chk_cov = np.stack([np.diag(v ** 2) for v in s])
+    ground: dict[str, Any] = {}
+    if ctrl_xy is not None and len(ctrl_xy) == len(res.control_ids):
+        ground["bundle: control points"] = ctrl_xy
+    if chk_xy is not None:
+        ground["bundle: check points (adjusted - given)"] = chk_xy
+    rep = {**summary, "datum": " | ".join(res.datum),
+           "sigma0_groups": dict(res.sigma0_groups), "variance_factors": dict(res.variance_factors)}
+    # the workspace refused an existing report without --overwrite before any work: the folder is this job's
+    shown = np.where(_reliable(res, tracks)[:, None], X, np.nan)
+    return write_block_report(out, title=f"stereo block: {len(res.poses)} images", cameras=res.cameras,
+                              poses=res.poses, points=shown, tracks=tracks,
+                              tables=_tables(res, tracks, units), residual_px=res.residuals_px,
+                              flagged=res.flagged, pose_std=res.pose_std, pose_cov=res.pose_covariance,
+                              correlation=res.correlation, control_xy=ctrl_xy, check_xy=chk_xy,
+                              check_cov_xy=chk_cov, check_error_xy=chk_err, summary=rep,
+                              crs=inp.crs if ground else None, ground_xy=ground or None, units=units, overwrite=True)

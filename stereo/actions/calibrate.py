@@ -1,0 +1,202 @@
+"""One call per CLI use: detect or read the target, calibrate, write the camera JSON and the report."""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from rectify.atomic import atomic_write_text, check_output
+from rectify.errors import CalibrationError, InvalidInputError
+from stereo.calibration.result import Calibration
+from stereo.features.targets import Chessboard, detect_chessboards, parse_pattern, parse_square, views_from_csv
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["CalibrationRun", "RigRun", "calibrate_images", "calibrate_points", "calibrate_rig_images", "parse_size"]
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationRun:
+    """What a calibration run did: the calibration, the files written, the views left out."""
+
+    calibration: Calibration
+    output: Path
+    missing: tuple[str, ...]
+    n_images: int
+    report: Path | None
+    units: str
+    source: str
+
+    def summary_lines(self) -> list[str]:
+        out = [self.source]
+        if self.missing:
+            out.append(f"board not found in {len(self.missing)} of {self.n_images} images: "
+                       f"{', '.join(self.missing)} (left out)")
+        out += self.calibration.summary_lines()
+        out.append(f"wrote {self.output} ({self.units} camera)")
+        if self.report is not None:
+            out.append(f"report: {self.report}")
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class RigRun:
+    """What a rig calibration did: the rig, the file written, the pairs left out."""
+
+    rig: Any
+    output: Path
+    missing: tuple[str, ...]
+    n_pairs: int
+    source: str
+
+    def summary_lines(self) -> list[str]:
+        out = [self.source]
+        if self.missing:
+            out.append(f"board not found in {len(self.missing)} of {self.n_pairs} pairs: {', '.join(self.missing)} "
+                       "(left out)")
+        out += self.rig.summary_lines()
+        out.append(f"wrote {self.output} (rig: left and right cameras, relative orientation)")
+        return out
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """``"640x480"`` -> (640, 480)."""
+    try:
+        w, h = parse_pattern(text)
+    except InvalidInputError:
+        raise InvalidInputError(f"image size must look like 640x480 (width x height, px); got {text!r}") from None
+    if w < 2 or h < 2:
+        raise InvalidInputError(f"image size must be at least 2 x 2 px; got {text!r}")
+    return w, h
+
+
+def _finish(cal: Calibration, output: str | Path, *, pixel_size_mm: float | None, report_dir: str | Path | None,
+            overwrite: bool) -> tuple[Path, Path | None]:
+    d = cal.camera_dict(pixel_size_mm=pixel_size_mm)
+    atomic_write_text(output, json.dumps(d, indent=2) + "\n", overwrite=overwrite)
+    rep = None
+    if report_dir is not None:
+        from stereo.report.calibration import write_calibration_report
+
+        rep = write_calibration_report(report_dir, cal, overwrite=overwrite)
+    return Path(output), rep
+
+
+def _model_kwargs(kw: dict[str, Any], pixel_size_mm: float | None) -> dict[str, Any]:
+    out = dict(kw)
+    if pixel_size_mm is not None:
+        out["equal_focal"] = True  # a millimetre camera has square pixels: one focal length
+    return out
+
+
+def calibrate_images(images: Sequence[str | Path], *, pattern: str, square: str = "1", output: str | Path,
+                     report_dir: str | Path | None = None, overwrite: bool = False,
+                     pixel_size_mm: float | None = None, **model: Any) -> CalibrationRun:
+    """Calibrate from chessboard images.
+
+    Parameters
+    ----------
+    images : sequence of paths
+    pattern : str
+        Inner corners, ``"9x6"``.
+    square : str
+        Square size, e.g. ``"25mm"`` (object units only; the interior orientation does not depend on it).
+    output : path
+        Camera JSON to write (checked before any work).
+    pixel_size_mm : float, optional
+        Write a millimetre camera.
+    **model
+        Keywords of :meth:`Calibration.from_views` (``equal_focal``, ``distortion``, ``symmetry``, ``robust``).
+
+    Raises
+    ------
+    InvalidInputError, CalibrationError, RasterIOError
+    """
+    check_output(output, overwrite=overwrite)
+    if not images:
+        raise InvalidInputError("no images given")
+    cols, rows = parse_pattern(pattern)
+    sq, unit = parse_square(square)
+    board = Chessboard(cols, rows, sq)
+    views, missing, (w, h) = detect_chessboards(images, board)
+    if len(views) < 3 and missing:
+        raise CalibrationError(f"chessboard {cols}x{rows} found in only {len(views)} of {len(images)} images "
+                               f"(not found: {', '.join(missing)}); at least 3 views needed")
+    if len(views) < 3:
+        raise CalibrationError(f"too few views: {len(views)} images of the chessboard {cols}x{rows}, at least 3 needed")
+    cal = Calibration.from_views(views, w, h, **_model_kwargs(model, pixel_size_mm))
+    out, rep = _finish(cal, output, pixel_size_mm=pixel_size_mm, report_dir=report_dir, overwrite=overwrite)
+    src = (f"chessboard {cols}x{rows} (square {sq:g} {unit}) found in {len(views)} of {len(images)} images, "
+           f"{w} x {h} px")
+    return CalibrationRun(cal, out, tuple(missing), len(images), rep, "mm" if pixel_size_mm else "pixel", src)
+
+
+def calibrate_points(points: str | Path, *, field: str | Path | None, size: str, output: str | Path,
+                     report_dir: str | Path | None = None, overwrite: bool = False,
+                     pixel_size_mm: float | None = None, **model: Any) -> CalibrationRun:
+    """Calibrate from measured image points (observation CSV) of a plane or 3D target (field CSV).
+
+    See :mod:`.targets` for the CSV formats; ``size`` is ``"640x480"``.
+    """
+    check_output(output, overwrite=overwrite)
+    w, h = parse_size(size)
+    views = views_from_csv(points, field)
+    cal = Calibration.from_views(views, w, h, **_model_kwargs(model, pixel_size_mm))
+    out, rep = _finish(cal, output, pixel_size_mm=pixel_size_mm, report_dir=report_dir, overwrite=overwrite)
+    kind = "plane target" if all(v.is_planar for v in views) else "3D test field"
+    src = f"{kind}: {sum(v.n for v in views)} measured points in {len(views)} views, {w} x {h} px"
+    return CalibrationRun(cal, out, (), len(views), rep, "mm" if pixel_size_mm else "pixel", src)
+
+
+def calibrate_rig_images(left: Sequence[str | Path], right: Sequence[str | Path], *, pattern: str, square: str = "1",
+                         output: str | Path, overwrite: bool = False, pixel_size_mm: float | None = None,
+                         **model: Any) -> RigRun:
+    """Calibrate a two-camera rig from synchronous chessboard images (``left[i]`` with ``right[i]``).
+
+    Pairs where the board is missing in either image are left out (named). Writes the rig JSON
+    (:meth:`.rig.RigCalibration.to_dict`).
+
+    Raises
+    ------
+    InvalidInputError
+        Different numbers of left and right images.
+    CalibrationError
+        Fewer than 3 complete pairs, or as :meth:`Calibration.from_views`.
+    """
+    from stereo.calibration.rig import RigCalibration
+
+    check_output(output, overwrite=overwrite)
+    if len(left) != len(right):
+        raise InvalidInputError(f"{len(left)} left images but {len(right)} right images")
+    if not left:
+        raise InvalidInputError("no images given")
+    cols, rows = parse_pattern(pattern)
+    sq, unit = parse_square(square)
+    board = Chessboard(cols, rows, sq)
+    lv, lmiss, lsize = detect_chessboards(left, board)
+    rv, rmiss, rsize = detect_chessboards(right, board)
+    lnames = [Path(p).name for p in left]
+    rnames = [Path(p).name for p in right]
+    by_l = {v.name: v for v in lv}
+    by_r = {v.name: v for v in rv}
+    pairs, missing = [], []
+    for a, b in zip(lnames, rnames, strict=True):
+        if a in by_l and b in by_r:
+            pairs.append((by_l[a], by_r[b]))
+        else:
+            missing.append(f"{a}/{b}")
+    if len(pairs) < 3:
+        raise CalibrationError(f"chessboard {cols}x{rows} found in both images of only {len(pairs)} of {len(left)} "
+                               f"pairs (not found: {', '.join(missing) or 'none'}); at least 3 pairs needed")
+    kw = _model_kwargs(model, pixel_size_mm)
+    kw.pop("robust", None)
+    rig = RigCalibration.from_views([p[0] for p in pairs], [p[1] for p in pairs], *lsize, right_size=rsize, **kw)
+    atomic_write_text(output, json.dumps(rig.to_dict(pixel_size_mm=pixel_size_mm), indent=2) + "\n",
+                      overwrite=overwrite)
+    src = (f"rig: chessboard {cols}x{rows} (square {sq:g} {unit}) in {len(pairs)} of {len(left)} pairs, "
+           f"left {lsize[0]} x {lsize[1]} px, right {rsize[0]} x {rsize[1]} px")
+    return RigRun(rig, Path(output), tuple(missing), len(left), src)

@@ -1,0 +1,1096 @@
+"""Bundle adjustment of a block of frame images.
+
+:func:`adjust_bundle` estimates the exterior orientation of every image, the object points of the
+tie-point tracks and, optionally, interior orientation parameters of the cameras (self-calibration)
+from these observation groups, each with its own a-priori precision:
+
+``image``
+    Measured pixels of the tracks (residuals in pixels); sigma = ``Tracks.obs_sigma_px`` times the
+    group sigma ``BundleOptions.image_sigma_px``.
+``gnss``
+    GNSS antenna positions (ground frame, m) with an optional lever arm in the camera frame.
+``ins``
+    Optional INS angles omega, phi, kappa (rad).
+``control``
+    Ground control points, full (x, y, z), height-only or plan-only. Check points are withheld:
+    their coordinates are estimated from the image rays only and compared with the given ones.
+
+The collinearity model is exactly :func:`stereo.block.types.project_pixel` (principal point and
+Brown distortion in OpenCV's definition, :mod:`stereo.block.bundle.model`). The normal equations
+are solved in Schur form (:mod:`stereo.block.bundle.solve`) with Levenberg-Marquardt damping.
+
+Notes
+-----
+Robust estimation is iteratively reweighted least squares on standardised residuals
+``u = v / (sigma s)`` with ``s`` the robust scale (:func:`rectify.geometry.robust.robust_scale`) of
+``v / sigma`` in the group; plain least squares runs first until the corrections are below 1 %
+of a standard deviation. An observation is flagged when its standardised residual
+``|v| / (sigma0 sigma sqrt(r))`` (``r`` its redundancy number) exceeds
+``BundleOptions.blunder_threshold`` or its robust weight is below 0.1.
+
+Variance components (Foerstner): after convergence each group's variance factor
+``v_k^T P_k v_k / r_k`` rescales its sigma, and the adjustment repeats until the factors are 1
+within 1 %. The group redundancies ``r_k`` are exact sums of the redundancy numbers
+``r_i = 1 - p_i a_i^T Q a_i``, with Q from the inverse of the reduced camera system and the
+per-point back-substitution.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from rectify.errors import ConvergenceError, EstimationError, InvalidInputError, ShapeError
+from rectify.geometry.camera import Camera
+from rectify.geometry.robust import ROBUST_METHODS, get_psi, robust_scale
+from rectify.geometry.rotation import matrix_from_angles
+from stereo.block.bundle import solve as bs
+from stereo.block.bundle.datum import datum_analysis
+from stereo.block.bundle.model import INTERIOR_NAMES, camera_from_interior, interior_from_camera
+from stereo.block.types import Pose, Tracks, cameras_for
+
+__all__ = ["BlockControl", "BundleOptions", "BundleResult", "COVARIANCE_MODES", "CONTROL_KINDS",
+           "GnssObservations", "INTERIOR_NAMES", "adjust_bundle"]
+
+logger = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+
+#: kinds of control point: all three coordinates, the height only, or the plan position only
+CONTROL_KINDS: tuple[str, ...] = ("full", "height", "plan")
+#: what precision to compute: everything (poses, interior, points, redundancy numbers), poses only, nothing
+COVARIANCE_MODES: tuple[str, ...] = ("full", "poses", "none")
+#: variance components: a group's factor is estimated only from this much redundancy on, within these bounds
+VCE_MIN_REDUNDANCY = 2.0
+VCE_FACTOR_BOUNDS = (1e-3, 1e3)
+#: observation groups: tie-point image coordinates, control/check-point image coordinates ("marks", measured by
+#: hand or by a target detector with their own precision), GNSS centres, INS angles, control coordinates
+GROUPS: tuple[str, ...] = ("image", "marks", "gnss", "ins", "control")
+#: a free network's datum: the first image's pose and one coordinate of the second image's projection
+#: centre are held by pseudo-observations of this relative sigma (times the distance of the two centres;
+#: radians for the angles): seven minimum constraints, so the shape of the block is not constrained
+FREE_NETWORK_RELATIVE_SIGMA = 1e-7
+#: a free network iterates at least this often before it is declared not converged
+FREE_NETWORK_MIN_ITERATIONS = 300
+#: reweightings per IRLS stage (Huber, then the chosen psi) before the weights are frozen
+IRLS_STAGE_ITERATIONS = 12
+#: Levenberg-Marquardt: initial damping (relative to the diagonal of the normal matrix); divided by 10
+#: after an accepted step, multiplied by 10 after a rejected one. Small, so a good start takes full
+#: Gauss-Newton steps (1e-4 cost the synthetic benchmark blocks 3 extra iterations).
+LM_INITIAL_DAMPING = 1e-8
+#: converged also when the weighted sum of squares has settled (1e-8 relative) in an iteration whose
+#: corrections were all below this many a-priori standard deviations (the benchmark's 49-image block
+#: 7 -> 6 iterations)
+SETTLED_STEP = 0.05
+POSE_ELEMENTS: tuple[str, ...] = ("omega", "phi", "kappa", "x", "y", "z")
+
+
+# ---------------------------------------------------------------------------- inputs
+@dataclass(frozen=True, eq=False)
+class BlockControl:
+    """Ground control and check points of a block.
+
+    Parameters
+    ----------
+    ids : tuple of str
+        Point ids (K,); each is a :class:`Tracks` point id.
+    xyz : (K, 3) float64
+        Given ground coordinates, m.
+    kind : tuple of str
+        Per point, one of :data:`CONTROL_KINDS` (``full``, ``height``, ``plan``).
+    sigma_m : (K, 3) float64
+        A-priori standard deviation of x, y, z, m (> 0; only the used components matter).
+    check : (K,) bool
+        True for a check point (withheld from the adjustment).
+    """
+
+    ids: tuple[str, ...]
+    xyz: F64
+    kind: tuple[str, ...] = ()
+    sigma_m: F64 = field(default_factory=lambda: np.zeros((0, 3)))
+    check: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+
+    def __post_init__(self) -> None:
+        ids = tuple(str(i) for i in self.ids)
+        k = len(ids)
+        if len(set(ids)) != k:
+            raise InvalidInputError(f"control: duplicate ids {sorted({i for i in ids if ids.count(i) > 1})[:5]}")
+        xyz = np.array(self.xyz, dtype=np.float64, copy=True)
+        if xyz.shape != (k, 3) or not np.isfinite(xyz).all():
+            raise ShapeError(f"control: `xyz` must be ({k}, 3) finite; got shape {xyz.shape}",
+                             actual_shape=xyz.shape, expected_shape=(k, 3))
+        kind = tuple(self.kind) if len(self.kind) else ("full",) * k
+        if len(kind) != k:
+            raise ShapeError(f"control: `kind` must have {k} entries; got {len(kind)}")
+        badk = [x for x in kind if x not in CONTROL_KINDS]
+        if badk:
+            raise InvalidInputError(f"control: unknown kind {badk[0]!r}; expected one of {list(CONTROL_KINDS)}")
+        sig = np.array(self.sigma_m, dtype=np.float64, copy=True)
+        if sig.size == 0:
+            sig = np.full((k, 3), 0.01)
+        if sig.shape == (k,):
+            sig = np.repeat(sig[:, None], 3, axis=1)
+        if sig.shape != (k, 3) or not np.isfinite(sig).all() or (sig <= 0).any():
+            raise InvalidInputError(f"control: `sigma_m` must be ({k}, 3) finite values > 0; got "
+                                    f"{np.asarray(self.sigma_m).tolist()!r}"[:200])
+        chk = np.array(self.check, dtype=bool, copy=True).reshape(-1)
+        if chk.size == 0:
+            chk = np.zeros(k, bool)
+        if chk.shape != (k,):
+            raise ShapeError(f"control: `check` must have {k} entries; got {chk.shape}")
+        for a in (xyz, sig, chk):
+            a.flags.writeable = False
+        object.__setattr__(self, "ids", ids)
+        object.__setattr__(self, "xyz", xyz)
+        object.__setattr__(self, "kind", kind)
+        object.__setattr__(self, "sigma_m", sig)
+        object.__setattr__(self, "check", chk)
+
+    def used_sigma(self) -> F64:
+        """(K, 3) sigma of the observed components, inf elsewhere (and for check points)."""
+        s = self.sigma_m.copy()
+        for i, k in enumerate(self.kind):
+            if k == "height":
+                s[i, :2] = np.inf
+            elif k == "plan":
+                s[i, 2] = np.inf
+        s[self.check] = np.inf
+        return s
+
+
+@dataclass(frozen=True, eq=False)
+class GnssObservations:
+    """GNSS antenna positions (and optional INS angles) of the images.
+
+    Parameters
+    ----------
+    images : tuple of str
+        Image names (n,).
+    position : (n, 3) float64
+        Antenna positions, ground frame, m.
+    sigma_m : (n, 3) float64
+        Their standard deviations, m (> 0).
+    lever_arm_m : (3,) float64, optional
+        Antenna offset from the projection centre in the camera frame (photo axes x, y, and z
+        along the optical axis away from the scene), m: ``antenna = C + R @ lever``.
+    angles : (n, 3) float64, optional
+        INS omega, phi, kappa, rad.
+    sigma_rad : (n, 3) float64, optional
+        Their standard deviations, rad (required with ``angles``).
+    """
+
+    images: tuple[str, ...]
+    position: F64
+    sigma_m: F64
+    lever_arm_m: F64 | None = None
+    angles: F64 | None = None
+    sigma_rad: F64 | None = None
+
+    def __post_init__(self) -> None:
+        images = tuple(str(i) for i in self.images)
+        n = len(images)
+        if len(set(images)) != n:
+            raise InvalidInputError(f"gnss: duplicate images {sorted({i for i in images if images.count(i) > 1})[:5]}")
+        pos = np.array(self.position, dtype=np.float64, copy=True)
+        if pos.shape != (n, 3) or not np.isfinite(pos).all():
+            raise ShapeError(f"gnss: `position` must be ({n}, 3) finite; got shape {pos.shape}")
+        sig = np.array(self.sigma_m, dtype=np.float64, copy=True)
+        if sig.shape == (n,):
+            sig = np.repeat(sig[:, None], 3, axis=1)
+        if sig.shape != (n, 3) or not np.isfinite(sig).all() or (sig <= 0).any():
+            raise InvalidInputError(f"gnss: `sigma_m` must be ({n}, 3) finite values > 0; got "
+                                    f"{np.asarray(self.sigma_m).tolist()!r}"[:200])
+        lever = None
+        if self.lever_arm_m is not None:
+            lever = np.array(self.lever_arm_m, dtype=np.float64, copy=True).reshape(-1)
+            if lever.shape != (3,) or not np.isfinite(lever).all():
+                raise ShapeError(f"gnss: `lever_arm_m` must be 3 finite numbers; got {lever.tolist()}")
+        ang = sang = None
+        if self.angles is not None:
+            ang = np.array(self.angles, dtype=np.float64, copy=True)
+            if ang.shape != (n, 3) or not np.isfinite(ang).all():
+                raise ShapeError(f"gnss: `angles` must be ({n}, 3) finite; got shape {ang.shape}")
+            if self.sigma_rad is None:
+                raise InvalidInputError("gnss: `angles` need `sigma_rad`; got None")
+            sang = np.array(self.sigma_rad, dtype=np.float64, copy=True)
+            if sang.shape == (n,):
+                sang = np.repeat(sang[:, None], 3, axis=1)
+            if sang.shape != (n, 3) or not np.isfinite(sang).all() or (sang <= 0).any():
+                raise InvalidInputError(f"gnss: `sigma_rad` must be ({n}, 3) finite values > 0; got "
+                                        f"{np.asarray(self.sigma_rad).tolist()!r}"[:200])
+        elif self.sigma_rad is not None:
+            raise InvalidInputError("gnss: `sigma_rad` given without `angles`")
+        for a in (pos, sig, lever, ang, sang):
+            if a is not None:
+                a.flags.writeable = False
+        object.__setattr__(self, "images", images)
+        object.__setattr__(self, "position", pos)
+        object.__setattr__(self, "sigma_m", sig)
+        object.__setattr__(self, "lever_arm_m", lever)
+        object.__setattr__(self, "angles", ang)
+        object.__setattr__(self, "sigma_rad", sang)
+
+
+@dataclass(frozen=True)
+class BundleOptions:
+    """Options of :func:`adjust_bundle`.
+
+    Parameters
+    ----------
+    image_sigma_px : float
+        Group sigma of the image observations (multiplies ``Tracks.obs_sigma_px``), px.
+    robust : str
+        ``"none"`` or a psi function of :data:`rectify.geometry.robust.ROBUST_METHODS`.
+    robust_groups : tuple of str
+        Groups the robust weights apply to (``image``, ``gnss``, ``control``).
+    self_calibrate : tuple of str
+        Interior parameters estimated per camera, a subset of :data:`INTERIOR_NAMES`.
+    variance_components : bool
+        Estimate a variance factor per observation group (iteratively).
+    max_iterations : int
+        Limit of the Gauss-Newton/Levenberg-Marquardt iterations (per variance round).
+    tolerance : float
+        Converged when every correction is below ``tolerance`` times the unknown's a-priori
+        standard deviation ``1 / sqrt(N_ii)``.
+    blunder_threshold : float
+        Flag an observation whose standardised residual exceeds this.
+    covariance : str
+        ``full`` (poses, interior, points, redundancy numbers), ``poses`` (poses and interior; points
+        only at control and check points) or ``none``.
+    free_network : bool
+        Allow a block without control and GNSS: the datum is then set by seven minimum constraints
+        (the first image's pose and the distance to the second image keep their initial values;
+        :func:`_minimum_constraints`), as a pair's model frame. Such a block converges more slowly
+        (its weak deformation modes are not damped by datum observations): it is given at least
+        :data:`FREE_NETWORK_MIN_ITERATIONS` iterations.
+    dense_limit : int
+        Solve the reduced camera system with a dense Cholesky factorisation up to this size,
+        with a sparse LU beyond (either replaced by a banded Cholesky, the images in reverse
+        Cuthill-McKee order, when that needs at least 4 times fewer operations).
+    threads : int or None
+        Threads of the model evaluation and the assembly of the normal equations (None: one; the
+        work is many numpy operations on cache-sized pieces, and with two threads the 500-image
+        benchmark block took 20 % more time, not less: the GIL is held between the operations).
+        Used from ``bundle_solve.THREADS_MIN_OBSERVATIONS`` observations on. BLAS runs one thread,
+        except in dense factorisations of reduced systems from
+        ``bundle_solve.BLAS_THREADS_MIN_UNKNOWNS`` unknowns on, which get as many as BLAS is set to
+        use (``OMP_NUM_THREADS`` / ``OPENBLAS_NUM_THREADS``, else the CPU count).
+    """
+
+    image_sigma_px: float = 1.0
+    robust: str = "none"
+    robust_groups: tuple[str, ...] = ("image",)
+    self_calibrate: tuple[str, ...] = ()
+    variance_components: bool = False
+    max_iterations: int = 50
+    tolerance: float = 1e-4
+    blunder_threshold: float = 4.0
+    covariance: str = "full"
+    free_network: bool = False
+    dense_limit: int = 4000
+    threads: int | None = None
+
+    def __post_init__(self) -> None:
+        def pos(name: str) -> None:
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise InvalidInputError(f"BundleOptions.{name} must be a finite number > 0; got {v!r}")
+
+        for name in ("image_sigma_px", "tolerance", "blunder_threshold"):
+            pos(name)
+        if self.robust not in ROBUST_METHODS:
+            raise InvalidInputError(f"BundleOptions.robust must be one of {list(ROBUST_METHODS)}; got {self.robust!r}")
+        bad = [g for g in self.robust_groups if g not in ("image", "gnss", "control")]
+        if bad:
+            raise InvalidInputError(f"BundleOptions.robust_groups: unknown group {bad[0]!r}; "
+                                    "expected image, gnss, control")
+        bad = [p for p in self.self_calibrate if p not in INTERIOR_NAMES]
+        if bad:
+            raise InvalidInputError(f"BundleOptions.self_calibrate: unknown parameter {bad[0]!r}; "
+                                    f"expected a subset of {list(INTERIOR_NAMES)}")
+        if len(set(self.self_calibrate)) != len(self.self_calibrate):
+            raise InvalidInputError(f"BundleOptions.self_calibrate has duplicates: {self.self_calibrate!r}")
+        if self.threads is not None and (isinstance(self.threads, bool) or not isinstance(self.threads, int)
+                                         or self.threads < 1):
+            raise InvalidInputError(f"BundleOptions.threads must be None or an integer >= 1; got {self.threads!r}")
+        for name in ("max_iterations", "dense_limit"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise InvalidInputError(f"BundleOptions.{name} must be an integer >= 1; got {v!r}")
+        if self.covariance not in COVARIANCE_MODES:
+            raise InvalidInputError(f"BundleOptions.covariance must be one of {list(COVARIANCE_MODES)}; "
+                                    f"got {self.covariance!r}")
+
+
+# ---------------------------------------------------------------------------- result
+@dataclass(frozen=True, eq=False)
+class BundleResult:
+    """Result of :func:`adjust_bundle`.
+
+    Attributes
+    ----------
+    cameras : dict str -> Camera
+        Adjusted cameras; self-calibrated parameters carry ``std_errors`` (f, x0, y0 in mm).
+    poses : tuple of Pose
+        Adjusted poses, in the input order.
+    point_ids : tuple of str
+        Track ids (P,).
+    points : (P, 3) float64
+        Adjusted object points, ground frame, m.
+    pose_std : (n, 6) float64
+        Standard errors of omega, phi, kappa (rad), x, y, z (m); NaN when not computed.
+    pose_covariance : (n, 6, 6) float64
+        Covariance of the same elements.
+    correlation : (u, u) float64
+        Correlation matrix of all orientation elements (6 per image) and interior parameters,
+        names in ``correlation_names``; (0, 0) when not computed.
+    correlation_names : tuple of str
+        ``"<image>.<element>"`` and ``"<camera>.<parameter>"``.
+    interior_std : dict str -> dict str -> float
+        Standard errors of the self-calibrated parameters per camera.
+    point_std : (P, 3) float64
+        Standard errors of the object points, m (NaN where not computed).
+    point_covariance : (P, 3, 3) float64 or None
+        Covariance of each point (``covariance="full"``).
+    sigma0 : float
+        A-posteriori standard deviation of unit weight (all groups).
+    sigma0_groups : dict str -> float
+        sqrt(v_k^T P_k v_k / r_k) of each group present.
+    variance_factors : dict str -> float
+        Final group sigma / given group sigma (1 without variance components).
+    redundancy_groups : dict str -> float
+        Redundancy r_k of each group.
+    residuals_px : (M, 2) float64
+        Image residuals, observed minus computed, px, in the order of ``Tracks``.
+    weights : (M, 2) float64
+        Robust weights (1 without robust estimation).
+    standardized : (M, 2) float64
+        Standardised residuals |v| / (sigma0 sigma sqrt(r)).
+    redundancy_numbers : (M, 2) float64
+        Redundancy numbers r_i (NaN when not computed).
+    flagged : (M,) bool
+        Observations flagged as blunders.
+    control_ids, control_residuals
+        Control points used and given minus adjusted coordinates (K, 3), m (NaN for unused
+        components).
+    flagged_control : tuple of str
+        Control points whose standardised residual exceeds the threshold.
+    check_ids, check_errors, check_std
+        Check points, adjusted minus given coordinates (C, 3), m, and the predicted standard
+        error of that difference (C, 3), m.
+    gnss_residuals : (g, 3) float64
+        GNSS observed minus adjusted antenna positions, m.
+    iterations : int
+    converged : bool
+    datum : tuple of str
+        The datum analysis: which groups define the datum and its expected weakness.
+    datum_groups : tuple of str
+    condition_number : float
+        Of the Jacobi-scaled reduced camera system (NaN when not computed).
+    warnings : tuple of str
+    """
+
+    cameras: dict[str, Camera]
+    poses: tuple[Pose, ...]
+    point_ids: tuple[str, ...]
+    points: F64
+    pose_std: F64
+    pose_covariance: F64
+    correlation: F64
+    correlation_names: tuple[str, ...]
+    interior_std: dict[str, dict[str, float]]
+    point_std: F64
+    point_covariance: F64 | None
+    sigma0: float
+    sigma0_groups: dict[str, float]
+    variance_factors: dict[str, float]
+    redundancy_groups: dict[str, float]
+    residuals_px: F64
+    weights: F64
+    standardized: F64
+    redundancy_numbers: F64
+    flagged: NDArray[np.bool_]
+    control_ids: tuple[str, ...]
+    control_residuals: F64
+    flagged_control: tuple[str, ...]
+    check_ids: tuple[str, ...]
+    check_errors: F64
+    check_std: F64
+    gnss_residuals: F64
+    iterations: int
+    converged: bool
+    datum: tuple[str, ...]
+    datum_groups: tuple[str, ...]
+    condition_number: float
+    warnings: tuple[str, ...] = ()
+
+    @property
+    def flagged_obs(self) -> NDArray[np.int64]:
+        """Indices of the flagged observations (into the tracks' observations)."""
+        return np.flatnonzero(self.flagged).astype(np.int64)
+
+    @property
+    def rms_px(self) -> float:
+        """RMS of the image residuals of unflagged observations, px (per coordinate)."""
+        v = self.residuals_px[~self.flagged]
+        return float(np.sqrt(np.mean(v ** 2))) if v.size else float("nan")
+
+    def summary_lines(self) -> list[str]:
+        """Short report lines: counts, RMS residuals with units, sigma0, groups, datum."""
+        m = len(self.residuals_px)
+        out = [f"bundle: {len(self.poses)} images, {len(self.points)} points, {m} image observations, "
+               f"{self.iterations} iterations{'' if self.converged else ' (NOT converged)'}",
+               f"image residuals: RMS {self.rms_px:.3f} px ({int(self.flagged.sum())} flagged as blunders)",
+               f"sigma0 {self.sigma0:.3f}"]
+        for g, s in self.sigma0_groups.items():
+            out.append(f"group {g}: sigma0 {s:.3f}, redundancy {self.redundancy_groups.get(g, float('nan')):.1f}, "
+                       f"variance factor {self.variance_factors.get(g, 1.0):.3f}")
+        if len(self.gnss_residuals):
+            out.append(f"GNSS residuals: RMS {np.sqrt(np.mean(self.gnss_residuals ** 2)):.3f} m")
+        if len(self.control_ids):
+            r = self.control_residuals[np.isfinite(self.control_residuals)]
+            out.append(f"control: {len(self.control_ids)} points, RMS residual {np.sqrt(np.mean(r ** 2)):.3f} m"
+                       + (f", flagged {list(self.flagged_control)}" if self.flagged_control else ""))
+        if len(self.check_ids):
+            e = self.check_errors
+            out.append(f"check: {len(self.check_ids)} points, RMS error x {np.sqrt(np.mean(e[:, 0] ** 2)):.3f} "
+                       f"y {np.sqrt(np.mean(e[:, 1] ** 2)):.3f} z {np.sqrt(np.mean(e[:, 2] ** 2)):.3f} m")
+        out.extend(self.datum)
+        out.extend(f"WARNING: {w}" for w in self.warnings)
+        return out
+
+
+# ---------------------------------------------------------------------------- main
+def adjust_bundle(cameras: Mapping[str, Camera], poses: Sequence[Pose], tracks: Tracks, points: ArrayLike, *,
+                  control: BlockControl | None = None, gnss: GnssObservations | None = None,
+                  options: BundleOptions = BundleOptions(),
+                  progress: Callable[[int, int], None] | None = None) -> BundleResult:
+    """Adjust a block: poses, object points and optionally interior orientation.
+
+    Parameters
+    ----------
+    cameras : mapping str -> Camera
+        Interior orientation of each camera id named by the poses (initial values when
+        self-calibrating).
+    poses : sequence of Pose
+        Initial exterior orientation of every image of ``tracks.images``.
+    tracks : Tracks
+        The image observations (pixels).
+    points : (P, 3) array_like
+        Initial object points, ground frame, m, in the order of ``tracks.point_ids``.
+    control : BlockControl, optional
+        Control and check points.
+    gnss : GnssObservations, optional
+        GNSS antenna positions and optional INS angles.
+    options : BundleOptions
+    progress : callable (done, total), optional
+        Called after each iteration with (iteration, max_iterations).
+
+    Returns
+    -------
+    BundleResult
+
+    Raises
+    ------
+    InvalidInputError
+        Inconsistent inputs (shapes, unknown ids or images, points behind cameras, tracks with
+        fewer than two observations).
+    EstimationError
+        A datum defect (no control and no GNSS without ``free_network``) or a singular system.
+    ConvergenceError
+        No convergence within ``max_iterations``; names the worst observations.
+    """
+    prob, st0, info = _setup(cameras, poses, tracks, points, control, gnss, options)
+    threads = options.threads if options.threads is not None else 1
+    prob.blas_threads = default_threads()
+    # below some 100 000 observations the pieces are too few and too small to gain from threads
+    prob.threads = threads if len(prob.obs_pt) >= bs.THREADS_MIN_OBSERVATIONS else 1
+    # our threads call BLAS on tiny matrices: one BLAS thread (large dense factorisations get more, bs.blas)
+    with bs.controller().limit(limits=1, user_api="blas"):
+        return _adjust(prob, st0, info, options, progress)
+
+
+def default_threads() -> int:
+    """BLAS threads of large dense factorisations: as many as BLAS is set to use, at most the usable CPUs."""
+    blas = [int(i.get("num_threads", 1)) for i in bs.controller().info() if i.get("user_api") == "blas"]
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not on Linux
+        cpus = os.cpu_count() or 1
+    return max(1, min(max(blas, default=1), cpus))
+
+
+def _adjust(prob: bs.Problem, st0: bs.State, info: _Info, options: BundleOptions,
+            progress: Callable[[int, int], None] | None) -> BundleResult:
+    factors = {g: 1.0 for g in GROUPS}
+    psi = get_psi(options.robust) if options.robust != "none" else None
+    st = st0
+    total_it = 0
+    rounds = 10 if options.variance_components else 1
+    robust_w = _ones_weights(prob)
+    red = None
+    for rnd in range(rounds):
+        st, robust_w, it, converged = _iterate(prob, st, factors, psi, robust_w, options, progress, info,
+                                               robust_from_start=rnd > 0)
+        total_it += it
+        if not options.variance_components:
+            break
+        red = _redundancy(prob, st, factors, robust_w, options, points_needed="all")
+        new = {}
+        for g in GROUPS:
+            vtpv, r = red.vtpv[g], red.r[g]
+            if r >= VCE_MIN_REDUNDANCY:
+                new[g] = math.sqrt(vtpv / r)
+        for g, f in new.items():
+            # bounded: a group that fits (almost) exactly, e.g. error-free synthetic control, would
+            # otherwise get a factor near 0 and an infinite weight
+            factors[g] = min(max(factors[g] * f, VCE_FACTOR_BOUNDS[0]), VCE_FACTOR_BOUNDS[1])
+        logger.debug("variance components round %d: %s", rnd, new)
+        if all(abs(f - 1.0) < 0.01 for f in new.values()):
+            break
+    want_points = "all" if options.covariance == "full" else ("control" if options.covariance == "poses" else "")
+    if red is None or want_points != "all":
+        red = _redundancy(prob, st, factors, robust_w, options, points_needed=want_points)
+    return _result(prob, st, info, factors, robust_w, red, options, total_it, converged)
+
+
+# ---------------------------------------------------------------------------- setup
+@dataclass
+class _Info:
+    cam_ids: list[str]
+    cams: list[Camera]
+    images: tuple[str, ...]
+    poses: list[Pose]
+    tracks: Tracks
+    control: BlockControl | None
+    control_rows: NDArray[np.int64]      # rows of control used in the adjustment
+    check_rows: NDArray[np.int64]
+    check_pt: NDArray[np.int64]
+    gnss: GnssObservations | None
+    free_network: bool
+
+
+def _setup(cameras: Mapping[str, Camera], poses: Sequence[Pose], tracks: Tracks, points: ArrayLike,
+           control: BlockControl | None, gnss: GnssObservations | None, options: BundleOptions
+           ) -> tuple[bs.Problem, bs.State, _Info]:
+    if not isinstance(tracks, Tracks):
+        raise InvalidInputError(f"`tracks` must be a Tracks; got {type(tracks).__name__}")
+    if not isinstance(options, BundleOptions):
+        raise InvalidInputError(f"`options` must be a BundleOptions; got {type(options).__name__}")
+    poses = list(poses)
+    if not all(isinstance(p, Pose) for p in poses):
+        raise InvalidInputError("`poses` must be a sequence of Pose")
+    by_name = {p.image: p for p in poses}
+    if len(by_name) != len(poses):
+        names = [p.image for p in poses]
+        raise InvalidInputError(f"poses: duplicate image names {sorted({i for i in names if names.count(i) > 1})[:5]}")
+    missing = [im for im in tracks.images if im not in by_name]
+    if missing:
+        raise InvalidInputError(f"tracks name image(s) without a pose: {missing[:5]}")
+    ordered = [by_name[im] for im in tracks.images]
+    extra = [p.image for p in poses if p.image not in set(tracks.images)]
+    if extra:
+        raise InvalidInputError(f"pose(s) of image(s) not in the tracks: {extra[:5]}")
+    cams_of_pose = cameras_for(ordered, cameras)
+    cam_ids = sorted({p.camera for p in ordered})
+    cams = [cameras[c] for c in cam_ids]
+    for cid, c in zip(cam_ids, cams, strict=True):
+        if not isinstance(c, Camera):
+            raise InvalidInputError(f"camera {cid!r} must be a rectify.geometry.camera.Camera; got {type(c).__name__}")
+    del cams_of_pose
+    cam_of_image = np.array([cam_ids.index(p.camera) for p in ordered], dtype=np.int64)
+    n = len(ordered)
+    P = tracks.n_points
+    X = np.array(points, dtype=np.float64, copy=True)
+    if X.shape != (P, 3):
+        raise ShapeError(f"`points` must have shape ({P}, 3) (one row per track); got {X.shape}",
+                         actual_shape=X.shape, expected_shape=(P, 3))
+    if not np.isfinite(X).all():
+        raise InvalidInputError(f"`points` must be finite; row {int(np.flatnonzero(~np.isfinite(X).all(1))[0])} is not")
+    rays = tracks.rays_per_point()
+    few = np.flatnonzero(rays < 2)
+    if len(few):
+        raise InvalidInputError(f"{len(few)} track(s) with fewer than 2 observations, e.g. "
+                                f"{[tracks.point_ids[i] for i in few[:5]]} with {rays[few[:5]].tolist()}")
+    ppi = tracks.points_per_image()
+    sparse_img = np.flatnonzero(ppi < 3)
+    if len(sparse_img):
+        raise InvalidInputError(f"image(s) with fewer than 3 observations: "
+                                f"{[(tracks.images[i], int(ppi[i])) for i in sparse_img[:5]]}")
+    counts = rays.astype(np.int64)
+    starts = (np.cumsum(counts) - counts).astype(np.int64)
+    sel = np.array([INTERIOR_NAMES.index(p) for p in options.self_calibrate], dtype=np.int64)
+    prob = bs.Problem(
+        n_images=n, cam_of_image=cam_of_image,
+        pixel_size=np.array([c.pixel_size_mm for c in cams]),
+        centre=np.array([[(c.width - 1) / 2.0, (c.height - 1) / 2.0] for c in cams]),
+        sel=sel, obs_img=tracks.obs_image.copy(), obs_pt=tracks.obs_point.copy(), obs_px=tracks.obs_pixel.copy(),
+        obs_sigma=tracks.obs_sigma_px * options.image_sigma_px, pt_start=starts, pt_count=counts,
+        dense_limit=options.dense_limit)
+    st = bs.State(angles=np.array([p.angles for p in ordered]).reshape(n, 3),
+                  centres=np.array([p.position for p in ordered]).reshape(n, 3),
+                  interior=np.array([interior_from_camera(c) for c in cams]), points=X)
+    img_index = {im: i for i, im in enumerate(tracks.images)}
+    pt_index = {pid: i for i, pid in enumerate(tracks.point_ids)}
+    control_rows = check_rows = check_pt = np.zeros(0, np.int64)
+    if control is not None:
+        if not isinstance(control, BlockControl):
+            raise InvalidInputError(f"`control` must be a BlockControl; got {type(control).__name__}")
+        unknown = [i for i in control.ids if i not in pt_index]
+        if unknown:
+            raise InvalidInputError(f"control point id(s) not in the tracks: {unknown[:5]}")
+        cpt = np.array([pt_index[i] for i in control.ids], dtype=np.int64)
+        used = ~control.check
+        control_rows = np.flatnonzero(used).astype(np.int64)
+        check_rows = np.flatnonzero(control.check).astype(np.int64)
+        check_pt = cpt[check_rows]
+        sig = control.used_sigma()
+        prob.c_pt = cpt[control_rows]
+        prob.c_xyz = control.xyz[control_rows].copy()
+        prob.c_sigma = sig[control_rows]
+    if gnss is not None:
+        if not isinstance(gnss, GnssObservations):
+            raise InvalidInputError(f"`gnss` must be a GnssObservations; got {type(gnss).__name__}")
+        unknown = [i for i in gnss.images if i not in img_index]
+        if unknown:
+            raise InvalidInputError(f"GNSS image(s) not in the tracks: {unknown[:5]}")
+        gi = np.array([img_index[i] for i in gnss.images], dtype=np.int64)
+        prob.g_img, prob.g_pos, prob.g_sigma, prob.lever = gi, gnss.position.copy(), gnss.sigma_m.copy(), \
+            gnss.lever_arm_m
+        if gnss.angles is not None and gnss.sigma_rad is not None:
+            prob.i_img, prob.i_ang, prob.i_sigma = gi.copy(), gnss.angles.copy(), gnss.sigma_rad.copy()
+    free = False
+    has_plan = int(np.sum(np.isfinite(prob.c_sigma[:, 0]))) if len(prob.c_pt) else 0
+    has_height = int(np.sum(np.isfinite(prob.c_sigma[:, 2]))) if len(prob.c_pt) else 0
+    if len(prob.g_img) < 3 and (has_plan < 2 or has_height < 3):
+        if not options.free_network:
+            raise EstimationError(
+                f"datum defect: {len(prob.g_img)} GNSS positions, {has_plan} plan and {has_height} height control "
+                "points cannot fix shift, rotation and scale of the block; give control points (>= 2 plan, >= 3 "
+                "height) or GNSS positions (>= 3 images), or set free_network")
+        free = True
+        if prob.lever is not None:
+            raise InvalidInputError("free_network with a GNSS lever arm is not supported; give no lever arm")
+        _minimum_constraints(prob, st)
+    # points in front of the cameras at the start
+    lin = bs.evaluate(prob, st, jacobian=False)
+    behind = np.flatnonzero(~(lin.res.depth > 0))
+    if len(behind):
+        i = int(behind[0])
+        raise InvalidInputError(f"{len(behind)} observation(s) with the point behind the camera at the start, e.g. "
+                                f"point {tracks.point_ids[tracks.obs_point[i]]!r} in image "
+                                f"{tracks.images[tracks.obs_image[i]]!r} (depth {lin.res.depth[i]:.4g} m)")
+    prob.obs_mark = np.isin(prob.obs_pt, np.concatenate([prob.c_pt, check_pt]))
+    info = _Info(cam_ids, cams, tracks.images, ordered, tracks, control, control_rows, check_rows, check_pt, gnss,
+                 free)
+    return prob, st, info
+
+
+def _minimum_constraints(prob: bs.Problem, st: bs.State) -> None:
+    """Hold the datum of a free network with seven minimum constraints (the pair's model frame).
+
+    Image 0 keeps its three angles and its projection centre; image 1 keeps the coordinate of its
+    projection centre along which it lies farthest from image 0 (the scale). The pseudo-observations
+    have sigma :data:`FREE_NETWORK_RELATIVE_SIGMA` times the distance of the two centres (metres) or
+    times one (radians); the other two coordinates of image 1 get a sigma 1e12 times larger (free).
+    """
+    base = st.centres[1] - st.centres[0]
+    d = float(np.linalg.norm(base))
+    if not d > 0:
+        raise EstimationError("free network: the first two images have the same projection centre; the scale "
+                              "of the block is undefined")
+    s = FREE_NETWORK_RELATIVE_SIGMA * d
+    sig1 = np.full(3, s * 1e12)
+    sig1[int(np.argmax(np.abs(base)))] = s
+    prob.g_img = np.concatenate([prob.g_img, [0, 1]]).astype(np.int64)
+    prob.g_pos = np.vstack([prob.g_pos, st.centres[:2]])
+    prob.g_sigma = np.vstack([prob.g_sigma, np.full(3, s), sig1])
+    prob.i_img = np.concatenate([prob.i_img, [0]]).astype(np.int64)
+    prob.i_ang = np.vstack([prob.i_ang.reshape(-1, 3), st.angles[:1]])
+    prob.i_sigma = np.vstack([prob.i_sigma.reshape(-1, 3), np.full((1, 3), FREE_NETWORK_RELATIVE_SIGMA)])
+
+
+# ---------------------------------------------------------------------------- iterations
+def _ones_weights(prob: bs.Problem) -> bs.Weights:
+    return bs.Weights(np.ones((len(prob.obs_pt), 2)), np.ones((len(prob.g_img), 3)), np.ones((len(prob.i_img), 3)),
+                      np.ones((len(prob.c_pt), 3)))
+
+
+def _image_factor(prob: bs.Problem, factors: Mapping[str, float]) -> F64:
+    """(M,) variance factor of each image observation: the tie points' or the control marks' group."""
+    mark = prob.obs_mark if len(prob.obs_mark) == len(prob.obs_pt) else np.zeros(len(prob.obs_pt), bool)
+    return np.where(mark, factors["marks"], factors["image"])
+
+
+def _base_weights(prob: bs.Problem, factors: Mapping[str, float]) -> bs.Weights:
+    si = prob.obs_sigma * _image_factor(prob, factors)
+    wi = np.repeat((1.0 / si ** 2)[:, None], 2, axis=1)
+    wg = 1.0 / (prob.g_sigma * factors["gnss"]) ** 2
+    wn = 1.0 / (prob.i_sigma * factors["ins"]) ** 2
+    wc = 1.0 / (prob.c_sigma * factors["control"]) ** 2  # inf sigma -> 0
+    return bs.Weights(wi, wg, wn, wc)
+
+
+def _combine(a: bs.Weights, b: bs.Weights) -> bs.Weights:
+    return bs.Weights(a.image * b.image, a.gnss * b.gnss, a.ins * b.ins, a.control * b.control)
+
+
+def _local_redundancy(prob: bs.Problem) -> F64:
+    """(M, 1) approximate redundancy of an image coordinate: (2 m - 3) / (2 m) for a point with m rays."""
+    m = prob.pt_count[prob.obs_pt].astype(np.float64)
+    return np.asarray(((2 * m - 3) / (2 * m))[:, None], dtype=np.float64)
+
+
+def _standardised(g: str, v: F64, w0: F64, rloc: F64, rbar: float) -> F64:
+    """Standardised residuals of a group before the robust scale: v / (sigma sqrt(r)); the image group gives
+    one value per observation (the RMS of its two coordinates), so a measurement is reweighted as a whole."""
+    if g == "image":
+        u = v * np.sqrt(w0) / np.sqrt(rloc)
+        return np.asarray(np.repeat(np.sqrt(np.mean(u ** 2, axis=1))[:, None], 2, axis=1), dtype=np.float64)
+    return np.asarray(v * np.sqrt(w0) / math.sqrt(rbar), dtype=np.float64)
+
+
+def _robust_scales(res: bs.Residuals, base: bs.Weights, groups: tuple[str, ...], rloc: F64,
+                   rbar: float) -> dict[str, float]:
+    """Scale of each group: max(1, robust scale of the standardised residuals), fixed during one IRLS run."""
+    out = {}
+    for g in groups:
+        v, w0 = getattr(res, g), getattr(base, g)
+        used = w0 > 0
+        s = robust_scale(_standardised(g, v, w0, rloc, rbar), mask=used) if used.any() else 0.0
+        out[g] = max(1.0, s)
+    return out
+
+
+def _robust_update(psi: object, res: bs.Residuals, base: bs.Weights, scales: Mapping[str, float], rloc: F64,
+                   rbar: float, old: bs.Weights) -> bs.Weights:
+    """IRLS weights psi(u) / u of the standardised residuals u (divided by the group's scale)."""
+    out = bs.Weights(old.image.copy(), old.gnss.copy(), old.ins.copy(), old.control.copy())
+    for g, s in scales.items():
+        v = getattr(res, g)
+        w0 = getattr(base, g)
+        if v.size == 0:
+            continue
+        used = w0 > 0
+        u = _standardised(g, v, w0, rloc, rbar) / s
+        # a floor keeps every point determined when all its rays are rejected
+        w = np.where(used, np.maximum(psi.weight(u), 1e-4), 1.0)  # type: ignore[attr-defined]
+        setattr(out, g, w)
+    return out
+
+
+def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: object | None,
+             robust_w: bs.Weights, options: BundleOptions, progress: Callable[[int, int], None] | None,
+             info: _Info, *, robust_from_start: bool) -> tuple[bs.State, bs.Weights, int, bool]:
+    base = _base_weights(prob, factors)
+    dense = prob.n_c <= options.dense_limit
+    banded = bs.use_banded(prob)
+    mu = LM_INITIAL_DAMPING
+    robust_on = psi is not None and robust_from_start
+    frozen = False
+    phase_it = 0
+    prev_cost = math.inf
+    settled = False
+    # a redescending psi starts from Huber's (convex) solution
+    cur_psi = psi if psi is None or robust_from_start or getattr(psi, "name", "") == "huber" else get_psi("huber")
+    converged = False
+    it = 0
+    w = _combine(base, robust_w)
+    nstep = math.inf
+    nobs = 2 * len(prob.obs_pt) + prob.g_pos.size + prob.i_ang.size + int(np.isfinite(prob.c_sigma).sum())
+    rbar = max(nobs - prob.n_c - 3 * prob.n_points, 1) / nobs
+    scales: dict[str, float] | None = None
+    rloc = _local_redundancy(prob)
+    flat, last_cost = 0, math.inf
+    # a free network keeps its weak deformation modes (no datum observations damp them), which the
+    # Levenberg-Marquardt damping of the nonlinear point depths makes converge linearly: more iterations
+    limit = max(options.max_iterations, FREE_NETWORK_MIN_ITERATIONS) if info.free_network else options.max_iterations
+    lin: bs.Linear | None = None
+    refine = False
+    for it in range(1, limit + 1):
+        if lin is None:
+            lin = bs.evaluate(prob, st, jacobian=True)
+        dw = 0.0
+        if robust_on:
+            if scales is None:
+                scales = _robust_scales(lin.res, base, options.robust_groups, rloc, rbar)
+            new_rw = _robust_update(cur_psi, lin.res, base, scales, rloc, rbar, robust_w)
+            dw = max(float(np.max(np.abs(new_rw.image - robust_w.image), initial=0.0)),
+                     float(np.max(np.abs(new_rw.gnss - robust_w.gnss), initial=0.0)),
+                     float(np.max(np.abs(new_rw.control - robust_w.control), initial=0.0)))
+            robust_w = new_rw
+            w = _combine(base, robust_w)
+        cost = lin.res.cost(w)
+        accepted = False
+        for _ in range(12):
+            ne = bs.normal(prob, lin, w, mu, dense=dense, banded=banded)
+            xc, xp = bs.solve_reduced(ne, blas_threads=prob.blas_threads)
+            nstep = max(float(np.max(np.abs(xc) * np.sqrt(ne.diag_c), initial=0.0)),
+                        float(np.max(np.abs(xp) * np.sqrt(ne.diag_p), initial=0.0)))
+            del ne  # its per-observation blocks are the largest arrays: free them before the next ones
+            trial = bs.apply_step(prob, st, xc, xp)
+            if refine:
+                trial = bs.refine_points(prob, trial, w)
+            # with the Jacobians: an accepted trial is the next iteration's linearisation
+            tlin = bs.evaluate(prob, trial, jacobian=True)
+            tres = tlin.res
+            tcost = tres.cost(w) if (tres.depth > 0).all() else math.inf
+            if tcost <= cost * (1 + 1e-12) or nstep < options.tolerance:
+                st, lin = trial, tlin
+                mu = max(mu / 10.0, 1e-10)
+                accepted = True
+                break
+            mu *= 10.0
+            # a rejected step: from now on the points are intersected again after every camera step
+            refine = True
+        if progress is not None:
+            progress(it, limit)
+        logger.debug("bundle iteration %d: cost %.12g, step %.3g sd, mu %.1e, weights change %.3g",
+                     it, cost, nstep, mu, dw)
+        if not accepted:
+            break
+        # settled: the corrections are below the tolerance, or (with the weights unchanged) the weighted
+        # sum of squares has changed by at most 1e-8 relative in each of three iterations -- a weakly
+        # determined unknown, such as the depth of a two-ray point with a small intersection angle, can
+        # keep creeping by a few of its a-priori standard deviations without changing any residual --
+        # or in one iteration whose corrections were all below SETTLED_STEP standard deviations (in the
+        # weak modes of a block Gauss-Newton converges linearly, by a factor of some 0.2 per iteration:
+        # what is left is a small fraction of a standard deviation and changes no residual)
+        flat = flat + 1 if dw == 0.0 and abs(last_cost - cost) <= 1e-8 * max(cost, 1e-300) else 0
+        last_cost = cost
+        if psi is not None and not robust_on and not frozen and (nstep < 1e-2 or flat >= 3):
+            robust_on, flat = True, 0  # least squares has settled: start reweighting
+            continue
+        if robust_on:
+            phase_it += 1
+            settled = (nstep < 1e-2 and dw < 1e-2) or (abs(prev_cost - cost) <= 1e-5 * cost and dw < 0.05)
+            prev_cost = cost
+        if robust_on and (settled or phase_it >= IRLS_STAGE_ITERATIONS):
+            phase_it = 0
+            if cur_psi is not psi:
+                cur_psi = psi  # Huber has settled: switch to the redescending psi
+                continue
+            robust_on, frozen, flat = False, True, 0  # weights settled: converge with them fixed
+        if (nstep < options.tolerance or flat >= 3 or (flat >= 1 and nstep < SETTLED_STEP)) and (psi is None or frozen):
+            converged = True
+            break
+    if not converged:
+        res = bs.evaluate(prob, st, jacobian=False).res
+        vn = np.linalg.norm(res.image, axis=1)
+        worst = np.argsort(-vn)[:3]
+        tr = info.tracks
+        names = ", ".join(f"point {tr.point_ids[tr.obs_point[i]]!r} in {tr.images[tr.obs_image[i]]!r} "
+                          f"{vn[i]:.3g} px" for i in worst)
+        raise ConvergenceError(f"bundle adjustment did not converge in {it} iterations (last correction "
+                               f"{nstep:.3g} standard deviations); largest residuals: {names}", iterations=it)
+    return st, robust_w, it, converged
+
+
+# ---------------------------------------------------------------------------- precision
+@dataclass
+class _Red:
+    vtpv: dict[str, float]
+    r: dict[str, float]
+    n: dict[str, int]
+    Qcc: F64 | None
+    Qpp: F64 | None                  # (P, 3, 3) or None
+    Qpp_sel: dict[int, F64]          # point index -> 3x3 for control/check points
+    r_img: F64                       # (M, 2)
+    r_ctrl: F64                      # (k, 3)
+    r_gnss: F64                      # (g, 3)
+    res: bs.Residuals
+    w: bs.Weights
+    ne: bs.Normal | None
+    n_unknowns: int
+
+
+def _redundancy(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], robust_w: bs.Weights,
+                options: BundleOptions, *, points_needed: str) -> _Red:
+    """Residuals, weights, cofactors and redundancy numbers at the solution."""
+    base = _base_weights(prob, factors)
+    w = _combine(base, robust_w)
+    lin = bs.evaluate(prob, st, jacobian=bool(points_needed or options.variance_components))
+    res = lin.res
+    M = len(prob.obs_pt)
+    u = prob.n_c + 3 * prob.n_points
+    r_img = np.full((M, 2), np.nan)
+    r_ctrl = np.full((len(prob.c_pt), 3), np.nan)
+    r_gnss = np.full((len(prob.g_img), 3), np.nan)
+    Qcc = Qpp = None
+    Qsel: dict[int, F64] = {}
+    ne = None
+    if points_needed or options.variance_components:
+        dense = prob.n_c <= options.dense_limit
+        ne = bs.normal(prob, lin, w, 0.0, dense=dense)
+        Qcc = bs.inverse_reduced(ne.S, blas_threads=prob.blas_threads)
+        if points_needed == "all":
+            pts = np.arange(prob.n_points, dtype=np.int64)
+        else:
+            pts = np.unique(prob.c_pt)
+        Qp, T, obs = bs.track_cofactors(prob, ne, Qcc, pts)
+        if points_needed == "all":
+            Qpp = Qp
+            # redundancy numbers of the image observations
+            Jc, Jp = lin.Jc, lin.Jp
+            cidx = ne.cidx
+            Qii = Qcc[cidx[:, :, None], cidx[:, None, :]]
+            h = np.einsum("mri,mij,mrj->mr", Jc, Qii, Jc)
+            h -= 2 * np.einsum("mri,mia,mra->mr", Jc, T, Jp)
+            h += np.einsum("mra,mab,mrb->mr", Jp, Qpp[prob.obs_pt], Jp)
+            r_img = np.clip(1.0 - w.image * h, 0.0, 1.0)
+        for k, p in enumerate(pts):
+            Qsel[int(p)] = Qp[k]
+        if len(prob.c_pt):
+            qc = np.array([np.diag(Qsel[int(p)]) for p in prob.c_pt])
+            r_ctrl = np.where(w.control > 0, np.clip(1.0 - w.control * qc, 0.0, 1.0), np.nan)
+        if len(prob.g_img):
+            pidx = 6 * prob.g_img[:, None] + np.arange(6)
+            Qg = Qcc[pidx[:, :, None], pidx[:, None, :]]
+            hg = np.einsum("gri,gij,grj->gr", lin.Jg, Qg, lin.Jg)
+            r_gnss = np.clip(1.0 - w.gnss * hg, 0.0, 1.0)
+    mk = prob.obs_mark[:, None] if len(prob.obs_mark) == M else np.zeros((M, 1), bool)
+    vi = w.image * res.image ** 2
+    vtpv = {"image": float(np.sum(np.where(mk, 0.0, vi))), "marks": float(np.sum(np.where(mk, vi, 0.0))),
+            "gnss": float(np.sum(w.gnss * res.gnss ** 2)),
+            "ins": float(np.sum(w.ins * res.ins ** 2)), "control": float(np.sum(w.control * res.control ** 2))}
+    # observations with a robust weight below 0.1 count as rejected
+    used_img = (w.image > 0) & (robust_w.image >= 0.1)
+    nobs = {"image": int(np.sum(used_img & ~mk)), "marks": int(np.sum(used_img & mk)),
+            "gnss": int(np.sum((w.gnss > 0) & (robust_w.gnss >= 0.1))), "ins": int(np.sum(w.ins > 0)),
+            "control": int(np.sum((w.control > 0) & (robust_w.control >= 0.1)))}
+    r_tot = sum(nobs.values()) - u
+    r: dict[str, float] = {}
+    for g in GROUPS:
+        r[g] = nobs[g] * r_tot / max(sum(nobs.values()), 1)  # proportional approximation
+    if Qcc is not None:
+        if points_needed == "all":
+            keep = robust_w.image >= 0.1
+            r["image"] = float(np.sum(r_img[keep & ~mk]))
+            r["marks"] = float(np.sum(r_img[keep & mk]))
+        if len(prob.c_pt):
+            r["control"] = float(np.nansum(r_ctrl))
+        if len(prob.g_img):
+            r["gnss"] = float(np.sum(r_gnss[(w.gnss > 0) & (robust_w.gnss >= 0.1)]))
+        if len(prob.i_img):
+            pidx = 6 * prob.i_img[:, None] + np.arange(3)
+            qi = Qcc[pidx, pidx]
+            r["ins"] = float(np.sum(np.clip(1.0 - w.ins * qi, 0.0, 1.0)))
+        if points_needed != "all":
+            r["image"] = r_tot - r["control"] - r["gnss"] - r["ins"] - r["marks"]
+    return _Red(vtpv, r, nobs, Qcc, Qpp, Qsel, r_img, r_ctrl, r_gnss, res, w, ne, u)
+
+
+def _result(prob: bs.Problem, st: bs.State, info: _Info, factors: Mapping[str, float], robust_w: bs.Weights,
+            red: _Red, options: BundleOptions, iterations: int, converged: bool) -> BundleResult:
+    n, P = prob.n_images, prob.n_points
+    res, w = red.res, red.w
+    r_tot = sum(red.n.values()) - red.n_unknowns
+    vtpv = sum(red.vtpv.values())
+    s0 = math.sqrt(vtpv / r_tot) if r_tot > 0 else float("nan")
+    s0v = s0 ** 2 if math.isfinite(s0) else 1.0
+    present = {"image": True, "marks": bool(len(prob.obs_mark) and prob.obs_mark.any()),
+               "gnss": len(prob.g_img) > 0 and not info.free_network,
+               "ins": len(prob.i_img) > (1 if info.free_network else 0),
+               "control": len(prob.c_pt) > 0}
+    sigma0_groups = {g: (math.sqrt(red.vtpv[g] / red.r[g]) if red.r[g] > 0 else float("nan"))
+                     for g in GROUPS if present[g]}
+    # poses
+    poses = []
+    Rm = bs.rotations(st.angles)
+    for i, p in enumerate(info.poses):
+        poses.append(Pose(p.image, p.camera, st.centres[i], Rm[i]))
+    names = [f"{p.image}.{e}" for p in info.poses for e in POSE_ELEMENTS]
+    names += [f"{c}.{q}" for c in info.cam_ids for q in options.self_calibrate]
+    pose_cov = np.full((n, 6, 6), np.nan)
+    corr = np.zeros((0, 0))
+    interior_std: dict[str, dict[str, float]] = {c: {} for c in info.cam_ids}
+    if red.Qcc is not None:
+        C = s0v * red.Qcc
+        blk = np.arange(6 * n).reshape(n, 6)
+        pose_cov = C[blk[:, :, None], blk[:, None, :]]
+        sd = np.sqrt(np.clip(np.diag(C), 0, None))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            corr = C / np.outer(sd, sd)
+        for q, cid in enumerate(info.cam_ids):
+            for k, name in enumerate(options.self_calibrate):
+                interior_std[cid][name] = float(sd[6 * n + prob.c * q + k])
+    pose_std = np.sqrt(np.clip(np.diagonal(pose_cov, axis1=1, axis2=2), 0, None))
+    pose_std[~np.isfinite(pose_std)] = np.nan
+    cams = {cid: camera_from_interior(c, st.interior[q], interior_std[cid])
+            for q, (cid, c) in enumerate(zip(info.cam_ids, info.cams, strict=True))}
+    point_cov = None if red.Qpp is None else s0v * red.Qpp
+    point_std = np.full((P, 3), np.nan)
+    if point_cov is not None:
+        point_std = np.sqrt(np.clip(np.diagonal(point_cov, axis1=1, axis2=2), 0, None))
+    else:
+        for j, qj in red.Qpp_sel.items():
+            point_std[j] = np.sqrt(np.clip(np.diag(s0v * qj), 0, None))
+    # image observations: standardised residuals, flags
+    sig = (prob.obs_sigma * _image_factor(prob, factors))[:, None]
+    s0g = np.where(prob.obs_mark, sigma0_groups.get("marks", s0), sigma0_groups.get("image", s0))[:, None]
+    # the larger of the a-priori and a-posteriori sigma, per group
+    s0i = np.where(np.isfinite(s0g), np.maximum(s0g, 1.0), 1.0)
+    rr = red.r_img if np.isfinite(red.r_img).all() else np.full_like(red.r_img, max(red.r["image"], 1e-9)
+                                                                      / max(red.n["image"], 1))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        stdz = np.abs(res.image) / (s0i * sig * np.sqrt(np.maximum(rr, 1e-6)))
+    low_w = robust_w.image < 0.1
+    flagged = np.asarray(((stdz > options.blunder_threshold) | low_w).any(axis=1), dtype=bool)
+    # control
+    tr = info.tracks
+    ctrl_ids = tuple(info.control.ids[i] for i in info.control_rows) if info.control is not None else ()
+    ctrl_res = np.where(np.isfinite(prob.c_sigma), res.control, np.nan) if len(prob.c_pt) else np.zeros((0, 3))
+    flagged_control: list[str] = []
+    if len(prob.c_pt):
+        s0c = sigma0_groups.get("control", 1.0)
+        s0c = max(s0c, 1.0) if math.isfinite(s0c) else 1.0
+        rc = np.where(np.isfinite(red.r_ctrl), red.r_ctrl, 1.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            zc = np.abs(res.control) * np.sqrt(w.control / np.maximum(rc, 1e-6)) / s0c
+        bad = (np.nan_to_num(zc) > options.blunder_threshold).any(axis=1) | (robust_w.control < 0.1).any(axis=1)
+        flagged_control = [ctrl_ids[i] for i in np.flatnonzero(bad)]
+    # check points
+    check_ids: tuple[str, ...] = ()
+    check_err = np.zeros((0, 3))
+    check_std = np.zeros((0, 3))
+    if info.control is not None and len(info.check_rows):
+        check_ids = tuple(info.control.ids[i] for i in info.check_rows)
+        check_err = st.points[info.check_pt] - info.control.xyz[info.check_rows]
+        check_std = np.sqrt(point_std[info.check_pt] ** 2 + info.control.sigma_m[info.check_rows] ** 2)
+    gn = len(prob.g_img) - (2 if info.free_network else 0)  # the minimum constraints are no GNSS
+    datum_lines, groups, cond, warns = datum_analysis(prob, st, info.free_network, red.Qcc, red.ne, point_std,
+                                                       s0v, info.control, info.control_rows, gn)
+    if not converged:
+        warns.append("the adjustment did not converge")
+    return BundleResult(
+        cameras=cams, poses=tuple(poses), point_ids=tr.point_ids, points=_ro(st.points), pose_std=_ro(pose_std),
+        pose_covariance=_ro(pose_cov), correlation=_ro(corr), correlation_names=tuple(names),
+        interior_std=interior_std, point_std=_ro(point_std),
+        point_covariance=None if point_cov is None else _ro(point_cov), sigma0=s0, sigma0_groups=sigma0_groups,
+        variance_factors={g: float(factors[g]) for g in GROUPS if present[g]},
+        redundancy_groups={g: float(red.r[g]) for g in GROUPS if present[g]},
+        residuals_px=_ro(res.image), weights=_ro(robust_w.image), standardized=_ro(stdz),
+        redundancy_numbers=_ro(red.r_img), flagged=_ro(flagged), control_ids=ctrl_ids,
+        control_residuals=_ro(ctrl_res), flagged_control=tuple(flagged_control), check_ids=check_ids,
+        check_errors=_ro(check_err), check_std=_ro(check_std), gnss_residuals=_ro(res.gnss[:gn]),
+        iterations=iterations, converged=converged, datum=tuple(datum_lines), datum_groups=tuple(groups),
+        condition_number=cond, warnings=tuple(warns))
+
+
+def _ro(a: NDArray) -> NDArray:
+    a = np.array(a, copy=True)
+    a.flags.writeable = False
+    return a
+
+
+def pose_from_angles(image: str, camera: str, angles: ArrayLike, position: ArrayLike) -> Pose:
+    """A :class:`Pose` from omega, phi, kappa (rad) and the projection centre (m)."""
+    a = np.asarray(angles, dtype=np.float64).reshape(3)
+    return Pose(image, camera, np.asarray(position, dtype=np.float64), matrix_from_angles(a[0], a[1], a[2]))
+

@@ -1,0 +1,429 @@
+"""Products of dense matching: point clouds (LAS/LAZ, PLY) and the DSM GeoTIFF.
+
+Points arrive by tiles; every writer here streams them:
+
+- :class:`LasWriter`: LAS 1.4 point format 2 (x, y, z, RGB) through laspy, in chunks; ``.laz``
+  needs a laspy LAZ backend (``lazrs`` or ``laszip``), else a one-line error.
+- :class:`PlyWriter`: binary little-endian PLY (x, y, z float64, RGB uint8); the points go to a
+  temporary body file first, the header (which needs the count) is written at the end.
+- :class:`DsmGrid`: cell statistics on a regular grid in the ground frame: the Gaussian-weighted
+  mean (default), minimum or maximum height of the points within ``radius`` cells of each cell
+  centre, and the count of points in the cell. Cells whose points spread by more than
+  ``max_spread`` cell sides are dropped, optionally cells far from their 5 x 5 median
+  (``despike_cells``). Cells without points are nodata (``-9999``). Optional hole filling
+  interpolates holes of at most ``max_hole_cells`` cells from their rim and marks them in a mask
+  band. The grid itself is held in memory: 14 bytes per cell.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from affine import Affine
+from numpy.typing import ArrayLike, NDArray
+from scipy import ndimage
+
+from rectify.atomic import atomic_output
+from rectify.errors import InvalidInputError, RasterIOError, ShapeError
+from rectify.raster.io import MaskPolicy, TiledWriter
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["DSM_NODATA", "STATISTICS", "DsmGrid", "DsmResult", "LasWriter", "PlyWriter", "point_writer"]
+
+StrPath = str | Path
+
+DSM_NODATA = -9999.0
+STATISTICS = ("mean", "min", "max")
+
+
+def _check_xyz(xyz: ArrayLike, colors: ArrayLike | None) -> tuple[NDArray[np.float64], NDArray[np.uint8] | None]:
+    p = np.asarray(xyz, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ShapeError(f"points must have shape (N, 3); got {p.shape}", actual_shape=p.shape,
+                         expected_shape=(None, 3))
+    if not np.isfinite(p).all():
+        raise InvalidInputError("points must be finite (NaN or inf given)")
+    c = None
+    if colors is not None:
+        c = np.asarray(colors)
+        if c.shape != (len(p), 3):
+            raise ShapeError(f"colors must have shape ({len(p)}, 3); got {c.shape}", actual_shape=c.shape,
+                             expected_shape=(len(p), 3))
+        c = np.clip(c, 0, 255).astype(np.uint8)
+    return p, c
+
+
+class LasWriter:
+    """Stream points into a LAS/LAZ file (laspy).
+
+    Parameters
+    ----------
+    path : path
+        Written as given (the caller stages it).
+    offset : (3,) float
+        LAS offsets (a point near the data); scales are ``scale`` in every axis.
+    crs_wkt : str, optional
+        Stored as an OGC WKT VLR when given.
+    """
+
+    def __init__(self, path: StrPath, offset: ArrayLike, *, scale: float = 0.001, crs_wkt: str | None = None,
+                 compress: bool | None = None):
+        import laspy
+
+        self.path = Path(path)
+        laz = self.path.suffix.lower() == ".laz" if compress is None else compress
+        if laz and not laspy.LazBackend.detect_available():
+            raise InvalidInputError(f"cannot write {str(self.path)!r}: no LAZ backend (install lazrs); write .las")
+        header = laspy.LasHeader(point_format=2, version="1.4")
+        header.offsets = np.asarray(offset, dtype=np.float64).reshape(3)
+        header.scales = np.array([scale, scale, scale])
+        if crs_wkt:
+            try:
+                from pyproj import CRS
+
+                crs = CRS.from_user_input(crs_wkt)
+                try:
+                    header.add_crs(crs)
+                except Exception:  # noqa: BLE001 - laspy wants an EPSG code: store the OGC WKT VLR directly
+                    header.vlrs.append(laspy.vlrs.known.WktCoordinateSystemVlr(crs.to_wkt()))
+                    header.global_encoding.wkt = True
+            except Exception as err:  # noqa: BLE001 - a CRS that cannot be stored is logged, not fatal
+                logger.warning("CRS not stored in the point cloud: %s", err)
+        self._laspy = laspy
+        self._header = header
+        try:
+            self._w = laspy.open(str(self.path), mode="w", header=header, do_compress=laz)
+        except OSError as err:
+            raise RasterIOError(f"cannot write {str(self.path)!r}: {err}") from err
+        self.count = 0
+
+    def write(self, xyz: ArrayLike, colors: ArrayLike | None = None) -> None:
+        p, c = _check_xyz(xyz, colors)
+        if len(p) == 0:
+            return
+        rec = self._laspy.ScaleAwarePointRecord.zeros(len(p), header=self._header)
+        rec.x, rec.y, rec.z = p[:, 0], p[:, 1], p[:, 2]
+        if c is not None:
+            rec.red, rec.green, rec.blue = (c[:, 0].astype(np.uint16) * 257, c[:, 1].astype(np.uint16) * 257,
+                                            c[:, 2].astype(np.uint16) * 257)
+        self._w.write_points(rec)
+        self.count += len(p)
+
+    def close(self) -> None:
+        self._w.close()
+
+
+class PlyWriter:
+    """Stream points into a binary little-endian PLY (x, y, z double; red, green, blue uchar)."""
+
+    def __init__(self, path: StrPath, *, comment: str | None = None):
+        self.path = Path(path)
+        self.comment = comment
+        self._body_path = self.path.with_name(self.path.name + ".body")
+        try:
+            self._body = open(self._body_path, "wb")  # noqa: SIM115 - closed in close()
+        except OSError as err:
+            raise RasterIOError(f"cannot write {str(self.path)!r}: {err.strerror}") from err
+        self.count = 0
+        self._dtype = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
+
+    def write(self, xyz: ArrayLike, colors: ArrayLike | None = None) -> None:
+        p, c = _check_xyz(xyz, colors)
+        rec = np.zeros(len(p), self._dtype)
+        rec["x"], rec["y"], rec["z"] = p[:, 0], p[:, 1], p[:, 2]
+        if c is not None:
+            rec["r"], rec["g"], rec["b"] = c[:, 0], c[:, 1], c[:, 2]
+        self._body.write(rec.tobytes())
+        self.count += len(p)
+
+    def close(self) -> None:
+        self._body.close()
+        head = ["ply", "format binary_little_endian 1.0"]
+        if self.comment:
+            head.append(f"comment {self.comment}")
+        head += [f"element vertex {self.count}", "property double x", "property double y", "property double z",
+                 "property uchar red", "property uchar green", "property uchar blue", "end_header"]
+        try:
+            with open(self.path, "wb") as out, open(self._body_path, "rb") as body:
+                out.write(("\n".join(head) + "\n").encode("ascii"))
+                shutil.copyfileobj(body, out, 1 << 22)
+        finally:
+            self._body_path.unlink(missing_ok=True)
+
+
+def point_writer(path: StrPath, fmt: str | None = None, *, offset: ArrayLike, crs_wkt: str | None = None,
+                 comment: str | None = None) -> LasWriter | PlyWriter:
+    """A streaming writer: ``fmt`` ``las``, ``laz`` or ``ply`` (default: from the suffix of ``path``)."""
+    f = fmt if fmt is not None else Path(path).suffix.lower().lstrip(".")
+    if f in ("las", "laz"):
+        return LasWriter(path, offset, crs_wkt=crs_wkt, compress=f == "laz")
+    if f == "ply":
+        return PlyWriter(path, comment=comment)
+    raise InvalidInputError(f"unknown point cloud format {f!r} of {str(path)!r}; expected las, laz or ply")
+
+
+@dataclass(frozen=True, eq=False)
+class DsmResult:
+    """A finished DSM grid.
+
+    Attributes
+    ----------
+    height : (H, W) float32
+        Heights; ``DSM_NODATA`` where no points (and not filled).
+    count : (H, W) uint16
+        Points that made each cell (within the grid's radius of its centre; 0 where no height).
+    filled : (H, W) bool
+        Cells filled by interpolation.
+    transform : affine.Affine
+        rasterio geotransform (cell corners).
+    crs : str or None
+    """
+
+    height: NDArray[np.float32]
+    count: NDArray[np.uint16]
+    filled: NDArray[np.bool_]
+    transform: Affine
+    crs: str | None
+
+    def __post_init__(self) -> None:
+        for a in (self.height, self.count, self.filled):
+            a.flags.writeable = False
+
+    @property
+    def valid(self) -> NDArray[np.bool_]:
+        return np.asarray(self.height != DSM_NODATA)
+
+    @property
+    def coverage(self) -> float:
+        """Share of cells with points (before filling)."""
+        return float((self.count > 0).mean()) if self.count.size else 0.0
+
+    def write(self, path: StrPath, *, overwrite: bool = False) -> Path:
+        """Write the DSM GeoTIFF: band 1 height (nodata -9999), band 2 point count, band 3 fill mask (1 filled)."""
+        H, W = self.height.shape
+        with atomic_output(path, overwrite=overwrite) as tmp, \
+                TiledWriter(tmp, W, H, 3, "float32", self.transform, self.crs, MaskPolicy("nodata", DSM_NODATA),
+                            tile=256) as w:
+            for r0 in range(0, H, 512):
+                r1 = min(r0 + 512, H)
+                w.write(np.dstack([self.height[r0:r1].astype(np.float32), self.count[r0:r1].astype(np.float32),
+                                   self.filled[r0:r1].astype(np.float32)]), 0, r0)
+        return Path(path)
+
+
+class DsmGrid:
+    """Accumulate points into DSM cells.
+
+    Parameters
+    ----------
+    bounds : (xmin, ymin, xmax, ymax)
+        Ground extent.
+    cell : float
+        Cell side, ground units.
+    statistic : {"mean", "min", "max"}
+    crs : str, optional
+    radius : float
+        Each point counts in every cell whose centre lies within ``radius`` cells of it (Gaussian
+        weight, sigma ``radius / 2``, for the mean): with points about one per cell, as a disparity
+        map gives at a cell of one ground pixel, this leaves no empty cells between the points'
+        rows. 0: a point counts in its own cell only.
+    max_spread : float
+        Cells whose points' (weighted) height standard deviation exceeds ``max_spread`` cell sides
+        are dropped (points of two surfaces, or blunders, in one cell; 0: no test).
+
+    Memory: 14 bytes per cell (float32 weight, weighted sums of z and z^2 about a reference height,
+    uint16 count); points are added by batches over the cells they touch only.
+    """
+
+    def __init__(self, bounds: tuple[float, float, float, float], cell: float, *, statistic: str = "mean",
+                 crs: str | None = None, max_cells: int = 400_000_000, radius: float = 1.0,
+                 max_spread: float = 2.0):
+        if statistic not in STATISTICS:
+            raise InvalidInputError(f"unknown DSM statistic {statistic!r}; expected one of {list(STATISTICS)}")
+        if not (isinstance(cell, (int, float)) and math.isfinite(cell) and cell > 0):
+            raise InvalidInputError(f"DSM cell must be a finite number > 0; got {cell!r}")
+        for name, v in (("radius", radius), ("max_spread", max_spread)):
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v <= 5):
+                raise InvalidInputError(f"`{name}` must be a number in [0, 5]; got {v!r}")
+        x0, y0, x1, y1 = (float(b) for b in bounds)
+        if not all(math.isfinite(v) for v in (x0, y0, x1, y1)) or x1 <= x0 or y1 <= y0:
+            raise InvalidInputError(f"DSM bounds must be finite with xmin < xmax, ymin < ymax; got {bounds!r}")
+        self.cell = float(cell)
+        self.x0 = math.floor(x0 / cell) * cell
+        self.y1 = math.ceil(y1 / cell) * cell
+        self.width = int(math.ceil((x1 - self.x0) / cell)) + 1
+        self.height = int(math.ceil((self.y1 - y0) / cell)) + 1
+        if self.width * self.height > max_cells:
+            raise InvalidInputError(f"the DSM would have {self.width} x {self.height} cells (more than {max_cells}); "
+                                    f"choose a larger cell than {cell!r}")
+        self.statistic = statistic
+        self.crs = crs
+        self.radius = float(radius)
+        self.max_spread = float(max_spread)
+        self.n_despiked = 0
+        self.n_spread = 0
+        self._done = False
+        self._z0: float | None = None
+        shape = (self.height, self.width)
+        self._count = np.zeros(shape, np.uint16)
+        self._w = np.zeros(shape, np.float32)
+        self._wz = np.zeros(shape, np.float32)
+        self._wzz = np.zeros(shape, np.float32)
+        if statistic != "mean":
+            self._acc = np.full(shape, np.inf if statistic == "min" else -np.inf, np.float32)
+
+    @property
+    def transform(self) -> Affine:
+        return Affine(self.cell, 0.0, self.x0 - self.cell / 2, 0.0, -self.cell, self.y1 + self.cell / 2)
+
+    def cell_of(self, xy: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        c = np.rint((xy[:, 0] - self.x0) / self.cell).astype(np.int64)
+        r = np.rint((self.y1 - xy[:, 1]) / self.cell).astype(np.int64)
+        return r, c
+
+    def add(self, xyz: ArrayLike) -> int:
+        """Add points (N, 3); returns how many fell inside the grid."""
+        p, _ = _check_xyz(xyz, None)
+        if self._done:
+            raise InvalidInputError("this DsmGrid already gave its result: it takes no more points")
+        fc = (p[:, 0] - self.x0) / self.cell
+        fr = (self.y1 - p[:, 1]) / self.cell
+        r0, c0 = np.rint(fr).astype(np.int64), np.rint(fc).astype(np.int64)
+        own = (r0 >= 0) & (c0 >= 0) & (r0 < self.height) & (c0 < self.width)
+        if not own.any():
+            return 0
+        if self._z0 is None:
+            self._z0 = float(np.median(p[own, 2]))
+        z = (p[:, 2] - self._z0).astype(np.float32)
+        k = int(math.ceil(self.radius))
+        lo_r, hi_r = max(int(r0[own].min()) - k, 0), min(int(r0[own].max()) + k, self.height - 1)
+        lo_c, hi_c = max(int(c0[own].min()) - k, 0), min(int(c0[own].max()) + k, self.width - 1)
+        h, w = hi_r - lo_r + 1, hi_c - lo_c + 1
+        sl = (slice(lo_r, hi_r + 1), slice(lo_c, hi_c + 1))
+        cnt = self._count[sl].astype(np.int64)
+        sigma = max(self.radius / 2.0, 1e-6)
+        for dr in range(-k, k + 1):
+            for dc in range(-k, k + 1):
+                rr, cc = r0 + dr, c0 + dc
+                dist2 = (rr - fr) ** 2 + (cc - fc) ** 2
+                m = (rr >= lo_r) & (cc >= lo_c) & (rr <= hi_r) & (cc <= hi_c)
+                if self.radius > 0:
+                    m &= dist2 <= self.radius ** 2
+                elif dr or dc:
+                    continue
+                if not m.any():
+                    continue
+                j = (rr[m] - lo_r) * w + (cc[m] - lo_c)
+                wt = np.exp(-0.5 * dist2[m] / sigma ** 2) if self.radius > 0 else np.ones(int(m.sum()))
+                zm = z[m].astype(np.float64)
+                cnt += np.bincount(j, minlength=h * w).reshape(h, w)
+                self._w[sl] += np.bincount(j, weights=wt, minlength=h * w).reshape(h, w).astype(np.float32)
+                self._wz[sl] += np.bincount(j, weights=wt * zm, minlength=h * w).reshape(h, w).astype(np.float32)
+                self._wzz[sl] += np.bincount(j, weights=wt * zm * zm, minlength=h * w).reshape(h, w).astype(
+                    np.float32)
+                if self.statistic != "mean":
+                    flat = self._acc[sl].reshape(-1).copy()
+                    (np.minimum if self.statistic == "min" else np.maximum).at(flat, j, z[m])
+                    self._acc[sl] = flat.reshape(h, w)
+        self._count[sl] = np.minimum(cnt, 65535).astype(np.uint16)
+        return int(own.sum())
+
+    def result(self, *, max_hole_cells: int = 0, despike_cells: float = 0.0) -> DsmResult:
+        """The DSM; holes of at most ``max_hole_cells`` cells are interpolated from their rim and flagged.
+
+        Cells whose points spread by more than ``max_spread`` cell sides are dropped (counted in
+        :attr:`n_spread`). With ``despike_cells`` > 0, cells whose height differs from the median of
+        their 5 x 5 neighbourhood by more than ``despike_cells`` cell sides are removed next
+        (matching blunders); the removed count is in :attr:`n_despiked`.
+
+        The result is computed in the grid's own buffers (about 1 extra byte per cell), so the grid
+        is consumed: it takes no more points afterwards.
+        """
+        if isinstance(max_hole_cells, bool) or not isinstance(max_hole_cells, int) or max_hole_cells < 0:
+            raise InvalidInputError(f"`max_hole_cells` must be an integer >= 0; got {max_hole_cells!r}")
+        if self._done:
+            raise InvalidInputError("this DsmGrid already gave its result")
+        self._done = True
+        z0 = np.float32(self._z0 if self._z0 is not None else 0.0)
+        has = self._w > 0
+        h = self._wz  # becomes the height, in place
+        wide_n = 0
+        for r0 in range(0, self.height, 1024):  # by row blocks: small temporaries
+            sl = slice(r0, r0 + 1024)
+            w, m = self._w[sl], has[sl]
+            np.divide(h[sl], w, out=h[sl], where=m)
+            if self.max_spread > 0:
+                var = np.divide(self._wzz[sl], w, out=np.zeros_like(w), where=m) - h[sl] * h[sl]
+                wide = m & (var > np.float32((self.max_spread * self.cell) ** 2))
+                wide_n += int(wide.sum())
+                m &= ~wide
+            if self.statistic != "mean":
+                h[sl] = self._acc[sl]
+            h[sl] += z0
+            h[sl][~m] = np.nan
+        self.n_spread = wide_n
+        del self._w, self._wzz
+        if self.statistic != "mean":
+            del self._acc
+        self.n_despiked = 0
+        if despike_cells > 0 and has.any():
+            idx = ndimage.distance_transform_edt(~has, return_distances=False, return_indices=True)
+            med = ndimage.median_filter(h[idx[0], idx[1]], size=5, mode="nearest")
+            del idx
+            spike = has & (np.abs(h - med) > despike_cells * self.cell)
+            self.n_despiked = int(spike.sum())
+            h[spike] = np.nan
+            has &= ~spike
+        filled = np.zeros(h.shape, bool)
+        if max_hole_cells > 0 and has.any() and not has.all():
+            hf, filled = _fill_holes(h.astype(np.float64), has, max_hole_cells)
+            h[filled] = hf[filled]
+            del hf
+        h[~(has | filled)] = DSM_NODATA
+        count = self._count
+        count[~(has | filled)] = 0
+        return DsmResult(h, count, filled, self.transform, self.crs)
+
+
+def _fill_holes(h: NDArray[np.float64], has: NDArray[np.bool_], max_cells: int
+                ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Fill enclosed holes of at most ``max_cells`` cells by inverse-distance weighting of their rim."""
+    lab, n = ndimage.label(~has)
+    if n == 0:
+        return h, np.zeros(h.shape, bool)
+    sizes = np.bincount(lab.ravel(), minlength=n + 1)
+    # a hole touching the border is outside the data, not a hole
+    border = np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))
+    small = sizes <= max_cells
+    small[0] = False
+    small[border] = False
+    target = small[lab]
+    if not target.any():
+        return h, np.zeros(h.shape, bool)
+    # nearest-valid value, then smoothed inside the hole by repeated averaging (harmonic fill)
+    idx = ndimage.distance_transform_edt(~has, return_distances=False, return_indices=True)
+    out = h[idx[0], idx[1]]
+    for _ in range(50):
+        pad = np.pad(out, 1, mode="edge")
+        avg = 0.25 * (pad[:-2, 1:-1] + pad[2:, 1:-1] + pad[1:-1, :-2] + pad[1:-1, 2:])
+        out[target] = avg[target]
+    return np.where(has | target, out, np.nan), target
+
+
+def ply_header_count(path: StrPath) -> int:
+    """The vertex count in a PLY header (for tests and reports)."""
+    with open(path, "rb") as fh:
+        for raw in fh:
+            line = raw.decode("ascii", "replace").strip()
+            if line.startswith("element vertex"):
+                return int(line.split()[2])
+            if line == "end_header":
+                break
+    raise InvalidInputError(f"{str(path)!r} has no vertex element")
+

@@ -1,0 +1,303 @@
+"""Files of a block job: the block control CSV, the observations CSV and the block orientation JSON.
+
+Formats (``docs/formats.md``):
+
+Block control CSV
+    Header ``id,image,col,row,x,y,z`` with optional ``sx,sy,sz`` (a-priori standard deviations of
+    the ground coordinates, ground units) and a ``# crs=...`` comment line. One row per image
+    measurement of a control point (``col,row`` in that image's pixels); the ground coordinates
+    may be repeated on every row of an id (they must agree) or given once. A row with an empty
+    ``image`` gives ground coordinates only. Empty ``x,y`` with ``z`` make a height-only point,
+    empty ``z`` with ``x,y`` a plan-only point; an id with no ground coordinates at all is a tie
+    point measured by hand.
+Observations CSV (written)
+    ``image,id,col,row,sigma_px,residual_x_px,residual_y_px,weight,flagged``: every image
+    measurement of the adjustment with its residual (adjusted - observed), final weight and
+    blunder flag.
+Block orientation JSON (written and read)
+    ``format: rectify-stereo/block-orientation``, ``version``, ``crs``, ``cameras`` (id -> camera
+    JSON, with ``std_errors`` when self-calibrated), ``images`` (a list of ``{image, camera,
+    position, rotation, angles_rad: {omega, phi, kappa}, std_errors}``), ``sigma0`` (overall and per
+    group), ``datum`` (the datum statements), ``summary`` and ``residuals`` (per group RMS).
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from rectify.atomic import read_json
+from rectify.errors import InvalidInputError
+from rectify.formats.common import _load, _need, _num
+from rectify.geometry.camera import Camera
+from stereo.block.types import Pose, Tracks
+
+__all__ = [
+    "BLOCK_FORMAT",
+    "BlockControlTable",
+    "BlockOrientation",
+    "block_orientation_text",
+    "observations_text",
+    "read_block_control",
+    "read_block_orientation",
+]
+
+StrPath = str | os.PathLike[str]
+
+BLOCK_FORMAT = "rectify-stereo/block-orientation"
+BLOCK_VERSION = 1
+
+#: kinds of control point by which ground coordinates are given
+CONTROL_KINDS = ("full", "height", "plan", "tie")
+
+
+@dataclass(frozen=True, eq=False)
+class BlockControlTable:
+    """Control of a block as read from a block control CSV.
+
+    Attributes
+    ----------
+    ids : tuple of str
+        One per point (K).
+    xyz : (K, 3) float64
+        Ground coordinates; NaN where not given (height-only: x, y NaN; plan-only: z NaN; tie: all).
+    kind : tuple of str
+        ``"full"``, ``"height"``, ``"plan"`` or ``"tie"`` per point.
+    sigma_m : (K, 3) float64
+        A-priori standard deviations of x, y, z, ground units (NaN where the file gives none).
+    meas_id, meas_image : tuple of str
+        Point id and image name of each image measurement (L).
+    meas_pixel : (L, 2) float64
+        The measured pixels (x = column, y = row).
+    crs : str or None
+    """
+
+    ids: tuple[str, ...]
+    xyz: NDArray[np.float64]
+    kind: tuple[str, ...]
+    sigma_m: NDArray[np.float64]
+    meas_id: tuple[str, ...]
+    meas_image: tuple[str, ...]
+    meas_pixel: NDArray[np.float64]
+    crs: str | None = None
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def index(self) -> dict[str, int]:
+        return {k: i for i, k in enumerate(self.ids)}
+
+
+def read_block_control(path: StrPath) -> BlockControlTable:
+    """Read a block control CSV (see the module docstring).
+
+    Raises
+    ------
+    InvalidInputError
+        Missing columns, a non-numeric value (line and value named), an id whose rows give
+        different ground coordinates, a negative or zero sigma, an id measured twice in one image.
+    RasterIOError
+        The file cannot be read.
+    """
+    rows, lines, crs, fields = _load(path, "rows")
+    _need(fields, ("id", "image", "col", "row", "x", "y", "z"), path)
+    has_sigma = all(k in fields for k in ("sx", "sy", "sz"))
+    ground: dict[str, NDArray[np.float64]] = {}
+    sig: dict[str, NDArray[np.float64]] = {}
+    order: list[str] = []
+    m_id: list[str] = []
+    m_img: list[str] = []
+    m_px: list[tuple[float, float]] = []
+    seen: set[tuple[str, str]] = set()
+    for r, ln in zip(rows, lines, strict=False):
+        pid = r["id"]
+        if not pid:
+            raise InvalidInputError(f"{str(path)!r} line {ln}: empty id")
+        if pid not in ground:
+            order.append(pid)
+            ground[pid] = np.full(3, np.nan)
+            sig[pid] = np.full(3, np.nan)
+        g = np.array([_num(r, k, ln, path, allow_empty=True) for k in ("x", "y", "z")])
+        if np.isnan(g[0]) != np.isnan(g[1]):
+            raise InvalidInputError(f"{str(path)!r} line {ln}: x and y must be both given or both empty "
+                                    f"(id {pid!r})")
+        old = ground[pid]
+        both = np.isfinite(g) & np.isfinite(old)
+        if np.any(np.abs(g[both] - old[both]) > 1e-9 * np.maximum(1.0, np.abs(old[both]))):
+            raise InvalidInputError(f"{str(path)!r} line {ln}: id {pid!r} has ground coordinates "
+                                    f"{g.tolist()} here and {old.tolist()} on an earlier row")
+        ground[pid] = np.where(np.isfinite(g), g, old)
+        if has_sigma:
+            s = np.array([_num(r, k, ln, path, allow_empty=True) for k in ("sx", "sy", "sz")])
+            if np.any(s[np.isfinite(s)] <= 0):
+                raise InvalidInputError(f"{str(path)!r} line {ln}: standard deviations must be > 0; "
+                                        f"got {s.tolist()}")
+            sig[pid] = np.where(np.isfinite(s), s, sig[pid])
+        image = r["image"]
+        col_s, row_s = r.get("col", ""), r.get("row", "")
+        if image == "":
+            if col_s or row_s:
+                raise InvalidInputError(f"{str(path)!r} line {ln}: col/row given without an image (id {pid!r})")
+            continue
+        if (pid, image) in seen:
+            raise InvalidInputError(f"{str(path)!r} line {ln}: id {pid!r} is measured twice in image {image!r}")
+        seen.add((pid, image))
+        m_id.append(pid)
+        m_img.append(image)
+        m_px.append((_num(r, "col", ln, path), _num(r, "row", ln, path)))
+    xyz = np.array([ground[k] for k in order]).reshape(-1, 3)
+    kinds = []
+    for g in xyz:
+        if np.isfinite(g).all():
+            kinds.append("full")
+        elif np.isfinite(g[2]):
+            kinds.append("height")
+        elif np.isfinite(g[:2]).all():
+            kinds.append("plan")
+        else:
+            kinds.append("tie")
+    return BlockControlTable(tuple(order), xyz, tuple(kinds), np.array([sig[k] for k in order]).reshape(-1, 3),
+                             tuple(m_id), tuple(m_img), np.array(m_px, dtype=np.float64).reshape(-1, 2), crs)
+
+
+def observations_text(tracks: Tracks, residual_px: NDArray[np.float64] | None = None,
+                      weight: NDArray[np.float64] | None = None, flagged: NDArray[np.bool_] | None = None) -> str:
+    """The observations CSV of a block (see the module docstring); residuals in pixels."""
+    m = tracks.n_obs
+    res = np.full((m, 2), np.nan) if residual_px is None else np.asarray(residual_px, dtype=np.float64)
+    w = np.ones(m) if weight is None else np.asarray(weight, dtype=np.float64)
+    fl = np.zeros(m, dtype=bool) if flagged is None else np.asarray(flagged, dtype=bool)
+    buf = io.StringIO()
+    buf.write("image,id,col,row,sigma_px,residual_x_px,residual_y_px,weight,flagged\n")
+    for k in range(m):
+        vals = [tracks.images[tracks.obs_image[k]], tracks.point_ids[tracks.obs_point[k]],
+                f"{tracks.obs_pixel[k, 0]:.4f}", f"{tracks.obs_pixel[k, 1]:.4f}", f"{tracks.obs_sigma_px[k]:.4g}",
+                _fmt(res[k, 0], 5), _fmt(res[k, 1], 5), _fmt(w[k], 4), "1" if fl[k] else "0"]
+        buf.write(",".join(vals) + "\n")
+    return buf.getvalue()
+
+
+def _fmt(v: float, nd: int) -> str:
+    return "" if not math.isfinite(v) else f"{v:.{nd}f}"
+
+
+# --------------------------------------------------------------------------- block orientation JSON
+@dataclass(frozen=True, eq=False)
+class BlockOrientation:
+    """A block orientation JSON as read back.
+
+    Attributes
+    ----------
+    cameras : dict str -> Camera
+    poses : list of Pose
+        In file order.
+    std_errors : (n, 6) float64
+        omega, phi, kappa (rad), x, y, z (ground units); NaN where the file gives none.
+    crs : str or None
+    sigma0 : dict
+        Overall (``"all"``) and per observation group.
+    datum : list of str
+    summary : dict
+    """
+
+    cameras: dict[str, Camera]
+    poses: list[Pose]
+    std_errors: NDArray[np.float64]
+    crs: str | None = None
+    sigma0: dict[str, Any] = field(default_factory=dict)
+    datum: list[str] = field(default_factory=list)
+    summary: dict[str, Any] = field(default_factory=dict)
+
+    def pose(self, image: str) -> Pose:
+        for p in self.poses:
+            if p.image == image:
+                return p
+        raise InvalidInputError(f"image {image!r} is not in the block (images: {[p.image for p in self.poses][:10]})")
+
+
+_STD_NAMES = ("omega", "phi", "kappa", "x", "y", "z")
+
+
+def block_orientation_dict(cameras: Mapping[str, Camera], poses: Sequence[Pose], *,
+                           std_errors: NDArray[np.float64] | None = None, crs: str | None = None,
+                           sigma0: Mapping[str, Any] | None = None, datum: Sequence[str] = (),
+                           summary: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The block orientation JSON object (see the module docstring)."""
+    std = np.full((len(poses), 6), np.nan) if std_errors is None else np.asarray(std_errors, dtype=np.float64)
+    images = []
+    for i, p in enumerate(poses):
+        a = p.angles
+        d: dict[str, Any] = {"image": p.image, "camera": p.camera, "position": [float(v) for v in p.position],
+                             "rotation": [[float(v) for v in row] for row in p.rotation],
+                             "angles_rad": {"omega": float(a[0]), "phi": float(a[1]), "kappa": float(a[2])}}
+        if np.isfinite(std[i]).any():
+            d["std_errors"] = {n: float(v) for n, v in zip(_STD_NAMES, std[i], strict=True) if math.isfinite(v)}
+        images.append(d)
+    return {"format": BLOCK_FORMAT, "version": BLOCK_VERSION, "crs": crs,
+            "angles": "omega-phi-kappa (R = Rx(omega) Ry(phi) Rz(kappa) takes (x, y, -f) into the ground frame)",
+            "cameras": {k: c.to_dict() for k, c in cameras.items()}, "images": images,
+            "sigma0": dict(sigma0 or {}), "datum": list(datum), "summary": dict(summary or {})}
+
+
+def block_orientation_text(cameras: Mapping[str, Camera], poses: Sequence[Pose], **kwargs: Any) -> str:
+    """:func:`block_orientation_dict` as indented JSON text (NaN refused: the report values are finite or null)."""
+    import json
+
+    from rectify.report.builder import json_safe
+
+    return json.dumps(json_safe(block_orientation_dict(cameras, poses, **kwargs)), indent=2, allow_nan=False) + "\n"
+
+
+def read_block_orientation(path: StrPath) -> BlockOrientation:
+    """Read a block orientation JSON.
+
+    Raises
+    ------
+    InvalidInputError
+        Another format, a newer version, a missing or malformed key (named with its image).
+    """
+    from stereo.formats.orientation import check_format
+
+    d = check_format(read_json(path, "block orientation file"), path, BLOCK_FORMAT, BLOCK_VERSION)
+    if d.get("format") != BLOCK_FORMAT:
+        raise InvalidInputError(f"{str(path)!r} is not a block orientation file (no format {BLOCK_FORMAT!r})")
+    cams_raw = d.get("cameras")
+    imgs = d.get("images")
+    if not isinstance(cams_raw, dict) or not cams_raw:
+        raise InvalidInputError(f"{str(path)!r}: `cameras` must be a non-empty object (id -> camera)")
+    if not isinstance(imgs, list) or not imgs:
+        raise InvalidInputError(f"{str(path)!r}: `images` must be a non-empty list")
+    cameras = {}
+    for k, v in cams_raw.items():
+        if not isinstance(v, dict):
+            raise InvalidInputError(f"{str(path)!r}: camera {k!r} must be an object; got {v!r}")
+        cameras[str(k)] = Camera.from_dict(v)
+    poses, std = [], []
+    for i, im in enumerate(imgs):
+        if not isinstance(im, dict):
+            raise InvalidInputError(f"{str(path)!r}: images[{i}] must be an object; got {im!r}")
+        name = im.get("image")
+        try:
+            pose = Pose(str(name), str(im.get("camera")), np.asarray(im.get("position"), dtype=np.float64),
+                        np.asarray(im.get("rotation"), dtype=np.float64))
+        except (TypeError, ValueError) as err:
+            raise InvalidInputError(f"{str(path)!r}: image {name!r}: {err}") from err
+        if pose.camera not in cameras:
+            raise InvalidInputError(f"{str(path)!r}: image {name!r} names camera {pose.camera!r}, which is not "
+                                    f"in `cameras` {sorted(cameras)}")
+        poses.append(pose)
+        se = im.get("std_errors") or {}
+        if not isinstance(se, dict):
+            raise InvalidInputError(f"{str(path)!r}: image {name!r}: `std_errors` must be an object; got {se!r}")
+        std.append([float(se[n]) if isinstance(se.get(n), (int, float)) else math.nan for n in _STD_NAMES])
+    crs = d.get("crs")
+    return BlockOrientation(cameras, poses, np.array(std, dtype=np.float64).reshape(-1, 6),
+                            crs if isinstance(crs, str) else None, dict(d.get("sigma0") or {}),
+                            list(d.get("datum") or []), dict(d.get("summary") or {}))
