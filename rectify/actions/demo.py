@@ -64,7 +64,8 @@ class DemoResult:
     geolocation_max_m: float
     pixel_size_m: float
     compare_summary: dict | None
-    #: the comparison as readable labelled lines (``rectify.geometry.transforms.study.summary_lines``), for the CLI to echo
+    #: the comparison as readable labelled lines (``rectify.geometry.transforms.study.summary_lines``),
+    #: for the CLI to echo
     compare_lines: tuple[str, ...] = ()
 
     def summary_lines(self) -> list[str]:

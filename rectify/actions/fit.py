@@ -11,12 +11,11 @@ from rectify.formats.common import TIFF_SUFFIXES, GcpTable
 from rectify.geometry.transforms import METHODS, FitResult, fit_gcps
 from rectify.geometry.transforms.quality import GcpGeometry, geographic_lines, judge_gcp_geometry
 from rectify.raster.io import raster_info
-from rectify.report.builder import write_fit_report
 
 
 @dataclass(frozen=True)
 class FitOptions:
-    """Options of :func:`fit`: the model (a key of ``rectify.geometry.transforms.METHODS``) and the residual rows printed."""
+    """Options of :func:`fit`: the model (a key of :data:`rectify.geometry.transforms.METHODS`), rows printed."""
 
     method: str = "homography"
     max_rows: int = 50
@@ -90,6 +89,8 @@ def fit(ws: Workspace, gcps_path: str | Path, output: str | Path, options: FitOp
     with ws.transaction():  # the transform and the report, all or none
         out = ws.save_transform(output, result.model, table=result.table, crs=gcps.crs)
         if ws.report_dir is not None:
+            # local: the report (matplotlib, 0.24 s) loads only when --report asks for it
+            from rectify.report.builder import write_fit_report
 
             report = write_fit_report(ws.report_dir, result, gcps, gcps_path=gcps_path, transform_path=out,
                                       overwrite=ws.overwrite)

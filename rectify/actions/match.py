@@ -9,7 +9,6 @@ from typing import Any
 from rectify.actions.common import Progress
 from rectify.actions.workspace import Workspace
 from rectify.features import MatcherConfig, MatchResult, match_images
-from rectify.report.builder import write_match_report
 
 
 @dataclass(frozen=True)
@@ -108,6 +107,8 @@ def match(ws: Workspace, left: str | Path, right: str | Path, output: str | Path
     with ws.transaction():  # the matches and the report, all or none
         out = ws.save_matches(output, res.matches)
         if ws.report_dir is not None:
+            # local: the report (matplotlib, 0.24 s) loads only when --report asks for it
+            from rectify.report.builder import write_match_report
 
             report = write_match_report(ws.report_dir, res, left, right, overwrite=ws.overwrite)
     return MatchRun(res, options, cfg, out, report)

@@ -20,7 +20,6 @@ from rectify.raster.warp import (
     georectify,
     rectify_with_transform,
 )
-from rectify.report.builder import write_warp_report
 
 
 @dataclass(frozen=True)
@@ -143,6 +142,8 @@ def warp(ws: Workspace, src: str | Path, dst: str | Path, *, gcps_path: str | Pa
     report = None
     if ws.report_dir is not None:
         try:
+            # local: the report (matplotlib, 0.24 s) loads only when --report asks for it
+            from rectify.report.builder import write_warp_report
 
             report = write_warp_report(ws.report_dir, result, source_shape=(info.height, info.width),
                                        overwrite=ws.overwrite)

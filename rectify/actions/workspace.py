@@ -292,7 +292,7 @@ class Workspace:
 def _folder_locks(folders: Iterable[Path]) -> Iterator[None]:
     """Hold an exclusive ``flock`` on each folder (in a fixed order); a no-op where flock is missing."""
     try:
-        import fcntl
+        import fcntl  # local: POSIX only; without it the folders are not locked
     except ImportError:  # not POSIX
         yield
         return

@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import importlib
+import importlib.machinery
+import importlib.util
 import logging
 import signal
 import sys
@@ -18,7 +21,8 @@ from typing import Any
 import click
 
 from rectify.atomic import write_failure_reason
-from rectify.errors import RectifyError
+from rectify.errors import RectifyError, RectifyWarning
+from rectify.raster.distributed import resolve_scheduler
 
 __all__ = ["overwrite_opt", "verbosity_opts", "report_opt", "scheduler_opt", "handle_errors", "progress",
            "setup_logging", "VerbosityGroup", "subcommand_verbosity_params"]
@@ -33,8 +37,6 @@ def _check_scheduler(ctx: click.Context, param: click.Parameter, value: str | No
     """Refuse a bad --scheduler at parse time (exit 2, one line); the library checks it again."""
     if value is None:
         return None
-    from rectify.raster.distributed import resolve_scheduler
-
     try:
         resolve_scheduler(value)
     except RectifyError as err:
@@ -66,8 +68,6 @@ def setup_logging(verbose: int, quiet: int) -> None:
 
 def _hide_library_warnings() -> None:
     """Hide third-party warnings (rasterio, GDAL, numpy, matplotlib); the project's own stay visible."""
-    from rectify.errors import RectifyWarning
-
     warnings.filterwarnings("ignore")
     warnings.filterwarnings("default", category=RectifyWarning)
     logging.getLogger("rasterio").setLevel(logging.ERROR)
@@ -94,6 +94,7 @@ def matcher_opts(defaults: Any) -> Callable[[Callable], Callable]:
     """--detector, --verify, --refine/--no-refine, --max-matches, --max-keypoints (choices from the library,
     defaults shown from ``defaults``, a :class:`rectify.features.MatcherConfig`); the command gets them as
     keyword arguments of those names (None for the two counts when not given)."""
+    # local: the matcher (OpenCV's features) loads only for the commands that match
     from rectify.features import DETECTORS, VERIFY_METHODS
 
     d = defaults
@@ -164,8 +165,6 @@ class VerbosityGroup(click.Group):
     def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
         target = self._lazy.get(cmd_name)
         if target is not None and cmd_name not in self.commands:
-            import importlib
-
             module, attr = target.split(":")
             self.add_command(getattr(importlib.import_module(module), attr), cmd_name)
         return super().get_command(ctx, cmd_name)
@@ -203,9 +202,6 @@ class _LazyFinder:
     def find_spec(self, fullname: str, path: Any = None, target: Any = None) -> Any:
         if fullname != self.name:
             return None
-        import importlib.machinery
-        import importlib.util
-
         spec = importlib.machinery.PathFinder.find_spec(fullname, path)
         if spec is None or spec.loader is None:
             return None

@@ -24,6 +24,7 @@ import numpy as np
 from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
+from matplotlib.ticker import FuncFormatter, MaxNLocator
 from numpy.typing import ArrayLike, NDArray
 
 from rectify.errors import InvalidInputError, ShapeError
@@ -763,7 +764,6 @@ def _coordinate_label(v: float, _pos: int | None = None) -> str:
 
 def readable_map_ticks(ax) -> None:
     """Full map coordinates on at most 6 ticks per axis, thousands grouped, x labels turned 30 degrees."""
-    from matplotlib.ticker import FuncFormatter, MaxNLocator
 
     for axis in (ax.xaxis, ax.yaxis):
         axis.set_major_locator(MaxNLocator(nbins=6))
