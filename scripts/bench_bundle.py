@@ -396,7 +396,7 @@ def run_colmap(block: Block, iterations: int, threads: int) -> dict:
 
 def run_ours(block: Block, iterations: int, threads: int, covariance: str = "none") -> dict:
     from stereo.block.bundle import adjust as bundle
-    from stereo.block.types import Pose, Tracks
+    from stereo.block.types import BlockControl, Pose, Tracks
 
     cam = Camera(**CAMERA)
     n = len(block.R0)
@@ -405,8 +405,8 @@ def run_ours(block: Block, iterations: int, threads: int, covariance: str = "non
     ids = tuple(f"p{k}" for k in range(len(block.X0)))
     tracks = Tracks(tuple(p.image for p in poses), ids, block.obs_point, block.obs_image, block.obs_pixel,
                     np.ones(len(block.obs_point)))
-    control = bundle.BlockControl(tuple(ids[k] for k in block.control), block.X_true[block.control],
-                                  ("full",) * len(block.control), np.full((len(block.control), 3), CONTROL_SIGMA_M))
+    control = BlockControl(tuple(ids[k] for k in block.control), block.X_true[block.control],
+                           ("full",) * len(block.control), np.full((len(block.control), 3), CONTROL_SIGMA_M))
     options = bundle.BundleOptions(max_iterations=iterations, covariance=covariance)
     t_build = time.perf_counter() - t0
     rss_before = _rss_mb()

@@ -79,8 +79,9 @@ if __name__ == "__main__":
     cpu_driver0 = cpu_s()
     t0 = time.perf_counter()
     if cfg["job"] == "warp":
-        from rectify.formats.common import read_transform
-        from rectify.raster.warp import WarpOptions, rectify_with_transform
+        from rectify.formats.transform import read_transform
+        from rectify.raster.georectify import rectify_with_transform
+        from rectify.raster.warp import WarpOptions
         tf = read_transform(cfg["transform"])
         rectify_with_transform(cfg["src"], cfg["out"], tf.model, model_crs=tf.crs,
                                options=WarpOptions(threads=2, scheduler=scheduler), overwrite=True)
@@ -93,8 +94,9 @@ if __name__ == "__main__":
         import rasterio
         from rectify.raster.dem import Dem
         from rectify.raster.georef import Grid
-        from rectify.raster.ortho import OrthoOptions, RPCModel, orthorectify
-        from rectify.geometry.rpc import rpc_from_raster
+        from rectify.geometry.sensors import RPCModel
+        from rectify.raster.ortho import OrthoOptions, orthorectify
+        from rectify.formats.rpc import rpc_from_raster
         rpc = rpc_from_raster(cfg["src"])
         with rasterio.open(cfg["src"]) as ds:
             w, h = ds.width, ds.height
@@ -155,7 +157,7 @@ def main() -> None:
     import bench_warp
     from affine import Affine
 
-    from rectify.formats.common import write_transform
+    from rectify.formats.transform import write_transform
     from rectify.geometry.transforms import AffineTransform
     from rectify.raster.georef import world_from_pixel_matrix
 

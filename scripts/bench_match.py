@@ -109,7 +109,7 @@ def score(left: np.ndarray, right: np.ndarray, H: np.ndarray, size: int, cell: i
 def run_pair(work: Path, size: int, skip_peer: bool) -> dict:
     from make_large_scene import generate
 
-    from rectify.formats.common import read_matches
+    from rectify.formats.tables import read_matches
 
     d = work / f"pair{size}"
     if not (d / "truth.json").is_file():
@@ -169,7 +169,7 @@ def run_large(work: Path, size: int) -> dict:
     import cv2
     from make_large_scene import generate
 
-    from rectify.formats.common import read_matches
+    from rectify.formats.tables import read_matches
 
     d = work / f"large{size}"
     t0 = time.perf_counter()

@@ -66,8 +66,9 @@ def build(work: Path, n: int) -> dict:
             ds.write(z.astype("float32"), 1)
     # output grid: the footprint at the DEM's heights, 1 m, aligned
     sys.path.insert(0, str(ROOT))
+    from rectify.geometry.sensors import RPCModel
     from rectify.raster.dem import Dem
-    from rectify.raster.ortho import RPCModel, ortho_grid
+    from rectify.raster.ortho import ortho_grid
 
     grid = ortho_grid(RPCModel(rpc, n, n), Dem.from_path(dem), dst_crs=CRS, resolution=gsd)
     return {"src": str(src), "dem": str(dem), "width": grid.width, "height": grid.height,
@@ -94,7 +95,7 @@ from affine import Affine
 from rectify.raster.dem import Dem
 from rectify.raster.georef import Grid
 from rectify.raster.ortho import OrthoOptions, RPCModel, orthorectify
-from rectify.geometry.rpc import rpc_from_raster
+from rectify.formats.rpc import rpc_from_raster
 import rasterio
 cfg = json.loads({cfg!r})
 rpc = rpc_from_raster(cfg["src"])

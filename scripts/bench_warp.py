@@ -106,7 +106,7 @@ def main() -> None:
     a = ap.parse_args()
     from affine import Affine
 
-    from rectify.formats.common import write_transform
+    from rectify.formats.transform import write_transform
     from rectify.geometry.transforms import AffineTransform, Homography
     from rectify.raster.georef import world_from_pixel_matrix
     from rectify.raster.io import raster_info

@@ -36,9 +36,10 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from stereo.calibration.model import project_vector, rodrigues, rotvec_from_matrix
+from stereo.calibration.model import project_vector
+from rectify.geometry.rotation import rodrigues, rotvec_from_matrix
 from stereo.calibration.result import Calibration
-from stereo.features.targets import TargetView
+from stereo.calibration.views import TargetView
 
 F64 = NDArray[np.float64]
 ROOT = Path(__file__).resolve().parents[1]

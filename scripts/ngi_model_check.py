@@ -18,7 +18,7 @@ import numpy as np
 import rasterio
 from scipy import ndimage
 
-from rectify.formats.common import ControlTable
+from rectify.geometry.points import ControlTable
 from rectify.geometry.camera import Camera
 from rectify.geometry.residuals import rms
 from rectify.geometry.rotation import matrix_from_angles

@@ -27,7 +27,7 @@ ISSUE_BAND_M = (2270.0, 2380.0)
 
 
 def main(argv: list[str] | None = None) -> int:
-    from rectify.geometry.rpc import rpc_from_raster
+    from rectify.formats.rpc import rpc_from_raster
     from stereo.actions.dense_rpc import RpcDenseOptions, roi_statistics, run_dense_rpc, triangulate_rpc
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

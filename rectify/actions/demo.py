@@ -26,11 +26,12 @@ from affine import Affine
 from rectify.actions.common import Progress
 from rectify.actions.workspace import Workspace
 from rectify.errors import InvalidInputError, RasterIOError
-from rectify.formats.common import GcpTable
+from rectify.geometry.points import GcpTable
 from rectify.geometry.transforms.study import comparison_summary, summary_lines
+from rectify.raster.georectify import georectify
 from rectify.raster.georef import world_from_pixel
 from rectify.raster.io import raster_info, read_window, write_raster
-from rectify.raster.warp import WarpOptions, georectify, warp_array
+from rectify.raster.warp import WarpOptions, warp_array
 from rectify.report.builder import write_warp_report
 
 __all__ = ["demo_raster_path", "H_FRAME_FROM_LANDSAT", "DemoResult", "run_demo"]

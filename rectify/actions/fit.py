@@ -7,7 +7,8 @@ from pathlib import Path
 
 from rectify.actions.common import check_method
 from rectify.actions.workspace import Workspace
-from rectify.formats.common import TIFF_SUFFIXES, GcpTable
+from rectify.formats.gcps import TIFF_SUFFIXES
+from rectify.geometry.points import GcpTable
 from rectify.geometry.transforms import METHODS, FitResult, fit_gcps
 from rectify.geometry.transforms.quality import GcpGeometry, geographic_lines, judge_gcp_geometry
 from rectify.raster.io import raster_info

@@ -10,16 +10,12 @@ from pathlib import Path
 from rectify.actions.common import Progress, check_method
 from rectify.actions.workspace import Workspace, check_table_crs
 from rectify.errors import InvalidInputError
-from rectify.formats.common import GcpTable, has_embedded_gcps
+from rectify.formats.gcps import has_embedded_gcps
+from rectify.geometry.points import GcpTable
 from rectify.geometry.transforms.quality import GcpGeometry, geographic_lines, judge_gcp_geometry
+from rectify.raster.georectify import GeoRectification, georectify, rectify_with_transform
 from rectify.raster.io import raster_info
-from rectify.raster.warp import (
-    DEFAULT_MAX_PIXELS,
-    GeoRectification,
-    WarpOptions,
-    georectify,
-    rectify_with_transform,
-)
+from rectify.raster.warp import DEFAULT_MAX_PIXELS, WarpOptions
 
 
 @dataclass(frozen=True)
@@ -94,7 +90,7 @@ def warp(ws: Workspace, src: str | Path, dst: str | Path, *, gcps_path: str | Pa
     """Rectify ``src`` into the GeoTIFF ``dst`` with GCPs (fitted with ``options.method``) or a saved transform.
 
     GCP files: CSV, QGIS ``.points``, matches CSV, GeoJSON, GeoPackage, or a GeoTIFF's embedded GCPs
-    (:func:`rectify.formats.common.read_gcps`). With neither ``gcps_path`` nor ``transform_path``, the GCPs
+    (:func:`rectify.formats.gcps.read_gcps`). With neither ``gcps_path`` nor ``transform_path``, the GCPs
     embedded in ``src`` are used when it carries some.
 
     Raises

@@ -8,8 +8,8 @@ their destinations and renamed into place together when the block ends without e
 (including ``KeyboardInterrupt`` or ``SystemExit`` from a signal handler) every staged file is
 removed, so a command that writes several files writes them all or none.
 
-Readers and writers of the artefacts themselves live in ``rectify.formats.common`` and
-``stereo.formats.orientation``; the ``load_*``/``save_*`` methods of a workspace call them with the workspace's
+Readers and writers of the artefacts themselves live in ``rectify.formats`` (one module per file family) and
+``stereo.formats``; the ``load_*``/``save_*`` methods of a workspace call them with the workspace's
 paths and overwrite policy.
 """
 
@@ -25,9 +25,13 @@ from typing import Any
 
 from rectify.atomic import apply_umask, check_output, make_temp, write_failure_reason
 from rectify.errors import CRSError, InvalidInputError, RasterIOError, RectifyError
-from rectify.formats import common as formats
+from rectify.formats.camera import camera_document, read_camera
+from rectify.formats.gcps import gcps_text, read_gcps
+from rectify.formats.tables import control_text, matches_text, read_control, read_matches
+from rectify.formats.transform import TransformFile, read_transform, transform_text
 from rectify.geometry.camera import Camera
 from rectify.geometry.crs import check_area_of_use, parse_crs
+from rectify.geometry.points import ControlTable, GcpTable, Matches
 from rectify.geometry.residuals import ResidualTable
 
 __all__ = ["Workspace", "same_file", "check_table_crs"]
@@ -234,58 +238,58 @@ class Workspace:
         """Write ``obj`` as indented JSON through :meth:`output`; return the path."""
         return self.write_text(path, json.dumps(obj, indent=2, allow_nan=False) + "\n")
 
-    # ------------------------------------------------------------------ artefacts (rectify.formats.common)
-    def load_gcps(self, path: StrPath) -> formats.GcpTable:
+    # ------------------------------------------------------------------ artefacts (rectify.formats)
+    def load_gcps(self, path: StrPath) -> GcpTable:
         """Read a GCP file (an input of the job); its CRS is checked at once (:func:`check_table_crs`)."""
         self.add_inputs(path)
-        g = formats.read_gcps(path)
+        g = read_gcps(path)
         check_table_crs(path, g.crs, g.target, g.ids)
         return g
 
-    def save_gcps(self, path: StrPath, gcps: formats.GcpTable) -> Path:
+    def save_gcps(self, path: StrPath, gcps: GcpTable) -> Path:
         """Write a GCP CSV through :meth:`output`."""
-        return self.write_text(path, formats.gcps_text(gcps))
+        return self.write_text(path, gcps_text(gcps))
 
-    def load_matches(self, path: StrPath) -> formats.Matches:
+    def load_matches(self, path: StrPath) -> Matches:
         """Read a matches CSV (an input of the job)."""
         self.add_inputs(path)
-        return formats.read_matches(path)
+        return read_matches(path)
 
-    def save_matches(self, path: StrPath, matches: formats.Matches) -> Path:
+    def save_matches(self, path: StrPath, matches: Matches) -> Path:
         """Write a matches CSV through :meth:`output`."""
-        return self.write_text(path, formats.matches_text(matches))
+        return self.write_text(path, matches_text(matches))
 
-    def load_control(self, path: StrPath) -> formats.ControlTable:
+    def load_control(self, path: StrPath) -> ControlTable:
         """Read a stereo control CSV (an input of the job)."""
         self.add_inputs(path)
-        c = formats.read_control(path)
+        c = read_control(path)
         check_table_crs(path, c.crs, c.xyz[:, :2], c.ids)
         return c
 
-    def save_control(self, path: StrPath, control: formats.ControlTable) -> Path:
+    def save_control(self, path: StrPath, control: ControlTable) -> Path:
         """Write a stereo control CSV through :meth:`output`."""
-        return self.write_text(path, formats.control_text(control))
+        return self.write_text(path, control_text(control))
 
     def load_camera(self, path: StrPath) -> Camera:
         """Read a camera JSON file (an input of the job)."""
         self.add_inputs(path)
-        return formats.read_camera(path)
+        return read_camera(path)
 
     def save_camera(self, path: StrPath, camera: Camera) -> Path:
         """Write a camera JSON file through :meth:`output`."""
-        return self.write_json(path, formats.camera_document(camera))
+        return self.write_json(path, camera_document(camera))
 
-    def load_transform(self, path: StrPath) -> formats.TransformFile:
+    def load_transform(self, path: StrPath) -> TransformFile:
         """Read a transform JSON file (an input of the job): the model, its CRS and residuals."""
         self.add_inputs(path)
-        tf = formats.read_transform(path)
+        tf = read_transform(path)
         check_table_crs(path, tf.crs, None)
         return tf
 
     def save_transform(self, path: StrPath, model: Any, *, table: ResidualTable | None = None,
                        crs: str | None = None, extra: dict[str, Any] | None = None) -> Path:
-        """Write a transform JSON file through :meth:`output` (:func:`rectify.formats.common.transform_document`)."""
-        return self.write_text(path, formats.transform_text(model, table=table, crs=crs, extra=extra))
+        """Write a transform JSON file through :meth:`output` (:func:`rectify.formats.transform.transform_document`)."""
+        return self.write_text(path, transform_text(model, table=table, crs=crs, extra=extra))
 
 
 @contextlib.contextmanager

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import click
 
+from rectify.actions.mosaic import MosaicRunOptions
+from rectify.actions.mosaic import mosaic as run_mosaic
+from rectify.actions.workspace import Workspace
 from rectify.cli.options import echo, handle_errors, overwrite_opt, progress, scheduler_opt
 from rectify.raster.mosaic import MosaicOptions
-from rectify.raster.mosaic import mosaic as run_mosaic
 
 
 @click.command(short_help="Mosaic orthophotos: nearest-nadir seamlines, feathering, one GeoTIFF or COG.")
@@ -23,8 +25,9 @@ from rectify.raster.mosaic import mosaic as run_mosaic
 def mosaic(orthos, dst, resolution, feather, cog, threads, scheduler, overwrite):
     """Mosaic the orthophotos ORTHOS (one CRS) into the GeoTIFF given by -o."""
 
-    opts = MosaicOptions(feather_px=feather, cog=cog, threads=threads, scheduler=scheduler)
+    opts = MosaicRunOptions(resolution, MosaicOptions(feather_px=feather, cog=cog, threads=threads,
+                                                      scheduler=scheduler))
     with progress("mosaicking", enabled=True) as cb:
-        res = run_mosaic(list(orthos), dst, resolution=resolution, options=opts, overwrite=overwrite, progress=cb)
-    for line in res.summary_lines():
+        run = run_mosaic(Workspace(overwrite=overwrite), list(orthos), dst, opts, progress=cb)
+    for line in run.summary_lines():
         echo(line)

@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import click
 
+from rectify.actions.ortho import OrthoRunOptions
+from rectify.actions.ortho import ortho as run_ortho
+from rectify.actions.workspace import Workspace
 from rectify.cli.options import echo, handle_errors, overwrite_opt, progress, report_opt, scheduler_opt
-from rectify.raster.ortho import OrthoOptions, ortho_from_files
+from rectify.raster.ortho import OrthoOptions
 
 
 @click.command(short_help="Orthorectify an image with a DEM (RPC or frame camera), optionally a true ortho.")
@@ -42,12 +45,13 @@ def ortho(src, dst, dem_path, rpc, camera, exterior, eo_crs, gcps, refinement, d
           geoid, resampling, true_ortho, cog, threads, scheduler, report_dir, overwrite):
     """Orthorectify SRC over a DEM into the GeoTIFF given by -o."""
 
-    opts = OrthoOptions(resampling=resampling, cog=cog, threads=threads, true_ortho=true_ortho, scheduler=scheduler)
+    engine = OrthoOptions(resampling=resampling, cog=cog, threads=threads, true_ortho=true_ortho, scheduler=scheduler)
+    opts = OrthoRunOptions(eo_crs=eo_crs, refinement=refinement, dst_crs=dst_crs, resolution=resolution,
+                           undulation=undulation, geoid=geoid, engine=engine)
     rpc_arg = True if rpc == "__image__" else (rpc or False)
+    ws = Workspace(overwrite=overwrite, report_dir=report_dir)
     with progress("orthorectifying", enabled=True) as cb:
-        run = ortho_from_files(src, dst, dem_path, rpc=rpc_arg, camera=camera, exterior=exterior, eo_crs=eo_crs,
-                               gcps=gcps, refinement=refinement, dst_crs=dst_crs, resolution=resolution,
-                               undulation=undulation, geoid=geoid, options=opts, overwrite=overwrite, progress=cb,
-                               report_dir=report_dir)
+        run = run_ortho(ws, src, dst, dem_path, rpc=rpc_arg, camera=camera, exterior=exterior, gcps=gcps,
+                        options=opts, progress=cb)
     for line in run.summary_lines():
         echo(line)

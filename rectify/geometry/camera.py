@@ -21,7 +21,6 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -243,7 +242,7 @@ class Camera:
         ``principal_point_mm``) and a pixel camera (``focal_length_px`` or equal ``fx_px``/``fy_px``,
         ``principal_point_px`` in the pixel frame), both with ``width``, ``height``, optional
         ``distortion``, ``std_errors`` and ``sigma0_px``. The ``format``/``version`` stamp of a
-        camera file is accepted and not checked here (:func:`rectify.formats.common.read_camera` checks it).
+        camera file is accepted and not checked here (:func:`rectify.formats.camera.read_camera` checks it).
         """
         if not isinstance(d, dict):
             raise CalibrationError(f"camera JSON must be an object; got {type(d).__name__}")
@@ -314,13 +313,6 @@ class Camera:
         return cls(focal_length_mm=float(f) * ps, pixel_size_mm=ps, width=w, height=h, principal_point_mm=(x0, y0),
                    distortion=d.get("distortion", {}) or {}, pixel_camera=True,
                    std_errors=d.get("std_errors", {}) or {}, sigma0_px=d.get("sigma0_px"))
-
-    @classmethod
-    def from_json(cls, path: str | Path) -> Camera:
-        """Read a camera JSON file (:func:`rectify.formats.common.read_camera`)."""
-        from rectify.formats.common import read_camera  # import cycle: rectify.formats builds cameras
-
-        return read_camera(path)
 
 
 def _is_number(v: Any) -> bool:

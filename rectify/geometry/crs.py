@@ -25,7 +25,7 @@ from rectify.errors import CRSError
 from rectify.geometry.points import as_points
 
 __all__ = ["unit_label", "parse_crs", "crs_to_string", "get_transformer", "transform_xy", "transform_xyz",
-           "same_crs", "is_geographic", "check_area_of_use"]
+           "transform_arrays", "geographic3d_wkt", "geocentric_wkt", "same_crs", "is_geographic", "check_area_of_use"]
 
 logger = logging.getLogger(__name__)
 
@@ -170,6 +170,58 @@ def transform_xyz(src, dst, xyz: ArrayLike) -> NDArray[np.float64]:
         raise CRSError(f"point {p[i].tolist()} cannot be transformed from {crs_to_string(src)!r} "
                        f"to {crs_to_string(dst)!r}")
     return out
+
+
+def transform_arrays(src, dst, x: ArrayLike, y: ArrayLike, *, failure: str
+                     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``x``, ``y`` (same shape) from ``src`` to ``dst`` through :func:`get_transformer` (errcheck).
+
+    No finiteness test (see :func:`transform_xy` for that).
+
+    Raises
+    ------
+    CRSError
+        ``"<failure>: <PROJ's message>"`` when PROJ fails on a point; as :func:`get_transformer`.
+    """
+    t = get_transformer(src, dst)
+    try:
+        u, v = t.transform(x, y, errcheck=True)
+    except ProjError as err:
+        raise CRSError(f"{failure}: {err}") from err
+    return np.asarray(u, dtype=np.float64), np.asarray(v, dtype=np.float64)
+
+
+_CARTESIAN = {"subtype": "Cartesian", "axis": [
+    {"name": "Geocentric X", "abbreviation": "X", "direction": "geocentricX", "unit": "metre"},
+    {"name": "Geocentric Y", "abbreviation": "Y", "direction": "geocentricY", "unit": "metre"},
+    {"name": "Geocentric Z", "abbreviation": "Z", "direction": "geocentricZ", "unit": "metre"}]}
+
+
+@functools.lru_cache(maxsize=32)
+def geographic3d_wkt(wkt: str) -> str:
+    """WKT of the 3D geographic CRS (lon, lat, h) on the datum of the CRS ``wkt`` (cached)."""
+    c = parse_crs(wkt)
+    g = c.geodetic_crs
+    if g is None:
+        raise CRSError(f"CRS {c.name!r} has no geodetic datum")
+    return g.to_3d().to_wkt()
+
+
+@functools.lru_cache(maxsize=32)
+def geocentric_wkt(wkt: str) -> str:
+    """WKT of the geocentric (ECEF, X Y Z metres) CRS on the datum of the CRS ``wkt`` (cached)."""
+    c = parse_crs(wkt)
+    g = c.geodetic_crs
+    if g is None:
+        raise CRSError(f"CRS {c.name!r} has no geodetic datum")
+    if g.is_geocentric:
+        return g.to_wkt()
+    d = g.to_json_dict()
+    d.pop("id", None)
+    d["type"] = "GeodeticCRS"
+    d["name"] = f"{d.get('name', 'unnamed')} (geocentric)"
+    d["coordinate_system"] = _CARTESIAN
+    return pyproj.CRS.from_json_dict(d).to_wkt()
 
 
 def unit_label(crs, *, default: str = "map units") -> str:

@@ -34,18 +34,15 @@ and roll (eqs. 6-10): :func:`navigation_matrix`; its eq. 7 is corrected to
 
 from __future__ import annotations
 
-import functools
 import logging
 import math
 from typing import NamedTuple
 
 import numpy as np
-import pyproj
 from numpy.typing import ArrayLike, NDArray
-from pyproj.exceptions import ProjError
 
 from rectify.errors import CRSError, InvalidInputError
-from rectify.geometry.crs import get_transformer, parse_crs, transform_xyz
+from rectify.geometry.crs import geocentric_wkt, geographic3d_wkt, parse_crs, transform_arrays, transform_xyz
 from rectify.geometry.points import as_points
 
 __all__ = [
@@ -85,46 +82,14 @@ def ellipsoid_of(crs) -> Ellipsoid:
     return Ellipsoid(a, 1.0 - (b * b) / (a * a))
 
 
-_CARTESIAN = {"subtype": "Cartesian", "axis": [
-    {"name": "Geocentric X", "abbreviation": "X", "direction": "geocentricX", "unit": "metre"},
-    {"name": "Geocentric Y", "abbreviation": "Y", "direction": "geocentricY", "unit": "metre"},
-    {"name": "Geocentric Z", "abbreviation": "Z", "direction": "geocentricZ", "unit": "metre"}]}
-
-
-@functools.lru_cache(maxsize=32)
-def _geo3d(wkt: str) -> str:
-    c = parse_crs(wkt)
-    g = c.geodetic_crs
-    if g is None:
-        raise CRSError(f"CRS {c.name!r} has no geodetic datum")
-    return g.to_3d().to_wkt()
-
-
-@functools.lru_cache(maxsize=32)
-def _geocentric(wkt: str) -> str:
-
-    c = parse_crs(wkt)
-    g = c.geodetic_crs
-    if g is None:
-        raise CRSError(f"CRS {c.name!r} has no geodetic datum")
-    if g.is_geocentric:
-        return g.to_wkt()
-    d = g.to_json_dict()
-    d.pop("id", None)
-    d["type"] = "GeodeticCRS"
-    d["name"] = f"{d.get('name', 'unnamed')} (geocentric)"
-    d["coordinate_system"] = _CARTESIAN
-    return pyproj.CRS.from_json_dict(d).to_wkt()
-
-
 def geographic3d_crs(crs=WGS84) -> str:
     """WKT of the 3D geographic CRS (lon, lat, h) on the datum of ``crs``."""
-    return _geo3d(parse_crs(crs).to_wkt())
+    return geographic3d_wkt(parse_crs(crs).to_wkt())
 
 
 def geocentric_crs(crs=WGS84) -> str:
     """WKT of the geocentric (ECEF) CRS on the datum of ``crs``."""
-    return _geocentric(parse_crs(crs).to_wkt())
+    return geocentric_wkt(parse_crs(crs).to_wkt())
 
 
 # --------------------------------------------------------------- geodetic <-> ECEF
@@ -244,13 +209,9 @@ def geodetic_from_map(xyh: ArrayLike, crs) -> NDArray[np.float64]:
     if src.is_geocentric:
         raise CRSError(f"{src.name!r} is geocentric, not a map CRS; use geodetic_from_ecef")
     out = p.copy()
-    t = get_transformer(src, src.geodetic_crs)
     if len(p):
-        try:
-            lon, lat = t.transform(p[:, 0], p[:, 1], errcheck=True)
-        except ProjError as err:
-            raise CRSError(f"cannot unproject points from {src.name!r}: {err}") from err
-        out[:, 0], out[:, 1] = lon, lat
+        out[:, 0], out[:, 1] = transform_arrays(src, src.geodetic_crs, p[:, 0], p[:, 1],
+                                                failure=f"cannot unproject points from {src.name!r}")
     return out
 
 
@@ -260,12 +221,8 @@ def map_from_geodetic(lonlat_h: ArrayLike, crs) -> NDArray[np.float64]:
     dst = parse_crs(crs)
     out = p.copy()
     if len(p):
-        t = get_transformer(dst.geodetic_crs, dst)
-        try:
-            x, y = t.transform(p[:, 0], p[:, 1], errcheck=True)
-        except ProjError as err:
-            raise CRSError(f"cannot project points into {dst.name!r}: {err}") from err
-        out[:, 0], out[:, 1] = x, y
+        out[:, 0], out[:, 1] = transform_arrays(dst.geodetic_crs, dst, p[:, 0], p[:, 1],
+                                                failure=f"cannot project points into {dst.name!r}")
     return out
 
 

@@ -1,12 +1,17 @@
-"""Validation of point arrays at the public boundary.
+"""Validation of point arrays at the public boundary, and the point tables read from files.
 
 Private functions trust their inputs; every public entry point validates once
 with :func:`as_points` (and friends), which return C-contiguous float64 copies,
 so callers' arrays are never modified.
+
+The point tables :class:`GcpTable` (ground control), :class:`Matches` (tie points of two images)
+and :class:`ControlTable` (stereo control) are what the readers of :mod:`rectify.formats.gcps` and
+:mod:`rectify.formats.tables` build.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from itertools import combinations
 
 import numpy as np
@@ -17,6 +22,7 @@ from rectify.errors import EstimationError, InvalidInputError, ShapeError
 __all__ = [
     "as_points", "as_pair", "as_weights", "check_min_points", "check_distinct",
     "check_not_collinear", "check_no_three_collinear",
+    "GcpTable", "Matches", "ControlTable",
 ]
 
 
@@ -178,3 +184,87 @@ def as_mask(mask, n: int, name: str = "mask") -> NDArray[np.bool_]:
         raise ShapeError(f"`{name}` must have shape ({n},); got {out.shape}", actual_shape=out.shape,
                          expected_shape=(n,))
     return out
+
+
+# --------------------------------------------------------------------------- point tables
+@dataclass(frozen=True, eq=False)
+class GcpTable:
+    """Ground control for 2D rectification.
+
+    Attributes
+    ----------
+    ids : tuple of str
+    pixel : (N, 2) float64
+        Source pixels (col, row).
+    target : (N, 2) float64
+        Target coordinates (map units when ``crs`` is set, target pixels otherwise).
+    z : (N,) float64 or None
+        Heights, when the file has a ``z`` column.
+    check : (N,) bool
+        Rows withheld from the fit (``check`` column = 1).
+    crs : str or None
+    """
+
+    ids: tuple[str, ...]
+    pixel: NDArray[np.float64]
+    target: NDArray[np.float64]
+    z: NDArray[np.float64] | None
+    check: NDArray[np.bool_]
+    crs: str | None = None
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    @property
+    def fit(self) -> GcpTable:
+        """The rows used for fitting (not check points)."""
+        return self.subset(~self.check)
+
+    def subset(self, mask: NDArray[np.bool_]) -> GcpTable:
+        """The rows where ``mask`` (N,) is true."""
+        m = np.asarray(mask, dtype=bool)
+        return GcpTable(tuple(i for i, k in zip(self.ids, m, strict=False) if k), self.pixel[m], self.target[m],
+                        None if self.z is None else self.z[m], self.check[m], self.crs)
+
+
+@dataclass(frozen=True, eq=False)
+class Matches:
+    """Tie points between two images, pixel frame.
+
+    Attributes
+    ----------
+    ids : tuple of str
+    left, right : (N, 2) float64
+        (col, row) in the left and right image.
+    score : (N,) float64 or None
+    """
+
+    ids: tuple[str, ...]
+    left: NDArray[np.float64]
+    right: NDArray[np.float64]
+    score: NDArray[np.float64] | None = None
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+
+@dataclass(frozen=True, eq=False)
+class ControlTable:
+    """Stereo control: image points in both images (pixel frame) plus ground coordinates.
+
+    ``xyz`` (N, 3) rows are NaN for tie points (empty x, y, z in the file); ``crs`` is that of x, y.
+    """
+
+    ids: tuple[str, ...]
+    left: NDArray[np.float64]
+    right: NDArray[np.float64]
+    xyz: NDArray[np.float64]
+    crs: str | None = None
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    @property
+    def is_control(self) -> NDArray[np.bool_]:
+        """(N,) rows with full ground coordinates."""
+        return np.asarray(np.isfinite(self.xyz).all(axis=1), dtype=bool)

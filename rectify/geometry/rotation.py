@@ -14,15 +14,24 @@ order                  matrix                          where
 =====================  ==============================  ==========================
 
 Angles are radians. Functions accept scalars or arrays of equal shape S and
-return matrices of shape S + (3, 3).
+return matrices of shape S + (3, 3) (:func:`rodrigues` always stacks: (M, 3) -> (M, 3, 3)).
+
+Rotation vectors (axis-angle, Rodrigues): a vector r is the rotation by |r| rad
+about the axis r / |r| (right-handed); :func:`rodrigues` gives its matrix
+(OpenCV's ``cv2.Rodrigues``, SciPy's ``Rotation.from_rotvec``) and
+:func:`rotvec_from_matrix` the inverse. These are the one implementation of
+both directions in the project (the calibration, the OpenSfM reader and the
+independent-model adjustment use them).
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from rectify.errors import InvalidInputError, ShapeError
+from rectify.errors import CalibrationError, InvalidInputError, ShapeError
 
 __all__ = [
     "ORDERS",
@@ -32,6 +41,8 @@ __all__ = [
     "matrix_from_angles",
     "angles_from_matrix",
     "check_rotation",
+    "rodrigues",
+    "rotvec_from_matrix",
 ]
 
 #: order name -> axis sequence of the product (left to right)
@@ -146,3 +157,75 @@ def check_rotation(R: ArrayLike, name: str = "R", *, atol: float = 1e-6) -> NDAr
         raise InvalidInputError(
             f"`{name}` is not a proper rotation (|R R^T - I| = {err:.3g}, det = {np.linalg.det(m):.6f})")
     return m
+
+
+def rodrigues(rv: ArrayLike) -> NDArray[np.float64]:
+    """Rotation matrices of rotation vectors (Rodrigues' formula), (M, 3) -> (M, 3, 3).
+
+    ``R = I + sin(t) K + (1 - cos(t)) K^2`` with ``t = |r|`` and ``K`` the cross-product matrix of
+    the unit axis ``r / t``; below ``t = 1e-12`` the first order ``I + [r]x``. The convention of
+    ``cv2.Rodrigues`` and ``scipy.spatial.transform.Rotation.from_rotvec``.
+
+    Parameters
+    ----------
+    rv : array_like, (M, 3) or (3,)
+        Rotation vectors, radians; a single vector is taken as M = 1.
+
+    Returns
+    -------
+    (M, 3, 3) float64
+        Always stacked: ``rodrigues(r)[0]`` is the matrix of one vector ``r``.
+
+    Examples
+    --------
+    >>> np.round(rodrigues([0.0, 0.0, np.pi / 2])[0] @ [1.0, 0.0, 0.0], 12) + 0.0
+    array([0., 1., 0.])
+    """
+    r = np.asarray(rv, dtype=np.float64).reshape(-1, 3)
+    th = np.linalg.norm(r, axis=1)
+    small = th < 1e-12
+    k = r / np.where(small, 1.0, th)[:, None]
+    kx = np.zeros((len(r), 3, 3))
+    kx[:, 0, 1], kx[:, 0, 2], kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    kx[:, 1, 0], kx[:, 2, 0], kx[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+    s = np.sin(th)[:, None, None]
+    c = (1 - np.cos(th))[:, None, None]
+    out = np.eye(3)[None] + s * kx + c * (kx @ kx)
+    if np.any(small):  # first order for tiny angles
+        rx = np.zeros((int(small.sum()), 3, 3))
+        rs = r[small]
+        rx[:, 0, 1], rx[:, 0, 2], rx[:, 1, 2] = -rs[:, 2], rs[:, 1], -rs[:, 0]
+        rx[:, 1, 0], rx[:, 2, 0], rx[:, 2, 1] = rs[:, 2], -rs[:, 1], rs[:, 0]
+        out[small] = np.eye(3)[None] + rx
+    return out
+
+
+def rotvec_from_matrix(R: ArrayLike) -> NDArray[np.float64]:
+    """Rotation vector (3,) of a rotation matrix (3, 3), angle in [0, pi]; the inverse of :func:`rodrigues`.
+
+    The matrix is first made orthonormal (nearest rotation by SVD). Near pi the axis is taken
+    from the symmetric part ``(R + I) / 2``.
+
+    Raises
+    ------
+    CalibrationError
+        The matrix is a reflection (determinant -1).
+    """
+    m = np.asarray(R, dtype=np.float64)
+    u, _, vt = np.linalg.svd(m)
+    m = u @ vt
+    if np.linalg.det(m) < 0:
+        raise CalibrationError("not a proper rotation (determinant -1)")
+    c = np.clip((np.trace(m) - 1) / 2, -1.0, 1.0)
+    th = math.acos(c)
+    a = np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]])
+    if th < 1e-8:
+        return a / 2
+    if math.pi - th < 1e-6:  # near pi: axis from the symmetric part
+        b = (m + np.eye(3)) / 2
+        i = int(np.argmax(np.diag(b)))
+        axis = b[:, i] / math.sqrt(max(b[i, i], 1e-300))
+        if np.dot(axis, a) < 0:
+            axis = -axis
+        return axis * th
+    return a * th / (2 * math.sin(th))

@@ -19,7 +19,10 @@ in GDAL's pixel/line frame, where (0, 0) is the *corner* of the top-left pixel:
 Ground coordinates are ``(N, 3)`` (lon, lat, h): degrees on WGS 84 and heights
 above the ellipsoid (see :mod:`rectify.raster.dem` for geoid heights).
 
-Main entry points: :func:`read_rpc` (any of the formats), :meth:`RPC.project`
+The model, its fit and its refinement live here (formulas); the file readers (``_RPC.TXT``, ``.RPB``,
+DIMAP and DigitalGlobe XML, GeoTIFF RPC tags) are in :mod:`rectify.formats.rpc`.
+
+Main entry points: :func:`rectify.formats.rpc.read_rpc` (any of the formats), :meth:`RPC.project`
 (ground -> image, vectorised), :meth:`RPC.localize` (image -> ground at given
 heights, Newton iteration), :meth:`RPC.localize_on_dem` (image -> the visible
 ground of a DEM), :meth:`RPCRefinement.from_gcps` (image-space bias
@@ -30,18 +33,17 @@ from __future__ import annotations
 
 import logging
 import math
-import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from rectify.errors import ConvergenceError, EstimationError, InvalidInputError, RasterIOError, ShapeError
+from rectify.errors import ConvergenceError, EstimationError, InvalidInputError, ShapeError
+from rectify.geometry.residuals import ResidualTable, rms
 
-__all__ = ["RPC", "read_rpc", "RPCRefinement", "REFINEMENT_MODELS", "GDAL_PIXEL_OFFSET", "rpc_from_raster",
+__all__ = ["RPC", "RPC_SCALARS", "RPC_COEFFICIENTS", "RPCRefinement", "REFINEMENT_MODELS", "GDAL_PIXEL_OFFSET",
            "fit_rpc"]
 
 logger = logging.getLogger(__name__)
@@ -49,9 +51,10 @@ logger = logging.getLogger(__name__)
 #: GDAL pixel/line = project (col, row) + GDAL_PIXEL_OFFSET (GDAL's (0, 0) is a pixel corner).
 GDAL_PIXEL_OFFSET = 0.5
 
-_SCALARS = ("line_off", "samp_off", "lat_off", "long_off", "height_off",
-            "line_scale", "samp_scale", "lat_scale", "long_scale", "height_scale")
-_COEFFS = ("line_num_coeff", "line_den_coeff", "samp_num_coeff", "samp_den_coeff")
+#: The scalar keys of an RPC00B model (rasterio's ``RPC.to_dict`` names) and its four lists of 20 coefficients.
+RPC_SCALARS = ("line_off", "samp_off", "lat_off", "long_off", "height_off",
+               "line_scale", "samp_scale", "lat_scale", "long_scale", "height_scale")
+RPC_COEFFICIENTS = ("line_num_coeff", "line_den_coeff", "samp_num_coeff", "samp_den_coeff")
 
 
 def _monomials(L: NDArray, P: NDArray, H: NDArray) -> NDArray[np.float64]:
@@ -129,7 +132,7 @@ class RPC:
     source: str = "RPC"
 
     def __post_init__(self) -> None:
-        for k in _SCALARS:
+        for k in RPC_SCALARS:
             v = getattr(self, k)
             try:
                 v = float(v)
@@ -140,7 +143,7 @@ class RPC:
             if k.endswith("_scale") and v == 0.0:
                 raise InvalidInputError(f"RPC {self.source}: `{k}` must be non-zero; got {v!r}")
             object.__setattr__(self, k, v)
-        for k in _COEFFS:
+        for k in RPC_COEFFICIENTS:
             c = np.array(getattr(self, k), dtype=np.float64, copy=True).reshape(-1)
             if c.shape != (20,) or not np.isfinite(c).all():
                 raise InvalidInputError(f"RPC {self.source}: `{k}` must be 20 finite numbers; got {c.size}")
@@ -155,7 +158,7 @@ class RPC:
     def from_dict(cls, d: dict[str, Any], *, source: str = "RPC") -> RPC:
         """Build from rasterio's ``RPC.to_dict()`` keys (lower case, ``*_coeff`` lists)."""
         try:
-            kw = {k: d[k] for k in _SCALARS + _COEFFS}
+            kw = {k: d[k] for k in RPC_SCALARS + RPC_COEFFICIENTS}
         except KeyError as err:
             raise InvalidInputError(f"RPC {source}: missing key {err.args[0]!r}") from None
         eb, er = d.get("err_bias"), d.get("err_rand")
@@ -164,17 +167,23 @@ class RPC:
 
     def to_dict(self) -> dict[str, Any]:
         """rasterio's ``RPC(**d)`` keys."""
-        d: dict[str, Any] = {k: getattr(self, k) for k in _SCALARS}
-        d.update({k: getattr(self, k).tolist() for k in _COEFFS})
+        d: dict[str, Any] = {k: getattr(self, k) for k in RPC_SCALARS}
+        d.update({k: getattr(self, k).tolist() for k in RPC_COEFFICIENTS})
         d["err_bias"] = self.err_bias
         d["err_rand"] = self.err_rand
         return d
 
-    def to_rasterio(self):
-        """A ``rasterio.rpc.RPC`` (for GDAL: its pixel frame is shifted by :data:`GDAL_PIXEL_OFFSET`)."""
-        from rasterio.rpc import RPC as RioRPC
-
-        return RioRPC(**self.to_dict())
+    def to_rasterio(self) -> dict[str, str]:
+        """The model as GDAL's RPC metadata (``LINE_OFF``, ..., coefficient lists as space-separated text),
+        the form ``rasterio.rpc.RPC.to_gdal`` gives: rasterio takes it as ``rpcs=`` when writing a raster and
+        in ``RPCTransformer`` (for GDAL: its pixel frame is shifted by :data:`GDAL_PIXEL_OFFSET`)."""
+        d = self.to_dict()
+        out = {k.upper(): " ".join(map(str, d[k])) if k in RPC_COEFFICIENTS else str(d[k])
+               for k in sorted(RPC_SCALARS + RPC_COEFFICIENTS)}
+        for k in ("err_bias", "err_rand"):
+            if d[k]:
+                out[k.upper()] = str(d[k])
+        return out
 
     def to_rpc_txt(self) -> str:
         """The model as an ``_RPC.TXT`` (IKONOS-style ``KEY: value``) text."""
@@ -182,7 +191,7 @@ class RPC:
                  "height_off": "HEIGHT_OFF", "line_scale": "LINE_SCALE", "samp_scale": "SAMP_SCALE",
                  "lat_scale": "LAT_SCALE", "long_scale": "LONG_SCALE", "height_scale": "HEIGHT_SCALE"}
         lines = [f"{v}: {float(getattr(self, k))!r}" for k, v in names.items()]
-        for k in _COEFFS:
+        for k in RPC_COEFFICIENTS:
             key = k.upper()
             lines += [f"{key}_{i + 1}: {float(c)!r}" for i, c in enumerate(getattr(self, k))]
         return "\n".join(lines) + "\n"
@@ -495,173 +504,6 @@ def fit_rpc(project: Callable[[NDArray], NDArray], box: tuple[tuple[float, float
                                  source=source)
 
 
-# =========================================================================== readers
-def _num(text: str, what: str, source: str) -> float:
-    m = re.match(r"\s*([-+]?(\d+\.?\d*|\.\d+)([eEdD][-+]?\d+)?)", text)
-    if not m:
-        raise InvalidInputError(f"RPC {source}: {what} is not a number: {text.strip()[:40]!r}")
-    return float(m.group(1).replace("D", "E").replace("d", "e"))
-
-
-def _from_txt(text: str, source: str) -> RPC:
-    """IKONOS / Planet / SkySat ``KEY: value`` text (``_RPC.TXT``)."""
-    vals: dict[str, str] = {}
-    for line in text.splitlines():
-        if ":" in line:
-            k, v = line.split(":", 1)
-            vals[k.strip().upper()] = v
-    keys = {"line_off": "LINE_OFF", "samp_off": "SAMP_OFF", "lat_off": "LAT_OFF", "long_off": "LONG_OFF",
-            "height_off": "HEIGHT_OFF", "line_scale": "LINE_SCALE", "samp_scale": "SAMP_SCALE",
-            "lat_scale": "LAT_SCALE", "long_scale": "LONG_SCALE", "height_scale": "HEIGHT_SCALE"}
-    d: dict[str, Any] = {}
-    for k, key in keys.items():
-        if key not in vals:
-            raise InvalidInputError(f"RPC {source}: missing key {key}")
-        d[k] = _num(vals[key], key, source)
-    for k in _COEFFS:
-        c = []
-        for i in range(1, 21):
-            key = f"{k.upper()}_{i}"
-            if key not in vals:
-                raise InvalidInputError(f"RPC {source}: missing key {key}")
-            c.append(_num(vals[key], key, source))
-        d[k] = c
-    for k, key in (("err_bias", "ERR_BIAS"), ("err_rand", "ERR_RAND")):
-        d[k] = _num(vals[key], key, source) if key in vals else None
-    return RPC.from_dict(d, source=source)
-
-
-_RPB_KEYS = {"lineoffset": "line_off", "sampoffset": "samp_off", "latoffset": "lat_off",
-             "longoffset": "long_off", "heightoffset": "height_off", "linescale": "line_scale",
-             "sampscale": "samp_scale", "latscale": "lat_scale", "longscale": "long_scale",
-             "heightscale": "height_scale", "linenumcoef": "line_num_coeff", "linedencoef": "line_den_coeff",
-             "sampnumcoef": "samp_num_coeff", "sampdencoef": "samp_den_coeff", "errbias": "err_bias",
-             "errrand": "err_rand"}
-
-
-def _from_rpb(text: str, source: str) -> RPC:
-    """DigitalGlobe / Maxar ``.RPB`` (``key = value;``, coefficient lists in parentheses)."""
-    d: dict[str, Any] = {}
-    for m in re.finditer(r"(\w+)\s*=\s*(\([^)]*\)|[^;\n]*);", text):
-        key = _RPB_KEYS.get(m.group(1).lower())
-        if key is None:
-            continue
-        v = m.group(2).strip()
-        if v.startswith("("):
-            d[key] = [_num(x, m.group(1), source) for x in v.strip("()").split(",") if x.strip()]
-        else:
-            d[key] = _num(v, m.group(1), source)
-    return RPC.from_dict(d, source=source)
-
-
-def _from_xml(text: str, source: str) -> RPC:
-    import xml.etree.ElementTree as ET
-
-    try:
-        root = ET.fromstring(text.encode() if text.lstrip().startswith("<?xml") else text)
-    except ET.ParseError as err:
-        raise InvalidInputError(f"RPC {source}: not valid XML: {err}") from None
-    if root.tag == "Dimap_Document" or root.find(".//Rational_Function_Model") is not None:
-        return _from_dimap(root, source)
-    rpb = root.find(".//RPB/IMAGE")
-    if rpb is not None:
-        return _from_isd(rpb, source)
-    raise InvalidInputError(f"RPC {source}: XML has neither a DIMAP Rational_Function_Model nor an RPB/IMAGE block")
-
-
-def _text(el, tag: str, source: str) -> str:
-    x = el.find(f".//{tag}")
-    if x is None or x.text is None:
-        raise InvalidInputError(f"RPC {source}: missing XML element {tag}")
-    return x.text
-
-
-def _from_dimap(root, source: str) -> RPC:
-    """DIMAP v2 (Pleiades, SPOT 6/7): Inverse_Model is ground -> image; 1-based pixels (offsets - 1)."""
-    inv = root.find(".//Inverse_Model")
-    val = root.find(".//RFM_Validity")
-    if inv is None or val is None:
-        raise InvalidInputError(f"RPC {source}: DIMAP file lacks Inverse_Model or RFM_Validity")
-    d: dict[str, Any] = {}
-    for k, tag in (("samp_num_coeff", "SAMP_NUM_COEFF"), ("samp_den_coeff", "SAMP_DEN_COEFF"),
-                   ("line_num_coeff", "LINE_NUM_COEFF"), ("line_den_coeff", "LINE_DEN_COEFF")):
-        d[k] = [_num(_text(inv, f"{tag}_{i}", source), f"{tag}_{i}", source) for i in range(1, 21)]
-    for k, tag in (("long_scale", "LONG_SCALE"), ("long_off", "LONG_OFF"), ("lat_scale", "LAT_SCALE"),
-                   ("lat_off", "LAT_OFF"), ("height_scale", "HEIGHT_SCALE"), ("height_off", "HEIGHT_OFF"),
-                   ("samp_scale", "SAMP_SCALE"), ("samp_off", "SAMP_OFF"), ("line_scale", "LINE_SCALE"),
-                   ("line_off", "LINE_OFF")):
-        d[k] = _num(_text(val, tag, source), tag, source)
-    d["samp_off"] -= 1.0
-    d["line_off"] -= 1.0
-    return RPC.from_dict(d, source=source)
-
-
-def _from_isd(img, source: str) -> RPC:
-    """DigitalGlobe ISD XML (``<RPB><IMAGE>``): the same fields as ``.RPB``."""
-    d: dict[str, Any] = {}
-    for tag, k in (("LINEOFFSET", "line_off"), ("SAMPOFFSET", "samp_off"), ("LATOFFSET", "lat_off"),
-                   ("LONGOFFSET", "long_off"), ("HEIGHTOFFSET", "height_off"), ("LINESCALE", "line_scale"),
-                   ("SAMPSCALE", "samp_scale"), ("LATSCALE", "lat_scale"), ("LONGSCALE", "long_scale"),
-                   ("HEIGHTSCALE", "height_scale")):
-        d[k] = _num(_text(img, tag, source), tag, source)
-    for tag, k in (("LINENUMCOEF", "line_num_coeff"), ("LINEDENCOEF", "line_den_coeff"),
-                   ("SAMPNUMCOEF", "samp_num_coeff"), ("SAMPDENCOEF", "samp_den_coeff")):
-        d[k] = [_num(x, tag, source) for x in _text(img, tag, source).split()]
-    for tag, k in (("ERRBIAS", "err_bias"), ("ERRRAND", "err_rand")):
-        x = img.find(tag)
-        d[k] = _num(x.text, tag, source) if x is not None and x.text else None
-    return RPC.from_dict(d, source=source)
-
-
-def rpc_from_raster(path: str | Path) -> RPC:
-    """The RPC of a raster (GeoTIFF RPC tags, or a sidecar ``_RPC.TXT``/``.RPB`` GDAL finds).
-
-    Raises
-    ------
-    RasterIOError
-        Unreadable raster.
-    InvalidInputError
-        The raster has no RPC.
-    """
-    from rectify.raster.io import open_raster
-
-    with open_raster(path) as ds:
-        rpcs = ds.rpcs
-    if rpcs is None:
-        raise InvalidInputError(f"raster {str(path)!r} has no RPC (no RPC tags and no _RPC.TXT/.RPB beside it)")
-    return RPC.from_dict(rpcs.to_dict(), source=str(path))
-
-
-def read_rpc(path: str | Path) -> RPC:
-    """Read an RPC model from a GeoTIFF (tags), ``_RPC.TXT``, ``.RPB``, DIMAP v2 XML or DigitalGlobe XML.
-
-    Raises
-    ------
-    RasterIOError
-        The file is missing or unreadable.
-    InvalidInputError
-        The file is not an RPC model (the message names the missing key).
-    """
-    p = Path(path)
-    if not p.is_file():
-        raise RasterIOError(f"RPC file not found: {str(p)!r}")
-    suffix = p.suffix.lower()
-    if suffix in (".tif", ".tiff", ".ntf", ".jp2", ".vrt", ".img"):
-        return rpc_from_raster(p)
-    try:
-        text = p.read_text(errors="replace")
-    except OSError as err:
-        raise RasterIOError(f"cannot read RPC file {str(p)!r}: {err}") from err
-    stripped = text.lstrip()
-    if stripped.startswith("<"):
-        return _from_xml(stripped, str(p))
-    if suffix == ".rpb" or re.search(r"lineNumCoef\s*=", text, re.IGNORECASE):
-        return _from_rpb(text, str(p))
-    if re.search(r"LINE_NUM_COEFF_1\s*:", text, re.IGNORECASE):
-        return _from_txt(text, str(p))
-    raise InvalidInputError(f"{str(p)!r} is not an RPC file (_RPC.TXT, .RPB, DIMAP or DigitalGlobe XML)")
-
-
 # =========================================================================== refinement
 REFINEMENT_MODELS = {"shift": 1, "drift": 2, "affine": 3}
 
@@ -733,8 +575,6 @@ class RPCRefinement:
         EstimationError
             Fewer fit points than the model needs, or a degenerate configuration.
         """
-        from rectify.geometry.residuals import ResidualTable, rms
-
         if model not in REFINEMENT_MODELS:
             raise InvalidInputError(f"unknown refinement model {model!r}; expected one of {list(REFINEMENT_MODELS)}")
         pix = _as_pixels(pixels)

@@ -14,14 +14,21 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import threading
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import rasterio
 from numpy.typing import ArrayLike, NDArray
+from rasterio.errors import RasterioError
+from rasterio.windows import Window
 
 from rectify.errors import CRSError, InvalidInputError, RasterIOError
+from rectify.geometry.crs import same_crs, transform_xy, transform_xyz
+from rectify.raster.georef import pixel_from_world
+from rectify.raster.io import raster_info, read_overview
 
 __all__ = ["Dem", "geoid_undulation", "bilinear"]
 
@@ -37,7 +44,6 @@ def geoid_undulation(lonlat: ArrayLike, geoid: str = "EPSG:5773") -> NDArray[np.
         When the geoid grid is not installed (PROJ returns the height
         unchanged); the message says to pass a constant undulation instead.
     """
-    from rectify.geometry.crs import transform_xyz
 
     p = np.asarray(lonlat, dtype=np.float64).reshape(-1, 2)
     src = f"EPSG:4326+{geoid.split(':')[-1]}"
@@ -123,7 +129,6 @@ class Dem:
         InvalidInputError
             Bad band or a non-finite undulation.
         """
-        from rectify.raster.io import raster_info
 
         info = raster_info(path)
         if info.crs is None:
@@ -139,11 +144,6 @@ class Dem:
 
     # one open dataset per thread
     def _ds(self):
-        import os
-
-        import rasterio
-        from rasterio.errors import RasterioError
-
         local = _LOCAL.__dict__.setdefault("dems", {})
         try:
             key = (self.path, os.stat(self.path).st_mtime_ns)
@@ -163,8 +163,6 @@ class Dem:
 
         Reads only the window covering the points.
         """
-        from rasterio.errors import RasterioError
-        from rasterio.windows import Window
 
         x = np.asarray(x, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64)
@@ -191,8 +189,6 @@ class Dem:
 
     def sample(self, xy: ArrayLike, crs: str | None = None) -> NDArray[np.float64]:
         """Ellipsoidal heights (file height + undulation) at (N, 2) points in ``crs`` (default the DEM's)."""
-        from rectify.geometry.crs import same_crs, transform_xy
-        from rectify.raster.georef import pixel_from_world
 
         p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         if crs is not None and not same_crs(crs, self.crs):
@@ -212,7 +208,6 @@ class Dem:
 
     def range(self) -> tuple[float, float]:
         """(min, max) file heights + undulation, from a decimated read (overviews when present)."""
-        from rectify.raster.io import read_overview
 
         data, valid, _ = read_overview(self.path, 512, bands=[self.band])
         d = np.asarray(data, dtype=np.float64)[..., 0]

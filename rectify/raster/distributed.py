@@ -31,8 +31,10 @@ Dask dashboard link, when the dashboard runs, is logged at INFO level.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import copy
+import importlib.util
 import logging
 import math
 import os
@@ -46,10 +48,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
+import cv2
 import numpy as np
 
 from rectify.errors import InvalidInputError, SchedulerError
 from rectify.raster import tiles as tilepool
+from rectify.raster.io import bound_gdal_cache
 
 __all__ = ["ENV_VAR", "TIMEOUT_ENV_VAR", "Scheduler", "SchedulerError", "BlockEngine", "resolve_scheduler",
            "run_windows", "DEFAULT_RETRIES", "DEFAULT_CONNECT_TIMEOUT_S"]
@@ -286,18 +290,25 @@ LOCAL_CLUSTER_CONFIG: dict[str, Any] = {
 }
 
 
+def _distributed() -> Any:
+    """The ``dask.distributed`` package, imported when a Dask scheduler is first used."""
+    import distributed  # local: importing Dask takes about a second; the default (threads) never needs it
+
+    return distributed
+
+
 @contextlib.contextmanager
 def _client(sched: Scheduler) -> Iterator[Any]:
     """A ``distributed.Client`` for ``sched`` (a local cluster is started and closed around the run)."""
     try:
-        import distributed
+        distributed = _distributed()
     except ImportError as err:  # pragma: no cover - a declared dependency
         raise SchedulerError(f"scheduler {str(sched)!r} needs dask.distributed: {err}") from err
     if sched.kind == "processes":
         n = sched.workers or (os.cpu_count() or 1)
         t0 = time.perf_counter()
         try:
-            import dask
+            import dask  # local: start-up time, as in _distributed
 
             with dask.config.set(LOCAL_CLUSTER_CONFIG):
                 cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
@@ -326,8 +337,6 @@ def _client(sched: Scheduler) -> Iterator[Any]:
 
 
 def _has_dashboard() -> bool:
-    import importlib.util
-
     return importlib.util.find_spec("bokeh") is not None
 
 
@@ -379,8 +388,7 @@ def _run_on_client(client: Any, sched: Scheduler, engine: BlockEngine, write: Ca
                    windows: list[Window], progress: Callable[[int, int], None] | None, workdir: Path, name: str,
                    windows_per_task: int | None, encoder: Callable[[Any], Any] | None = None) -> int:
     """Run the windows as Dask tasks; ``write`` receives each window's result (encoded when ``encoder``)."""
-    import distributed
-
+    distributed = _distributed()
     total, done, n_empty = len(windows), 0, 0
     if progress:
         progress(0, total)
@@ -448,10 +456,7 @@ def _run_on_client(client: Any, sched: Scheduler, engine: BlockEngine, write: Ca
 def _result(fut: Any, sched: Scheduler) -> tuple[str, Any, Any]:
     """A task's result; Dask's own failures (a task whose workers kept dying, a lost scheduler) become
     :class:`SchedulerError`, the task's errors are re-raised as they are."""
-    import asyncio
-
-    import distributed
-
+    distributed = _distributed()
     try:
         path, stats, index = fut.result()
         return str(path), stats, index
@@ -467,8 +472,6 @@ def _compute_block(engine: BlockEngine, windows: list[Window], path: str,
     Runs on a worker. Idempotent: the block is written to a unique temporary name and renamed.
     Returns the path, the engine's statistics and, for a raw block (encoded windows of bytes), its index.
     """
-    from rectify.raster.io import bound_gdal_cache
-
     bound_gdal_cache()
     _bound_opencv_threads()
     eng = copy.deepcopy(engine)  # a private copy: no statistics or open files shared with other tasks
@@ -504,13 +507,9 @@ def _bound_opencv_threads() -> None:
     Dask's nanny sets ``OMP_NUM_THREADS`` and the BLAS counts to the same end; OpenCV reads none of them.
     """
     try:
-        import distributed
-
-        n = int(distributed.get_worker().state.nthreads)
+        n = int(_distributed().get_worker().state.nthreads)
     except (ImportError, ValueError, AttributeError):  # not on a worker
         return
-    import cv2
-
     if n >= 1 and cv2.getNumThreads() != n:
         cv2.setNumThreads(n)
 

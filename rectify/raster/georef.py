@@ -6,12 +6,15 @@ rasterio's ``Affine`` geotransform puts (0, 0) at the *corner* of that pixel.
 :func:`world_from_pixel` and :func:`pixel_from_world` apply the half-pixel
 shift; :func:`world_from_pixel_matrix` gives the same map as a (3, 3) matrix
 for vectorised composition with projective models.
+
+:func:`crs_label` names a grid's CRS in messages (``EPSG:n`` or the PROJ string).
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -20,10 +23,12 @@ from affine import Affine
 from numpy.typing import ArrayLike, NDArray
 
 from rectify.errors import InvalidInputError
+from rectify.geometry.crs import parse_crs
 from rectify.geometry.points import as_points
 
 __all__ = ["Grid", "world_from_pixel", "pixel_from_world", "world_from_pixel_matrix",
-           "pixel_from_world_matrix", "boundary_pixels", "suggest_resolution", "output_grid", "check_horizon"]
+           "pixel_from_world_matrix", "boundary_pixels", "suggest_resolution", "output_grid", "check_horizon",
+           "crs_label"]
 
 logger = logging.getLogger(__name__)
 
@@ -279,3 +284,17 @@ def check_horizon(matrix: ArrayLike, width: int, height: int) -> None:
         f"denominator at the corners (0,0), ({width},0), ({width},{height}), (0,{height}) is "
         f"{', '.join(f'{d:.3g}' for d in den)}, it changes sign inside the image; the part beyond the horizon "
         "has no place on the map (crop the sky away or check the GCPs)")
+
+
+def crs_label(crs: str | None) -> str:
+    """A short CRS name for messages: ``EPSG:n``, else the PROJ string."""
+    if not crs:
+        return "none"
+    if crs.startswith("EPSG:"):
+        return crs
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            return parse_crs(crs).to_proj4() or crs[:60]
+        except Exception:  # noqa: BLE001 - a label only
+            return crs[:60]

@@ -13,6 +13,7 @@ import contextlib
 import logging
 import math
 import os
+import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,14 +21,16 @@ from pathlib import Path
 import numpy as np
 import rasterio
 import rasterio.shutil
+import rasterio.warp
 from affine import Affine
 from numpy.typing import NDArray
-from rasterio.enums import MaskFlags, Resampling
+from rasterio.enums import ColorInterp, MaskFlags, Resampling
 from rasterio.errors import RasterioError
 from rasterio.windows import Window
 
 from rectify.atomic import atomic_output, write_failure_reason
-from rectify.errors import InvalidInputError, RasterIOError
+from rectify.errors import CRSError, InvalidInputError, RasterIOError
+from rectify.raster.tiffblocks import TileAppender, TileEncoder, tile_index
 
 __all__ = ["RasterInfo", "open_raster", "raster_info", "read_window", "read_overview", "iter_windows",
            "to_uint8"]
@@ -341,7 +344,6 @@ def mask_policy(path: str | Path) -> MaskPolicy:
         if ds.nodata is not None:
             return MaskPolicy("nodata", float(ds.nodata))
         if any(MaskFlags.alpha in f for f in flags):
-            from rasterio.enums import ColorInterp
             ci = list(ds.colorinterp)
             idx = ci.index(ColorInterp.alpha) if ColorInterp.alpha in ci else ds.count - 1
             return MaskPolicy("alpha", None, idx)
@@ -503,7 +505,6 @@ class TiledWriter:
 
     def _open_raw(self, prof: dict, colorinterp) -> None:
         """Raw mode: the file without tiles, the encoder of its tiles, and the appender."""
-        from rectify.raster.tiffblocks import TileAppender, TileEncoder
 
         mask = self.policy.kind == "mask"
         self._encoder = TileEncoder.from_profile(prof, mask=mask)
@@ -544,7 +545,6 @@ class TiledWriter:
             ``(tile bytes, mask tile bytes or None, ...)`` as :meth:`TileEncoder.encode` or
             :meth:`TileEncoder.encode_window` return them ((n,) uint8 arrays or bytes).
         """
-        from rectify.raster.tiffblocks import tile_index
 
         if not self.raw:
             raise InvalidInputError(f"{self.path!r} is not written in raw mode: write pixels with write()")
@@ -772,3 +772,77 @@ def bound_gdal_cache(mb: int = 64) -> None:
     any pixel IO; it keeps their memory bounded by the tiles rather than by the cache.
     """
     os.environ.setdefault("GDAL_CACHEMAX", str(int(mb)))
+
+
+@contextlib.contextmanager
+def ignore_not_georeferenced() -> Iterator[None]:
+    """Silence rasterio's ``NotGeoreferencedWarning`` inside the block (plain photos and normal-case
+    images have no geotransform, as expected)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        yield
+
+
+@contextlib.contextmanager
+def gdal_cache_limit(mb: int) -> Iterator[None]:
+    """GDAL's block cache bounded to ``mb`` MB inside the block (``GDAL_CACHEMAX`` of a ``rasterio.Env``):
+    long tiled jobs keep their memory that of the tiles whatever the raster size."""
+    with rasterio.Env(GDAL_CACHEMAX=mb * 1024 * 1024):
+        yield
+
+
+def gdal_wkt(crs: str) -> str:
+    """The WKT that GDAL (rasterio) gives a CRS (``"EPSG:nnnn"``, PROJ string or WKT)."""
+    return str(rasterio.crs.CRS.from_string(crs).to_wkt())
+
+
+def reproject_band(path: str | Path, shape: tuple[int, int], transform: Affine, crs: str, *,
+                   what: str = "raster") -> NDArray[np.float64]:
+    """Band 1 of a georeferenced raster resampled bilinearly onto a grid; NaN where it has no data.
+
+    Parameters
+    ----------
+    shape : (rows, cols)
+        Of the target grid.
+    transform, crs
+        The target grid's geotransform (cell corners) and CRS.
+    what : str
+        The raster's name in error messages (``"reference DEM"``).
+
+    Returns
+    -------
+    (rows, cols) float64
+
+    Raises
+    ------
+    CRSError
+        The raster has no CRS.
+    RasterIOError
+        It cannot be read.
+    """
+    p = str(path)
+    out = np.full(shape, np.nan, np.float64)
+    try:
+        with rasterio.open(p) as src:
+            if src.crs is None:
+                raise CRSError(f"{what} {p!r} has no CRS")
+            rasterio.warp.reproject(rasterio.band(src, 1), out, dst_transform=transform, dst_crs=crs,
+                                    resampling=Resampling.bilinear, dst_nodata=np.nan)
+    except RasterioError as err:
+        raise RasterIOError(f"cannot read {what} {p!r}: {err}") from err
+    return out
+
+
+def raster_rpc_tags(path: str | Path) -> dict | None:
+    """The RPC of a raster as a plain dict (rasterio's ``RPC.to_dict()`` keys: ``line_off``, ...,
+    ``*_coeff`` lists of 20, ``err_bias``, ``err_rand``), from its GeoTIFF RPC tags or a sidecar
+    ``_RPC.TXT``/``.RPB`` GDAL finds; None when it has none.
+
+    Raises
+    ------
+    RasterIOError
+        The raster cannot be read.
+    """
+    with open_raster(path) as ds:
+        rpcs = ds.rpcs
+    return None if rpcs is None else dict(rpcs.to_dict())

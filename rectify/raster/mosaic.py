@@ -14,28 +14,37 @@ ground hidden in one image is filled by the next.
 Inputs must share the CRS and band count; the output grid is the union of
 their bounds at the finest input resolution (or ``resolution``), aligned to
 multiples of it. Inputs are read by windows (bilinear where grids differ),
-tiles are processed by a thread pool and written atomically.
+tiles are processed by a thread pool and written atomically (the shared engine base and output
+tail of :mod:`rectify.raster.engine`).
 """
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import logging
 import math
-import threading
+import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
+import rasterio
+from affine import Affine
 from numpy.typing import NDArray
+from rasterio.windows import Window
 
+from rectify.atomic import check_output
 from rectify.errors import CRSError, InvalidInputError
+from rectify.geometry.crs import crs_to_string, same_crs, unit_label
 from rectify.raster.distributed import Scheduler, resolve_scheduler
-from rectify.raster.georef import Grid
-from rectify.raster.io import bound_gdal_cache
-from rectify.raster.warp import ProcessLocal, worker_count
+from rectify.raster.engine import TileEngine, tile_windows, worker_count, write_tiled
+from rectify.raster.georef import Grid, crs_label, pixel_from_world_matrix
+from rectify.raster.io import MaskPolicy, bound_gdal_cache, open_raster
 
 __all__ = ["MosaicOptions", "MosaicResult", "mosaic"]
 
@@ -78,9 +87,6 @@ class MosaicResult:
     seconds: float
 
     def summary_lines(self) -> list[str]:
-        from rectify.geometry.crs import unit_label
-        from rectify.raster.ortho import crs_label
-
         g = self.grid
         out = [f"wrote {self.path}: {g.width} x {g.height} px, {g.resolution[0]:.6g} {unit_label(g.crs)}/px, "
                f"CRS {crs_label(g.crs)}, "
@@ -107,8 +113,6 @@ class _Input:
 
 
 def _describe(path: str) -> tuple[_Input, str, str]:
-    from rectify.raster.io import open_raster
-
     with open_raster(path) as ds:
         if ds.crs is None:
             raise CRSError(f"orthophoto {path!r} has no CRS")
@@ -122,29 +126,27 @@ def _describe(path: str) -> tuple[_Input, str, str]:
                 raise ValueError
         except (KeyError, ValueError):
             nadir = (0.5 * (b.left + b.right), 0.5 * (b.bottom + b.top))
-        from rectify.geometry.crs import crs_to_string
-
         return (_Input(path, ds.transform, ds.width, ds.height, count, vis, ds.nodata, nadir),
                 crs_to_string(ds.crs), ds.dtypes[0])
 
 
-class _Engine(ProcessLocal):
+class _Datasets(list):
+    """The open orthophotos of one thread (closed together)."""
+
+    def close(self) -> None:
+        for d in self:
+            d.close()
+
+
+class _Engine(TileEngine):
     def __init__(self, inputs: list[_Input], grid: Grid, dtype: np.dtype, nodata: float, feather: float):
         self.inputs, self.grid, self.dtype, self.nodata, self.feather = inputs, grid, dtype, nodata, feather
-        self._local = threading.local()
-        self._all: list = []
-        self._lock = threading.Lock()
+        self._init_readers()
         self.counts = np.zeros(len(inputs), np.int64)
 
     # ---------------------------------------------------------------- shipping to Dask workers
-    _TRANSIENT = {"_local": threading.local, "_all": list, "_lock": threading.Lock}
-
     def portable(self) -> _Engine:
         """A copy for Dask workers: orthophotos by absolute path, no open files, counts reset."""
-        import copy
-        import dataclasses
-        import os
-
         eng = copy.copy(self)
         eng.inputs = [dataclasses.replace(i, path=os.path.abspath(i.path)) for i in self.inputs]
         eng.counts = np.zeros(len(self.inputs), np.int64)
@@ -160,27 +162,10 @@ class _Engine(ProcessLocal):
             self.counts += np.asarray(stats, dtype=np.int64)
 
     def _ds(self, i: int):
-        d = getattr(self._local, "ds", None)
-        if d is None:
-            import rasterio
-
-            d = [rasterio.open(inp.path) for inp in self.inputs]
-            self._local.ds = d
-            with self._lock:
-                self._all.extend(d)
-        return d[i]
-
-    def close(self) -> None:
-        for d in self._all:
-            d.close()
+        return self._thread_reader(lambda: _Datasets(rasterio.open(inp.path) for inp in self.inputs))[i]
 
     def _read(self, i: int, X: NDArray, Y: NDArray) -> tuple[NDArray, NDArray[np.bool_]] | None:
         """Input i resampled at world points (h, w): data (h, w, C) float64 and validity."""
-        import cv2
-        from rasterio.windows import Window
-
-        from rectify.raster.georef import pixel_from_world_matrix
-
         inp = self.inputs[i]
         M = pixel_from_world_matrix(inp.transform)
         px = M[0, 0] * X + M[0, 1] * Y + M[0, 2]
@@ -275,14 +260,6 @@ def mosaic(orthos: Sequence[str | Path], dst: str | Path, *, resolution: float |
         Inputs in different CRSs (reproject them first) or without a CRS.
     """
     bound_gdal_cache()  # before any pixel IO
-    import rasterio
-    from affine import Affine
-
-    from rectify.atomic import atomic_output, check_output
-    from rectify.geometry.crs import same_crs
-    from rectify.raster.io import MaskPolicy, TiledWriter, translate_to_cog
-    from rectify.raster.ortho import _run
-
     opts = options or MosaicOptions()
     sched = resolve_scheduler(opts.scheduler)
     t0 = time.perf_counter()
@@ -331,26 +308,10 @@ def mosaic(orthos: Sequence[str | Path], dst: str | Path, *, resolution: float |
     nd0 = inputs[0].nodata
     nodata = float(nd0) if nd0 is not None else (float("nan") if dtype.kind == "f" else 0.0)
     engine = _Engine(inputs, grid, dtype, nodata, opts.feather_px * res)
-    tile = opts.tile_px
-    windows = [(c, r, min(tile, grid.width - c), min(tile, grid.height - r))
-               for r in range(0, grid.height, tile) for c in range(0, grid.width, tile)]
-    try:
-        with rasterio.Env(GDAL_CACHEMAX=64 * 1024 * 1024), atomic_output(dst, overwrite=overwrite) as tmp:
-            body = tmp.with_name(tmp.name + ".body.tif") if opts.cog else tmp
-            try:
-                with TiledWriter(body, grid.width, grid.height, inputs[0].count, dtype.name, grid.transform, crs,
-                                 MaskPolicy("nodata", nodata), tile=tile,
-                                 compress="none" if opts.cog else opts.compress, threads=opts.n_threads,
-                                 raw=not sched.is_local_threads) as writer:
-                    _run(engine, writer, windows, opts.n_threads, progress, scheduler=sched, workdir=tmp.parent,
-                         name="mosaic")
-                if opts.cog:
-                    translate_to_cog(body, tmp, compress=opts.compress, threads=opts.n_threads, tile=tile)
-            finally:
-                if opts.cog and body.exists():
-                    body.unlink()
-    finally:
-        engine.close()
+    windows = tile_windows(grid.width, grid.height, opts.tile_px)
+    write_tiled(engine, dst, grid, windows, count=inputs[0].count, dtype=dtype, policy=MaskPolicy("nodata", nodata),
+                tile=opts.tile_px, compress=opts.compress, cog=opts.cog, threads=opts.n_threads, scheduler=sched,
+                overwrite=overwrite, progress=progress, name="mosaic", cache_bytes=64 * 1024 * 1024)
     total = max(int(engine.counts.sum()), 1)
     share = tuple(float(c) / total for c in engine.counts)
     seconds = time.perf_counter() - t0

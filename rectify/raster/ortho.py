@@ -22,201 +22,47 @@ flight) to a temporary file renamed at the end. Nodata outside the image:
 the source nodata, else 0 for integer rasters and NaN for float ones (valid
 pixels equal to 0 in integer outputs are raised to 1 so they stay valid).
 
-Sensor models (:class:`FrameModel`, :class:`RPCModel`) share one small
-interface: ``crs`` (the ground CRS of the model), ``width``/``height`` (image
-size), ``project(ground (N, 3)) -> pixels (N, 2)`` (NaN where it cannot),
-``ground_at_height(pixels, h) -> (N, 3)`` and ``nadir`` (the ground point under
-the sensor, or the image centre for RPCs, in ``crs``).
+The sensor models (:class:`rectify.geometry.sensors.FrameModel`,
+:class:`rectify.geometry.sensors.RPCModel`) live in :mod:`rectify.geometry.sensors`; the tile engine
+runs on the shared base and output tail of :mod:`rectify.raster.engine`. The command's file step
+(models from files, GCPs, the report) is :mod:`rectify.actions.ortho`.
 """
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import logging
 import math
+import os
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
+import cv2
 import numpy as np
+from affine import Affine
 from numpy.typing import NDArray
 
-from rectify.errors import CRSError, InvalidInputError, RasterIOError, ShapeError
-from rectify.geometry.camera import Camera
-from rectify.raster.dem import Dem, bilinear
-from rectify.raster.distributed import Scheduler, resolve_scheduler, run_windows
-from rectify.raster.georef import Grid
-from rectify.raster.io import bound_gdal_cache
-from rectify.raster.warp import ProcessLocal, worker_count
+from rectify.atomic import check_output
+from rectify.errors import CRSError, InvalidInputError, RasterIOError
+from rectify.geometry.crs import crs_to_string, same_crs, transform_xy, unit_label
+from rectify.geometry.sensors import SensorModel
+from rectify.raster.dem import Dem, bilinear, geoid_undulation
+from rectify.raster.distributed import Scheduler, resolve_scheduler
+from rectify.raster.engine import TileEngine, tile_windows, worker_count, write_tiled
+from rectify.raster.georef import Grid, boundary_pixels, crs_label, pixel_from_world_matrix
+from rectify.raster.io import MaskPolicy, raster_info
 
-__all__ = ["SensorModel", "FrameModel", "RPCModel", "OrthoOptions", "OrthoResult", "orthorectify",
-           "read_exterior", "ortho_grid", "VISIBILITY_OUTSIDE", "VISIBILITY_OCCLUDED", "VISIBILITY_VISIBLE"]
+__all__ = ["OrthoOptions", "OrthoResult", "orthorectify", "ortho_grid", "relief_shift_map", "VISIBILITY_OUTSIDE",
+           "VISIBILITY_OCCLUDED", "VISIBILITY_VISIBLE"]
 
 logger = logging.getLogger(__name__)
 
 VISIBILITY_OUTSIDE, VISIBILITY_OCCLUDED, VISIBILITY_VISIBLE = 0, 1, 2
-
-
-class SensorModel(Protocol):
-    @property
-    def crs(self) -> str: ...
-
-    @property
-    def width(self) -> int: ...
-
-    @property
-    def height(self) -> int: ...
-
-    def project(self, ground: NDArray[np.float64]) -> NDArray[np.float64]: ...
-
-    def ground_at_height(self, pixels: NDArray[np.float64], h: NDArray[np.float64] | float
-                         ) -> NDArray[np.float64]: ...
-
-    @property
-    def nadir(self) -> NDArray[np.float64]: ...
-
-
-# =========================================================================== models
-def read_exterior(path: str | Path) -> dict[str, Any]:
-    """Read the fields the orthorectifier needs from an exterior orientation JSON (``stereo resect``).
-
-    Returns ``{"position": (3,), "rotation": (3, 3), "crs": str | None}``. The
-    rotation is ``rotation`` (photo vector -> ground) or is built from
-    ``angles`` (radians, ``system`` default omega-phi-kappa).
-
-    Raises
-    ------
-    RasterIOError, InvalidInputError
-        Missing file, bad JSON, missing or bad keys (named).
-    """
-    from rectify.atomic import read_json
-    from rectify.geometry.rotation import check_rotation, matrix_from_angles
-
-    d = read_json(path, "exterior orientation file")
-    if not isinstance(d, dict):
-        raise InvalidInputError(f"exterior orientation {str(path)!r} must be a JSON object")
-    if "position" not in d:
-        raise InvalidInputError(f"exterior orientation {str(path)!r} lacks 'position'")
-    pos = np.asarray(d["position"], dtype=np.float64).reshape(-1)
-    if pos.shape != (3,) or not np.isfinite(pos).all():
-        raise InvalidInputError(f"exterior orientation {str(path)!r}: 'position' must be 3 finite numbers; "
-                                f"got {d['position']!r}")
-    if "rotation" in d:
-        R = check_rotation(d["rotation"], "rotation")
-    elif isinstance(d.get("angles"), dict):
-        a = d["angles"]
-        try:
-            R = matrix_from_angles(float(a["omega"]), float(a["phi"]), float(a["kappa"]),
-                                   a.get("system", "omega-phi-kappa"))
-        except (KeyError, TypeError, ValueError) as err:
-            raise InvalidInputError(f"exterior orientation {str(path)!r}: bad 'angles': {err}") from None
-    else:
-        raise InvalidInputError(f"exterior orientation {str(path)!r} lacks 'rotation' (or 'angles')")
-    crs = d.get("crs")
-    return {"position": pos, "rotation": np.asarray(R, dtype=np.float64), "crs": crs}
-
-
-@dataclass(frozen=True, eq=False)
-class FrameModel:
-    """A frame camera: interior orientation + exterior orientation in a ground CRS.
-
-    Attributes
-    ----------
-    camera : Camera
-    position : (3,) projection centre (X, Y, Z) in ``crs`` units (heights in metres)
-    rotation : (3, 3) photo vector (x, y, -f) -> ground frame
-    crs : str
-        The ground CRS (a projected CRS; heights as the DEM's after datum correction).
-    """
-
-    camera: Camera
-    position: NDArray[np.float64]
-    rotation: NDArray[np.float64]
-    crs: str
-
-    def __post_init__(self) -> None:
-        from rectify.geometry.crs import crs_to_string
-        from rectify.geometry.rotation import check_rotation
-
-        pos = np.array(self.position, dtype=np.float64).reshape(-1)
-        if pos.shape != (3,) or not np.isfinite(pos).all():
-            raise ShapeError(f"`position` must be 3 finite numbers; got {np.asarray(self.position).tolist()}")
-        R = check_rotation(self.rotation, "rotation")
-        if self.crs is None:
-            raise CRSError("a frame model needs the CRS of its exterior orientation (--eo-crs or 'crs' in the JSON)")
-        object.__setattr__(self, "position", pos)
-        object.__setattr__(self, "rotation", R)
-        object.__setattr__(self, "crs", crs_to_string(self.crs))
-
-    @classmethod
-    def from_files(cls, camera_json: str | Path, exterior_json: str | Path, *, crs: str | None = None) -> FrameModel:
-        """Camera JSON + exterior orientation JSON (``crs`` overrides the EO file's)."""
-        cam = Camera.from_json(camera_json)
-        eo = read_exterior(exterior_json)
-        c = crs or eo["crs"]
-        if c is None:
-            raise CRSError(f"exterior orientation {str(exterior_json)!r} has no 'crs'; pass the CRS of its "
-                           f"coordinates")
-        return cls(cam, eo["position"], eo["rotation"], c)
-
-    @property
-    def width(self) -> int:
-        return self.camera.width
-
-    @property
-    def height(self) -> int:
-        return self.camera.height
-
-    @property
-    def nadir(self) -> NDArray[np.float64]:
-        return self.position[:2].copy()
-
-    def project(self, ground: NDArray[np.float64]) -> NDArray[np.float64]:
-        g = np.asarray(ground, dtype=np.float64).reshape(-1, 3)
-        p = (g - self.position) @ self.rotation  # R^T (P - C), row-wise
-        f = self.camera.focal_length_mm
-        out = np.full((len(g), 2), np.nan)
-        ok = np.isfinite(p).all(axis=1) & (p[:, 2] < 0)  # in front of the camera
-        if ok.any():
-            mm = np.column_stack([-f * p[ok, 0] / p[ok, 2], -f * p[ok, 1] / p[ok, 2]])
-            out[ok] = self.camera.pixel_from_photo(mm)
-        return out
-
-    def ground_at_height(self, pixels: NDArray[np.float64], h: NDArray[np.float64] | float) -> NDArray[np.float64]:
-        px = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
-        hh = np.broadcast_to(np.asarray(h, dtype=np.float64), (len(px),))
-        rays = self.camera.rays_from_pixel(px) @ self.rotation.T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = (hh - self.position[2]) / rays[:, 2]
-        out = self.position + t[:, None] * rays
-        out[:, 2] = hh
-        out[~(t > 0)] = np.nan
-        return out
-
-
-@dataclass(frozen=True, eq=False)
-class RPCModel:
-    """An RPC (or refined RPC) image: ground (lon, lat, ellipsoidal h) on WGS 84 -> pixels."""
-
-    rpc: Any  # rectify.geometry.rpc.RPC or RPCRefinement
-    width: int
-    height: int
-    crs: str = "EPSG:4326"
-
-    def project(self, ground: NDArray[np.float64]) -> NDArray[np.float64]:
-        g = np.asarray(ground, dtype=np.float64).reshape(-1, 3)
-        return self.rpc._project(g)
-
-    def ground_at_height(self, pixels: NDArray[np.float64], h: NDArray[np.float64] | float) -> NDArray[np.float64]:
-        return self.rpc.localize(pixels, h, on_failure="nan")
-
-    @property
-    def nadir(self) -> NDArray[np.float64]:
-        """The image centre at the model's mean height (an RPC has no nadir point)."""
-        c = np.array([[(self.width - 1) / 2.0, (self.height - 1) / 2.0]])
-        return self.rpc.localize(c, self.rpc.validity_box[2][0] / 2 + self.rpc.validity_box[2][1] / 2)[0, :2]
 
 
 # =========================================================================== options / result
@@ -300,8 +146,6 @@ class OrthoResult:
     extra: dict[str, Any] = field(default_factory=dict)
 
     def summary_lines(self) -> list[str]:
-        from rectify.geometry.crs import unit_label
-
         g = self.grid
         u = unit_label(g.crs)
         out = [f"wrote {self.path}: {g.width} x {g.height} px, {g.resolution[0]:.6g} {u}/px, CRS {crs_label(g.crs)}, "
@@ -312,24 +156,6 @@ class OrthoResult:
             out.append(f"true ortho: {self.n_occluded} occluded pixels set to nodata (visibility band "
                        f"{self.extra.get('visibility_band')}: 0 outside, 1 occluded, 2 visible)")
         return out
-
-
-def crs_label(crs: str | None) -> str:
-    """A short CRS name for messages: ``EPSG:n``, else the PROJ string."""
-    import warnings
-
-    from rectify.geometry.crs import parse_crs
-
-    if not crs:
-        return "none"
-    if crs.startswith("EPSG:"):
-        return crs
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        try:
-            return parse_crs(crs).to_proj4() or crs[:60]
-        except Exception:  # noqa: BLE001 - a label only
-            return crs[:60]
 
 
 # =========================================================================== grids
@@ -347,10 +173,6 @@ def ortho_grid(model: SensorModel, dem: Dem, *, dst_crs: str | None = None, reso
     image diagonal over its length in pixels (GDAL's suggestion), at the mean
     height. Bounds are aligned to multiples of the resolution.
     """
-    from affine import Affine
-
-    from rectify.geometry.crs import crs_to_string, transform_xy
-    from rectify.raster.georef import boundary_pixels
 
     hmin, hmax = dem.range()
     edge = boundary_pixels(model.width, model.height, 33)
@@ -448,10 +270,9 @@ def _knots(n: int, step: int) -> NDArray[np.float64]:
     return k
 
 
-class _Engine(ProcessLocal):
+class _Engine(TileEngine):
     def __init__(self, src: str, model: SensorModel, dem: Dem, grid: Grid, opts: OrthoOptions, dtype: np.dtype,
                  count: int, nodata: float, margin_px: int, h_ref: float):
-        import cv2
 
         self.src, self.model, self.dem, self.grid, self.opts = src, model, dem, grid, opts
         self.dtype, self.count, self.nodata = dtype, count, nodata
@@ -459,25 +280,18 @@ class _Engine(ProcessLocal):
         self.h_ref = h_ref
         self.interp = {"nearest": cv2.INTER_NEAREST, "bilinear": cv2.INTER_LINEAR,
                        "cubic": cv2.INTER_CUBIC}[opts.resampling]
-        self._local = threading.local()
-        self._readers: list = []
-        self._lock = threading.Lock()
+        self._init_readers()
         self.stats_lock = threading.Lock()
         self.hmin, self.hmax, self.max_shift, self.n_occluded = math.inf, -math.inf, 0.0, 0
-        from rectify.geometry.crs import same_crs
 
         self.same_model = same_crs(grid.crs, model.crs)
         self.same_dem = same_crs(grid.crs, dem.crs)
 
     # ---------------------------------------------------------------- shipping to Dask workers
-    _TRANSIENT = {"_local": threading.local, "_readers": list, "_lock": threading.Lock,
-                  "stats_lock": threading.Lock}
+    _TRANSIENT = {**TileEngine._TRANSIENT, "stats_lock": threading.Lock}
 
     def portable(self) -> _Engine:
         """A copy for Dask workers: image and DEM by absolute path, no open readers, statistics reset."""
-        import copy
-        import dataclasses
-        import os
 
         eng = copy.copy(self)
         eng.src = os.path.abspath(self.src)
@@ -496,21 +310,6 @@ class _Engine(ProcessLocal):
             self.hmin, self.hmax = min(self.hmin, lo), max(self.hmax, hi)
             self.max_shift = max(self.max_shift, shift)
             self.n_occluded += int(occluded)
-
-    def reader(self):
-        r = getattr(self._local, "reader", None)
-        if r is None:
-            from rectify.raster.io import WindowReader
-
-            r = WindowReader(self.src)
-            self._local.reader = r
-            with self._lock:
-                self._readers.append(r)
-        return r
-
-    def close(self) -> None:
-        for r in self._readers:
-            r.close()
 
     # ---------------------------------------------------------------- geometry of a block
     def _world(self, c0: int, r0: int, w: int, h: int) -> tuple[NDArray, NDArray]:
@@ -533,9 +332,6 @@ class _Engine(ProcessLocal):
         return _densify(vals, kc, kr, w, h)
 
     def _heights(self, c0: int, r0: int, w: int, h: int) -> NDArray[np.float64]:
-        from rectify.geometry.crs import transform_xy
-        from rectify.raster.georef import pixel_from_world_matrix
-
         M = pixel_from_world_matrix(self.dem.transform)
         if self.same_dem:
             X, Y = self._world(c0, r0, w, h)
@@ -549,15 +345,11 @@ class _Engine(ProcessLocal):
             dx, dy = d[..., 0], d[..., 1]
         z = self.dem.heights_at_dem_pixels(dx, dy) + self.dem.undulation
         if self.dem.geoid is not None:
-            from rectify.raster.dem import geoid_undulation
-
             z = z + self._sparse(c0, r0, w, h, lambda p: geoid_undulation(
                 transform_xy(self.grid.crs, "EPSG:4326", p), self.dem.geoid or "")[:, None], 1)[..., 0]
         return z
 
     def _model_xy(self, c0: int, r0: int, w: int, h: int) -> tuple[NDArray, NDArray]:
-        from rectify.geometry.crs import transform_xy
-
         if self.same_model:
             return self._world(c0, r0, w, h)
         m = self._sparse(c0, r0, w, h, lambda p: transform_xy(self.grid.crs, self.model.crs, p), 2)
@@ -566,7 +358,6 @@ class _Engine(ProcessLocal):
     def _direction(self, c0: int, r0: int, w: int, h: int, hz: float, step: int | None = None
                    ) -> NDArray[np.float64]:
         """Horizontal displacement towards the sensor per metre of height, in output pixels (h, w, 2) (col, row)."""
-        from rectify.geometry.crs import transform_xy
 
         t = _gt(self.grid.transform)
         dz = 10.0
@@ -612,8 +403,6 @@ class _Engine(ProcessLocal):
         XC, YC = np.meshgrid(t[2] + t[0] * (c0 + xc + 0.5), t[5] + t[4] * (r0 + yc + 0.5))
         pts = np.column_stack([np.concatenate([XX.ravel(), XC.ravel()]), np.concatenate([YY.ravel(), YC.ravel()])])
         if not self.same_model:
-            from rectify.geometry.crs import transform_xy
-
             pts = transform_xy(self.grid.crs, self.model.crs, pts)
         n_knot = XX.size
         span = zhi - zlo
@@ -757,8 +546,6 @@ class _Engine(ProcessLocal):
         return vis
 
     def _resample(self, col: NDArray, row: NDArray, use: NDArray[np.bool_], h: int, w: int):
-        import cv2
-
         W, H = self.model.width, self.model.height
         pad = 3
         c_lo = max(int(math.floor(np.min(col[use]))) - pad, 0)
@@ -818,23 +605,8 @@ class _Engine(ProcessLocal):
         return img.astype(self.dtype), valid
 
 
-def _run(engine: Any, writer, windows, threads: int, progress, *, scheduler: Scheduler | str | None = None,
-         workdir: str | Path = ".", name: str = "ortho") -> int:
-    """Compute the windows with ``engine.tile`` (-> (data, empty)) on the scheduler; write each (the ortho and
-    mosaic engines). A raw ``writer`` (:class:`rectify.raster.io.TiledWriter`, Dask schedulers) gets the tiles
-    compressed on the workers."""
-    def write(res: tuple[Any, bool], c: int, r: int) -> bool:
-        data, empty = res
-        writer.write(data, c, r)
-        return empty
-
-    return run_windows(engine, write, windows, threads=threads, progress=progress, scheduler=scheduler,
-                       workdir=workdir, name=name, raw_writer=writer if writer.raw else None)
-
-
 def _margin_px(model: SensorModel, dem: Dem, grid: Grid, h_range: tuple[float, float]) -> int:
     """Output pixels a line of sight can travel over the DEM's height range (for the true-ortho margin)."""
-    from rectify.geometry.crs import transform_xy
 
     t = _gt(grid.transform)
     cc, rr = np.meshgrid(np.linspace(0, grid.width - 1, 9), np.linspace(0, grid.height - 1, 9))
@@ -881,9 +653,6 @@ def orthorectify(src: str | Path, dst: str | Path, model: SensorModel, dem: Dem,
         Unreadable inputs, existing output without ``overwrite``, output equal
         to an input, an image that does not match its model's size.
     """
-    from rectify.atomic import atomic_output, check_output
-    from rectify.geometry.crs import crs_to_string
-    from rectify.raster.io import MaskPolicy, TiledWriter, raster_info, translate_to_cog
 
     opts = options or OrthoOptions()
     sched = resolve_scheduler(opts.scheduler)
@@ -912,44 +681,25 @@ def orthorectify(src: str | Path, dst: str | Path, model: SensorModel, dem: Dem,
     h_ref = 0.5 * (hr[0] + hr[1])
     margin = _margin_px(model, dem, grid, hr) if opts.true_ortho else 0
     engine = _Engine(src, model, dem, grid, opts, dtype, info.count, nodata, margin, h_ref)
-    tile = opts.tile_px
-    windows = [(c, r, min(tile, grid.width - c), min(tile, grid.height - r))
-               for r in range(0, grid.height, tile) for c in range(0, grid.width, tile)]
+    windows = tile_windows(grid.width, grid.height, opts.tile_px)
     count = info.count + (1 if opts.true_ortho else 0)
-    import rasterio
-
-    n_empty = 0
+    nad = _nadir_in(model, str(grid.crs))
+    tags = {"ORTHO_MODEL": type(model).__name__, "ORTHO_DEM": Path(dem.path).name,
+            "ORTHO_NADIR_X": repr(float(nad[0])), "ORTHO_NADIR_Y": repr(float(nad[1]))}
+    if opts.true_ortho:
+        tags["ORTHO_VISIBILITY_BAND"] = str(count)
     try:
-        with rasterio.Env(GDAL_CACHEMAX=64 * 1024 * 1024), atomic_output(dst, overwrite=overwrite) as tmp:
-            body = tmp.with_name(tmp.name + ".body.tif") if opts.cog else tmp
-            try:
-                with TiledWriter(body, grid.width, grid.height, count, dtype.name, grid.transform, grid.crs,
-                                 MaskPolicy("nodata", nodata), tile=tile,
-                                 compress="none" if opts.cog else opts.compress, threads=opts.n_threads,
-                                 raw=not sched.is_local_threads) as writer:
-                    n_empty = _run(engine, writer, windows, opts.n_threads, progress, scheduler=sched,
-                                   workdir=tmp.parent)
-                nad = _nadir_in(model, str(grid.crs))
-                tags = {"ORTHO_MODEL": type(model).__name__, "ORTHO_DEM": Path(dem.path).name,
-                        "ORTHO_NADIR_X": repr(float(nad[0])), "ORTHO_NADIR_Y": repr(float(nad[1]))}
-                if opts.true_ortho:
-                    tags["ORTHO_VISIBILITY_BAND"] = str(count)
-                with rasterio.open(body, "r+") as ds:
-                    ds.update_tags(**tags)
-                    if opts.true_ortho:
-                        ds.set_band_description(count, "visibility: 0 outside, 1 occluded, 2 visible")
-                if opts.cog:
-                    translate_to_cog(body, tmp, compress=opts.compress, threads=opts.n_threads, tile=tile,
-                                     resampling="nearest")
-            finally:
-                if opts.cog and body.exists():
-                    body.unlink()
+        n_empty = write_tiled(engine, dst, grid, windows, count=count, dtype=dtype,
+                              policy=MaskPolicy("nodata", nodata), tile=opts.tile_px, compress=opts.compress,
+                              cog=opts.cog, threads=opts.n_threads, scheduler=sched, overwrite=overwrite,
+                              progress=progress, name="ortho", cache_bytes=64 * 1024 * 1024,
+                              cog_resampling="nearest", tags=tags,
+                              band_descriptions={count: "visibility: 0 outside, 1 occluded, 2 visible"}
+                              if opts.true_ortho else None)
     except OSError as err:
         if isinstance(err, RasterIOError):
             raise
         raise RasterIOError(f"cannot write {str(dst)!r}: {err}") from err
-    finally:
-        engine.close()
     dt = time.perf_counter() - t0
     lo = engine.hmin if math.isfinite(engine.hmin) else float("nan")
     hi = engine.hmax if math.isfinite(engine.hmax) else float("nan")
@@ -961,134 +711,10 @@ def orthorectify(src: str | Path, dst: str | Path, model: SensorModel, dem: Dem,
 
 
 def _nadir_in(model: SensorModel, crs: str) -> NDArray[np.float64]:
-    from rectify.geometry.crs import transform_xy
-
     try:
         return transform_xy(model.crs, crs, np.asarray(model.nadir).reshape(1, 2))[0]
     except Exception:  # noqa: BLE001 - the nadir is metadata only
         return np.array([np.nan, np.nan])
-
-
-# =========================================================================== one call for the CLI
-@dataclass(frozen=True)
-class OrthoRun:
-    """What :func:`ortho_from_files` did: the ortho, and the GCP residuals when GCPs were given."""
-
-    result: OrthoResult
-    residuals: Any = None  # ResidualTable (px) or None
-    model_kind: str = ""
-    report_files: list[Path] | None = None
-
-    def summary_lines(self) -> list[str]:
-        out = []
-        if self.residuals is not None:
-            out.append(f"{self.residuals.step}: {self.residuals.summary_line()}")
-            loo = self.residuals.extra.get("loo_rmse_px")
-            raw = self.residuals.extra.get("rpc_only_rmse_px")
-            if raw is not None:
-                out.append(f"GCP error of the RPC alone: RMSE {raw:.4g} px" +
-                           (f"; leave-one-out check RMSE after refinement {loo:.4g} px" if loo is not None else ""))
-        out += self.result.summary_lines()
-        if self.report_files:
-            out.append(f"report: {', '.join(str(p) for p in self.report_files)}")
-        return out
-
-
-def _read_gcps(path: str | Path):
-    try:
-        from rectify.formats.common import read_gcps
-    except ImportError:  # pragma: no cover - before the formats module existed
-        from rectify.tables import read_gcps  # type: ignore[no-redef]
-    return read_gcps(path)
-
-
-def _gcp_ground(gcps, dem: Dem, crs: str) -> NDArray[np.float64]:
-    """GCP ground points (N, 3) in ``crs``: x, y from the file (its CRS), z from the file or the DEM."""
-    from rectify.geometry.crs import transform_xy
-
-    src_crs = gcps.crs or crs
-    xy = transform_xy(src_crs, crs, gcps.target) if gcps.crs else np.asarray(gcps.target, dtype=np.float64)
-    if gcps.z is not None:
-        z = np.asarray(gcps.z, dtype=np.float64) + dem.undulation
-    else:
-        z = dem.sample(xy, crs)
-        if not np.isfinite(z).all():
-            i = int(np.flatnonzero(~np.isfinite(z))[0])
-            raise InvalidInputError(f"GCP {gcps.ids[i]!r} has no z and lies outside the DEM")
-    return np.column_stack([xy, z])
-
-
-def ortho_from_files(src: str | Path, dst: str | Path, dem_path: str | Path, *, rpc: str | Path | bool = False,
-                     camera: str | Path | None = None, exterior: str | Path | None = None,
-                     eo_crs: str | None = None, gcps: str | Path | None = None, refinement: str = "shift",
-                     dst_crs: str | None = None, resolution: float | None = None, undulation: float = 0.0,
-                     geoid: str | None = None, options: OrthoOptions | None = None, overwrite: bool = False,
-                     progress: Callable[[int, int], None] | None = None,
-                     report_dir: str | Path | None = None) -> OrthoRun:
-    """Orthorectify ``src`` with its RPC (``rpc=True``: from the image; a path: an RPC file) or a frame camera.
-
-    With ``gcps`` (any GCP file ``rectify`` reads; z optional, taken from the
-    DEM when absent): an RPC is refined (``refinement``: shift, drift,
-    affine) and the residual table carries leave-one-out errors; a frame
-    camera is only checked (image residuals of the GCPs).
-
-    Raises
-    ------
-    InvalidInputError
-        Neither or both of ``rpc`` and ``camera``/``exterior``, bad files.
-    """
-    bound_gdal_cache()  # before any pixel IO
-    from rectify.geometry.residuals import ResidualTable
-    from rectify.raster.io import raster_info
-
-    use_rpc = bool(rpc)
-    if use_rpc == (camera is not None or exterior is not None):
-        raise InvalidInputError("give either an RPC (--rpc) or a frame camera (--camera and --exterior)")
-    if not use_rpc and (camera is None or exterior is None):
-        raise InvalidInputError("a frame camera needs both --camera CAM.json and --exterior EO.json")
-    for p in (src, dem_path, camera, exterior, gcps, rpc if isinstance(rpc, (str, Path)) else None):
-        if p is not None and Path(dst).exists() and Path(p).exists() and Path(dst).resolve() == Path(p).resolve():
-            raise InvalidInputError(f"output {str(dst)!r} is an input; inputs are never modified")
-    from rectify.atomic import check_output
-
-    check_output(dst, overwrite=overwrite)
-    if report_dir is not None:  # fail before the work, not after
-        rd = Path(report_dir)
-        if rd.exists() and not rd.is_dir():
-            raise InvalidInputError(f"report folder {str(rd)!r} is a file")
-        if rd.is_dir():
-            for name in ("ortho_report.json", "residuals.csv", "relief_shift.tif"):
-                check_output(rd / name, overwrite=overwrite)
-    dem = Dem.from_path(dem_path, undulation=undulation, geoid=geoid)
-    info = raster_info(src)
-    table = None
-    model: SensorModel
-    if use_rpc:
-        from rectify.geometry.rpc import RPCRefinement, read_rpc, rpc_from_raster
-
-        r = rpc_from_raster(src) if rpc is True else read_rpc(rpc)  # type: ignore[arg-type]
-        model_rpc: Any = r
-        if gcps is not None:
-            g = _read_gcps(gcps)
-            ground = _gcp_ground(g, dem, "EPSG:4326")
-            ref = RPCRefinement.from_gcps(r, g.pixel, ground, model=refinement, ids=list(g.ids), check=g.check)
-            model_rpc, table = ref, ref.residuals
-        model = RPCModel(model_rpc, info.width, info.height)
-    else:
-        model = FrameModel.from_files(str(camera), str(exterior), crs=eo_crs)
-        if gcps is not None:
-            g = _read_gcps(gcps)
-            ground = _gcp_ground(g, dem, model.crs)
-            adj = model.project(ground)
-            table = ResidualTable(step="GCP check (frame model)", ids=list(g.ids), observed=g.pixel, adjusted=adj,
-                                  units="px", check=np.ones(len(g.ids), bool), position_px=g.pixel)
-    result = orthorectify(src, dst, model, dem, dst_crs=dst_crs, resolution=resolution, options=options,
-                          overwrite=overwrite, progress=progress)
-    run = OrthoRun(result, table, type(model).__name__)
-    if report_dir is not None:
-        paths = write_ortho_report(report_dir, run, model, dem, overwrite=overwrite)
-        run = OrthoRun(result, table, type(model).__name__, paths)
-    return run
 
 
 def relief_shift_map(model: SensorModel, dem: Dem, grid: Grid, *, max_size: int = 256
@@ -1100,7 +726,6 @@ def relief_shift_map(model: SensorModel, dem: Dem, grid: Grid, *, max_size: int 
     height. Returns the (rows, cols) array (NaN outside the DEM) and its
     rasterio geotransform.
     """
-    from affine import Affine
 
     scale = max(1.0, max(grid.width, grid.height) / max_size)
     w, h = max(1, int(round(grid.width / scale))), max(1, int(round(grid.height / scale)))
@@ -1112,39 +737,3 @@ def relief_shift_map(model: SensorModel, dem: Dem, grid: Grid, *, max_size: int 
     d = eng._direction(0, 0, w, h, h_ref, 4)
     shift = np.hypot(d[..., 0], d[..., 1]) * coarse.resolution[0] * np.abs(z - h_ref)
     return shift, coarse.transform
-
-
-def write_ortho_report(report_dir: str | Path, run: OrthoRun, model: SensorModel, dem: Dem, *,
-                       overwrite: bool = False) -> list[Path]:
-    """``ortho_report.json`` (summary, DEM, GCP residuals), ``residuals.csv`` and ``relief_shift.tif``.
-
-    Each file is written atomically into ``report_dir`` (created when missing).
-    """
-    import json
-
-    from rectify.atomic import atomic_write_text
-    from rectify.raster.io import write_raster
-
-    d = Path(report_dir)
-    if d.exists() and not d.is_dir():
-        raise InvalidInputError(f"report folder {str(d)!r} is a file")
-    d.mkdir(parents=True, exist_ok=True)
-    r = run.result
-    shift, tr = relief_shift_map(model, dem, r.grid)
-    doc: dict[str, Any] = {
-        "output": str(r.path), "model": r.model, "crs": r.grid.crs, "width": r.grid.width, "height": r.grid.height,
-        "resolution": r.grid.resolution[0], "dem": {"path": r.dem_path, "undulation_m": dem.undulation,
-                                                    "geoid": dem.geoid, "heights_on_output_m": list(r.dem_range)},
-        "relief_shift_removed": {"max": float(np.nanmax(shift)) if np.isfinite(shift).any() else None,
-                                 "mean": float(np.nanmean(shift)) if np.isfinite(shift).any() else None,
-                                 "map": "relief_shift.tif"},
-        "occluded_pixels": r.n_occluded, "seconds": r.seconds, "summary": run.summary_lines()}
-    out = []
-    if run.residuals is not None:
-        doc["gcp_residuals"] = run.residuals.summary()
-        out.append(atomic_write_text(d / "residuals.csv", run.residuals.to_csv(), overwrite=overwrite))
-    out.append(write_raster(d / "relief_shift.tif", shift.astype(np.float32), tr, r.grid.crs, nodata=float("nan"),
-                            valid=np.isfinite(shift), overwrite=overwrite))
-    out.append(atomic_write_text(d / "ortho_report.json", json.dumps(doc, indent=2, default=str) + "\n",
-                                 overwrite=overwrite))
-    return out

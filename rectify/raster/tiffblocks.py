@@ -34,10 +34,13 @@ from dataclasses import dataclass, field
 from typing import Any, BinaryIO, NamedTuple
 
 import numpy as np
+import rasterio
 from numpy.typing import NDArray
+from rasterio.errors import NotGeoreferencedWarning, RasterioError
+from rasterio.io import MemoryFile
 
 from rectify.atomic import write_failure_reason
-from rectify.errors import InvalidInputError, RasterIOError
+from rectify.errors import InvalidInputError, RasterIOError, ShapeError
 
 __all__ = ["RAW_COMPRESSIONS", "EncodedTile", "TileEncoder", "TileArray", "TiffIfd", "TiffLayout",
            "read_tiff_layout", "TileAppender", "append_tiles"]
@@ -480,7 +483,6 @@ class EncodedTile(NamedTuple):
 def _no_georef_warning() -> Iterator[None]:
     """Silence rasterio's NotGeoreferencedWarning for the in-memory one-tile files (on Dask workers it
     would reach the user's console once per tile)."""
-    from rasterio.errors import NotGeoreferencedWarning
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NotGeoreferencedWarning)
@@ -554,11 +556,6 @@ class TileEncoder:
         RasterIOError
             GDAL cannot encode it.
         """
-        import rasterio
-        from rasterio.errors import RasterioError
-        from rasterio.io import MemoryFile
-
-        from rectify.errors import ShapeError
 
         a = np.asarray(data)
         if a.ndim == 2:
@@ -611,8 +608,6 @@ class TileEncoder:
     def layout(self) -> tuple[tuple, tuple | None]:
         """The encoding tags (:attr:`TiffIfd.layout`) of the image IFD and the mask IFD (or None) of the
         GeoTIFFs this encoder makes, to compare with the output file's."""
-        import rasterio
-        from rasterio.io import MemoryFile
 
         with MemoryFile(ext=".tif") as mem, _no_georef_warning():
             with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), \

@@ -23,6 +23,10 @@ source position is valid (so the footprint reaches the outer pixel edges, as
 GDAL's); near invalid source pixels, bilinear weights are renormalised over
 the valid neighbours. Invalid pixels receive the nodata value, alpha 0 or an
 internal mask, following the source (:class:`rectify.raster.io.MaskPolicy`).
+
+The tile engine runs on the shared base and output tail of :mod:`rectify.raster.engine`;
+georectification by GCPs or a saved transform (fit, output grid, then this engine) is
+:mod:`rectify.raster.georectify`.
 """
 
 from __future__ import annotations
@@ -31,7 +35,6 @@ import copy
 import logging
 import os
 import shutil
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -40,30 +43,18 @@ from typing import Any
 
 import cv2
 import numpy as np
-import rasterio
 from numpy.typing import ArrayLike, NDArray
 
-from rectify.atomic import atomic_output, check_output
-from rectify.errors import CRSError, EstimationError, InvalidInputError, RasterIOError
-from rectify.formats.common import GcpTable
-from rectify.geometry.crs import crs_to_string, get_transformer, same_crs, transform_xy
-from rectify.geometry.residuals import ResidualTable
-from rectify.geometry.transforms import METHODS, FitResult, fit_gcps, method_of
-from rectify.raster.distributed import Scheduler, resolve_scheduler, run_windows
-from rectify.raster.georef import Grid, check_horizon, output_grid, world_from_pixel, world_from_pixel_matrix
-from rectify.raster.io import (
-    MaskPolicy,
-    TiledWriter,
-    WindowReader,
-    mask_policy,
-    open_raster,
-    raster_info,
-    translate_to_cog,
-)
+from rectify.atomic import check_output
+from rectify.errors import EstimationError, InvalidInputError, RasterIOError
+from rectify.geometry.crs import get_transformer, same_crs
+from rectify.raster.distributed import Scheduler, resolve_scheduler
+from rectify.raster.engine import TileEngine, tile_windows, worker_count, write_tiled
+from rectify.raster.georef import Grid, world_from_pixel, world_from_pixel_matrix
+from rectify.raster.io import MaskPolicy, mask_policy, open_raster, raster_info
 
-__all__ = ["RESAMPLING", "WarpOptions", "WarpResult", "warp_raster", "warp_array", "GeoRectification",
-           "georectify", "rectify_with_transform", "check_gcps_inside",
-           "gcps_outside", "outside_note", "check_free_space", "DEFAULT_MAX_PIXELS"]
+__all__ = ["RESAMPLING", "WarpOptions", "WarpResult", "warp_raster", "warp_array", "check_free_space",
+           "DEFAULT_MAX_PIXELS"]
 
 logger = logging.getLogger(__name__)
 
@@ -302,28 +293,7 @@ def _warp_channels(data: NDArray, **kw) -> NDArray:
     return np.concatenate(parts, axis=2)
 
 
-class ProcessLocal:
-    """Mixin of the tile engines shipped to Dask workers (warp, ortho, mosaic).
-
-    The attributes named in ``_TRANSIENT`` belong to one process (thread-locals, open readers, locks):
-    they are left out when the engine is pickled and made anew, by their factory, when it is unpickled.
-    """
-
-    _TRANSIENT: dict[str, Any] = {}
-
-    def __getstate__(self) -> dict[str, Any]:
-        state = dict(self.__dict__)
-        for k in self._TRANSIENT:
-            state.pop(k, None)
-        return state
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__dict__.update(state)
-        for k, make in self._TRANSIENT.items():
-            setattr(self, k, make())
-
-
-class _Engine(ProcessLocal):
+class _Engine(TileEngine):
     def __init__(self, src: str, mapping: _Mapping, grid: Grid, opts: WarpOptions, out_dtype: np.dtype,
                  count: int, fill: Any):
         info = raster_info(src)
@@ -331,31 +301,14 @@ class _Engine(ProcessLocal):
         self.W, self.H = info.width, info.height
         self.interp, self.radius = _resampling_table()[opts.resampling]
         self.dtype, self.count, self.fill = out_dtype, count, fill
-        self._local = threading.local()
-        self._readers: list = []
-        self._lock = threading.Lock()
+        self._init_readers()
 
     # ----------------------------------------------------------------- shipping to Dask workers
-    _TRANSIENT = {"_local": threading.local, "_readers": list, "_lock": threading.Lock}
-
     def portable(self) -> _Engine:
         """A copy for Dask workers: the source by absolute path, no open readers."""
         eng = copy.copy(self)
         eng.src = os.path.abspath(self.src)
         return eng
-
-    def reader(self):
-        r = getattr(self._local, "reader", None)
-        if r is None:
-            r = WindowReader(self.src)
-            self._local.reader = r
-            with self._lock:
-                self._readers.append(r)
-        return r
-
-    def close(self) -> None:
-        for r in self._readers:
-            r.close()
 
     # ----------------------------------------------------------------- one tile
     def tile(self, c0: int, r0: int, w: int, h: int) -> tuple[NDArray, NDArray[np.bool_] | None, bool]:
@@ -551,31 +504,12 @@ def warp_raster(src: str | Path, dst: str | Path, source_from_world: Callable[[N
     fill = _fill_value(policy.kind, policy.nodata, dtype)
     mapping = _Mapping(grid, source_from_world, world_crs, opts.map_step_px)
     engine = _Engine(src, mapping, grid, opts, dtype, count, fill)
-    tile = opts.tile_px
-    windows = [(c, r, min(tile, grid.width - c), min(tile, grid.height - r))
-               for r in range(0, grid.height, tile) for c in range(0, grid.width, tile)]
-    n_empty = 0
-    crs = grid.crs
-    try:
-        # bound GDAL's block cache (its default is 5% of RAM): tiles are written once, whole
-        with rasterio.Env(GDAL_CACHEMAX=opts.block_cache_mb * 1024 * 1024), \
-                atomic_output(dst, overwrite=overwrite) as tmp:
-            body = tmp.with_name(tmp.name + ".body.tif") if opts.cog else tmp
-            try:
-                # on Dask the workers compress the tiles and this process copies their bytes (raw mode)
-                with TiledWriter(body, grid.width, grid.height, count, dtype.name, grid.transform, crs, policy,
-                                 tile=tile, compress="none" if opts.cog else opts.compress,
-                                 threads=opts.n_threads, colorinterp=colorinterp,
-                                 raw=not sched.is_local_threads) as writer:
-                    n_empty = _run_tiles(engine, writer, windows, opts.n_threads, progress, scheduler=sched,
-                                         workdir=tmp.parent)
-                if opts.cog:
-                    translate_to_cog(body, tmp, compress=opts.compress, threads=opts.n_threads, tile=tile)
-            finally:
-                if opts.cog and body.exists():
-                    body.unlink()
-    finally:
-        engine.close()
+    windows = tile_windows(grid.width, grid.height, opts.tile_px)
+    # bound GDAL's block cache (its default is 5% of RAM): tiles are written once, whole
+    n_empty = write_tiled(engine, dst, grid, windows, count=count, dtype=dtype, policy=policy, tile=opts.tile_px,
+                          compress=opts.compress, cog=opts.cog, threads=opts.n_threads, scheduler=sched,
+                          overwrite=overwrite, progress=progress, name="warp",
+                          cache_bytes=opts.block_cache_mb * 1024 * 1024, colorinterp=colorinterp)
     dt = time.perf_counter() - t0
     logger.info("warped %s -> %s: %d x %d, %d tiles (%d empty) in %.2f s", src, dst, grid.width, grid.height,
                 len(windows), n_empty, dt)
@@ -603,22 +537,6 @@ def check_free_space(dst: str | Path, grid: Grid, bands: int, dtype: np.dtype, o
             f"x {bands} band(s) {np.dtype(dtype).name} is {raw / 1e6:,.1f} MB uncompressed and needs about "
             f"{need / 1e6:,.1f} MB{' (COG: uncompressed body + copy)' if opts.cog else ''}; "
             f"{free / 1e6:,.1f} MB are free in {str(folder)!r}")
-
-
-def worker_count(threads: int | None) -> int:
-    """Threads of a tiled engine: ``threads`` when given, else every core."""
-    return threads or (os.cpu_count() or 1)
-
-
-def _run_tiles(engine: _Engine, writer, windows, threads: int, progress, *, scheduler: Scheduler | str | None = None,
-               workdir: str | Path = ".") -> int:
-    def write(res: tuple[Any, Any, bool], c: int, r: int) -> bool:
-        data, valid, empty = res
-        writer.write(data, c, r, valid)
-        return empty
-
-    return run_windows(engine, write, windows, threads=threads, progress=progress, scheduler=scheduler,
-                       workdir=workdir, name="warp", raw_writer=writer if writer.raw else None)
 
 
 def warp_array(image: ArrayLike, source_from_target: Callable[[NDArray], NDArray] | ArrayLike,
@@ -659,203 +577,3 @@ def warp_array(image: ArrayLike, source_from_target: Callable[[NDArray], NDArray
         raise InvalidInputError(f"matrix must be (3, 3); got {M.shape}")
     return cv2.warpPerspective(_cv_dtype(a), M, (w, h), flags=interp | cv2.WARP_INVERSE_MAP,
                                borderMode=cv2.BORDER_CONSTANT, borderValue=fill).astype(a.dtype)
-
-
-# --------------------------------------------------------------------------- GCP georectification
-@dataclass(frozen=True, eq=False)
-class GeoRectification:
-    """Result of :func:`georectify` / :func:`rectify_with_transform`.
-
-    Attributes
-    ----------
-    fit : rectify.geometry.transforms.FitResult or None
-        The forward model (source pixels -> target) and its residual table.
-    warp : WarpResult
-    crs : str or None
-        Output CRS.
-    method : str
-    notes : tuple of str
-        One-line notes for the user (GCPs outside the source image).
-    """
-
-    fit: Any
-    warp: WarpResult
-    crs: str | None
-    method: str
-    notes: tuple[str, ...] = ()
-
-
-def gcps_outside(pixel: NDArray[np.float64], width: int, height: int) -> NDArray[np.bool_]:
-    """(N,) mask of the GCPs whose source pixel lies outside the ``width`` x ``height`` image."""
-    p = np.asarray(pixel, dtype=np.float64).reshape(-1, 2)
-    return np.asarray((p[:, 0] < -0.5) | (p[:, 0] > width - 0.5) | (p[:, 1] < -0.5) | (p[:, 1] > height - 0.5))
-
-
-def outside_note(pixel: NDArray[np.float64], ids, width: int, height: int) -> str | None:
-    """A one-line note naming the GCPs outside the source image (used for the fit, as ``rectify fit`` does),
-    or None when all are inside."""
-    out = gcps_outside(pixel, width, height)
-    if not out.any():
-        return None
-    i = int(np.flatnonzero(out)[0])
-    return (f"note: {int(out.sum())} GCP(s) outside the {width} x {height} image, used for the fit; first is "
-            f"{ids[i]!r} at (col, row) = {np.round(pixel[i], 3).tolist()}")
-
-
-def check_gcps_inside(pixel: NDArray[np.float64], ids, width: int, height: int) -> None:
-    """Raise InvalidInputError naming the first GCP outside the source image (for callers that need it)."""
-    note = outside_note(pixel, ids, width, height)
-    if note is not None:
-        raise InvalidInputError(note.removeprefix("note: ").replace(", used for the fit", ""))
-
-
-class _Inverse:
-    """Callable wrapper exposing a model's inverse (and its matrix when it has one)."""
-
-    def __init__(self, model):
-        self._m = model
-        if hasattr(model, "matrix"):
-            self.matrix = np.asarray(model.matrix, dtype=np.float64)
-
-    def __call__(self, pts):
-        return self._m(pts)
-
-
-def georectify(src: str | Path, dst: str | Path, gcps, *, method: str = "homography",
-               gcp_crs: str | None = None, dst_crs: str | None = None, resolution: float | None = None,
-               options: WarpOptions | None = None, overwrite: bool = False,
-               progress: Callable[[int, int], None] | None = None) -> GeoRectification:
-    """Fit a transform to GCPs and warp the source into a georeferenced GeoTIFF.
-
-    Parameters
-    ----------
-    src, dst : path
-    gcps : rectify.formats.common.GcpTable
-        ``pixel`` = source (col, row), ``target`` = map coordinates in
-        ``gcp_crs`` (or the table's CRS), or target pixels without a CRS.
-    method : str
-        ``homography``, ``cotangent``, ``affine``, ``poly2`` or ``poly3``.
-    gcp_crs, dst_crs : str, optional
-        The GCP CRS (overrides the file's) and the output CRS (default: the GCP
-        CRS). When they differ the GCP coordinates are transformed with pyproj
-        and the model is fitted in the output CRS.
-    resolution : float, optional
-        Output pixel size (output CRS units); default as GDAL suggests.
-
-    Returns
-    -------
-    GeoRectification
-
-    Raises
-    ------
-    EstimationError
-        Too few or degenerate GCPs.
-    InvalidInputError
-        Unknown method, existing output. GCPs outside the image are used (as by ``rectify fit``) and
-        named in ``notes``.
-    CRSError
-        Unknown CRS, or an output CRS without a GCP CRS.
-    """
-    m = METHODS.get(method)
-    if m is None:
-        raise InvalidInputError(f"unknown method {method!r}; expected one of {sorted(METHODS)}")
-    info = raster_info(src)
-    g_crs = gcp_crs or gcps.crs
-    g_crs = crs_to_string(g_crs) if g_crs else None
-    out_crs = crs_to_string(dst_crs) if dst_crs else g_crs
-    if out_crs is not None and g_crs is None:
-        raise CRSError("an output CRS needs the GCP CRS (a '# crs=' line in the GCP file or --gcp-crs)")
-    note = outside_note(gcps.pixel, gcps.ids, info.width, info.height)
-    if note is not None:  # accepted, as by 'rectify fit' (e.g. GCPs read off a larger scan); the summary says so
-        logger.info(note)
-    target = gcps.target
-    if g_crs is not None and out_crs is not None and g_crs != out_crs:
-        target = transform_xy(g_crs, out_crs, gcps.target)
-    # fit in a local frame (targets minus their rounded centroid): map coordinates of
-    # 1e5..1e7 m would otherwise dominate the conditioning of the normal equations
-    fit_rows = ~gcps.check
-    offset = np.round(target[fit_rows].mean(axis=0)) if fit_rows.any() else np.zeros(2)
-    local = GcpTable(gcps.ids, gcps.pixel, target - offset, gcps.z, gcps.check, out_crs)
-    fit_local = fit_gcps(local, method)  # residuals in the output CRS's unit (px without a CRS)
-    if method in ("poly2", "poly3"):
-        mask = fit_local.table.fit_mask
-        inverse_local = m.from_points(local.target[mask], local.pixel[mask])
-    else:
-        inverse_local = fit_local.model.inverse
-    forward = _Shifted(fit_local.model, offset, after=True)
-    inverse = _Shifted(inverse_local, offset, after=False)
-    t = fit_local.table
-    table_out = ResidualTable(step=t.step, ids=t.ids, observed=t.observed + offset, adjusted=t.adjusted + offset,
-                              units=t.units, weights=t.weights, outlier=t.outlier,
-                              check=t.check, position_px=t.position_px, n_params=t.n_params,
-                              extra=dict(t.extra, fit_offset=offset.tolist()))
-    fit = FitResult(forward, table_out, method)  # type: ignore[arg-type]  # maps like the model, shifted
-    opts = options or WarpOptions()
-    grid = output_grid(forward, info.width, info.height, resolution=resolution, crs=out_crs,
-                       y_up=out_crs is not None, max_pixels=opts.max_pixels)
-    res = warp_raster(src, dst, inverse, grid, options=opts, overwrite=overwrite, progress=progress)
-    return GeoRectification(fit, res, out_crs, method, notes=(note,) if note else ())
-
-
-class _Shifted:
-    """A model followed (``after``) or preceded by a translation of the target frame.
-
-    ``after=True``: p -> model(p) + offset (forward, source -> target).
-    ``after=False``: w -> model(w - offset) (inverse, target -> source).
-    Exposes ``matrix`` (3, 3) when the model has one, and ``model``/``offset``.
-    """
-
-    def __init__(self, model, offset: NDArray[np.float64], *, after: bool):
-        self.model, self.offset, self.after = model, np.asarray(offset, dtype=np.float64), after
-        m = getattr(model, "matrix", None)
-        if m is not None:
-            T = np.eye(3)
-            T[:2, 2] = self.offset if after else -self.offset
-            mm = T @ np.asarray(m) if after else np.asarray(m) @ T
-            self.matrix = mm / mm[2, 2] if abs(mm[2, 2]) > 1e-300 else mm
-
-    def __call__(self, pts):
-        p = np.asarray(pts, dtype=np.float64)
-        if self.after:
-            return np.asarray(self.model(p)) + self.offset
-        return np.asarray(self.model(p - self.offset))
-
-
-def rectify_with_transform(src: str | Path, dst: str | Path, model, *, model_crs: str | None = None,
-                           dst_crs: str | None = None, resolution: float | None = None,
-                           options: WarpOptions | None = None, overwrite: bool = False,
-                           progress: Callable[[int, int], None] | None = None) -> GeoRectification:
-    """Warp with a saved forward model (source pixels -> target in ``model_crs``).
-
-    With ``dst_crs`` different from ``model_crs`` the output grid is computed
-    from the footprint transformed through pyproj, and every output pixel is
-    mapped back through pyproj (sparse, interpolated) and the model's inverse.
-    """
-    info = raster_info(src)
-    m_crs = crs_to_string(model_crs) if model_crs else None
-    out_crs = crs_to_string(dst_crs) if dst_crs else m_crs
-    if out_crs is not None and m_crs is None:
-        raise CRSError("an output CRS needs the transform's CRS ('crs' in transform.json or --gcp-crs)")
-    inverse = model.inverse
-    if m_crs is not None and out_crs != m_crs:
-        t = get_transformer(m_crs, out_crs)
-
-        def forward(p):
-            w = np.asarray(model(p))
-            x, y = t.transform(w[:, 0], w[:, 1])
-            return np.column_stack([x, y])
-        world_crs = m_crs
-    else:
-        forward, world_crs = model, None
-    model_matrix = getattr(model, "matrix", None)
-    if model_matrix is not None:
-        check_horizon(model_matrix, info.width, info.height)
-    grid = output_grid(forward, info.width, info.height, resolution=resolution, crs=out_crs,
-                       y_up=out_crs is not None, max_pixels=(options or WarpOptions()).max_pixels)
-    res = warp_raster(src, dst, _Inverse(inverse), grid, world_crs=world_crs, options=options,
-                      overwrite=overwrite, progress=progress)
-    try:
-        name = method_of(model)
-    except InvalidInputError:
-        name = type(model).__name__
-    return GeoRectification(None, res, out_crs, name)

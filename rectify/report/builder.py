@@ -49,8 +49,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from rectify.atomic import current_umask, write_failure_reason
 from rectify.errors import InvalidInputError, RasterIOError, RectifyError, ShapeError
-from rectify.formats.common import REPORT_VERSION, GcpTable, read_report, report_json_text
+from rectify.formats.report import REPORT_VERSION, read_report, report_json_text
 from rectify.geometry.crs import crs_to_string, parse_crs
+from rectify.geometry.points import GcpTable
 from rectify.geometry.residuals import ResidualTable
 from rectify.raster.io import read_overview, to_uint8
 from rectify.report.figures import (
@@ -65,7 +66,7 @@ from rectify.report.figures import (
 if TYPE_CHECKING:  # annotations only: the matcher and the warp engine (OpenCV, GDAL) are not needed to report
     from rectify.features import MatchResult
     from rectify.geometry.transforms import FitResult
-    from rectify.raster.warp import GeoRectification
+    from rectify.raster.georectify import GeoRectification
 
 logger = logging.getLogger(__name__)
 
@@ -808,7 +809,7 @@ def write_warp_report(report_dir: str | os.PathLike, result: GeoRectification, *
     Parameters
     ----------
     report_dir : path
-    result : rectify.raster.warp.GeoRectification
+    result : rectify.raster.georectify.GeoRectification
         With a ``fit`` (GCP runs); check points are reported separately by the table.
     source_shape : (H, W)
         Source image size, for the residual-vector plot frame.

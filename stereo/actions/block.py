@@ -5,13 +5,14 @@ Steps (each in its own module):
 1. the workspace checks every planned output and the report folder before any work;
 2. the inputs: one camera JSON for every image, or the cameras of an OpenSfM
    ``reconstruction.json``; known poses from a position/angle CSV or the reconstruction
-   (:mod:`stereo.formats.poses`); the block control CSV (:mod:`stereo.formats.block`);
+   (:mod:`stereo.formats.poses`, :mod:`stereo.formats.opensfm`); the block control CSV
+   (:mod:`stereo.formats.block`);
 3. block tie points: pairs from footprints (poses known) or all pairs / an overview match,
    tracks by union-find, evenly spread (:mod:`stereo.features.tracks`); the control points'
    image measurements join them as tracks of their own;
 4. initial orientation: with known poses the tracks are intersected through them; without,
    a chain of independent models joined by 7-parameter similarities and brought to the ground
-   by control and/or GNSS positions (:mod:`stereo.block.independent`);
+   by control and/or GNSS positions (:mod:`stereo.block.independent`, :mod:`stereo.block.models`);
 5. the bundle adjustment with the observation groups and their precisions
    (:mod:`stereo.block.bundle.adjust`);
 6. the outputs, all or none (the layout in :data:`BLOCK_LAYOUT`, ``camera_<id>.json`` per camera),
@@ -23,7 +24,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -32,15 +33,20 @@ from numpy.typing import NDArray
 
 from rectify.actions.workspace import StrPath, Workspace
 from rectify.errors import InvalidInputError
+from rectify.formats.camera import camera_document
 from rectify.geometry.camera import Camera
+from rectify.geometry.crs import parse_crs
 from rectify.geometry.residuals import ResidualTable, rms
-from stereo.block.bundle.adjust import BlockControl, BundleOptions, BundleResult, GnssObservations, adjust_bundle
-from stereo.block.independent import IndependentOptions, independent_models, to_ground, triangulate_tracks
-from stereo.block.types import Pose, Tracks
+from stereo.block.bundle.adjust import BundleOptions, adjust_bundle
+from stereo.block.bundle.result import BundleResult
+from stereo.block.independent import independent_models, to_ground, triangulate_tracks
+from stereo.block.models import IndependentOptions
+from stereo.block.types import BlockControl, GnssObservations, Pose, Tracks
 from stereo.features.tracks import BlockMatchOptions, block_tie_points
 from stereo.formats.block import BlockControlTable, block_orientation_text, observations_text, read_block_control
-from stereo.formats.orientation import dump_ply, points_csv_text
-from stereo.formats.poses import PoseTable, pose_csv_text, read_opensfm, read_pose_csv
+from stereo.formats.opensfm import read_opensfm
+from stereo.formats.points import LasWriter, dump_ply, points_csv_text
+from stereo.formats.poses import PoseTable, pose_csv_text, read_pose_csv
 from stereo.report.block import write_block_report
 
 __all__ = ["BLOCK_LAYOUT", "BlockOptions", "BlockResult", "run_block"]
@@ -259,8 +265,6 @@ def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera
         if crs is None:
             crs = ctrl.crs
         elif ctrl.crs is not None and ctrl.crs != crs:
-            from rectify.geometry.crs import parse_crs
-
             if parse_crs(ctrl.crs) != parse_crs(crs):
                 raise InvalidInputError(f"the control file's CRS {ctrl.crs!r} differs from the pose file's {crs!r}")
     elif opts.check_ids:
@@ -477,8 +481,6 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
     gnss = _gnss(inp, opts)
     bopts = opts.bundle
     if bopts.covariance == "full" and all_tracks.n_obs > FULL_COVARIANCE_MAX_OBS:
-        from dataclasses import replace
-
         bopts = replace(bopts, covariance="poses")
     t2 = time.perf_counter()
     res = adjust_bundle(inp.cameras, poses0, all_tracks, points0, control=bcontrol, gnss=gnss, options=bopts,
@@ -542,8 +544,6 @@ def _reliable(res: BundleResult, tracks: Tracks) -> NDArray[np.bool_]:
 
 def _write(ws: Workspace, res: BundleResult, tracks: Tracks, inp: _Inputs, names: tuple[str, ...], n_tie: int,
            initial: str, timings: dict[str, float]) -> tuple[list[Path], Path | None]:
-    from stereo.dense.dsm import LasWriter
-
     root = Path(str(ws.root))
     X = np.asarray(res.points, dtype=np.float64)
     ok = _reliable(res, tracks)
@@ -568,8 +568,6 @@ def _write(ws: Workspace, res: BundleResult, tracks: Tracks, inp: _Inputs, names
     report_path = None
     wkt = None
     if inp.crs is not None:
-        from rectify.geometry.crs import parse_crs
-
         wkt = parse_crs(inp.crs).to_wkt()
     with ws.transaction():
         p = root / BLOCK_LAYOUT["orientation"]
@@ -596,8 +594,6 @@ def _write(ws: Workspace, res: BundleResult, tracks: Tracks, inp: _Inputs, names
             finally:
                 las.close()
         written.append(p)
-        from rectify.formats.common import camera_document
-
         for (cid, cam), p in zip(res.cameras.items(), camera_paths(root, res.cameras), strict=True):
             ws.write_json(p, {**camera_document(cam), "name": cid})
             written.append(p)

@@ -12,7 +12,10 @@ from typing import Any
 from rectify.atomic import atomic_write_text, check_output
 from rectify.errors import CalibrationError, InvalidInputError
 from stereo.calibration.result import Calibration
-from stereo.features.targets import Chessboard, detect_chessboards, parse_pattern, parse_square, views_from_csv
+from stereo.calibration.rig import RigCalibration
+from stereo.features.targets import Chessboard, detect_chessboards, parse_pattern, parse_square
+from stereo.formats.calibration import views_from_csv
+from stereo.report.calibration import write_calibration_report
 
 logger = logging.getLogger(__name__)
 
@@ -80,8 +83,6 @@ def _finish(cal: Calibration, output: str | Path, *, pixel_size_mm: float | None
     atomic_write_text(output, json.dumps(d, indent=2) + "\n", overwrite=overwrite)
     rep = None
     if report_dir is not None:
-        from stereo.report.calibration import write_calibration_report
-
         rep = write_calibration_report(report_dir, cal, overwrite=overwrite)
     return Path(output), rep
 
@@ -167,8 +168,6 @@ def calibrate_rig_images(left: Sequence[str | Path], right: Sequence[str | Path]
     CalibrationError
         Fewer than 3 complete pairs, or as :meth:`Calibration.from_views`.
     """
-    from stereo.calibration.rig import RigCalibration
-
     check_output(output, overwrite=overwrite)
     if len(left) != len(right):
         raise InvalidInputError(f"{len(left)} left images but {len(right)} right images")

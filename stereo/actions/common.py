@@ -6,22 +6,20 @@ it takes the input paths and an options dataclass, checks every planned output b
 or none), and returns a frozen result whose ``summary_lines()`` are exactly the lines the command prints.
 """
 
-
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from numpy.typing import NDArray
-from rasterio.errors import NotGeoreferencedWarning
 
 from rectify.features import MatcherConfig, match_images
-from rectify.formats.common import ControlTable
 from rectify.geometry.camera import Camera
+from rectify.geometry.points import ControlTable
+from rectify.raster.io import ignore_not_georeferenced
 from stereo.relative import RelativeOrientation
 
 Progress = Callable[[int, int], None]
@@ -30,8 +28,6 @@ PathArg = str | Path
 
 def given(*paths: PathArg | None) -> list[PathArg]:
     return [p for p in paths if p is not None]
-
-
 
 
 #: The matcher of a stereo pair: fundamental-matrix verification (a homography drops most matches of a
@@ -76,13 +72,10 @@ def sigma0_text(ro: RelativeOrientation, pixel_size_mm: float | None) -> str:
 
 
 def match_pair(left: PathArg, right: PathArg, progress: Progress | None = None,
-           matcher: MatcherConfig | None = None) -> Any:
+               matcher: MatcherConfig | None = None) -> Any:
     """Tie points of a photo pair: :data:`PAIR_MATCHER` unless ``matcher`` is given."""
-    with warnings.catch_warnings():  # plain photos have no geotransform, as expected
-        warnings.simplefilter("ignore", NotGeoreferencedWarning)
+    with ignore_not_georeferenced():  # plain photos have no geotransform, as expected
         return match_images(left, right, config=matcher or PAIR_MATCHER, progress=progress)
-
-
 
 
 def control_mm(control: ControlTable | None, camera: Camera) -> tuple[NDArray, NDArray] | None:

@@ -1,6 +1,5 @@
 """``stereo demo``: the rendered synthetic pair through the whole chain, compared with the truth."""
 
-
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -11,10 +10,7 @@ import numpy as np
 
 from rectify.geometry.residuals import rms
 from rectify.report.builder import json_safe
-from stereo.actions.common import (
-    PathArg,
-    Progress,
-)
+from stereo.actions.common import PathArg, Progress
 from stereo.actions.run import RunResult, run
 from stereo.actions.scene import make_scene, write_scene_inputs
 from stereo.actions.workspace import PairWorkspace

@@ -25,25 +25,34 @@ import json
 import logging
 import math
 import time
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import rasterio
 from numpy.typing import NDArray
 
 from rectify.actions.workspace import Workspace
 from rectify.atomic import read_json
 from rectify.errors import InvalidInputError, StereoError
-from rectify.formats.common import read_control, read_matches
+from rectify.features import MatcherConfig, match_images
+from rectify.formats.camera import read_camera
+from rectify.formats.tables import read_control, read_matches
 from rectify.geometry.camera import Camera
+from rectify.geometry.robust import ROBUST_METHODS
 from rectify.raster.distributed import Scheduler, resolve_scheduler
-from rectify.raster.io import WindowReader, bound_gdal_cache, iter_windows
+from rectify.raster.io import (
+    WindowReader,
+    bound_gdal_cache,
+    gdal_cache_limit,
+    ignore_not_georeferenced,
+    iter_windows,
+    raster_info,
+    read_overview,
+)
 from rectify.report.builder import json_safe
-from stereo.dense.dsm import STATISTICS, DsmGrid, DsmResult, point_writer
+from stereo.dense.dsm import STATISTICS, DsmGrid, DsmResult
 from stereo.dense.epipolar import (
     EpipolarRectification,
     ParallaxReport,
@@ -55,8 +64,10 @@ from stereo.dense.epipolar import (
 from stereo.dense.matching import NODATA, MatchOptions, MatchStats, match_rasters
 from stereo.dense.triangulate import triangulate_disparity
 from stereo.formats.orientation import EXTERIOR_FORMAT, read_exterior, read_relative
+from stereo.formats.points import point_writer
 from stereo.pair.absolute import AbsoluteOrientation
 from stereo.pair.intersection import intersect
+from stereo.relative import RelativeOrientation
 from stereo.report.dense import HeightComparison, compare_with_dem, save_histogram, save_picture
 
 logger = logging.getLogger(__name__)
@@ -166,8 +177,6 @@ class DenseOptions:
         if self.dsm_radius > 5:
             raise InvalidInputError(f"`dsm_radius` must be at most 5 cells; got {self.dsm_radius!r}")
         if self.relative_robust is not None:
-            from rectify.geometry.robust import ROBUST_METHODS
-
             if self.relative_robust not in ROBUST_METHODS:
                 raise InvalidInputError(f"unknown `relative_robust` {self.relative_robust!r}; expected None or one "
                                         f"of {list(ROBUST_METHODS)}")
@@ -218,7 +227,7 @@ class DenseResult:
 
 def _camera_from(doc: dict[str, Any], camera: StrPath | None, what: str) -> Camera:
     if camera is not None:
-        return Camera.from_json(camera)
+        return read_camera(camera)
     if isinstance(doc.get("camera"), dict):
         return Camera.from_dict(doc["camera"])
     raise InvalidInputError(f"{what} stores no camera; pass --camera")
@@ -237,8 +246,6 @@ def _tie_points(matches: StrPath | None, left: StrPath, right: StrPath
         tl, tr, ids = m.left, m.right, list(m.ids)
         refined = np.isfinite(m.score) if m.score is not None else np.ones(len(ids), bool)
     else:
-        from rectify.features import MatcherConfig, match_images
-
         res = match_images(left, right, config=MatcherConfig(verify="fundamental", keep_unrefined=False))
         tl, tr, ids = res.matches.left, res.matches.right, list(res.matches.ids)
         refined = np.ones(len(ids), bool)
@@ -284,8 +291,6 @@ def _orient_ties(doc: dict[str, Any], geometry: Any, exterior: bool, cam_l: Came
         def build(a: NDArray[np.float64], b: NDArray[np.float64]) -> EpipolarRectification:
             return rectify_exterior(eo_l, eo_r, cam_l, cam_r, tie_left=a, tie_right=b)
     elif robust is not None:
-        from stereo.relative import RelativeOrientation
-
         system = str(doc.get("system") or "left-image")
         if system.startswith("dobrynin-pimshina"):  # the turn of the frame is chosen again from the base
             system = "dobrynin-pimshina"
@@ -357,8 +362,7 @@ def _sample_points(rect: EpipolarRectification, disp_path: Path, transform, step
                    ) -> tuple[NDArray[np.float64], float]:
     """Points of every ``step``-th disparity (for the DSM bounds) and the median ground sampling distance."""
     pts, gsd = [], []
-    with WindowReader(disp_path) as rd, warnings.catch_warnings():
-        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+    with WindowReader(disp_path) as rd, ignore_not_georeferenced():
         for c0, r0, w, h in iter_windows(rd.width, rd.height, 2048):
             d, _ = rd.read(c0, r0, w, h)
             sub = d[::step, ::step, 0].astype(np.float64)
@@ -462,10 +466,10 @@ def run_dense(
         cam_r = cam_l
         crs = None
     for path, cam in ((left, cam_l), (right, cam_r)):
-        with rasterio.open(path) as ds:
-            if (ds.width, ds.height) != (cam.width, cam.height):
-                raise InvalidInputError(f"photo {str(path)!r} is {ds.width} x {ds.height} px but the camera is "
-                                        f"{cam.width} x {cam.height} px")
+        ds = raster_info(path)
+        if (ds.width, ds.height) != (cam.width, cam.height):
+            raise InvalidInputError(f"photo {str(path)!r} is {ds.width} x {ds.height} px but the camera is "
+                                    f"{cam.width} x {cam.height} px")
     suffix = {"las": ".las", "laz": ".laz", "ply": ".ply"}.get(opts.cloud_format)
     names = ["left_normal.tif", "right_normal.tif", "disparity.tif", "confidence.tif", "dsm.tif", "dense.json"]
     if suffix:
@@ -497,7 +501,7 @@ def run_dense(
     try:
         # GDAL's block cache (default 5 % of the RAM) would hold the rasters read and written here:
         # bounded, so that memory stays that of the tiles whatever the photo size
-        with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB * 1024 * 1024), ws.transaction(), \
+        with gdal_cache_limit(GDAL_CACHE_MB), ws.transaction(), \
                 contextlib.ExitStack() as stack:
             paths: dict[str, Path] = {}
             for n in names:
@@ -577,8 +581,6 @@ def run_dense(
 
 
 def _picture_from_raster(src: Path, dst: Path, title: str) -> None:
-    from rectify.raster.io import read_overview
-
     data, valid, _ = read_overview(src, 1500)
     g = data[:, :, 0].astype(np.float64)
     g[(g == NODATA) | ~valid] = np.nan
@@ -591,8 +593,7 @@ def _triangulate_all(rect: EpipolarRectification, paths: dict[str, Path], grid: 
     writer = None
     n = 0
     with WindowReader(paths["disparity.tif"]) as rd, WindowReader(paths["confidence.tif"]) as rc, \
-            WindowReader(paths["left_normal.tif"]) as rl, warnings.catch_warnings():
-        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+            WindowReader(paths["left_normal.tif"]) as rl, ignore_not_georeferenced():
         windows = list(iter_windows(rd.width, rd.height, min(opts.tile, TRIANGULATION_TILE)))
         for i, (c0, r0, w, h) in enumerate(windows):
             d, _ = rd.read(c0, r0, w, h)

@@ -42,25 +42,29 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import rasterio
 from numpy.typing import ArrayLike, NDArray
 
 from rectify.actions.workspace import Workspace
 from rectify.errors import EstimationError, InvalidInputError, ShapeError, StereoError
+from rectify.features import MatcherConfig
+from rectify.features.match import match_arrays
+from rectify.formats.rpc import rpc_from_raster
 from rectify.geometry.crs import transform_xy
-from rectify.geometry.rpc import RPC, rpc_from_raster
-from rectify.raster.io import raster_info, read_window
+from rectify.geometry.rpc import RPC
+from rectify.raster.io import gdal_cache_limit, gdal_wkt, raster_info, read_window
 from rectify.report.builder import json_safe
-from stereo.dense.dsm import DSM_NODATA, STATISTICS, DsmGrid, DsmResult, point_writer
+from stereo.dense.dsm import DSM_NODATA, STATISTICS, DsmGrid, DsmResult
 from stereo.dense.matching import MatchOptions, match_pair
 from stereo.dense.rpc_epipolar import (
     AffineCamera,
     AffineRectification,
+    LocalFrame,
     TileParallax,
     fit_affine_pair,
     rectify_affine,
     resample_rectified,
 )
+from stereo.formats.points import point_writer
 
 logger = logging.getLogger(__name__)
 
@@ -269,8 +273,6 @@ def triangulate_rpc(left_rpc: Any, right_rpc: Any, left: ArrayLike, right: Array
         h0 = float(left_rpc.height_off if height is None else height) if hasattr(left_rpc, "height_off") \
             else float(height if height is not None else 0.0)
         g0 = left_rpc.localize(pl, h0, on_failure="nan")
-        from stereo.dense.rpc_epipolar import LocalFrame
-
         ok = np.isfinite(g0).all(axis=1)
         c = g0[ok].mean(axis=0) if ok.any() else np.array([0.0, 0.0, h0])
         frame = LocalFrame(float(c[0]), float(c[1]), h0)
@@ -333,9 +335,6 @@ def _tile_ties(left: StrPath, right: StrPath, left_rpc: Any, right_rpc: Any, win
                ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Tie points of one tile: its left window (plus ``margin``) against the right window the RPCs
     give for the height prior. Empty arrays when nothing matches."""
-    from rectify.features import MatcherConfig
-    from rectify.features.match import match_arrays
-
     c0, r0, w, h = window
     lc0, lr0, lw, lh = c0 - margin, r0 - margin, w + 2 * margin, h + 2 * margin
     cc, rr = np.meshgrid(np.linspace(lc0, lc0 + lw - 1, 5), np.linspace(lr0, lr0 + lh - 1, 5))
@@ -459,7 +458,7 @@ def run_dense_rpc(
             progress(stage, done, total)
 
     tiles = _tiles(box, opts.tile)
-    with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_MB * 1024 * 1024):
+    with gdal_cache_limit(GDAL_CACHE_MB):
         # 1. tie points per tile, their heights
         ties_l, ties_r, ties_t = [], [], []
         for i, win in enumerate(tiles):
@@ -525,7 +524,7 @@ def run_dense_rpc(
                     writer = point_writer(paths[f"points{suffix}"], suffix[1:],
                                           offset=np.round(np.append(transform_xy("EPSG:4326", crs, centre[None, :2])[0],
                                                                     centre[2]), 0),
-                                          crs_wkt=rasterio.crs.CRS.from_string(crs).to_wkt(),
+                                          crs_wkt=gdal_wkt(crs),
                                           comment=f"UTM {crs}, ellipsoidal heights")
                 for i, sel, borrowed in plan:
                     tile = _dense_tile(left, right, rl, rr, tiles[i], TL[sel], TR[sel], TG[sel], borrowed, opts,

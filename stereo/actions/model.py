@@ -1,6 +1,5 @@
 """``stereo model``: model points of an oriented pair and their absolute orientation."""
 
-
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -8,11 +7,7 @@ from pathlib import Path
 
 from rectify.errors import InvalidInputError
 from rectify.geometry.camera import Camera
-from stereo.actions.common import (
-    PathArg,
-    control_mm,
-    given,
-)
+from stereo.actions.common import PathArg, control_mm, given
 from stereo.actions.workspace import PairWorkspace, model_outputs
 from stereo.pair.model import ModelOptions, StereoModel, build_model
 from stereo.relative import RelativeGeometry

@@ -1,6 +1,5 @@
 """``stereo orient``: relative orientation of a photo pair from matches or images."""
 
-
 from __future__ import annotations
 
 import math
@@ -10,13 +9,7 @@ from pathlib import Path
 from rectify.errors import InvalidInputError
 from rectify.features import MatcherConfig
 from rectify.geometry.camera import Camera
-from stereo.actions.common import (
-    ORIENT_MATCHER,
-    PathArg,
-    given,
-    match_pair,
-    sigma0_text,
-)
+from stereo.actions.common import ORIENT_MATCHER, PathArg, given, match_pair, sigma0_text
 from stereo.actions.workspace import PairWorkspace
 from stereo.relative import RelativeOrientation
 from stereo.relative.degenerate import check_base

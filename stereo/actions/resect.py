@@ -1,6 +1,5 @@
 """``stereo resect``: space resection of one photo from ground control."""
 
-
 from __future__ import annotations
 
 import math
@@ -11,9 +10,7 @@ import numpy as np
 
 from rectify.errors import InvalidInputError
 from rectify.geometry.camera import Camera
-from stereo.actions.common import (
-    PathArg,
-)
+from stereo.actions.common import PathArg
 from stereo.actions.workspace import PairWorkspace
 from stereo.formats.orientation import exterior_dict
 from stereo.pair.resection import ExteriorOrientation

@@ -1,6 +1,5 @@
 """``stereo run``: the whole pair chain (match, orient, model, absolute, optionally dense)."""
 
-
 from __future__ import annotations
 
 import time
@@ -12,16 +11,10 @@ import numpy as np
 
 from rectify.errors import InvalidInputError
 from rectify.features import MatcherConfig
-from rectify.formats.common import ControlTable
 from rectify.geometry.camera import Camera
+from rectify.geometry.points import ControlTable
 from rectify.raster.distributed import resolve_scheduler
-from stereo.actions.common import (
-    PathArg,
-    Progress,
-    match_pair,
-    parallax_sigma0_mm,
-    sigma0_text,
-)
+from stereo.actions.common import PathArg, Progress, match_pair, parallax_sigma0_mm, sigma0_text
 from stereo.actions.dense import DenseOptions, DenseResult, run_dense
 from stereo.actions.workspace import PairWorkspace
 from stereo.pair.model import ModelOptions, StereoModel, build_model

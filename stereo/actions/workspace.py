@@ -1,4 +1,5 @@
-"""The files of a stereo job: :class:`PairWorkspace` adds the stereo artefacts to :class:`rectify.actions.workspace.Workspace`.
+"""The files of a stereo job: :class:`PairWorkspace` adds the stereo artefacts to
+:class:`rectify.actions.workspace.Workspace`.
 
 ``stereo run`` and ``stereo demo`` write a fixed layout into their output folder::
 
@@ -11,8 +12,9 @@
     OUTDIR/report/              QA report (stereo.report.pair)
 
 ``stereo model`` writes ``<points>.ply`` with ``<points>.csv`` and ``<points>.orientation.json``
-beside it (:func:`model_outputs`). The formats are in :mod:`stereo.formats.orientation`; every ``save_*``
-method writes through :meth:`~rectify.actions.workspace.Workspace.output`, so inside
+beside it (:func:`model_outputs`). The formats are in :mod:`stereo.formats.orientation` and
+:mod:`stereo.formats.points`; every ``save_*`` method writes through
+:meth:`~rectify.actions.workspace.Workspace.output`, so inside
 :meth:`~rectify.actions.workspace.Workspace.transaction` the files of a job are written all or none.
 """
 
@@ -29,24 +31,12 @@ from rectify.actions.workspace import StrPath, Workspace
 from rectify.errors import CalibrationError, InvalidInputError
 from rectify.geometry.camera import Camera
 from rectify.raster.io import raster_info
-from stereo.formats.orientation import (
-    dump_exterior,
-    dump_orientation,
-    dump_ply,
-    dump_points_csv,
-    dump_relative,
-    orientation_dict,
-    read_exterior,
-    read_orientation,
-    read_ply,
-    read_points_csv,
-    read_relative,
-)
+from stereo.formats.orientation import dump_exterior, dump_orientation, dump_relative, orientation_dict, read_relative
+from stereo.formats.points import dump_ply, dump_points_csv
 from stereo.pair.resection import ExteriorOrientation
 from stereo.relative import RelativeGeometry
 
 if TYPE_CHECKING:  # type hints only (stereo.pair.model builds the model; this module stores it)
-    from stereo.formats.orientation import PointCloud, PointsTable
     from stereo.pair.model import StereoModel
 
 __all__ = ["RUN_LAYOUT", "PairWorkspace", "model_outputs"]
@@ -174,10 +164,6 @@ class PairWorkspace(Workspace):
             dump_exterior(tmp, eo, camera=camera)
         return Path(path)
 
-    def load_exterior(self, path: StrPath) -> ExteriorOrientation:
-        """Exterior orientation JSON -> :class:`~stereo.pair.resection.ExteriorOrientation`."""
-        return read_exterior(path)
-
     def save_model(self, model: StereoModel, *, points_path: StrPath, csv_path: StrPath | None = None,
                    orientation_path: StrPath | None = None, model_ply_path: StrPath | None = None,
                    extra: dict[str, Any] | None = None) -> None:
@@ -194,15 +180,3 @@ class PairWorkspace(Workspace):
         if orientation_path is not None:
             with self.output(orientation_path) as tmp:
                 dump_orientation(tmp, orientation_dict(model, extra=extra))
-
-    def load_points(self, path: StrPath) -> PointCloud:
-        """Points PLY -> :class:`~stereo.formats.orientation.PointCloud`."""
-        return read_ply(path)
-
-    def load_points_csv(self, path: StrPath) -> PointsTable:
-        """Points CSV -> :class:`~stereo.formats.orientation.PointsTable`."""
-        return read_points_csv(path)
-
-    def load_orientation(self, path: StrPath) -> dict[str, Any]:
-        """Model orientation JSON -> dict (frame, crs, summary, absolute)."""
-        return read_orientation(path)

@@ -1,4 +1,4 @@
-"""The data every block step shares: image poses and multi-image tie-point tracks.
+"""The data every block step shares: image poses, multi-image tie-point tracks, control and GNSS.
 
 Frames
 ------
@@ -29,7 +29,12 @@ from rectify.errors import InvalidInputError, ShapeError
 from rectify.geometry.camera import Camera
 from rectify.geometry.rotation import angles_from_matrix, check_rotation
 
-__all__ = ["Pose", "Tracks", "cameras_for", "project_pixel"]
+__all__ = ["BlockControl", "CONTROL_KINDS", "GnssObservations", "Pose", "Tracks", "cameras_for", "project_pixel"]
+
+F64 = NDArray[np.float64]
+
+#: kinds of control point: all three coordinates, the height only, or the plan position only
+CONTROL_KINDS: tuple[str, ...] = ("full", "height", "plan")
 
 
 @dataclass(frozen=True, eq=False)
@@ -217,3 +222,149 @@ def cameras_for(poses: Sequence[Pose], cameras: Mapping[str, Camera]) -> list[Ca
 def _dupes(names: Sequence[str]) -> set[str]:
     seen: set[str] = set()
     return {n for n in names if n in seen or seen.add(n)}  # type: ignore[func-returns-value]
+
+
+# ---------------------------------------------------------------------------- control and GNSS
+@dataclass(frozen=True, eq=False)
+class BlockControl:
+    """Ground control and check points of a block.
+
+    Parameters
+    ----------
+    ids : tuple of str
+        Point ids (K,); each is a :class:`Tracks` point id.
+    xyz : (K, 3) float64
+        Given ground coordinates, m.
+    kind : tuple of str
+        Per point, one of :data:`CONTROL_KINDS` (``full``, ``height``, ``plan``).
+    sigma_m : (K, 3) float64
+        A-priori standard deviation of x, y, z, m (> 0; only the used components matter).
+    check : (K,) bool
+        True for a check point (withheld from the adjustment).
+    """
+
+    ids: tuple[str, ...]
+    xyz: F64
+    kind: tuple[str, ...] = ()
+    sigma_m: F64 = field(default_factory=lambda: np.zeros((0, 3)))
+    check: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+
+    def __post_init__(self) -> None:
+        ids = tuple(str(i) for i in self.ids)
+        k = len(ids)
+        if len(set(ids)) != k:
+            raise InvalidInputError(f"control: duplicate ids {sorted({i for i in ids if ids.count(i) > 1})[:5]}")
+        xyz = np.array(self.xyz, dtype=np.float64, copy=True)
+        if xyz.shape != (k, 3) or not np.isfinite(xyz).all():
+            raise ShapeError(f"control: `xyz` must be ({k}, 3) finite; got shape {xyz.shape}",
+                             actual_shape=xyz.shape, expected_shape=(k, 3))
+        kind = tuple(self.kind) if len(self.kind) else ("full",) * k
+        if len(kind) != k:
+            raise ShapeError(f"control: `kind` must have {k} entries; got {len(kind)}")
+        badk = [x for x in kind if x not in CONTROL_KINDS]
+        if badk:
+            raise InvalidInputError(f"control: unknown kind {badk[0]!r}; expected one of {list(CONTROL_KINDS)}")
+        sig = np.array(self.sigma_m, dtype=np.float64, copy=True)
+        if sig.size == 0:
+            sig = np.full((k, 3), 0.01)
+        if sig.shape == (k,):
+            sig = np.repeat(sig[:, None], 3, axis=1)
+        if sig.shape != (k, 3) or not np.isfinite(sig).all() or (sig <= 0).any():
+            raise InvalidInputError(f"control: `sigma_m` must be ({k}, 3) finite values > 0; got "
+                                    f"{np.asarray(self.sigma_m).tolist()!r}"[:200])
+        chk = np.array(self.check, dtype=bool, copy=True).reshape(-1)
+        if chk.size == 0:
+            chk = np.zeros(k, bool)
+        if chk.shape != (k,):
+            raise ShapeError(f"control: `check` must have {k} entries; got {chk.shape}")
+        for a in (xyz, sig, chk):
+            a.flags.writeable = False
+        object.__setattr__(self, "ids", ids)
+        object.__setattr__(self, "xyz", xyz)
+        object.__setattr__(self, "kind", kind)
+        object.__setattr__(self, "sigma_m", sig)
+        object.__setattr__(self, "check", chk)
+
+    def used_sigma(self) -> F64:
+        """(K, 3) sigma of the observed components, inf elsewhere (and for check points)."""
+        s = self.sigma_m.copy()
+        for i, k in enumerate(self.kind):
+            if k == "height":
+                s[i, :2] = np.inf
+            elif k == "plan":
+                s[i, 2] = np.inf
+        s[self.check] = np.inf
+        return s
+
+
+@dataclass(frozen=True, eq=False)
+class GnssObservations:
+    """GNSS antenna positions (and optional INS angles) of the images.
+
+    Parameters
+    ----------
+    images : tuple of str
+        Image names (n,).
+    position : (n, 3) float64
+        Antenna positions, ground frame, m.
+    sigma_m : (n, 3) float64
+        Their standard deviations, m (> 0).
+    lever_arm_m : (3,) float64, optional
+        Antenna offset from the projection centre in the camera frame (photo axes x, y, and z
+        along the optical axis away from the scene), m: ``antenna = C + R @ lever``.
+    angles : (n, 3) float64, optional
+        INS omega, phi, kappa, rad.
+    sigma_rad : (n, 3) float64, optional
+        Their standard deviations, rad (required with ``angles``).
+    """
+
+    images: tuple[str, ...]
+    position: F64
+    sigma_m: F64
+    lever_arm_m: F64 | None = None
+    angles: F64 | None = None
+    sigma_rad: F64 | None = None
+
+    def __post_init__(self) -> None:
+        images = tuple(str(i) for i in self.images)
+        n = len(images)
+        if len(set(images)) != n:
+            raise InvalidInputError(f"gnss: duplicate images {sorted({i for i in images if images.count(i) > 1})[:5]}")
+        pos = np.array(self.position, dtype=np.float64, copy=True)
+        if pos.shape != (n, 3) or not np.isfinite(pos).all():
+            raise ShapeError(f"gnss: `position` must be ({n}, 3) finite; got shape {pos.shape}")
+        sig = np.array(self.sigma_m, dtype=np.float64, copy=True)
+        if sig.shape == (n,):
+            sig = np.repeat(sig[:, None], 3, axis=1)
+        if sig.shape != (n, 3) or not np.isfinite(sig).all() or (sig <= 0).any():
+            raise InvalidInputError(f"gnss: `sigma_m` must be ({n}, 3) finite values > 0; got "
+                                    f"{np.asarray(self.sigma_m).tolist()!r}"[:200])
+        lever = None
+        if self.lever_arm_m is not None:
+            lever = np.array(self.lever_arm_m, dtype=np.float64, copy=True).reshape(-1)
+            if lever.shape != (3,) or not np.isfinite(lever).all():
+                raise ShapeError(f"gnss: `lever_arm_m` must be 3 finite numbers; got {lever.tolist()}")
+        ang = sang = None
+        if self.angles is not None:
+            ang = np.array(self.angles, dtype=np.float64, copy=True)
+            if ang.shape != (n, 3) or not np.isfinite(ang).all():
+                raise ShapeError(f"gnss: `angles` must be ({n}, 3) finite; got shape {ang.shape}")
+            if self.sigma_rad is None:
+                raise InvalidInputError("gnss: `angles` need `sigma_rad`; got None")
+            sang = np.array(self.sigma_rad, dtype=np.float64, copy=True)
+            if sang.shape == (n,):
+                sang = np.repeat(sang[:, None], 3, axis=1)
+            if sang.shape != (n, 3) or not np.isfinite(sang).all() or (sang <= 0).any():
+                raise InvalidInputError(f"gnss: `sigma_rad` must be ({n}, 3) finite values > 0; got "
+                                        f"{np.asarray(self.sigma_rad).tolist()!r}"[:200])
+        elif self.sigma_rad is not None:
+            raise InvalidInputError("gnss: `sigma_rad` given without `angles`")
+        for a in (pos, sig, lever, ang, sang):
+            if a is not None:
+                a.flags.writeable = False
+        object.__setattr__(self, "images", images)
+        object.__setattr__(self, "position", pos)
+        object.__setattr__(self, "sigma_m", sig)
+        object.__setattr__(self, "lever_arm_m", lever)
+        object.__setattr__(self, "angles", ang)
+        object.__setattr__(self, "sigma_rad", sang)

@@ -7,12 +7,14 @@ model
 dlt
     Starts with no initial guess: the 11-parameter DLT and its decomposition,
     plane-target homographies.
-targets
-    Chessboard detection and observation / field CSV files.
+views
+    :class:`TargetView`: the measured target points of one image (chessboard detection is in
+    ``stereo.features.targets``, the observation / field CSV files in ``stereo.formats.calibration``).
 adjust
     The least-squares adjustment with self-calibration (robust, with covariances).
 result
-    :class:`Calibration`, the camera JSON (``camera_to_dict`` / ``camera_from_dict``).
+    :class:`Calibration` (its camera JSON: ``rectify.formats.camera.intrinsics_document``, read back by
+    ``stereo.formats.calibration.camera_from_dict``).
 zoom, rig, report, workflow
     Zoom models, stereo rigs, figures, and the one-call workflow of the CLI.
 """

@@ -32,7 +32,8 @@ from numpy.typing import NDArray
 
 from rectify.errors import CalibrationError, ConvergenceError, InvalidInputError
 from rectify.geometry.robust import get_psi, robust_scale
-from stereo.calibration.model import INTERIOR_NAMES, project_vector, rodrigues
+from rectify.geometry.rotation import rodrigues
+from stereo.calibration.model import INTERIOR_NAMES, project_vector
 
 logger = logging.getLogger(__name__)
 

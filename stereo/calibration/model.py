@@ -37,7 +37,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from rectify.errors import CalibrationError, InvalidInputError
 
-__all__ = ["INTERIOR_NAMES", "Intrinsics", "rodrigues", "rotvec_from_matrix", "CV_FROM_PHOTO"]
+__all__ = ["INTERIOR_NAMES", "Intrinsics", "CV_FROM_PHOTO", "project_vector"]
 
 #: Order of the full interior vector used by the adjustment.
 INTERIOR_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "p1", "p2", "sx", "sy")
@@ -171,46 +171,3 @@ def project_vector(v: F64, xc: F64) -> F64:
     du = u * rad + 2 * p1 * u * w + p2 * (r2 + 2 * u * u)
     dv = w * rad + p1 * (r2 + 2 * w * w) + 2 * p2 * u * w
     return np.column_stack([cx + fx * (x + du), cy + fy * (y + dv)])
-
-
-def rodrigues(rv: ArrayLike) -> F64:
-    """Rotation vectors (M, 3) -> matrices (M, 3, 3) (Rodrigues' formula, OpenCV's convention)."""
-    r = np.asarray(rv, dtype=np.float64).reshape(-1, 3)
-    th = np.linalg.norm(r, axis=1)
-    small = th < 1e-12
-    k = r / np.where(small, 1.0, th)[:, None]
-    kx = np.zeros((len(r), 3, 3))
-    kx[:, 0, 1], kx[:, 0, 2], kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
-    kx[:, 1, 0], kx[:, 2, 0], kx[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
-    s = np.sin(th)[:, None, None]
-    c = (1 - np.cos(th))[:, None, None]
-    out = np.eye(3)[None] + s * kx + c * (kx @ kx)
-    if np.any(small):  # first order for tiny angles
-        rx = np.zeros((int(small.sum()), 3, 3))
-        rs = r[small]
-        rx[:, 0, 1], rx[:, 0, 2], rx[:, 1, 2] = -rs[:, 2], rs[:, 1], -rs[:, 0]
-        rx[:, 1, 0], rx[:, 2, 0], rx[:, 2, 1] = rs[:, 2], -rs[:, 1], rs[:, 0]
-        out[small] = np.eye(3)[None] + rx
-    return out
-
-
-def rotvec_from_matrix(R: ArrayLike) -> F64:
-    """Rotation matrix (3, 3) -> rotation vector (3,) (angle <= pi)."""
-    m = np.asarray(R, dtype=np.float64)
-    u, _, vt = np.linalg.svd(m)
-    m = u @ vt
-    if np.linalg.det(m) < 0:
-        raise CalibrationError("not a proper rotation (determinant -1)")
-    c = np.clip((np.trace(m) - 1) / 2, -1.0, 1.0)
-    th = math.acos(c)
-    a = np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]])
-    if th < 1e-8:
-        return a / 2
-    if math.pi - th < 1e-6:  # near pi: axis from the symmetric part
-        b = (m + np.eye(3)) / 2
-        i = int(np.argmax(np.diag(b)))
-        axis = b[:, i] / math.sqrt(max(b[i, i], 1e-300))
-        if np.dot(axis, a) < 0:
-            axis = -axis
-        return axis * th
-    return a * th / (2 * math.sin(th))

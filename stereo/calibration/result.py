@@ -1,193 +1,33 @@
-"""The calibration result and the camera JSON it writes.
+"""The calibration result: a camera calibrated from target views, with its precision.
 
-Camera JSON, version 2 (``"format": "rectify-stereo/camera", "version": 2``)
------------------------------------------------------------------------------
-Pixel camera (no pixel size)::
-
-    {"format": "rectify-stereo/camera", "version": 2, "width": 640, "height": 480,
-     "fx_px": 809.95, "fy_px": 806.56,            # or "focal_length_px" when fx = fy
-     "principal_point_px": [361.99, 214.40],       # pixel frame: col right, row down
-     "distortion": {"k1": -0.128, "k2": -0.394, "k3": 0.0, "p1": -0.00435, "p2": -0.00732},
-     "point_of_symmetry_px": [360.1, 215.0],       # only when estimated separately
-     "std_errors": {"fx_px": 3.16, "fy_px": 2.94, "cx_px": 2.85, ...},
-     "sigma0_px": 0.139}
-
-Millimetre camera (the version-1 keys plus the same extras)::
-
-    {"format": ..., "version": 2, "focal_length_mm": 4.2, "pixel_size_mm": 0.0014, "width": ..., "height": ...,
-     "principal_point_mm": [x0, y0],               # offset from the image centre, photo axes (y up)
-     "distortion": {...}, "std_errors": {"focal_length_mm": ..., "x0_mm": ..., "y0_mm": ..., "k1": ...},
-     "sigma0_px": ...}
+Its camera JSON (version 2, pixel or millimetre camera with standard errors and sigma0) is written by
+:func:`rectify.formats.camera.intrinsics_document` (:meth:`Calibration.camera_dict`) and read back by
+:func:`stereo.formats.calibration.camera_from_dict`.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from rectify.errors import CalibrationError, InvalidInputError
-from rectify.geometry.rotation import angles_from_matrix
+from rectify.formats.camera import intrinsics_document
+from rectify.geometry.rotation import angles_from_matrix, rodrigues
 from stereo.calibration.adjust import Adjustment, Observations, adjust, free_parameters
-from stereo.calibration.model import CV_FROM_PHOTO, Intrinsics, rodrigues
+from stereo.calibration.model import CV_FROM_PHOTO, Intrinsics
 from stereo.calibration.start import Start, initial_orientation
-from stereo.features.targets import TargetView, check_inside
+from stereo.calibration.views import TargetView, check_inside
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["CAMERA_FORMAT", "CameraFile", "Calibration", "ViewResult", "camera_from_dict", "camera_to_dict"]
+__all__ = ["Calibration", "ViewResult"]
 
 F64 = NDArray[np.float64]
-CAMERA_FORMAT = "rectify-stereo/camera"
-_DIST = ("k1", "k2", "k3", "p1", "p2")
-
-
-# ------------------------------------------------------------------- camera JSON
-@dataclass(frozen=True)
-class CameraFile:
-    """What a camera JSON holds: the interior orientation, its standard errors and sigma0."""
-
-    intrinsics: Intrinsics
-    std_errors: dict[str, float] = field(default_factory=dict)
-    sigma0_px: float | None = None
-    pixel_size_mm: float | None = None
-
-
-def camera_to_dict(intr: Intrinsics, *, std_errors: dict[str, float] | None = None, sigma0_px: float | None = None,
-                   pixel_size_mm: float | None = None) -> dict[str, Any]:
-    """Camera JSON (version 2) of an interior orientation.
-
-    Parameters
-    ----------
-    intr : Intrinsics
-    std_errors : dict, optional
-        Standard errors keyed by the adjustment's names (``f`` or ``fx``/``fy``,
-        ``cx``, ``cy``, ``k1``.., ``sx``, ``sy``), px or unitless; renamed here to
-        the file's keys.
-    sigma0_px : float, optional
-    pixel_size_mm : float, optional
-        Write a millimetre camera (needs ``fx == fy``: square pixels).
-
-    Raises
-    ------
-    InvalidInputError
-        A millimetre camera asked for with different fx and fy, or a bad pixel size.
-    """
-    se = dict(std_errors or {})
-    out: dict[str, Any] = {"format": CAMERA_FORMAT, "version": 2}
-    if pixel_size_mm is None:
-        out.update(width=intr.width, height=intr.height)
-        if intr.fx == intr.fy:
-            out["focal_length_px"] = intr.fx
-        else:
-            out["fx_px"], out["fy_px"] = intr.fx, intr.fy
-        out["principal_point_px"] = [intr.cx, intr.cy]
-        out["distortion"] = intr.distortion
-        if intr.sx is not None:
-            out["point_of_symmetry_px"] = [intr.sx, intr.sy]
-        ren = {"f": "focal_length_px", "fx": "fx_px", "fy": "fy_px", "cx": "cx_px", "cy": "cy_px",
-               "sx": "sx_px", "sy": "sy_px"}
-        errs = {ren.get(k, k): float(v) for k, v in se.items()}
-    else:
-        ps = float(pixel_size_mm)
-        if not (math.isfinite(ps) and ps > 0):
-            raise InvalidInputError(f"pixel size must be > 0 mm; got {pixel_size_mm!r}")
-        if intr.fx != intr.fy:
-            raise InvalidInputError(f"a millimetre camera needs square pixels, but fx {intr.fx:.3f} != fy "
-                                    f"{intr.fy:.3f} px: estimate one focal length or write pixels")
-        xc, yc = (intr.width - 1) / 2.0, (intr.height - 1) / 2.0
-        out.update(focal_length_mm=intr.fx * ps, pixel_size_mm=ps, width=intr.width, height=intr.height,
-                   principal_point_mm=[(intr.cx - xc) * ps, -(intr.cy - yc) * ps], distortion=intr.distortion)
-        if intr.sx is not None and intr.sy is not None:
-            out["point_of_symmetry_mm"] = [(intr.sx - xc) * ps, -(intr.sy - yc) * ps]
-        ren = {"f": "focal_length_mm", "cx": "x0_mm", "cy": "y0_mm", "sx": "xs_mm", "sy": "ys_mm"}
-        errs = {ren.get(k, k): float(v) * (ps if k in ren else 1.0) for k, v in se.items()}
-    if errs:
-        out["std_errors"] = errs
-    if sigma0_px is not None:
-        out["sigma0_px"] = float(sigma0_px)
-    return out
-
-
-def _num(d: dict[str, Any], k: str) -> float:
-    v = d[k]
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise CalibrationError(f"camera JSON key {k!r} must be a finite number; got {v!r}")
-    return float(v)
-
-
-def _pair(d: dict[str, Any], k: str) -> tuple[float, float]:
-    v = d[k]
-    if not isinstance(v, (list, tuple)) or len(v) != 2:
-        raise CalibrationError(f"camera JSON key {k!r} must be two numbers; got {v!r}")
-    return _num({k: v[0]}, k), _num({k: v[1]}, k)
-
-
-def camera_from_dict(d: dict[str, Any]) -> CameraFile:
-    """Read a camera JSON object (version 2 pixel or millimetre camera, or a version-1 file).
-
-    Raises
-    ------
-    CalibrationError
-        Missing or unknown keys (named), bad values.
-    """
-    if not isinstance(d, dict):
-        raise CalibrationError(f"camera JSON must be an object; got {type(d).__name__}")
-    if "format" in d and d["format"] != CAMERA_FORMAT:
-        raise CalibrationError(f"camera JSON format {d['format']!r} is not {CAMERA_FORMAT!r}")
-    if d.get("version", 1) not in (1, 2):
-        raise CalibrationError(f"camera JSON version {d.get('version')!r} is not supported (1 or 2)")
-    known = {"format", "version", "width", "height", "focal_length_px", "fx_px", "fy_px", "principal_point_px",
-             "distortion", "point_of_symmetry_px", "std_errors", "sigma0_px", "focal_length_mm", "pixel_size_mm",
-             "principal_point_mm", "point_of_symmetry_mm", "name", "comment", "sigma0_mm"}
-    unknown = sorted(set(d) - known)
-    if unknown:
-        raise CalibrationError(f"camera JSON has unknown key(s) {unknown}")
-    for k in ("width", "height"):
-        if k not in d:
-            raise CalibrationError(f"camera JSON lacks required key {k!r}")
-    w, h = d["width"], d["height"]
-    dist = d.get("distortion") or {}
-    if not isinstance(dist, dict) or set(dist) - set(_DIST):
-        raise CalibrationError(f"camera JSON `distortion` must map {list(_DIST)} to numbers; got {dist!r}")
-    dd = {k: _num(dist, k) if k in dist else 0.0 for k in _DIST}
-    ps: float | None = None
-    sym: tuple[float | None, float | None] = (None, None)
-    if "pixel_size_mm" in d:
-        ps = _num(d, "pixel_size_mm")
-        if ps <= 0 or "focal_length_mm" not in d:
-            raise CalibrationError("a millimetre camera needs focal_length_mm and pixel_size_mm > 0")
-        f = _num(d, "focal_length_mm") / ps
-        fx = fy = f
-        x0, y0 = _pair(d, "principal_point_mm") if "principal_point_mm" in d else (0.0, 0.0)
-        cx, cy = (w - 1) / 2.0 + x0 / ps, (h - 1) / 2.0 - y0 / ps
-        if "point_of_symmetry_mm" in d:
-            xs, ys = _pair(d, "point_of_symmetry_mm")
-            sym = ((w - 1) / 2.0 + xs / ps, (h - 1) / 2.0 - ys / ps)
-    else:
-        if "focal_length_px" in d:
-            fx = fy = _num(d, "focal_length_px")
-        elif "fx_px" in d and "fy_px" in d:
-            fx, fy = _num(d, "fx_px"), _num(d, "fy_px")
-        else:
-            raise CalibrationError("camera JSON needs focal_length_px (or fx_px and fy_px), or focal_length_mm "
-                                   "with pixel_size_mm")
-        if "principal_point_px" not in d:
-            raise CalibrationError("a pixel camera JSON needs principal_point_px")
-        cx, cy = _pair(d, "principal_point_px")
-        if "point_of_symmetry_px" in d:
-            sym = _pair(d, "point_of_symmetry_px")
-    intr = Intrinsics(fx=fx, fy=fy, cx=cx, cy=cy, width=w, height=h, sx=sym[0], sy=sym[1], **dd)
-    se = d.get("std_errors") or {}
-    if not isinstance(se, dict):
-        raise CalibrationError(f"camera JSON `std_errors` must be an object; got {se!r}")
-    s0 = d.get("sigma0_px")
-    return CameraFile(intr, {str(k): _num(se, k) for k in se}, None if s0 is None else _num(d, "sigma0_px"), ps)
 
 
 # ------------------------------------------------------------------- the result
@@ -425,8 +265,8 @@ class Calibration:
 
     def camera_dict(self, *, pixel_size_mm: float | None = None) -> dict[str, Any]:
         """The camera JSON (version 2) with standard errors and sigma0."""
-        return camera_to_dict(self.intrinsics, std_errors=self.std_errors, sigma0_px=self.sigma0_px,
-                              pixel_size_mm=pixel_size_mm)
+        return intrinsics_document(self.intrinsics, std_errors=self.std_errors, sigma0_px=self.sigma0_px,
+                                   pixel_size_mm=pixel_size_mm)
 
     def summary_lines(self) -> list[str]:
         """Human summary: counts, start, each interior element with its standard error, RMS, sigma0."""

@@ -27,11 +27,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rectify.errors import CalibrationError, InvalidInputError
-from rectify.geometry.rotation import angles_from_matrix
+from rectify.formats.camera import intrinsics_document
+from rectify.geometry.rotation import angles_from_matrix, rodrigues, rotvec_from_matrix
 from stereo.calibration.adjust import Adjustment, Observations, adjust, free_parameters
-from stereo.calibration.model import CV_FROM_PHOTO, Intrinsics, rodrigues, rotvec_from_matrix
-from stereo.calibration.result import Calibration, camera_to_dict
-from stereo.features.targets import TargetView
+from stereo.calibration.model import CV_FROM_PHOTO, Intrinsics
+from stereo.calibration.result import Calibration
+from stereo.calibration.views import TargetView
 
 logger = logging.getLogger(__name__)
 
@@ -163,10 +164,10 @@ class RigCalibration:
         """Rig JSON: both cameras (version-2 camera JSON) and the relative orientation."""
         om, ph, ka = (float(x) for x in self.angles)
         return {"format": "rectify-stereo/rig", "version": 1,
-                "left": camera_to_dict(self.left, std_errors=self.std_left, sigma0_px=self.sigma0_px,
-                                       pixel_size_mm=pixel_size_mm),
-                "right": camera_to_dict(self.right, std_errors=self.std_right, sigma0_px=self.sigma0_px,
-                                        pixel_size_mm=pixel_size_mm),
+                "left": intrinsics_document(self.left, std_errors=self.std_left, sigma0_px=self.sigma0_px,
+                                            pixel_size_mm=pixel_size_mm),
+                "right": intrinsics_document(self.right, std_errors=self.std_right, sigma0_px=self.sigma0_px,
+                                             pixel_size_mm=pixel_size_mm),
                 "rotation_right": self.rotation_right.tolist(), "base": self.base.tolist(),
                 "relative": {"order": "omega-phi-kappa", "omega": om, "phi": ph, "kappa": ka,
                              "std_omega": float(self.std_angles[0]), "std_phi": float(self.std_angles[1]),

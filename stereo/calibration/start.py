@@ -17,14 +17,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rectify.errors import CalibrationError, EstimationError
+from rectify.geometry.rotation import rotvec_from_matrix
+from rectify.geometry.transforms import Homography
 from stereo.calibration.dlt import DLT, interior_from_homographies, perspective_strength, pose_from_homography
-from stereo.calibration.model import rotvec_from_matrix
-from stereo.features.targets import TargetView
-
-try:  # issue 11 moves the planar transforms into a package
-    from rectify.geometry.transforms import Homography
-except ImportError:  # pragma: no cover - before the move
-    from rectify.projective import Homography  # type: ignore[no-redef]
+from stereo.calibration.views import TargetView
 
 logger = logging.getLogger(__name__)
 

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import glob
+
 import click
 
 from rectify.cli.options import echo, handle_errors, overwrite_opt, report_opt
 from rectify.errors import InvalidInputError
+from stereo.actions.calibrate import calibrate_images, calibrate_points, calibrate_rig_images
 
 
 @click.command(short_help="Camera calibration: chessboard images or measured points of a plane/3D target.")
@@ -37,8 +40,6 @@ def calibrate(images, pattern, square, points_path, field_path, right_glob, size
               distortion, symmetry, robust, report_dir, overwrite):
     """Calibrate a camera: interior orientation (f or fx/fy, principal point, Brown k1..k3, p1, p2) with standard
     errors, by a least-squares adjustment of all views. IMAGES with --chessboard, or --points [--field] --size."""
-    from stereo.actions.calibrate import calibrate_images, calibrate_points, calibrate_rig_images
-
     dist = () if distortion.strip().lower() == "none" else tuple(d.strip() for d in distortion.split(",") if d.strip())
     model = {"equal_focal": equal_focal, "distortion": dist, "symmetry": symmetry,
              "robust": None if robust == "none" else robust}
@@ -50,8 +51,6 @@ def calibrate(images, pattern, square, points_path, field_path, right_glob, size
         run = calibrate_points(points_path, field=field_path, size=size, output=output, report_dir=report_dir,
                                overwrite=overwrite, pixel_size_mm=pixel_size_mm, **model)
     elif right_glob:
-        import glob
-
         right = sorted(glob.glob(right_glob))
         if not right:
             raise InvalidInputError(f"--right {right_glob!r} matches no files")

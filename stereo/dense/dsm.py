@@ -1,11 +1,8 @@
-"""Products of dense matching: point clouds (LAS/LAZ, PLY) and the DSM GeoTIFF.
+"""The DSM of dense matching: the grid of cell statistics and its GeoTIFF.
 
-Points arrive by tiles; every writer here streams them:
+Points arrive by tiles (the point-cloud writers that stream them beside the DSM are in
+:mod:`stereo.formats.points`):
 
-- :class:`LasWriter`: LAS 1.4 point format 2 (x, y, z, RGB) through laspy, in chunks; ``.laz``
-  needs a laspy LAZ backend (``lazrs`` or ``laszip``), else a one-line error.
-- :class:`PlyWriter`: binary little-endian PLY (x, y, z float64, RGB uint8); the points go to a
-  temporary body file first, the header (which needs the count) is written at the end.
 - :class:`DsmGrid`: cell statistics on a regular grid in the ground frame: the Gaussian-weighted
   mean (default), minimum or maximum height of the points within ``radius`` cells of each cell
   centre, and the count of points in the cell. Cells whose points spread by more than
@@ -19,7 +16,6 @@ from __future__ import annotations
 
 import logging
 import math
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,143 +25,18 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
 from rectify.atomic import atomic_output
-from rectify.errors import InvalidInputError, RasterIOError, ShapeError
+from rectify.errors import InvalidInputError
+from rectify.geometry.points import as_points
 from rectify.raster.io import MaskPolicy, TiledWriter
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["DSM_NODATA", "STATISTICS", "DsmGrid", "DsmResult", "LasWriter", "PlyWriter", "point_writer"]
+__all__ = ["DSM_NODATA", "STATISTICS", "DsmGrid", "DsmResult"]
 
 StrPath = str | Path
 
 DSM_NODATA = -9999.0
 STATISTICS = ("mean", "min", "max")
-
-
-def _check_xyz(xyz: ArrayLike, colors: ArrayLike | None) -> tuple[NDArray[np.float64], NDArray[np.uint8] | None]:
-    p = np.asarray(xyz, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ShapeError(f"points must have shape (N, 3); got {p.shape}", actual_shape=p.shape,
-                         expected_shape=(None, 3))
-    if not np.isfinite(p).all():
-        raise InvalidInputError("points must be finite (NaN or inf given)")
-    c = None
-    if colors is not None:
-        c = np.asarray(colors)
-        if c.shape != (len(p), 3):
-            raise ShapeError(f"colors must have shape ({len(p)}, 3); got {c.shape}", actual_shape=c.shape,
-                             expected_shape=(len(p), 3))
-        c = np.clip(c, 0, 255).astype(np.uint8)
-    return p, c
-
-
-class LasWriter:
-    """Stream points into a LAS/LAZ file (laspy).
-
-    Parameters
-    ----------
-    path : path
-        Written as given (the caller stages it).
-    offset : (3,) float
-        LAS offsets (a point near the data); scales are ``scale`` in every axis.
-    crs_wkt : str, optional
-        Stored as an OGC WKT VLR when given.
-    """
-
-    def __init__(self, path: StrPath, offset: ArrayLike, *, scale: float = 0.001, crs_wkt: str | None = None,
-                 compress: bool | None = None):
-        import laspy
-
-        self.path = Path(path)
-        laz = self.path.suffix.lower() == ".laz" if compress is None else compress
-        if laz and not laspy.LazBackend.detect_available():
-            raise InvalidInputError(f"cannot write {str(self.path)!r}: no LAZ backend (install lazrs); write .las")
-        header = laspy.LasHeader(point_format=2, version="1.4")
-        header.offsets = np.asarray(offset, dtype=np.float64).reshape(3)
-        header.scales = np.array([scale, scale, scale])
-        if crs_wkt:
-            try:
-                from pyproj import CRS
-
-                crs = CRS.from_user_input(crs_wkt)
-                try:
-                    header.add_crs(crs)
-                except Exception:  # noqa: BLE001 - laspy wants an EPSG code: store the OGC WKT VLR directly
-                    header.vlrs.append(laspy.vlrs.known.WktCoordinateSystemVlr(crs.to_wkt()))
-                    header.global_encoding.wkt = True
-            except Exception as err:  # noqa: BLE001 - a CRS that cannot be stored is logged, not fatal
-                logger.warning("CRS not stored in the point cloud: %s", err)
-        self._laspy = laspy
-        self._header = header
-        try:
-            self._w = laspy.open(str(self.path), mode="w", header=header, do_compress=laz)
-        except OSError as err:
-            raise RasterIOError(f"cannot write {str(self.path)!r}: {err}") from err
-        self.count = 0
-
-    def write(self, xyz: ArrayLike, colors: ArrayLike | None = None) -> None:
-        p, c = _check_xyz(xyz, colors)
-        if len(p) == 0:
-            return
-        rec = self._laspy.ScaleAwarePointRecord.zeros(len(p), header=self._header)
-        rec.x, rec.y, rec.z = p[:, 0], p[:, 1], p[:, 2]
-        if c is not None:
-            rec.red, rec.green, rec.blue = (c[:, 0].astype(np.uint16) * 257, c[:, 1].astype(np.uint16) * 257,
-                                            c[:, 2].astype(np.uint16) * 257)
-        self._w.write_points(rec)
-        self.count += len(p)
-
-    def close(self) -> None:
-        self._w.close()
-
-
-class PlyWriter:
-    """Stream points into a binary little-endian PLY (x, y, z double; red, green, blue uchar)."""
-
-    def __init__(self, path: StrPath, *, comment: str | None = None):
-        self.path = Path(path)
-        self.comment = comment
-        self._body_path = self.path.with_name(self.path.name + ".body")
-        try:
-            self._body = open(self._body_path, "wb")  # noqa: SIM115 - closed in close()
-        except OSError as err:
-            raise RasterIOError(f"cannot write {str(self.path)!r}: {err.strerror}") from err
-        self.count = 0
-        self._dtype = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
-
-    def write(self, xyz: ArrayLike, colors: ArrayLike | None = None) -> None:
-        p, c = _check_xyz(xyz, colors)
-        rec = np.zeros(len(p), self._dtype)
-        rec["x"], rec["y"], rec["z"] = p[:, 0], p[:, 1], p[:, 2]
-        if c is not None:
-            rec["r"], rec["g"], rec["b"] = c[:, 0], c[:, 1], c[:, 2]
-        self._body.write(rec.tobytes())
-        self.count += len(p)
-
-    def close(self) -> None:
-        self._body.close()
-        head = ["ply", "format binary_little_endian 1.0"]
-        if self.comment:
-            head.append(f"comment {self.comment}")
-        head += [f"element vertex {self.count}", "property double x", "property double y", "property double z",
-                 "property uchar red", "property uchar green", "property uchar blue", "end_header"]
-        try:
-            with open(self.path, "wb") as out, open(self._body_path, "rb") as body:
-                out.write(("\n".join(head) + "\n").encode("ascii"))
-                shutil.copyfileobj(body, out, 1 << 22)
-        finally:
-            self._body_path.unlink(missing_ok=True)
-
-
-def point_writer(path: StrPath, fmt: str | None = None, *, offset: ArrayLike, crs_wkt: str | None = None,
-                 comment: str | None = None) -> LasWriter | PlyWriter:
-    """A streaming writer: ``fmt`` ``las``, ``laz`` or ``ply`` (default: from the suffix of ``path``)."""
-    f = fmt if fmt is not None else Path(path).suffix.lower().lstrip(".")
-    if f in ("las", "laz"):
-        return LasWriter(path, offset, crs_wkt=crs_wkt, compress=f == "laz")
-    if f == "ply":
-        return PlyWriter(path, comment=comment)
-    raise InvalidInputError(f"unknown point cloud format {f!r} of {str(path)!r}; expected las, laz or ply")
 
 
 @dataclass(frozen=True, eq=False)
@@ -289,7 +160,7 @@ class DsmGrid:
 
     def add(self, xyz: ArrayLike) -> int:
         """Add points (N, 3); returns how many fell inside the grid."""
-        p, _ = _check_xyz(xyz, None)
+        p = as_points(xyz, "points", 3)
         if self._done:
             raise InvalidInputError("this DsmGrid already gave its result: it takes no more points")
         fc = (p[:, 0] - self.x0) / self.cell
@@ -414,16 +285,3 @@ def _fill_holes(h: NDArray[np.float64], has: NDArray[np.bool_], max_cells: int
         avg = 0.25 * (pad[:-2, 1:-1] + pad[2:, 1:-1] + pad[1:-1, :-2] + pad[1:-1, 2:])
         out[target] = avg[target]
     return np.where(has | target, out, np.nan), target
-
-
-def ply_header_count(path: StrPath) -> int:
-    """The vertex count in a PLY header (for tests and reports)."""
-    with open(path, "rb") as fh:
-        for raw in fh:
-            line = raw.decode("ascii", "replace").strip()
-            if line.startswith("element vertex"):
-                return int(line.split()[2])
-            if line == "end_header":
-                break
-    raise InvalidInputError(f"{str(path)!r} has no vertex element")
-

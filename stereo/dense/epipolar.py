@@ -25,14 +25,12 @@ from __future__ import annotations
 
 import logging
 import math
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
-import rasterio
 from affine import Affine
 from numpy.typing import ArrayLike, NDArray
 
@@ -41,7 +39,14 @@ from rectify.features.lsm import LsmConfig, refine_matches
 from rectify.geometry.camera import Camera
 from rectify.geometry.points import as_pair
 from rectify.geometry.rotation import check_rotation
-from rectify.raster.io import MaskPolicy, TiledWriter, WindowReader, iter_windows, raster_info
+from rectify.raster.io import (
+    MaskPolicy,
+    TiledWriter,
+    WindowReader,
+    ignore_not_georeferenced,
+    iter_windows,
+    raster_info,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -449,8 +454,7 @@ def resample_view(
     info = raster_info(src)
     windows = list(iter_windows(v.width, v.height, tile))
     pad = 3
-    with WindowReader(src) as rd, warnings.catch_warnings():
-        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+    with WindowReader(src) as rd, ignore_not_georeferenced():
         with TiledWriter(dst, v.width, v.height, info.count, info.dtype, Affine.identity(), None,
                          MaskPolicy("mask"), tile=min(512, tile)) as wr:
             for k, (c0, r0, w, h) in enumerate(windows):

@@ -18,21 +18,27 @@ from __future__ import annotations
 
 import logging
 import math
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
-import rasterio
 from affine import Affine
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
 from rectify.errors import InvalidInputError, ShapeError, StereoError
 from rectify.raster.distributed import Scheduler, resolve_scheduler, run_windows
-from rectify.raster.io import MaskPolicy, TiledWriter, WindowReader, iter_windows, raster_info, read_overview
+from rectify.raster.io import (
+    MaskPolicy,
+    TiledWriter,
+    WindowReader,
+    ignore_not_georeferenced,
+    iter_windows,
+    raster_info,
+    read_overview,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -697,8 +703,7 @@ class _DenseTiles:
         if self._rr is None:
             self._rr = WindowReader(self.right_path)
         lo, hi = self._range(c0, r0, w, h)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        with ignore_not_georeferenced():
             L, lv = _read(self._rl, c0, r0, w, h)
             R, rv = _read(self._rr, c0 - lo, r0, w, h)
         if lv.any() and rv.any():
@@ -805,8 +810,7 @@ def match_rasters(
     engine = _DenseTiles(str(Path(left_path).resolve()), str(Path(right_path).resolve()), il.width, il.height,
                          coarse, k, ties, rng, opts)
     acc = {"n_valid": 0, "n_filled": 0, "lo": math.inf, "hi": -math.inf}
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+    with ignore_not_georeferenced():
         tile_px = min(512, opts.tile)
         with TiledWriter(disparity_path, il.width, il.height, 1, "float32", Affine.identity(), None,
                          MaskPolicy("nodata", NODATA), tile=tile_px) as wd, \

@@ -24,6 +24,7 @@ Block orientation JSON (written and read)
 from __future__ import annotations
 
 import io
+import json
 import math
 import os
 from collections.abc import Mapping, Sequence
@@ -35,8 +36,9 @@ from numpy.typing import NDArray
 
 from rectify.atomic import read_json
 from rectify.errors import InvalidInputError
-from rectify.formats.common import _load, _need, _num
+from rectify.formats.common import FORMAT_PREFIX, cell_number, check_format, load_table, need_columns
 from rectify.geometry.camera import Camera
+from rectify.report.builder import json_safe
 from stereo.block.types import Pose, Tracks
 
 __all__ = [
@@ -51,7 +53,7 @@ __all__ = [
 
 StrPath = str | os.PathLike[str]
 
-BLOCK_FORMAT = "rectify-stereo/block-orientation"
+BLOCK_FORMAT = FORMAT_PREFIX + "block-orientation"
 BLOCK_VERSION = 1
 
 #: kinds of control point by which ground coordinates are given
@@ -106,8 +108,8 @@ def read_block_control(path: StrPath) -> BlockControlTable:
     RasterIOError
         The file cannot be read.
     """
-    rows, lines, crs, fields = _load(path, "rows")
-    _need(fields, ("id", "image", "col", "row", "x", "y", "z"), path)
+    rows, lines, crs, fields = load_table(path, "rows")
+    need_columns(fields, ("id", "image", "col", "row", "x", "y", "z"), path)
     has_sigma = all(k in fields for k in ("sx", "sy", "sz"))
     ground: dict[str, NDArray[np.float64]] = {}
     sig: dict[str, NDArray[np.float64]] = {}
@@ -124,7 +126,7 @@ def read_block_control(path: StrPath) -> BlockControlTable:
             order.append(pid)
             ground[pid] = np.full(3, np.nan)
             sig[pid] = np.full(3, np.nan)
-        g = np.array([_num(r, k, ln, path, allow_empty=True) for k in ("x", "y", "z")])
+        g = np.array([cell_number(r, k, ln, path, allow_empty=True) for k in ("x", "y", "z")])
         if np.isnan(g[0]) != np.isnan(g[1]):
             raise InvalidInputError(f"{str(path)!r} line {ln}: x and y must be both given or both empty "
                                     f"(id {pid!r})")
@@ -135,7 +137,7 @@ def read_block_control(path: StrPath) -> BlockControlTable:
                                     f"{g.tolist()} here and {old.tolist()} on an earlier row")
         ground[pid] = np.where(np.isfinite(g), g, old)
         if has_sigma:
-            s = np.array([_num(r, k, ln, path, allow_empty=True) for k in ("sx", "sy", "sz")])
+            s = np.array([cell_number(r, k, ln, path, allow_empty=True) for k in ("sx", "sy", "sz")])
             if np.any(s[np.isfinite(s)] <= 0):
                 raise InvalidInputError(f"{str(path)!r} line {ln}: standard deviations must be > 0; "
                                         f"got {s.tolist()}")
@@ -151,7 +153,7 @@ def read_block_control(path: StrPath) -> BlockControlTable:
         seen.add((pid, image))
         m_id.append(pid)
         m_img.append(image)
-        m_px.append((_num(r, "col", ln, path), _num(r, "row", ln, path)))
+        m_px.append((cell_number(r, "col", ln, path), cell_number(r, "row", ln, path)))
     xyz = np.array([ground[k] for k in order]).reshape(-1, 3)
     kinds = []
     for g in xyz:
@@ -248,10 +250,6 @@ def block_orientation_dict(cameras: Mapping[str, Camera], poses: Sequence[Pose],
 
 def block_orientation_text(cameras: Mapping[str, Camera], poses: Sequence[Pose], **kwargs: Any) -> str:
     """:func:`block_orientation_dict` as indented JSON text (NaN refused: the report values are finite or null)."""
-    import json
-
-    from rectify.report.builder import json_safe
-
     return json.dumps(json_safe(block_orientation_dict(cameras, poses, **kwargs)), indent=2, allow_nan=False) + "\n"
 
 
@@ -263,9 +261,8 @@ def read_block_orientation(path: StrPath) -> BlockOrientation:
     InvalidInputError
         Another format, a newer version, a missing or malformed key (named with its image).
     """
-    from stereo.formats.orientation import check_format
-
-    d = check_format(read_json(path, "block orientation file"), path, BLOCK_FORMAT, BLOCK_VERSION)
+    d = read_json(path, "block orientation file")
+    check_format(d, "block-orientation", BLOCK_VERSION, path, what="block orientation file")
     if d.get("format") != BLOCK_FORMAT:
         raise InvalidInputError(f"{str(path)!r} is not a block orientation file (no format {BLOCK_FORMAT!r})")
     cams_raw = d.get("cameras")

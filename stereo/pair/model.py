@@ -33,11 +33,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from rectify.errors import CRSError, InvalidInputError
-from rectify.formats.common import ControlTable
 from rectify.geometry.camera import Camera
 from rectify.geometry.crs import unit_label
 from rectify.geometry.geodesy import enu_from_map, geodetic_from_map, map_from_enu
-from rectify.geometry.points import as_ids
+from rectify.geometry.points import ControlTable, as_ids
 from rectify.geometry.residuals import ResidualTable, rms
 from stereo.pair.absolute import AbsoluteOrientation
 from stereo.pair.intersection import METHODS, Intersection, intersect

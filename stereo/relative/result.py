@@ -55,9 +55,6 @@ class WesternForm:
     std_by: float | None
     std_bz: float | None
 
-    def as_dict(self) -> dict[str, Any]:
-        return dict(self.__dict__)
-
 
 @dataclass(frozen=True, eq=False)
 class RelativeOrientation:

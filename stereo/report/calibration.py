@@ -20,7 +20,9 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
+from rectify.atomic import atomic_write_text
 from rectify.geometry.residuals import ResidualTable
+from rectify.report.builder import write_report
 from rectify.report.figures import correlation_heatmap_figure, nice_number
 from stereo.calibration.result import Calibration
 
@@ -145,8 +147,6 @@ def calibration_dict(cal: Calibration) -> dict[str, Any]:
 def write_calibration_report(out_dir: str | Path, cal: Calibration, *, title: str = "stereo calibrate",
                              overwrite: bool = False) -> Path:
     """Write figures, the residual table, ``calibration.json`` and ``report.html`` into ``out_dir``."""
-    from rectify.report.builder import write_report
-
     figs = {"calibration_residuals_per_view": residual_views_figure(cal),
             "calibration_distortion": distortion_figure(cal),
             "calibration_coverage": coverage_figure(cal)}
@@ -160,8 +160,6 @@ def write_calibration_report(out_dir: str | Path, cal: Calibration, *, title: st
                         overwrite=overwrite, image_shapes={"calibration": (cal.intrinsics.height,
                                                                            cal.intrinsics.width)},
                         principal_point_px=[cal.intrinsics.cx, cal.intrinsics.cy])
-    from rectify.atomic import atomic_write_text
-
     atomic_write_text(Path(out_dir) / "calibration.json", json.dumps(calibration_dict(cal), indent=2),
                       overwrite=True)
     return path

@@ -7,12 +7,13 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
-import rasterio
+from matplotlib.figure import Figure
 from numpy.typing import NDArray
-from rasterio.warp import Resampling, reproject
 
 from rectify.errors import CRSError, InvalidInputError, RasterIOError
+from rectify.raster.io import reproject_band
 from stereo.dense.dsm import DsmResult
 
 logger = logging.getLogger(__name__)
@@ -82,8 +83,6 @@ def height_stats(dz: NDArray[np.float64], cell: float, *, coverage: float = floa
 
 def _overlap_cells(dsm: DsmResult) -> NDArray[np.bool_]:
     """Cells inside the convex hull of the cells with points (the matched overlap)."""
-    import cv2
-
     has = dsm.count > 0
     if not has.any():
         return has
@@ -103,15 +102,7 @@ def compare_with_dem(dsm: DsmResult, dem_path: StrPath, *, blunder_factor: float
     if dsm.crs is None:
         raise CRSError("the DSM has no CRS (model frame): a reference DEM needs ground control or exterior "
                        "orientations")
-    ref = np.full(dsm.height.shape, np.nan, np.float64)
-    try:
-        with rasterio.open(p) as src:
-            if src.crs is None:
-                raise CRSError(f"reference DEM {str(p)!r} has no CRS")
-            reproject(rasterio.band(src, 1), ref, dst_transform=dsm.transform, dst_crs=dsm.crs,
-                      resampling=Resampling.bilinear, dst_nodata=np.nan)
-    except rasterio.errors.RasterioError as err:
-        raise RasterIOError(f"cannot read reference DEM {str(p)!r}: {err}") from err
+    ref = reproject_band(p, dsm.height.shape, dsm.transform, dsm.crs, what="reference DEM")
     h = np.where(dsm.valid & ~dsm.filled, dsm.height.astype(np.float64), np.nan)
     dz = h - ref
     overlap = _overlap_cells(dsm)
@@ -123,17 +114,13 @@ def compare_with_dem(dsm: DsmResult, dem_path: StrPath, *, blunder_factor: float
 def save_picture(path: StrPath, grid: NDArray, *, title: str, cmap: str = "viridis", label: str = "",
                  nodata: float | None = None, symmetric: bool = False) -> Path:
     """A PNG picture of a grid (NaN or ``nodata`` transparent); ``symmetric``: colour limits +-v (0 in the middle)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     a = np.asarray(grid)
     step = max(1, int(math.ceil(max(a.shape) / 1500)))
     g = a[::step, ::step].astype(np.float64)  # decimated first: no full-size copy of a large grid
     if nodata is not None:
         g = np.where(g == nodata, np.nan, g)
-    fig, ax = plt.subplots(figsize=(6, 6 * g.shape[0] / max(g.shape[1], 1) + 0.5))
+    fig = Figure(figsize=(6, 6 * g.shape[0] / max(g.shape[1], 1) + 0.5))
+    ax = fig.subplots()
     ok = np.isfinite(g)
     vmin, vmax = (np.percentile(g[ok], [1, 99]) if ok.any() else (0, 1))
     if symmetric:
@@ -144,24 +131,18 @@ def save_picture(path: StrPath, grid: NDArray, *, title: str, cmap: str = "virid
     ax.set_axis_off()
     fig.colorbar(im, ax=ax, label=label, shrink=0.8)
     fig.savefig(path, dpi=100, bbox_inches="tight", format="png")
-    plt.close(fig)
     return Path(path)
 
 
 def save_histogram(path: StrPath, cmp: HeightComparison, *, unit: str = "m") -> Path:
     """PNG histogram of the DSM - DEM differences."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     counts, edges = cmp.histogram
-    fig, ax = plt.subplots(figsize=(6, 3.5))
+    fig = Figure(figsize=(6, 3.5))
+    ax = fig.subplots()
     ax.stairs(counts, edges, fill=True)
     ax.axvline(cmp.median, color="k", lw=1)
     ax.set_xlabel(f"DSM - reference ({unit})")
     ax.set_ylabel("cells")
     ax.set_title(f"RMSE {cmp.rmse:.2f} {unit}, NMAD {cmp.nmad:.2f} {unit}, n = {cmp.n}")
     fig.savefig(path, dpi=100, bbox_inches="tight", format="png")
-    plt.close(fig)
     return Path(path)

@@ -322,7 +322,8 @@ def write_orient_report(ro: RelativeOrientation, camera: Camera, out_dir: str | 
         out_dir, title=title, relative=ro.residual_table(),
         correlation=None if corr is None else (list(ro.names), corr),
         summary={**ro.summary(), "elements_rad": ro.element_dict,
-                 # one sigma0 in console and report: that of the parallax table (stereo.actions.common.parallax_sigma0_mm)
+                 # one sigma0 in console and report: that of the parallax table
+                 # (stereo.actions.common.parallax_sigma0_mm)
                  "sigma0_mm": ro.residual_table(units="mm").sigma0, "sigma0_coordinate_mm": ro.sigma0_mm},
         left_image_shape=(camera.height, camera.width), principal_point_px=camera.principal_point_px,
         overwrite=overwrite)

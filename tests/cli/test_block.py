@@ -18,7 +18,7 @@ from rectify.geometry.rotation import angles_from_matrix
 from stereo.block.types import project_pixel
 from stereo.cli.main import cli
 from stereo.formats.block import read_block_orientation
-from stereo.formats.orientation import read_points_csv
+from stereo.formats.points import read_points_csv
 from tests.support.block_render import make_terrain, render_block, strip_poses
 
 CAM = Camera(focal_length_mm=20.0, pixel_size_mm=0.05, width=400, height=300)

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from stereo.calibration.model import Intrinsics, rodrigues
-from stereo.calibration.result import camera_from_dict
+from stereo.calibration.model import Intrinsics
+from rectify.geometry.rotation import rodrigues
+from stereo.formats.calibration import camera_from_dict
 from stereo.cli.main import cli
 from stereo.features.targets import Chessboard
 from tests.support.calibration_synthetic import board_scene, field_scene, rig_scene

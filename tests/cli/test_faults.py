@@ -92,8 +92,9 @@ def test_fit_json_disk_full(noise_scene, small_disk):
 
 def test_csv_and_ply_writers_disk_full(small_disk):
     from rectify.errors import RasterIOError
-    from rectify.formats.common import Matches, write_matches
-    from stereo.formats.orientation import write_ply
+    from rectify.formats.tables import write_matches
+    from rectify.geometry.points import Matches
+    from stereo.formats.points import write_ply
 
     filler = _fill(small_disk)
     n = 2000
@@ -468,7 +469,7 @@ def test_warp_refuses_an_output_larger_than_the_free_space(noise_scene, small_di
 
 
 def test_warp_refuses_a_horizon_inside_the_frame(noise_scene):
-    from rectify.formats.common import write_transform
+    from rectify.formats.transform import write_transform
     from rectify.geometry.transforms import Homography
 
     d, src, gcps = noise_scene
@@ -708,9 +709,9 @@ def test_stereo_run_failing_while_writing_leaves_no_half_filled_folder(tmp_path,
     import json
     from types import SimpleNamespace
 
-    import stereo.actions.common
-    from rectify.formats.common import Matches
+    import stereo.actions.run
     from rectify.geometry.camera import Camera
+    from rectify.geometry.points import Matches
     from tests.support.stereo_support import simulate_pair
 
     cam = Camera(focal_length_mm=120.0, pixel_size_mm=0.144, width=640, height=1152)
@@ -718,12 +719,12 @@ def test_stereo_run_failing_while_writing_leaves_no_half_filled_folder(tmp_path,
     lp, rp = cam.pixel_from_photo(sim.left_mm), cam.pixel_from_photo(sim.right_mm)
     inside = ((lp >= 0) & (lp <= [639, 1151]) & (rp >= 0) & (rp <= [639, 1151])).all(axis=1)
     m = Matches(tuple(f"t{i}" for i in range(int(inside.sum()))), lp[inside], rp[inside])
-    monkeypatch.setattr(stereo.actions.common, "_match", lambda *a, **k: SimpleNamespace(matches=m, rmse_px=0.3))
+    monkeypatch.setattr(stereo.actions.run, "match_pair", lambda *a, **k: SimpleNamespace(matches=m, rmse_px=0.3))
 
     def boom(*a, **k):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(stereo.actions.common, "write_pair_report", boom)
+    monkeypatch.setattr(stereo.actions.run, "write_pair_report", boom)
     z = np.zeros((1152, 640), np.uint8)
     for name in ("l.tif", "r.tif"):
         write_raster(tmp_path / name, z, Affine(1, 0, 0, 0, 1.0000001, 0), None)

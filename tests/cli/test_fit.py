@@ -9,7 +9,7 @@ import pytest
 from click.testing import CliRunner
 
 from rectify.cli.main import cli
-from rectify.formats.common import read_transform
+from rectify.formats.transform import read_transform
 from rectify.geometry.transforms import Homography
 
 H_TRUE = np.array([[1.1, 0.05, 10.0], [-0.02, 0.95, 20.0], [1e-4, -5e-5, 1.0]])

@@ -11,7 +11,7 @@ import pytest
 from click.testing import CliRunner
 
 from rectify.cli.main import cli
-from rectify.formats.common import GcpTable
+from rectify.geometry.points import GcpTable
 from rectify.geometry.transforms import AffineTransform, fit_gcps
 from rectify.geometry.transforms.quality import hull_area, judge_gcp_geometry, metres_per_degree
 from rectify.raster.io import write_raster

@@ -9,7 +9,7 @@ import skimage.data as skd
 from click.testing import CliRunner
 
 from rectify.cli.main import cli
-from rectify.formats.common import read_matches
+from rectify.formats.tables import read_matches
 from rectify.raster import io as rio
 
 

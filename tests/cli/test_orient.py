@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from rectify.formats.common import Matches, write_matches
+from rectify.formats.tables import write_matches
 from rectify.geometry.camera import Camera
+from rectify.geometry.points import Matches
 from stereo.cli.main import cli
 from tests.support.stereo_support import simulate_pair
 

@@ -7,7 +7,7 @@ from affine import Affine
 from click.testing import CliRunner
 
 from rectify.cli.main import cli
-from rectify.formats.common import write_transform
+from rectify.formats.transform import write_transform
 from rectify.geometry.transforms.matrix import AffineTransform
 from rectify.raster.io import write_raster
 

@@ -16,7 +16,9 @@ from click.testing import CliRunner
 from rectify.cli.main import cli
 from rectify.errors import InvalidInputError
 from rectify.features.match import _one_to_one
-from rectify.formats.common import read_gcps, read_matches, read_transform
+from rectify.formats.gcps import read_gcps
+from rectify.formats.tables import read_matches
+from rectify.formats.transform import read_transform
 from rectify.raster import io as rio
 from rectify.raster.io import write_raster
 
@@ -191,7 +193,8 @@ def _geojson(path, style):
 
 @pytest.mark.parametrize("kind", ["geojson-colrow", "geojson-qgis", "gpkg", "embedded", "embedded-auto"])
 def test_gcp_files_rectify_end_to_end(tmp_path, kind):
-    from rectify.formats.common import GcpTable, write_gcps_gpkg
+    from rectify.geometry.points import GcpTable
+    from rectify.formats.gcps import write_gcps_gpkg
 
     src = _frame(tmp_path, gcps=list(zip(PIX, _tgt(), strict=True)) if kind.startswith("embedded") else None)
     args_gcps: list[str] = []

@@ -66,7 +66,7 @@ def test_warp_gcps_report_and_cog(scene):
 
 def test_warp_transform_json(scene):
     d, src, gcps, A = scene
-    from rectify.formats.common import write_transform
+    from rectify.formats.transform import write_transform
     from rectify.geometry.transforms import AffineTransform
 
     # small coordinates keep the matrix well scaled

@@ -9,10 +9,10 @@ import pytest
 from numpy.testing import assert_allclose
 
 from rectify.errors import CalibrationError, InvalidInputError
-from rectify.formats.common import read_camera, write_camera
+from rectify.formats.camera import intrinsics_document as camera_to_dict
+from rectify.formats.camera import read_camera, write_camera
 from rectify.geometry.camera import NOMINAL_PIXEL_SIZE_MM, Camera
 from stereo.calibration.model import Intrinsics
-from stereo.calibration.result import camera_to_dict
 
 PIXEL_CAMERA = {"focal_length_px": 812.5, "principal_point_px": [321.25, 238.75], "width": 640, "height": 480,
                 "distortion": {"k1": -0.21, "k2": 0.05, "k3": 0.0, "p1": 1e-4, "p2": -2e-4},

@@ -20,9 +20,10 @@ import rasterio.transform
 from affine import Affine
 from numpy.testing import assert_allclose
 
-from rectify.formats.common import GcpTable, read_gcps, write_gcps
+from rectify.formats.gcps import read_gcps, write_gcps
 from rectify.geometry.analytic import TiltedFrame
 from rectify.geometry.camera import Camera
+from rectify.geometry.points import GcpTable
 from rectify.geometry.transforms import AffineTransform, Homography, PolynomialTransform, fit_gcps
 from rectify.raster.georef import Grid, pixel_from_world, world_from_pixel, world_from_pixel_matrix
 from rectify.raster.io import write_raster
@@ -107,7 +108,7 @@ def test_warp_rotated_grid_other_resolution_against_rasterio(tmp_path, with_matr
 def test_georectify_targets_from_rasterio_at_another_resolution(tmp_path):
     """GCP targets computed by rasterio (not by the code under test), output at 0.8 of the source pixel:
     output values equal the source ramp at the output pixel centres rasterio computes."""
-    from rectify.raster.warp import georectify
+    from rectify.raster.georectify import georectify
 
     h, w = 60, 80
     src = tmp_path / "frame.tif"
@@ -206,7 +207,7 @@ def test_camera_json_fields(tmp_path):
     """The camera JSON keys of docs/formats.md, and a round trip that keeps the principal point."""
     import json
 
-    from rectify.formats.common import read_camera, write_camera
+    from rectify.formats.camera import read_camera, write_camera
 
     cam = Camera(focal_length_mm=120.0, pixel_size_mm=0.144, width=640, height=1152, principal_point_mm=(0.3, -0.2),
                  distortion={"k1": -0.01})

@@ -12,7 +12,10 @@ from numpy.testing import assert_allclose
 
 from rectify import errors
 from rectify.atomic import atomic_output, atomic_write_text, check_output
-from rectify.formats.common import Matches, read_control, read_gcps, read_matches, write_gcps, write_matches
+from rectify.geometry.points import Matches
+from rectify.formats.tables import read_control, read_matches, write_matches
+from rectify.formats.gcps import read_gcps, write_gcps
+from rectify.formats.camera import read_camera
 from rectify.geometry.camera import Camera
 from rectify.geometry.points import as_pair, as_points, check_distinct, check_no_three_collinear, check_not_collinear
 from rectify.geometry.residuals import ResidualTable
@@ -149,16 +152,16 @@ def test_camera_json_round_trip(tmp_path):
     cam = Camera(**NGI, principal_point_mm=(0.01, -0.02), distortion={"k1": 0.1})
     p = tmp_path / "cam.json"
     p.write_text(json.dumps(cam.to_dict()))
-    back = Camera.from_json(p)
+    back = read_camera(p)
     assert back.to_dict() == cam.to_dict()
     p.write_text('{"focal_length_mm": 1}')
     with pytest.raises(errors.CalibrationError, match="lacks required"):
-        Camera.from_json(p)
+        read_camera(p)
     p.write_text("{not json")
     with pytest.raises(errors.InvalidInputError, match="not valid JSON"):
-        Camera.from_json(p)
+        read_camera(p)
     with pytest.raises(errors.RasterIOError, match="cannot read"):
-        Camera.from_json(tmp_path / "missing.json")
+        read_camera(tmp_path / "missing.json")
 
 
 # ---------------------------------------------------------------- rotation

@@ -16,11 +16,13 @@ import rasterio
 from affine import Affine
 
 from rectify.errors import CRSError, InvalidInputError, RasterIOError
+from rectify.formats.exterior import read_exterior
 from rectify.geometry.camera import Camera
 from rectify.geometry.rotation import matrix_from_angles
+from rectify.geometry.sensors import FrameModel, RPCModel
 from rectify.raster.dem import Dem, bilinear
 from rectify.raster.georef import Grid, pixel_from_world
-from rectify.raster.ortho import FrameModel, OrthoOptions, RPCModel, orthorectify, read_exterior
+from rectify.raster.ortho import OrthoOptions, orthorectify
 
 CRS = "EPSG:32632"
 E0, N0 = 500_000.0, 5_000_000.0
@@ -417,8 +419,8 @@ def overlap_shift(a_path: Path, b_path: Path, patch: int = 64) -> tuple[np.ndarr
 def test_ngi_pair_orthophotos_coincide(tmp_path):
     import json
 
+    from rectify.actions.ortho import ortho_from_files
     from rectify.raster.mosaic import mosaic
-    from rectify.raster.ortho import ortho_from_files
 
     if not (NGI / "dem.tif").is_file():
         pytest.skip(f"NGI pair not found under {NGI}")

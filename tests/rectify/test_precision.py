@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-from rectify.formats.common import GcpTable
+from rectify.geometry.points import GcpTable
 from rectify.geometry.transforms import fit_gcps
 
 H_TRUE = np.array([[0.9, 0.12, 35.0], [-0.08, 1.05, 20.0], [2e-4, -1.5e-4, 1.0]])

@@ -12,7 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from rectify.errors import ConvergenceError, EstimationError, InvalidInputError, RasterIOError, ShapeError
-from rectify.geometry.rpc import GDAL_PIXEL_OFFSET, RPC, RPCRefinement, fit_rpc, read_rpc
+from rectify.formats.rpc import read_rpc
+from rectify.geometry.rpc import GDAL_PIXEL_OFFSET, RPC, RPCRefinement, fit_rpc
 
 SHARED = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 M_PER_DEG = 111_320.0

@@ -14,10 +14,11 @@ from affine import Affine
 from numpy.testing import assert_allclose
 
 from rectify.errors import EstimationError, InvalidInputError, RasterIOError
-from rectify.formats.common import GcpTable
+from rectify.geometry.points import GcpTable
+from rectify.raster.georectify import georectify, rectify_with_transform
 from rectify.raster.georef import Grid, pixel_from_world, world_from_pixel
 from rectify.raster.io import read_window, write_raster
-from rectify.raster.warp import WarpOptions, georectify, rectify_with_transform, warp_array, warp_raster
+from rectify.raster.warp import WarpOptions, warp_array, warp_raster
 from tests.support.rectify_support import cog_problems, tiff_ifds
 
 LANDSAT = Path(str(files("rectify") / "data" / "RGB.byte.tif"))

@@ -14,13 +14,8 @@ from hypothesis import strategies as st
 from rectify.errors import EstimationError, InvalidInputError, ShapeError, StereoError
 from rectify.geometry.camera import Camera
 from rectify.geometry.rotation import matrix_from_angles
-from stereo.block.independent import (
-    GroundBlock,
-    IndependentOptions,
-    ModelBlock,
-    independent_models,
-    to_ground,
-)
+from stereo.block.independent import GroundBlock, ModelBlock, independent_models, to_ground
+from stereo.block.models import IndependentOptions
 from stereo.block.types import Pose, Tracks, project_pixel
 from stereo.relative import RelativeOrientation
 

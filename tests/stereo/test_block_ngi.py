@@ -17,14 +17,14 @@ import pytest
 import rasterio
 from scipy import ndimage
 
-from rectify.formats.common import ControlTable
 from rectify.geometry.camera import Camera
+from rectify.geometry.points import ControlTable
 from rectify.geometry.residuals import rms
 from rectify.geometry.rotation import angles_from_matrix, matrix_from_angles
 from stereo.actions.block import BlockOptions, run_block
 from stereo.actions.run import run
 from stereo.formats.block import read_block_orientation
-from stereo.formats.orientation import read_points_csv
+from stereo.formats.points import read_points_csv
 from stereo.pair.model import ModelOptions
 from stereo.pair.resection import ExteriorOrientation
 

@@ -14,13 +14,13 @@ import math
 import numpy as np
 import pytest
 
-from rectify.formats.common import read_control, read_matches
+from rectify.formats.tables import read_control, read_matches
 from stereo.actions.block import BlockOptions, run_block
 from stereo.actions.run import run
 from stereo.actions.scene import make_scene, write_scene_inputs
 from stereo.block.bundle.adjust import BundleOptions
 from stereo.block.types import Tracks
-from stereo.formats.orientation import read_points_csv
+from stereo.formats.points import read_points_csv
 from stereo.pair.model import ModelOptions
 
 

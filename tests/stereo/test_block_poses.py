@@ -16,21 +16,11 @@ from scipy.spatial.transform import Rotation
 from rectify.errors import CRSError, InvalidInputError, RasterIOError, ShapeError
 from rectify.geometry.camera import Camera
 from rectify.geometry.geodesy import enu_from_body
-from rectify.geometry.rotation import angles_from_matrix, matrix_from_angles, rot_x, rot_y, rot_z
+from rectify.geometry.rotation import angles_from_matrix, matrix_from_angles, rodrigues, rot_x, rot_y, rot_z
+from stereo.block.navigation import body_rotation, navigation_from_rotation, rotation_from_navigation
 from stereo.block.types import Pose, project_pixel
-from stereo.formats.poses import (
-    DEFAULT_CAMERA_ID,
-    OpenSfMReconstruction,
-    PoseTable,
-    body_rotation,
-    navigation_from_rotation,
-    pose_csv_text,
-    read_opensfm,
-    read_pose_csv,
-    rotation_from_navigation,
-    rotation_from_rodrigues,
-    write_pose_csv,
-)
+from stereo.formats.opensfm import OpenSfMReconstruction, read_opensfm
+from stereo.formats.poses import DEFAULT_CAMERA_ID, PoseTable, pose_csv_text, read_pose_csv, write_pose_csv
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "block"
 D = np.deg2rad
@@ -191,7 +181,7 @@ def test_navigation_bad_input():
 def test_rodrigues_matches_scipy():
     rng = np.random.default_rng(7)
     for v in [*rng.normal(size=(10, 3)), np.zeros(3), np.array([1e-14, 0.0, 0.0]), np.array([np.pi, 0, 0])]:
-        assert_allclose(rotation_from_rodrigues(v), Rotation.from_rotvec(v).as_matrix(), atol=1e-14)
+        assert_allclose(rodrigues(v)[0], Rotation.from_rotvec(v).as_matrix(), atol=1e-14)
 
 
 # =========================================================================== position/angle CSV

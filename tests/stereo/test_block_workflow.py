@@ -17,13 +17,13 @@ import numpy as np
 import pytest
 
 from rectify.errors import EstimationError, InvalidInputError
-from rectify.formats.common import read_camera
+from rectify.formats.camera import read_camera
 from rectify.geometry.rotation import angles_from_matrix
 from stereo.actions.block import BLOCK_LAYOUT, BlockOptions, run_block
 from stereo.block.bundle.adjust import BundleOptions
 from stereo.block.types import Tracks
 from stereo.formats.block import read_block_control, read_block_orientation
-from stereo.formats.orientation import read_points_csv
+from stereo.formats.points import read_points_csv
 from stereo.formats.poses import read_pose_csv
 from tests.support.block_synthetic import make_block
 

@@ -11,9 +11,9 @@ from rectify.errors import ConvergenceError, EstimationError, InvalidInputError
 from rectify.geometry.camera import Camera
 from rectify.geometry.rotation import matrix_from_angles
 from stereo.block.bundle import solve as bs
-from stereo.block.bundle.adjust import BlockControl, BundleOptions, GnssObservations, adjust_bundle
+from stereo.block.bundle.adjust import BundleOptions, adjust_bundle
 from stereo.block.bundle.model import interior_from_camera, project, rotation_axes, rotations
-from stereo.block.types import Pose, Tracks, project_pixel
+from stereo.block.types import BlockControl, GnssObservations, Pose, Tracks, project_pixel
 from tests.support.block_synthetic import default_camera, make_block
 
 DIST = Camera(focal_length_mm=100.0, pixel_size_mm=0.01, width=2000, height=1500, principal_point_mm=(0.03, -0.02),

@@ -11,11 +11,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from rectify.errors import CalibrationError, EstimationError, InvalidInputError
-from rectify.geometry.rotation import matrix_from_angles
+from rectify.formats.camera import intrinsics_document as camera_to_dict
+from rectify.geometry.rotation import matrix_from_angles, rodrigues, rotvec_from_matrix
 from stereo.calibration.dlt import DLT, interior_from_homographies
-from stereo.calibration.model import Intrinsics, rodrigues, rotvec_from_matrix
-from stereo.calibration.result import Calibration, camera_from_dict, camera_to_dict
-from stereo.features.targets import TargetView, parse_pattern, parse_square, views_from_csv
+from stereo.calibration.model import Intrinsics
+from stereo.calibration.result import Calibration
+from stereo.calibration.views import TargetView
+from stereo.features.targets import parse_pattern, parse_square
+from stereo.formats.calibration import camera_from_dict, views_from_csv
 from tests.support.calibration_synthetic import DEFAULT_CAMERA, board_scene, field_scene
 from tests.support.scripts_support import load_script
 

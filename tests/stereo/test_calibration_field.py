@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from stereo.calibration.result import Calibration
-from stereo.features.targets import TargetView
+from stereo.calibration.views import TargetView
 from tests.support.calibration_synthetic import field_scene
 
 DIST = ("k1", "k2", "p1", "p2")

@@ -9,10 +9,12 @@ import numpy as np
 import pytest
 
 from rectify.errors import CalibrationError, InvalidInputError
-from stereo.calibration.model import CV_FROM_PHOTO, rodrigues
-from stereo.calibration.result import Calibration, camera_from_dict
+from rectify.geometry.rotation import rodrigues
+from stereo.calibration.model import CV_FROM_PHOTO
+from stereo.calibration.result import Calibration
 from stereo.calibration.rig import RigCalibration
 from stereo.calibration.zoom import ZoomModel
+from stereo.formats.calibration import camera_from_dict
 from tests.support.calibration_synthetic import board_scene, rig_scene, zoom_camera
 
 DIST = ("k1", "k2", "p1", "p2")

@@ -15,10 +15,11 @@ from hypothesis import strategies as st
 from rectify.errors import InvalidInputError, ShapeError, StereoError
 from rectify.geometry.camera import Camera
 from rectify.geometry.rotation import matrix_from_angles
-from stereo.dense.dsm import DsmGrid, PlyWriter, point_writer
+from stereo.dense.dsm import DsmGrid
 from stereo.dense.epipolar import normal_frame, rectify_pair
 from stereo.dense.matching import MatchOptions, fill_background, match_pair
 from stereo.dense.triangulate import triangulate_disparity
+from stereo.formats.points import PlyWriter, point_writer
 from tests.support.stereo_support import occlusion_from_truth
 
 CAM = Camera(focal_length_mm=120.0, pixel_size_mm=0.144, width=320, height=240)
@@ -247,7 +248,7 @@ def test_point_writers_roundtrip(tmp_path):
     pw = PlyWriter(tmp_path / "p.ply", comment="ground")
     pw.write(xyz, col)
     pw.close()
-    from stereo.formats.orientation import read_ply
+    from stereo.formats.points import read_ply
 
     cloud = read_ply(tmp_path / "p.ply")
     np.testing.assert_allclose(cloud.xyz, xyz)

@@ -13,7 +13,7 @@ import json
 
 import numpy as np
 
-from rectify.formats.common import read_matches
+from rectify.formats.tables import read_matches
 from stereo.actions.dense import DenseOptions
 from stereo.actions.run import run
 

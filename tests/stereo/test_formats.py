@@ -19,17 +19,13 @@ from stereo.formats.orientation import (
     orientation_dict,
     read_exterior,
     read_orientation,
-    read_ply,
-    read_ply_xyz,
-    read_points_csv,
     read_relative,
     relative_dict,
     write_exterior,
     write_orientation,
-    write_ply,
-    write_points_csv,
     write_relative,
 )
+from stereo.formats.points import read_ply, read_ply_xyz, read_points_csv, write_ply, write_points_csv
 from stereo.pair.resection import ExteriorOrientation, resect
 from stereo.relative import RelativeGeometry, RelativeOrientation
 from tests.support.stereo_support import simulate_pair

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from rectify.errors import EstimationError, InvalidInputError
-from rectify.formats.common import ControlTable
+from rectify.geometry.points import ControlTable
 from rectify.geometry.residuals import rms
 from stereo.actions.scene import LO25_CRS, make_scene
 from stereo.actions.workspace import PairWorkspace
-from stereo.formats.orientation import read_ply_xyz
+from stereo.formats.points import read_ply_xyz
 from stereo.pair.model import ModelOptions, build_model, ground_unit, match_control
 from stereo.relative import RelativeGeometry, RelativeOrientation
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rectify.formats.common import ControlTable
+from rectify.geometry.points import ControlTable
 from rectify.geometry.residuals import rms
 from stereo.actions.common import ORIENT_MATCHER, PAIR_MATCHER, matcher_config
 from stereo.actions.scene import make_scene
@@ -55,7 +55,7 @@ def test_robust_absolute_orientation_is_the_default(scene):
 def test_stereo_demo_keeps_least_squares():
     import inspect
 
-    import stereo.actions.common as sa
+    import stereo.actions.demo as sa
 
     assert 'robust="none"' in inspect.getsource(sa.demo)
 

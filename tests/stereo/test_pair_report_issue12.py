@@ -9,7 +9,7 @@ import csv
 import numpy as np
 import pytest
 
-from rectify.formats.common import ControlTable
+from rectify.geometry.points import ControlTable
 from rectify.geometry.residuals import rms
 from rectify.report.figures import residual_vector_figure, standardised_components
 from stereo.actions.scene import make_scene

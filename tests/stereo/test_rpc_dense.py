@@ -18,8 +18,9 @@ import rasterio
 from scipy import ndimage
 
 from rectify.errors import EstimationError, InvalidInputError, RasterIOError, ShapeError
+from rectify.formats.rpc import rpc_from_raster
 from rectify.geometry.crs import transform_xy
-from rectify.geometry.rpc import fit_rpc, rpc_from_raster
+from rectify.geometry.rpc import fit_rpc
 from stereo.dense.rpc_epipolar import (
     LocalFrame,
     affine_fundamental,

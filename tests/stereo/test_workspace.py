@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-import stereo.actions.common as actions
+import stereo.actions.run as actions
 from rectify.errors import EstimationError, InvalidInputError
 from stereo.actions.scene import make_scene, write_scene_inputs
 from stereo.actions.workspace import RUN_LAYOUT, PairWorkspace, model_outputs

@@ -19,8 +19,7 @@ from numpy.typing import NDArray
 from rectify.errors import InvalidInputError
 from rectify.geometry.camera import Camera
 from rectify.geometry.rotation import matrix_from_angles
-from stereo.block.bundle.adjust import BlockControl, GnssObservations
-from stereo.block.types import Pose, Tracks
+from stereo.block.types import BlockControl, GnssObservations, Pose, Tracks
 
 __all__ = ["SyntheticBlock", "default_camera", "make_block", "terrain_height"]
 

@@ -12,8 +12,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rectify.errors import InvalidInputError
-from stereo.calibration.model import Intrinsics, rotvec_from_matrix
-from stereo.features.targets import Chessboard, TargetView
+from rectify.geometry.rotation import rodrigues, rotvec_from_matrix
+from stereo.calibration.model import Intrinsics
+from stereo.calibration.views import TargetView
+from stereo.features.targets import Chessboard
 
 __all__ = ["SyntheticScene", "look_at", "board_scene", "field_scene", "rig_scene", "zoom_camera", "DEFAULT_CAMERA"]
 
@@ -126,8 +128,6 @@ def rig_scene(rng: np.random.Generator, *, n_views: int = 6, left: Intrinsics = 
               rel_t: tuple[float, float, float] = (-120.0, 1.5, 4.0), noise_px: float = 0.2,
               board: Chessboard | None = None) -> tuple[SyntheticScene, SyntheticScene]:
     """Synchronous board views of a two-camera rig: ``Xc_right = R_rel Xc_left + t_rel`` (OpenCV frames)."""
-    from stereo.calibration.model import rodrigues
-
     b = board or Chessboard(9, 6, 25.0)
     cam_r = right or left
     Rr = rodrigues(np.array(rel_rotvec))[0]

@@ -9,7 +9,7 @@ polynomial  :class:`PolynomialTransform` (orders 1-3) and its fitted inverse
 cotangent   :class:`CotangentFourPoint` (seed 001, corrected eq. 2) and the eq. (2) helpers
 gcp         :data:`METHODS` (the one list of methods), :func:`fit_gcps`, :class:`FitResult`,
             :func:`transform_to_dict` / :func:`transform_from_dict` (the body of the transform
-            JSON, which :mod:`rectify.formats.common` reads and writes)
+            JSON, which :mod:`rectify.formats.transform` reads and writes)
 
 The theory and the study are in ``docs/projective.md``.
 """

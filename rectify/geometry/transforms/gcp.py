@@ -5,8 +5,8 @@ CLIs take their choices from it. :func:`fit_gcps` fits a GCP table,
 withholding check points; :func:`transform_to_dict` gives the body of the
 transform JSON and :func:`transform_from_dict` rebuilds any model from it
 (the file itself, with its ``format``/``version`` stamp and residual table,
-is read and written by :func:`rectify.formats.common.read_transform` /
-:func:`rectify.formats.common.write_transform`; see ``docs/formats.md``).
+is read and written by :func:`rectify.formats.transform.read_transform` /
+:func:`rectify.formats.transform.write_transform`; see ``docs/formats.md``).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from rectify.errors import EstimationError, InvalidInputError
-from rectify.formats.common import GcpTable
+from rectify.geometry.points import GcpTable
 from rectify.geometry.crs import unit_label
 from rectify.geometry.points import as_weights
 from rectify.geometry.residuals import ResidualTable
@@ -192,7 +192,7 @@ def fit_gcps(gcps: GcpTable, method: str = "homography", *, weights: ArrayLike |
 def transform_to_dict(model: Transform) -> dict[str, Any]:
     """The parameters of a model of :data:`METHODS` as a JSON-ready dict (:meth:`Transform.to_dict`).
 
-    This is the body of the transform JSON; :func:`rectify.formats.common.write_transform`
+    This is the body of the transform JSON; :func:`rectify.formats.transform.write_transform`
     adds the ``format``/``version`` stamp and the residual table.
 
     Raises

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from rectify.formats.common import GcpTable
+from rectify.geometry.points import GcpTable
 from rectify.geometry.residuals import ResidualTable, rms
 from rectify.geometry.transforms.gcp import METHODS, fit_gcps
 

@@ -41,7 +41,7 @@ import logging
 import math
 import os
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -49,21 +49,18 @@ from numpy.typing import ArrayLike, NDArray
 from rectify.errors import ConvergenceError, EstimationError, InvalidInputError, ShapeError
 from rectify.geometry.camera import Camera
 from rectify.geometry.robust import ROBUST_METHODS, get_psi, robust_scale
-from rectify.geometry.rotation import matrix_from_angles
 from stereo.block.bundle import solve as bs
 from stereo.block.bundle.datum import datum_analysis
 from stereo.block.bundle.model import INTERIOR_NAMES, camera_from_interior, interior_from_camera
-from stereo.block.types import Pose, Tracks, cameras_for
+from stereo.block.bundle.result import BundleResult
+from stereo.block.types import BlockControl, GnssObservations, Pose, Tracks, cameras_for
 
-__all__ = ["BlockControl", "BundleOptions", "BundleResult", "COVARIANCE_MODES", "CONTROL_KINDS",
-           "GnssObservations", "INTERIOR_NAMES", "adjust_bundle"]
+__all__ = ["BundleOptions", "COVARIANCE_MODES", "INTERIOR_NAMES", "adjust_bundle", "default_threads"]
 
 logger = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 
-#: kinds of control point: all three coordinates, the height only, or the plan position only
-CONTROL_KINDS: tuple[str, ...] = ("full", "height", "plan")
 #: what precision to compute: everything (poses, interior, points, redundancy numbers), poses only, nothing
 COVARIANCE_MODES: tuple[str, ...] = ("full", "poses", "none")
 #: variance components: a group's factor is estimated only from this much redundancy on, within these bounds
@@ -89,152 +86,6 @@ LM_INITIAL_DAMPING = 1e-8
 #: 7 -> 6 iterations)
 SETTLED_STEP = 0.05
 POSE_ELEMENTS: tuple[str, ...] = ("omega", "phi", "kappa", "x", "y", "z")
-
-
-# ---------------------------------------------------------------------------- inputs
-@dataclass(frozen=True, eq=False)
-class BlockControl:
-    """Ground control and check points of a block.
-
-    Parameters
-    ----------
-    ids : tuple of str
-        Point ids (K,); each is a :class:`Tracks` point id.
-    xyz : (K, 3) float64
-        Given ground coordinates, m.
-    kind : tuple of str
-        Per point, one of :data:`CONTROL_KINDS` (``full``, ``height``, ``plan``).
-    sigma_m : (K, 3) float64
-        A-priori standard deviation of x, y, z, m (> 0; only the used components matter).
-    check : (K,) bool
-        True for a check point (withheld from the adjustment).
-    """
-
-    ids: tuple[str, ...]
-    xyz: F64
-    kind: tuple[str, ...] = ()
-    sigma_m: F64 = field(default_factory=lambda: np.zeros((0, 3)))
-    check: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
-
-    def __post_init__(self) -> None:
-        ids = tuple(str(i) for i in self.ids)
-        k = len(ids)
-        if len(set(ids)) != k:
-            raise InvalidInputError(f"control: duplicate ids {sorted({i for i in ids if ids.count(i) > 1})[:5]}")
-        xyz = np.array(self.xyz, dtype=np.float64, copy=True)
-        if xyz.shape != (k, 3) or not np.isfinite(xyz).all():
-            raise ShapeError(f"control: `xyz` must be ({k}, 3) finite; got shape {xyz.shape}",
-                             actual_shape=xyz.shape, expected_shape=(k, 3))
-        kind = tuple(self.kind) if len(self.kind) else ("full",) * k
-        if len(kind) != k:
-            raise ShapeError(f"control: `kind` must have {k} entries; got {len(kind)}")
-        badk = [x for x in kind if x not in CONTROL_KINDS]
-        if badk:
-            raise InvalidInputError(f"control: unknown kind {badk[0]!r}; expected one of {list(CONTROL_KINDS)}")
-        sig = np.array(self.sigma_m, dtype=np.float64, copy=True)
-        if sig.size == 0:
-            sig = np.full((k, 3), 0.01)
-        if sig.shape == (k,):
-            sig = np.repeat(sig[:, None], 3, axis=1)
-        if sig.shape != (k, 3) or not np.isfinite(sig).all() or (sig <= 0).any():
-            raise InvalidInputError(f"control: `sigma_m` must be ({k}, 3) finite values > 0; got "
-                                    f"{np.asarray(self.sigma_m).tolist()!r}"[:200])
-        chk = np.array(self.check, dtype=bool, copy=True).reshape(-1)
-        if chk.size == 0:
-            chk = np.zeros(k, bool)
-        if chk.shape != (k,):
-            raise ShapeError(f"control: `check` must have {k} entries; got {chk.shape}")
-        for a in (xyz, sig, chk):
-            a.flags.writeable = False
-        object.__setattr__(self, "ids", ids)
-        object.__setattr__(self, "xyz", xyz)
-        object.__setattr__(self, "kind", kind)
-        object.__setattr__(self, "sigma_m", sig)
-        object.__setattr__(self, "check", chk)
-
-    def used_sigma(self) -> F64:
-        """(K, 3) sigma of the observed components, inf elsewhere (and for check points)."""
-        s = self.sigma_m.copy()
-        for i, k in enumerate(self.kind):
-            if k == "height":
-                s[i, :2] = np.inf
-            elif k == "plan":
-                s[i, 2] = np.inf
-        s[self.check] = np.inf
-        return s
-
-
-@dataclass(frozen=True, eq=False)
-class GnssObservations:
-    """GNSS antenna positions (and optional INS angles) of the images.
-
-    Parameters
-    ----------
-    images : tuple of str
-        Image names (n,).
-    position : (n, 3) float64
-        Antenna positions, ground frame, m.
-    sigma_m : (n, 3) float64
-        Their standard deviations, m (> 0).
-    lever_arm_m : (3,) float64, optional
-        Antenna offset from the projection centre in the camera frame (photo axes x, y, and z
-        along the optical axis away from the scene), m: ``antenna = C + R @ lever``.
-    angles : (n, 3) float64, optional
-        INS omega, phi, kappa, rad.
-    sigma_rad : (n, 3) float64, optional
-        Their standard deviations, rad (required with ``angles``).
-    """
-
-    images: tuple[str, ...]
-    position: F64
-    sigma_m: F64
-    lever_arm_m: F64 | None = None
-    angles: F64 | None = None
-    sigma_rad: F64 | None = None
-
-    def __post_init__(self) -> None:
-        images = tuple(str(i) for i in self.images)
-        n = len(images)
-        if len(set(images)) != n:
-            raise InvalidInputError(f"gnss: duplicate images {sorted({i for i in images if images.count(i) > 1})[:5]}")
-        pos = np.array(self.position, dtype=np.float64, copy=True)
-        if pos.shape != (n, 3) or not np.isfinite(pos).all():
-            raise ShapeError(f"gnss: `position` must be ({n}, 3) finite; got shape {pos.shape}")
-        sig = np.array(self.sigma_m, dtype=np.float64, copy=True)
-        if sig.shape == (n,):
-            sig = np.repeat(sig[:, None], 3, axis=1)
-        if sig.shape != (n, 3) or not np.isfinite(sig).all() or (sig <= 0).any():
-            raise InvalidInputError(f"gnss: `sigma_m` must be ({n}, 3) finite values > 0; got "
-                                    f"{np.asarray(self.sigma_m).tolist()!r}"[:200])
-        lever = None
-        if self.lever_arm_m is not None:
-            lever = np.array(self.lever_arm_m, dtype=np.float64, copy=True).reshape(-1)
-            if lever.shape != (3,) or not np.isfinite(lever).all():
-                raise ShapeError(f"gnss: `lever_arm_m` must be 3 finite numbers; got {lever.tolist()}")
-        ang = sang = None
-        if self.angles is not None:
-            ang = np.array(self.angles, dtype=np.float64, copy=True)
-            if ang.shape != (n, 3) or not np.isfinite(ang).all():
-                raise ShapeError(f"gnss: `angles` must be ({n}, 3) finite; got shape {ang.shape}")
-            if self.sigma_rad is None:
-                raise InvalidInputError("gnss: `angles` need `sigma_rad`; got None")
-            sang = np.array(self.sigma_rad, dtype=np.float64, copy=True)
-            if sang.shape == (n,):
-                sang = np.repeat(sang[:, None], 3, axis=1)
-            if sang.shape != (n, 3) or not np.isfinite(sang).all() or (sang <= 0).any():
-                raise InvalidInputError(f"gnss: `sigma_rad` must be ({n}, 3) finite values > 0; got "
-                                        f"{np.asarray(self.sigma_rad).tolist()!r}"[:200])
-        elif self.sigma_rad is not None:
-            raise InvalidInputError("gnss: `sigma_rad` given without `angles`")
-        for a in (pos, sig, lever, ang, sang):
-            if a is not None:
-                a.flags.writeable = False
-        object.__setattr__(self, "images", images)
-        object.__setattr__(self, "position", pos)
-        object.__setattr__(self, "sigma_m", sig)
-        object.__setattr__(self, "lever_arm_m", lever)
-        object.__setattr__(self, "angles", ang)
-        object.__setattr__(self, "sigma_rad", sang)
 
 
 @dataclass(frozen=True)
@@ -277,9 +128,9 @@ class BundleOptions:
         Threads of the model evaluation and the assembly of the normal equations (None: one; the
         work is many numpy operations on cache-sized pieces, and with two threads the 500-image
         benchmark block took 20 % more time, not less: the GIL is held between the operations).
-        Used from ``bundle_solve.THREADS_MIN_OBSERVATIONS`` observations on. BLAS runs one thread,
+        Used from ``stereo.block.bundle.solve.THREADS_MIN_OBSERVATIONS`` observations on. BLAS runs one thread,
         except in dense factorisations of reduced systems from
-        ``bundle_solve.BLAS_THREADS_MIN_UNKNOWNS`` unknowns on, which get as many as BLAS is set to
+        ``stereo.block.bundle.solve.BLAS_THREADS_MIN_UNKNOWNS`` unknowns on, which get as many as BLAS is set to
         use (``OMP_NUM_THREADS`` / ``OPENBLAS_NUM_THREADS``, else the CPU count).
     """
 
@@ -326,144 +177,6 @@ class BundleOptions:
         if self.covariance not in COVARIANCE_MODES:
             raise InvalidInputError(f"BundleOptions.covariance must be one of {list(COVARIANCE_MODES)}; "
                                     f"got {self.covariance!r}")
-
-
-# ---------------------------------------------------------------------------- result
-@dataclass(frozen=True, eq=False)
-class BundleResult:
-    """Result of :func:`adjust_bundle`.
-
-    Attributes
-    ----------
-    cameras : dict str -> Camera
-        Adjusted cameras; self-calibrated parameters carry ``std_errors`` (f, x0, y0 in mm).
-    poses : tuple of Pose
-        Adjusted poses, in the input order.
-    point_ids : tuple of str
-        Track ids (P,).
-    points : (P, 3) float64
-        Adjusted object points, ground frame, m.
-    pose_std : (n, 6) float64
-        Standard errors of omega, phi, kappa (rad), x, y, z (m); NaN when not computed.
-    pose_covariance : (n, 6, 6) float64
-        Covariance of the same elements.
-    correlation : (u, u) float64
-        Correlation matrix of all orientation elements (6 per image) and interior parameters,
-        names in ``correlation_names``; (0, 0) when not computed.
-    correlation_names : tuple of str
-        ``"<image>.<element>"`` and ``"<camera>.<parameter>"``.
-    interior_std : dict str -> dict str -> float
-        Standard errors of the self-calibrated parameters per camera.
-    point_std : (P, 3) float64
-        Standard errors of the object points, m (NaN where not computed).
-    point_covariance : (P, 3, 3) float64 or None
-        Covariance of each point (``covariance="full"``).
-    sigma0 : float
-        A-posteriori standard deviation of unit weight (all groups).
-    sigma0_groups : dict str -> float
-        sqrt(v_k^T P_k v_k / r_k) of each group present.
-    variance_factors : dict str -> float
-        Final group sigma / given group sigma (1 without variance components).
-    redundancy_groups : dict str -> float
-        Redundancy r_k of each group.
-    residuals_px : (M, 2) float64
-        Image residuals, observed minus computed, px, in the order of ``Tracks``.
-    weights : (M, 2) float64
-        Robust weights (1 without robust estimation).
-    standardized : (M, 2) float64
-        Standardised residuals |v| / (sigma0 sigma sqrt(r)).
-    redundancy_numbers : (M, 2) float64
-        Redundancy numbers r_i (NaN when not computed).
-    flagged : (M,) bool
-        Observations flagged as blunders.
-    control_ids, control_residuals
-        Control points used and given minus adjusted coordinates (K, 3), m (NaN for unused
-        components).
-    flagged_control : tuple of str
-        Control points whose standardised residual exceeds the threshold.
-    check_ids, check_errors, check_std
-        Check points, adjusted minus given coordinates (C, 3), m, and the predicted standard
-        error of that difference (C, 3), m.
-    gnss_residuals : (g, 3) float64
-        GNSS observed minus adjusted antenna positions, m.
-    iterations : int
-    converged : bool
-    datum : tuple of str
-        The datum analysis: which groups define the datum and its expected weakness.
-    datum_groups : tuple of str
-    condition_number : float
-        Of the Jacobi-scaled reduced camera system (NaN when not computed).
-    warnings : tuple of str
-    """
-
-    cameras: dict[str, Camera]
-    poses: tuple[Pose, ...]
-    point_ids: tuple[str, ...]
-    points: F64
-    pose_std: F64
-    pose_covariance: F64
-    correlation: F64
-    correlation_names: tuple[str, ...]
-    interior_std: dict[str, dict[str, float]]
-    point_std: F64
-    point_covariance: F64 | None
-    sigma0: float
-    sigma0_groups: dict[str, float]
-    variance_factors: dict[str, float]
-    redundancy_groups: dict[str, float]
-    residuals_px: F64
-    weights: F64
-    standardized: F64
-    redundancy_numbers: F64
-    flagged: NDArray[np.bool_]
-    control_ids: tuple[str, ...]
-    control_residuals: F64
-    flagged_control: tuple[str, ...]
-    check_ids: tuple[str, ...]
-    check_errors: F64
-    check_std: F64
-    gnss_residuals: F64
-    iterations: int
-    converged: bool
-    datum: tuple[str, ...]
-    datum_groups: tuple[str, ...]
-    condition_number: float
-    warnings: tuple[str, ...] = ()
-
-    @property
-    def flagged_obs(self) -> NDArray[np.int64]:
-        """Indices of the flagged observations (into the tracks' observations)."""
-        return np.flatnonzero(self.flagged).astype(np.int64)
-
-    @property
-    def rms_px(self) -> float:
-        """RMS of the image residuals of unflagged observations, px (per coordinate)."""
-        v = self.residuals_px[~self.flagged]
-        return float(np.sqrt(np.mean(v ** 2))) if v.size else float("nan")
-
-    def summary_lines(self) -> list[str]:
-        """Short report lines: counts, RMS residuals with units, sigma0, groups, datum."""
-        m = len(self.residuals_px)
-        out = [f"bundle: {len(self.poses)} images, {len(self.points)} points, {m} image observations, "
-               f"{self.iterations} iterations{'' if self.converged else ' (NOT converged)'}",
-               f"image residuals: RMS {self.rms_px:.3f} px ({int(self.flagged.sum())} flagged as blunders)",
-               f"sigma0 {self.sigma0:.3f}"]
-        for g, s in self.sigma0_groups.items():
-            out.append(f"group {g}: sigma0 {s:.3f}, redundancy {self.redundancy_groups.get(g, float('nan')):.1f}, "
-                       f"variance factor {self.variance_factors.get(g, 1.0):.3f}")
-        if len(self.gnss_residuals):
-            out.append(f"GNSS residuals: RMS {np.sqrt(np.mean(self.gnss_residuals ** 2)):.3f} m")
-        if len(self.control_ids):
-            r = self.control_residuals[np.isfinite(self.control_residuals)]
-            out.append(f"control: {len(self.control_ids)} points, RMS residual {np.sqrt(np.mean(r ** 2)):.3f} m"
-                       + (f", flagged {list(self.flagged_control)}" if self.flagged_control else ""))
-        if len(self.check_ids):
-            e = self.check_errors
-            out.append(f"check: {len(self.check_ids)} points, RMS error x {np.sqrt(np.mean(e[:, 0] ** 2)):.3f} "
-                       f"y {np.sqrt(np.mean(e[:, 1] ** 2)):.3f} z {np.sqrt(np.mean(e[:, 2] ** 2)):.3f} m")
-        out.extend(self.datum)
-        out.extend(f"WARNING: {w}" for w in self.warnings)
-        return out
 
 
 # ---------------------------------------------------------------------------- main
@@ -1087,10 +800,3 @@ def _ro(a: NDArray) -> NDArray:
     a = np.array(a, copy=True)
     a.flags.writeable = False
     return a
-
-
-def pose_from_angles(image: str, camera: str, angles: ArrayLike, position: ArrayLike) -> Pose:
-    """A :class:`Pose` from omega, phi, kappa (rad) and the projection centre (m)."""
-    a = np.asarray(angles, dtype=np.float64).reshape(3)
-    return Pose(image, camera, np.asarray(position, dtype=np.float64), matrix_from_angles(a[0], a[1], a[2]))
-

@@ -9,16 +9,13 @@ similarity motions of the block (shift x/y/z, rotation about x/y/z, scale).
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from stereo.block.bundle.model import rotation_axes
-
-if TYPE_CHECKING:
-    from stereo.block.bundle.adjust import BlockControl
-    from stereo.block.bundle.solve import Normal, Problem, State
+from stereo.block.bundle.solve import Normal, Problem, State
+from stereo.block.types import BlockControl
 
 __all__ = ["datum_analysis", "similarity_generators"]
 

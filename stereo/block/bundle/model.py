@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rectify.geometry.camera import Camera
-from rectify.geometry.rotation import rot_x, rot_y
+from rectify.geometry.rotation import matrix_from_angles, rot_x, rot_y
 
 __all__ = ["INTERIOR_NAMES", "camera_from_interior", "interior_from_camera", "project", "rotation_axes",
            "rotations"]
@@ -51,8 +51,6 @@ def camera_from_interior(camera: Camera, vec: NDArray[np.float64], std: dict[str
 
 def rotations(angles: NDArray[np.float64]) -> NDArray[np.float64]:
     """(n, 3, 3) rotation matrices R = Rx(omega) Ry(phi) Rz(kappa) of angles (n, 3), rad."""
-    from rectify.geometry.rotation import matrix_from_angles
-
     return np.asarray(matrix_from_angles(angles[:, 0], angles[:, 1], angles[:, 2]), dtype=np.float64
                       ).reshape(-1, 3, 3)
 

@@ -31,6 +31,7 @@ import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
+from scipy.sparse.csgraph import reverse_cuthill_mckee
 from threadpoolctl import ThreadpoolController
 
 from rectify.errors import EstimationError
@@ -428,8 +429,6 @@ def _structure(prob: Problem, chunk: int | None = None) -> _Structure:
 
 def _band(sx: _Structure, n: int, ia: I64, ib: I64) -> None:
     """Banded storage of S (no interior unknowns): images in reverse Cuthill-McKee order of the image graph."""
-    from scipy.sparse.csgraph import reverse_cuthill_mckee
-
     A = sp.csr_matrix((np.ones(len(ia)), (ia, ib)), shape=(n, n))
     perm = np.asarray(reverse_cuthill_mckee((A + A.T + sp.eye(n)).tocsr(), symmetric_mode=True), dtype=np.int64)
     inv = np.empty(n, np.int64)

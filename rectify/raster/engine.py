@@ -1,0 +1,178 @@
+"""The one tile-engine base and the one GeoTIFF/COG output tail of the warp, ortho and mosaic steps.
+
+A tile engine (:mod:`rectify.raster.warp`, :mod:`rectify.raster.ortho`, :mod:`rectify.raster.mosaic`)
+computes one output window with ``engine.tile(col, row, width, height)``, which returns
+``(data, valid, empty)`` (the warp engine) or ``(data, empty)`` (the ortho and mosaic engines):
+``data`` (h, w, C) in the output dtype, ``valid`` (h, w) bool or None, ``empty`` True when the window
+holds no valid pixel. :class:`TileEngine` holds what every engine shares: per-thread readers opened
+on first use and closed together, and the pickling rule that ships an engine to Dask workers
+(:class:`ProcessLocal`).
+
+:func:`write_tiled` is the one output tail: inside GDAL's bounded block cache and an atomic output
+(:func:`rectify.atomic.atomic_output`: a hidden temporary file renamed at the end, removed on any
+error) it writes the engine's windows through a :class:`rectify.raster.io.TiledWriter` on the chosen
+scheduler (:func:`rectify.raster.distributed.run_windows`; in raw mode on Dask), records tags, and for
+a COG copies the uncompressed body into a Cloud Optimized GeoTIFF
+(:func:`rectify.raster.io.translate_to_cog`).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rasterio
+
+from rectify.atomic import atomic_output
+from rectify.raster.distributed import Scheduler, Window, run_windows
+from rectify.raster.georef import Grid
+from rectify.raster.io import MaskPolicy, TiledWriter, WindowReader, translate_to_cog
+
+__all__ = ["ProcessLocal", "TileEngine", "worker_count", "tile_windows", "run_engine", "write_tiled"]
+
+
+def worker_count(threads: int | None) -> int:
+    """Threads of a tiled engine: ``threads`` when given, else every core."""
+    return threads or (os.cpu_count() or 1)
+
+
+class ProcessLocal:
+    """Mixin of the tile engines shipped to Dask workers (warp, ortho, mosaic).
+
+    The attributes named in ``_TRANSIENT`` belong to one process (thread-locals, open readers, locks):
+    they are left out when the engine is pickled and made anew, by their factory, when it is unpickled.
+    """
+
+    _TRANSIENT: dict[str, Any] = {}
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        for k in self._TRANSIENT:
+            state.pop(k, None)
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        for k, make in self._TRANSIENT.items():
+            setattr(self, k, make())
+
+
+class TileEngine(ProcessLocal):
+    """Base of the tile engines: one reader of the source per thread, all closed by :meth:`close`.
+
+    Subclasses call :meth:`_init_readers` in ``__init__``, name their source ``src`` (a path) for
+    :meth:`reader`, and define ``tile(col, row, width, height)`` and ``portable()``.
+    """
+
+    src: str
+    _TRANSIENT: dict[str, Any] = {"_local": threading.local, "_readers": list, "_lock": threading.Lock}
+
+    def _init_readers(self) -> None:
+        self._local = threading.local()
+        self._readers: list[Any] = []
+        self._lock = threading.Lock()
+
+    def _thread_reader(self, make: Callable[[], Any]) -> Any:
+        """This thread's reader, made by ``make`` on first use (anything with ``close()``)."""
+        r = getattr(self._local, "reader", None)
+        if r is None:
+            r = make()
+            self._local.reader = r
+            with self._lock:
+                self._readers.append(r)
+        return r
+
+    def reader(self) -> WindowReader:
+        """This thread's window reader of ``src``."""
+        return self._thread_reader(lambda: WindowReader(self.src))
+
+    def close(self) -> None:
+        for r in self._readers:
+            r.close()
+
+
+def tile_windows(width: int, height: int, tile: int) -> list[Window]:
+    """The output windows (col, row, width, height) of a ``width`` x ``height`` grid, row by row."""
+    return [(c, r, min(tile, width - c), min(tile, height - r))
+            for r in range(0, height, tile) for c in range(0, width, tile)]
+
+
+def run_engine(engine: Any, writer: TiledWriter, windows: Sequence[Window], threads: int,
+               progress: Callable[[int, int], None] | None, *, scheduler: Scheduler | str | None = None,
+               workdir: str | Path = ".", name: str = "tile") -> int:
+    """Compute the windows with ``engine.tile`` on the scheduler and write each; return the empty count.
+
+    A window result is ``(data, valid, empty)`` or ``(data, empty)`` (module docstring). A raw
+    ``writer`` (Dask schedulers) gets the tiles compressed on the workers.
+    """
+    def write(res: tuple[Any, ...], c: int, r: int) -> bool:
+        data, *valid, empty = res
+        writer.write(data, c, r, *valid)
+        return bool(empty)
+
+    return run_windows(engine, write, windows, threads=threads, progress=progress, scheduler=scheduler,
+                       workdir=workdir, name=name, raw_writer=writer if writer.raw else None)
+
+
+def write_tiled(engine: Any, dst: str | Path, grid: Grid, windows: Sequence[Window], *, count: int,
+                dtype: np.dtype, policy: MaskPolicy, tile: int, compress: str, cog: bool, threads: int,
+                scheduler: Scheduler, overwrite: bool, progress: Callable[[int, int], None] | None, name: str,
+                cache_bytes: int, colorinterp: Sequence[Any] | None = None, cog_resampling: str | None = None,
+                tags: Mapping[str, str] | None = None, band_descriptions: Mapping[int, str] | None = None) -> int:
+    """Write ``engine``'s windows into the GeoTIFF ``dst`` (a COG with ``cog``); return the empty windows.
+
+    The engine is closed at the end, on success or error.
+
+    Parameters
+    ----------
+    engine : TileEngine
+    dst : path
+        Written atomically; a COG is first written uncompressed beside it (``<tmp>.body.tif``).
+    grid : Grid
+        Size, geotransform and CRS of the output.
+    windows : sequence of (col, row, width, height)
+    count, dtype, policy, colorinterp
+        Bands, data type, how invalid pixels are stored and the band colour interpretation.
+    tile, compress, threads
+        GeoTIFF block size, compression and compression threads.
+    cog : bool
+    scheduler : Scheduler
+        Local threads, or Dask (the tiles are then compressed on the workers, raw mode).
+    name : str
+        Label of the tasks and threads.
+    cache_bytes : int
+        GDAL block cache while writing.
+    cog_resampling : str, optional
+        Overview resampling of the COG (default :func:`rectify.raster.io.translate_to_cog`'s).
+    tags, band_descriptions : mapping, optional
+        Dataset tags and band descriptions (1-based band -> text) recorded before the COG copy.
+    """
+    try:
+        with rasterio.Env(GDAL_CACHEMAX=cache_bytes), atomic_output(dst, overwrite=overwrite) as tmp:
+            body = tmp.with_name(tmp.name + ".body.tif") if cog else tmp
+            try:
+                # on Dask the workers compress the tiles and this process copies their bytes (raw mode)
+                with TiledWriter(body, grid.width, grid.height, count, dtype.name, grid.transform, grid.crs, policy,
+                                 tile=tile, compress="none" if cog else compress, threads=threads,
+                                 colorinterp=colorinterp, raw=not scheduler.is_local_threads) as writer:
+                    n_empty = run_engine(engine, writer, windows, threads, progress, scheduler=scheduler,
+                                         workdir=tmp.parent, name=name)
+                if tags or band_descriptions:
+                    with rasterio.open(body, "r+") as ds:
+                        ds.update_tags(**(tags or {}))
+                        for band, text in (band_descriptions or {}).items():
+                            ds.set_band_description(band, text)
+                if cog:
+                    extra = {} if cog_resampling is None else {"resampling": cog_resampling}
+                    translate_to_cog(body, tmp, compress=compress, threads=threads, tile=tile, **extra)
+            finally:
+                if cog and body.exists():
+                    body.unlink()
+    finally:
+        engine.close()
+    return n_empty
+

@@ -1,0 +1,283 @@
+"""OpenSfM / OpenDroneMap ``reconstruction.json`` in: cameras, poses and points (``docs/formats.md``).
+
+Frames
+------
+OpenSfM's world frame is topocentric east-north-up about ``reference_lla`` (when the file or a
+``reference_lla.json`` beside it gives one), else arbitrary. Its camera axes are OpenCV's (x right,
+y down, z forward); poses are returned in the project's convention: projection centre in the
+world frame and rotation photo vector (x, y, -f) -> world (:class:`stereo.block.types.Pose`).
+Rotation vectors are read with :func:`rectify.geometry.rotation.rodrigues`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from rectify.atomic import read_json
+from rectify.errors import InvalidInputError, RectifyError
+from rectify.geometry.camera import Camera
+from rectify.geometry.rotation import rodrigues
+from stereo.block.types import Pose
+
+__all__ = ["FOCAL_ASPECT_TOLERANCE", "OPENSFM_PROJECTIONS", "OpenSfMReconstruction", "read_opensfm"]
+
+logger = logging.getLogger(__name__)
+
+StrPath = str | os.PathLike[str]
+
+#: OpenSfM projection types this reader converts (others are refused by name)
+OPENSFM_PROJECTIONS = ("perspective", "brown", "radial", "simple_radial")
+#: relative difference of OpenSfM's focal_x and focal_y below which their mean is used (above: refused)
+FOCAL_ASPECT_TOLERANCE = 1e-3
+
+
+@dataclass(frozen=True, eq=False)
+class OpenSfMReconstruction:
+    """One reconstruction of an OpenSfM / OpenDroneMap ``reconstruction.json``.
+
+    Parameters
+    ----------
+    cameras : dict of str -> Camera
+        Pixel cameras (:attr:`Camera.pixel_camera`) keyed by OpenSfM's camera id.
+    poses : tuple of Pose
+        One per shot (sorted by image name): projection centre in the reconstruction's world frame
+        and rotation photo vector (x, y, -f) -> world; ``camera`` is the OpenSfM camera id.
+    point_ids : tuple of str
+        Ids of the reconstructed points (P).
+    points : (P, 3) float64
+        Their world coordinates.
+    colors : (P, 3) uint8 or None
+        Their colours (red, green, blue), None when the file has none.
+    reference_lonlat_h : (3,) float64 or None
+        Origin of the topocentric world frame: longitude, latitude (degrees, WGS 84) and
+        ellipsoidal height (metres), from the reconstruction's ``reference_lla`` or from
+        ``reference_lla.json`` beside the file; None when neither exists.
+    frame : str
+        A description of the world frame.
+    gps_position : (n, 3) float64
+        Each shot's ``gps_position`` (world frame), NaN rows where absent.
+    gps_dop : (n,) float64
+        Each shot's ``gps_dop`` (metres), NaN where absent.
+    index : int
+        Position of this reconstruction in the file's list.
+    n_reconstructions : int
+        Number of reconstructions in the file.
+    source : Path or None
+        The file read.
+    """
+
+    cameras: dict[str, Camera]
+    poses: tuple[Pose, ...]
+    point_ids: tuple[str, ...]
+    points: NDArray[np.float64]
+    colors: NDArray[np.uint8] | None
+    reference_lonlat_h: NDArray[np.float64] | None
+    frame: str
+    gps_position: NDArray[np.float64]
+    gps_dop: NDArray[np.float64]
+    index: int = 0
+    n_reconstructions: int = 1
+    source: Path | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "poses", tuple(self.poses))
+        object.__setattr__(self, "point_ids", tuple(self.point_ids))
+        for name in ("points", "colors", "reference_lonlat_h", "gps_position", "gps_dop"):
+            a = getattr(self, name)
+            if a is not None:
+                a = np.array(a, copy=True)
+                a.flags.writeable = False
+                object.__setattr__(self, name, a)
+
+
+def _num_of(v: Any, what: str, path: Path) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise InvalidInputError(f"{str(path)!r}: {what} must be a finite number; got {v!r}")
+    return float(v)
+
+
+def _vec3(v: Any, what: str, path: Path) -> NDArray[np.float64]:
+    if not isinstance(v, (list, tuple)) or len(v) != 3:
+        raise InvalidInputError(f"{str(path)!r}: {what} must be a list of 3 numbers; got {v!r}")
+    return np.array([_num_of(c, what, path) for c in v])
+
+
+def _opensfm_camera(key: str, obj: Any, path: Path) -> Camera:
+    where = f"camera {key!r}"
+    if not isinstance(obj, dict):
+        raise InvalidInputError(f"{str(path)!r}: {where} must be an object; got {obj!r}")
+    pt = obj.get("projection_type", "perspective")
+    if pt not in OPENSFM_PROJECTIONS:
+        raise InvalidInputError(f"{str(path)!r}: {where} has projection_type {pt!r}, which the frame camera model "
+                                f"cannot represent; supported: {list(OPENSFM_PROJECTIONS)}")
+    w, h = obj.get("width"), obj.get("height")
+    if isinstance(w, bool) or isinstance(h, bool) or not isinstance(w, int) or not isinstance(h, int) \
+            or w <= 0 or h <= 0:
+        raise InvalidInputError(f"{str(path)!r}: {where} needs positive integer width and height (the "
+                                f"normalised coordinates depend on them); got {w!r}, {h!r}")
+    size = float(max(w, h))
+    if pt == "perspective":
+        if "focal" not in obj:
+            raise InvalidInputError(f"{str(path)!r}: {where} ({pt}) lacks 'focal'")
+        f = _num_of(obj["focal"], f"{where} focal", path)
+        if f <= 0:
+            raise InvalidInputError(f"{str(path)!r}: {where} focal must be > 0; got {f!r}")
+        cx = cy = 0.0
+    else:
+        missing = [k for k in ("focal_x", "focal_y") if k not in obj]
+        if missing:
+            raise InvalidInputError(f"{str(path)!r}: {where} ({pt}) lacks {missing}")
+        fx = _num_of(obj["focal_x"], f"{where} focal_x", path)
+        fy = _num_of(obj["focal_y"], f"{where} focal_y", path)
+        if fx <= 0 or fy <= 0:
+            raise InvalidInputError(f"{str(path)!r}: {where} focal_x and focal_y must be > 0; got {fx!r}, {fy!r}")
+        if abs(fx - fy) > FOCAL_ASPECT_TOLERANCE * max(fx, fy):
+            raise InvalidInputError(f"{str(path)!r}: {where} has focal_x {fx!r} and focal_y {fy!r}; the frame camera "
+                                    f"model needs square pixels (one focal length, within "
+                                    f"{FOCAL_ASPECT_TOLERANCE:.1%})")
+        if fx != fy:
+            logger.info("%s: %s: focal_x %r and focal_y %r differ by %.2g; their mean is used", path, where, fx, fy,
+                        abs(fx - fy) / max(fx, fy))
+        f = 0.5 * (fx + fy)
+        cx = _num_of(obj.get("c_x", 0.0), f"{where} c_x", path)
+        cy = _num_of(obj.get("c_y", 0.0), f"{where} c_y", path)
+    keys = {"perspective": ("k1", "k2"), "brown": ("k1", "k2", "k3", "p1", "p2"), "radial": ("k1", "k2"),
+            "simple_radial": ("k1",)}[pt]
+    dist = {k: _num_of(obj.get(k, 0.0), f"{where} {k}", path) for k in keys}
+    doc = {"focal_length_px": f * size,
+           "principal_point_px": [cx * size + (w - 1) / 2.0, cy * size + (h - 1) / 2.0],
+           "width": w, "height": h, "distortion": {k: v for k, v in dist.items() if v != 0.0}}
+    return Camera.from_dict(doc)
+
+
+def _reference(rec: dict[str, Any], path: Path) -> NDArray[np.float64] | None:
+    lla = rec.get("reference_lla")
+    where = "reference_lla"
+    src = path
+    if lla is None:
+        side = path.with_name("reference_lla.json")
+        if not side.is_file():
+            return None
+        lla = read_json(side, "OpenSfM reference_lla.json")
+        src = side
+        where = "the reference"
+    if not isinstance(lla, dict) or any(k not in lla for k in ("latitude", "longitude", "altitude")):
+        raise InvalidInputError(f"{str(src)!r}: {where} must hold latitude, longitude and altitude; got {lla!r}")
+    lon = _num_of(lla["longitude"], f"{where} longitude", src)
+    lat = _num_of(lla["latitude"], f"{where} latitude", src)
+    alt = _num_of(lla["altitude"], f"{where} altitude", src)
+    if abs(lat) > 90 or abs(lon) > 360:
+        raise InvalidInputError(f"{str(src)!r}: {where} latitude {lat!r} / longitude {lon!r} out of range")
+    return np.array([lon, lat, alt])
+
+
+def read_opensfm(path: StrPath, *, index: int | None = None) -> OpenSfMReconstruction:
+    """Read cameras, poses and points of an OpenSfM / OpenDroneMap ``reconstruction.json``.
+
+    Parameters
+    ----------
+    path : str or path-like
+        The file: a JSON list of reconstructions.
+    index : int, optional
+        Which reconstruction; default the one with the most shots (the first of equals).
+
+    Returns
+    -------
+    OpenSfMReconstruction
+
+    Notes
+    -----
+    OpenSfM's shot ``rotation`` r is the axis-angle vector of R_cw (world -> camera) and
+    ``translation`` t gives x_cam = R_cw X + t in camera axes x right, y down, z forward, so the
+    projection centre is C = -R_cw^T t and the pose rotation (photo axes x right, y up, z back)
+    is R = R_cw^T diag(1, -1, -1).
+
+    OpenSfM's normalised image coordinates are u = (col + 0.5 - w/2) / s, v = (row + 0.5 - h/2) / s
+    with s = max(w, h) and pixel centres at integer col, row (its pixel coordinates are OpenCV's,
+    like ours), so pixel = s u + (w - 1) / 2. A camera becomes a pixel camera with
+    f_px = s f, principal point (s c_x + (w - 1)/2, s c_y + (h - 1)/2), and OpenSfM's k1, k2, k3,
+    p1, p2, which have OpenCV's definition on x/z, y/z. ``perspective`` (focal, k1, k2),
+    ``brown`` (focal_x, focal_y, c_x, c_y, k1, k2, k3, p1, p2), ``radial`` (k1, k2) and
+    ``simple_radial`` (k1) are read; fisheye, dual and spherical cameras are refused by name.
+    ``focal_x`` and ``focal_y`` that differ by up to 0.1 % are replaced by their mean (a scale error
+    of at most half the difference across the image); larger differences are refused.
+
+    Raises
+    ------
+    RasterIOError
+        The file is missing or unreadable.
+    InvalidInputError
+        Not valid JSON, not a list of reconstructions, no reconstruction at ``index``, an
+        unsupported camera, a shot naming an unknown camera, malformed numbers (naming the value).
+    """
+    p = Path(path)
+    doc = read_json(p, "OpenSfM reconstruction")
+    if isinstance(doc, dict) and "shots" in doc:
+        doc = [doc]
+    if not isinstance(doc, list) or not doc or not all(isinstance(r, dict) for r in doc):
+        raise InvalidInputError(f"{str(p)!r} is not an OpenSfM reconstruction file (a non-empty JSON list of "
+                                f"reconstructions); got {type(doc).__name__}")
+    if index is None:
+        index = max(range(len(doc)), key=lambda i: (len(doc[i].get("shots") or {}), -i))
+    elif isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < len(doc):
+        raise InvalidInputError(f"{str(p)!r}: reconstruction index {index!r} out of range 0..{len(doc) - 1}")
+    rec = doc[index]
+    for key in ("cameras", "shots"):
+        if not isinstance(rec.get(key), dict):
+            raise InvalidInputError(f"{str(p)!r}: reconstruction {index} lacks the {key!r} object")
+    cameras = {str(k): _opensfm_camera(str(k), v, p) for k, v in rec["cameras"].items()}
+    poses: list[Pose] = []
+    gps = []
+    dop = []
+    flip = np.diag([1.0, -1.0, -1.0])
+    for name in sorted(rec["shots"]):
+        shot = rec["shots"][name]
+        if not isinstance(shot, dict) or "rotation" not in shot or "translation" not in shot:
+            raise InvalidInputError(f"{str(p)!r}: shot {name!r} lacks rotation/translation")
+        cam = shot.get("camera")
+        if cam not in cameras:
+            raise InvalidInputError(f"{str(p)!r}: shot {name!r} names camera {cam!r}, which is not in the "
+                                    f"reconstruction (cameras: {sorted(cameras)})")
+        R_cw = rodrigues(_vec3(shot["rotation"], f"shot {name!r} rotation", p))[0]
+        t = _vec3(shot["translation"], f"shot {name!r} translation", p)
+        try:
+            poses.append(Pose(str(name), str(cam), -R_cw.T @ t, R_cw.T @ flip))
+        except RectifyError as err:
+            raise InvalidInputError(f"{str(p)!r}: shot {name!r}: {err}") from err
+        g = shot.get("gps_position")
+        gps.append(_vec3(g, f"shot {name!r} gps_position", p) if g is not None else np.full(3, np.nan))
+        d = shot.get("gps_dop")
+        dop.append(_num_of(d, f"shot {name!r} gps_dop", p) if d is not None else np.nan)
+    pts = rec.get("points") or {}
+    if not isinstance(pts, dict):
+        raise InvalidInputError(f"{str(p)!r}: reconstruction {index} 'points' must be an object")
+    ids = sorted(pts)
+    xyz = np.empty((len(ids), 3))
+    rgb = np.empty((len(ids), 3))
+    all_colours = True
+    for i, k in enumerate(ids):
+        v = pts[k]
+        if not isinstance(v, dict) or "coordinates" not in v:
+            raise InvalidInputError(f"{str(p)!r}: point {k!r} lacks coordinates")
+        xyz[i] = _vec3(v["coordinates"], f"point {k!r} coordinates", p)
+        if "color" in v and all_colours:
+            rgb[i] = _vec3(v["color"], f"point {k!r} color", p)
+        else:
+            all_colours = False
+    colors = np.clip(np.rint(rgb), 0, 255).astype(np.uint8) if all_colours and ids else None
+    ref = _reference(rec, p)
+    frame = ("topocentric east-north-up frame, metres, about reference_lonlat_h (WGS 84)" if ref is not None
+             else "OpenSfM's arbitrary world frame (no reference_lla: not georeferenced; z roughly up)")
+    return OpenSfMReconstruction(cameras=cameras, poses=tuple(poses), point_ids=tuple(str(k) for k in ids),
+                                 points=xyz, colors=colors, reference_lonlat_h=ref, frame=frame,
+                                 gps_position=np.array(gps, dtype=float).reshape(-1, 3),
+                                 gps_dop=np.array(dop, dtype=float), index=index, n_reconstructions=len(doc),
+                                 source=p)
