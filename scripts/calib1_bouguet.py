@@ -36,8 +36,8 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from stereo.calibration.model import project_vector
 from rectify.geometry.rotation import rodrigues, rotvec_from_matrix
+from stereo.calibration.model import project_vector
 from stereo.calibration.result import Calibration
 from stereo.calibration.views import TargetView
 

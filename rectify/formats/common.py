@@ -83,7 +83,8 @@ def check_format(doc: Any, name: str, version: int, path: StrPath | None = None,
     """
     label = f"{what or name + ' file'}{'' if path is None else ' ' + repr(str(path))}"
     if not isinstance(doc, dict):
-        raise InvalidInputError(f"{label} must hold a JSON object; expected a JSON object, got {type(doc).__name__}")
+        raise InvalidInputError(f"{label} must hold a JSON object (expected a JSON object at the top level, "
+                                f"got {type(doc).__name__})")
     legacy = dict(legacy or {})
     fmt = doc.get("format")
     if fmt is None:

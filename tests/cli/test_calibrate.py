@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from stereo.calibration.model import Intrinsics
 from rectify.geometry.rotation import rodrigues
-from stereo.formats.calibration import camera_from_dict
+from stereo.calibration.model import Intrinsics
 from stereo.cli.main import cli
 from stereo.features.targets import Chessboard
+from stereo.formats.calibration import camera_from_dict
 from tests.support.calibration_synthetic import board_scene, field_scene, rig_scene
 
 CAM = Intrinsics(fx=420.0, fy=420.0, cx=161.0, cy=118.0, width=320, height=240)
