@@ -26,9 +26,9 @@ import numpy as np
 from rectify.errors import CalibrationError
 from stereo.calibration.model import Intrinsics
 from stereo.calibration.result import Calibration
+from stereo.calibration.views import TargetView
 from stereo.calibration.zoom import ZoomModel
 from stereo.features.targets import Chessboard, detect_chessboards
-from stereo.calibration.views import TargetView
 from tests.support.calibration_synthetic import board_scene, field_scene, zoom_camera
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -52,7 +52,8 @@ def cpu_s():
     return u.ru_utime + u.ru_stime
 
 def warm():
-    import rectify.raster.ortho, rectify.raster.warp, stereo.dense.matching  # noqa: F401  (imports are not part of the job)
+    # the imports are not part of the job
+    import rectify.raster.ortho, rectify.raster.warp, stereo.dense.matching  # noqa: F401
     return vmhwm_mb()
 
 if __name__ == "__main__":

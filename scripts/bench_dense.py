@@ -59,7 +59,7 @@ def motorcycle(repeat: int) -> None:
     m = ~occlusion_from_truth(gt)
     res = alternate({"sgbm": lambda: sgbm_baseline(left, right),
                      "ours": lambda: match_pair(left, right).disparity}, repeat)
-    for name, key in (("OpenCV StereoSGBM (sample settings)", "sgbm"), ("stereo.dense.match_pair", "ours")):
+    for name, key in (("OpenCV StereoSGBM (sample settings)", "sgbm"), ("stereo.dense.matching.match_pair", "ours")):
         d, t = res[key]
         v = np.isfinite(d) & m
         print(f"Motorcycle {name}: density {v.sum() / m.sum():.3f}, bad-2.0 {(np.abs(d - gt) > 2)[v].mean():.4f}, "
@@ -81,7 +81,7 @@ def cones() -> None:
         gt = ds.read(1)
     nocc = (cv2.imread(str(CONES / "occlusion.png"), 0) > 0) & (gt > 0)
     for name, d in (("OpenCV StereoSGBM (sample settings)", sgbm_baseline(L, R)),
-                    ("stereo.dense.match_pair", match_pair(L, R).disparity)):
+                    ("stereo.dense.matching.match_pair", match_pair(L, R).disparity)):
         v = np.isfinite(d) & nocc
         print(f"Cones {name}: density {v.sum() / nocc.sum():.3f}, bad-1.0 {(np.abs(d - gt) > 1)[v].mean():.4f}")
 

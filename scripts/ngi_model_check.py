@@ -18,8 +18,8 @@ import numpy as np
 import rasterio
 from scipy import ndimage
 
-from rectify.geometry.points import ControlTable
 from rectify.geometry.camera import Camera
+from rectify.geometry.points import ControlTable
 from rectify.geometry.residuals import rms
 from rectify.geometry.rotation import matrix_from_angles
 from stereo.actions.run import run

@@ -124,7 +124,8 @@ def test_every_module_is_in_a_wing() -> None:
 
 def test_rectify_never_imports_stereo_and_no_package_imports_tests() -> None:
     bad = [f"{i.path}:{i.line} imports {i.target}" for i in IMPORTS
-           if i.target.split(".")[0] == "tests" or (i.module.startswith("rectify") and i.target.split(".")[0] == "stereo")]
+           if i.target.split(".")[0] == "tests"
+           or (i.module.startswith("rectify") and i.target.split(".")[0] == "stereo")]
     assert bad == []
 
 

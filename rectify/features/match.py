@@ -24,8 +24,7 @@ from numpy.typing import ArrayLike, NDArray
 from rectify.errors import EstimationError, InvalidInputError
 from rectify.features.detect import DETECTORS, Features, detect, grid_select
 from rectify.features.lsm import LsmConfig, refine_matches
-from rectify.geometry.points import Matches
-from rectify.geometry.points import as_pair
+from rectify.geometry.points import Matches, as_pair
 from rectify.geometry.residuals import ResidualTable, rms
 
 __all__ = ["VERIFY_METHODS", "MatcherConfig", "MatchResult", "ProgressFn", "Verification", "Verify", "match_arrays",

@@ -71,7 +71,7 @@ def sigma0_text(ro: RelativeOrientation, pixel_size_mm: float | None) -> str:
     return f"{s * 1000:.2f} um{px} (vertical parallax, {ro.n_used} - 5 redundancy, outliers excluded)"
 
 
-def match_pair(left: PathArg, right: PathArg, progress: Progress | None = None,
+def match_photos(left: PathArg, right: PathArg, progress: Progress | None = None,
                matcher: MatcherConfig | None = None) -> Any:
     """Tie points of a photo pair: :data:`PAIR_MATCHER` unless ``matcher`` is given."""
     with ignore_not_georeferenced():  # plain photos have no geotransform, as expected

@@ -9,7 +9,7 @@ from pathlib import Path
 from rectify.errors import InvalidInputError
 from rectify.features import MatcherConfig
 from rectify.geometry.camera import Camera
-from stereo.actions.common import ORIENT_MATCHER, PathArg, given, match_pair, sigma0_text
+from stereo.actions.common import ORIENT_MATCHER, PathArg, given, match_photos, sigma0_text
 from stereo.actions.workspace import PairWorkspace
 from stereo.relative import RelativeOrientation
 from stereo.relative.degenerate import check_base
@@ -113,7 +113,7 @@ def orient(*, camera: PathArg, output: PathArg, matches: PathArg | None = None,
     if images is not None:  # check the cameras against the photos before matching
         ws.check_camera_image(cam, images[0], "left")
         ws.check_camera_image(cam_r or cam, images[1], "right")
-        res = match_pair(images[0], images[1], matcher=matcher or ORIENT_MATCHER)
+        res = match_photos(images[0], images[1], matcher=matcher or ORIENT_MATCHER)
         m = res.matches
         n_matched, rmse = len(m), res.rmse_px
     else:

@@ -14,7 +14,7 @@ from rectify.features import MatcherConfig
 from rectify.geometry.camera import Camera
 from rectify.geometry.points import ControlTable
 from rectify.raster.distributed import resolve_scheduler
-from stereo.actions.common import PathArg, Progress, match_pair, parallax_sigma0_mm, sigma0_text
+from stereo.actions.common import PathArg, Progress, match_photos, parallax_sigma0_mm, sigma0_text
 from stereo.actions.dense import DenseOptions, DenseResult, run_dense
 from stereo.actions.workspace import PairWorkspace
 from stereo.pair.model import ModelOptions, StereoModel, build_model
@@ -93,7 +93,7 @@ def run(left: PathArg, right: PathArg, *, camera: PathArg | Camera, out_dir: Pat
         for side, px in (("left", ctrl.left), ("right", ctrl.right)):
             ws.check_points_in_frame(cam, px, ctrl.ids, f"{side} control image points")
     t0 = time.perf_counter()
-    mr = match_pair(left, right, progress, matcher)
+    mr = match_photos(left, right, progress, matcher)
     m = mr.matches
     t_match = time.perf_counter() - t0
     # pixels -> photo mm once, for the relative orientation and the model

@@ -372,7 +372,7 @@ class RelativeOrientation:
         return out
 
     def to_dict(self) -> dict[str, Any]:
-        """The dict form of the relative orientation JSON (see :mod:`stereo.formats.orientation` and ``docs/formats.md``)."""
+        """The dict form of the relative orientation JSON (:mod:`stereo.formats.orientation`, ``docs/formats.md``)."""
         corr = self.correlation
         std = self.std_errors
         wf = self.western()

@@ -719,7 +719,7 @@ def test_stereo_run_failing_while_writing_leaves_no_half_filled_folder(tmp_path,
     lp, rp = cam.pixel_from_photo(sim.left_mm), cam.pixel_from_photo(sim.right_mm)
     inside = ((lp >= 0) & (lp <= [639, 1151]) & (rp >= 0) & (rp <= [639, 1151])).all(axis=1)
     m = Matches(tuple(f"t{i}" for i in range(int(inside.sum()))), lp[inside], rp[inside])
-    monkeypatch.setattr(stereo.actions.run, "match_pair", lambda *a, **k: SimpleNamespace(matches=m, rmse_px=0.3))
+    monkeypatch.setattr(stereo.actions.run, "match_photos", lambda *a, **k: SimpleNamespace(matches=m, rmse_px=0.3))
 
     def boom(*a, **k):
         raise OSError(28, "No space left on device")

@@ -193,8 +193,8 @@ def _geojson(path, style):
 
 @pytest.mark.parametrize("kind", ["geojson-colrow", "geojson-qgis", "gpkg", "embedded", "embedded-auto"])
 def test_gcp_files_rectify_end_to_end(tmp_path, kind):
-    from rectify.geometry.points import GcpTable
     from rectify.formats.gcps import write_gcps_gpkg
+    from rectify.geometry.points import GcpTable
 
     src = _frame(tmp_path, gcps=list(zip(PIX, _tgt(), strict=True)) if kind.startswith("embedded") else None)
     args_gcps: list[str] = []

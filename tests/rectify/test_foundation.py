@@ -12,12 +12,18 @@ from numpy.testing import assert_allclose
 
 from rectify import errors
 from rectify.atomic import atomic_output, atomic_write_text, check_output
-from rectify.geometry.points import Matches
-from rectify.formats.tables import read_control, read_matches, write_matches
-from rectify.formats.gcps import read_gcps, write_gcps
 from rectify.formats.camera import read_camera
+from rectify.formats.gcps import read_gcps, write_gcps
+from rectify.formats.tables import read_control, read_matches, write_matches
 from rectify.geometry.camera import Camera
-from rectify.geometry.points import as_pair, as_points, check_distinct, check_no_three_collinear, check_not_collinear
+from rectify.geometry.points import (
+    Matches,
+    as_pair,
+    as_points,
+    check_distinct,
+    check_no_three_collinear,
+    check_not_collinear,
+)
 from rectify.geometry.residuals import ResidualTable
 from rectify.geometry.rotation import (
     ORDERS,

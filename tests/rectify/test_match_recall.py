@@ -8,8 +8,8 @@ import numpy as np
 import skimage.data as skd
 
 from rectify.features import MatcherConfig, match_arrays
-from rectify.geometry.points import Matches
 from rectify.formats.tables import matches_text, read_matches
+from rectify.geometry.points import Matches
 
 # a strong viewpoint change (about 50 degrees about the vertical axis, as in the Oxford graf sequence)
 H = np.array([[1.93, 0.0, 197.0], [0.36, 2.24, -286.0], [1.1e-3, 0.0, 1.0]])

@@ -13,8 +13,8 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
 from rectify.errors import EstimationError, InvalidInputError, RasterIOError, ShapeError
-from rectify.geometry.points import GcpTable
 from rectify.formats.transform import read_transform, write_transform
+from rectify.geometry.points import GcpTable
 from rectify.geometry.transforms import (
     METHODS,
     PAIRS,

@@ -1,4 +1,4 @@
-"""``rectify.raster.io.to_uint8``: the look-up-table path of one uint8/uint16 band gives exactly the float path's grey."""
+"""``rectify.raster.io.to_uint8``: the look-up-table path of one uint8/uint16 band gives the float path's grey."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Test support for the transforms side (rectify.geometry.transforms, rectify.geometry.analytic): helpers used only by tests."""
+"""Test support for the transforms side (rectify.geometry.transforms, rectify.geometry.analytic): test-only helpers."""
 
 from __future__ import annotations
 

@@ -21,9 +21,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from rectify.errors import EstimationError, InvalidInputError
-from rectify.geometry.points import GcpTable
 from rectify.geometry.crs import unit_label
-from rectify.geometry.points import as_weights
+from rectify.geometry.points import GcpTable, as_weights
 from rectify.geometry.residuals import ResidualTable
 from rectify.geometry.transforms.base import F64, Transform
 from rectify.geometry.transforms.cotangent import CotangentFourPoint
