@@ -27,8 +27,8 @@ from typing import Any
 from rectify.errors import InvalidInputError, RasterIOError
 
 __all__ = [
-    "FORMAT_PREFIX", "StrPath", "stamp", "check_format", "unstamped",
-    "read_table_text", "table_rows", "load_table", "need_columns", "cell_number", "no_duplicates",
+    "FORMAT_PREFIX", "StrPath", "stamp", "check_format", "unstamped", "check_numbers",
+    "read_table_text", "table_rows", "load_table", "need_columns", "cell_number", "finite_number", "no_duplicates",
 ]
 
 #: Prefix of every ``format`` value written by this project.
@@ -105,6 +105,35 @@ def unstamped(doc: Mapping[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in doc.items() if k not in ("format", "version")}
 
 
+# --------------------------------------------------------------------------- JSON numbers
+_JSON_SHAPE_NAMES = {(): "a number", (2,): "a list of 2 numbers", (3,): "a list of 3 numbers",
+                     (3, 3): "a 3 x 3 list of numbers"}
+
+
+def _is_json_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def check_numbers(d: dict[str, Any], key: str, shape: tuple[int, ...], path: StrPath) -> None:
+    """Refuse ``d[key]`` unless it is finite numbers of ``shape`` (strings and bools are not numbers).
+
+    Raises
+    ------
+    InvalidInputError
+        Naming the file, the key and the value.
+    """
+    v = d.get(key)
+
+    def ok(x: Any, shp: tuple[int, ...]) -> bool:
+        if not shp:
+            return _is_json_number(x) and math.isfinite(x)
+        return isinstance(x, list) and len(x) == shp[0] and all(ok(e, shp[1:]) for e in x)
+
+    if not ok(v, shape):
+        raise InvalidInputError(f"{str(path)!r}: `{key}` must be {_JSON_SHAPE_NAMES.get(shape, 'numbers')}; "
+                                f"got {v!r}")
+
+
 # --------------------------------------------------------------------------- CSV toolkit
 def read_table_text(path: StrPath) -> str:
     """The text of a CSV table (UTF-8; a byte-order mark anywhere is dropped).
@@ -179,12 +208,17 @@ def cell_number(row: dict[str, str], key: str, line: int, path: StrPath, *, allo
     s = row.get(key, "")
     if s == "" and allow_empty:
         return math.nan
+    return finite_number(s, f"{str(path)!r} line {line}: column {key!r}")
+
+
+def finite_number(value: str | float, label: str) -> float:
+    """``value`` as a finite float; else :class:`InvalidInputError` "<label> is not a number|finite: <value>"."""
     try:
-        v = float(s)
+        v = float(value)
     except ValueError:
-        raise InvalidInputError(f"{str(path)!r} line {line}: column {key!r} is not a number: {s!r}") from None
+        raise InvalidInputError(f"{label} is not a number: {value!r}") from None
     if not math.isfinite(v):
-        raise InvalidInputError(f"{str(path)!r} line {line}: column {key!r} is not finite: {s!r}")
+        raise InvalidInputError(f"{label} is not finite: {value!r}")
     return v
 
 

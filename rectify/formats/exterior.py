@@ -22,44 +22,16 @@ import numpy as np
 from rectify.atomic import read_json
 from rectify.errors import CRSError, InvalidInputError
 from rectify.formats.camera import read_camera
-from rectify.formats.common import StrPath, check_format
+from rectify.formats.common import StrPath, check_format, check_numbers
 from rectify.geometry.rotation import check_rotation, matrix_from_angles
 from rectify.geometry.sensors import FrameModel
 
-__all__ = ["EXTERIOR_NAME", "EXTERIOR_VERSION", "check_numbers", "exterior_fields", "read_exterior",
+__all__ = ["EXTERIOR_NAME", "EXTERIOR_VERSION", "exterior_fields", "read_exterior",
            "read_frame_model"]
 
 #: format name (after ``rectify-stereo/``) and newest version of the exterior orientation JSON
 EXTERIOR_NAME = "exterior-orientation"
 EXTERIOR_VERSION = 1
-
-_JSON_SHAPE_NAMES = {(): "a number", (2,): "a list of 2 numbers", (3,): "a list of 3 numbers",
-                     (3, 3): "a 3 x 3 list of numbers"}
-
-
-def _is_json_number(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
-
-
-def check_numbers(d: dict[str, Any], key: str, shape: tuple[int, ...], path: StrPath) -> None:
-    """Refuse ``d[key]`` unless it is finite numbers of ``shape`` (strings and bools are not numbers).
-
-    Raises
-    ------
-    InvalidInputError
-        Naming the file, the key and the value.
-    """
-    v = d.get(key)
-
-    def ok(x: Any, shp: tuple[int, ...]) -> bool:
-        if not shp:
-            return _is_json_number(x) and bool(np.isfinite(x))
-        return isinstance(x, list) and len(x) == shp[0] and all(ok(e, shp[1:]) for e in x)
-
-    if not ok(v, shape):
-        raise InvalidInputError(f"{str(path)!r}: `{key}` must be {_JSON_SHAPE_NAMES.get(shape, 'numbers')}; "
-                                f"got {v!r}")
-
 
 def exterior_fields(doc: Any, path: StrPath) -> dict[str, Any]:
     """Check a parsed exterior orientation document; return its geometry.

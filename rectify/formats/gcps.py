@@ -30,7 +30,15 @@ import numpy as np
 
 from rectify.atomic import atomic_output, atomic_write_text
 from rectify.errors import InvalidInputError, RasterIOError
-from rectify.formats.common import StrPath, cell_number, load_table, need_columns, no_duplicates, read_table_text
+from rectify.formats.common import (
+    StrPath,
+    cell_number,
+    finite_number,
+    load_table,
+    need_columns,
+    no_duplicates,
+    read_table_text,
+)
 from rectify.formats.tables import read_matches
 from rectify.geometry.crs import parse_crs
 from rectify.geometry.points import GcpTable
@@ -171,15 +179,10 @@ def _pixel_of(props: Mapping[str, Any], where: str, path: StrPath) -> tuple[floa
 
 
 def _json_num(v: Any, key: str, where: str, path: StrPath) -> float:
+    label = f"{str(path)!r} {where}: {key!r}"
     if isinstance(v, bool) or not isinstance(v, (int, float, str)):
-        raise InvalidInputError(f"{str(path)!r} {where}: {key!r} is not a number: {v!r}")
-    try:
-        f = float(v)
-    except ValueError:
-        raise InvalidInputError(f"{str(path)!r} {where}: {key!r} is not a number: {v!r}") from None
-    if not math.isfinite(f):
-        raise InvalidInputError(f"{str(path)!r} {where}: {key!r} is not finite: {v!r}")
-    return f
+        raise InvalidInputError(f"{label} is not a number: {v!r}")
+    return finite_number(v, label)
 
 
 def _check_flag(props: Mapping[str, Any]) -> bool:

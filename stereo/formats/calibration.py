@@ -40,7 +40,7 @@ from numpy.typing import NDArray
 
 from rectify.atomic import read_text
 from rectify.errors import CalibrationError, InvalidInputError
-from rectify.formats.common import FORMAT_PREFIX
+from rectify.formats.common import FORMAT_PREFIX, finite_number
 from stereo.calibration.model import Intrinsics
 from stereo.calibration.views import TargetView
 
@@ -152,13 +152,7 @@ def _read_rows(path: str | Path, what: str) -> tuple[list[str], list[list[str]]]
 
 
 def _num(v: str, what: str, line: int, col: str) -> float:
-    try:
-        x = float(v)
-    except ValueError:
-        raise InvalidInputError(f"{what} line {line}: column {col!r} is not a number: {v!r}") from None
-    if not math.isfinite(x):
-        raise InvalidInputError(f"{what} line {line}: column {col!r} is not finite: {v!r}")
-    return x
+    return finite_number(v, f"{what} line {line}: column {col!r}")
 
 
 def read_field_csv(path: str | Path) -> dict[str, F64]:

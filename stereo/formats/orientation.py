@@ -34,8 +34,8 @@ import numpy as np
 
 from rectify.atomic import atomic_output, read_json, write_failure_reason
 from rectify.errors import InvalidInputError, RasterIOError
-from rectify.formats.common import check_format
-from rectify.formats.exterior import check_numbers, exterior_fields
+from rectify.formats.common import check_format, check_numbers
+from rectify.formats.exterior import exterior_fields
 from rectify.report.builder import json_safe
 from stereo.pair.resection import ExteriorOrientation
 from stereo.relative import RelativeGeometry
@@ -145,42 +145,20 @@ def read_relative(path: StrPath) -> RelativeGeometry:
     missing = [k for k in ("rotation_left", "rotation_right", "base", "focal_length_mm") if k not in d]
     if missing:
         raise InvalidInputError(f"{str(p)!r} is not a relative orientation JSON: missing {missing}")
-    _check_numbers(d, "rotation_left", (3, 3), p)
-    _check_numbers(d, "rotation_right", (3, 3), p)
-    _check_numbers(d, "base", (3,), p)
+    check_numbers(d, "rotation_left", (3, 3), p)
+    check_numbers(d, "rotation_right", (3, 3), p)
+    check_numbers(d, "base", (3,), p)
     f = d["focal_length_mm"]
-    _check_numbers(d, "focal_length_mm", (2,) if isinstance(f, list) else (), p)
+    check_numbers(d, "focal_length_mm", (2,) if isinstance(f, list) else (), p)
     for key in ("sigma0_mm", "pixel_size_mm"):
         if d.get(key) is not None:
-            _check_numbers(d, key, (), p)
+            check_numbers(d, key, (), p)
     try:
         return RelativeGeometry.from_dict(d, source=repr(str(p)))
     except (TypeError, ValueError, KeyError) as err:
         if isinstance(err, InvalidInputError):
             raise
         raise InvalidInputError(f"{str(p)!r}: bad relative orientation: {err}") from err
-
-
-_JSON_SHAPE_NAMES = {(): "a number", (2,): "a list of 2 numbers", (3,): "a list of 3 numbers",
-                     (3, 3): "a 3 x 3 list of numbers"}
-
-
-def _is_json_number(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
-
-
-def _check_numbers(d: dict[str, Any], key: str, shape: tuple[int, ...], path: Path) -> None:
-    """Refuse ``d[key]`` unless it is finite numbers of ``shape`` (strings and bools are not numbers)."""
-    v = d.get(key)
-
-    def ok(x: Any, shp: tuple[int, ...]) -> bool:
-        if not shp:
-            return _is_json_number(x) and bool(np.isfinite(x))
-        return isinstance(x, list) and len(x) == shp[0] and all(ok(e, shp[1:]) for e in x)
-
-    if not ok(v, shape):
-        raise InvalidInputError(f"{str(path)!r}: `{key}` must be {_JSON_SHAPE_NAMES.get(shape, 'numbers')}; "
-                                f"got {v!r}")
 
 
 # ---------------------------------------------------------- exterior orientation
