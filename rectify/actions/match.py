@@ -8,7 +8,10 @@ from typing import Any
 
 from rectify.actions.common import Progress
 from rectify.actions.workspace import Workspace
-from rectify.features import MatcherConfig, MatchResult, match_images
+from rectify.features import DETECTORS, VERIFY_METHODS, MatcherConfig, MatchResult, match_images
+
+#: the command's choices (the lists live in :mod:`rectify.features`)
+__all__ = ["DETECTORS", "VERIFY_METHODS", "MatchOptions", "MatchRun", "match"]
 
 
 @dataclass(frozen=True)

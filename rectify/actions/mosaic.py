@@ -15,7 +15,7 @@ from rectify.actions.workspace import Workspace
 from rectify.raster.mosaic import MosaicOptions, MosaicResult
 from rectify.raster.mosaic import mosaic as mosaic_orthos
 
-__all__ = ["MosaicRunOptions", "MosaicRun", "mosaic"]
+__all__ = ["MosaicOptions", "MosaicRunOptions", "MosaicRun", "mosaic"]
 
 
 @dataclass(frozen=True)

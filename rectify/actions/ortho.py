@@ -33,7 +33,7 @@ from rectify.raster.io import bound_gdal_cache, raster_info
 from rectify.raster.ortho import OrthoOptions, OrthoResult, orthorectify
 from rectify.report.ortho import write_ortho_report
 
-__all__ = ["OrthoRunOptions", "OrthoRun", "ortho", "ortho_from_files"]
+__all__ = ["OrthoOptions", "OrthoRunOptions", "OrthoRun", "ortho", "ortho_from_files"]
 
 
 @dataclass(frozen=True)

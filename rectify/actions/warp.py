@@ -15,7 +15,10 @@ from rectify.geometry.points import GcpTable
 from rectify.geometry.transforms.quality import GcpGeometry, geographic_lines, judge_gcp_geometry
 from rectify.raster.georectify import GeoRectification, georectify, rectify_with_transform
 from rectify.raster.io import raster_info
-from rectify.raster.warp import DEFAULT_MAX_PIXELS, WarpOptions
+from rectify.raster.warp import DEFAULT_MAX_PIXELS, RESAMPLING_NAMES, WarpOptions
+
+#: the command's choices (the list lives in :mod:`rectify.raster.warp`)
+__all__ = ["RESAMPLING_NAMES", "WarpRunOptions", "WarpRun", "warp"]
 
 
 @dataclass(frozen=True)

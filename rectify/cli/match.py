@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import click
 
-from rectify.actions.match import MatchOptions
+from rectify.actions.match import DETECTORS, VERIFY_METHODS, MatchOptions
 from rectify.actions.match import match as match_action
 from rectify.actions.workspace import Workspace
 from rectify.cli.options import echo, handle_errors, overwrite_opt, progress, report_opt, scheduler_opt
-from rectify.features import DETECTORS, VERIFY_METHODS
 
 _D = MatchOptions()
 

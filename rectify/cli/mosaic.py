@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import click
 
-from rectify.actions.mosaic import MosaicRunOptions
+from rectify.actions.mosaic import MosaicOptions, MosaicRunOptions
 from rectify.actions.mosaic import mosaic as run_mosaic
 from rectify.actions.workspace import Workspace
 from rectify.cli.options import echo, handle_errors, overwrite_opt, progress, scheduler_opt
-from rectify.raster.mosaic import MosaicOptions
 
 
 @click.command(short_help="Mosaic orthophotos: nearest-nadir seamlines, feathering, one GeoTIFF or COG.")

@@ -22,7 +22,6 @@ import click
 
 from rectify.atomic import write_failure_reason
 from rectify.errors import RectifyError, RectifyWarning
-from rectify.raster.distributed import resolve_scheduler
 
 __all__ = ["overwrite_opt", "verbosity_opts", "report_opt", "scheduler_opt", "handle_errors", "progress",
            "setup_logging", "VerbosityGroup", "subcommand_verbosity_params"]
@@ -37,6 +36,9 @@ def _check_scheduler(ctx: click.Context, param: click.Parameter, value: str | No
     """Refuse a bad --scheduler at parse time (exit 2, one line); the library checks it again."""
     if value is None:
         return None
+    # local: rasterio (imported by the raster wing) must load after cli.main's defer_import("boto3")
+    from rectify.raster.distributed import resolve_scheduler
+
     try:
         resolve_scheduler(value)
     except RectifyError as err:

@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import click
 
-from rectify.actions.ortho import OrthoRunOptions
+from rectify.actions.ortho import OrthoOptions, OrthoRunOptions
 from rectify.actions.ortho import ortho as run_ortho
 from rectify.actions.workspace import Workspace
 from rectify.cli.options import echo, handle_errors, overwrite_opt, progress, report_opt, scheduler_opt
-from rectify.raster.ortho import OrthoOptions
 
 
 @click.command(short_help="Orthorectify an image with a DEM (RPC or frame camera), optionally a true ortho.")

@@ -5,11 +5,10 @@ from __future__ import annotations
 import click
 
 from rectify.actions.common import METHOD_NAMES
-from rectify.actions.warp import WarpRunOptions
+from rectify.actions.warp import RESAMPLING_NAMES, WarpRunOptions
 from rectify.actions.warp import warp as warp_action
 from rectify.actions.workspace import Workspace
 from rectify.cli.options import echo, handle_errors, overwrite_opt, progress, report_opt, scheduler_opt
-from rectify.raster.warp import RESAMPLING_NAMES
 
 _D = WarpRunOptions()
 
