@@ -197,23 +197,25 @@ _CARTESIAN = {"subtype": "Cartesian", "axis": [
     {"name": "Geocentric Z", "abbreviation": "Z", "direction": "geocentricZ", "unit": "metre"}]}
 
 
-@functools.lru_cache(maxsize=32)
-def geographic3d_wkt(wkt: str) -> str:
-    """WKT of the 3D geographic CRS (lon, lat, h) on the datum of the CRS ``wkt`` (cached)."""
+def _geodetic(wkt: str) -> pyproj.CRS:
+    """The geodetic CRS of the CRS ``wkt``; :class:`CRSError` when it has no geodetic datum."""
     c = parse_crs(wkt)
     g = c.geodetic_crs
     if g is None:
         raise CRSError(f"CRS {c.name!r} has no geodetic datum")
-    return g.to_3d().to_wkt()
+    return g
+
+
+@functools.lru_cache(maxsize=32)
+def geographic3d_wkt(wkt: str) -> str:
+    """WKT of the 3D geographic CRS (lon, lat, h) on the datum of the CRS ``wkt`` (cached)."""
+    return _geodetic(wkt).to_3d().to_wkt()
 
 
 @functools.lru_cache(maxsize=32)
 def geocentric_wkt(wkt: str) -> str:
     """WKT of the geocentric (ECEF, X Y Z metres) CRS on the datum of the CRS ``wkt`` (cached)."""
-    c = parse_crs(wkt)
-    g = c.geodetic_crs
-    if g is None:
-        raise CRSError(f"CRS {c.name!r} has no geodetic datum")
+    g = _geodetic(wkt)
     if g.is_geocentric:
         return g.to_wkt()
     d = g.to_json_dict()
