@@ -7,7 +7,11 @@ import click
 from rectify.actions.ortho import OrthoOptions, OrthoRunOptions
 from rectify.actions.ortho import ortho as run_ortho
 from rectify.actions.workspace import Workspace
-from rectify.cli.options import echo, handle_errors, overwrite_opt, progress, report_opt, scheduler_opt
+from rectify.cli.options import echo, handle_errors, overwrite_opt, progress, scheduler_opt
+
+report_opt = click.option("--report", "report_dir", type=click.Path(file_okay=False), default=None,
+                          help="Write report.html (the run's facts, GCP residuals, the relief-shift map), "
+                               "report.json, ortho_report.json, residuals.csv and relief_shift.tif into this folder.")
 
 
 @click.command(short_help="Orthorectify an image with a DEM (RPC or frame camera), optionally a true ortho.")
@@ -17,9 +21,13 @@ from rectify.cli.options import echo, handle_errors, overwrite_opt, progress, re
               help="DEM GeoTIFF (any CRS and resolution).")
 @click.option("--rpc", "rpc", is_flag=False, flag_value="__image__", default=None,
               help="Use the image's RPC (bare --rpc) or an RPC file (_RPC.TXT, .RPB, DIMAP/DigitalGlobe XML).")
-@click.option("--camera", type=click.Path(dir_okay=False), default=None, help="Camera JSON (frame camera).")
+@click.option("--camera", type=click.Path(dir_okay=False), default=None,
+              help="Camera JSON (frame camera); optional with a block orientation JSON, which holds the cameras.")
 @click.option("--exterior", type=click.Path(dir_okay=False), default=None,
-              help="Exterior orientation JSON ('stereo resect').")
+              help="Exterior orientation: EO JSON ('stereo resect'), or a block's orientation.json or poses.csv "
+                   "('stereo block'; the image by --image-id).")
+@click.option("--image-id", default=None,
+              help="Image of a block orientation JSON or poses CSV (its name or file stem; default: SRC's file stem).")
 @click.option("--eo-crs", default=None, help="CRS of the exterior orientation (when the JSON has none).")
 @click.option("--gcps", type=click.Path(dir_okay=False), default=None,
               help="GCP file: refines an RPC (bias compensation) or checks a frame model.")
@@ -27,9 +35,13 @@ from rectify.cli.options import echo, handle_errors, overwrite_opt, progress, re
               help="RPC bias model fitted to the GCPs.")
 @click.option("--dst-crs", default=None, help="Output CRS (default: the EO CRS, or UTM for RPC images).")
 @click.option("--resolution", type=float, default=None, help="Output pixel size in output CRS units.")
-@click.option("--undulation", type=float, default=0.0, show_default=True,
-              help="Geoid undulation N added to DEM heights (h = H + N; RPCs need ellipsoidal heights).")
+@click.option("--undulation", type=float, default=None,
+              help="Geoid undulation N (m) added to the DEM heights (h = H + N; RPCs need ellipsoidal heights). "
+                   "Default: the vertical datum the DEM's CRS declares, else none.")
 @click.option("--geoid", default=None, help="Geoid of the DEM heights, e.g. EPSG:5773 (needs the PROJ grid).")
+@click.option("--gcp-heights", default=None,
+              help="Datum of the GCP heights: 'ellipsoidal', 'dem' (the DEM file's) or a vertical CRS (EPSG:5773). "
+                   "Default: the GCP file's CRS; else the DEM's when its heights are not converted.")
 @click.option("--resampling", type=click.Choice(["nearest", "bilinear", "cubic"]), default="bilinear",
               show_default=True)
 @click.option("--true-ortho", is_flag=True, default=False,
@@ -40,13 +52,14 @@ from rectify.cli.options import echo, handle_errors, overwrite_opt, progress, re
 @report_opt
 @overwrite_opt
 @handle_errors
-def ortho(src, dst, dem_path, rpc, camera, exterior, eo_crs, gcps, refinement, dst_crs, resolution, undulation,
-          geoid, resampling, true_ortho, cog, threads, scheduler, report_dir, overwrite):
+def ortho(src, dst, dem_path, rpc, camera, exterior, image_id, eo_crs, gcps, refinement, dst_crs, resolution,
+          undulation, geoid, gcp_heights, resampling, true_ortho, cog, threads, scheduler, report_dir, overwrite):
     """Orthorectify SRC over a DEM into the GeoTIFF given by -o."""
 
     engine = OrthoOptions(resampling=resampling, cog=cog, threads=threads, true_ortho=true_ortho, scheduler=scheduler)
     opts = OrthoRunOptions(eo_crs=eo_crs, refinement=refinement, dst_crs=dst_crs, resolution=resolution,
-                           undulation=undulation, geoid=geoid, engine=engine)
+                           undulation=undulation, geoid=geoid, gcp_heights=gcp_heights, image_id=image_id,
+                           engine=engine)
     rpc_arg = True if rpc == "__image__" else (rpc or False)
     ws = Workspace(overwrite=overwrite, report_dir=report_dir)
     with progress("orthorectifying", enabled=True) as cb:

@@ -12,6 +12,7 @@ import enum
 import math
 import os
 import time
+import warnings
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -522,31 +523,106 @@ def verify_matches(left_xy: ArrayLike, right_xy: ArrayLike, *, method: str = "ho
 
 # --------------------------------------------------------------------------- helpers
 def _local_affine(pl: NDArray[np.float64], pr: NDArray[np.float64], ver: Verification | None,
-                  k: int = 12) -> NDArray[np.float64]:
+                  k: int = 12, *, keypoints: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
     """Initial local shape d(right)/d(left) at every match, (N, 2, 2).
 
-    Homography: its Jacobian. Otherwise an affine fit to the k nearest
-    matches (identity when fewer than 6 matches).
+    Homography: its Jacobian. Otherwise a robust affine fit to the k nearest matches, checked against
+    the keypoints' own similarity (``keypoints``: (N, 4) size and orientation, radians, in the left and the
+    right image; the right keypoint is the left one turned by the difference of the orientations and scaled
+    by the ratio of the sizes), the median of the neighbours' similarities replacing the fit where the
+    two disagree by more than :data:`AFFINE_MAX_TURN` or :data:`AFFINE_MAX_SCALE` (too few or badly placed
+    neighbours, a wrong one among them). Without keypoints, identity where the fit fails.
     """
     n = len(pl)
     if ver is not None and ver.method == "homography" and ver.matrix is not None:
         return _h_jacobian(ver.matrix, pl)
+    kp = None if keypoints is None else _keypoint_similarity(np.asarray(keypoints, dtype=np.float64))
     if n < 6:
-        return np.broadcast_to(np.eye(2), (n, 2, 2)).copy()
+        if kp is None:
+            return np.broadcast_to(np.eye(2), (n, 2, 2)).copy()
+        return _similarity_matrix(np.repeat(_median_similarity(kp[None]), n, axis=0))
     # local import: scipy.spatial takes about 0.6 s to import and only this fallback needs it
     from scipy.spatial import cKDTree
 
     kk = min(k, n)
     _, nb = cKDTree(pl).query(pl, k=kk)
-    X = pl[nb] - pl[nb].mean(axis=1, keepdims=True)      # (n, k, 2)
-    Y = pr[nb] - pr[nb].mean(axis=1, keepdims=True)
-    XtX = np.einsum("nki,nkj->nij", X, X) + 1e-9 * np.eye(2)
-    XtY = np.einsum("nki,nkj->nij", X, Y)
-    B = np.linalg.solve(XtX, XtY)                          # Y ~ X @ B -> A = B^T
-    A = np.transpose(B, (0, 2, 1))
+    A = _neighbour_affine(pl, pr, nb)
     bad = ~np.isfinite(A).all(axis=(1, 2)) | (np.abs(np.linalg.det(A)) < 0.05)
     A[bad] = np.eye(2)
+    if kp is None:
+        return A
+    S = _median_similarity(kp[nb])              # (n, 2): the neighbours' median (s cos, s sin)
+    off = bad | _disagree(A, S)
+    A[off] = _similarity_matrix(S[off])
     return A
+
+
+#: the neighbours' affine fit gives way to the keypoints' similarity when their rotations differ by more than
+#: this (radians) or their scales by more than this factor
+AFFINE_MAX_TURN = math.radians(20.0)
+AFFINE_MAX_SCALE = 1.3
+
+
+def _keypoint_similarity(kp: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(N, 2) similarity (s cos a, s sin a) of each match from its keypoints (size_l, angle_l, size_r, angle_r):
+    s = size_r / size_l, a = angle_r - angle_l (OpenCV's orientations: the right point is the left one
+    turned by a in the x right, y down frame). NaN where an orientation or a size is missing."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = kp[:, 2] / kp[:, 0]
+    a = kp[:, 3] - kp[:, 1]
+    return np.c_[s * np.cos(a), s * np.sin(a)]
+
+
+def _median_similarity(S: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Component-wise median over axis 1 of (n, k, 2) similarities, ignoring NaN (identity where none)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)     # all-NaN slices: identity below
+        m = np.nanmedian(S, axis=1)
+    bad = ~np.isfinite(m).all(axis=1) | (np.hypot(m[:, 0], m[:, 1]) < 1e-3)
+    m[bad] = [1.0, 0.0]
+    return m
+
+
+def _similarity_matrix(S: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(n, 2, 2) matrices [[c, -s], [s, c]] of similarities (n, 2) = (c, s)."""
+    out = np.empty((len(S), 2, 2))
+    out[:, 0, 0] = out[:, 1, 1] = S[:, 0]
+    out[:, 0, 1] = -S[:, 1]
+    out[:, 1, 0] = S[:, 1]
+    return out
+
+
+def _disagree(A: NDArray[np.float64], S: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Where the affines A (n, 2, 2) and the similarities S (n, 2) differ in rotation or scale."""
+    # the similarity closest to A: c = (a00 + a11) / 2, s = (a10 - a01) / 2
+    c = 0.5 * (A[:, 0, 0] + A[:, 1, 1])
+    sn = 0.5 * (A[:, 1, 0] - A[:, 0, 1])
+    turn = np.abs(np.angle((c + 1j * sn) / (S[:, 0] + 1j * S[:, 1])))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.sqrt(np.abs(np.linalg.det(A))) / np.hypot(S[:, 0], S[:, 1])
+    return ~np.isfinite(ratio) | (turn > AFFINE_MAX_TURN) | (ratio > AFFINE_MAX_SCALE) | (ratio < 1 / AFFINE_MAX_SCALE)
+
+
+def _neighbour_affine(pl: NDArray[np.float64], pr: NDArray[np.float64], nb: NDArray[np.int64]
+                      ) -> NDArray[np.float64]:
+    """Affine d(right)/d(left) (n, 2, 2) fitted to each match's neighbours ``nb`` (n, k) by least squares, then
+    again without the neighbours whose residual exceeds 3 times the median one (a wrong match among them)."""
+    w = np.ones(nb.shape)
+    B = np.zeros((len(nb), 2, 2))
+    for _ in range(2):
+        sw = w.sum(axis=1, keepdims=True)
+        mx = np.einsum("nk,nki->ni", w, pl[nb])[:, None] / sw[:, :, None]
+        my = np.einsum("nk,nki->ni", w, pr[nb])[:, None] / sw[:, :, None]
+        X = pl[nb] - mx
+        Y = pr[nb] - my
+        XtX = np.einsum("nk,nki,nkj->nij", w, X, X) + 1e-9 * np.eye(2)
+        XtY = np.einsum("nk,nki,nkj->nij", w, X, Y)
+        with np.errstate(invalid="ignore"):
+            B = np.linalg.solve(XtX, XtY)                  # Y ~ X @ B -> A = B^T
+        res = np.linalg.norm(np.einsum("nki,nij->nkj", X, B) - Y, axis=2)
+        med = np.median(res, axis=1, keepdims=True)
+        w = (res <= 3.0 * med + 1e-6).astype(np.float64)
+    return np.transpose(B, (0, 2, 1))
 
 
 def _h_jacobian(H: NDArray[np.float64], p: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -599,9 +675,14 @@ def _check_homography_sane(H, pl, cfg: MatcherConfig) -> None:
         raise _no_overlap(len(pl), len(pl), cfg, f" (inliers span only {span.round(1).tolist()} px)")
 
 
-def _refine(Lg, Rg, pl, pr, ver: Verification | None, cfg: MatcherConfig, progress=None):
-    A = _local_affine(pl, pr, ver)
+def _refine(Lg, Rg, pl, pr, ver: Verification | None, cfg: MatcherConfig, progress=None, keypoints=None):
+    A = _local_affine(pl, pr, ver, keypoints=keypoints)
     return refine_matches(Lg, Rg, pl, pr, affine=A, config=cfg.lsm, progress=progress)
+
+
+def _keypoint_shapes(fl: Features, fr: Features, li: NDArray[np.int64], ri: NDArray[np.int64]) -> NDArray[np.float64]:
+    """(N, 4) size and orientation of the matched keypoints: size_l, angle_l, size_r, angle_r (px, radians)."""
+    return np.c_[fl.size[li], fl.angle[li], fr.size[ri], fr.angle[ri]]
 
 
 def _final_select(pl, pr, score, shape_left, budget, cap):
@@ -625,13 +706,13 @@ def _result(pl, pr, score, ver, cfg, n_det, n_matched, n_verified, n_ref, n_fail
                        rmse_raw, ver, cand_l, cand_r, cand_inl, tiled, shapes, timings, n_dup, n_guided)
 
 
-def _finish(pl, pr, ratio, Lg, Rg, cfg: MatcherConfig, ver0: Verification | None, progress=None):
+def _finish(pl, pr, ratio, Lg, Rg, cfg: MatcherConfig, ver0: Verification | None, progress=None, keypoints=None):
     """Refine (optional), drop failures, re-verify, cap evenly. Returns pieces for _result."""
     raw_pr = pr.copy()
     n_ref = n_fail = 0
     score = ratio.copy()
     if cfg.refine and len(pl):
-        lr = _refine(Lg, Rg, pl, pr, ver0, cfg, progress)
+        lr = _refine(Lg, Rg, pl, pr, ver0, cfg, progress, keypoints)
         ok = lr.converged
         n_ref, n_fail = int(ok.sum()), int((~ok).sum())
         if cfg.keep_unrefined:  # flagged by a NaN score, at the raw (verified) position
@@ -700,6 +781,7 @@ def _match_whole(L, lv, R, rv, cfg: MatcherConfig, progress, names) -> MatchResu
         inl = ver0.inliers
     cand_l, cand_r, cand_inl = pl, pr, inl
     vl, vr, vratio = pl[inl], pr[inl], ratio[inl]
+    vli, vri = pairs.left[inl], pairs.right[inl]          # keypoint indices (their sizes and orientations)
     room = cfg.guided_fill - len(vl)
     extra = _guided(fl, fr, pairs, inl, fwd, ver0, cfg) if room > 0 else _Pairs(np.zeros(0, np.int64),
                                                                                  np.zeros(0, np.int64), np.zeros(0))
@@ -711,19 +793,21 @@ def _match_whole(L, lv, R, rv, cfg: MatcherConfig, progress, names) -> MatchResu
         vl = np.concatenate([vl, fl.xy[extra.left]])
         vr = np.concatenate([vr, fr.xy[extra.right]])
         vratio = np.concatenate([vratio, extra.ratio])
+        vli, vri = np.concatenate([vli, extra.left]), np.concatenate([vri, extra.right])
     # SIFT's repeated keypoints (one per orientation) are one match: refine it once
     u = _one_to_one(vl, vr, vratio)
     n_dup0 = len(vl) - len(u)
-    vl, vr, vratio = vl[u], vr[u], vratio[u]
+    vl, vr, vratio, vli, vri = vl[u], vr[u], vratio[u], vli[u], vri[u]
     pre = int(math.ceil(1.25 * cfg.max_matches))
     if len(vl) > pre:       # refine only what can be returned (plus a reserve for failures)
         keep = grid_select(vl, -vratio, L.shape[:2], pre, cell_cap=cfg.cell_cap)
-        vl, vr, vratio = vl[keep], vr[keep], vratio[keep]
+        vl, vr, vratio, vli, vri = vl[keep], vr[keep], vratio[keep], vli[keep], vri[keep]
     t3 = time.perf_counter()
     tick(3, 4)
     Lg = _grey_float(L, lv) if cfg.refine else None
     Rg = _grey_float(R, rv) if cfg.refine else None
-    fl_, fr_, raw_pr, score, n_ref, n_fail = _finish(vl, vr, vratio, Lg, Rg, cfg, ver0)
+    fl_, fr_, raw_pr, score, n_ref, n_fail = _finish(vl, vr, vratio, Lg, Rg, cfg, ver0,
+                                                     keypoints=_keypoint_shapes(fl, fr, vli, vri))
     out_l, out_r, raw, sc, ver, n_dup = _reverify_and_cap(fl_, fr_, raw_pr, score, cfg, L.shape[:2])
     t4 = time.perf_counter()
     tick(4, 4)

@@ -9,12 +9,14 @@
   ``cx``, ``cy``, distortion and a separate point of symmetry, as ``stereo calibrate`` writes it), with
   the calibration's standard errors and sigma0 as optional inputs. ``stereo.formats.calibration`` reads
   it back into the calibration's interior orientation; :func:`read_camera` reads it as a ``Camera``
-  when its pixels are square and it has no separate point of symmetry.
+  (fx, fy and skew: ``K = [[fx, s, cx], [0, fy, cy], [0, 0, 1]]``) when it has no separate point of
+  symmetry.
 
 Pixel camera::
 
     {"format": "rectify-stereo/camera", "version": 2, "width": 640, "height": 480,
-     "fx_px": 809.95, "fy_px": 806.56,            # or "focal_length_px" when fx = fy
+     "fx_px": 809.95, "fy_px": 806.56,            # or "focal_length_px" when fx = fy and no skew
+     "skew_px": 0.0,                               # optional, the skew s of K (0 when absent)
      "principal_point_px": [361.99, 214.40],       # pixel frame: col right, row down
      "distortion": {"k1": -0.128, "k2": -0.394, "k3": 0.0, "p1": -0.00435, "p2": -0.00732},
      "point_of_symmetry_px": [360.1, 215.0],       # only when estimated separately

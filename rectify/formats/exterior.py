@@ -1,4 +1,4 @@
-"""The exterior orientation JSON (``eo.json``, ``stereo resect -o``): the one reader of its geometry.
+"""Exterior orientations for ``rectify ortho``: the EO JSON (the one reader of its geometry), and one image of a block.
 
 ``rectify-stereo/exterior-orientation`` version 1 (``docs/formats.md``): ``position`` (X, Y, Z of the
 projection centre, ground units), ``rotation`` (3 x 3, photo vector (x, y, -f) -> ground) or ``angles``
@@ -11,23 +11,54 @@ CRS) and returns the geometry; :func:`read_exterior` reads it from a file (what 
 needs) and :func:`stereo.formats.orientation.read_exterior` builds the full
 ``ExteriorOrientation`` from the same fields. :func:`read_frame_model` makes the orthorectifier's
 :class:`rectify.geometry.sensors.FrameModel` from a camera JSON and an EO JSON.
+
+A block's outputs feed the orthophoto directly, per image (:func:`read_frame_source`, ``--exterior``
+with ``--image-id``, default the source image's file stem):
+
+- the block orientation JSON (``rectify-stereo/block-orientation``, ``stereo block``'s
+  ``orientation.json``): the image's ``position`` and ``rotation``, the file's ``crs`` and the image's
+  camera from the file's ``cameras`` (unless a camera JSON is given);
+- the position/angle CSV (``stereo block``'s ``poses.csv``: ``image,[camera,]x,y,z,omega,phi,kappa``
+  with optional standard deviations, ``# crs=`` and ``# angles=deg|rad`` comment lines; R = Rx(omega)
+  Ry(phi) Rz(kappa)); it carries no camera model, so a camera JSON is needed.
+
+An image id matches an image name exactly or by file stem (``IMG_1`` matches ``IMG_1.JPG``).
+Parsed here with :mod:`rectify.formats.common` (``rectify`` never imports ``stereo``).
 """
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from rectify.atomic import read_json
-from rectify.errors import CRSError, InvalidInputError
+from rectify.errors import CRSError, InvalidInputError, RectifyError
 from rectify.formats.camera import read_camera
-from rectify.formats.common import StrPath, check_format, check_numbers
+from rectify.formats.common import (
+    FORMAT_PREFIX,
+    StrPath,
+    cell_number,
+    check_format,
+    check_numbers,
+    need_columns,
+    read_table_text,
+    table_rows,
+)
+from rectify.geometry.camera import Camera
+from rectify.geometry.crs import VerticalDatum, horizontal_crs, parse_crs, vertical_datum
 from rectify.geometry.rotation import check_rotation, matrix_from_angles
 from rectify.geometry.sensors import FrameModel
 
-__all__ = ["EXTERIOR_NAME", "EXTERIOR_VERSION", "exterior_fields", "read_exterior",
-           "read_frame_model"]
+__all__ = ["EXTERIOR_NAME", "EXTERIOR_VERSION", "BLOCK_ORIENTATION_NAME", "FrameSource", "exterior_fields",
+           "read_exterior", "read_frame_model", "read_frame_source"]
+
+#: format name (after ``rectify-stereo/``) and newest version of the block orientation JSON read here
+BLOCK_ORIENTATION_NAME = "block-orientation"
+BLOCK_ORIENTATION_VERSION = 1
 
 #: format name (after ``rectify-stereo/``) and newest version of the exterior orientation JSON
 EXTERIOR_NAME = "exterior-orientation"
@@ -83,18 +114,188 @@ def read_exterior(path: StrPath) -> dict[str, Any]:
     return exterior_fields(read_json(path, "exterior orientation file"), path)
 
 
-def read_frame_model(camera_json: StrPath, exterior_json: StrPath, *, crs: str | None = None) -> FrameModel:
-    """A frame camera model from a camera JSON and an exterior orientation JSON (``crs`` overrides the EO file's).
+@dataclass(frozen=True, eq=False)
+class FrameSource:
+    """A frame model and where it came from.
+
+    Attributes
+    ----------
+    model : FrameModel
+    description : str
+        One line: the file, its kind, the image id and the camera's origin.
+    image_id : str or None
+        The image of a block or pose file (None for an EO JSON).
+    vertical : VerticalDatum or None
+        The heights the orientation's CRS declares (a compound CRS); the model's CRS is its horizontal part.
+    """
+
+    model: FrameModel
+    description: str
+    image_id: str | None = None
+    vertical: VerticalDatum | None = None
+
+
+def _pick_image(names: list[str], image_id: str, path: StrPath, what: str, *, defaulted: bool) -> int:
+    """Index of the image ``image_id`` among ``names``: exact, else by file stem; one line when absent or ambiguous."""
+    exact = [i for i, n in enumerate(names) if n == image_id]
+    if exact:
+        return exact[0]
+    stem = Path(image_id).stem
+    by_stem = [i for i, n in enumerate(names) if Path(n).stem in (image_id, stem)]
+    if len(by_stem) == 1:
+        return by_stem[0]
+    how = f"image id {image_id!r}" + (" (the source image's file stem; pass --image-id)" if defaulted else "")
+    if by_stem:
+        raise InvalidInputError(f"{how} matches several images of {what} {str(path)!r}: "
+                                f"{[names[i] for i in by_stem][:10]}; pass the full name with --image-id")
+    raise InvalidInputError(f"{how} is not in {what} {str(path)!r} ({len(names)} images: {names[:10]}"
+                            f"{' ...' if len(names) > 10 else ''})")
+
+
+def _block_image(doc: dict[str, Any], path: StrPath, image_id: str, defaulted: bool
+                 ) -> tuple[dict[str, Any], Camera, str]:
+    """Position, rotation and CRS of one image of a block orientation JSON, its camera and the camera id."""
+    check_format(doc, BLOCK_ORIENTATION_NAME, BLOCK_ORIENTATION_VERSION, path, what="block orientation file")
+    images, cameras = doc.get("images"), doc.get("cameras")
+    if not isinstance(images, list) or not images or not all(isinstance(im, dict) for im in images):
+        raise InvalidInputError(f"{str(path)!r}: `images` must be a non-empty list of objects")
+    if not isinstance(cameras, dict):
+        raise InvalidInputError(f"{str(path)!r}: `cameras` must be an object (camera id -> camera)")
+    names = [str(im.get("image")) for im in images]
+    im = images[_pick_image(names, image_id, path, "block orientation", defaulted=defaulted)]
+    where = f"{str(path)} image {im.get('image')!r}"
+    for key, shape in (("position", (3,)), ("rotation", (3, 3))):
+        if key not in im:
+            raise InvalidInputError(f"{where!r} lacks {key!r}")
+        check_numbers(im, key, shape, where)
+    R = check_rotation(im["rotation"], "rotation")
+    cam_id = str(im.get("camera"))
+    if cam_id not in cameras or not isinstance(cameras[cam_id], dict):
+        raise InvalidInputError(f"{where!r} names camera {cam_id!r}, which is not in `cameras` {sorted(cameras)}")
+    try:
+        cam = Camera.from_dict(cameras[cam_id])
+    except RectifyError as err:
+        raise InvalidInputError(f"{str(path)!r} camera {cam_id!r}: {err}") from err
+    crs = doc.get("crs")
+    return ({"position": np.asarray(im["position"], dtype=np.float64), "rotation": np.asarray(R, dtype=np.float64),
+             "crs": crs if isinstance(crs, str) else None, "image": str(im.get("image"))}, cam, cam_id)
+
+
+def _pose_row(path: StrPath, image_id: str, defaulted: bool) -> dict[str, Any]:
+    """Position, rotation and CRS of one image of a position/angle CSV (omega, phi, kappa)."""
+    text = read_table_text(path)
+    unit = "deg"
+    for no, line in enumerate(text.splitlines(), start=1):
+        body = line.strip().lstrip("#").strip() if line.strip().startswith("#") else ""
+        key, sep, value = body.partition("=")
+        if sep and key.strip().lower() == "angles":
+            unit = value.strip().lower()
+            if unit not in ("deg", "rad"):
+                raise InvalidInputError(f"{str(path)!r} line {no}: unknown angle unit {value.strip()!r}; "
+                                        f"expected 'deg' or 'rad'")
+    rows, lines, crs = table_rows(text, path)
+    if not rows:
+        raise InvalidInputError(f"{str(path)!r} has a header but no pose rows")
+    fields = list(rows[0].keys())
+    if any(f in fields for f in ("heading", "pitch", "roll")):
+        raise InvalidInputError(f"{str(path)!r} gives navigation angles (heading, pitch, roll); rectify ortho reads "
+                                f"poses with omega,phi,kappa, as `stereo block` writes them in its poses.csv")
+    need_columns(fields, ("image", "x", "y", "z", "omega", "phi", "kappa"), path)
+    names = [r.get("image", "") for r in rows]
+    k = _pick_image(names, image_id, path, "pose file", defaulted=defaulted)
+    r, ln = rows[k], lines[k]
+    pos = [cell_number(r, c, ln, path) for c in ("x", "y", "z")]
+    scale = math.pi / 180.0 if unit == "deg" else 1.0
+    ang = [cell_number(r, c, ln, path) * scale for c in ("omega", "phi", "kappa")]
+    if crs is not None:
+        try:
+            parse_crs(crs)
+        except CRSError as err:
+            raise CRSError(f"{str(path)!r}: {err}") from err
+    return {"position": np.asarray(pos, dtype=np.float64),
+            "rotation": matrix_from_angles(ang[0], ang[1], ang[2], "omega-phi-kappa"), "crs": crs,
+            "image": names[k], "camera": r.get("camera", "")}
+
+
+def read_frame_source(camera_json: StrPath | None, exterior: StrPath, *, crs: str | None = None,
+                      image_id: str | None = None, image_path: StrPath | None = None) -> FrameSource:
+    """The frame model of one image from an EO JSON, a block orientation JSON or a position/angle CSV.
+
+    Parameters
+    ----------
+    camera_json : path or None
+        A camera JSON; None takes the image's camera from a block orientation JSON.
+    exterior : path
+        EO JSON (``stereo resect``), block orientation JSON (``stereo block``'s ``orientation.json``)
+        or position/angle CSV (``.csv``, ``stereo block``'s ``poses.csv``).
+    crs : str, optional
+        CRS of the orientation (overrides the file's).
+    image_id : str, optional
+        The image of a block or pose file (exact name or file stem); default the stem of ``image_path``.
+        Refused with an EO JSON, which holds one image.
+    image_path : path, optional
+        The source image, whose file stem is the default image id.
+
+    Raises
+    ------
+    InvalidInputError
+        Unknown image id (the file's ids listed), no camera (neither a camera JSON nor a block camera),
+        an image id with an EO JSON, malformed files (named).
+    CRSError
+        No CRS in the file and none given.
+    """
+    ext = Path(exterior)
+    explicit = image_id is not None
+    iid = image_id if explicit else (Path(image_path).stem if image_path is not None else None)
+    cam_note = f"camera {str(camera_json)!r}" if camera_json is not None else ""
+    if ext.suffix.lower() == ".csv":
+        if iid is None:
+            raise InvalidInputError(f"pose file {str(ext)!r} holds several images: name one (--image-id)")
+        eo = _pose_row(ext, iid, not explicit)
+        if camera_json is None:
+            raise InvalidInputError(f"pose file {str(ext)!r} has no camera model: pass the camera JSON (--camera) "
+                                    f"of its camera {eo['camera'] or '(unnamed)'!r}")
+        cam = read_camera(camera_json)
+        what = f"image {eo['image']!r} of pose file {str(ext)!r}"
+    else:
+        doc = read_json(ext, "exterior orientation file")
+        if isinstance(doc, dict) and doc.get("format") == FORMAT_PREFIX + BLOCK_ORIENTATION_NAME:
+            if iid is None:
+                raise InvalidInputError(f"block orientation {str(ext)!r} holds several images: name one "
+                                        f"(--image-id)")
+            eo, block_cam, cam_id = _block_image(doc, ext, iid, not explicit)
+            if camera_json is None:
+                cam, cam_note = block_cam, f"camera {cam_id!r} of the block"
+            else:
+                cam = read_camera(camera_json)
+            what = f"image {eo['image']!r} of block orientation {str(ext)!r}"
+        else:
+            if explicit:
+                raise InvalidInputError(f"--image-id {image_id!r} names an image of a block orientation or pose "
+                                        f"file; {str(ext)!r} is the exterior orientation of one image")
+            if camera_json is None:
+                raise InvalidInputError(f"exterior orientation {str(ext)!r} has no camera model: pass the camera "
+                                        f"JSON (--camera)")
+            eo = exterior_fields(doc, ext)
+            cam = read_camera(camera_json)
+            what = f"exterior orientation {str(ext)!r}"
+    c = crs or eo["crs"]
+    if c is None:
+        raise CRSError(f"{what} has no 'crs'; pass the CRS of its coordinates (--eo-crs)")
+    model = FrameModel(cam, eo["position"], eo["rotation"], horizontal_crs(c))
+    return FrameSource(model, f"{what}, {cam_note}", eo.get("image"), vertical_datum(c))
+
+
+def read_frame_model(camera_json: StrPath | None, exterior_json: StrPath, *, crs: str | None = None,
+                     image_id: str | None = None) -> FrameModel:
+    """A frame camera model from a camera JSON and an exterior orientation (``crs`` overrides the file's).
+
+    ``exterior_json`` is an EO JSON, or a block orientation JSON / position-angle CSV with ``image_id``
+    (:func:`read_frame_source`).
 
     Raises
     ------
     CRSError
-        Neither ``crs`` nor a ``crs`` in the EO file.
+        Neither ``crs`` nor a ``crs`` in the file.
     """
-    cam = read_camera(camera_json)
-    eo = read_exterior(exterior_json)
-    c = crs or eo["crs"]
-    if c is None:
-        raise CRSError(f"exterior orientation {str(exterior_json)!r} has no 'crs'; pass the CRS of its "
-                       f"coordinates")
-    return FrameModel(cam, eo["position"], eo["rotation"], c)
+    return read_frame_source(camera_json, exterior_json, crs=crs, image_id=image_id).model

@@ -10,10 +10,23 @@ photo
     projection centre is at (0, 0, +f), so an image point is the vector
     (x, y, -f).
 
-Distortion follows OpenCV's Brown-Conrady definition (k1, k2, k3 radial, p1, p2
-tangential) on coordinates normalised by the focal length **in OpenCV's frame**
-(x right, y down, origin at the principal point). ``photo_from_pixel`` removes
-distortion (returns ideal coordinates); ``pixel_from_photo`` applies it.
+Interior orientation in pixels is the projective one of seed 003 (1.2, eq. 1.4)::
+
+    K = [[fx, s, cx],
+         [0, fy, cy],
+         [0,  0,  1]]       fx = f / pixel size, fy = aspect * fx, s = shear * fx
+
+A pixel (u, v) is ``K (xd, yd, 1)`` for the distorted normalised coordinates (xd, yd) in
+**OpenCV's frame** (x right, y down, origin at the principal point, unit = principal distance).
+Distortion follows OpenCV's Brown-Conrady definition (k1, k2, k3 radial, p1, p2 tangential) on
+those normalised coordinates, i.e. before ``K``, as ``cv2.projectPoints`` and the calibration
+(:mod:`stereo.calibration.model`) apply it. The photo coordinates are those of the ideal camera of
+principal distance ``f = fx * pixel size``: ``x = f xn``, ``y = -f yn`` for the undistorted
+normalised (xn, yn), so every consumer that works in photo millimetres with the image vector
+(x, y, -f) is exact for non-square pixels and skew as long as it converts pixels only through this
+class. ``photo_from_pixel`` removes distortion (returns ideal coordinates); ``pixel_from_photo``
+applies it. With ``aspect == 1`` and ``shear == 0`` (square pixels, the default) the arithmetic is
+the one of a single focal length, bit for bit.
 """
 
 from __future__ import annotations
@@ -36,7 +49,7 @@ DISTORTION_KEYS = ("k1", "k2", "k3", "p1", "p2")
 #: pixel size given to a camera read in pixels (no physical pixel size), mm: 1 um
 NOMINAL_PIXEL_SIZE_MM = 1e-3
 
-_PIXEL_KEYS = ("focal_length_px", "fx_px", "fy_px", "principal_point_px")
+_PIXEL_KEYS = ("focal_length_px", "fx_px", "fy_px", "skew_px", "principal_point_px")
 _META_KEYS = ("name", "comment", "format", "version", "std_errors", "sigma0_px", "sigma0_mm")
 
 
@@ -67,6 +80,13 @@ class Camera:
         file's units), carried through unchanged.
     sigma0_px : float or None
         sigma0 of that calibration, pixels.
+    aspect : float
+        fy / fx, the ratio of the principal distances along rows and columns (1: square pixels; > 0).
+    shear : float
+        s / fx, the skew of ``K`` relative to fx (0: perpendicular pixel axes).
+
+    ``aspect`` and ``shear`` are relative to fx, so a change of the principal distance (a bundle's
+    self-calibration of f) keeps the pixel grid's shape: fy and the skew scale with fx.
     """
 
     focal_length_mm: float
@@ -78,6 +98,8 @@ class Camera:
     pixel_camera: bool = False
     std_errors: dict[str, float] = field(default_factory=dict)
     sigma0_px: float | None = None
+    aspect: float = 1.0
+    shear: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("focal_length_mm", "pixel_size_mm"):
@@ -126,12 +148,33 @@ class Camera:
                 raise CalibrationError(f"camera `sigma0_px` must be a finite number >= 0; got {v!r}")
             object.__setattr__(self, "sigma0_px", float(v))
         object.__setattr__(self, "pixel_camera", bool(self.pixel_camera))
+        for name, low in (("aspect", 0.0), ("shear", None)):
+            v = getattr(self, name)
+            if not _is_number(v) or not math.isfinite(float(v)) or (low is not None and v <= low):
+                raise CalibrationError(f"camera `{name}` must be a finite number{' > 0' if low is not None else ''}; "
+                                       f"got {v!r}")
+            object.__setattr__(self, name, float(v))
 
     # ------------------------------------------------------------------ derived
     @property
     def focal_px(self) -> float:
-        """Principal distance in pixels."""
+        """Principal distance in pixels along the columns, fx (the one principal distance when pixels are square)."""
         return self.focal_length_mm / self.pixel_size_mm
+
+    @property
+    def fy_px(self) -> float:
+        """Principal distance in pixels along the rows, fy = aspect * fx."""
+        return self.focal_px * self.aspect
+
+    @property
+    def skew_px(self) -> float:
+        """Skew s of ``K``, px (s = shear * fx)."""
+        return self.focal_px * self.shear
+
+    @property
+    def square(self) -> bool:
+        """One principal distance and perpendicular pixel axes (fx == fy, no skew)."""
+        return self.aspect == 1.0 and self.shear == 0.0
 
     @property
     def principal_point_px(self) -> NDArray[np.float64]:
@@ -145,7 +188,9 @@ class Camera:
         """OpenCV intrinsic matrix (3, 3), pixel frame (x right, y down)."""
         cx, cy = self.principal_point_px
         f = self.focal_px
-        return np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+        if self.square:
+            return np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+        return np.array([[f, self.skew_px, cx], [0.0, self.fy_px, cy], [0.0, 0.0, 1.0]])
 
     @property
     def dist_coeffs(self) -> NDArray[np.float64]:
@@ -162,7 +207,12 @@ class Camera:
         """Pixel (N, 2) -> ideal (undistorted) photo coordinates (N, 2), mm."""
         px = as_points(pixel, "pixel")
         c = self.principal_point_px
-        n = (px - c) / self.focal_px  # OpenCV normalised frame, y down, distorted
+        if self.square:
+            n = (px - c) / self.focal_px  # OpenCV normalised frame, y down, distorted
+        else:  # K^-1 (u, v, 1)
+            d = px - c
+            yn = d[:, 1] / self.fy_px
+            n = np.column_stack([(d[:, 0] - self.skew_px * yn) / self.focal_px, yn])
         if self.has_distortion:
             n = self._undistort_normalised(n)
         return np.column_stack([n[:, 0], -n[:, 1]]) * self.focal_length_mm
@@ -173,7 +223,10 @@ class Camera:
         n = np.column_stack([mm[:, 0], -mm[:, 1]]) / self.focal_length_mm
         if self.has_distortion:
             n = self._distort_normalised(n)
-        return n * self.focal_px + self.principal_point_px
+        if self.square:
+            return n * self.focal_px + self.principal_point_px
+        cx, cy = self.principal_point_px
+        return np.column_stack([self.focal_px * n[:, 0] + self.skew_px * n[:, 1] + cx, self.fy_px * n[:, 1] + cy])
 
     def _distort_normalised(self, n: NDArray[np.float64]) -> NDArray[np.float64]:
         d = self.distortion
@@ -211,13 +264,30 @@ class Camera:
     def to_dict(self) -> dict[str, Any]:
         """The camera JSON object (``docs/formats.md``) without the format stamp (it is embedded in other files).
 
-        A pixel camera is written in pixels (``focal_length_px``, ``principal_point_px``).
+        A pixel camera is written in pixels: ``focal_length_px`` when its pixels are square
+        (:attr:`square`), else ``fx_px``, ``fy_px`` and ``skew_px`` (the last only when not 0);
+        then ``principal_point_px``.
+
+        Raises
+        ------
+        CalibrationError
+            A millimetre camera with non-square pixels or skew (the millimetre form has one
+            principal distance and square pixels: write it as a pixel camera).
         """
         out: dict[str, Any]
         if self.pixel_camera:
-            out = {"focal_length_px": self.focal_px, "principal_point_px": [float(c) for c in self.principal_point_px],
-                   "width": self.width, "height": self.height}
+            if self.square:
+                out = {"focal_length_px": self.focal_px}
+            else:
+                out = {"fx_px": self.focal_px, "fy_px": self.fy_px}
+                if self.shear != 0.0:
+                    out["skew_px"] = self.skew_px
+            out.update(principal_point_px=[float(c) for c in self.principal_point_px], width=self.width,
+                       height=self.height)
         else:
+            if not self.square:
+                raise CalibrationError(f"a millimetre camera has square pixels and no skew; this one has fy/fx "
+                                       f"{self.aspect!r} and skew/fx {self.shear!r}: write it as a pixel camera")
             out = {
                 "focal_length_mm": self.focal_length_mm,
                 "pixel_size_mm": self.pixel_size_mm,
@@ -239,8 +309,9 @@ class Camera:
         """Build from the camera JSON object (``docs/formats.md``); unknown keys are rejected by name.
 
         Two forms are read: a millimetre camera (``focal_length_mm``, ``pixel_size_mm``, optional
-        ``principal_point_mm``) and a pixel camera (``focal_length_px`` or equal ``fx_px``/``fy_px``,
-        ``principal_point_px`` in the pixel frame), both with ``width``, ``height``, optional
+        ``principal_point_mm``; square pixels) and a pixel camera (``focal_length_px``, or ``fx_px`` and
+        ``fy_px``; optional ``skew_px``; ``principal_point_px`` in the pixel frame), both with
+        ``width``, ``height``, optional
         ``distortion``, ``std_errors`` and ``sigma0_px``. The ``format``/``version`` stamp of a
         camera file is accepted and not checked here (:func:`rectify.formats.camera.read_camera` checks it).
         """
@@ -282,20 +353,7 @@ class Camera:
         missing = [k for k in ("width", "height", "principal_point_px") if k not in d]
         if missing:
             raise CalibrationError(f"camera JSON in pixels lacks required key(s) {missing}")
-        if "focal_length_px" in d:
-            f = d["focal_length_px"]
-        elif "fx_px" in d and "fy_px" in d:
-            fx, fy = d["fx_px"], d["fy_px"]
-            if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (fx, fy)):
-                raise CalibrationError(f"camera `fx_px`, `fy_px` must be numbers; got {fx!r}, {fy!r}")
-            if abs(fx - fy) > 1e-9 * max(abs(fx), abs(fy)):
-                raise CalibrationError(f"camera has non-square pixels (fx_px {fx!r} != fy_px {fy!r}); the frame "
-                                       "camera model needs one focal length: calibrate with a single f")
-            f = fx
-        else:
-            raise CalibrationError("camera JSON in pixels needs `focal_length_px` (or equal `fx_px` and `fy_px`)")
-        if not isinstance(f, (int, float)) or isinstance(f, bool) or not math.isfinite(f) or f <= 0:
-            raise CalibrationError(f"camera `focal_length_px` must be a finite number > 0; got {f!r}")
+        fx, fy, skew = _pixel_focals(d)
         w, h = d["width"], d["height"]
         if isinstance(w, bool) or not isinstance(w, int) or w <= 0 or isinstance(h, bool) or not isinstance(h, int) \
                 or h <= 0:
@@ -310,9 +368,40 @@ class Camera:
         ps = NOMINAL_PIXEL_SIZE_MM
         x0 = (pp[0] - (w - 1) / 2.0) * ps
         y0 = -(pp[1] - (h - 1) / 2.0) * ps
-        return cls(focal_length_mm=float(f) * ps, pixel_size_mm=ps, width=w, height=h, principal_point_mm=(x0, y0),
+        square = fy == fx and skew == 0.0
+        return cls(focal_length_mm=fx * ps, pixel_size_mm=ps, width=w, height=h, principal_point_mm=(x0, y0),
                    distortion=d.get("distortion", {}) or {}, pixel_camera=True,
-                   std_errors=d.get("std_errors", {}) or {}, sigma0_px=d.get("sigma0_px"))
+                   std_errors=d.get("std_errors", {}) or {}, sigma0_px=d.get("sigma0_px"),
+                   aspect=1.0 if square else fy / fx, shear=0.0 if square else skew / fx)
+
+
+def _pixel_focals(d: dict[str, Any]) -> tuple[float, float, float]:
+    """fx, fy, skew (px) of a pixel camera's JSON: ``focal_length_px`` (fx = fy) or ``fx_px`` and ``fy_px``,
+    and ``skew_px`` (default 0). ``focal_length_px`` given with ``fx_px``/``fy_px`` must equal both."""
+    vals: dict[str, float] = {}
+    for k in ("focal_length_px", "fx_px", "fy_px", "skew_px"):
+        if k in d:
+            v = d[k]
+            if not _is_number(v) or not math.isfinite(float(v)) or (k != "skew_px" and v <= 0):
+                bound = "" if k == "skew_px" else " > 0"
+                raise CalibrationError(f"camera `{k}` must be a finite number{bound}; got {v!r}")
+            vals[k] = float(v)
+    has_xy = [k for k in ("fx_px", "fy_px") if k in vals]
+    if len(has_xy) == 1:
+        missing = "fy_px" if has_xy == ["fx_px"] else "fx_px"
+        raise CalibrationError(f"camera JSON in pixels gives `{has_xy[0]}` {vals[has_xy[0]]!r} without `{missing}`; "
+                               "give both (or `focal_length_px` for square pixels)")
+    if "focal_length_px" in vals:
+        f = vals["focal_length_px"]
+        if has_xy and (vals["fx_px"] != f or vals["fy_px"] != f):
+            raise CalibrationError(f"camera `focal_length_px` {f!r} contradicts `fx_px` {vals['fx_px']!r}, `fy_px` "
+                                   f"{vals['fy_px']!r}: give one of them")
+        fx = fy = f
+    elif has_xy:
+        fx, fy = vals["fx_px"], vals["fy_px"]
+    else:
+        raise CalibrationError("camera JSON in pixels needs `focal_length_px` (or `fx_px` and `fy_px`)")
+    return fx, fy, vals.get("skew_px", 0.0)
 
 
 def _is_number(v: Any) -> bool:

@@ -7,25 +7,36 @@ Every coordinate transformation in the project goes through
 transformation raises instead of returning ``inf``. CRSs are stored as
 ``"EPSG:nnnn"`` when they have a code, WKT2 otherwise (:func:`crs_to_string`).
 Axis order is always (x, y) = (easting, northing) or (lon, lat).
+
+Heights: :func:`vertical_datum` says what a CRS declares about its heights (nothing, ellipsoidal
+heights, or heights above a vertical datum such as EGM2008), :func:`horizontal_crs` strips the
+vertical part, and :func:`geoid_height` gives the geoid undulation N (h = H + N) of a vertical CRS
+from PROJ's grids, refusing when the grid is not installed (no download at run time: PROJ's network
+access stays off).
 """
 
 from __future__ import annotations
 
 import functools
 import logging
+import warnings
+from dataclasses import dataclass
 
 import numpy as np
 import pyproj
 from numpy.typing import ArrayLike, NDArray
 from pyproj import Transformer
+from pyproj.crs import CompoundCRS
 from pyproj.exceptions import CRSError as ProjCRSError
 from pyproj.exceptions import ProjError
+from pyproj.transformer import TransformerGroup
 
 from rectify.errors import CRSError
 from rectify.geometry.points import as_points
 
 __all__ = ["unit_label", "parse_crs", "crs_to_string", "get_transformer", "transform_xy", "transform_xyz",
-           "transform_arrays", "geographic3d_wkt", "geocentric_wkt", "same_crs", "is_geographic", "check_area_of_use"]
+           "transform_arrays", "geographic3d_wkt", "geocentric_wkt", "same_crs", "is_geographic", "check_area_of_use",
+           "VerticalDatum", "vertical_datum", "horizontal_crs", "geoid_height"]
 
 logger = logging.getLogger(__name__)
 
@@ -296,3 +307,116 @@ def check_area_of_use(crs, xy: ArrayLike, ids=None, *, margin_deg: float = 10.0)
         raise CRSError(f"point {names[i]} ({p[i, 0]:.10g}, {p[i, 1]:.10g}) lies far outside the area of use of "
                        f"{label} (lon {aou.west:g}..{aou.east:g}, lat {aou.south:g}..{aou.north:g}; the point is at "
                        f"lon {lon[i]:.4g}, lat {lat[i]:.4g}): wrong CRS for these coordinates?")
+
+
+# --------------------------------------------------------------------------- heights
+@dataclass(frozen=True)
+class VerticalDatum:
+    """What a CRS declares about its heights.
+
+    Attributes
+    ----------
+    ellipsoidal : bool
+        True for ellipsoidal heights (a 3D geographic or projected CRS).
+    name : str
+        The vertical CRS's name (``"EGM2008 height"``), or ``"ellipsoidal height"``.
+    crs : str or None
+        The vertical CRS (``"EPSG:3855"`` or WKT) for heights above a geoid; None when ellipsoidal.
+    """
+
+    ellipsoidal: bool
+    name: str
+    crs: str | None = None
+
+    @property
+    def label(self) -> str:
+        """``"EGM2008 height (EPSG:3855)"``: the name, and the code when it has one."""
+        if self.crs is not None and self.crs.startswith("EPSG:"):
+            return f"{self.name} ({self.crs})"
+        return self.name
+
+
+def vertical_datum(crs) -> VerticalDatum | None:
+    """The heights a CRS declares: a vertical CRS (compound ``EPSG:4326+3855``, or vertical alone),
+    ellipsoidal heights (3D geographic or projected CRS, e.g. ``EPSG:4979``), or None (2D CRS)."""
+    c = parse_crs(crs)
+    if c.is_compound:
+        for sub in c.sub_crs_list[1:]:
+            if sub.is_vertical:
+                return VerticalDatum(False, sub.name or "unnamed vertical CRS", crs_to_string(sub))
+        return None
+    if c.is_vertical:
+        return VerticalDatum(False, c.name or "unnamed vertical CRS", crs_to_string(c))
+    axes = c.axis_info
+    if len(axes) == 3 and not c.is_geocentric and "ellipsoidal" in (axes[2].name or "").lower():
+        return VerticalDatum(True, "ellipsoidal height")
+    return None
+
+
+def horizontal_crs(crs) -> str:
+    """The horizontal part of a CRS (the first member of a compound CRS, the 2D form of a 3D one)."""
+    c = parse_crs(crs)
+    if c.is_compound:
+        return crs_to_string(c.sub_crs_list[0])
+    if len(c.axis_info) == 3 and not c.is_geocentric:
+        return crs_to_string(c.to_2d())
+    return crs_to_string(c)
+
+
+@functools.lru_cache(maxsize=16)
+def _geoid_transformer(vertical: str) -> Transformer:
+    """The transformation (lon, lat, H above ``vertical``) -> (lon, lat, h on WGS 84), refused without its grid."""
+    v = parse_crs(vertical)
+    name = v.name or vertical
+    src = CompoundCRS(f"WGS 84 + {name}", [parse_crs("EPSG:4326"), v])
+    with warnings.catch_warnings():  # pyproj warns about a missing grid; the error below says it in one line
+        warnings.simplefilter("ignore")
+        try:
+            group = TransformerGroup(src, parse_crs("EPSG:4979"), always_xy=True)
+        except ProjError as err:
+            raise CRSError(f"no transformation from {name!r} heights to WGS 84 ellipsoidal heights: {err}") from err
+    if not group.best_available:
+        grids = list(dict.fromkeys(g.short_name for op in group.unavailable_operations for g in op.grids
+                                   if not g.available))
+        raise CRSError(f"heights above {name!r} need the PROJ grid {' or '.join(grids) or '(unnamed)'}, which is "
+                       f"not installed (PROJ downloads nothing here): install it (projsync --file NAME) or pass a "
+                       f"constant undulation (--undulation N, metres)")
+    usable = [t for t in group.transformers if "ballpark" not in (t.description or "").lower()]
+    if not usable:
+        raise CRSError(f"PROJ knows no transformation from {name!r} heights to WGS 84 ellipsoidal heights (only a "
+                       f"ballpark one that leaves heights unchanged): pass a constant undulation (--undulation N, "
+                       f"metres)")
+    return usable[0]
+
+
+def geoid_height(vertical, lonlat: ArrayLike) -> NDArray[np.float64]:
+    """Geoid undulation N (m) of the vertical CRS ``vertical`` at WGS 84 (lon, lat) points: h = H + N.
+
+    Parameters
+    ----------
+    vertical : str or CRS
+        A vertical CRS (``"EPSG:3855"``, WKT, a bound vertical CRS naming its grid).
+    lonlat : (N, 2) float64
+
+    Raises
+    ------
+    CRSError
+        The grid the transformation needs is not installed (named), or PROJ knows no transformation;
+        the message says to pass a constant undulation instead.
+    """
+    v = parse_crs(vertical)
+    if not v.is_vertical:
+        raise CRSError(f"{crs_to_string(v)!r} is not a vertical CRS")
+    p = as_points(lonlat, "lonlat", 2)
+    if len(p) == 0:
+        return np.zeros(0)
+    t = _geoid_transformer(v.to_wkt())
+    try:
+        _, _, h = t.transform(p[:, 0], p[:, 1], np.zeros(len(p)), errcheck=True)
+    except ProjError as err:
+        raise CRSError(f"cannot convert {v.name!r} heights to ellipsoidal heights at {p[0].tolist()}: {err}") from err
+    n = np.asarray(h, dtype=np.float64)
+    if not np.isfinite(n).all():
+        i = int(np.flatnonzero(~np.isfinite(n))[0])
+        raise CRSError(f"{v.name!r}: no geoid undulation at lon/lat {p[i].tolist()} (outside the grid?)")
+    return n

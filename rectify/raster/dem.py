@@ -5,9 +5,18 @@ above a geoid (EGM96, EGM2008). ``h = H + N`` with N the geoid undulation.
 :class:`Dem` samples a DEM bilinearly at points given in any CRS (pixel
 centres at integers, rasterio's half-pixel shift applied through
 :mod:`rectify.raster.georef`), reading only the window around the points, and adds
-the undulation: a constant (``undulation=``) or pyproj's geoid model
-(``geoid="EPSG:5773"`` for EGM96, ``"EPSG:3855"`` for EGM2008), which needs the
-PROJ grid installed; :func:`geoid_undulation` says so clearly when it is not.
+the undulation once, from one source, stated in :attr:`Dem.datum`:
+
+- a constant (``undulation=``, ``--undulation``);
+- a geoid model (``geoid="EPSG:5773"`` for EGM96, ``"EPSG:3855"`` for EGM2008, ``--geoid``), through
+  :func:`rectify.geometry.crs.geoid_height`, which needs the PROJ grid installed and says so clearly
+  when it is not (PROJ downloads nothing);
+- else the vertical CRS the DEM's own CRS declares (a compound CRS such as ``EPSG:4326+3855``),
+  converted the same way (refused with a one-line message naming the datum and ``--undulation``
+  when its grid is missing); a DEM declaring ellipsoidal heights (``EPSG:4979``) and a DEM declaring
+  nothing are used as they are.
+
+:func:`ground_on_dem` finds where image pixels' lines of sight meet the DEM (any sensor model).
 """
 
 from __future__ import annotations
@@ -18,6 +27,7 @@ import os
 import threading
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import rasterio
@@ -26,38 +36,38 @@ from rasterio.errors import RasterioError
 from rasterio.windows import Window
 
 from rectify.errors import CRSError, InvalidInputError, RasterIOError
-from rectify.geometry.crs import same_crs, transform_xy, transform_xyz
+from rectify.geometry.crs import (
+    VerticalDatum,
+    geoid_height,
+    horizontal_crs,
+    same_crs,
+    transform_xy,
+    vertical_datum,
+)
 from rectify.raster.georef import pixel_from_world
 from rectify.raster.io import raster_info, read_overview
 
-__all__ = ["Dem", "geoid_undulation", "bilinear"]
+__all__ = ["Dem", "geoid_undulation", "bilinear", "ground_on_dem"]
 
 logger = logging.getLogger(__name__)
 
 
+def _vertical_code(geoid: str) -> str:
+    """``"5773"`` -> ``"EPSG:5773"``; any other CRS text as given."""
+    g = str(geoid).strip()
+    return f"EPSG:{g}" if g.isdigit() else g
+
+
 def geoid_undulation(lonlat: ArrayLike, geoid: str = "EPSG:5773") -> NDArray[np.float64]:
-    """Geoid undulation N (m) at WGS 84 (lon, lat) points, from pyproj's geoid grids.
+    """Geoid undulation N (m) at WGS 84 (lon, lat) points, from pyproj's geoid grids (h = H + N).
 
     Raises
     ------
     CRSError
-        When the geoid grid is not installed (PROJ returns the height
-        unchanged); the message says to pass a constant undulation instead.
+        When the geoid grid is not installed; the message names it and says to pass a constant
+        undulation instead (:func:`rectify.geometry.crs.geoid_height`).
     """
-
-    p = np.asarray(lonlat, dtype=np.float64).reshape(-1, 2)
-    src = f"EPSG:4326+{geoid.split(':')[-1]}"
-    xyz = np.column_stack([p, np.zeros(len(p))])
-    try:
-        out = transform_xyz(src, "EPSG:4979", xyz)
-    except CRSError as err:
-        raise CRSError(f"geoid {geoid!r} is not available to PROJ ({err}); install its grid or pass a constant "
-                       f"undulation (e.g. --undulation 32.5)") from err
-    n = out[:, 2]
-    if len(n) and np.all(n == 0.0):
-        raise CRSError(f"geoid grid for {geoid!r} is not installed (PROJ returned heights unchanged); install it "
-                       f"(projsync) or pass a constant undulation instead")
-    return n
+    return geoid_height(_vertical_code(geoid), lonlat)
 
 
 def bilinear(data: NDArray, valid: NDArray[np.bool_] | None, x: NDArray, y: NDArray) -> NDArray[np.float64]:
@@ -93,16 +103,20 @@ class Dem:
     ----------
     path : str
     crs : str
-        The DEM's CRS (required).
+        The DEM's horizontal CRS (required; a compound CRS's vertical part is in ``declared``).
     transform : affine.Affine
     width, height : int
     undulation : float
         Constant added to every height (geoid undulation N, m): ``h = H + N``.
     geoid : str or None
-        A geoid vertical CRS (``"EPSG:5773"``) whose undulation pyproj adds
-        point by point (needs the grid; see :func:`geoid_undulation`).
+        A vertical CRS (``"EPSG:5773"``, or the one the DEM declares) whose undulation pyproj adds
+        point by point (needs the grid; see :func:`rectify.geometry.crs.geoid_height`).
     band : int
         1-based band.
+    declared : VerticalDatum or None
+        The heights the DEM's CRS declares (None: a 2D CRS).
+    datum : str
+        One line saying which heights the file holds and how they were converted.
     """
 
     path: str
@@ -114,33 +128,101 @@ class Dem:
     undulation: float = 0.0
     geoid: str | None = None
     band: int = 1
+    declared: VerticalDatum | None = None
+    datum: str = "DEM heights used as they are"
 
     @classmethod
-    def from_path(cls, path: str | Path, *, undulation: float = 0.0, geoid: str | None = None,
-                  band: int = 1) -> Dem:
-        """Open a DEM (only its header is read).
+    def from_path(cls, path: str | Path, *, undulation: float | None = None, geoid: str | None = None,
+                  band: int = 1, convert_declared: bool = True) -> Dem:
+        """Open a DEM (only its header is read) and settle its vertical datum (module docstring).
+
+        Parameters
+        ----------
+        undulation : float, optional
+            A constant geoid undulation N (m) added to the file's heights.
+        geoid : str, optional
+            The geoid (vertical CRS) of the file's heights; pyproj adds its undulation.
+        convert_declared : bool
+            Convert heights above a vertical CRS the DEM declares to ellipsoidal heights (what an
+            RPC needs); False keeps them (a frame camera whose exterior orientation has the DEM's heights).
 
         Raises
         ------
         RasterIOError
             Missing or unreadable file.
         CRSError
-            The DEM has no CRS.
+            The DEM has no CRS; the geoid grid (given or declared) is not installed (the message names
+            the datum and ``--undulation``).
         InvalidInputError
-            Bad band or a non-finite undulation.
+            Bad band, a non-finite undulation, both ``undulation`` and ``geoid``, or either of them for a
+            DEM that declares ellipsoidal heights.
         """
 
         info = raster_info(path)
+        name = str(path)
         if info.crs is None:
-            raise CRSError(f"DEM {str(path)!r} has no CRS; a DEM must be georeferenced")
+            raise CRSError(f"DEM {name!r} has no CRS; a DEM must be georeferenced")
         if not (1 <= band <= info.count):
-            raise InvalidInputError(f"DEM band {band} out of range 1..{info.count} in {str(path)!r}")
-        if not math.isfinite(undulation):
+            raise InvalidInputError(f"DEM band {band} out of range 1..{info.count} in {name!r}")
+        if undulation is not None and not math.isfinite(undulation):
             raise InvalidInputError(f"undulation must be finite; got {undulation!r}")
+        if undulation is not None and geoid is not None:
+            raise InvalidInputError(f"give a constant undulation ({undulation!r} m) or a geoid ({geoid!r}), not both")
+        declared = vertical_datum(info.crs)
+        if declared is not None and declared.ellipsoidal and (undulation is not None or geoid is not None):
+            given = f"--undulation {undulation!r}" if undulation is not None else f"--geoid {geoid}"
+            raise InvalidInputError(f"DEM {name!r} declares ellipsoidal heights in its CRS; {given} would convert "
+                                    f"them a second time (leave it out)")
+        note = "" if declared is None or declared.ellipsoidal else f"; its CRS declares {declared.label}"
+        n_const, vcrs = 0.0, None
         if geoid is not None:
-            geoid_undulation([[0.0, 0.0]], geoid)  # fail early, with the clear message
-        return cls(str(path), info.crs, info.transform, info.width, info.height, info.nodata, float(undulation),
-                   geoid, band)
+            vcrs = _vertical_code(geoid)
+            label = (vertical_datum(vcrs) or VerticalDatum(False, vcrs)).label
+            datum = f"DEM heights above {label} (--geoid) + the geoid undulation from PROJ{note}"
+        elif undulation is not None:
+            n_const = float(undulation)
+            datum = f"DEM heights + {n_const:g} m undulation (--undulation){note}"
+        elif declared is not None and declared.ellipsoidal:
+            datum = "DEM heights ellipsoidal (declared by its CRS), used as they are"
+        elif declared is not None and convert_declared:
+            vcrs = declared.crs
+            datum = f"DEM heights above {declared.label} (declared by its CRS) + the geoid undulation from PROJ"
+        elif declared is not None:
+            datum = f"DEM heights above {declared.label} (declared by its CRS), used as they are"
+        else:
+            datum = "DEM heights used as they are (its CRS declares no vertical datum)"
+        dem = cls(name, horizontal_crs(info.crs), info.transform, info.width, info.height, info.nodata, n_const,
+                  vcrs, band, declared, datum)
+        if vcrs is not None:  # fail early, with the clear message
+            try:
+                dem.offset(dem._lonlat_lattice(1))
+            except CRSError as err:
+                raise CRSError(f"DEM {name!r}: {err}") from err
+        return dem
+
+    def _lonlat_lattice(self, n: int) -> NDArray[np.float64]:
+        """WGS 84 lon/lat of an n x n lattice of DEM pixel centres (the corners and centre for n = 3)."""
+        t = self.transform
+        k = np.linspace(0.0, 1.0, n) if n > 1 else np.array([0.5])
+        cc, rr = np.meshgrid(k * (self.width - 1), k * (self.height - 1))
+        px = np.column_stack([cc.ravel(), rr.ravel()]) + 0.5
+        xy = np.column_stack([t.c + t.a * px[:, 0] + t.b * px[:, 1], t.f + t.d * px[:, 0] + t.e * px[:, 1]])
+        return xy if same_crs(self.crs, "EPSG:4326") else transform_xy(self.crs, "EPSG:4326", xy)
+
+    def offset(self, lonlat: ArrayLike) -> NDArray[np.float64]:
+        """What is added to the file's heights at WGS 84 (lon, lat) points (M, 2): undulation + geoid N, m."""
+        p = np.asarray(lonlat, dtype=np.float64).reshape(-1, 2)
+        n = np.full(len(p), self.undulation)
+        if self.geoid is not None and len(p):
+            n += geoid_height(self.geoid, p)
+        return n
+
+    def offset_range(self) -> tuple[float, float]:
+        """(min, max) of :meth:`offset` over the DEM (a 5 x 5 lattice when a geoid varies it)."""
+        if self.geoid is None:
+            return self.undulation, self.undulation
+        n = self.offset(self._lonlat_lattice(5))
+        return float(n.min()), float(n.max())
 
     # one open dataset per thread
     def _ds(self):
@@ -159,7 +241,7 @@ class Dem:
         return ds
 
     def heights_at_dem_pixels(self, x: NDArray, y: NDArray) -> NDArray[np.float64]:
-        """Orthometric (file) heights at DEM pixel positions (any shape), NaN outside/nodata.
+        """File heights (before any datum conversion) at DEM pixel positions (any shape), NaN outside/nodata.
 
         Reads only the window covering the points.
         """
@@ -188,7 +270,7 @@ class Dem:
         return out
 
     def sample(self, xy: ArrayLike, crs: str | None = None) -> NDArray[np.float64]:
-        """Ellipsoidal heights (file height + undulation) at (N, 2) points in ``crs`` (default the DEM's)."""
+        """Converted heights (file height + :meth:`offset`) at (N, 2) points in ``crs`` (default the DEM's)."""
 
         p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         if crs is not None and not same_crs(crs, self.crs):
@@ -199,15 +281,15 @@ class Dem:
         h = self.heights_at_dem_pixels(px[:, 0], px[:, 1]) + self.undulation
         if self.geoid is not None:
             ll = p if (crs is not None and same_crs(crs, "EPSG:4326")) else transform_xy(self.crs, "EPSG:4326", q)
-            h = h + geoid_undulation(ll, self.geoid)
+            h = h + geoid_height(self.geoid, ll)
         return h
 
     def lonlat_function(self):
-        """A callable (M, 2) WGS 84 lon/lat -> (M,) ellipsoidal heights (for RPC localisation)."""
+        """A callable (M, 2) WGS 84 lon/lat -> (M,) converted heights (for RPC localisation)."""
         return lambda lonlat: self.sample(lonlat, "EPSG:4326")
 
     def range(self) -> tuple[float, float]:
-        """(min, max) file heights + undulation, from a decimated read (overviews when present)."""
+        """(min, max) converted heights, from a decimated read (overviews when present)."""
 
         data, valid, _ = read_overview(self.path, 512, bands=[self.band])
         d = np.asarray(data, dtype=np.float64)[..., 0]
@@ -216,7 +298,64 @@ class Dem:
             ok &= d != self.nodata
         if not ok.any():
             raise InvalidInputError(f"DEM {self.path!r} has no valid heights")
-        return float(d[ok].min()) + self.undulation, float(d[ok].max()) + self.undulation
+        lo, hi = self.offset_range()
+        return float(d[ok].min()) + lo, float(d[ok].max()) + hi
+
+
+def ground_on_dem(model: Any, dem: Dem, pixels: ArrayLike, *, h_range: tuple[float, float] | None = None,
+                  n_scan: int = 256, tol_m: float = 1e-4) -> NDArray[np.float64]:
+    """Where image pixels' lines of sight first meet the DEM: (N, 3) ground points in ``model.crs``.
+
+    ``model`` is any sensor model (``ground_at_height``). The line of sight is scanned from the top
+    of ``h_range`` (default the DEM's converted heights, 1 m wider) down in ``n_scan`` steps, so the
+    visible surface is found; the first bracket is bisected on exact ``ground_at_height`` points
+    until the height is within ``tol_m``. NaN rows: the line misses the DEM.
+    """
+    px = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+    lo, hi = h_range if h_range is not None else dem.range()
+    lo, hi = float(lo) - 1.0, float(hi) + 1.0
+    n = len(px)
+    out = np.full((n, 3), np.nan)
+    if n == 0:
+        return out
+
+    def gap(h: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        g = model.ground_at_height(px, h)
+        f = np.full(n, np.nan)
+        ok = np.isfinite(g).all(axis=1)
+        if ok.any():
+            f[ok] = h[ok] - dem.sample(g[ok, :2], model.crs)
+        return f, g
+
+    a = np.full(n, np.nan)  # bracket: above the surface at a, below at b
+    b = np.full(n, np.nan)
+    prev_h = np.full(n, np.nan)
+    prev_f = np.full(n, np.nan)
+    for h0 in np.linspace(hi, lo, n_scan + 1):
+        todo = np.isnan(b)
+        if not todo.any():
+            break
+        h = np.full(n, h0)
+        f, _ = gap(h)
+        hit = todo & (f <= 0) & (prev_f > 0)
+        a[hit], b[hit] = prev_h[hit], h0
+        upd = todo & np.isfinite(f)
+        prev_h[upd], prev_f[upd] = h0, f[upd]
+    found = np.isfinite(b)
+    if not found.any():
+        return out
+    for _ in range(64):
+        mid = np.where(found, 0.5 * (a + b), lo)
+        f, _ = gap(mid)
+        above = f > 0
+        a = np.where(found & above, mid, a)
+        b = np.where(found & ~above, mid, b)
+        if np.nanmax(np.where(found, a - b, 0.0)) < tol_m:
+            break
+    h = np.where(found, 0.5 * (a + b), lo)
+    _, g = gap(h)
+    out[found] = g[found]
+    return out
 
 
 _LOCAL = threading.local()

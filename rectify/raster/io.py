@@ -468,6 +468,8 @@ class TiledWriter:
         Compression threads.
     colorinterp : sequence, optional
         Band colour interpretation to record.
+    descriptions : sequence of str, optional
+        One description per band (GDAL band description: what the band holds).
     raw : bool
         Take tiles already compressed elsewhere (:meth:`write_encoded`, tiles made by
         :attr:`encoder`, e.g. on Dask workers) instead of pixels: GDAL creates the file without tiles
@@ -479,7 +481,7 @@ class TiledWriter:
 
     def __init__(self, path: str | Path, width: int, height: int, count: int, dtype: str, transform,
                  crs: str | None, policy: MaskPolicy, *, tile: int = 512, compress: str = "deflate",
-                 threads: int = 1, colorinterp=None, raw: bool = False):
+                 threads: int = 1, colorinterp=None, raw: bool = False, descriptions=None):
 
         if tile % 16:
             raise InvalidInputError(f"tile size must be a multiple of 16; got {tile}")
@@ -492,6 +494,9 @@ class TiledWriter:
                               tile=tile, compress=compress, threads=threads)
         if policy.kind == "alpha" and count == 4 and dtype == "uint8":
             prof["photometric"] = "RGB"
+        if descriptions is not None and len(descriptions) != count:
+            raise InvalidInputError(f"{len(descriptions)} band descriptions for {count} bands")
+        self.descriptions = None if descriptions is None else [str(d) for d in descriptions]
         if self.raw:
             self._open_raw(prof, colorinterp)
             return
@@ -500,6 +505,8 @@ class TiledWriter:
                 self._ds = rasterio.open(self.path, "w", **prof)
             if colorinterp is not None and len(colorinterp) == count:
                 self._ds.colorinterp = list(colorinterp)
+            for band, text in enumerate(self.descriptions or (), start=1):
+                self._ds.set_band_description(band, text)
         except (RasterioError, OSError) as err:
             raise RasterIOError(f"cannot create {self.path!r}: {err}") from err
 
@@ -513,6 +520,8 @@ class TiledWriter:
                     rasterio.open(self.path, "w", SPARSE_OK="TRUE", **prof) as ds:
                 if colorinterp is not None and len(colorinterp) == ds.count:
                     ds.colorinterp = list(colorinterp)
+                for band, text in enumerate(self.descriptions or (), start=1):
+                    ds.set_band_description(band, text)
                 if mask:
                     # creates the internal-mask IFD; an all-invalid block is never written under SPARSE_OK
                     ds.write_mask(np.zeros((1, 1), np.uint8), window=Window(0, 0, 1, 1))

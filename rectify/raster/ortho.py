@@ -51,13 +51,14 @@ from rectify.atomic import check_output
 from rectify.errors import CRSError, InvalidInputError, RasterIOError
 from rectify.geometry.crs import crs_to_string, same_crs, transform_xy, unit_label
 from rectify.geometry.sensors import SensorModel
-from rectify.raster.dem import Dem, bilinear, geoid_undulation
+from rectify.raster.dem import Dem, bilinear
 from rectify.raster.distributed import Scheduler, resolve_scheduler
 from rectify.raster.engine import TileEngine, tile_windows, worker_count, write_tiled
 from rectify.raster.georef import Grid, boundary_pixels, crs_label, pixel_from_world_matrix
 from rectify.raster.io import MaskPolicy, raster_info
 
-__all__ = ["OrthoOptions", "OrthoResult", "orthorectify", "ortho_grid", "relief_shift_map", "VISIBILITY_OUTSIDE",
+__all__ = ["OrthoOptions", "OrthoResult", "ReliefShift", "orthorectify", "ortho_grid", "relief_shift",
+           "relief_stride", "VISIBILITY_OUTSIDE",
            "VISIBILITY_OCCLUDED", "VISIBILITY_VISIBLE"]
 
 logger = logging.getLogger(__name__)
@@ -123,13 +124,15 @@ class OrthoResult:
     dem_range : (float, float)
         Lowest and highest ellipsoidal/model heights met on the output grid.
     max_relief_shift : float
-        Largest horizontal displacement (output CRS units) a planar
-        rectification at the mean height would have made: the height-induced
-        shift the DEM removed.
+        ``relief.max`` (m; 0 without valid cells): the largest relief displacement the DEM removed.
     n_occluded : int
         Output pixels found hidden (true ortho).
     nodata : float
     model : str
+    extra : dict
+        ``true_ortho``, ``visibility_band``, ``margin_px``, ``dem_datum`` (the DEM's height statement).
+    relief : ReliefShift or None
+        The relief displacement removed, over the written cells (:func:`relief_shift`).
     """
 
     path: Path
@@ -144,14 +147,17 @@ class OrthoResult:
     nodata: float
     model: str
     extra: dict[str, Any] = field(default_factory=dict)
+    relief: ReliefShift | None = None
 
     def summary_lines(self) -> list[str]:
         g = self.grid
         u = unit_label(g.crs)
         out = [f"wrote {self.path}: {g.width} x {g.height} px, {g.resolution[0]:.6g} {u}/px, CRS {crs_label(g.crs)}, "
                f"{self.model}, {self.seconds:.2f} s",
-               f"DEM {self.dem_path}: heights {self.dem_range[0]:.2f} .. {self.dem_range[1]:.2f} m on the output; "
-               f"relief displacement removed up to {self.max_relief_shift:.2f} {u}"]
+               f"DEM {self.dem_path}: heights {self.dem_range[0]:.2f} .. {self.dem_range[1]:.2f} m on the valid "
+               f"output cells"]
+        if self.relief is not None:
+            out.append(self.relief.summary_line())
         if self.extra.get("true_ortho"):
             out.append(f"true ortho: {self.n_occluded} occluded pixels set to nodata (visibility band "
                        f"{self.extra.get('visibility_band')}: 0 outside, 1 occluded, 2 visible)")
@@ -282,7 +288,9 @@ class _Engine(TileEngine):
                        "cubic": cv2.INTER_CUBIC}[opts.resampling]
         self._init_readers()
         self.stats_lock = threading.Lock()
-        self.hmin, self.hmax, self.max_shift, self.n_occluded = math.inf, -math.inf, 0.0, 0
+        self.hmin, self.hmax, self.n_occluded = math.inf, -math.inf, 0
+        self.stride = relief_stride(grid)
+        self.samples: list[NDArray[np.float64]] = []  # (row, col, h) of written cells on the relief lattice
 
         self.same_model = same_crs(grid.crs, model.crs)
         self.same_dem = same_crs(grid.crs, dem.crs)
@@ -296,20 +304,29 @@ class _Engine(TileEngine):
         eng = copy.copy(self)
         eng.src = os.path.abspath(self.src)
         eng.dem = dataclasses.replace(self.dem, path=os.path.abspath(self.dem.path))
-        eng.hmin, eng.hmax, eng.max_shift, eng.n_occluded = math.inf, -math.inf, 0.0, 0
+        eng.hmin, eng.hmax, eng.n_occluded = math.inf, -math.inf, 0
+        eng.samples = []
         return eng
 
-    def stats(self) -> tuple[float, float, float, int]:
-        """Heights met, largest relief shift and occluded pixels of the tiles this engine computed."""
-        return self.hmin, self.hmax, self.max_shift, self.n_occluded
+    def stats(self) -> tuple[float, float, int, NDArray[np.float64]]:
+        """Heights met, occluded pixels and relief-lattice samples of the tiles this engine computed."""
+        return self.hmin, self.hmax, self.n_occluded, self.lattice_samples()
 
-    def merge_stats(self, stats: tuple[float, float, float, int]) -> None:
+    def merge_stats(self, stats: tuple[float, float, int, NDArray[np.float64]]) -> None:
         """Add another copy's :meth:`stats` (a Dask task's) to this engine's."""
-        lo, hi, shift, occluded = stats
+        lo, hi, occluded, samples = stats
         with self.stats_lock:
             self.hmin, self.hmax = min(self.hmin, lo), max(self.hmax, hi)
-            self.max_shift = max(self.max_shift, shift)
             self.n_occluded += int(occluded)
+            if len(samples):
+                self.samples.append(np.asarray(samples, dtype=np.float64))
+
+    def lattice_samples(self) -> NDArray[np.float64]:
+        """(M, 3) (row, col, h) of the written cells on the relief lattice, sorted (the same on every scheduler)."""
+        if not self.samples:
+            return np.zeros((0, 3))
+        a = np.vstack(self.samples)
+        return a[np.lexsort((a[:, 1], a[:, 0]))]
 
     # ---------------------------------------------------------------- geometry of a block
     def _world(self, c0: int, r0: int, w: int, h: int) -> tuple[NDArray, NDArray]:
@@ -343,11 +360,12 @@ class _Engine(TileEngine):
                 return q @ M[:2, :2].T + M[:2, 2]
             d = self._sparse(c0, r0, w, h, to_dem_px, 2)
             dx, dy = d[..., 0], d[..., 1]
-        z = self.dem.heights_at_dem_pixels(dx, dy) + self.dem.undulation
-        if self.dem.geoid is not None:
-            z = z + self._sparse(c0, r0, w, h, lambda p: geoid_undulation(
-                transform_xy(self.grid.crs, "EPSG:4326", p), self.dem.geoid or "")[:, None], 1)[..., 0]
-        return z
+        z = self.dem.heights_at_dem_pixels(dx, dy)
+        if self.dem.geoid is None:
+            return z + self.dem.undulation
+        # the geoid undulation varies slowly: exact on the sparse grid, interpolated
+        return z + self._sparse(c0, r0, w, h, lambda p: self.dem.offset(
+            transform_xy(self.grid.crs, "EPSG:4326", p))[:, None], 1)[..., 0]
 
     def _model_xy(self, c0: int, r0: int, w: int, h: int) -> tuple[NDArray, NDArray]:
         if self.same_model:
@@ -465,12 +483,8 @@ class _Engine(TileEngine):
         inside = np.isfinite(col) & np.isfinite(row) & (col >= -0.5) & (col <= W - 0.5) & (row >= -0.5) \
             & (row <= H - 0.5)
         vis = None
-        d = None
-        if inside.any():
-            d = self._direction(c0, r0, w, h, float(np.nanmean(z[inside])),
-                                None if self.opts.true_ortho else 8 * self.opts.map_step_px)
-            self._stats(z[inside], d)
-        if self.opts.true_ortho and d is not None:
+        if self.opts.true_ortho and inside.any():
+            d = self._direction(c0, r0, w, h, float(np.nanmean(z[inside])))
             vis = self._visible(Z, m, d, w, h, z, inside)
         out_bands = self.count + (1 if self.opts.true_ortho else 0)
         out = np.full((h, w, out_bands), self.nodata, dtype=self.dtype)
@@ -490,18 +504,26 @@ class _Engine(TileEngine):
                 sel = use & valid
                 band = out[..., :self.count]
                 band[sel] = img[sel]
+                self._stats(c0, r0, z, sel)
         return out, False
 
-    def _stats(self, zin: NDArray, d: NDArray) -> None:
-        if not len(zin):
+    def _stats(self, c0: int, r0: int, z: NDArray[np.float64], written: NDArray[np.bool_]) -> None:
+        """Heights met on the written (valid) cells of a tile, and its cells on the relief lattice."""
+        ok = written & np.isfinite(z)
+        if not ok.any():
             return
-        lo, hi = float(np.nanmin(zin)), float(np.nanmax(zin))
-        # relief displacement a planar rectification at h_ref would leave: |d| * |h - h_ref|
-        mag = float(np.nanmax(np.hypot(d[..., 0], d[..., 1]))) * self.grid.resolution[0]
-        sh = mag * max(abs(hi - self.h_ref), abs(lo - self.h_ref))
+        lo, hi = float(z[ok].min()), float(z[ok].max())
+        s = self.stride
+        h, w = z.shape
+        rr = np.arange((s // 2 - r0) % s, h, s)
+        cc = np.arange((s // 2 - c0) % s, w, s)
+        sub = ok[np.ix_(rr, cc)]
+        i, j = np.nonzero(sub)
+        sample = np.column_stack([r0 + rr[i], c0 + cc[j], z[rr[i], cc[j]]])
         with self.stats_lock:
             self.hmin, self.hmax = min(self.hmin, lo), max(self.hmax, hi)
-            self.max_shift = max(self.max_shift, sh)
+            if len(sample):
+                self.samples.append(sample)
 
     def _visible(self, Z: NDArray, m: int, d: NDArray, w: int, h: int, z: NDArray,
                  inside: NDArray[np.bool_]) -> NDArray[np.bool_]:
@@ -700,14 +722,15 @@ def orthorectify(src: str | Path, dst: str | Path, model: SensorModel, dem: Dem,
         if isinstance(err, RasterIOError):
             raise
         raise RasterIOError(f"cannot write {str(dst)!r}: {err}") from err
-    dt = time.perf_counter() - t0
     lo = engine.hmin if math.isfinite(engine.hmin) else float("nan")
     hi = engine.hmax if math.isfinite(engine.hmax) else float("nan")
+    relief = relief_shift(model, grid, engine.lattice_samples(), engine.stride)
+    dt = time.perf_counter() - t0
     logger.info("ortho %s -> %s: %d x %d, %d tiles in %.2f s", src, dst, grid.width, grid.height, len(windows), dt)
-    return OrthoResult(Path(dst), grid, dt, len(windows), n_empty, dem.path, (lo, hi), engine.max_shift,
-                       engine.n_occluded, nodata, type(model).__name__,
+    return OrthoResult(Path(dst), grid, dt, len(windows), n_empty, dem.path, (lo, hi),
+                       relief.max if math.isfinite(relief.max) else 0.0, engine.n_occluded, nodata, type(model).__name__,
                        {"true_ortho": opts.true_ortho, "visibility_band": count if opts.true_ortho else None,
-                        "margin_px": margin})
+                        "margin_px": margin, "dem_datum": dem.datum}, relief)
 
 
 def _nadir_in(model: SensorModel, crs: str) -> NDArray[np.float64]:
@@ -717,23 +740,121 @@ def _nadir_in(model: SensorModel, crs: str) -> NDArray[np.float64]:
         return np.array([np.nan, np.nan])
 
 
-def relief_shift_map(model: SensorModel, dem: Dem, grid: Grid, *, max_size: int = 256
-                     ) -> tuple[NDArray[np.float64], Any]:
-    """The horizontal shift (output CRS units) the DEM removed, on a coarse copy of ``grid``.
+def relief_stride(grid: Grid, max_size: int = 256) -> int:
+    """Output pixels between the cells of the relief lattice (at most ``max_size`` cells a side); odd, so each
+    lattice cell is centred on an output pixel."""
+    s = max(1, math.ceil(max(grid.width, grid.height) / max_size))
+    return s if s % 2 else s + 1
 
-    ``|d| * |h - h_mean|``: the displacement a planar rectification at the
-    mean height would leave, with ``d`` the horizontal shift per metre of
-    height. Returns the (rows, cols) array (NaN outside the DEM) and its
-    rasterio geotransform.
+
+@dataclass(frozen=True, eq=False)
+class ReliefShift:
+    """The relief displacement the DEM removed, over the written (valid) cells of the relief lattice.
+
+    For each sampled valid output cell, ground point X at its DEM height h: the horizontal distance
+    between X and the point where a planar rectification at the mean height ``h_ref`` of the sampled
+    cells would have put the same image pixel, ``|G(project(X, h), h_ref) - X|`` (exact, no
+    linearisation), in metres. The lattice takes one output pixel every ``stride`` pixels in both
+    directions (at most 256 a side), so the console, the report and the map hold the same numbers.
+
+    Attributes
+    ----------
+    h_ref : float
+        Mean height of the sampled cells (the plane), m.
+    n_cells : int
+        Sampled valid cells.
+    n_unreached : int
+        Cells whose line of sight does not reach the plane (left out of the figures).
+    median, p95, max, mean : float
+        Of the displacement, m (NaN without cells).
+    map : (rows, cols) float32
+        The displacement per lattice cell (NaN where the output has no data).
+    transform : Affine
+        Of ``map`` (cells of ``stride`` output pixels, in the output CRS).
     """
 
-    scale = max(1.0, max(grid.width, grid.height) / max_size)
-    w, h = max(1, int(round(grid.width / scale))), max(1, int(round(grid.height / scale)))
+    h_ref: float
+    n_cells: int
+    n_unreached: int
+    median: float
+    p95: float
+    max: float
+    mean: float
+    map: NDArray[np.float32]
+    transform: Any
+    stride: int
+
+    def summary_line(self) -> str:
+        if not self.n_cells:
+            return "relief displacement removed: no valid output cell"
+        left = (f"; {self.n_unreached} cells whose line of sight misses that plane left out"
+                if self.n_unreached else "")
+        return (f"relief displacement removed (DEM vs a plane at the mean height {self.h_ref:.2f} m, "
+                f"{self.n_cells} valid cells sampled every {self.stride} px): median {self.median:.2f} m, "
+                f"95th percentile {self.p95:.2f} m, max {self.max:.2f} m{left}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """The figures (no map), for the report JSON."""
+        def num(v: float) -> float | None:
+            return float(v) if math.isfinite(v) else None
+        return {"definition": "horizontal distance between each valid output cell and where a planar "
+                              "rectification at the mean height would have put it, m",
+                "plane_height_m": num(self.h_ref), "cells": self.n_cells, "cells_missing_the_plane": self.n_unreached,
+                "stride_px": self.stride, "median_m": num(self.median), "p95_m": num(self.p95),
+                "max_m": num(self.max), "mean_m": num(self.mean)}
+
+
+def _xy_or_nan(src: str, dst: str, xy: NDArray[np.float64]) -> NDArray[np.float64]:
+    """:func:`transform_xy`, with NaN rows for the points PROJ cannot transform (a plane point far out)."""
+    try:
+        return transform_xy(src, dst, xy)
+    except CRSError:
+        out = np.full(xy.shape, np.nan)
+        for i, q in enumerate(xy):
+            if np.isfinite(q).all():
+                try:
+                    out[i] = transform_xy(src, dst, q[None])[0]
+                except CRSError:
+                    pass
+        return out
+
+
+def relief_shift(model: SensorModel, grid: Grid, samples: NDArray[np.float64], stride: int) -> ReliefShift:
+    """:class:`ReliefShift` of the lattice ``samples`` (M, 3) (row, col, h) of an output ``grid``."""
     t = _gt(grid.transform)
-    coarse = Grid(w, h, Affine(t[0] * grid.width / w, 0.0, t[2], 0.0, t[4] * grid.height / h, t[5]), grid.crs)
-    eng = _Engine(dem.path, model, dem, coarse, OrthoOptions(), np.dtype("float32"), 1, float("nan"), 0, 0.0)
-    z = eng._heights(0, 0, w, h)
-    h_ref = float(np.nanmean(z)) if np.isfinite(z).any() else 0.0
-    d = eng._direction(0, 0, w, h, h_ref, 4)
-    shift = np.hypot(d[..., 0], d[..., 1]) * coarse.resolution[0] * np.abs(z - h_ref)
-    return shift, coarse.transform
+    ny, nx = -(-grid.height // stride), -(-grid.width // stride)
+    shift_map = np.full((ny, nx), np.nan, np.float32)
+    tr = Affine(t[0] * stride, 0.0, t[2], 0.0, t[4] * stride, t[5])
+    a = np.asarray(samples, dtype=np.float64).reshape(-1, 3)
+    a = a[np.isfinite(a).all(axis=1)]
+    if not len(a):
+        nan = float("nan")
+        return ReliefShift(nan, 0, 0, nan, nan, nan, nan, shift_map, tr, stride)
+    rows, cols, z = a[:, 0], a[:, 1], a[:, 2]
+    h_ref = float(z.mean())
+    world = np.column_stack([t[2] + t[0] * (cols + 0.5), t[5] + t[4] * (rows + 0.5)])
+    same = same_crs(grid.crs, model.crs)
+    ground = world if same else _xy_or_nan(grid.crs, model.crs, world)
+    pix = model.project(np.column_stack([ground, z]))
+    dist = np.full(len(a), np.nan)
+    ok = np.isfinite(pix).all(axis=1)
+    if ok.any():
+        g = model.ground_at_height(pix[ok], h_ref)
+        ok2 = np.isfinite(g).all(axis=1)
+        idx = np.flatnonzero(ok)[ok2]
+        if len(idx):
+            plane = g[ok2, :2] if same else _xy_or_nan(model.crs, grid.crs, g[ok2, :2])
+            here = world[idx]
+            if unit_label(grid.crs) != "m":  # measure in metres: the UTM zone of the cells
+                c = transform_xy(grid.crs, "EPSG:4326", here[:1])[0]
+                utm = _utm_for(float(c[0]), float(c[1]))
+                plane, here = _xy_or_nan(grid.crs, utm, plane), _xy_or_nan(grid.crs, utm, here)
+            dist[idx] = np.hypot(*(plane - here).T)
+    fin = np.isfinite(dist)
+    shift_map[(rows[fin] // stride).astype(np.intp), (cols[fin] // stride).astype(np.intp)] = dist[fin]
+    d = dist[fin]
+    if not len(d):
+        nan = float("nan")
+        return ReliefShift(h_ref, len(a), len(a), nan, nan, nan, nan, shift_map, tr, stride)
+    return ReliefShift(h_ref, len(a), int((~fin).sum()), float(np.median(d)), float(np.percentile(d, 95)),
+                       float(d.max()), float(d.mean()), shift_map, tr, stride)

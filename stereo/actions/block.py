@@ -32,10 +32,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rectify.actions.workspace import StrPath, Workspace
-from rectify.errors import InvalidInputError
+from rectify.errors import EstimationError, InvalidInputError
 from rectify.formats.camera import camera_document
 from rectify.geometry.camera import Camera
-from rectify.geometry.crs import parse_crs
+from rectify.geometry.crs import parse_crs, same_crs
 from rectify.geometry.residuals import ResidualTable, rms
 from stereo.block.bundle.adjust import BundleOptions, adjust_bundle
 from stereo.block.bundle.result import BundleResult
@@ -44,7 +44,7 @@ from stereo.block.models import IndependentOptions
 from stereo.block.types import BlockControl, GnssObservations, Pose, Tracks
 from stereo.features.tracks import BlockMatchOptions, block_tie_points
 from stereo.formats.block import BlockControlTable, block_orientation_text, observations_text, read_block_control
-from stereo.formats.opensfm import read_opensfm
+from stereo.formats.opensfm import crs_label, read_opensfm
 from stereo.formats.points import LasWriter, dump_ply, points_csv_text
 from stereo.formats.poses import PoseTable, pose_csv_text, read_pose_csv
 from stereo.report.block import write_block_report
@@ -153,9 +153,11 @@ class BlockResult:
     timings_s: dict[str, float] = field(default_factory=dict)
     tie_lines: tuple[str, ...] = ()
     n_points_written: int = 0
+    input_lines: tuple[str, ...] = ()
 
     def summary_lines(self) -> list[str]:
-        out = list(self.tie_lines)
+        out = list(self.input_lines)
+        out.extend(self.tie_lines)
         out.append(f"initial orientation: {self.initial}")
         out.extend(self.bundle.summary_lines())
         left = len(self.bundle.points) - self.n_points_written
@@ -202,6 +204,12 @@ class _Inputs:
     angle_system: str  # "omega-phi-kappa" or "navigation" (the pose file's angles)
     crs: str | None
     control: BlockControlTable | None
+    frame: str = ""  # what the coordinates of every output are
+    reference: NDArray[np.float64] | None = None  # OpenSfM's topocentric origin (lon, lat, h)
+    gps_position: NDArray[np.float64] | None = None  # (n, 3) an OpenSfM reconstruction's GPS, NaN where none
+    gps_dop: NDArray[np.float64] | None = None  # (n,) their gps_dop, m
+    pose_kind: str = ""  # "csv" or "opensfm"
+    pose_name: str = ""
 
 
 def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera | Mapping[str, Camera] | None,
@@ -213,21 +221,33 @@ def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera
         cameras = dict(camera)
     elif camera is not None:
         cameras = {DEFAULT_CAMERA: ws.load_camera(camera)}
+    ctrl = None
+    if control is not None:
+        ws.add_inputs(control)
+        ctrl = read_block_control(control)
     pose_list: list[Pose] | None = None
-    sigma = None
+    sigma = gps = dop = reference = None
     crs = None
+    frame = ""
+    kind = ""
     angle_system = "omega-phi-kappa"
     if poses is not None:
         ws.add_inputs(poses)
         if str(poses).lower().endswith(".json"):
+            kind = "opensfm"
             rec = read_opensfm(poses)
+            if ctrl is not None and ctrl.crs is not None and rec.crs is not None and not same_crs(ctrl.crs, rec.crs):
+                rec = rec.to_crs(ctrl.crs)  # the control's CRS is the frame of the outputs
+            crs, frame, reference = rec.crs, rec.frame, rec.reference_lonlat_h
             if not cameras:
                 cameras = dict(rec.cameras)
             pose_list = list(rec.poses)
+            gps, dop = np.asarray(rec.gps_position), np.asarray(rec.gps_dop)
             if camera is not None and len(cameras) == 1:  # one camera given: every image uses it
                 only = next(iter(cameras))
                 pose_list = [Pose(p.image, only, p.position, p.rotation) for p in pose_list]
         else:
+            kind = "csv"
             table: PoseTable = read_pose_csv(poses, camera=DEFAULT_CAMERA if len(cameras) <= 1 else None,
                                              boresight_rad=opts.boresight_rad, lever_arm_m=opts.lever_arm_m)
             pose_list, sigma, crs, angle_system = list(table.poses), table.sigma, table.crs, table.angle_system
@@ -236,9 +256,11 @@ def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera
                 pose_list = [Pose(p.image, only, p.position, p.rotation) for p in pose_list]
         order = {p.image: k for k, p in enumerate(pose_list)}
         pose_list = _match_pose_names(names, pose_list, poses)
+        idx = [order.get(n, order.get(Path(n).stem, 0)) for n in names]
         if sigma is not None:
-            idx = [order.get(n, order.get(Path(n).stem, 0)) for n in names]
             sigma = np.asarray(sigma)[idx]
+        if gps is not None and dop is not None:
+            gps, dop = gps[idx], dop[idx]
     if not cameras:
         raise InvalidInputError("no camera: give --camera CAM.json (or --poses with an OpenSfM reconstruction.json)")
     if pose_list is not None:
@@ -250,10 +272,7 @@ def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera
     for n, c in zip(names, camera_of, strict=True):
         if c not in cameras:
             raise InvalidInputError(f"image {n!r} names camera {c!r}, which is not given (cameras: {sorted(cameras)})")
-    ctrl = None
-    if control is not None:
-        ws.add_inputs(control)
-        ctrl = read_block_control(control)
+    if ctrl is not None and control is not None:
         unknown = sorted({m for m in ctrl.meas_image if m not in names and Path(m).stem not in
                           {Path(n).stem for n in names}})
         if unknown:
@@ -264,12 +283,19 @@ def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera
             raise InvalidInputError(f"check id(s) {missing_checks} are not in {str(control)!r}")
         if crs is None:
             crs = ctrl.crs
+            if kind == "opensfm" and crs is not None:
+                frame = (f"{crs_label(crs)} of the control file (the reconstruction is not georeferenced: its poses "
+                         "are taken as given in that CRS)")
         elif ctrl.crs is not None and ctrl.crs != crs:
             if parse_crs(ctrl.crs) != parse_crs(crs):
                 raise InvalidInputError(f"the control file's CRS {ctrl.crs!r} differs from the pose file's {crs!r}")
     elif opts.check_ids:
         raise InvalidInputError(f"check ids {list(opts.check_ids)} given without a control file")
-    return _Inputs(cameras, camera_of, pose_list, sigma, angle_system, crs, ctrl)
+    if not frame:
+        frame = (f"{crs_label(crs)} (the CRS of the {'pose' if kind == 'csv' else 'control'} file)" if crs is not None
+                 else "the frame of the given coordinates (no CRS given: not georeferenced)")
+    return _Inputs(cameras, camera_of, pose_list, sigma, angle_system, crs, ctrl, frame, reference, gps, dop, kind,
+                   Path(poses).name if poses is not None else "")
 
 
 def _with_control(tracks: Tracks, ctrl: BlockControlTable | None, names: tuple[str, ...],
@@ -312,17 +338,49 @@ def _block_control(ctrl: BlockControlTable | None, tracks: Tracks, opts: BlockOp
                         check=np.array([ctrl.ids[k] in opts.check_ids for k in rows], dtype=bool))
 
 
-def _gnss(inp: _Inputs, opts: BlockOptions) -> GnssObservations | None:
+def _gnss(inp: _Inputs, opts: BlockOptions) -> tuple[GnssObservations | None, str]:
+    """The GNSS (and INS) observations of the block and a sentence saying where they come from.
+
+    An OpenSfM reconstruction's shots with ``gps_position`` are observed there, with ``--gnss-sigma``
+    or else their ``gps_dop``; without any, ``--gnss-sigma`` makes the reconstruction's projection
+    centres observations. A pose CSV's positions are observed with ``--gnss-sigma`` or its ``sx,sy,sz``.
+    """
     if inp.poses is None:
-        return None
+        return None, "no poses given (--poses)"
     n = len(inp.poses)
-    sig_pos = None
-    if opts.gnss_sigma_m is not None:
-        sig_pos = np.tile(np.asarray(opts.gnss_sigma_m, dtype=np.float64), (n, 1))
-    elif inp.pose_sigma is not None and np.isfinite(inp.pose_sigma[:, :3]).all():
+    names = tuple(p.image for p in inp.poses)
+    given = None if opts.gnss_sigma_m is None else np.tile(np.asarray(opts.gnss_sigma_m, dtype=np.float64), (n, 1))
+    if inp.pose_kind == "opensfm":
+        gps = np.full((n, 3), np.nan) if inp.gps_position is None else np.asarray(inp.gps_position)
+        has = np.isfinite(gps).all(axis=1)
+        if has.any():
+            dop = np.full(n, np.nan) if inp.gps_dop is None else np.asarray(inp.gps_dop, dtype=np.float64)
+            if given is not None:
+                sig, how = given, "sigma from --gnss-sigma"
+            else:
+                sig = np.repeat(np.where(dop > 0, dop, np.nan)[:, None], 3, axis=1)
+                ok_d = has & np.isfinite(sig).all(axis=1)
+                how = (f"sigma = its gps_dop, median {float(np.median(dop[ok_d])):.3g} m" if ok_d.any() else "")
+                has = ok_d
+            if not has.any():
+                return None, (f"{inp.pose_name} has gps_position but no gps_dop to weigh it: give --gnss-sigma S to "
+                              "observe it")
+            k = np.flatnonzero(has)
+            return (GnssObservations(images=tuple(names[i] for i in k), position=gps[k], sigma_m=sig[k]),
+                    f"the gps_position of {len(k)} of {n} shots of {inp.pose_name} ({how})")
+        if given is None:
+            return None, (f"{inp.pose_name} has no gps_position: its poses are initial values only (--gnss-sigma S "
+                          "observes its projection centres)")
+        return (GnssObservations(images=names, position=np.array([p.position for p in inp.poses]), sigma_m=given),
+                f"the projection centres of {inp.pose_name} (no gps_position in it; sigma from --gnss-sigma)")
+    sig_pos = given
+    how = "sigma from --gnss-sigma"
+    if sig_pos is None and inp.pose_sigma is not None and np.isfinite(inp.pose_sigma[:, :3]).all():
         sig_pos = np.asarray(inp.pose_sigma[:, :3], dtype=np.float64)
+        how = "sigma from its sx,sy,sz"
     if sig_pos is None:
-        return None
+        return None, (f"the positions of {inp.pose_name} are initial values only (no sx,sy,sz in it; --gnss-sigma S "
+                      "observes them)")
     angles = sig_ang = None
     if opts.ins_sigma_rad is not None:
         sig_ang = np.tile(np.asarray(opts.ins_sigma_rad, dtype=np.float64), (n, 1))
@@ -333,12 +391,44 @@ def _gnss(inp: _Inputs, opts: BlockOptions) -> GnssObservations | None:
         sig_ang = sa if inp.angle_system == "omega-phi-kappa" else np.repeat(sa.mean(axis=1, keepdims=True), 3, 1)
     if sig_ang is not None:
         angles = np.array([p.angles for p in inp.poses])
-    return GnssObservations(images=tuple(p.image for p in inp.poses),
-                            position=np.array([p.position for p in inp.poses]), sigma_m=sig_pos,
-                            angles=angles, sigma_rad=sig_ang)
+    return (GnssObservations(images=names, position=np.array([p.position for p in inp.poses]), sigma_m=sig_pos,
+                             angles=angles, sigma_rad=sig_ang),
+            f"the positions of {n} images of {inp.pose_name} ({how})" + ("; its angles as INS observations"
+                                                                         if angles is not None else ""))
+
+
+def _check_datum(inp: _Inputs, gnss: GnssObservations | None, gnss_text: str, names: tuple[str, ...],
+                 opts: BlockOptions) -> None:
+    """Refuse a block whose datum nothing fixes, before any matching (the bundle's own rule: GNSS at >= 3 images,
+    or >= 2 plan and >= 3 height control points, each measured in >= 2 images of the block)."""
+    if opts.bundle.free_network or (gnss is not None and len(gnss.images) >= 3):
+        return
+    plan = height = 0
+    ctrl = inp.control
+    if ctrl is not None:
+        block = set(names) | {Path(n).stem for n in names}
+        counts: dict[str, int] = {}
+        for pid, im in zip(ctrl.meas_id, ctrl.meas_image, strict=True):
+            if im in block:
+                counts[pid] = counts.get(pid, 0) + 1
+        for pid, kind in zip(ctrl.ids, ctrl.kind, strict=True):
+            if counts.get(pid, 0) >= 2 and pid not in opts.check_ids:
+                plan += kind in ("full", "plan")
+                height += kind in ("full", "height")
+    if plan >= 2 and height >= 3:
+        return
+    g = gnss_text if gnss is None else f"GNSS at only {len(gnss.images)} images ({gnss_text})"
+    c = ("no control (--control)" if ctrl is None else
+         f"the control gives {plan} plan and {height} height points measured in two images or more (check points "
+         "excluded)")
+    raise EstimationError(f"datum defect: nothing fixes the position, rotation and scale of the block: {g}; {c}. "
+                          "Give --gnss-sigma S with poses, control points (--control: >= 2 plan and >= 3 height "
+                          "points), or --free-network (the frame of the initial poses)")
 
 
 # --------------------------------------------------------------------------- the job
+#: the bundle's pose standard errors (omega, phi, kappa, x, y, z) in the pose CSV's order (x, y, z, omega, phi, kappa)
+POSE_CSV_STD_ORDER = [3, 4, 5, 0, 1, 2]
 #: an image keeps at least this many rays after the intersection through initial poses (else all of them)
 MIN_RAYS_PER_IMAGE = 12
 #: above this many image observations the default full covariance (every point's) becomes "poses"
@@ -422,6 +512,9 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
     cam_input = camera if isinstance(camera, (str, Path)) else None
     ws = plan_block(out_dir, overwrite=overwrite, inputs=[*images, cam_input, poses, control], report=opts.report)
     inp = _load_inputs(ws, names, camera, poses, control, opts)
+    gnss, gnss_text = _gnss(inp, opts)
+    _check_datum(inp, gnss, gnss_text, names, opts)
+    input_lines = (f"frame: {inp.frame}", f"GNSS: {gnss_text}" if gnss is not None else f"GNSS: none ({gnss_text})")
     ws.plan(*camera_paths(Path(out_dir), inp.cameras))
     if tracks is not None and tuple(tracks.images) != names:
         raise InvalidInputError(f"the given tracks name images {list(tracks.images)[:4]}, not the block's "
@@ -478,7 +571,6 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
         all_tracks = sub
     timings["initial_s"] = time.perf_counter() - t1
     bcontrol = _block_control(inp.control, all_tracks, opts)
-    gnss = _gnss(inp, opts)
     bopts = opts.bundle
     if bopts.covariance == "full" and all_tracks.n_obs > FULL_COVARIANCE_MAX_OBS:
         bopts = replace(bopts, covariance="poses")
@@ -486,40 +578,51 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
     res = adjust_bundle(inp.cameras, poses0, all_tracks, points0, control=bcontrol, gnss=gnss, options=bopts,
                         progress=progress)
     timings["bundle_s"] = time.perf_counter() - t2
-    files, report_path = _write(ws, res, all_tracks, inp, names, n_tie, initial, timings)
-    n_written = int(_reliable(res, all_tracks).sum())
-    n_ctrl = 0 if bcontrol is None else int((~bcontrol.check).sum())
-    n_chk = 0 if bcontrol is None else int(bcontrol.check.sum())
-    return BlockResult(res, all_tracks, n_tie, n_ctrl, n_chk, initial, Path(out_dir), tuple(files), report_path,
-                       timings, tie_lines, n_written)
+    files, report_path = _write(ws, res, all_tracks, inp, names, n_tie, initial, timings, gnss)
+    n_written = int(res.determined.sum())
+    return BlockResult(res, all_tracks, n_tie, len(res.control_ids), len(res.check_ids), initial, Path(out_dir),
+                       tuple(files), report_path, timings, tie_lines, n_written, input_lines)
 
 
-def _tables(res: BundleResult, tracks: Tracks, units: str) -> list[ResidualTable]:
-    """Residual tables of the report: image observations, control, check points, GNSS centres."""
+def _tables(res: BundleResult, tracks: Tracks, units: str, gnss: GnssObservations | None) -> list[ResidualTable]:
+    """Residual tables of the report (residual = adjusted - observed): image observations, control, check
+    points, GNSS centres."""
     ids = [f"{tracks.point_ids[p]}@{tracks.images[i]}" for p, i in zip(tracks.obs_point, tracks.obs_image,
                                                                        strict=True)]
-    v = np.asarray(res.residuals_px, dtype=np.float64)
+    v = np.asarray(res.residuals_px, dtype=np.float64)  # observed - computed
     w = np.min(np.asarray(res.weights, dtype=np.float64).reshape(-1, 2), axis=1)
-    out = [ResidualTable("bundle: image observations", ids, tracks.obs_pixel, tracks.obs_pixel + v, "px",
+    out = [ResidualTable("bundle: image observations", ids, tracks.obs_pixel, tracks.obs_pixel - v, "px",
                          weights=w, outlier=res.flagged, position_px=tracks.obs_pixel, sigma0=res.sigma0,
                          extra={"sigma0_unit_weight": res.sigma0})]
     comps = ("dX", "dY", "dZ")
+    pid = {p: k for k, p in enumerate(res.point_ids)}
+    X = np.asarray(res.points, dtype=np.float64)
     if len(res.control_ids):
-        r = np.nan_to_num(np.asarray(res.control_residuals, dtype=np.float64))
-        out.append(ResidualTable("bundle: control points", res.control_ids, np.zeros_like(r), r, units,
-                                 components=comps,
-                                 outlier=np.array([c in res.flagged_control for c in res.control_ids], dtype=bool)))
+        adj = X[[pid[i] for i in res.control_ids]]
+        r = np.asarray(res.control_residuals, dtype=np.float64)  # given - adjusted; NaN: not observed
+        given = np.where(np.isfinite(r), adj + r, adj)
+        out.append(ResidualTable("bundle: control points", res.control_ids, given, adj, units, components=comps,
+                                 outlier=np.array([c in res.flagged_control for c in res.control_ids], dtype=bool),
+                                 extra=_rms_labels(adj - given)))
     if len(res.check_ids):
         e = np.asarray(res.check_errors, dtype=np.float64)
+        adj = X[[pid[i] for i in res.check_ids]]
         sd = np.linalg.norm(np.asarray(res.check_std, dtype=np.float64).reshape(-1, 3), axis=1)
-        out.append(ResidualTable("bundle: check points (adjusted - given)", res.check_ids, np.zeros_like(e), e, units,
+        out.append(ResidualTable("bundle: check points (adjusted - given)", res.check_ids, adj - e, adj, units,
                                  components=comps, check=np.ones(len(e), dtype=bool),
-                                 std=np.where(sd > 0, sd, np.nan)))
-    if len(res.gnss_residuals):
-        g = np.asarray(res.gnss_residuals, dtype=np.float64)
-        out.append(ResidualTable("bundle: GNSS projection centres", [p.image for p in res.poses][: len(g)],
-                                 np.zeros_like(g), g, units, components=comps))
+                                 std=np.where(sd > 0, sd, np.nan), extra=_rms_labels(e)))
+    if len(res.gnss_residuals) and gnss is not None:
+        g = np.asarray(res.gnss_residuals, dtype=np.float64)  # observed - adjusted
+        obs = np.asarray(gnss.position, dtype=np.float64)[: len(g)]
+        out.append(ResidualTable("bundle: GNSS projection centres", list(gnss.images)[: len(g)], obs, obs - g, units,
+                                 components=comps, extra=_rms_labels(g)))
     return out
+
+
+def _rms_labels(v: NDArray[np.float64]) -> dict[str, float]:
+    """The two RMS of (N, 3) residuals, labelled: per component (over x, y and z) and of the 3D length."""
+    return {"rms_per_component_m": rms(v), "rms_3d_m": float(np.sqrt(np.mean(np.sum(v ** 2, axis=1))))
+            if len(v) else float("nan")}
 
 
 def _residual_mm(res: BundleResult, tracks: Tracks, inp: _Inputs) -> NDArray[np.float64]:
@@ -533,20 +636,13 @@ def _residual_mm(res: BundleResult, tracks: Tracks, inp: _Inputs) -> NDArray[np.
         return np.sqrt(ss / np.maximum(n, 1))
 
 
-def _reliable(res: BundleResult, tracks: Tracks) -> NDArray[np.bool_]:
-    """(P,) points written: finite and seen by at least two rays not flagged as blunders (a point whose
-    rays were flagged is not determined by the adjustment; it stays in ``observations.csv``)."""
-    X = np.asarray(res.points, dtype=np.float64)
-    good = ~np.asarray(res.flagged, dtype=bool)
-    n_good = np.bincount(tracks.obs_point[good], minlength=tracks.n_points)
-    return np.asarray(np.isfinite(X).all(axis=1) & (n_good >= 2), dtype=bool)
-
-
 def _write(ws: Workspace, res: BundleResult, tracks: Tracks, inp: _Inputs, names: tuple[str, ...], n_tie: int,
-           initial: str, timings: dict[str, float]) -> tuple[list[Path], Path | None]:
+           initial: str, timings: dict[str, float], gnss: GnssObservations | None) -> tuple[list[Path], Path | None]:
     root = Path(str(ws.root))
     X = np.asarray(res.points, dtype=np.float64)
-    ok = _reliable(res, tracks)
+    # the points determined by the images: at least two rays not flagged as blunders (a point whose rays were
+    # flagged is not determined by the adjustment; it stays in observations.csv)
+    ok = np.asarray(res.determined, dtype=bool)
     ids = [tracks.point_ids[i] for i in np.flatnonzero(ok)]
     pstd = np.asarray(res.point_std, dtype=np.float64)
     std = pstd[ok] if np.isfinite(pstd[ok]).all() and ok.any() else None
@@ -556,7 +652,14 @@ def _write(ws: Workspace, res: BundleResult, tracks: Tracks, inp: _Inputs, names
                                "points_left_out": int((~ok).sum()),
                                "observations": tracks.n_obs, "initial": initial,
                                "rms_image_px": res.rms_px, "sigma0": res.sigma0, "iterations": res.iterations,
-                               "converged": res.converged, "condition_number": res.condition_number, **timings}
+                               "iteration_limit": res.iteration_limit, "converged": res.converged,
+                               "condition_number": res.condition_number, "frame": inp.frame,
+                               "control_points": len(res.control_ids), "control_rejected": list(res.rejected_control),
+                               "check_points": len(res.check_ids), "check_rejected": list(res.rejected_check),
+                               **timings}
+    if len(res.gnss_residuals):
+        lab = _rms_labels(np.asarray(res.gnss_residuals, dtype=np.float64))
+        summary["gnss_rms_per_component_m"], summary["gnss_rms_3d_m"] = lab["rms_per_component_m"], lab["rms_3d_m"]
     ck_err = np.asarray(res.check_errors, dtype=np.float64).reshape(-1, 3)
     if len(ck_err):
         ck_std = np.asarray(res.check_std, dtype=np.float64).reshape(-1, 3)
@@ -574,10 +677,12 @@ def _write(ws: Workspace, res: BundleResult, tracks: Tracks, inp: _Inputs, names
         ws.write_text(p, block_orientation_text(res.cameras, res.poses, std_errors=res.pose_std, crs=inp.crs,
                                                 sigma0={"all": res.sigma0, **res.sigma0_groups},
                                                 datum=list(res.datum) + [f"WARNING: {w}" for w in res.warnings],
-                                                summary=summary))
+                                                summary=summary, frame=inp.frame, reference_lonlat_h=inp.reference))
         written.append(p)
         p = root / BLOCK_LAYOUT["poses"]
-        ws.write_text(p, pose_csv_text(res.poses, crs=inp.crs, angles="deg", std=res.pose_std))
+        # the bundle's pose_std is (omega, phi, kappa, x, y, z); the pose CSV's is (x, y, z, omega, phi, kappa)
+        ws.write_text(p, pose_csv_text(res.poses, crs=inp.crs, angles="deg",
+                                       std=np.asarray(res.pose_std)[:, POSE_CSV_STD_ORDER]))
         written.append(p)
         p = root / BLOCK_LAYOUT["points"]
         with ws.output(p) as tmp:
@@ -599,15 +704,16 @@ def _write(ws: Workspace, res: BundleResult, tracks: Tracks, inp: _Inputs, names
             written.append(p)
         p = root / BLOCK_LAYOUT["observations"]
         w = np.min(np.asarray(res.weights, dtype=np.float64).reshape(-1, 2), axis=1)
-        ws.write_text(p, observations_text(tracks, np.asarray(res.residuals_px), w, np.asarray(res.flagged)))
+        # the CSV's residuals are adjusted - observed; the bundle's observed - computed
+        ws.write_text(p, observations_text(tracks, -np.asarray(res.residuals_px), w, np.asarray(res.flagged)))
         written.append(p)
         if ws.report_dir is not None:
-            report_path = _report(ws.report_dir, res, tracks, inp, summary, units)
+            report_path = _report(ws.report_dir, res, tracks, inp, summary, units, gnss)
     return written, report_path
 
 
 def _report(out: Path, res: BundleResult, tracks: Tracks, inp: _Inputs, summary: dict[str, Any],
-            units: str) -> Path:
+            units: str, gnss: GnssObservations | None) -> Path:
     pid = {p: k for k, p in enumerate(res.point_ids)}
     X = np.asarray(res.points, dtype=np.float64)
     ctrl_xy = X[[pid[i] for i in res.control_ids if i in pid]][:, :2] if len(res.control_ids) else None
@@ -626,13 +732,14 @@ def _report(out: Path, res: BundleResult, tracks: Tracks, inp: _Inputs, summary:
         ground["bundle: control points"] = ctrl_xy
     if chk_xy is not None:
         ground["bundle: check points (adjusted - given)"] = chk_xy
-    rep = {**summary, "datum": " | ".join(res.datum),
-           "sigma0_groups": dict(res.sigma0_groups), "variance_factors": dict(res.variance_factors)}
+    rep = {**summary, "datum": " | ".join(res.datum), "warnings": list(res.warnings),
+           "sigma0_groups": dict(res.sigma0_groups), "variance_factors": dict(res.variance_factors),
+           "redundancy_groups": dict(res.redundancy_groups)}
     # the workspace refused an existing report without --overwrite before any work: the folder is this job's
-    shown = np.where(_reliable(res, tracks)[:, None], X, np.nan)
+    shown = np.where(np.asarray(res.determined, dtype=bool)[:, None], X, np.nan)
     return write_block_report(out, title=f"stereo block: {len(res.poses)} images", cameras=res.cameras,
                               poses=res.poses, points=shown, tracks=tracks,
-                              tables=_tables(res, tracks, units), residual_px=res.residuals_px,
+                              tables=_tables(res, tracks, units, gnss), residual_px=res.residuals_px,
                               flagged=res.flagged, pose_std=res.pose_std, pose_cov=res.pose_covariance,
                               correlation=res.correlation, control_xy=ctrl_xy, check_xy=chk_xy,
                               check_cov_xy=chk_cov, check_error_xy=chk_err, summary=rep,

@@ -13,13 +13,22 @@ from rectify.atomic import atomic_write_text, check_output
 from rectify.errors import CalibrationError, InvalidInputError
 from stereo.calibration.result import Calibration
 from stereo.calibration.rig import RigCalibration
-from stereo.features.targets import Chessboard, detect_chessboards, parse_pattern, parse_square
+from stereo.features.targets import (
+    CORNER_METHODS,
+    Chessboard,
+    ChessboardDetection,
+    RejectedCorner,
+    find_chessboards,
+    parse_pattern,
+    parse_square,
+)
 from stereo.formats.calibration import views_from_csv
 from stereo.report.calibration import write_calibration_report
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["CalibrationRun", "RigRun", "calibrate_images", "calibrate_points", "calibrate_rig_images", "parse_size"]
+__all__ = ["CORNER_METHODS", "CalibrationRun", "RigRun", "calibrate_images", "calibrate_points", "calibrate_rig_images",
+           "parse_size"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -33,13 +42,25 @@ class CalibrationRun:
     report: Path | None
     units: str
     source: str
+    detection: ChessboardDetection | None = None
+
+    @property
+    def rejected(self) -> tuple[RejectedCorner, ...]:
+        """Chessboard corners left out because their refinement failed."""
+        return tuple(self.detection.rejected) if self.detection is not None else ()
 
     def summary_lines(self) -> list[str]:
         out = [self.source]
         if self.missing:
             out.append(f"board not found in {len(self.missing)} of {self.n_images} images: "
                        f"{', '.join(self.missing)} (left out)")
+        if self.detection is not None:
+            out += self.detection.summary_lines()
         out += self.calibration.summary_lines()
+        if self.rejected:
+            n = len(self.rejected)
+            out.append(f"(RMS and sigma0 over the {self.calibration.n_points} kept corners; the {n} rejected "
+                       f"corner{'s are' if n > 1 else ' is'} not in the fit)")
         out.append(f"wrote {self.output} ({self.units} camera)")
         if self.report is not None:
             out.append(f"report: {self.report}")
@@ -55,12 +76,20 @@ class RigRun:
     missing: tuple[str, ...]
     n_pairs: int
     source: str
+    detections: tuple[ChessboardDetection, ...] = ()
+
+    @property
+    def rejected(self) -> tuple[RejectedCorner, ...]:
+        """Chessboard corners (left and right images) left out because their refinement failed."""
+        return tuple(r for d in self.detections for r in d.rejected)
 
     def summary_lines(self) -> list[str]:
         out = [self.source]
         if self.missing:
             out.append(f"board not found in {len(self.missing)} of {self.n_pairs} pairs: {', '.join(self.missing)} "
                        "(left out)")
+        for side, d in zip(("left", "right"), self.detections, strict=False):
+            out += [f"{side} {line}" if k == 0 else line for k, line in enumerate(d.summary_lines())]
         out += self.rig.summary_lines()
         out.append(f"wrote {self.output} (rig: left and right cameras, relative orientation)")
         return out
@@ -78,12 +107,17 @@ def parse_size(text: str) -> tuple[int, int]:
 
 
 def _finish(cal: Calibration, output: str | Path, *, pixel_size_mm: float | None, report_dir: str | Path | None,
-            overwrite: bool) -> tuple[Path, Path | None]:
+            overwrite: bool, detection: ChessboardDetection | None = None) -> tuple[Path, Path | None]:
     d = cal.camera_dict(pixel_size_mm=pixel_size_mm)
     atomic_write_text(output, json.dumps(d, indent=2) + "\n", overwrite=overwrite)
     rep = None
     if report_dir is not None:
-        rep = write_calibration_report(report_dir, cal, overwrite=overwrite)
+        corners = None
+        if detection is not None:
+            corners = {"method": detection.method, "found": detection.n_corners,
+                       "kept": detection.n_corners - len(detection.rejected),
+                       "rejected": [r.as_dict() for r in detection.rejected]}
+        rep = write_calibration_report(report_dir, cal, overwrite=overwrite, corners=corners)
     return Path(output), rep
 
 
@@ -96,7 +130,7 @@ def _model_kwargs(kw: dict[str, Any], pixel_size_mm: float | None) -> dict[str, 
 
 def calibrate_images(images: Sequence[str | Path], *, pattern: str, square: str = "1", output: str | Path,
                      report_dir: str | Path | None = None, overwrite: bool = False,
-                     pixel_size_mm: float | None = None, **model: Any) -> CalibrationRun:
+                     pixel_size_mm: float | None = None, corners: str = "symmetry", **model: Any) -> CalibrationRun:
     """Calibrate from chessboard images.
 
     Parameters
@@ -110,6 +144,9 @@ def calibrate_images(images: Sequence[str | Path], *, pattern: str, square: str 
         Camera JSON to write (checked before any work).
     pixel_size_mm : float, optional
         Write a millimetre camera.
+    corners : {"symmetry", "opencv"}
+        Corner refinement (:func:`stereo.features.targets.refine_corners`); corners whose refinement
+        failed are left out, named in the summary and the report.
     **model
         Keywords of :meth:`Calibration.from_views` (``equal_focal``, ``distortion``, ``symmetry``, ``robust``).
 
@@ -123,17 +160,19 @@ def calibrate_images(images: Sequence[str | Path], *, pattern: str, square: str 
     cols, rows = parse_pattern(pattern)
     sq, unit = parse_square(square)
     board = Chessboard(cols, rows, sq)
-    views, missing, (w, h) = detect_chessboards(images, board)
+    det = find_chessboards(images, board, method=corners)
+    views, missing, (w, h) = det.views, det.missing, det.size
     if len(views) < 3 and missing:
         raise CalibrationError(f"chessboard {cols}x{rows} found in only {len(views)} of {len(images)} images "
                                f"(not found: {', '.join(missing)}); at least 3 views needed")
     if len(views) < 3:
         raise CalibrationError(f"too few views: {len(views)} images of the chessboard {cols}x{rows}, at least 3 needed")
     cal = Calibration.from_views(views, w, h, **_model_kwargs(model, pixel_size_mm))
-    out, rep = _finish(cal, output, pixel_size_mm=pixel_size_mm, report_dir=report_dir, overwrite=overwrite)
+    out, rep = _finish(cal, output, pixel_size_mm=pixel_size_mm, report_dir=report_dir, overwrite=overwrite,
+                       detection=det)
     src = (f"chessboard {cols}x{rows} (square {sq:g} {unit}) found in {len(views)} of {len(images)} images, "
            f"{w} x {h} px")
-    return CalibrationRun(cal, out, tuple(missing), len(images), rep, "mm" if pixel_size_mm else "pixel", src)
+    return CalibrationRun(cal, out, tuple(missing), len(images), rep, "mm" if pixel_size_mm else "pixel", src, det)
 
 
 def calibrate_points(points: str | Path, *, field: str | Path | None, size: str, output: str | Path,
@@ -155,7 +194,7 @@ def calibrate_points(points: str | Path, *, field: str | Path | None, size: str,
 
 def calibrate_rig_images(left: Sequence[str | Path], right: Sequence[str | Path], *, pattern: str, square: str = "1",
                          output: str | Path, overwrite: bool = False, pixel_size_mm: float | None = None,
-                         **model: Any) -> RigRun:
+                         corners: str = "symmetry", **model: Any) -> RigRun:
     """Calibrate a two-camera rig from synchronous chessboard images (``left[i]`` with ``right[i]``).
 
     Pairs where the board is missing in either image are left out (named). Writes the rig JSON
@@ -176,8 +215,9 @@ def calibrate_rig_images(left: Sequence[str | Path], right: Sequence[str | Path]
     cols, rows = parse_pattern(pattern)
     sq, unit = parse_square(square)
     board = Chessboard(cols, rows, sq)
-    lv, lmiss, lsize = detect_chessboards(left, board)
-    rv, rmiss, rsize = detect_chessboards(right, board)
+    ldet = find_chessboards(left, board, method=corners)
+    rdet = find_chessboards(right, board, method=corners)
+    lv, lsize, rv, rsize = ldet.views, ldet.size, rdet.views, rdet.size
     lnames = [Path(p).name for p in left]
     rnames = [Path(p).name for p in right]
     by_l = {v.name: v for v in lv}
@@ -198,4 +238,4 @@ def calibrate_rig_images(left: Sequence[str | Path], right: Sequence[str | Path]
                       overwrite=overwrite)
     src = (f"rig: chessboard {cols}x{rows} (square {sq:g} {unit}) in {len(pairs)} of {len(left)} pairs, "
            f"left {lsize[0]} x {lsize[1]} px, right {rsize[0]} x {rsize[1]} px")
-    return RigRun(rig, Path(output), tuple(missing), len(left), src)
+    return RigRun(rig, Path(output), tuple(missing), len(left), src, (ldet, rdet))

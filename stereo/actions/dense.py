@@ -40,6 +40,7 @@ from rectify.features import MatcherConfig, match_images
 from rectify.formats.camera import read_camera
 from rectify.formats.tables import read_control, read_matches
 from rectify.geometry.camera import Camera
+from rectify.geometry.crs import same_crs
 from rectify.geometry.robust import ROBUST_METHODS
 from rectify.raster.distributed import Scheduler, resolve_scheduler
 from rectify.raster.io import (
@@ -52,7 +53,7 @@ from rectify.raster.io import (
     read_overview,
 )
 from rectify.report.builder import json_safe
-from stereo.dense.dsm import STATISTICS, DsmGrid, DsmResult
+from stereo.dense.dsm import STATISTICS, DsmGrid, DsmResult, default_cell
 from stereo.dense.epipolar import (
     EpipolarRectification,
     ParallaxReport,
@@ -63,10 +64,12 @@ from stereo.dense.epipolar import (
 )
 from stereo.dense.matching import NODATA, MatchOptions, MatchStats, match_rasters
 from stereo.dense.triangulate import triangulate_disparity
+from stereo.formats.block import BLOCK_FORMAT, BlockOrientation, read_block_orientation
 from stereo.formats.orientation import EXTERIOR_FORMAT, read_exterior, read_relative
 from stereo.formats.points import point_writer
 from stereo.pair.absolute import AbsoluteOrientation
 from stereo.pair.intersection import intersect
+from stereo.pair.model import ground_unit
 from stereo.relative import RelativeOrientation
 from stereo.report.dense import HeightComparison, compare_with_dem, save_histogram, save_picture
 
@@ -201,10 +204,16 @@ class DenseResult:
     comparison: HeightComparison | None
     control_rmse: float | None
     seconds: float
+    crs_note: str | None = None
+    control_unit: str = "ground units"
+    n_control: int = 0
+    gsd: float | None = None
+    source: str = ""
 
     def summary_lines(self) -> list[str]:
         r = self.rectification
-        lines = [
+        lines = [self.source] if self.source else []
+        lines += [
             f"normal case: left {r.left.width} x {r.left.height}, right {r.right.width} x {r.right.height} px, "
             f"principal distance {r.focal_px:.2f} px",
             self.parallax.summary_line(),
@@ -212,11 +221,20 @@ class DenseResult:
             f"({100 * self.matching.n_filled / max(1, self.matching.n_valid):.1f}% of them filled), range "
             f"{self.matching.disparity_min:.1f} .. {self.matching.disparity_max:.1f} px, {self.matching.n_tiles} tiles",
             f"points: {self.n_points} ({self.frame} frame)",
-            f"DSM: {self.dsm.height.shape[1]} x {self.dsm.height.shape[0]} cells of {self.dsm_cell:.3f}, coverage "
-            f"{100 * self.dsm.coverage:.1f}% of the grid, {int(self.dsm.filled.sum())} cells filled",
         ]
+        if self.crs_note:
+            lines.append(self.crs_note)
+        unit = ground_unit(self.crs, "map") if self.frame == "ground" else "model units"
+        cell = f"{self.dsm_cell:g} {unit}"
+        if self.gsd is not None:
+            cell += f" (the ground pixel {self.gsd:.4g} {unit}, rounded to 2 significant digits)"
+        lines.append(f"DSM: {self.dsm.height.shape[1]} x {self.dsm.height.shape[0]} cells of {cell}, origin on whole "
+                     f"multiples of the cell, coverage {100 * self.dsm.coverage:.1f}% of the grid, "
+                     f"{int(self.dsm.filled.sum())} cells filled")
         if self.control_rmse is not None:
-            lines.append(f"absolute orientation to the control: RMSE {self.control_rmse:.3f} (3D)")
+            lines.append(f"absolute orientation to the control (least squares, {self.n_control} full control points, "
+                         f"map coordinates): RMSE {self.control_rmse:.3f} {self.control_unit} (3D: the root mean "
+                         "square of the residual vectors' lengths)")
         if self.comparison is not None:
             lines.append(self.comparison.summary_line(cell=self.dsm_cell))
         lines.append(f"outputs in {self.out_dir}: " + ", ".join(
@@ -325,7 +343,9 @@ def _orient_ties(doc: dict[str, Any], geometry: Any, exterior: bool, cam_l: Came
 
 
 def _ground_transform(control_path: StrPath, rect: EpipolarRectification, cam_l: Camera, cam_r: Camera
-                      ) -> tuple[Callable[[NDArray[np.float64]], NDArray[np.float64]], str | None, float]:
+                      ) -> tuple[Callable[[NDArray[np.float64]], NDArray[np.float64]], str | None, float, int]:
+    """The model -> ground similarity from the control's full points (least squares, in the control's
+    coordinates); returns it, the control's CRS, the 3D RMSE of its residuals and the number of points."""
     ctrl = read_control(control_path)
     full = ctrl.is_control
     if full.sum() < 3:
@@ -339,7 +359,7 @@ def _ground_transform(control_path: StrPath, rect: EpipolarRectification, cam_l:
                                          units="m")
     res = ao(inter.points) - ctrl.xyz[full]
     rmse = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
-    return ao, ctrl.crs, rmse
+    return ao, ctrl.crs, rmse, int(full.sum())
 
 
 def _points_at(rect: EpipolarRectification, pix: NDArray[np.float64], d: NDArray[np.float64], transform
@@ -399,14 +419,18 @@ def run_dense(
     options: DenseOptions | None = None,
     overwrite: bool = False,
     progress: Progress | None = None,
+    left_id: str | None = None,
+    right_id: str | None = None,
 ) -> DenseResult:
     """The dense chain of an oriented frame pair.
 
     Parameters
     ----------
     orientation : path
-        ``ro.json`` (relative orientation, ``stereo orient``) or the left photo's exterior orientation
-        JSON (then ``right_orientation`` is the right one's).
+        ``ro.json`` (relative orientation, ``stereo orient``), the left photo's exterior orientation
+        JSON (then ``right_orientation`` is the right one's), or the ``orientation.json`` of
+        ``stereo block`` (format ``rectify-stereo/block-orientation``: both photos' poses and cameras,
+        picked by ``left_id``/``right_id``).
     left, right : path
         The original photos.
     out_dir : path
@@ -425,6 +449,13 @@ def run_dense(
         Its ``scheduler`` says where the matching tiles run (local threads or Dask).
     overwrite : bool
     progress : callable(stage, done, total), optional
+    left_id, right_id : str, optional
+        With a block orientation: the image ids of the two photos in it (default: the block image
+        whose name, or name without extension, is the photo's file name).
+
+    The products of a ground frame (exterior orientations, a block, control) are in the CRS the
+    orientation or control file names; when it names none and both photos name the same CRS, that
+    one (said in the summary); when none is known the summary says so (and a warning is logged).
 
     Returns
     -------
@@ -449,27 +480,55 @@ def run_dense(
     doc = read_json(orientation, "orientation file")
     if not isinstance(doc, dict):
         raise InvalidInputError(f"{str(orientation)!r} is not an orientation JSON object")
-    exterior = doc.get("format") == EXTERIOR_FORMAT or ("position" in doc and "rotation_left" not in doc)
-    if exterior and right_orientation is None:
+    block = doc.get("format") == BLOCK_FORMAT
+    if not block and (left_id is not None or right_id is not None):
+        raise InvalidInputError(f"--left-id/--right-id go with a block orientation (orientation.json of `stereo "
+                                f"block`); {str(orientation)!r} is not one")
+    if block and right_orientation is not None:
+        raise InvalidInputError(f"{str(orientation)!r} is a block orientation: it holds both photos (picked by "
+                                "--left-id/--right-id); --right-orientation goes with an exterior orientation")
+    exterior = block or doc.get("format") == EXTERIOR_FORMAT or ("position" in doc and "rotation_left" not in doc)
+    if exterior and not block and right_orientation is None:
         raise InvalidInputError(f"{str(orientation)!r} is an exterior orientation: pass the right photo's with "
                                 "--right-orientation")
     if not exterior and right_orientation is not None:
         raise InvalidInputError("--right-orientation goes with an exterior orientation, not a relative one")
-    cam_l = _camera_from(doc, camera, repr(str(orientation)))
-    if exterior:
+    source = ""
+    crs_from = "the orientation file"
+    if block:
+        bo = read_block_orientation(orientation)
+        eo_l, eo_r = _block_pose(bo, left_id, left, "left", orientation), _block_pose(bo, right_id, right, "right",
+                                                                                     orientation)
+        if eo_l.image == eo_r.image:
+            raise InvalidInputError(f"the left and right photos are the same block image {eo_l.image!r}: pass "
+                                    "--left-id/--right-id")
+        cam_l = read_camera(camera) if camera is not None else bo.cameras[eo_l.camera]
+        cam_r = read_camera(camera) if camera is not None else bo.cameras[eo_r.camera]
+        crs = bo.crs
+        source = (f"orientation: block images {eo_l.image!r} (left) and {eo_r.image!r} (right) of {str(orientation)!r}"
+                  f" (cameras {eo_l.camera!r}, {eo_r.camera!r})")
+    elif exterior:
+        cam_l = _camera_from(doc, camera, repr(str(orientation)))
         doc_r = read_json(right_orientation, "orientation file")  # type: ignore[arg-type]
         cam_r = _camera_from(doc_r if isinstance(doc_r, dict) else {}, camera, repr(str(right_orientation)))
         eo_l, eo_r = read_exterior(orientation), read_exterior(right_orientation)  # type: ignore[arg-type]
-        crs = eo_l.crs
+        if eo_l.crs and eo_r.crs and not same_crs(eo_l.crs, eo_r.crs):
+            raise InvalidInputError(f"the exterior orientations {str(orientation)!r} and {str(right_orientation)!r} "
+                                    "name different CRSs: both photos must be oriented in one ground frame")
+        crs = eo_l.crs or eo_r.crs
+        crs_from = "the orientation files"
     else:
+        cam_l = _camera_from(doc, camera, repr(str(orientation)))
         ro = read_relative(orientation)
         cam_r = cam_l
         crs = None
+    photo_crs = []
     for path, cam in ((left, cam_l), (right, cam_r)):
         ds = raster_info(path)
         if (ds.width, ds.height) != (cam.width, cam.height):
             raise InvalidInputError(f"photo {str(path)!r} is {ds.width} x {ds.height} px but the camera is "
                                     f"{cam.width} x {cam.height} px")
+        photo_crs.append(ds.crs)
     suffix = {"las": ".las", "laz": ".laz", "ply": ".ply"}.get(opts.cloud_format)
     names = ["left_normal.tif", "right_normal.tif", "disparity.tif", "confidence.tif", "dsm.tif", "dense.json"]
     if suffix:
@@ -489,10 +548,13 @@ def run_dense(
     rect, tl, tr = oriented.rect, oriented.left, oriented.right
     transform = None
     control_rmse = None
+    n_control = 0
     frame = "ground" if exterior else "model"
     if control is not None:
-        transform, crs, control_rmse = _ground_transform(control, rect, cam_l, cam_r)
+        transform, crs, control_rmse, n_control = _ground_transform(control, rect, cam_l, cam_r)
         frame = "ground"
+        crs_from = "the control file"
+    crs, crs_note = _ground_crs(crs, crs_from, photo_crs, frame)
     out = Path(out_dir)
     files: list[Path] = []
     rep = out / "report"
@@ -520,16 +582,18 @@ def run_dense(
                                   paths["confidence.tif"], tie_points=ties, options=opts.matching,
                                   progress=prog("matching"), scheduler=scheduler)
             sample, gsd = _sample_points(rect, paths["disparity.tif"], transform)
-            cell = float(opts.dsm_cell) if opts.dsm_cell is not None else gsd
-            if not (math.isfinite(cell) and cell > 0):
+            if opts.dsm_cell is None and not (math.isfinite(gsd) and gsd > 0):
                 raise StereoError(f"cannot derive the DSM cell from the ground sampling distance ({gsd!r}); pass "
                                   "--dsm-cell")
+            cell = float(opts.dsm_cell) if opts.dsm_cell is not None else default_cell(gsd)
             lo, hi = np.percentile(sample, 0.1, axis=0), np.percentile(sample, 99.9, axis=0)
             span = hi - lo
             bounds = (lo[0] - 0.02 * span[0] - cell, lo[1] - 0.02 * span[1] - cell, hi[0] + 0.02 * span[0] + cell,
                       hi[1] + 0.02 * span[1] + cell)
+            heights = (f"{ground_unit(crs, 'map')}, the heights of {crs_from}" if frame == "ground"
+                       else "model units: the relative orientation's frame, base length 1")
             grid = DsmGrid(bounds, cell, statistic=opts.dsm_statistic, crs=crs, radius=opts.dsm_radius,
-                           max_spread=opts.dsm_max_spread)
+                           max_spread=opts.dsm_max_spread, heights=heights)
             n_pts = _triangulate_all(rect, paths, grid, transform, opts, suffix, crs, frame, prog("points"))
             dsm = grid.result(max_hole_cells=opts.fill_holes, despike_cells=opts.despike_cells)
             dsm.write(paths["dsm.tif"], overwrite=True)
@@ -538,7 +602,8 @@ def run_dense(
             if opts.reference_dem is not None:
                 comparison, dz = compare_with_dem(dsm, opts.reference_dem)
             summary = {
-                "frame": frame, "crs": crs, "dsm_cell": cell, "n_points": n_pts,
+                "frame": frame, "crs": crs, "crs_note": crs_note, "dsm_cell": cell, "n_points": n_pts,
+                "ground_sampling_distance": gsd, "source": source or None,
                 "vertical_parallax_px": {"rms_mapped": par.rms_geometric_px, "rms_measured": par.rms_measured_px,
                                          "n": len(par.geometric_px), "n_measured": par.n_measured,
                                          "rms_orientation": par.rms_orientation_px,
@@ -548,7 +613,8 @@ def run_dense(
                               "max": stats.disparity_max, "tiles": stats.n_tiles},
                 "dsm": {"width": int(dsm.height.shape[1]), "height": int(dsm.height.shape[0]),
                         "coverage": dsm.coverage, "filled_cells": int(dsm.filled.sum())},
-                "control_rmse": control_rmse,
+                "control_rmse": control_rmse, "control_unit": ground_unit(crs, "map") if control else None,
+                "n_control": n_control,
                 "comparison": None if comparison is None else {k: v for k, v in comparison.__dict__.items()
                                                                if k != "histogram"},
                 "rectification": rect.to_dict(),
@@ -577,7 +643,61 @@ def run_dense(
         ws.discard_root()
         raise
     return DenseResult(out, tuple(files + rep_files), rect, par, stats, n_pts, dsm, cell, frame, crs, comparison,
-                       control_rmse, time.perf_counter() - t0)
+                       control_rmse, time.perf_counter() - t0, crs_note, ground_unit(crs, "map"), n_control,
+                       gsd if opts.dsm_cell is None else None, source)
+
+
+def _block_pose(bo: BlockOrientation, image_id: str | None, photo: StrPath, side: str, path: StrPath) -> Any:
+    """The pose of one photo in a block orientation: ``image_id``, else the image named as the photo's file
+    (with or without its extension)."""
+    names = [q.image for q in bo.poses]
+    listed = f"images: {names[:10]}{' ...' if len(names) > 10 else ''}"
+    if image_id is not None:
+        hits = [q for q in bo.poses if q.image == image_id]
+        if not hits:
+            raise InvalidInputError(f"--{side}-id {image_id!r} is not an image of the block orientation {str(path)!r} "
+                                    f"({listed})")
+        return hits[0]
+    p = Path(photo)
+    hits = [q for q in bo.poses if q.image == p.name] or [q for q in bo.poses if Path(q.image).stem == p.stem]
+    if len(hits) != 1:
+        what = "is not" if not hits else "is ambiguous"
+        raise InvalidInputError(f"the {side} photo {p.name!r} {what} in the block orientation {str(path)!r} "
+                                f"({listed}): pass --{side}-id")
+    return hits[0]
+
+
+def _ground_crs(crs: str | None, crs_from: str, photo_crs: list[str | None], frame: str
+                ) -> tuple[str | None, str | None]:
+    """The CRS of the products and the line that says where it came from (None: nothing to say).
+
+    A ground frame without a CRS in its orientation or control file takes the photos' CRS when both
+    name the same one; otherwise the products are written without a CRS, and the line (and a logged
+    warning) says so. The model frame has no CRS.
+    """
+    if frame != "ground" or crs:
+        return crs, None
+    a, b = photo_crs
+    if a and b and same_crs(a, b):
+        note = (f"CRS: taken from the photos ({_crs_label(a)}): there is none in {crs_from}; the ground coordinates "
+                "are assumed to be in it")
+        logger.info("%s", note)
+        return a, note
+    why = (f"the photos name different ones ({_crs_label(a)}, {_crs_label(b)})" if a and b else
+           "none in the photos" if not (a or b) else f"only the {'left' if a else 'right'} photo names one")
+    note = (f"warning: no CRS: none in {crs_from}, {why}; dsm.tif and the point cloud are written without a CRS "
+            "(give it in the orientation file, key `crs`)")
+    logger.warning("%s", note)
+    return None, note
+
+
+def _crs_label(crs: str | None) -> str:
+    if not crs:
+        return "none"
+    if crs.upper().startswith("EPSG:"):
+        return crs
+    name = crs.split('"')[1] if crs.count('"') >= 2 else crs[:40]
+    return f"{name!r} (WKT)"
 
 
 def _picture_from_raster(src: Path, dst: Path, title: str) -> None:

@@ -17,16 +17,25 @@ Per tile of the region of interest of the left image (as satellite stereo pipeli
    (lon, lat, h) with both RPC projections (Gauss-Newton from the affine cameras' solution);
    points whose reprojection residual exceeds ``max_residual_px`` are dropped.
 
-Outputs in ``out_dir`` (written together at the end, or none on an error):
+Outputs in ``out_dir`` (written together at the end, or none on an error; a folder the run
+created is removed again on an error):
 
 =====================  ==================================================================
-``dsm.tif``            DSM in the scene's UTM zone (WGS 84 ellipsoidal heights): band 1
-                       height (nodata -9999), band 2 points per cell, band 3: 1 filled
+``dsm.tif``            DSM in the scene's UTM zone (WGS 84 ellipsoidal heights), its cell
+                       edges on whole multiples of the cell: band 1 height (nodata -9999),
+                       band 2 points per cell, band 3: 1 filled (band descriptions in the
+                       file)
 ``points.las``         the point cloud (UTM, ellipsoidal heights) with the left intensity
 (``.laz``, ``.ply``)
 ``dense_rpc.json``     the summary: per-tile vertical parallax, affine fit, disparity range,
-                       points; ROI coverage of the DSM
+                       points; ROI coverage of the DSM; the comparison with a reference DEM
+``report/``            with a reference DEM: ``dsm.png``, ``dz.png`` (DSM - DEM) and
+                       ``dz_histogram.png``
 =====================  ==================================================================
+
+Tiles: the region of interest is cut into ``round(width / tile) x round(height / tile)`` tiles of
+equal size (at least one a side), so a tile's side is ``tile`` rounded to split the ROI evenly: a
+700 px ROI with the default 300 gives two tiles of 350 px a side.
 """
 
 from __future__ import annotations
@@ -53,7 +62,7 @@ from rectify.geometry.crs import transform_xy
 from rectify.geometry.rpc import RPC
 from rectify.raster.io import gdal_cache_limit, gdal_wkt, raster_info, read_window
 from rectify.report.builder import json_safe
-from stereo.dense.dsm import DSM_NODATA, STATISTICS, DsmGrid, DsmResult
+from stereo.dense.dsm import DSM_NODATA, STATISTICS, DsmGrid, DsmResult, default_cell
 from stereo.dense.matching import MatchOptions, match_pair
 from stereo.dense.rpc_epipolar import (
     AffineCamera,
@@ -65,6 +74,7 @@ from stereo.dense.rpc_epipolar import (
     resample_rectified,
 )
 from stereo.formats.points import point_writer
+from stereo.report.dense import HeightComparison, compare_with_dem, save_histogram, save_picture
 
 logger = logging.getLogger(__name__)
 
@@ -91,8 +101,10 @@ class RpcDenseOptions:
     Attributes
     ----------
     tile : int
-        Side of the tiles of the region of interest (left image pixels); each has its own affine
-        approximation and pointing correction.
+        Nominal side of the tiles of the region of interest (left image pixels); each has its own
+        affine approximation and pointing correction. The ROI is cut into ``round(w / tile)`` x
+        ``round(h / tile)`` equal tiles (at least one), so the tiles' side is ``tile`` rounded to
+        split the ROI evenly (a 700 px ROI: two tiles of 350 px with 300).
     margin_px : int
         Rectified pixels added around a tile's core for matching (the disparities of the core only
         become points).
@@ -110,11 +122,16 @@ class RpcDenseOptions:
     matching : MatchOptions
         The SGBM options (default: no coarse pass, the range comes from the tie points).
     dsm_cell : float or None
-        DSM cell side, metres; default the median ground sampling distance of the left image.
+        DSM cell side, metres; default the median ground sampling distance of the left image rounded
+        to two significant digits (:func:`stereo.dense.dsm.default_cell`).
     dsm_statistic, dsm_radius, dsm_max_spread, fill_holes, despike_cells
         As in :class:`stereo.actions.dense.DenseOptions`.
     cloud_format : {"las", "laz", "ply", "none"}
     interpolation : {"nearest", "linear", "cubic"}
+    reference_dem : path or None
+        Compare the DSM with this DEM (any CRS; resampled bilinearly onto the DSM grid; its heights
+        are taken as they are: the DSM's are ellipsoidal). Statistics in the summary, pictures in
+        ``report/``.
     """
 
     tile: int = 300
@@ -133,6 +150,7 @@ class RpcDenseOptions:
     despike_cells: float = 0.0
     cloud_format: str = "las"
     interpolation: str = "cubic"
+    reference_dem: str | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.tile, bool) or not isinstance(self.tile, int) or not 64 <= self.tile <= 4096:
@@ -221,21 +239,39 @@ class RpcDenseResult:
     parallax_max_tile_rms_px: float
     parallax_before_rms_px: float
     seconds: float
+    comparison: HeightComparison | None = None
+    tile_option: int | None = None
+    gsd: float | None = None
 
     def summary_lines(self) -> list[str]:
         ok = [t for t in self.tiles if t.error is None]
-        return [
-            f"tiles: {len(ok)} of {len(self.tiles)} matched (tile {self.tiles[0].window[2]} px)",
+        sides = sorted({(t.window[2], t.window[3]) for t in self.tiles})
+        size = ", ".join(f"{w} x {h}" for w, h in sides)
+        nx = len({t.window[0] for t in self.tiles})
+        ny = len({t.window[1] for t in self.tiles})
+        how = "" if self.tile_option is None else (
+            f"; --tile {self.tile_option} cuts the {self.roi[2]} x {self.roi[3]} px ROI into {nx} x {ny} equal tiles")
+        cell = f"{self.dsm_cell:g} m"
+        if self.gsd is not None:
+            cell += f" (the ground pixel {self.gsd:.4g} m, rounded to 2 significant digits)"
+        lines = [
+            f"tiles: {len(ok)} of {len(self.tiles)} matched ({size} px{how})",
             f"vertical parallax of the tie points after local epipolar resampling: RMS {self.parallax_rms_px:.3f} "
             f"px, worst tile {self.parallax_max_tile_rms_px:.3f} px (RPCs alone: {self.parallax_before_rms_px:.3f} "
             "px)",
             f"points: {self.n_points}",
-            f"DSM: {self.dsm.height.shape[1]} x {self.dsm.height.shape[0]} cells of {self.dsm_cell:.3f} m ({self.crs}),"
-            f" {100 * self.roi_stats['coverage']:.1f}% of the ROI cells have a height, median "
-            f"{self.roi_stats['median_m']:.1f} m",
-            f"outputs in {self.out_dir}: " + ", ".join(p.name for p in self.files),
-            f"time {self.seconds:.1f} s",
+            f"DSM: {self.dsm.height.shape[1]} x {self.dsm.height.shape[0]} cells of {cell} ({self.crs}, heights above "
+            f"the WGS 84 ellipsoid), origin on whole multiples of the cell, {100 * self.roi_stats['coverage']:.1f}% of "
+            f"the ROI cells have a height, median {self.roi_stats['median_m']:.1f} m",
         ]
+        if self.comparison is not None:
+            lines.append(self.comparison.summary_line(cell=self.dsm_cell)
+                         + " (the reference DEM's heights taken as they are: the DSM's are ellipsoidal)")
+        lines += [f"outputs in {self.out_dir}: " + ", ".join(
+                      p.relative_to(self.out_dir).as_posix() if p.is_relative_to(self.out_dir) else str(p)
+                      for p in self.files),
+                  f"time {self.seconds:.1f} s"]
+        return lines
 
 
 # ---------------------------------------------------------------------------- triangulation
@@ -434,14 +470,18 @@ def run_dense_rpc(
     InvalidInputError
         Bad ROI or options, an image without RPC.
     RasterIOError
-        Unreadable image, or the outputs cannot be written.
+        Unreadable image or reference DEM, or the outputs cannot be written.
     StereoError
         No tie points anywhere, or no 3D point.
+
+    On any error nothing is left in ``out_dir``, and the folder is removed again when the run created it.
     """
     t0 = time.perf_counter()
     opts = options or RpcDenseOptions()
     if not isinstance(opts, RpcDenseOptions):
         raise InvalidInputError(f"`options` must be an RpcDenseOptions; got {type(opts).__name__}")
+    if opts.reference_dem is not None and not Path(opts.reference_dem).is_file():
+        raise InvalidInputError(f"reference DEM file not found: {str(opts.reference_dem)!r}")
     il, ir = raster_info(left), raster_info(right)
     rl = left_rpc if left_rpc is not None else rpc_from_raster(left)
     rr = right_rpc if right_rpc is not None else rpc_from_raster(right)
@@ -449,9 +489,20 @@ def run_dense_rpc(
     prior = opts.height_range if opts.height_range is not None else rl.validity_box[2]
     suffix = None if opts.cloud_format == "none" else "." + opts.cloud_format
     names = ["dsm.tif", "dense_rpc.json"] + ([f"points{suffix}"] if suffix else [])
-    ws = Workspace(out_dir, overwrite=overwrite, inputs=[left, right])
+    ws = Workspace(out_dir, overwrite=overwrite, inputs=[left, right] + ([opts.reference_dem]
+                                                                       if opts.reference_dem else []))
     ws.prepare(*names)
-    out = Path(out_dir)
+    try:
+        return _run(left, right, Path(out_dir), ws, names, suffix, rl, rr, ir, box, prior, opts, progress, t0)
+    except BaseException:
+        ws.discard_root()  # a folder this run created goes again (the outputs were never renamed into it)
+        raise
+
+
+def _run(left: StrPath, right: StrPath, out: Path, ws: Workspace, names: list[str], suffix: str | None, rl: Any,
+         rr: Any, ir: Any, box: tuple[int, int, int, int], prior: Any, opts: RpcDenseOptions,
+         progress: Progress | None, t0: float) -> RpcDenseResult:
+    """The chain of :func:`run_dense_rpc` after its inputs are checked and its folder prepared."""
 
     def prog(stage: str, done: int, total: int) -> None:
         if progress is not None:
@@ -506,15 +557,19 @@ def run_dense_rpc(
             hz = TG[sel, 2]
             cams = fit_affine_pair(rl, rr, tiles[i], (float(hz.min()), float(hz.max())))
             gsds.append(cams[0].gsd_m)
-        cell = float(opts.dsm_cell) if opts.dsm_cell is not None else float(np.median(gsds))
+        gsd = float(np.median(gsds))
+        cell = float(opts.dsm_cell) if opts.dsm_cell is not None else default_cell(gsd)
         bounds = (float(fxy[:, 0].min()) - 2 * cell, float(fxy[:, 1].min()) - 2 * cell,
                   float(fxy[:, 0].max()) + 2 * cell, float(fxy[:, 1].max()) + 2 * cell)
         grid = DsmGrid(bounds, cell, statistic=opts.dsm_statistic, crs=crs, radius=opts.dsm_radius,
-                       max_spread=opts.dsm_max_spread)
+                       max_spread=opts.dsm_max_spread, heights="m above the WGS 84 ellipsoid")
 
         files: list[Path] = []
         results: list[RpcTile] = []
         n_total = 0
+        comparison = None
+        rep = out / "report"
+        made_rep = False
         try:
             with ws.transaction(), contextlib.ExitStack() as stack:
                 paths = {n: stack.enter_context(ws.output(out / n)) for n in names}
@@ -540,6 +595,9 @@ def run_dense_rpc(
                 dsm = grid.result(max_hole_cells=opts.fill_holes, despike_cells=opts.despike_cells)
                 dsm.write(paths["dsm.tif"], overwrite=True)
                 stats = roi_statistics(dsm, rl, box, crs)
+                dz = None
+                if opts.reference_dem is not None:
+                    comparison, dz = compare_with_dem(dsm, opts.reference_dem)
                 pars = [t.parallax for t in results if t.parallax is not None and t.parallax.n]
                 after = np.concatenate([p.after_px[p.keep] for p in pars]) if pars else np.zeros(0)
                 before = np.concatenate([p.before_px[p.keep] for p in pars]) if pars else np.zeros(0)
@@ -554,16 +612,38 @@ def run_dense_rpc(
                     "vertical_parallax_px": {"rms_after": rms(after), "worst_tile_rms_after": worst,
                                              "rms_before": rms(before), "n": len(after)},
                     "dsm": {"width": int(dsm.height.shape[1]), "height": int(dsm.height.shape[0]),
-                            "coverage": dsm.coverage, "roi": stats},
+                            "coverage": dsm.coverage, "roi": stats, "cell_m": cell,
+                            "ground_sampling_distance_m": gsd, "transform": list(dsm.transform)[:6],
+                            "heights": "m above the WGS 84 ellipsoid",
+                            "bands": ["height (nodata -9999)", "count: points per cell", "filled: 1 interpolated"]},
+                    "comparison": None if comparison is None else {
+                        "reference_dem": str(opts.reference_dem),
+                        **{k: v for k, v in comparison.__dict__.items() if k != "histogram"}},
                     "tiles": [t.to_dict() for t in results],
                 }
                 with open(paths["dense_rpc.json"], "w", encoding="utf-8") as fh:
                     json.dump(json_safe(summary), fh, indent=2)
+                if comparison is not None and dz is not None:
+                    if not rep.exists():
+                        rep.mkdir()
+                        made_rep = True
+                    for name, draw in (
+                            ("dsm.png", lambda t: save_picture(t, dsm.height, title="DSM", cmap="terrain",
+                                                               label="height (m)", nodata=DSM_NODATA)),
+                            ("dz.png", lambda t: save_picture(t, dz, title="DSM - reference DEM", cmap="RdBu_r",
+                                                              label="dz (m)", symmetric=True)),
+                            ("dz_histogram.png", lambda t: save_histogram(t, comparison))):
+                        with ws.output(rep / name) as tmp:
+                            draw(tmp)
+                        files.append(rep / name)
         except BaseException:
-            ws.discard_root()
+            if made_rep:
+                with contextlib.suppress(OSError):
+                    rep.rmdir()
             raise
     return RpcDenseResult(out, tuple(files), tuple(results), n_total, dsm, cell, crs, box, stats, rms(after), worst,
-                          rms(before), time.perf_counter() - t0)
+                          rms(before), time.perf_counter() - t0, comparison, opts.tile,
+                          gsd if opts.dsm_cell is None else None)
 
 
 def _dense_tile(left: StrPath, right: StrPath, rl: Any, rr: Any, win: tuple[int, int, int, int],

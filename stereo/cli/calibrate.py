@@ -8,7 +8,7 @@ import click
 
 from rectify.cli.options import echo, handle_errors, overwrite_opt, report_opt
 from rectify.errors import InvalidInputError
-from stereo.actions.calibrate import calibrate_images, calibrate_points, calibrate_rig_images
+from stereo.actions.calibrate import CORNER_METHODS, calibrate_images, calibrate_points, calibrate_rig_images
 
 
 @click.command(short_help="Camera calibration: chessboard images or measured points of a plane/3D target.")
@@ -22,6 +22,9 @@ from stereo.actions.calibrate import calibrate_images, calibrate_points, calibra
 @click.option("--right", "right_glob", default=None,
               help="Rig: right-camera images as a quoted glob pattern ('right*.jpg'); IMAGES are the left images, "
                    "paired in sorted order. Writes the rig JSON (both cameras, relative orientation).")
+@click.option("--corners", "corners", type=click.Choice(list(CORNER_METHODS)), default="symmetry", show_default=True,
+              help="Chessboard corner refinement: 'symmetry' (the centre of point symmetry of each corner's "
+                   "neighbourhood) or 'opencv' (cornerSubPix). Corners whose refinement fails are left out, by name.")
 @click.option("--size", default=None, help="Image size WxH in pixels (with --points), e.g. 640x480.")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Camera JSON to write.")
 @click.option("--pixel-size", "pixel_size_mm", type=float, default=None,
@@ -36,8 +39,8 @@ from stereo.actions.calibrate import calibrate_images, calibrate_points, calibra
 @report_opt
 @overwrite_opt
 @handle_errors
-def calibrate(images, pattern, square, points_path, field_path, right_glob, size, output, pixel_size_mm, equal_focal,
-              distortion, symmetry, robust, report_dir, overwrite):
+def calibrate(images, pattern, square, points_path, field_path, right_glob, corners, size, output, pixel_size_mm,
+              equal_focal, distortion, symmetry, robust, report_dir, overwrite):
     """Calibrate a camera: interior orientation (f or fx/fy, principal point, Brown k1..k3, p1, p2) with standard
     errors, by a least-squares adjustment of all views. IMAGES with --chessboard, or --points [--field] --size."""
     dist = () if distortion.strip().lower() == "none" else tuple(d.strip() for d in distortion.split(",") if d.strip())
@@ -59,7 +62,7 @@ def calibrate(images, pattern, square, points_path, field_path, right_glob, size
         if report_dir:
             raise InvalidInputError("--report is not available for rigs yet")
         rig_run = calibrate_rig_images(sorted(images), right, pattern=pattern, square=square, output=output,
-                                       overwrite=overwrite, pixel_size_mm=pixel_size_mm, **model)
+                                       overwrite=overwrite, pixel_size_mm=pixel_size_mm, corners=corners, **model)
         for line in rig_run.summary_lines():
             echo(line)
         return
@@ -69,6 +72,6 @@ def calibrate(images, pattern, square, points_path, field_path, right_glob, size
         if not pattern:
             raise InvalidInputError("IMAGES need --chessboard COLSxROWS (inner corners, e.g. 9x6)")
         run = calibrate_images(images, pattern=pattern, square=square, output=output, report_dir=report_dir,
-                               overwrite=overwrite, pixel_size_mm=pixel_size_mm, **model)
+                               overwrite=overwrite, pixel_size_mm=pixel_size_mm, corners=corners, **model)
     for line in run.summary_lines():
         echo(line)

@@ -21,6 +21,11 @@ _D = DenseOptions()
               help="Output folder (normal-case photos, disparity, confidence, points, dsm.tif, dense.json, report/).")
 @click.option("--right-orientation", type=click.Path(dir_okay=False), default=None,
               help="Right exterior orientation JSON, when ORIENTATION is the left one's.")
+@click.option("--left-id", default=None,
+              help="With a block orientation (orientation.json of `stereo block`): LEFT's image id in it "
+                   "[default: the block image named as LEFT's file, with or without extension].")
+@click.option("--right-id", default=None, help="With a block orientation: RIGHT's image id in it [default: as "
+                                               "--left-id, from RIGHT's file name].")
 @click.option("--camera", type=click.Path(dir_okay=False), default=None,
               help="Camera JSON (default: the camera stored in ORIENTATION).")
 @click.option("--matches", type=click.Path(dir_okay=False), default=None,
@@ -40,19 +45,22 @@ _D = DenseOptions()
               help="Compare the DSM with this DEM (RMSE, NMAD, blunders, histogram).")
 @click.option("--despike", type=float, default=_D.despike_cells, show_default=True,
               help="Drop DSM cells farther than this many cell sides from their 5 x 5 median (0: off).")
-@click.option("--tile", type=int, default=_D.matching.tile, show_default=True, help="Tile side of the matcher, pixels.")
+@click.option("--tile", type=int, default=_D.matching.tile, show_default=True,
+              help="Core side of the matcher's tiles, pixels (a multiple of 16, at least 64; each tile is matched "
+                   "with a 48 px overlap).")
 @scheduler_opt
 @overwrite_opt
 @handle_errors
-def dense(orientation, left, right, out_dir, right_orientation, camera, matches, control, cloud, dsm_cell, dsm_stat,
-          fill_holes, min_confidence, reference_dem, despike, tile, scheduler, overwrite):
-    """Resample LEFT and RIGHT into the normal case from ORIENTATION (ro.json of `stereo orient`, or
-    the left exterior orientation with --right-orientation), match them densely and write the point
-    cloud and the DSM."""
+def dense(orientation, left, right, out_dir, right_orientation, left_id, right_id, camera, matches, control, cloud,
+          dsm_cell, dsm_stat, fill_holes, min_confidence, reference_dem, despike, tile, scheduler, overwrite):
+    """Resample LEFT and RIGHT into the normal case from ORIENTATION (ro.json of `stereo orient`, the
+    left exterior orientation with --right-orientation, or the orientation.json of `stereo block`),
+    match them densely and write the point cloud and the DSM."""
     opts = DenseOptions(matching=dataclasses.replace(_D.matching, tile=tile), cloud_format=cloud, dsm_cell=dsm_cell,
                         dsm_statistic=dsm_stat, fill_holes=fill_holes, min_confidence=min_confidence,
                         reference_dem=reference_dem, despike_cells=despike, scheduler=scheduler)
     result = run_dense(orientation, left, right, out_dir, right_orientation=right_orientation, camera=camera,
-                       matches=matches, control=control, options=opts, overwrite=overwrite)
+                       matches=matches, control=control, options=opts, overwrite=overwrite, left_id=left_id,
+                       right_id=right_id)
     for line in result.summary_lines():
         echo(line)

@@ -26,20 +26,26 @@ def _roi(ctx, param, value):
 @click.argument("left", type=click.Path(dir_okay=False))
 @click.argument("right", type=click.Path(dir_okay=False))
 @click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False),
-              help="Output folder (dsm.tif, points, dense_rpc.json).")
+              help="Output folder (dsm.tif, points, dense_rpc.json; report/ with --reference-dem).")
 @click.option("--roi", callback=_roi, default=None, help="Region of interest of LEFT: x,y,width,height (pixels).")
-@click.option("--tile", type=int, default=_D.tile, show_default=True, help="Tile side (left pixels).")
+@click.option("--tile", type=int, default=_D.tile, show_default=True,
+              help="Nominal tile side, left pixels: the ROI is cut into round(width / tile) x round(height / tile) "
+                   "equal tiles (a 700 px ROI gives two tiles of 350 px with 300).")
 @click.option("--dsm-cell", type=float, default=None, help="DSM cell, metres (default: the ground pixel).")
 @click.option("--fill-holes", type=int, default=0, show_default=True,
               help="Interpolate DSM holes of at most this many cells (flagged in band 3).")
 @click.option("--cloud", type=click.Choice(["las", "laz", "ply", "none"]), default=_D.cloud_format,
               show_default=True, help="Point cloud format.")
+@click.option("--reference-dem", type=click.Path(dir_okay=False), default=None,
+              help="Compare the DSM with this DEM (RMSE, NMAD, blunders; report/ pictures). Its heights are taken "
+                   "as they are: the DSM's are above the WGS 84 ellipsoid.")
 @overwrite_opt
 @handle_errors
-def dense_rpc(left, right, out_dir, roi, tile, dsm_cell, fill_holes, cloud, overwrite):
+def dense_rpc(left, right, out_dir, roi, tile, dsm_cell, fill_holes, cloud, reference_dem, overwrite):
     """Match LEFT and RIGHT (images with RPCs) tile by tile after local epipolar resampling by affine
     camera approximation, and write the DSM (UTM, ellipsoidal heights) and the point cloud."""
-    opts = RpcDenseOptions(tile=tile, dsm_cell=dsm_cell, fill_holes=fill_holes, cloud_format=cloud)
+    opts = RpcDenseOptions(tile=tile, dsm_cell=dsm_cell, fill_holes=fill_holes, cloud_format=cloud,
+                           reference_dem=reference_dem)
     result = run_dense_rpc(left, right, out_dir, roi=roi, options=opts, overwrite=overwrite)
     for line in result.summary_lines():
         echo(line)

@@ -10,6 +10,11 @@ Points arrive by tiles (the point-cloud writers that stream them beside the DSM 
   (``despike_cells``). Cells without points are nodata (``-9999``). Optional hole filling
   interpolates holes of at most ``max_hole_cells`` cells from their rim and marks them in a mask
   band. The grid itself is held in memory: 14 bytes per cell.
+
+Every grid is aligned on whole multiples of its cell (GDAL's "target aligned pixels"): the cell
+edges lie at ``k x cell`` in both axes, so DSMs of the same place with the same cell stack without
+resampling; :func:`default_cell` rounds a ground sampling distance to two significant digits for
+the default cell, so that runs on the same images agree on it too.
 """
 
 from __future__ import annotations
@@ -31,12 +36,33 @@ from rectify.raster.io import MaskPolicy, TiledWriter
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["DSM_NODATA", "STATISTICS", "DsmGrid", "DsmResult"]
+__all__ = ["DSM_NODATA", "STATISTICS", "DsmGrid", "DsmResult", "band_descriptions", "default_cell"]
 
 StrPath = str | Path
 
 DSM_NODATA = -9999.0
 STATISTICS = ("mean", "min", "max")
+
+
+def default_cell(gsd: float) -> float:
+    """The default DSM cell of a ground sampling distance: rounded to two significant digits (0.5069 -> 0.51).
+
+    Raises
+    ------
+    InvalidInputError
+        ``gsd`` is not a finite number > 0.
+    """
+    if isinstance(gsd, bool) or not (isinstance(gsd, (int, float)) and math.isfinite(gsd) and gsd > 0):
+        raise InvalidInputError(f"cannot derive a DSM cell from the ground sampling distance {gsd!r}")
+    return float(f"{float(gsd):.2g}")
+
+
+def band_descriptions(statistic: str = "mean", heights: str = "ground units") -> tuple[str, str, str]:
+    """The descriptions of the three bands of a DSM GeoTIFF (recorded in the file by :meth:`DsmResult.write`)."""
+    how = {"mean": "Gaussian-weighted mean", "min": "minimum", "max": "maximum"}.get(statistic, statistic)
+    return (f"height: {how} of the points' heights near the cell centre ({heights}); nodata -9999",
+            "count: points that made the cell's height (0 where none)",
+            "filled: 1 where the height was interpolated over a hole (fill holes), else 0")
 
 
 @dataclass(frozen=True, eq=False)
@@ -54,6 +80,10 @@ class DsmResult:
     transform : affine.Affine
         rasterio geotransform (cell corners).
     crs : str or None
+    statistic : str
+        The cell statistic of ``height`` (band descriptions).
+    heights : str
+        What the heights are (e.g. ``"m above the WGS 84 ellipsoid"``; band descriptions).
     """
 
     height: NDArray[np.float32]
@@ -61,6 +91,8 @@ class DsmResult:
     filled: NDArray[np.bool_]
     transform: Affine
     crs: str | None
+    statistic: str = "mean"
+    heights: str = "ground units"
 
     def __post_init__(self) -> None:
         for a in (self.height, self.count, self.filled):
@@ -76,11 +108,12 @@ class DsmResult:
         return float((self.count > 0).mean()) if self.count.size else 0.0
 
     def write(self, path: StrPath, *, overwrite: bool = False) -> Path:
-        """Write the DSM GeoTIFF: band 1 height (nodata -9999), band 2 point count, band 3 fill mask (1 filled)."""
+        """Write the DSM GeoTIFF: band 1 height (nodata -9999), band 2 point count, band 3 fill mask (1 filled);
+        each band carries its description (:func:`band_descriptions`)."""
         H, W = self.height.shape
         with atomic_output(path, overwrite=overwrite) as tmp, \
                 TiledWriter(tmp, W, H, 3, "float32", self.transform, self.crs, MaskPolicy("nodata", DSM_NODATA),
-                            tile=256) as w:
+                            tile=256, descriptions=band_descriptions(self.statistic, self.heights)) as w:
             for r0 in range(0, H, 512):
                 r1 = min(r0 + 512, H)
                 w.write(np.dstack([self.height[r0:r1].astype(np.float32), self.count[r0:r1].astype(np.float32),
@@ -99,6 +132,8 @@ class DsmGrid:
         Cell side, ground units.
     statistic : {"mean", "min", "max"}
     crs : str, optional
+    heights : str
+        What the heights are (band description of the GeoTIFF), e.g. ``"m above the WGS 84 ellipsoid"``.
     radius : float
         Each point counts in every cell whose centre lies within ``radius`` cells of it (Gaussian
         weight, sigma ``radius / 2``, for the mean): with points about one per cell, as a disparity
@@ -108,13 +143,16 @@ class DsmGrid:
         Cells whose points' (weighted) height standard deviation exceeds ``max_spread`` cell sides
         are dropped (points of two surfaces, or blunders, in one cell; 0: no test).
 
+    The cell edges lie on whole multiples of ``cell`` (the grid covers ``bounds``): grids with the
+    same cell in the same CRS share their cells.
+
     Memory: 14 bytes per cell (float32 weight, weighted sums of z and z^2 about a reference height,
     uint16 count); points are added by batches over the cells they touch only.
     """
 
     def __init__(self, bounds: tuple[float, float, float, float], cell: float, *, statistic: str = "mean",
                  crs: str | None = None, max_cells: int = 400_000_000, radius: float = 1.0,
-                 max_spread: float = 2.0):
+                 max_spread: float = 2.0, heights: str = "ground units"):
         if statistic not in STATISTICS:
             raise InvalidInputError(f"unknown DSM statistic {statistic!r}; expected one of {list(STATISTICS)}")
         if not (isinstance(cell, (int, float)) and math.isfinite(cell) and cell > 0):
@@ -126,15 +164,19 @@ class DsmGrid:
         if not all(math.isfinite(v) for v in (x0, y0, x1, y1)) or x1 <= x0 or y1 <= y0:
             raise InvalidInputError(f"DSM bounds must be finite with xmin < xmax, ymin < ymax; got {bounds!r}")
         self.cell = float(cell)
-        self.x0 = math.floor(x0 / cell) * cell
-        self.y1 = math.ceil(y1 / cell) * cell
-        self.width = int(math.ceil((x1 - self.x0) / cell)) + 1
-        self.height = int(math.ceil((self.y1 - y0) / cell)) + 1
+        # cell edges on whole multiples of the cell: the left and top edges, then the first cell centre
+        left = math.floor(x0 / cell) * cell
+        top = math.ceil(y1 / cell) * cell
+        self.x0 = left + cell / 2
+        self.y1 = top - cell / 2
+        self.width = int(math.floor((x1 - left) / cell)) + 1
+        self.height = int(math.floor((top - y0) / cell)) + 1
         if self.width * self.height > max_cells:
             raise InvalidInputError(f"the DSM would have {self.width} x {self.height} cells (more than {max_cells}); "
                                     f"choose a larger cell than {cell!r}")
         self.statistic = statistic
         self.crs = crs
+        self.heights = str(heights)
         self.radius = float(radius)
         self.max_spread = float(max_spread)
         self.n_despiked = 0
@@ -151,7 +193,10 @@ class DsmGrid:
 
     @property
     def transform(self) -> Affine:
-        return Affine(self.cell, 0.0, self.x0 - self.cell / 2, 0.0, -self.cell, self.y1 + self.cell / 2)
+        """rasterio geotransform: the top-left corner on whole multiples of the cell."""
+        k_left = round((self.x0 - self.cell / 2) / self.cell)
+        k_top = round((self.y1 + self.cell / 2) / self.cell)
+        return Affine(self.cell, 0.0, k_left * self.cell, 0.0, -self.cell, k_top * self.cell)
 
     def cell_of(self, xy: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
         c = np.rint((xy[:, 0] - self.x0) / self.cell).astype(np.int64)
@@ -259,7 +304,7 @@ class DsmGrid:
         h[~(has | filled)] = DSM_NODATA
         count = self._count
         count[~(has | filled)] = 0
-        return DsmResult(h, count, filled, self.transform, self.crs)
+        return DsmResult(h, count, filled, self.transform, self.crs, self.statistic, self.heights)
 
 
 def _fill_holes(h: NDArray[np.float64], has: NDArray[np.bool_], max_cells: int

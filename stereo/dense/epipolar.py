@@ -363,8 +363,7 @@ def rectify_pair(
         area += width * height
         # rectified pixel -> normal photo vector (u, -w, -f) -> original photo vector -> pixel
         B = np.array([[1.0, 0.0, col0], [0.0, -1.0, -float(row0)], [0.0, 0.0, -fpx]])
-        cx, cy = cam.principal_point_px
-        A = np.array([[-cam.focal_px, 0.0, cx], [0.0, cam.focal_px, cy], [0.0, 0.0, 1.0]])
+        A = cam.K @ np.diag([-1.0, 1.0, 1.0])  # photo vector (x, y, z) -> pixel: K (x / -z, -y / -z, 1)
         H = A @ R.T @ N @ B
         H = H / H[2, 2] if abs(H[2, 2]) > 1e-12 else H
         views.append(RectifiedView(cam, R.copy(), col0, width, height, H))

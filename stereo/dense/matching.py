@@ -16,6 +16,7 @@ tile pair, its SGBM buffers and the coarse (overview) disparity, whatever the ph
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 from collections.abc import Callable
@@ -720,17 +721,25 @@ class _DenseTiles:
                 np.ascontiguousarray(fl[sl_], dtype=bool))
 
 
+#: band descriptions of the disparity and confidence GeoTIFFs of :func:`match_rasters`
+DISPARITY_BANDS = ("disparity: col_left - col_right of the left image's pixel, px; nodata -9999",)
+CONFIDENCE_BANDS = ("confidence: texture x local smoothness, 0..1 (0 where filled); nodata -9999",
+                    "filled: 1 where the disparity was filled by the background (not matched), else 0")
+
+
 def match_rasters(
     left_path: StrPath,
     right_path: StrPath,
     disparity_path: StrPath,
-    confidence_path: StrPath,
+    confidence_path: StrPath | None,
     *,
     disparity_range: tuple[float, float] | None = None,
     tie_points: ArrayLike | None = None,
     options: MatchOptions | None = None,
     progress: Callable[[int, int], None] | None = None,
     scheduler: Scheduler | str | None = None,
+    transform: Affine | None = None,
+    crs: str | None = None,
 ) -> MatchStats:
     """Dense matching of two rectified rasters, tile by tile, into disparity and confidence GeoTIFFs.
 
@@ -740,7 +749,8 @@ def match_rasters(
         Rectified photos (equal heights), e.g. from :func:`stereo.dense.epipolar.resample_view`.
     disparity_path, confidence_path : path
         Float32 tiled GeoTIFFs to write as given (nodata ``NODATA``); the confidence raster has a
-        second band, 1 where the disparity was filled.
+        second band, 1 where the disparity was filled (``confidence_path`` None: not written). Each
+        band carries its description (:data:`DISPARITY_BANDS`, :data:`CONFIDENCE_BANDS`).
     disparity_range : (float, float), optional
         Global range; ``tie_points`` (N, 3: col, row, disparity in the left rectified photo) refine it
         per tile. Each tile takes the range of the coarse pass under it, else of its tie points,
@@ -755,6 +765,9 @@ def match_rasters(
         On Dask each task opens the two rasters by path and matches one tile; its disparity block is
         written beside ``disparity_path`` and assembled here (the photos and the output folder must
         be visible to every worker under the same paths).
+    transform, crs : optional
+        Georeference of the rasters written (default: none; e.g. the left photo's, so that the
+        disparity lies pixel for pixel on it).
 
     Raises
     ------
@@ -810,33 +823,37 @@ def match_rasters(
     engine = _DenseTiles(str(Path(left_path).resolve()), str(Path(right_path).resolve()), il.width, il.height,
                          coarse, k, ties, rng, opts)
     acc = {"n_valid": 0, "n_filled": 0, "lo": math.inf, "hi": -math.inf}
-    with ignore_not_georeferenced():
+    geo = transform if transform is not None else Affine.identity()
+    with ignore_not_georeferenced(), contextlib.ExitStack() as writers:
         tile_px = min(512, opts.tile)
-        with TiledWriter(disparity_path, il.width, il.height, 1, "float32", Affine.identity(), None,
-                         MaskPolicy("nodata", NODATA), tile=tile_px) as wd, \
-                TiledWriter(confidence_path, il.width, il.height, 2, "float32", Affine.identity(), None,
-                            MaskPolicy("nodata", NODATA), tile=tile_px) as wc:
+        wd = writers.enter_context(TiledWriter(disparity_path, il.width, il.height, 1, "float32", geo, crs,
+                                               MaskPolicy("nodata", NODATA), tile=tile_px,
+                                               descriptions=DISPARITY_BANDS))
+        wc = None if confidence_path is None else writers.enter_context(
+            TiledWriter(confidence_path, il.width, il.height, 2, "float32", geo, crs, MaskPolicy("nodata", NODATA),
+                        tile=tile_px, descriptions=CONFIDENCE_BANDS))
 
-            def write(res: tuple[NDArray, NDArray, NDArray], c0: int, r0: int) -> bool:
-                dc, cfc, flc = res
-                cc0, cr0 = engine.core_origin(c0, r0)
-                ok = np.isfinite(dc)
-                acc["n_valid"] += int(ok.sum())
-                acc["n_filled"] += int(flc.sum())
-                if ok.any():
-                    acc["lo"] = min(acc["lo"], float(dc[ok].min()))
-                    acc["hi"] = max(acc["hi"], float(dc[ok].max()))
-                wd.write(np.where(ok, dc, NODATA).astype(np.float32)[:, :, None], cc0, cr0)
+        def write(res: tuple[NDArray, NDArray, NDArray], c0: int, r0: int) -> bool:
+            dc, cfc, flc = res
+            cc0, cr0 = engine.core_origin(c0, r0)
+            ok = np.isfinite(dc)
+            acc["n_valid"] += int(ok.sum())
+            acc["n_filled"] += int(flc.sum())
+            if ok.any():
+                acc["lo"] = min(acc["lo"], float(dc[ok].min()))
+                acc["hi"] = max(acc["hi"], float(dc[ok].max()))
+            wd.write(np.where(ok, dc, NODATA).astype(np.float32)[:, :, None], cc0, cr0)
+            if wc is not None:
                 wc.write(np.dstack([np.where(ok, cfc, NODATA), flc.astype(np.float32)]).astype(np.float32),
                          cc0, cr0)
-                return not ok.any()
+            return not ok.any()
 
-            try:
-                # one tile at a time on the local path (SGBM is multi-threaded itself); on Dask one tile per task
-                run_windows(engine, write, windows, threads=1, progress=progress, scheduler=scheduler,
-                            workdir=Path(disparity_path).resolve().parent, name="dense", windows_per_task=1)
-            finally:
-                engine.close()
+        try:
+            # one tile at a time on the local path (SGBM is multi-threaded itself); on Dask one tile per task
+            run_windows(engine, write, windows, threads=1, progress=progress, scheduler=scheduler,
+                        workdir=Path(disparity_path).resolve().parent, name="dense", windows_per_task=1)
+        finally:
+            engine.close()
     n_valid, n_filled, dlo, dhi = int(acc["n_valid"]), int(acc["n_filled"]), float(acc["lo"]), float(acc["hi"])
     if n_valid == 0:
         raise StereoError("dense matching found no disparity: no texture, no overlap, or a wrong disparity range "

@@ -15,10 +15,13 @@ Observations CSV (written)
     measurement of the adjustment with its residual (adjusted - observed), final weight and
     blunder flag.
 Block orientation JSON (written and read)
-    ``format: rectify-stereo/block-orientation``, ``version``, ``crs``, ``cameras`` (id -> camera
-    JSON, with ``std_errors`` when self-calibrated), ``images`` (a list of ``{image, camera,
-    position, rotation, angles_rad: {omega, phi, kappa}, std_errors}``), ``sigma0`` (overall and per
-    group), ``datum`` (the datum statements), ``summary`` and ``residuals`` (per group RMS).
+    ``format: rectify-stereo/block-orientation``, ``version``, ``crs``, ``frame`` (a sentence: what
+    the coordinates are), ``reference_lla`` (OpenSfM's topocentric origin, when the poses came from
+    a reconstruction), ``cameras`` (id -> camera JSON, with ``std_errors`` when self-calibrated),
+    ``images`` (a list of ``{image, camera, position, rotation, angles_rad: {omega, phi, kappa},
+    std_errors}``), ``sigma0`` (overall and per group), ``datum`` (the datum statements),
+    ``summary`` and ``residuals`` (per group RMS). ``frame`` and ``reference_lla`` are optional
+    (files written before them read as before).
 """
 
 from __future__ import annotations
@@ -207,6 +210,10 @@ class BlockOrientation:
         Overall (``"all"``) and per observation group.
     datum : list of str
     summary : dict
+    frame : str or None
+        What the coordinates are (None in files written before the key).
+    reference_lonlat_h : (3,) float64 or None
+        OpenSfM's topocentric origin (lon, lat in degrees, h in metres), when recorded.
     """
 
     cameras: dict[str, Camera]
@@ -216,6 +223,8 @@ class BlockOrientation:
     sigma0: dict[str, Any] = field(default_factory=dict)
     datum: list[str] = field(default_factory=list)
     summary: dict[str, Any] = field(default_factory=dict)
+    frame: str | None = None
+    reference_lonlat_h: NDArray[np.float64] | None = None
 
     def pose(self, image: str) -> Pose:
         for p in self.poses:
@@ -230,7 +239,8 @@ _STD_NAMES = ("omega", "phi", "kappa", "x", "y", "z")
 def block_orientation_dict(cameras: Mapping[str, Camera], poses: Sequence[Pose], *,
                            std_errors: NDArray[np.float64] | None = None, crs: str | None = None,
                            sigma0: Mapping[str, Any] | None = None, datum: Sequence[str] = (),
-                           summary: Mapping[str, Any] | None = None) -> dict[str, Any]:
+                           summary: Mapping[str, Any] | None = None, frame: str | None = None,
+                           reference_lonlat_h: Sequence[float] | None = None) -> dict[str, Any]:
     """The block orientation JSON object (see the module docstring)."""
     std = np.full((len(poses), 6), np.nan) if std_errors is None else np.asarray(std_errors, dtype=np.float64)
     images = []
@@ -242,7 +252,13 @@ def block_orientation_dict(cameras: Mapping[str, Camera], poses: Sequence[Pose],
         if np.isfinite(std[i]).any():
             d["std_errors"] = {n: float(v) for n, v in zip(_STD_NAMES, std[i], strict=True) if math.isfinite(v)}
         images.append(d)
-    return {"format": BLOCK_FORMAT, "version": BLOCK_VERSION, "crs": crs,
+    head: dict[str, Any] = {"format": BLOCK_FORMAT, "version": BLOCK_VERSION, "crs": crs}
+    if frame is not None:
+        head["frame"] = frame
+    if reference_lonlat_h is not None:
+        lon, lat, h = (float(v) for v in reference_lonlat_h)
+        head["reference_lla"] = {"longitude": lon, "latitude": lat, "altitude": h}
+    return {**head,
             "angles": "omega-phi-kappa (R = Rx(omega) Ry(phi) Rz(kappa) takes (x, y, -f) into the ground frame)",
             "cameras": {k: c.to_dict() for k, c in cameras.items()}, "images": images,
             "sigma0": dict(sigma0 or {}), "datum": list(datum), "summary": dict(summary or {})}
@@ -295,6 +311,16 @@ def read_block_orientation(path: StrPath) -> BlockOrientation:
             raise InvalidInputError(f"{str(path)!r}: image {name!r}: `std_errors` must be an object; got {se!r}")
         std.append([float(se[n]) if isinstance(se.get(n), (int, float)) else math.nan for n in _STD_NAMES])
     crs = d.get("crs")
+    frame = d.get("frame")
+    ref = None
+    lla = d.get("reference_lla")
+    if isinstance(lla, dict):
+        try:
+            ref = np.array([float(lla["longitude"]), float(lla["latitude"]), float(lla["altitude"])])
+        except (KeyError, TypeError, ValueError) as err:
+            raise InvalidInputError(f"{str(path)!r}: `reference_lla` must hold longitude, latitude and altitude; "
+                                    f"got {lla!r}") from err
     return BlockOrientation(cameras, poses, np.array(std, dtype=np.float64).reshape(-1, 6),
                             crs if isinstance(crs, str) else None, dict(d.get("sigma0") or {}),
-                            list(d.get("datum") or []), dict(d.get("summary") or {}))
+                            list(d.get("datum") or []), dict(d.get("summary") or {}),
+                            frame if isinstance(frame, str) else None, ref)

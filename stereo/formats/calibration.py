@@ -79,6 +79,9 @@ def _camera_pair(d: dict[str, Any], k: str) -> tuple[float, float]:
 def camera_from_dict(d: dict[str, Any]) -> CameraFile:
     """Read a camera JSON object (version 2 pixel or millimetre camera, or a version-1 file).
 
+    The calibration's interior orientation has fx and fy but no skew: a ``skew_px`` other than 0 is
+    refused (:func:`rectify.formats.camera.read_camera` reads such a file as a ``Camera``).
+
     Raises
     ------
     CalibrationError
@@ -90,7 +93,8 @@ def camera_from_dict(d: dict[str, Any]) -> CameraFile:
         raise CalibrationError(f"camera JSON format {d['format']!r} is not {CAMERA_FORMAT!r}")
     if d.get("version", 1) not in (1, 2):
         raise CalibrationError(f"camera JSON version {d.get('version')!r} is not supported (1 or 2)")
-    known = {"format", "version", "width", "height", "focal_length_px", "fx_px", "fy_px", "principal_point_px",
+    known = {"format", "version", "width", "height", "focal_length_px", "fx_px", "fy_px", "skew_px",
+             "principal_point_px",
              "distortion", "point_of_symmetry_px", "std_errors", "sigma0_px", "focal_length_mm", "pixel_size_mm",
              "principal_point_mm", "point_of_symmetry_mm", "name", "comment", "sigma0_mm"}
     unknown = sorted(set(d) - known)
@@ -125,6 +129,9 @@ def camera_from_dict(d: dict[str, Any]) -> CameraFile:
         else:
             raise CalibrationError("camera JSON needs focal_length_px (or fx_px and fy_px), or focal_length_mm "
                                    "with pixel_size_mm")
+        if "skew_px" in d and _camera_num(d, "skew_px") != 0.0:
+            raise CalibrationError(f"camera JSON `skew_px` {d['skew_px']!r}: the calibration's camera model has no "
+                                   "skew (the rest of the project reads it: rectify.formats.camera.read_camera)")
         if "principal_point_px" not in d:
             raise CalibrationError("a pixel camera JSON needs principal_point_px")
         cx, cy = _camera_pair(d, "principal_point_px")

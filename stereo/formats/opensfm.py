@@ -3,10 +3,23 @@
 Frames
 ------
 OpenSfM's world frame is topocentric east-north-up about ``reference_lla`` (when the file or a
-``reference_lla.json`` beside it gives one), else arbitrary. Its camera axes are OpenCV's (x right,
-y down, z forward); poses are returned in the project's convention: projection centre in the
-world frame and rotation photo vector (x, y, -f) -> world (:class:`stereo.block.types.Pose`).
-Rotation vectors are read with :func:`rectify.geometry.rotation.rodrigues`.
+``reference_lla.json`` beside it gives one), else arbitrary; a georeferenced frame is returned with
+its CRS (:attr:`OpenSfMReconstruction.crs`): the topocentric frame as a WKT2 projected CRS
+(:func:`topocentric_crs_wkt`, EPSG method 9837, which PROJ transforms exactly).
+
+OpenDroneMap replaces ``opensfm/reconstruction.json`` by a georeferenced copy (OpenSfM's
+``export_geocoords --reconstruction --proj ... --offset-x E --offset-y N``) and keeps the
+topocentric one as ``reconstruction.topocentric.json`` beside it. The copy's poses and points are in
+ODM's projected CRS (UTM) *minus* the offset (E, N) -- its ``reference_lla`` stays, but no longer
+describes the frame -- and its shots' ``gps_position`` stay topocentric. The CRS and the offset are
+the two lines of ``odm_georeferencing/coords.txt`` of the ODM project (``WGS84 UTM 32N`` or
+``EPSG:n`` or a PROJ string; ``E N``). Such a file is read in that CRS with the offset added back
+(the coordinates of ODM's orthophoto and DSM); the GPS positions are converted into it by pyproj.
+
+Camera axes are OpenCV's (x right, y down, z forward); poses are returned in the project's
+convention: projection centre in the world frame and rotation photo vector (x, y, -f) -> world
+(:class:`stereo.block.types.Pose`). Rotation vectors are read with
+:func:`rectify.geometry.rotation.rodrigues`.
 """
 
 from __future__ import annotations
@@ -21,13 +34,15 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from rectify.atomic import read_json
-from rectify.errors import InvalidInputError, RectifyError
+from rectify.atomic import read_json, read_text
+from rectify.errors import CRSError, InvalidInputError, RectifyError
 from rectify.geometry.camera import Camera
+from rectify.geometry.crs import crs_to_string, parse_crs, same_crs, transform_xyz
 from rectify.geometry.rotation import rodrigues
 from stereo.block.types import Pose
 
-__all__ = ["FOCAL_ASPECT_TOLERANCE", "OPENSFM_PROJECTIONS", "OpenSfMReconstruction", "read_opensfm"]
+__all__ = ["FOCAL_ASPECT_TOLERANCE", "ODM_COORDS", "ODM_TOPOCENTRIC", "OPENSFM_PROJECTIONS", "OpenSfMReconstruction",
+           "crs_label", "read_odm_coords", "read_opensfm", "topocentric_crs_wkt"]
 
 logger = logging.getLogger(__name__)
 
@@ -37,6 +52,10 @@ StrPath = str | os.PathLike[str]
 OPENSFM_PROJECTIONS = ("perspective", "brown", "radial", "simple_radial")
 #: relative difference of OpenSfM's focal_x and focal_y below which their mean is used (above: refused)
 FOCAL_ASPECT_TOLERANCE = 1e-3
+#: the topocentric reconstruction OpenDroneMap keeps beside its georeferenced ``reconstruction.json``
+ODM_TOPOCENTRIC = "reconstruction.topocentric.json"
+#: ODM's CRS and offset of the georeferenced reconstruction, relative to the ODM project folder
+ODM_COORDS = Path("odm_georeferencing") / "coords.txt"
 
 
 @dataclass(frozen=True, eq=False)
@@ -57,13 +76,14 @@ class OpenSfMReconstruction:
     colors : (P, 3) uint8 or None
         Their colours (red, green, blue), None when the file has none.
     reference_lonlat_h : (3,) float64 or None
-        Origin of the topocentric world frame: longitude, latitude (degrees, WGS 84) and
+        Origin of OpenSfM's topocentric frame: longitude, latitude (degrees, WGS 84) and
         ellipsoidal height (metres), from the reconstruction's ``reference_lla`` or from
         ``reference_lla.json`` beside the file; None when neither exists.
     frame : str
         A description of the world frame.
     gps_position : (n, 3) float64
-        Each shot's ``gps_position`` (world frame), NaN rows where absent.
+        Each shot's ``gps_position`` in the world frame (converted from OpenSfM's topocentric
+        frame when the world frame is another), NaN rows where absent or not convertible.
     gps_dop : (n,) float64
         Each shot's ``gps_dop`` (metres), NaN where absent.
     index : int
@@ -72,6 +92,12 @@ class OpenSfMReconstruction:
         Number of reconstructions in the file.
     source : Path or None
         The file read.
+    crs : str or None
+        The world frame as a CRS: ``"EPSG:n"`` or WKT2 (:func:`topocentric_crs_wkt` for OpenSfM's
+        topocentric frame); None when the file is not georeferenced.
+    offset : (3,) float64 or None
+        What was added to the file's coordinates to give ``crs`` coordinates (ODM's georeferenced
+        reconstruction: its easting and northing offset); None otherwise.
     """
 
     cameras: dict[str, Camera]
@@ -86,16 +112,142 @@ class OpenSfMReconstruction:
     index: int = 0
     n_reconstructions: int = 1
     source: Path | None = None
+    crs: str | None = None
+    offset: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "poses", tuple(self.poses))
         object.__setattr__(self, "point_ids", tuple(self.point_ids))
-        for name in ("points", "colors", "reference_lonlat_h", "gps_position", "gps_dop"):
+        for name in ("points", "colors", "reference_lonlat_h", "gps_position", "gps_dop", "offset"):
             a = getattr(self, name)
             if a is not None:
                 a = np.array(a, copy=True)
                 a.flags.writeable = False
                 object.__setattr__(self, name, a)
+
+
+    def to_crs(self, crs: str) -> OpenSfMReconstruction:
+        """The reconstruction in another CRS: positions, points and GPS positions through pyproj, each
+        rotation turned by the local rotation of the frame at its camera (the orthonormal part of the
+        transformation's Jacobian, from central differences of 1 m: the meridian convergence of a map
+        projection, for instance).
+
+        Raises
+        ------
+        CRSError
+            The reconstruction has no CRS (not georeferenced), or no transformation exists.
+        """
+        if self.crs is None:
+            raise CRSError(f"the reconstruction {str(self.source)!r} is not georeferenced (no reference_lla): it "
+                           f"cannot be converted into {crs!r}")
+        if same_crs(self.crs, crs):
+            return self
+        C = np.array([p.position for p in self.poses]).reshape(-1, 3)
+        C2 = transform_xyz(self.crs, crs, C)
+        J = np.empty((len(C), 3, 3))
+        for k in range(3):
+            e = np.zeros(3)
+            e[k] = 1.0
+            J[:, :, k] = (transform_xyz(self.crs, crs, C + e) - transform_xyz(self.crs, crs, C - e)) / 2.0
+        U, _, Vt = np.linalg.svd(J)
+        Q = U @ Vt
+        poses = tuple(Pose(p.image, p.camera, C2[i], Q[i] @ p.rotation) for i, p in enumerate(self.poses))
+        pts = transform_xyz(self.crs, crs, self.points) if len(self.points) else self.points
+        g = np.array(self.gps_position, dtype=np.float64)
+        have = np.isfinite(g).all(axis=1)
+        if have.any():
+            g[have] = transform_xyz(self.crs, crs, g[have])
+        q = float(np.degrees(np.arctan2(Q[:, 1, 0], Q[:, 0, 0])).mean()) if len(Q) else 0.0
+        frame = (f"{crs_label(crs)}, converted from {self.frame} (positions and points through pyproj; rotations "
+                 f"turned by the local rotation of the frame, {q:+.4f} deg about the vertical on average)")
+        return OpenSfMReconstruction(cameras=self.cameras, poses=poses, point_ids=self.point_ids, points=pts,
+                                     colors=self.colors, reference_lonlat_h=self.reference_lonlat_h, frame=frame,
+                                     gps_position=g, gps_dop=self.gps_dop, index=self.index,
+                                     n_reconstructions=self.n_reconstructions, source=self.source, crs=crs,
+                                     offset=None)
+
+
+def crs_label(crs: str) -> str:
+    """A short name of a CRS for messages: the ``EPSG:n`` code, else the CRS's name."""
+    code = crs_to_string(crs)
+    return code if code.upper().startswith("EPSG:") else parse_crs(crs).name
+
+
+def topocentric_crs_wkt(lonlat_h: Any) -> str:
+    """WKT2 of OpenSfM's topocentric frame: east-north-up, metres, about the WGS 84 point (lon, lat, h).
+
+    A projected CRS with the conversion EPSG 9837 (Geographic/topocentric conversions) from WGS 84's 3D
+    geographic CRS: PROJ transforms it exactly (x east along the tangent plane, z up along the
+    ellipsoid normal at the origin), as :func:`rectify.geometry.geodesy.enu_from_ecef` does.
+    """
+    lon, lat, h = (float(v) for v in np.asarray(lonlat_h, dtype=np.float64).reshape(3))
+    deg = 'ANGLEUNIT["degree",0.0174532925199433]'
+    m = 'LENGTHUNIT["metre",1]'
+    return (f'PROJCRS["Topocentric ENU about lon {lon!r} lat {lat!r} h {h!r} (WGS 84)",'
+            f'BASEGEOGCRS["WGS 84",DATUM["World Geodetic System 1984",ELLIPSOID["WGS 84",6378137,298.257223563,{m}]],'
+            f'PRIMEM["Greenwich",0,{deg}]],'
+            f'CONVERSION["Topocentric",METHOD["Geographic/topocentric conversions",ID["EPSG",9837]],'
+            f'PARAMETER["Latitude of topocentric origin",{lat!r},{deg},ID["EPSG",8834]],'
+            f'PARAMETER["Longitude of topocentric origin",{lon!r},{deg},ID["EPSG",8835]],'
+            f'PARAMETER["Ellipsoidal height of topocentric origin",{h!r},{m},ID["EPSG",8836]]],'
+            f'CS[Cartesian,3],AXIS["topocentric East (U)",east,ORDER[1],{m}],'
+            f'AXIS["topocentric North (V)",north,ORDER[2],{m}],AXIS["topocentric Up (W)",up,ORDER[3],{m}]]')
+
+
+def read_odm_coords(path: StrPath) -> tuple[str, NDArray[np.float64]]:
+    """ODM's ``odm_georeferencing/coords.txt``: the CRS (``"EPSG:n"`` or a PROJ string) and the offset (E, N).
+
+    Line 1 is ``WGS84 UTM <zone><N|S>``, ``EPSG:<n>`` or a PROJ string; line 2 the easting and northing
+    offset. Further lines (camera positions) are not read.
+
+    Raises
+    ------
+    InvalidInputError
+        A first or second line of another form (named with its value).
+    RasterIOError
+        The file cannot be read.
+    """
+    text = read_text(Path(path), "ODM coordinates file")
+    lines = [ln.strip() for ln in text.splitlines()]
+    if len(lines) < 2:
+        raise InvalidInputError(f"{str(path)!r}: an ODM coordinates file has a CRS line and an offset line; got "
+                                f"{len(lines)} line(s)")
+    head = lines[0].strip("'\"")
+    parts = head.split()
+    if len(parts) == 3 and parts[0].upper() == "WGS84" and parts[1].upper() == "UTM" and parts[2][-1:].upper() in "NS" \
+            and parts[2][:-1].isdigit() and 1 <= int(parts[2][:-1]) <= 60:
+        crs = f"EPSG:{(32600 if parts[2][-1].upper() == 'N' else 32700) + int(parts[2][:-1])}"
+    elif head.lower().startswith("epsg:") or head.startswith("+proj"):
+        crs = head.upper() if head.lower().startswith("epsg:") else head
+    else:
+        raise InvalidInputError(f"{str(path)!r} line 1: unknown CRS {lines[0]!r} (expected 'WGS84 UTM <zone><N|S>', "
+                                "'EPSG:<code>' or a PROJ string)")
+    try:
+        parse_crs(crs)
+    except CRSError as err:
+        raise InvalidInputError(f"{str(path)!r} line 1: {err}") from err
+    try:
+        off = [float(v) for v in lines[1].split()]
+    except ValueError:
+        off = []
+    if len(off) != 2 or not all(math.isfinite(v) for v in off):
+        raise InvalidInputError(f"{str(path)!r} line 2: the offset must be two numbers 'easting northing'; got "
+                                f"{lines[1]!r}")
+    return crs, np.array([off[0], off[1], 0.0])
+
+
+def _odm_georeferenced(path: Path) -> tuple[str, NDArray[np.float64]] | None:
+    """The CRS and offset of ODM's georeferenced ``reconstruction.json`` (None: not one)."""
+    if path.name == ODM_TOPOCENTRIC or not (path.parent / ODM_TOPOCENTRIC).is_file():
+        return None
+    coords = path.parent.parent / ODM_COORDS
+    if not coords.is_file():
+        raise InvalidInputError(
+            f"{str(path)!r} is OpenDroneMap's georeferenced reconstruction ({ODM_TOPOCENTRIC} is beside it): its "
+            f"coordinates are a projected CRS minus an offset, both given by {str(coords)!r}, which is missing; keep "
+            f"the ODM project's layout, or give {str(path.parent / ODM_TOPOCENTRIC)!r} (topocentric about "
+            "reference_lla)")
+    return read_odm_coords(coords)
 
 
 def _num_of(v: Any, what: str, path: Path) -> float:
@@ -210,13 +362,19 @@ def read_opensfm(path: StrPath, *, index: int | None = None) -> OpenSfMReconstru
     ``focal_x`` and ``focal_y`` that differ by up to 0.1 % are replaced by their mean (a scale error
     of at most half the difference across the image); larger differences are refused.
 
+    The frame (module docstring): with ``reference_lla`` OpenSfM's topocentric frame, ``crs`` its WKT2;
+    OpenDroneMap's georeferenced ``reconstruction.json`` (``reconstruction.topocentric.json`` beside
+    it) in the CRS of ``../odm_georeferencing/coords.txt`` with the offset added back.
+
     Raises
     ------
     RasterIOError
         The file is missing or unreadable.
     InvalidInputError
         Not valid JSON, not a list of reconstructions, no reconstruction at ``index``, an
-        unsupported camera, a shot naming an unknown camera, malformed numbers (naming the value).
+        unsupported camera, a shot naming an unknown camera, malformed numbers (naming the value);
+        ODM's georeferenced reconstruction without its ``odm_georeferencing/coords.txt``, or a
+        coordinates file of another form.
     """
     p = Path(path)
     doc = read_json(p, "OpenSfM reconstruction")
@@ -274,10 +432,29 @@ def read_opensfm(path: StrPath, *, index: int | None = None) -> OpenSfMReconstru
             all_colours = False
     colors = np.clip(np.rint(rgb), 0, 255).astype(np.uint8) if all_colours and ids else None
     ref = _reference(rec, p)
-    frame = ("topocentric east-north-up frame, metres, about reference_lonlat_h (WGS 84)" if ref is not None
-             else "OpenSfM's arbitrary world frame (no reference_lla: not georeferenced; z roughly up)")
+    g = np.array(gps, dtype=float).reshape(-1, 3)
+    odm = _odm_georeferenced(p)
+    crs: str | None = None
+    offset = None
+    if odm is not None:
+        crs, offset = odm
+        poses = [Pose(q.image, q.camera, q.position + offset, q.rotation) for q in poses]
+        xyz = xyz + offset
+        have = np.isfinite(g).all(axis=1)
+        if have.any() and ref is not None:  # OpenSfM's gps_position stays topocentric in ODM's copy
+            g[have] = transform_xyz(topocentric_crs_wkt(ref), crs, g[have])
+        elif have.any():
+            logger.warning("%s: gps_position without reference_lla cannot be put into %s; not used", p, crs)
+            g[:] = np.nan
+        frame = (f"OpenDroneMap's georeferenced frame {crs} (from {str(p.parent.parent / ODM_COORDS)!r}; the "
+                 f"file's coordinates plus its offset E {offset[0]:.3f} m, N {offset[1]:.3f} m; heights as ODM's)")
+    elif ref is not None:
+        crs = topocentric_crs_wkt(ref)
+        frame = (f"topocentric east-north-up frame of OpenSfM (x east, y north, z up along the ellipsoid normal, "
+                 f"m) about reference_lla lon {ref[0]:.8f} deg, lat {ref[1]:.8f} deg, h {ref[2]:.3f} m (WGS 84)")
+    else:
+        frame = "OpenSfM's arbitrary world frame (no reference_lla: not georeferenced; z roughly up)"
     return OpenSfMReconstruction(cameras=cameras, poses=tuple(poses), point_ids=tuple(str(k) for k in ids),
                                  points=xyz, colors=colors, reference_lonlat_h=ref, frame=frame,
-                                 gps_position=np.array(gps, dtype=float).reshape(-1, 3),
-                                 gps_dop=np.array(dop, dtype=float), index=index, n_reconstructions=len(doc),
-                                 source=p)
+                                 gps_position=g, gps_dop=np.array(dop, dtype=float), index=index,
+                                 n_reconstructions=len(doc), source=p, crs=crs, offset=offset)

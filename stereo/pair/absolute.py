@@ -354,6 +354,7 @@ class AbsoluteOrientation:
         max_iterations: int = 50,
         tol: float = 1e-10,
         units: str = "ground units",
+        min_scale: float | None = None,
     ) -> AbsoluteOrientation:
         """Estimate the similarity from control points.
 
@@ -387,6 +388,16 @@ class AbsoluteOrientation:
         units : str
             Name of the ground unit for the residual table (e.g. ``"m"`` when
             the ground frame is metric; default ``"ground units"``).
+        min_scale : float, optional
+            Smallest robust scale of the whitened residuals: with 3 x 3 weight
+            matrices that are inverse covariances, 1, so that a control point is
+            flagged only when a residual exceeds 3 predicted standard deviations
+            (times the robust scale when that is larger). Without it the scale is the
+            residuals' own (median absolute residual / 0.6745), which, with a
+            redescending estimator and little redundancy, shrinks onto a subset
+            of the control that the similarity fits nearly exactly and flags
+            good points (issue 24). The test and its figures are in
+            ``extra["outlier_test"]``.
 
         Raises
         ------
@@ -400,17 +411,22 @@ class AbsoluteOrientation:
         c = _validate(model, ground, ids=ids, check=check, weights=weights, robust=robust,
                       deformation_order=deformation_order)
         adj = _Adjustment(c, max_iterations=max_iterations, tol=tol)
-        x, N, iters, conv, w_final, outl_obs = _solve(adj, robust)
+        if min_scale is not None and not (isinstance(min_scale, (int, float)) and math.isfinite(min_scale)
+                                          and min_scale > 0):
+            raise InvalidInputError(f"`min_scale` must be a finite number > 0 or None; got {min_scale!r}")
+        adj = _Adjustment(c, max_iterations=max_iterations, tol=tol)
+        x, N, iters, conv, w_final, outl_obs, test = _solve(adj, robust, min_scale)
         if not conv:
             raise ConvergenceError(f"absolute orientation did not converge in {max_iterations} iterations; "
                                    f"largest residuals: {_largest_residuals(adj, x, c.ids)} (check these "
                                    "control points)", iterations=iters)
         s, R, T, cov, sigma0 = _precision(adj, x, N, w_final)
-        return cls._result(c, adj, s, R, T, cov, sigma0, w_final, outl_obs, iters, conv, units)
+        return cls._result(c, adj, s, R, T, cov, sigma0, w_final, outl_obs, iters, conv, units, test)
 
     @classmethod
     def _result(cls, c: _Control, adj: _Adjustment, s: float, R: NDArray, T: NDArray, cov: NDArray, sigma0: float,
-                w_final: NDArray, outl_obs: NDArray, iters: int, conv: bool, units: str) -> AbsoluteOrientation:
+                w_final: NDArray, outl_obs: NDArray, iters: int, conv: bool, units: str,
+                test: _OutlierTest | None = None) -> AbsoluteOrientation:
         """Stage 4: deformation correction, residual table, the result object."""
         m, g, n = c.m, c.g, len(c.m)
         sim = s * m @ R.T + T
@@ -443,9 +459,58 @@ class AbsoluteOrientation:
             extra={"n_full": c.nf, "n_height": c.nz, "n_equations": adj.n_obs, "robust": c.robust})
         logger.info("absolute orientation: %d full + %d height points, sigma0 %.4g, %d iterations",
                     c.nf, c.nz, sigma0, iters)
+        extra: dict[str, Any] = {"height_points": [c.ids[i] for i in np.flatnonzero(c.zonly_all)]}
+        if test is not None:
+            z = np.zeros(n)
+            np.maximum.at(z, adj.obs_pt, test.standardised)
+            used = np.unique(adj.obs_pt)
+            extra["outlier_test"] = {
+                "rule": "a control point is an outlier when one of its standardised residuals exceeds the "
+                        "threshold: its residuals (with 3 x 3 weight matrices: decorrelated and divided by their "
+                        "predicted standard deviations) divided by the robust scale",
+                "threshold": test.threshold, "scale": test.scale, "own_scale": test.own_scale,
+                "min_scale": test.min_scale, "scale_floored": test.floored,
+                "standardised": {c.ids[i]: float(z[i]) for i in used}}
         return cls(scale=float(s), rotation=R, translation=T, covariance=cov, sigma0=float(sigma0),
                    residuals=table, deformation=deformation, iterations=iters, converged=conv,
-                   robust=c.robust, extra={"height_points": [c.ids[i] for i in np.flatnonzero(c.zonly_all)]})
+                   robust=c.robust, extra=extra)
+
+    def outlier_text(self) -> str | None:
+        """The robust fit's flag criterion with its figures, or None for a least-squares fit.
+
+        E.g. ``"tukey: a control point is an outlier when one of its standardised residuals exceeds 3 x the
+        robust scale 1 (the a-priori one; the residuals' own, 0.07, is smaller); flagged: c2 10.017 m
+        (standardised 10.55); largest kept: c5 0.934 m (0.12)"``: each point with the length of its
+        residual vector and its largest standardised residual (in units of the scale).
+        """
+        t = self.extra.get("outlier_test")
+        if not t:
+            return None
+        rows = {r["id"]: r for r in self.residuals.rows() if not r["check"]}
+        u = self.residuals.units
+        z = t["standardised"]
+
+        def item(pid: str, label: str = "") -> str:
+            r = rows[pid]
+            v = math.sqrt(sum(float(r[c]) ** 2 for c in self.residuals.components))
+            return f"{pid} {v:.3f} {u} ({label}{z[pid]:.2f})"
+
+        flagged = sorted((i for i in z if i in rows and rows[i]["outlier"]), key=lambda i: -z[i])
+        kept = [i for i in z if i in rows and not rows[i]["outlier"]]
+        own = t["own_scale"]
+        if t["min_scale"] is None:
+            scale = f"the robust scale {t['scale']:.3g} {u} (median absolute residual / 0.6745)"
+        elif t["scale_floored"]:
+            scale = (f"the robust scale {t['scale']:g} (the a-priori one: predicted standard deviations; the "
+                     f"residuals' own, {own:.3g}, is smaller)")
+        else:
+            scale = f"the robust scale {t['scale']:.3g} (the residuals' own; at least the a-priori {t['min_scale']:g})"
+        out = (f"{self.robust}: a control point is an outlier when one of its standardised residuals exceeds "
+               f"{t['threshold']:g} x {scale}; flagged: ")
+        out += ", ".join(item(i, "standardised " if k == 0 else "") for k, i in enumerate(flagged)) or "none"
+        if kept:
+            out += f"; largest kept: {item(max(kept, key=lambda i: z[i]), '' if flagged else 'standardised ')}"
+        return out
 
 
 # ------------------------------------------------------------------ stages of from_points
@@ -630,22 +695,52 @@ def _largest_residuals(adj: _Adjustment, x: NDArray, ids: tuple[str, ...], k: in
     return ", ".join(f"{ids[i]} {math.sqrt(sq[i]):.4g}" for i in order) + " (ground units)"
 
 
-def _solve(adj: _Adjustment, robust: str) -> tuple[NDArray, NDArray, int, bool, NDArray, NDArray]:
-    """Stage 2: plain or robust (IRLS) adjustment; returns (x, N, iterations, converged, weights, outliers)."""
+@dataclass(frozen=True, eq=False)
+class _OutlierTest:
+    """The robust fit's outlier test: |residual| / scale > threshold per (whitened) observation."""
+
+    standardised: NDArray[np.float64]   # (n_obs,) |whitened residual| / scale
+    scale: float
+    own_scale: float                    # the residuals' own robust scale
+    threshold: float
+    min_scale: float | None
+    floored: bool
+
+
+#: a robust fit flags an observation whose standardised residual exceeds this many scales
+OUTLIER_THRESHOLD = 3.0
+
+
+def _solve(adj: _Adjustment, robust: str, min_scale: float | None = None
+           ) -> tuple[NDArray, NDArray, int, bool, NDArray, NDArray, _OutlierTest | None]:
+    """Stage 2: plain or robust (IRLS) adjustment; returns (x, N, iterations, converged, weights, outliers,
+    the outlier test of a robust fit)."""
     w_final = adj.w_obs_fit.copy()
     outl_obs = np.zeros(adj.n_obs, bool)
     if robust == "none":
         x, N, iters, conv = adj.gauss_newton(adj.w_obs_fit, adj.x0)
-        return x, N, iters, conv, w_final, outl_obs
+        return x, N, iters, conv, w_final, outl_obs, None
 
     def fit(w: NDArray, prev: Any) -> NDArray:
         return adj.gauss_newton(w, adj.x0 if prev is None else prev)[0]
 
-    res = irls(fit, adj.residuals, adj.n_obs, psi=robust, prior_weights=adj.w_obs_fit, min_used=7)
+    res = irls(fit, adj.residuals, adj.n_obs, psi=robust, prior_weights=adj.w_obs_fit, min_used=7,
+               outlier_threshold=OUTLIER_THRESHOLD)
+    floored = False
+    own = float(res.scale)
+    if min_scale is not None and res.scale < min_scale:
+        # the residuals' own robust scale fell below the a-priori one (a redescending estimator fitting a
+        # subset of the control nearly exactly flags good points): rerun with the a-priori scale, so that
+        # no residual within OUTLIER_THRESHOLD predicted standard deviations is flagged
+        res = irls(fit, adj.residuals, adj.n_obs, psi=robust, prior_weights=adj.w_obs_fit, min_used=7,
+                   scale=min_scale, outlier_threshold=OUTLIER_THRESHOLD)
+        floored = True
     w_final = res.weights
+    z = np.abs(res.residuals) / res.scale if res.scale > 0 else np.zeros(adj.n_obs)
+    test = _OutlierTest(z, float(res.scale), own, OUTLIER_THRESHOLD, min_scale, floored)
     # final covariance with the final weights
     x, N, iters, conv = adj.gauss_newton(np.maximum(w_final, 0.0), res.model)
-    return x, N, iters, conv, w_final, res.outlier_mask
+    return x, N, iters, conv, w_final, res.outlier_mask, test
 
 
 def _precision(adj: _Adjustment, x: NDArray, N: NDArray, w_final: NDArray

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from rectify.errors import CRSError, InvalidInputError
+from rectify.errors import CRSError, EstimationError, InvalidInputError
 from rectify.geometry.camera import Camera
 from rectify.geometry.crs import unit_label
 from rectify.geometry.geodesy import enu_from_map, geodetic_from_map, map_from_enu
@@ -170,7 +170,7 @@ class StereoModel:
                 if ts["n_check"]:
                     line += f"; {ts['n_check']} check points, RMSE {ts['rmse_check']:.3f} {u}"
                 if ts["n_outliers"]:
-                    line += f"; {ts['n_outliers']} outliers"
+                    line += f"; {ts['n_outliers']} outlier" + ("s" if ts["n_outliers"] > 1 else "")
                 line += f"; sigma0 {self.absolute.sigma0:.3f}" + ("" if s.get("absolute_weighted") else f" {u}")
                 if s.get("control_sigma_source") == "estimated":
                     if abs(self.absolute.sigma0 - 1.0) < 1e-6:
@@ -179,6 +179,9 @@ class StereoModel:
                         line += (" (the control image precision is scaled to give 1 in a least-squares fit; "
                                  "the robust fit's reweighting moves it)")
                 out.append(line)
+                why = self.absolute.outlier_text()
+                if why is not None:
+                    out.append(f"robust absolute orientation, {why}")
             else:
                 out.append(f"{t.step}: {t.summary_line()}")
         if self.absolute is not None:
@@ -254,12 +257,14 @@ def ground_unit(crs: str | None, frame: str = "map") -> str:
 
 
 def _fit_ao(model_rows: NDArray, g_rows: NDArray, ids: list[str], chk: NDArray, opts: ModelOptions,
-            cov_rows: NDArray | None, units: str) -> AbsoluteOrientation:
+            cov_rows: NDArray | None, units: str, min_scale: float | None = None) -> AbsoluteOrientation:
     """Similarity fit; with model covariances, a second pass weights every control point by the inverse
     of its intersection covariance rotated to ground, a full 3x3 matrix (model heights are about three
     times noisier than plan coordinates in aerial stereo, and X and Z are correlated through the
     x-parallax), so sigma0 is unitless (~1 when the image precision assumed for the control points is
-    right) and the parameter covariance sigma0^2 (A^T P A)^-1 reflects the real, anisotropic noise."""
+    right) and the parameter covariance sigma0^2 (A^T P A)^-1 reflects the real, anisotropic noise.
+    ``min_scale`` is the weighted pass's smallest robust scale (see
+    :meth:`AbsoluteOrientation.from_points`)."""
     ao = AbsoluteOrientation.from_points(model_rows, g_rows, ids=ids, check=chk, robust=opts.robust,
                                          deformation_order=opts.deformation_order, units=units)
     if cov_rows is None:
@@ -268,11 +273,12 @@ def _fit_ao(model_rows: NDArray, g_rows: NDArray, ids: list[str], chk: NDArray, 
     cg = np.einsum("ij,njk,lk->nil", sR, cov_rows, sR)
     w = np.linalg.inv(cg + 1e-30 * np.eye(3))
     return AbsoluteOrientation.from_points(model_rows, g_rows, ids=ids, check=chk, robust=opts.robust,
-                                           deformation_order=opts.deformation_order, weights=w, units=units)
+                                           deformation_order=opts.deformation_order, weights=w, units=units,
+                                           min_scale=min_scale)
 
 
 def _orient(model_pts: NDArray, xyz: NDArray, use: NDArray, check: NDArray, ids: tuple[str, ...], crs: str | None,
-            frame: str, opts: ModelOptions, model_cov: NDArray | None
+            frame: str, opts: ModelOptions, model_cov: NDArray | None, min_scale: float | None = None
             ) -> tuple[AbsoluteOrientation, NDArray, NDArray | None, dict[str, Any]]:
     """Absolute orientation in ``frame``; returns (ao, ground (N, 3) map, std (N, 3), frame info)."""
     rows = np.flatnonzero(use | check)
@@ -285,14 +291,14 @@ def _orient(model_pts: NDArray, xyz: NDArray, use: NDArray, check: NDArray, ids:
         mid = np.concatenate([ctrl[:, :2].mean(0), [ctrl[:, 2].mean()]])
         origin = geodetic_from_map(mid[None], crs)[0]
         g_frame = enu_from_map(xyz[rows], crs, origin)
-        ao = _fit_ao(model_pts[rows], g_frame, rid, chk, opts, cov_rows, "m")
+        ao = _fit_ao(model_pts[rows], g_frame, rid, chk, opts, cov_rows, "m", min_scale)
         enu = ao(model_pts)
         ground = map_from_enu(enu, crs, origin)
         info = {"name": "topocentric", "origin_lon_lat_h": origin.tolist(),
                 "note": "absolute orientation in local ENU at the control centroid (seed 004)"}
         Jm = _enu_jacobian(crs, origin)
     else:
-        ao = _fit_ao(model_pts[rows], xyz[rows], rid, chk, opts, cov_rows, ground_unit(crs, "map"))
+        ao = _fit_ao(model_pts[rows], xyz[rows], rid, chk, opts, cov_rows, ground_unit(crs, "map"), min_scale)
         ground = ao(model_pts)
         info = {"name": "map", "note": "absolute orientation directly in map coordinates"}
         Jm = np.eye(3)
@@ -447,9 +453,7 @@ def _model_covariance(pts: _Points, inter: Intersection, sigma: float | None, cr
         # the variance component by least squares: a robust fit's down-weighting of good control points
         # would under-estimate it (predicted check errors 2x too small with Tukey); outliers inflate it, which
         # errs on the safe side, and the final fit is robust
-        ao0, _, _, _ = _orient(inter.points, pts.xyz, pts.use, pts.is_check, pts.ids, crs, frame,
-                               replace(opts, robust="none"), model_cov)
-        s0 = ao0.sigma0 if math.isfinite(ao0.sigma0) else 1.0
+        s0 = _control_sigma0(pts, inter, crs, frame, opts, model_cov)
         sigma_c = sigma * max(1.0, s0)
         source = "estimated"
     model_cov = model_cov.copy()
@@ -460,19 +464,65 @@ def _model_covariance(pts: _Points, inter: Intersection, sigma: float | None, cr
     return model_cov
 
 
+def _control_sigma0(pts: _Points, inter: Intersection, crs: str | None, frame: str, opts: ModelOptions,
+                    model_cov: NDArray) -> float:
+    """The sigma0 of the control points at the tie points' image precision, by least squares on the
+    control points that are not confirmed blunders.
+
+    By least squares because a robust fit's down-weighting of good control points would under-estimate
+    it (predicted check errors 2x too small with Tukey). Blunders would inflate it, and with it the
+    final robust fit's scale (at least 1, the a-priori one: :func:`_absolute`), so that they would pass:
+    the points a robust fit flags (at the residuals' own robust scale, which also flags good points when
+    it shrinks onto a subset of the control) are left out of a least-squares fit, and those whose
+    residual under that fit exceeds 3 of its predicted standard deviations (the withheld point's own and
+    the fit's, at that fit's precision) are blunders; the others come back.
+    """
+    def ls(use: NDArray, cov: NDArray = model_cov) -> tuple[AbsoluteOrientation, NDArray, NDArray | None]:
+        ao, ground, std, _ = _orient(inter.points, pts.xyz, use, pts.is_check, pts.ids, crs, frame,
+                                     replace(opts, robust="none"), cov)
+        return ao, ground, std
+
+    def sigma0(ao: AbsoluteOrientation) -> float:
+        return ao.sigma0 if math.isfinite(ao.sigma0) else 1.0
+
+    s0_all = sigma0(ls(pts.use)[0])
+    if opts.robust == "none":
+        return s0_all
+    try:
+        aor, _, _, _ = _orient(inter.points, pts.xyz, pts.use, pts.is_check, pts.ids, crs, frame, opts, model_cov)
+        flagged = np.isin(np.array(pts.ids, dtype=object), np.array(
+            [r["id"] for r in aor.residuals.rows() if r["outlier"] and not r["check"]], dtype=object)) & pts.use
+        if not flagged.any():
+            return s0_all
+        ao_k, _, _ = ls(pts.use & ~flagged)
+        cov_k = model_cov.copy()
+        cov_k[pts.from_file] *= max(1.0, sigma0(ao_k)) ** 2
+        _, ground, std = ls(pts.use & ~flagged, cov_k)
+        assert std is not None  # with model covariances
+        z = np.max(np.abs(ground - pts.xyz) / std, axis=1)
+        blunder = flagged & (z > 3.0)
+        return sigma0(ls(pts.use & ~blunder)[0]) if blunder.any() else s0_all
+    except EstimationError:  # too few control points without the flagged ones: all of them
+        return s0_all
+
+
 def _absolute(pts: _Points, inter: Intersection, model_cov: NDArray | None, crs: str | None, frame: str,
               opts: ModelOptions, summary: dict[str, Any]
               ) -> tuple[AbsoluteOrientation, NDArray, NDArray | None, dict[str, Any], dict[str, Any] | None]:
     """Stage 4: absolute orientation in ``frame`` (and the other frame for comparison), ground points and
     their standard errors, check-point figures; returns (ao, ground, std, frame info, frame difference)."""
     xyz, is_check = pts.xyz, pts.is_check
+    # weights are inverse covariances (the control's image precision given or estimated): a residual within
+    # 3 predicted standard deviations is never flagged, whatever the residuals' own robust scale
+    floor = 1.0 if model_cov is not None else None
     ao, ground, std, frame_info = _orient(inter.points, xyz, pts.use, is_check, pts.ids, crs, frame, opts,
-                                          model_cov)
+                                          model_cov, floor)
     diff = None
     if crs:
         other = "map" if frame == "topocentric" else "topocentric"
         try:
-            _, g2, _, _ = _orient(inter.points, xyz, pts.use, is_check, pts.ids, crs, other, opts, model_cov)
+            _, g2, _, _ = _orient(inter.points, xyz, pts.use, is_check, pts.ids, crs, other, opts, model_cov,
+                                  floor)
             d = g2 - ground
             diff = {"other_frame": other, "rms_xyz_m": rms(np.linalg.norm(d, axis=1)),
                     "max_xyz_m": float(np.abs(np.linalg.norm(d, axis=1)).max()),

@@ -220,8 +220,10 @@ class RelativeOrientation:
                     camera_right: Camera | None = None, **kwargs: Any) -> RelativeOrientation:
         """Like :meth:`from_points` for pixel coordinates (N, 2) and :class:`rectify.geometry.camera.Camera` objects.
 
-        Pixels go to photo mm through the camera (principal point, distortion);
-        the pixel size of the left camera is used for pixel figures.
+        Pixels go to photo mm through the camera (principal point, fx, fy, skew, distortion), as the
+        ideal camera of principal distance ``camera.focal_length_mm``; the pixel size of the left
+        camera is used for pixel figures (column pixels: with fy != fx, figures along the rows
+        differ from row pixels by the factor fy/fx).
         """
         cam_r = camera_right or camera
         lm = camera.photo_from_pixel(left_px)

@@ -126,9 +126,9 @@ def residual_table(cal: Calibration) -> ResidualTable:
                          position_px=obs, sigma0=cal.sigma0_px, n_params=len(cal.adjustment.names))
 
 
-def calibration_dict(cal: Calibration) -> dict[str, Any]:
-    """Everything of a calibration as JSON-able data (interior, covariance, views' EO)."""
-    return {
+def calibration_dict(cal: Calibration, *, corners: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Everything of a calibration as JSON-able data (interior, covariance, views' EO; the corner check)."""
+    out: dict[str, Any] = {
         "camera": cal.camera_dict(),
         "names": list(cal.names),
         "correlation": cal.correlation.tolist(),
@@ -142,11 +142,18 @@ def calibration_dict(cal: Calibration) -> dict[str, Any]:
                    "std_omega_phi_kappa_rad": v.std_angles.tolist(), "centre": v.centre.tolist(),
                    "std_centre": v.std_centre.tolist(), "rotation": v.rotation.tolist()} for v in cal.views],
     }
+    if corners is not None:
+        out["corners"] = corners
+    return out
 
 
 def write_calibration_report(out_dir: str | Path, cal: Calibration, *, title: str = "stereo calibrate",
-                             overwrite: bool = False) -> Path:
-    """Write figures, the residual table, ``calibration.json`` and ``report.html`` into ``out_dir``."""
+                             overwrite: bool = False, corners: dict[str, Any] | None = None) -> Path:
+    """Write figures, the residual table, ``calibration.json`` and ``report.html`` into ``out_dir``.
+
+    ``corners`` (chessboard images): the refinement method, the corners found and kept, and each
+    rejected corner (view, index, name, position, reason); the RMS is over the kept corners only.
+    """
     figs = {"calibration_residuals_per_view": residual_views_figure(cal),
             "calibration_distortion": distortion_figure(cal),
             "calibration_coverage": coverage_figure(cal)}
@@ -156,10 +163,16 @@ def write_calibration_report(out_dir: str | Path, cal: Calibration, *, title: st
                "start": cal.start_method}
     summary.update({f"{n}": cal.value(n) for n in cal.names})
     summary.update({f"std_{n}": s for n, s in cal.std_errors.items()})
+    if corners is not None:
+        summary["corner_refinement"] = corners["method"]
+        summary["corners_found"] = corners["found"]
+        summary["corners_kept"] = corners["kept"]
+        summary["corners_rejected"] = "; ".join(f"{r['view']} corner {r['corner']} (#{r['index']}): {r['reason']}"
+                                                for r in corners["rejected"]) or "none"
     path = write_report(out_dir, title=title, tables=[residual_table(cal)], figures=figs, summary=summary,
                         overwrite=overwrite, image_shapes={"calibration": (cal.intrinsics.height,
                                                                            cal.intrinsics.width)},
                         principal_point_px=[cal.intrinsics.cx, cal.intrinsics.cy])
-    atomic_write_text(Path(out_dir) / "calibration.json", json.dumps(calibration_dict(cal), indent=2),
+    atomic_write_text(Path(out_dir) / "calibration.json", json.dumps(calibration_dict(cal, corners=corners), indent=2),
                       overwrite=True)
     return path

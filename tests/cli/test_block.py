@@ -13,20 +13,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from rectify.geometry.camera import Camera
 from rectify.geometry.rotation import angles_from_matrix
-from stereo.block.types import project_pixel
 from stereo.cli.main import cli
 from stereo.formats.block import read_block_orientation
 from stereo.formats.points import read_points_csv
-from tests.support.block_render import make_terrain, render_block, strip_poses
-
-CAM = Camera(focal_length_mm=20.0, pixel_size_mm=0.05, width=400, height=300)
-H_FLY = 100.0
-Z0 = 50.0
-GSD = H_FLY * CAM.pixel_size_mm / CAM.focal_length_mm  # 0.25 m
-CRS = "EPSG:32633"
-E0, N0 = 500000.0, 5000000.0  # the block sits at these map coordinates
+from tests.support.block_example import CAM, E0, N0, write_example_block
 
 
 def _hashes(paths):
@@ -36,38 +27,7 @@ def _hashes(paths):
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     d = tmp_path_factory.mktemp("blockcli")
-    w, h = CAM.width * GSD, CAM.height * GSD
-    ext = (-w / 2 - 20, -(1 - 0.3) * h - h / 2 - 20, 2 * 0.4 * w + w / 2 + 20, h / 2 + 20)
-    terrain = make_terrain(ext, cell_m=GSD, base_height_m=Z0 - 3.0, relief_m=8.0, seed=3)
-    poses = strip_poses(CAM, n_strips=2, n_per_strip=3, flying_height_m=H_FLY, ground_z=Z0, alternate=True,
-                        angle_sigma_rad=0.01, seed=1, camera_id="camera")
-    images = render_block(CAM, poses, terrain, d)
-    (d / "camera.json").write_text(json.dumps(CAM.to_dict()))
-    rng = np.random.default_rng(5)
-    # GNSS positions (5 cm noise) in map coordinates, angles 0.5 deg off
-    lines = [f"# crs={CRS}", "# angles=deg", "image,x,y,z,omega,phi,kappa,sx,sy,sz"]
-    for p, path in zip(poses, images, strict=True):
-        pos = p.position + [E0, N0, 0.0] + rng.normal(0, 0.05, 3)
-        a = np.degrees(angles_from_matrix(p.rotation)) + rng.normal(0, 0.5, 3)
-        lines.append(",".join([path.name, *(f"{v:.4f}" for v in pos), *(f"{v:.6f}" for v in a),
-                               "0.05", "0.05", "0.05"]))
-    (d / "poses.csv").write_text("\n".join(lines) + "\n")
-    # control points on the terrain, measured in every image that sees them (0.2 px noise)
-    x0, y0, x1, y1 = ext
-    gx, gy = np.meshgrid(np.linspace(x0 + 40, x1 - 40, 4), np.linspace(y0 + 35, y1 - 35, 3))
-    xy = np.column_stack([gx.ravel(), gy.ravel()])
-    xyz = np.column_stack([xy, terrain.height(xy)])
-    rows = [f"# crs={CRS}", "id,image,col,row,x,y,z"]
-    for k, g in enumerate(xyz):
-        pid = f"C{k}"
-        seen = 0
-        for p, path in zip(poses, images, strict=True):
-            px = project_pixel(CAM, p, g[None])[0]
-            if np.isfinite(px).all() and 5 < px[0] < CAM.width - 6 and 5 < px[1] < CAM.height - 6:
-                px = px + rng.normal(0, 0.2, 2)
-                rows.append(f"{pid},{path.name},{px[0]:.3f},{px[1]:.3f},{g[0] + E0:.4f},{g[1] + N0:.4f},{g[2]:.4f}")
-                seen += 1
-    (d / "control.csv").write_text("\n".join(rows) + "\n")
+    images, poses, xyz = write_example_block(d)
     return d, images, poses, xyz
 
 

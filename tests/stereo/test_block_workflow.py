@@ -9,7 +9,6 @@ tracks are handed in, so the matching is skipped (the CLI tests cover the matchi
 
 from __future__ import annotations
 
-import json
 import math
 
 import laspy
@@ -25,50 +24,13 @@ from stereo.block.types import Tracks
 from stereo.formats.block import read_block_control, read_block_orientation
 from stereo.formats.points import read_points_csv
 from stereo.formats.poses import read_pose_csv
+from tests.support.block_files import write_block_files
 from tests.support.block_synthetic import make_block
 
 
-def _files(tmp_path, blk, *, gnss=True, control=True, checks=True, pose_noise=True):
-    """Images (placeholders named like the block's), camera JSON, pose CSV, control CSV, tie tracks."""
-    d = tmp_path / "in"
-    d.mkdir()
-    images = []
-    for name in blk.tracks.images:
-        p = d / name
-        p.write_bytes(b"placeholder")
-        images.append(p)
-    cam = d / "camera.json"
-    cam.write_text(json.dumps(blk.camera.to_dict()))
-    poses = d / "poses.csv"
-    rows = ["# crs=EPSG:32633", "# angles=deg", "image,x,y,z,omega,phi,kappa" + (",sx,sy,sz" if gnss else "")]
-    src = blk.initial_poses if pose_noise else blk.true_poses
-    for k, p in enumerate(src):
-        pos = blk.gnss.position[k] if gnss else p.position
-        a = np.degrees(angles_from_matrix(p.rotation))
-        row = [p.image, *(repr(float(v)) for v in pos), *(repr(float(v)) for v in a)]
-        if gnss:
-            row += [repr(float(v)) for v in blk.gnss.sigma_m[k]]
-        rows.append(",".join(row))
-    poses.write_text("\n".join(rows) + "\n")
-    ctrl_ids = set(blk.control.ids)
-    t = blk.tracks
-    is_ctrl = np.array([t.point_ids[i] in ctrl_ids for i in t.obs_point])
-    cpath = None
-    if control:
-        cpath = d / "control.csv"
-        lines = ["# crs=EPSG:32633", "id,image,col,row,x,y,z,sx,sy,sz"]
-        where = {c: k for k, c in enumerate(blk.control.ids)}
-        for k in np.flatnonzero(is_ctrl):
-            pid = t.point_ids[t.obs_point[k]]
-            g = blk.control.xyz[where[pid]]
-            s = blk.control.sigma_m[where[pid]]
-            lines.append(",".join([pid, t.images[t.obs_image[k]], repr(float(t.obs_pixel[k, 0])),
-                                   repr(float(t.obs_pixel[k, 1])), *(repr(float(v)) for v in g),
-                                   *(repr(float(v)) for v in s)]))
-        cpath.write_text("\n".join(lines) + "\n")
-    ties = t.subset(~is_ctrl)
-    checks_ids = tuple(c for c, chk in zip(blk.control.ids, blk.control.check, strict=True) if chk) if checks else ()
-    return images, cam, poses, cpath, ties, checks_ids
+def _files(tmp_path, blk, **kwargs):
+    """Images (placeholders named like the block's), camera JSON, pose CSV, control CSV, tie tracks, check ids."""
+    return write_block_files(tmp_path, blk, **kwargs)
 
 
 @pytest.fixture(scope="module")

@@ -71,8 +71,9 @@ def test_toolbox_iteration_reaches_our_minimum(cb, data, cal):
     ss_ours = cb.sum_of_squares(_p(cal, ours), data.views)
     assert ss[-1] == pytest.approx(ss_ours, rel=1e-10)
     assert ss_ours == pytest.approx(4.7262848788, abs=1e-9)
-    # rounded to the printed precision, ours and the toolbox iteration agree with each other
-    assert [round(float(x), 5) for x in p[:8]] == [round(float(x), 5) for x in ours]
+    # ours and the toolbox iteration agree to half a unit of the printed 5th decimal (comparing the rounded
+    # digits would fail whenever a value straddles a rounding boundary: cx 361.9962966 vs 361.9962924)
+    assert np.max(np.abs(p[:8] - ours)) < 5e-6
     # no truncated run (MaxIter 1..30) reproduces the printed fc, cc: always > 3e-4 px off somewhere
     pub = data.published
     worst = [float(np.max(np.abs(h[:4] - pub[:4]))) for h in hist]

@@ -177,14 +177,15 @@ def test_fill_background_uses_smaller_neighbour():
 def test_dsm_grid_mean_count_and_holes(tmp_path):
     g = DsmGrid((0, 0, 10, 10), 1.0, crs="EPSG:32633", radius=0.0)
     xs, ys = np.meshgrid(np.arange(0, 11.0), np.arange(0, 11.0))
-    pts = np.column_stack([xs.ravel(), ys.ravel(), 2 * xs.ravel() + ys.ravel()])
-    keep = ~((pts[:, 0] == 5) & (pts[:, 1] == 5))
+    # cell edges on whole multiples of the cell: the points at the cell centres (k + 0.5)
+    pts = np.column_stack([xs.ravel() + 0.5, ys.ravel() + 0.5, 2 * xs.ravel() + ys.ravel()])
+    keep = ~((pts[:, 0] == 5.5) & (pts[:, 1] == 5.5))
     g.add(pts[keep])
     g.add(pts[keep])
     res = g.result(max_hole_cells=4)
-    r, c = g.cell_of(np.array([[5.0, 5.0]]))
+    r, c = g.cell_of(np.array([[5.5, 5.5]]))
     assert res.filled[r[0], c[0]] and abs(res.height[r[0], c[0]] - 15.0) < 0.5
-    r, c = g.cell_of(np.array([[3.0, 7.0]]))
+    r, c = g.cell_of(np.array([[3.5, 7.5]]))
     assert res.height[r[0], c[0]] == pytest.approx(13.0) and res.count[r[0], c[0]] == 2
     p = res.write(tmp_path / "dsm.tif")
     import rasterio
@@ -205,24 +206,24 @@ def test_dsm_grid_radius_spread_and_despike():
     """radius 1: a cell without its own point gets the plane's height from its neighbours (not flagged as
     filled); a cell with points of two surfaces 50 cells apart is dropped; a lone spike is despiked."""
     xs, ys = np.meshgrid(np.arange(0, 21.0), np.arange(0, 21.0))
-    pts = np.column_stack([xs.ravel(), ys.ravel(), 2 * xs.ravel() + ys.ravel()])
-    gap = (pts[:, 0] == 5) & (pts[:, 1] == 5)
+    pts = np.column_stack([xs.ravel() + 0.5, ys.ravel() + 0.5, 2 * xs.ravel() + ys.ravel()])  # cell centres
+    gap = (pts[:, 0] == 5.5) & (pts[:, 1] == 5.5)
     g = DsmGrid((0, 0, 20, 20), 1.0, radius=1.0, max_spread=2.0)
     g.add(pts[~gap])
-    g.add(np.array([[15.0, 15.0, 45.0 + 50.0], [15.2, 15.2, 45.6 - 50.0]]))  # two surfaces in one cell
+    g.add(np.array([[15.5, 15.5, 45.0 + 50.0], [15.7, 15.7, 45.6 - 50.0]]))  # two surfaces in one cell
     res = g.result()
-    r, c = g.cell_of(np.array([[5.0, 5.0]]))
+    r, c = g.cell_of(np.array([[5.5, 5.5]]))
     assert not res.filled[r[0], c[0]] and res.height[r[0], c[0]] == pytest.approx(15.0, abs=1e-3)
-    r, c = g.cell_of(np.array([[15.0, 15.0]]))
+    r, c = g.cell_of(np.array([[15.5, 15.5]]))
     assert res.height[r[0], c[0]] == -9999 and res.count[r[0], c[0]] == 0 and g.n_spread >= 1
-    r, c = g.cell_of(np.array([[8.0, 3.0]]))
+    r, c = g.cell_of(np.array([[8.5, 3.5]]))
     assert res.height[r[0], c[0]] == pytest.approx(19.0, abs=1e-3) and res.count[r[0], c[0]] == 5
     g2 = DsmGrid((0, 0, 20, 20), 1.0, radius=0.0)
     spike = pts.copy()
     spike[gap, 2] += 30.0
     g2.add(spike)
     res2 = g2.result(despike_cells=3.0)
-    r, c = g2.cell_of(np.array([[5.0, 5.0]]))
+    r, c = g2.cell_of(np.array([[5.5, 5.5]]))
     assert res2.height[r[0], c[0]] == -9999 and g2.n_despiked == 1
     with pytest.raises(InvalidInputError, match="radius"):
         DsmGrid((0, 0, 1, 1), 1.0, radius=-1)

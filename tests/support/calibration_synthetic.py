@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -17,7 +18,8 @@ from stereo.calibration.model import Intrinsics
 from stereo.calibration.views import TargetView
 from stereo.features.targets import Chessboard
 
-__all__ = ["SyntheticScene", "look_at", "board_scene", "field_scene", "rig_scene", "zoom_camera", "DEFAULT_CAMERA"]
+__all__ = ["SyntheticScene", "look_at", "board_scene", "field_scene", "rig_scene", "zoom_camera", "DEFAULT_CAMERA",
+           "board_homography", "render_chessboard"]
 
 F64 = NDArray[np.float64]
 
@@ -158,3 +160,61 @@ def zoom_camera(setting: float, width: int = 640, height: int = 480) -> Intrinsi
     return Intrinsics(fx=f, fy=f * 0.998, cx=322.0 + 0.25 * (z - 20.0), cy=236.0 - 0.15 * (z - 20.0),
                       width=width, height=height, k1=-0.25 + 0.008 * z, k2=0.10 - 0.002 * z, k3=0.0,
                       p1=0.0005, p2=-0.0004)
+
+
+# ------------------------------------------------------------------ rendered chessboard images
+def board_homography(rng: np.random.Generator, board: Chessboard, size: tuple[int, int], *, fill: float = 0.6,
+                     tilt_deg: tuple[float, float] = (10, 50), focal_px: float = 700.0) -> F64:
+    """A random perspective view of ``board`` (its white margin inside the frame): the (3, 3) homography
+    pixel ~ H @ (X, Y, 1) from board coordinates (object units, corner (i, j) at (i, j) * square) to pixels."""
+    w, h = size
+    sq = board.square
+    ext = (board.cols + 1) * sq
+    centre = np.array([(board.cols - 1) / 2 * sq, (board.rows - 1) / 2 * sq, 0.0])
+    K = np.array([[focal_px, 0, (w - 1) / 2], [0, focal_px, (h - 1) / 2], [0, 0, 1.0]])
+    margin = np.array([[-2, -2, 1], [board.cols + 1, -2, 1], [board.cols + 1, board.rows + 1, 1],
+                       [-2, board.rows + 1, 1]], dtype=np.float64) * np.array([sq, sq, 1.0])
+    for _ in range(1000):
+        t = math.radians(rng.uniform(*tilt_deg))
+        az = rng.uniform(0, 2 * math.pi)
+        R = rodrigues(np.array([math.cos(az) * t, math.sin(az) * t, rng.uniform(-0.4, 0.4)]))[0]
+        d = focal_px * ext / (fill * w) * rng.uniform(0.9, 1.2)
+        tv = np.array([rng.uniform(-0.1, 0.1) * ext, rng.uniform(-0.1, 0.1) * ext, d]) - R @ centre
+        H = K @ np.column_stack([R[:, 0], R[:, 1], tv])
+        Q = margin @ H.T
+        q = Q[:, :2] / Q[:, 2:]
+        if np.all(Q[:, 2] > 0) and q[:, 0].min() > 2 and q[:, 0].max() < w - 3 and q[:, 1].min() > 2 \
+                and q[:, 1].max() < h - 3:
+            return H / H[2, 2]
+    raise InvalidInputError("could not place the board inside the frame; lower `fill`")
+
+
+def render_chessboard(rng: np.random.Generator, board: Chessboard, H: F64, size: tuple[int, int], *,
+                      blur_px: float = 1.0, noise: float = 2.0, dark: float = 40.0, light: float = 210.0,
+                      background: float = 128.0, supersample: int = 4) -> tuple[NDArray[np.uint8], F64]:
+    """Render ``board`` (one-square white margin, grey background) through the homography ``H`` of
+    :func:`board_homography`: area-sampled (``supersample``^2 samples per pixel), Gaussian blur of
+    ``blur_px``, Gaussian noise of ``noise`` grey levels, rounded to uint8.
+
+    Returns the (H, W) image and the true inner corners (cols * rows, 2), px, OpenCV's order
+    (pixel centres at integers)."""
+    w, h = size
+    o = (np.arange(supersample) + 0.5) / supersample - 0.5
+    u = np.arange(w)[None, :, None, None] + o[None, None, None, :]
+    v = np.arange(h)[:, None, None, None] + o[None, None, :, None]
+    u, v = np.broadcast_arrays(u, v)
+    Hi = np.linalg.inv(H)
+    z = Hi[2, 0] * u + Hi[2, 1] * v + Hi[2, 2]
+    X = (Hi[0, 0] * u + Hi[0, 1] * v + Hi[0, 2]) / z / board.square
+    Y = (Hi[1, 0] * u + Hi[1, 1] * v + Hi[1, 2]) / z / board.square
+    squares = (X >= -1) & (X < board.cols) & (Y >= -1) & (Y < board.rows)
+    black = (np.floor(X).astype(np.int64) + np.floor(Y).astype(np.int64)) % 2 == 0
+    val = np.where(squares & black, dark, light)
+    val = np.where((X >= -2) & (X < board.cols + 1) & (Y >= -2) & (Y < board.rows + 1), val, background)
+    img = val.mean(axis=(2, 3))
+    if blur_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), blur_px)
+    if noise > 0:
+        img = img + rng.normal(0.0, noise, img.shape)
+    P = np.column_stack([board.object_xyz[:, :2], np.ones(board.cols * board.rows)]) @ H.T
+    return np.clip(np.round(img), 0, 255).astype(np.uint8), P[:, :2] / P[:, 2:]

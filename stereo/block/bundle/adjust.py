@@ -53,6 +53,7 @@ from stereo.block.bundle import solve as bs
 from stereo.block.bundle.datum import datum_analysis
 from stereo.block.bundle.model import INTERIOR_NAMES, camera_from_interior, interior_from_camera
 from stereo.block.bundle.result import BundleResult
+from stereo.block.bundle.variance import VCE_FACTOR_BOUNDS, VCE_MAX_ROUNDS, VCE_MIN_REDUNDANCY, weak_components
 from stereo.block.types import BlockControl, GnssObservations, Pose, Tracks, cameras_for
 
 __all__ = ["BundleOptions", "COVARIANCE_MODES", "INTERIOR_NAMES", "adjust_bundle", "default_threads"]
@@ -63,9 +64,6 @@ F64 = NDArray[np.float64]
 
 #: what precision to compute: everything (poses, interior, points, redundancy numbers), poses only, nothing
 COVARIANCE_MODES: tuple[str, ...] = ("full", "poses", "none")
-#: variance components: a group's factor is estimated only from this much redundancy on, within these bounds
-VCE_MIN_REDUNDANCY = 2.0
-VCE_FACTOR_BOUNDS = (1e-3, 1e3)
 #: observation groups: tie-point image coordinates, control/check-point image coordinates ("marks", measured by
 #: hand or by a target detector with their own precision), GNSS centres, INS angles, control coordinates
 GROUPS: tuple[str, ...] = ("image", "marks", "gnss", "ins", "control")
@@ -86,6 +84,8 @@ LM_INITIAL_DAMPING = 1e-8
 #: 7 -> 6 iterations)
 SETTLED_STEP = 0.05
 POSE_ELEMENTS: tuple[str, ...] = ("omega", "phi", "kappa", "x", "y", "z")
+#: a point is determined by the images when at least this many of its rays are not flagged as blunders
+MIN_RAYS_DETERMINED = 2
 
 
 @dataclass(frozen=True)
@@ -245,13 +245,34 @@ def _adjust(prob: bs.Problem, st0: bs.State, info: _Info, options: BundleOptions
     psi = get_psi(options.robust) if options.robust != "none" else None
     st = st0
     total_it = 0
-    rounds = 10 if options.variance_components else 1
+    limit = iteration_limit(options, info.free_network)
+    rounds = VCE_MAX_ROUNDS if options.variance_components else 1
     robust_w = _ones_weights(prob)
     red = None
+    notes: list[str] = []
+    estimated_at: dict[str, float] = {}  # group -> redundancy of its latest variance-factor estimate
     for rnd in range(rounds):
+        budget = limit - total_it
+        if budget <= 0:
+            notes.append(f"variance components stopped at the iteration limit ({limit} iterations in all) after "
+                         f"{rnd} round(s); the group factors of round {rnd} are kept")
+            break
+        kept = (st, robust_w, dict(factors))
         st, robust_w, it, converged = _iterate(prob, st, factors, psi, robust_w, options, progress, info,
-                                               robust_from_start=rnd > 0)
+                                               robust_from_start=rnd > 0, limit=budget, done=total_it,
+                                               total=limit, must_converge=rnd == 0)
         total_it += it
+        if not converged:
+            # a later variance round ran out of the iteration budget: the solution of the previous round
+            # (converged with its factors) is kept
+            st, robust_w, old = kept
+            factors.clear()
+            factors.update(old)
+            red = None
+            converged = True
+            notes.append(f"variance components stopped at the iteration limit ({limit} iterations in all) in round "
+                         f"{rnd + 1}; the solution of round {rnd} and its group factors are kept")
+            break
         if not options.variance_components:
             break
         red = _redundancy(prob, st, factors, robust_w, options, points_needed="all")
@@ -260,17 +281,41 @@ def _adjust(prob: bs.Problem, st0: bs.State, info: _Info, options: BundleOptions
             vtpv, r = red.vtpv[g], red.r[g]
             if r >= VCE_MIN_REDUNDANCY:
                 new[g] = math.sqrt(vtpv / r)
+                estimated_at[g] = r
+        settled = all(abs(f - 1.0) < 0.01 for f in new.values())
+        if settled:
+            break
+        if rnd == rounds - 1:
+            worst = max(new, key=lambda g: abs(new[g] - 1.0))
+            notes.append(f"variance components not settled after {rounds} rounds: the factor of group {worst} "
+                         f"still changed by {100 * abs(new[worst] - 1.0):.0f} % in the last round")
+            break
+        if total_it >= limit:
+            notes.append(f"variance components stopped at the iteration limit ({limit} iterations in all) after "
+                         f"{rnd + 1} round(s); the factor of group {max(new, key=lambda g: abs(new[g] - 1.0))} "
+                         f"would still change by {100 * max(abs(f - 1.0) for f in new.values()):.0f} %")
+            break
         for g, f in new.items():
             # bounded: a group that fits (almost) exactly, e.g. error-free synthetic control, would
             # otherwise get a factor near 0 and an infinite weight
             factors[g] = min(max(factors[g] * f, VCE_FACTOR_BOUNDS[0]), VCE_FACTOR_BOUNDS[1])
+        red = None
         logger.debug("variance components round %d: %s", rnd, new)
-        if all(abs(f - 1.0) < 0.01 for f in new.values()):
-            break
     want_points = "all" if options.covariance == "full" else ("control" if options.covariance == "poses" else "")
     if red is None or want_points != "all":
         red = _redundancy(prob, st, factors, robust_w, options, points_needed=want_points)
-    return _result(prob, st, info, factors, robust_w, red, options, total_it, converged)
+    if options.variance_components:
+        notes.extend(weak_components(red.r, factors, estimated_at))
+    return _result(prob, st, info, factors, robust_w, red, options, total_it, converged, limit, notes,
+                   estimated_at if options.variance_components else None)
+
+
+def iteration_limit(options: BundleOptions, free_network: bool) -> int:
+    """The iteration limit of an adjustment, over all its variance-component rounds: ``max_iterations``, at
+    least :data:`FREE_NETWORK_MIN_ITERATIONS` for a free network (its weak deformation modes are damped by no
+    datum observation, and the Levenberg-Marquardt damping of the nonlinear point depths makes them converge
+    linearly)."""
+    return max(options.max_iterations, FREE_NETWORK_MIN_ITERATIONS) if free_network else options.max_iterations
 
 
 # ---------------------------------------------------------------------------- setup
@@ -500,7 +545,11 @@ def _robust_update(psi: object, res: bs.Residuals, base: bs.Weights, scales: Map
 
 def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: object | None,
              robust_w: bs.Weights, options: BundleOptions, progress: Callable[[int, int], None] | None,
-             info: _Info, *, robust_from_start: bool) -> tuple[bs.State, bs.Weights, int, bool]:
+             info: _Info, *, robust_from_start: bool, limit: int, done: int = 0, total: int | None = None,
+             must_converge: bool = True) -> tuple[bs.State, bs.Weights, int, bool]:
+    """One adjustment with fixed variance factors: at most ``limit`` iterations (``done`` of ``total`` used
+    before, for the progress callback). Not converged within the limit: :class:`ConvergenceError` when
+    ``must_converge``, else the last state with ``converged`` False."""
     base = _base_weights(prob, factors)
     dense = prob.n_c <= options.dense_limit
     banded = bs.use_banded(prob)
@@ -521,9 +570,7 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
     scales: dict[str, float] | None = None
     rloc = _local_redundancy(prob)
     flat, last_cost = 0, math.inf
-    # a free network keeps its weak deformation modes (no datum observations damp them), which the
-    # Levenberg-Marquardt damping of the nonlinear point depths makes converge linearly: more iterations
-    limit = max(options.max_iterations, FREE_NETWORK_MIN_ITERATIONS) if info.free_network else options.max_iterations
+    total = total if total is not None else limit
     lin: bs.Linear | None = None
     refine = False
     for it in range(1, limit + 1):
@@ -563,7 +610,7 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
             # a rejected step: from now on the points are intersected again after every camera step
             refine = True
         if progress is not None:
-            progress(it, limit)
+            progress(done + it, total)
         logger.debug("bundle iteration %d: cost %.12g, step %.3g sd, mu %.1e, weights change %.3g",
                      it, cost, nstep, mu, dw)
         if not accepted:
@@ -593,15 +640,17 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
         if (nstep < options.tolerance or flat >= 3 or (flat >= 1 and nstep < SETTLED_STEP)) and (psi is None or frozen):
             converged = True
             break
-    if not converged:
+    if not converged and must_converge:
         res = bs.evaluate(prob, st, jacobian=False).res
         vn = np.linalg.norm(res.image, axis=1)
         worst = np.argsort(-vn)[:3]
         tr = info.tracks
         names = ", ".join(f"point {tr.point_ids[tr.obs_point[i]]!r} in {tr.images[tr.obs_image[i]]!r} "
                           f"{vn[i]:.3g} px" for i in worst)
-        raise ConvergenceError(f"bundle adjustment did not converge in {it} iterations (last correction "
-                               f"{nstep:.3g} standard deviations); largest residuals: {names}", iterations=it)
+        why = " (a free network's)" if total > options.max_iterations else " (--max-iterations)"
+        raise ConvergenceError(f"bundle adjustment did not converge in {done + it} iterations, the limit{why}; "
+                               f"last correction {nstep:.3g} standard deviations; largest residuals: {names}",
+                               iterations=done + it)
     return st, robust_w, it, converged
 
 
@@ -700,7 +749,8 @@ def _redundancy(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], ro
 
 
 def _result(prob: bs.Problem, st: bs.State, info: _Info, factors: Mapping[str, float], robust_w: bs.Weights,
-            red: _Red, options: BundleOptions, iterations: int, converged: bool) -> BundleResult:
+            red: _Red, options: BundleOptions, iterations: int, converged: bool, limit: int,
+            notes: Sequence[str], estimated: dict[str, float] | None = None) -> BundleResult:
     n, P = prob.n_images, prob.n_points
     res, w = red.res, red.w
     r_tot = sum(red.n.values()) - red.n_unknowns
@@ -755,10 +805,20 @@ def _result(prob: bs.Problem, st: bs.State, info: _Info, factors: Mapping[str, f
         stdz = np.abs(res.image) / (s0i * sig * np.sqrt(np.maximum(rr, 1e-6)))
     low_w = robust_w.image < 0.1
     flagged = np.asarray(((stdz > options.blunder_threshold) | low_w).any(axis=1), dtype=bool)
+    # rays not flagged per point: a point is determined by the images with two of them; a control point
+    # all of whose rays were flagged is rejected (its ground coordinates then fix nothing but themselves)
+    n_good = np.bincount(prob.obs_pt[~flagged], minlength=P)
+    determined = np.asarray(np.isfinite(st.points).all(axis=1) & (n_good >= MIN_RAYS_DETERMINED), dtype=bool)
     # control
     tr = info.tracks
-    ctrl_ids = tuple(info.control.ids[i] for i in info.control_rows) if info.control is not None else ()
-    ctrl_res = np.where(np.isfinite(prob.c_sigma), res.control, np.nan) if len(prob.c_pt) else np.zeros((0, 3))
+    n_rays = np.bincount(prob.obs_pt, minlength=P)
+    ctrl_ok = n_good[prob.c_pt] > 0 if len(prob.c_pt) else np.zeros(0, bool)
+    ctrl_rows = info.control_rows[ctrl_ok] if len(prob.c_pt) else info.control_rows
+    ctrl_ids = tuple(info.control.ids[i] for i in ctrl_rows) if info.control is not None else ()
+    rejected_control = tuple(info.control.ids[i] for i in info.control_rows[~ctrl_ok]) \
+        if info.control is not None and len(prob.c_pt) else ()
+    ctrl_res = np.where(np.isfinite(prob.c_sigma), res.control, np.nan)[ctrl_ok] if len(prob.c_pt) else \
+        np.zeros((0, 3))
     flagged_control: list[str] = []
     if len(prob.c_pt):
         s0c = sigma0_groups.get("control", 1.0)
@@ -767,18 +827,34 @@ def _result(prob: bs.Problem, st: bs.State, info: _Info, factors: Mapping[str, f
         with np.errstate(divide="ignore", invalid="ignore"):
             zc = np.abs(res.control) * np.sqrt(w.control / np.maximum(rc, 1e-6)) / s0c
         bad = (np.nan_to_num(zc) > options.blunder_threshold).any(axis=1) | (robust_w.control < 0.1).any(axis=1)
-        flagged_control = [ctrl_ids[i] for i in np.flatnonzero(bad)]
-    # check points
+        flagged_control = [info.control.ids[info.control_rows[i]] for i in np.flatnonzero(bad & ctrl_ok)
+                           ] if info.control is not None else []
+    # check points: compared only where the images determine them
     check_ids: tuple[str, ...] = ()
+    rejected_check: tuple[str, ...] = ()
     check_err = np.zeros((0, 3))
     check_std = np.zeros((0, 3))
     if info.control is not None and len(info.check_rows):
-        check_ids = tuple(info.control.ids[i] for i in info.check_rows)
-        check_err = st.points[info.check_pt] - info.control.xyz[info.check_rows]
-        check_std = np.sqrt(point_std[info.check_pt] ** 2 + info.control.sigma_m[info.check_rows] ** 2)
+        chk_ok = determined[info.check_pt]
+        rows, pts = info.check_rows[chk_ok], info.check_pt[chk_ok]
+        check_ids = tuple(info.control.ids[i] for i in rows)
+        rejected_check = tuple(info.control.ids[i] for i in info.check_rows[~chk_ok])
+        check_err = st.points[pts] - info.control.xyz[rows]
+        check_std = np.sqrt(point_std[pts] ** 2 + info.control.sigma_m[rows] ** 2)
     gn = len(prob.g_img) - (2 if info.free_network else 0)  # the minimum constraints are no GNSS
     datum_lines, groups, cond, warns = datum_analysis(prob, st, info.free_network, red.Qcc, red.ne, point_std,
-                                                       s0v, info.control, info.control_rows, gn)
+                                                       s0v, info.control, info.control_rows, gn,
+                                                       control_ok=ctrl_ok, determined=determined)
+    by_id = {pid: k for k, pid in enumerate(tr.point_ids)}
+    for cid in rejected_control:
+        k = by_id[cid]
+        warns.append(f"control point {cid} rejected: all {int(n_rays[k])} of its image observations were flagged "
+                     "as blunders; it is not counted")
+    for cid in rejected_check:
+        k = by_id[cid]
+        warns.append(f"check point {cid} rejected: {int(n_good[k])} of its {int(n_rays[k])} image observations "
+                     f"not flagged as blunders (two are needed); it is not compared")
+    warns.extend(notes)
     if not converged:
         warns.append("the adjustment did not converge")
     return BundleResult(
@@ -793,7 +869,10 @@ def _result(prob: bs.Problem, st: bs.State, info: _Info, factors: Mapping[str, f
         control_residuals=_ro(ctrl_res), flagged_control=tuple(flagged_control), check_ids=check_ids,
         check_errors=_ro(check_err), check_std=_ro(check_std), gnss_residuals=_ro(res.gnss[:gn]),
         iterations=iterations, converged=converged, datum=tuple(datum_lines), datum_groups=tuple(groups),
-        condition_number=cond, warnings=tuple(warns))
+        condition_number=cond, warnings=tuple(warns), rejected_control=rejected_control,
+        rejected_check=rejected_check, points_determined=_ro(determined), iteration_limit=limit,
+        variance_estimated=None if estimated is None else {g: estimated[g] for g in GROUPS
+                                                           if present[g] and g in estimated})
 
 
 def _ro(a: NDArray) -> NDArray:

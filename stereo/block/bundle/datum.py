@@ -49,17 +49,24 @@ def similarity_generators(prob: Problem, st: State) -> NDArray[np.float64]:
 
 def datum_analysis(prob: Problem, st: State, free: bool, Qcc: NDArray | None, ne: Normal | None,
                    point_std: NDArray[np.float64], s0v: float, control: BlockControl | None,
-                   control_rows: NDArray[np.int64], n_gnss: int
+                   control_rows: NDArray[np.int64], n_gnss: int, *, control_ok: NDArray[np.bool_] | None = None,
+                   determined: NDArray[np.bool_] | None = None
                    ) -> tuple[list[str], list[str], float, list[str]]:
-    """Datum lines, the groups that define the datum, the condition number and warning lines."""
+    """Datum lines, the groups that define the datum, the condition number and warning lines.
+
+    ``control_ok`` (k,) marks the control points counted (not rejected); ``determined`` (P,) the points
+    whose precision is stated (the points written: at least two rays not flagged). Default: all.
+    """
     lines: list[str] = []
     warns: list[str] = []
     groups: list[str] = []
-    used = np.isfinite(prob.c_sigma) if len(prob.c_pt) else np.zeros((0, 3), bool)
+    ok_c = np.ones(len(prob.c_pt), bool) if control_ok is None else np.asarray(control_ok, dtype=bool)
+    c_pt = prob.c_pt[ok_c]
+    used = np.isfinite(prob.c_sigma)[ok_c] if len(prob.c_pt) else np.zeros((0, 3), bool)
     n_full = int(np.sum(used.all(axis=1)))
     n_h = int(np.sum(used[:, 2] & ~used[:, 0]))
     n_p = int(np.sum(used[:, 0] & ~used[:, 2]))
-    k = len(prob.c_pt)
+    k = len(c_pt)
     has_ctrl = k > 0
     has_gnss = n_gnss > 0
     if has_ctrl:
@@ -83,30 +90,35 @@ def datum_analysis(prob: Problem, st: State, free: bool, Qcc: NDArray | None, ne
     else:
         lines.append(f"datum: GNSS positions of {n_gnss} images and {ctrl_txt}; the control checks the GNSS "
                      "datum for a bias")
-    # heights in the interior vs at the control points
+    if not free and k < len(prob.c_pt) and n_gnss < 3 and (n_full + n_p < 2 or n_full + n_h < 3):
+        warns.append(f"after the rejected control points, {n_full + n_p} plan and {n_full + n_h} height control "
+                     "points are left, too few to fix the datum (>= 2 plan, >= 3 height): the block rests on the "
+                     "initial values and the weak rays of the rejected points")
+    # heights in the interior vs at the control points, over the points that are written
+    det = np.ones(len(st.points), bool) if determined is None else np.asarray(determined, dtype=bool)
     if has_ctrl and not free:
-        xy = st.points[:, :2]
+        xy = st.points[det, :2] if det.any() else st.points[:, :2]
         lo, hi = xy.min(axis=0), xy.max(axis=0)
         mid, half = (lo + hi) / 2, (hi - lo) / 2
-        cxy = st.points[prob.c_pt, :2]
+        cxy = st.points[c_pt, :2]
         inner = np.all(np.abs(cxy - mid) < 0.5 * half, axis=1)
         where = "control only at the block edge" if not inner.any() else "control in the block interior too"
         sz = point_std[:, 2]
-        if np.isfinite(sz).all():
+        if np.isfinite(sz[det]).all():
             hmask = used[:, 2]
-            sz_ctrl = float(np.median(sz[prob.c_pt[hmask]])) if hmask.any() else float("nan")
-            others = np.setdiff1d(np.arange(len(sz)), prob.c_pt)
+            sz_ctrl = float(np.median(sz[c_pt[hmask]])) if hmask.any() else float("nan")
+            others = np.setdiff1d(np.flatnonzero(det), c_pt)
             # the 95th percentile, not the maximum: a stray two-ray point far outside the block would
             # otherwise speak for the whole block
             q95 = float(np.percentile(sz[others], 95)) if len(others) else float("nan")
             j = int(others[np.argmin(np.abs(sz[others] - q95))]) if len(others) else 0
             med = float(np.median(sz[others])) if len(others) else float("nan")
-            d = float(np.min(np.linalg.norm(cxy - xy[j], axis=1))) if len(cxy) else float("nan")
+            d = float(np.min(np.linalg.norm(cxy - st.points[j, :2], axis=1))) if len(cxy) else float("nan")
             tail = ("heights in the block interior rest on the tie-point geometry; " if not has_gnss else
                     "heights between the control points rest on the tie-point geometry and GNSS; ")
-            lines.append(f"{where}: {tail}predicted height std of the tie points: median {med:.3f} m, 95th "
-                         f"percentile {q95:.3f} m ({d:.0f} m from the nearest control point); {sz_ctrl:.3f} m at "
-                         f"the control points")
+            lines.append(f"{where}: {tail}predicted height std of the {len(others)} tie points written: median "
+                         f"{med:.3f} m, 95th percentile {q95:.3f} m ({d:.0f} m from the nearest control point); "
+                         f"{sz_ctrl:.3f} m at the control points")
         else:
             lines.append(f"{where}: point precision not computed (covariance='full' gives predicted height std)")
     # conditioning and the weakest motion

@@ -5,11 +5,14 @@ Model (identical to :func:`stereo.block.types.project_pixel`)::
     p = R^T (X - C)                         ground -> camera axes, metres
     n = (-p0 / p2, p1 / p2)                 OpenCV normalised frame (x right, y down)
     n_d = distort(n; k1, k2, k3, p1, p2)    Brown-Conrady, OpenCV's definition
-    u = F n_d + c                           F = f / pixel size, c = principal point (pixels)
+    u = F A n_d + c                         F = f / pixel size = fx, c = principal point (pixels),
+                                            A = [[1, shear], [0, aspect]]: K = [[fx, s, cx], [0, fy, cy], [0, 0, 1]]
 
-with ``R = Rx(omega) Ry(phi) Rz(kappa)``. The interior parameters are held as one vector per camera
-in the order of :data:`INTERIOR_NAMES`: f (mm), x0, y0 (mm, offset of the principal point from the
-image centre, photo axes), k1, k2, k3, p1, p2.
+with ``R = Rx(omega) Ry(phi) Rz(kappa)``. The interior parameters are held as one vector per camera:
+the :data:`INTERIOR_NAMES` f (mm), x0, y0 (mm, offset of the principal point from the image centre,
+photo axes), k1, k2, k3, p1, p2, which a bundle can self-calibrate, then the camera's aspect fy/fx
+and shear s/fx (:class:`rectify.geometry.camera.Camera`), which it holds: a self-calibrated f scales
+fx, fy and s together.
 
 The derivative of ``R`` by an angle is ``[a]x R`` with the rotation axis ``a`` in the ground frame
 (``e_x``, ``Rx e_y``, ``Rx Ry e_z`` for omega, phi, kappa), so ``d p / d angle = R^T (d x a)`` with
@@ -32,21 +35,22 @@ INTERIOR_NAMES: tuple[str, ...] = ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2"
 
 
 def interior_from_camera(camera: Camera) -> NDArray[np.float64]:
-    """(8,) vector f, x0, y0, k1, k2, k3, p1, p2 of a camera (mm and unitless)."""
+    """(10,) vector f, x0, y0, k1, k2, k3, p1, p2, aspect, shear of a camera (mm and unitless)."""
     d = camera.distortion
     return np.array([camera.focal_length_mm, camera.principal_point_mm[0], camera.principal_point_mm[1],
-                     d["k1"], d["k2"], d["k3"], d["p1"], d["p2"]], dtype=np.float64)
+                     d["k1"], d["k2"], d["k3"], d["p1"], d["p2"], camera.aspect, camera.shear], dtype=np.float64)
 
 
 def camera_from_interior(camera: Camera, vec: NDArray[np.float64], std: dict[str, float] | None = None) -> Camera:
-    """A copy of ``camera`` with the interior vector ``vec`` (8,) (and standard errors ``std``)."""
+    """A copy of ``camera`` with the interior vector ``vec`` (10,) (and standard errors ``std``)."""
     se = dict(camera.std_errors)
     if std:
         se.update(std)
     return Camera(focal_length_mm=float(vec[0]), pixel_size_mm=camera.pixel_size_mm, width=camera.width,
                   height=camera.height, principal_point_mm=(float(vec[1]), float(vec[2])),
-                  distortion={k: float(v) for k, v in zip(INTERIOR_NAMES[3:], vec[3:], strict=True)},
-                  pixel_camera=camera.pixel_camera, std_errors=se, sigma0_px=camera.sigma0_px)
+                  distortion={k: float(v) for k, v in zip(INTERIOR_NAMES[3:], vec[3:8], strict=True)},
+                  pixel_camera=camera.pixel_camera, std_errors=se, sigma0_px=camera.sigma0_px,
+                  aspect=float(vec[8]), shear=float(vec[9]))
 
 
 def rotations(angles: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -82,8 +86,9 @@ def project(R: NDArray[np.float64], C: NDArray[np.float64], axes: NDArray[np.flo
         Projection centre, ground frame, m.
     axes : (M, 3, 3)
         Rotation axes of the three angles (:func:`rotation_axes`), ground frame.
-    interior : (M, 8)
-        Interior vector of each observation's camera (:data:`INTERIOR_NAMES`).
+    interior : (M, 10)
+        Interior vector of each observation's camera (:func:`interior_from_camera`: the
+        :data:`INTERIOR_NAMES`, then aspect and shear, held).
     pixel_size : (M,)
         Pixel size, mm.
     centre : (M, 2)
@@ -108,7 +113,7 @@ def project(R: NDArray[np.float64], C: NDArray[np.float64], axes: NDArray[np.flo
     J_point : (M, 2, 3)
         d pixel / d X.
     J_int : (M, 2, 8)
-        d pixel / d interior vector.
+        d pixel / d the :data:`INTERIOR_NAMES` (the first 8 entries of the interior vector).
     """
     m = len(X)
     # columns as contiguous rows: the elementwise work below is several times faster on them
@@ -130,9 +135,12 @@ def project(R: NDArray[np.float64], C: NDArray[np.float64], axes: NDArray[np.flo
     xd = nx * rad + 2 * q1 * nxy + q2 * (r2 + 2 * nx * nx)
     yd = ny * rad + q1 * (r2 + 2 * ny * ny) + 2 * q2 * nxy
     F = f / pixel_size
+    aspect, shear = interior[:, 8], interior[:, 9]
+    square = bool(np.all(aspect == 1.0) and np.all(shear == 0.0))  # the single-f arithmetic, bit for bit
+    Fy, Fs = (F, None) if square else (F * aspect, F * shear)
     pix = np.empty((m, 2))
-    pix[:, 0] = F * xd + centre[:, 0] + x0 / pixel_size
-    pix[:, 1] = F * yd + centre[:, 1] - y0 / pixel_size
+    pix[:, 0] = (F * xd if Fs is None else F * xd + Fs * yd) + centre[:, 0] + x0 / pixel_size
+    pix[:, 1] = Fy * yd + centre[:, 1] - y0 / pixel_size
     z6, z8 = np.zeros((0, 2, 6)), np.zeros((0, 2, 8))
     if not jacobian:
         return pix, -p2, z6, np.zeros((0, 2, 3)), z8
@@ -141,11 +149,17 @@ def project(R: NDArray[np.float64], C: NDArray[np.float64], axes: NDArray[np.flo
     a00 = F * (rad + 2 * nx * nx * drad + 2 * q1 * ny + 6 * q2 * nx)
     a01 = F * (2 * nxy * drad + 2 * q1 * nx + 2 * q2 * ny)
     a11 = F * (rad + 2 * ny * ny * drad + 6 * q1 * ny + 2 * q2 * nx)
+    # d pixel / d n = [[1, shear], [0, aspect]] @ (F d n_d / d n): rows (b00, b01), (b10, b11)
+    if square:
+        b00, b01, b10, b11 = a00, a01, a01, a11
+    else:
+        b00, b01 = a00 + shear * a01, a01 + shear * a11
+        b10, b11 = aspect * a01, aspect * a11
     # q = d pixel / d p = dd @ dn, dn = [[-w, 0, p0 w^2], [0, w, -p1 w^2]]
     ww = w * w
     u0, u1 = p0 * ww, -p1 * ww
-    q = ((-w * a00, w * a01, a00 * u0 + a01 * u1),
-         (-w * a01, w * a11, a01 * u0 + a11 * u1))
+    q = ((-w * b00, w * b01, b00 * u0 + b01 * u1),
+         (-w * b10, w * b11, b10 * u0 + b11 * u1))
     # d pixel / d X = q R^T (built as (2, 3, m) and returned as its (m, 2, 3) view)
     JpT = np.empty((2, 3, m))
     for r in range(2):
@@ -172,8 +186,8 @@ def project(R: NDArray[np.float64], C: NDArray[np.float64], axes: NDArray[np.flo
     if not intrinsic:
         return pix, -p2, J_pose, J_point, z8
     J_int = np.empty((m, 2, 8))
-    J_int[:, 0, 0] = xd / pixel_size
-    J_int[:, 1, 0] = yd / pixel_size
+    J_int[:, 0, 0] = (xd if square else xd + shear * yd) / pixel_size
+    J_int[:, 1, 0] = (yd if square else aspect * yd) / pixel_size
     J_int[:, 0, 1] = 1.0 / pixel_size
     J_int[:, 1, 1] = 0.0
     J_int[:, 0, 2] = 0.0
@@ -186,4 +200,7 @@ def project(R: NDArray[np.float64], C: NDArray[np.float64], axes: NDArray[np.flo
     J_int[:, 1, 6] = F * (r2 + 2 * ny * ny)
     J_int[:, 0, 7] = F * (r2 + 2 * nx * nx)
     J_int[:, 1, 7] = F * 2 * nxy
+    if not square:  # the distortion terms go through [[1, shear], [0, aspect]] too
+        J_int[:, 0, 3:] += shear[:, None] * J_int[:, 1, 3:]
+        J_int[:, 1, 3:] *= aspect[:, None]
     return pix, -p2, J_pose, J_point, J_int

@@ -8,9 +8,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rectify.geometry.camera import Camera
+from stereo.block.bundle.variance import VCE_MIN_REDUNDANCY, VCE_WARN_REDUNDANCY
 from stereo.block.types import Pose
 
 __all__ = ["BundleResult"]
+
+
+def _rms(v: NDArray[np.float64]) -> float:
+    return float(np.sqrt(np.mean(v ** 2))) if v.size else float("nan")
 
 F64 = NDArray[np.float64]
 
@@ -64,15 +69,19 @@ class BundleResult:
         Observations flagged as blunders.
     control_ids, control_residuals
         Control points used and given minus adjusted coordinates (K, 3), m (NaN for unused
-        components).
+        components). A control point all of whose rays were flagged as blunders is not among
+        them (``rejected_control``).
     flagged_control : tuple of str
         Control points whose standardised residual exceeds the threshold.
     check_ids, check_errors, check_std
         Check points, adjusted minus given coordinates (C, 3), m, and the predicted standard
-        error of that difference (C, 3), m.
+        error of that difference (C, 3), m. A check point with fewer than two rays not flagged is
+        not among them (``rejected_check``).
     gnss_residuals : (g, 3) float64
         GNSS observed minus adjusted antenna positions, m.
     iterations : int
+        Gauss-Newton iterations in all, over every variance-component round (at most
+        ``iteration_limit``).
     converged : bool
     datum : tuple of str
         The datum analysis: which groups define the datum and its expected weakness.
@@ -80,6 +89,17 @@ class BundleResult:
     condition_number : float
         Of the Jacobi-scaled reduced camera system (NaN when not computed).
     warnings : tuple of str
+    rejected_control, rejected_check : tuple of str
+        Control points all of whose rays were flagged as blunders, and check points with fewer
+        than two rays not flagged: not used, not counted, named in ``warnings``.
+    points_determined : (P,) bool
+        Points finite and seen by at least two rays not flagged as blunders (the points a block
+        writes; the datum statement's figures are of these).
+    iteration_limit : int
+        The iteration limit the adjustment ran under (0: not recorded).
+    variance_estimated : dict str -> float or None
+        With variance components: the groups whose factor was estimated, with the redundancy of
+        the latest estimate (a group with less than 2 keeps its factor); None without.
     """
 
     cameras: dict[str, Camera]
@@ -115,6 +135,18 @@ class BundleResult:
     datum_groups: tuple[str, ...]
     condition_number: float
     warnings: tuple[str, ...] = ()
+    rejected_control: tuple[str, ...] = ()
+    rejected_check: tuple[str, ...] = ()
+    points_determined: NDArray[np.bool_] | None = None
+    iteration_limit: int = 0
+    variance_estimated: dict[str, float] | None = None
+
+    @property
+    def determined(self) -> NDArray[np.bool_]:
+        """(P,) points finite and seen by at least two rays not flagged (``points_determined`` when recorded)."""
+        if self.points_determined is not None:
+            return self.points_determined
+        return np.asarray(np.isfinite(self.points).all(axis=1), dtype=bool)
 
     @property
     def flagged_obs(self) -> NDArray[np.int64]:
@@ -130,19 +162,37 @@ class BundleResult:
     def summary_lines(self) -> list[str]:
         """Short report lines: counts, RMS residuals with units, sigma0, groups, datum."""
         m = len(self.residuals_px)
+        lim = f" (limit {self.iteration_limit})" if self.iteration_limit else ""
         out = [f"bundle: {len(self.poses)} images, {len(self.points)} points, {m} image observations, "
-               f"{self.iterations} iterations{'' if self.converged else ' (NOT converged)'}",
+               f"{self.iterations} iterations{lim}{'' if self.converged else ' (NOT converged)'}",
                f"image residuals: RMS {self.rms_px:.3f} px ({int(self.flagged.sum())} flagged as blunders)",
                f"sigma0 {self.sigma0:.3f}"]
-        for g, s in self.sigma0_groups.items():
-            out.append(f"group {g}: sigma0 {s:.3f}, redundancy {self.redundancy_groups.get(g, float('nan')):.1f}, "
-                       f"variance factor {self.variance_factors.get(g, 1.0):.3f}")
+        for grp, s in self.sigma0_groups.items():
+            rg = self.redundancy_groups.get(grp, float("nan"))
+            note = ""
+            if self.variance_estimated is not None:
+                r_est = self.variance_estimated.get(grp)
+                if r_est is None:
+                    note = f" (not estimated: redundancy below {VCE_MIN_REDUNDANCY:g})"
+                elif min(r_est, rg) < VCE_WARN_REDUNDANCY:
+                    note = (f" (estimated from a redundancy of {r_est:.1f}: uncertain by about "
+                            f"{100 / np.sqrt(2 * max(min(r_est, rg), 0.5)):.0f} %)")
+            out.append(f"group {grp}: sigma0 {s:.3f}, redundancy {rg:.1f}, variance factor "
+                       f"{self.variance_factors.get(grp, 1.0):.3f}{note}")
         if len(self.gnss_residuals):
-            out.append(f"GNSS residuals: RMS {np.sqrt(np.mean(self.gnss_residuals ** 2)):.3f} m")
-        if len(self.control_ids):
+            g = np.asarray(self.gnss_residuals, dtype=np.float64)
+            d3 = float(np.sqrt(np.mean(np.sum(g ** 2, axis=1))))
+            out.append(f"GNSS residuals: RMS per component {_rms(g):.3f} m (x {_rms(g[:, 0]):.3f}, "
+                       f"y {_rms(g[:, 1]):.3f}, z {_rms(g[:, 2]):.3f} m); RMS of the 3D residual {d3:.3f} m")
+        if len(self.control_ids) or self.rejected_control:
             r = self.control_residuals[np.isfinite(self.control_residuals)]
-            out.append(f"control: {len(self.control_ids)} points, RMS residual {np.sqrt(np.mean(r ** 2)):.3f} m"
-                       + (f", flagged {list(self.flagged_control)}" if self.flagged_control else ""))
+            rm = f"RMS residual per component {np.sqrt(np.mean(r ** 2)):.3f} m" if r.size else "no residual"
+            out.append(f"control: {len(self.control_ids)} points, {rm}"
+                       + (f", flagged {list(self.flagged_control)}" if self.flagged_control else "")
+                       + (f"; rejected (every ray flagged as a blunder): {list(self.rejected_control)}"
+                          if self.rejected_control else ""))
+        if self.rejected_check:
+            out.append(f"check points rejected (fewer than two rays not flagged): {list(self.rejected_check)}")
         if len(self.check_ids):
             e = self.check_errors
             out.append(f"check: {len(self.check_ids)} points, RMS error x {np.sqrt(np.mean(e[:, 0] ** 2)):.3f} "

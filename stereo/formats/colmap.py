@@ -1,0 +1,459 @@
+"""COLMAP text models in and out: ``cameras.txt``, ``images.txt``, ``points3D.txt``.
+
+:func:`read_colmap` reads a model folder (or one of its three files) into the project's cameras,
+poses and tie points (:class:`ColmapModel`); :func:`write_colmap` writes cameras and poses (and,
+optionally, points with their tracks) as a model COLMAP and pycolmap open; :func:`detect_colmap`
+recognises one. Numbers are written as ``repr`` (17 significant digits), so our model -> COLMAP ->
+our model is exact to rounding.
+
+Conventions, converted once here:
+
+pixels
+    COLMAP puts the top-left corner of the image at (0, 0), so the centre of the top-left pixel is at
+    (0.5, 0.5); ours is at (0, 0). Principal points and 2D points lose 0.5 on reading and gain it on
+    writing.
+poses
+    An image's ``QW QX QY QZ`` is the unit quaternion (Hamilton, scalar first) of R_cw, the rotation
+    world -> camera, and ``TX TY TZ`` the translation t with x_cam = R_cw X + t, camera axes x right,
+    y down, z forward (OpenCV's). Our pose is the projection centre C = -R_cw^T t and the rotation
+    of photo vectors (x right, y up, z back) into the world, R = R_cw^T diag(1, -1, -1).
+cameras
+    ``SIMPLE_PINHOLE`` (f, cx, cy), ``PINHOLE`` (fx, fy, cx, cy), ``SIMPLE_RADIAL`` (f, cx, cy, k),
+    ``RADIAL`` (f, cx, cy, k1, k2), ``OPENCV`` (fx, fy, cx, cy, k1, k2, p1, p2) and ``FULL_OPENCV``
+    (fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6 with k4 = k5 = k6 = 0) have OpenCV's distortion
+    definition, which is ours; fisheye, FOV and thin-prism models are refused by name. On writing
+    the smallest exact model is chosen; a camera with skew is refused (COLMAP has none).
+ids
+    COLMAP's camera, image and point ids are integers. Ours are kept when they are positive
+    integers; otherwise they are numbered from 1 and the names are kept in comment lines
+    (``# rectify-stereo camera 1: <name>``, ``# rectify-stereo point 1: <name>``), which COLMAP
+    ignores and :func:`read_colmap` reads back. Image names are COLMAP's ``NAME`` (no spaces).
+frame
+    COLMAP's world frame is whatever the model was built or aligned in (arbitrary for a plain
+    reconstruction, a map CRS after ``model_aligner``): the poses are returned in it and the caller
+    names its CRS.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from rectify.atomic import atomic_write_text
+from rectify.errors import CalibrationError, InvalidInputError, RasterIOError, RectifyError
+from rectify.formats.common import finite_number, read_table_text
+from rectify.geometry.camera import Camera
+from stereo.block.types import Pose, Tracks
+
+__all__ = ["COLMAP_FILES", "COLMAP_MODELS", "ColmapModel", "read_colmap", "colmap_texts", "write_colmap",
+           "detect_colmap"]
+
+logger = logging.getLogger(__name__)
+
+StrPath = str | os.PathLike[str]
+
+#: the three files of a text model
+COLMAP_FILES = ("cameras.txt", "images.txt", "points3D.txt")
+#: COLMAP camera models read here -> their parameter names
+COLMAP_MODELS: dict[str, tuple[str, ...]] = {
+    "SIMPLE_PINHOLE": ("f", "cx", "cy"),
+    "PINHOLE": ("fx", "fy", "cx", "cy"),
+    "SIMPLE_RADIAL": ("f", "cx", "cy", "k1"),
+    "RADIAL": ("f", "cx", "cy", "k1", "k2"),
+    "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
+    "FULL_OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
+}
+_REFUSED = ("SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "OPENCV_FISHEYE", "FOV", "THIN_PRISM_FISHEYE",
+            "RAD_TAN_THIN_PRISM_FISHEYE", "SIMPLE_DIVISION", "DIVISION", "SIMPLE_FISHEYE", "FISHEYE")
+_FLIP = np.diag([1.0, -1.0, -1.0])
+_NAME_LINE = re.compile(r"#\s*rectify-stereo (camera|point) (\d+): (.+)$")
+
+
+@dataclass(frozen=True, eq=False)
+class ColmapModel:
+    """A COLMAP text model in the project's terms.
+
+    Parameters
+    ----------
+    cameras : dict of str -> Camera
+        Pixel cameras keyed by COLMAP's camera id (or the name kept in a comment line).
+    poses : tuple of Pose
+        One per image, in the file's order: projection centre and rotation photo vector -> world.
+    point_ids : tuple of str
+        The 3D points' ids (P).
+    points : (P, 3) float64
+        Their world coordinates.
+    colors : (P, 3) uint8
+    errors : (P,) float64
+        COLMAP's mean reprojection error of each point, px.
+    tracks : Tracks or None
+        The points' image observations (pixels in our convention); None when there are no points.
+    source : Path or None
+        The folder read.
+    """
+
+    cameras: dict[str, Camera]
+    poses: tuple[Pose, ...]
+    point_ids: tuple[str, ...]
+    points: NDArray[np.float64]
+    colors: NDArray[np.uint8]
+    errors: NDArray[np.float64]
+    tracks: Tracks | None = None
+    source: Path | None = None
+
+
+# --------------------------------------------------------------------------- reading
+def _folder(path: StrPath) -> Path:
+    p = Path(path)
+    if p.is_dir():
+        if not (p / "cameras.txt").is_file() and (p / "cameras.bin").is_file():
+            raise InvalidInputError(f"{str(p)!r} holds a binary COLMAP model; convert it to text first "
+                                    "(colmap model_converter --output_type TXT)")
+        return p
+    if p.suffix == ".bin":
+        raise InvalidInputError(f"{str(p)!r} is a binary COLMAP file; convert the model to text first "
+                                "(colmap model_converter --output_type TXT)")
+    if p.name in COLMAP_FILES:
+        return p.parent
+    if not p.exists():
+        raise RasterIOError(f"file not found: {str(p)!r}")
+    raise InvalidInputError(f"{str(p)!r} is not a COLMAP text model (a folder with {list(COLMAP_FILES)})")
+
+
+def _lines(path: Path) -> tuple[list[tuple[int, str]], dict[str, dict[int, str]]]:
+    """Non-comment lines (number, text; empty lines kept) and the names kept in our comment lines."""
+    names: dict[str, dict[int, str]] = {"camera": {}, "point": {}}
+    out = []
+    for no, line in enumerate(read_table_text(path).splitlines(), start=1):
+        s = line.strip()
+        if s.startswith("#"):
+            m = _NAME_LINE.match(s)
+            if m:
+                names[m[1]][int(m[2])] = m[3].strip()
+            continue
+        out.append((no, s))
+    return out, names
+
+
+def _int(tok: str, label: str) -> int:
+    try:
+        return int(tok)
+    except ValueError:
+        raise InvalidInputError(f"{label} is not an integer: {tok!r}") from None
+
+
+def _camera(cells: list[str], path: Path, no: int) -> tuple[int, Camera]:
+    where = f"{str(path)!r} line {no}"
+    if len(cells) < 4:
+        raise InvalidInputError(f"{where}: expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]; got {' '.join(cells)!r}")
+    cid = _int(cells[0], f"{where}: CAMERA_ID")
+    model = cells[1].upper()
+    if model in _REFUSED:
+        raise InvalidInputError(f"{where}: camera model {model!r} is not in the frame camera model; supported: "
+                                f"{list(COLMAP_MODELS)}")
+    if model not in COLMAP_MODELS:
+        raise InvalidInputError(f"{where}: unknown camera model {model!r}; supported: {list(COLMAP_MODELS)}")
+    w, h = _int(cells[2], f"{where}: WIDTH"), _int(cells[3], f"{where}: HEIGHT")
+    names = COLMAP_MODELS[model]
+    if len(cells) - 4 != len(names):
+        raise InvalidInputError(f"{where}: {model} takes {len(names)} parameters {list(names)}; got {cells[4:]}")
+    v = {k: finite_number(c, f"{where}: {model} parameter {k!r}") for k, c in zip(names, cells[4:], strict=True)}
+    for k in ("k4", "k5", "k6"):
+        if v.get(k, 0.0) != 0.0:
+            raise InvalidInputError(f"{where}: FULL_OPENCV {k} = {v[k]!r}; the frame camera model has no rational "
+                                    "distortion (k4, k5, k6 must be 0)")
+    fx = v.get("f", v.get("fx", 0.0))
+    fy = v.get("f", v.get("fy", 0.0))
+    d: dict[str, Any] = {"width": w, "height": h, "principal_point_px": [v["cx"] - 0.5, v["cy"] - 0.5],
+                         "distortion": {k: v.get(k, 0.0) for k in ("k1", "k2", "k3", "p1", "p2")}}
+    if fx == fy:
+        d["focal_length_px"] = fx
+    else:
+        d.update(fx_px=fx, fy_px=fy)
+    try:
+        return cid, Camera.from_dict(d)
+    except CalibrationError as err:
+        raise CalibrationError(f"{where}: camera {cid}: {err}") from None
+
+
+def read_colmap(path: StrPath) -> ColmapModel:
+    """Read a COLMAP text model (a folder with ``cameras.txt``, ``images.txt`` and optionally ``points3D.txt``).
+
+    Raises
+    ------
+    RasterIOError
+        A file is missing or unreadable.
+    InvalidInputError
+        A binary model, a malformed line (file, line and value named), an unsupported camera model
+        (named), an image naming an unknown camera, a track naming an unknown image or 2D point,
+        a non-unit quaternion.
+    """
+    folder = _folder(path)
+    cam_lines, cam_names = _lines(folder / "cameras.txt")
+    raw_cams: dict[int, Camera] = {}
+    for no, s in cam_lines:
+        if s:
+            cid, cam = _camera(s.split(), folder / "cameras.txt", no)
+            if cid in raw_cams:
+                raise InvalidInputError(f"{str(folder / 'cameras.txt')!r} line {no}: CAMERA_ID {cid} appears twice")
+            raw_cams[cid] = cam
+    cam_key = {cid: cam_names["camera"].get(cid, str(cid)) for cid in raw_cams}
+    cameras = {cam_key[cid]: cam for cid, cam in raw_cams.items()}
+    img_path = folder / "images.txt"
+    img_lines, _ = _lines(img_path)
+    poses: list[Pose] = []
+    image_index: dict[int, int] = {}
+    points2d: list[NDArray[np.float64]] = []
+    i = 0
+    while i < len(img_lines):
+        no, s = img_lines[i]
+        i += 1
+        if not s:
+            continue
+        c = s.split()
+        where = f"{str(img_path)!r} line {no}"
+        if len(c) != 10:
+            raise InvalidInputError(f"{where}: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME; got {s!r:.120}")
+        iid = _int(c[0], f"{where}: IMAGE_ID")
+        q = np.array([finite_number(x, f"{where}: {k}") for x, k in zip(c[1:5], ("QW", "QX", "QY", "QZ"),
+                                                                       strict=True)])
+        t = np.array([finite_number(x, f"{where}: {k}") for x, k in zip(c[5:8], ("TX", "TY", "TZ"), strict=True)])
+        cid = _int(c[8], f"{where}: CAMERA_ID")
+        if cid not in raw_cams:
+            raise InvalidInputError(f"{where}: image {c[9]!r} names CAMERA_ID {cid}, which cameras.txt lacks")
+        if abs(np.linalg.norm(q) - 1.0) > 1e-6:
+            raise InvalidInputError(f"{where}: quaternion {q.tolist()} is not a unit quaternion (norm "
+                                    f"{np.linalg.norm(q):.9g})")
+        if iid in image_index:
+            raise InvalidInputError(f"{where}: IMAGE_ID {iid} appears twice")
+        R_cw = Rotation.from_quat([q[1], q[2], q[3], q[0]]).as_matrix()
+        try:
+            poses.append(Pose(c[9], cam_key[cid], -R_cw.T @ t, R_cw.T @ _FLIP))
+        except RectifyError as err:
+            raise InvalidInputError(f"{where}: {err}") from None
+        image_index[iid] = len(poses) - 1
+        pts = img_lines[i][1].split() if i < len(img_lines) else []
+        i += 1
+        if len(pts) % 3:
+            raise InvalidInputError(f"{str(img_path)!r} line {img_lines[i - 1][0]}: POINTS2D must be triples "
+                                    f"(X, Y, POINT3D_ID); got {len(pts)} values")
+        xy = np.array([finite_number(x, f"{str(img_path)!r} line {img_lines[i - 1][0]}: POINTS2D value")
+                       for k, x in enumerate(pts) if k % 3 != 2], dtype=np.float64).reshape(-1, 2)
+        points2d.append(xy - 0.5)
+    names = [p.image for p in poses]
+    if len(set(names)) != len(names):
+        raise InvalidInputError(f"{str(img_path)!r}: an image NAME appears twice")
+    return _with_points(folder, cameras, tuple(poses), image_index, points2d)
+
+
+def _with_points(folder: Path, cameras: dict[str, Camera], poses: tuple[Pose, ...], image_index: dict[int, int],
+                 points2d: list[NDArray[np.float64]]) -> ColmapModel:
+    p3 = folder / "points3D.txt"
+    ids: list[str] = []
+    xyz, rgb, err = [], [], []
+    o_pt: list[int] = []
+    o_im: list[int] = []
+    o_px: list[NDArray[np.float64]] = []
+    if p3.is_file():
+        lines, names = _lines(p3)
+        for no, s in lines:
+            if not s:
+                continue
+            c = s.split()
+            where = f"{str(p3)!r} line {no}"
+            if len(c) < 8 or (len(c) - 8) % 2:
+                raise InvalidInputError(f"{where}: expected POINT3D_ID X Y Z R G B ERROR (IMAGE_ID POINT2D_IDX)...; "
+                                        f"got {s!r:.120}")
+            pid = _int(c[0], f"{where}: POINT3D_ID")
+            ids.append(names["point"].get(pid, str(pid)))
+            xyz.append([finite_number(x, f"{where}: {k}") for x, k in zip(c[1:4], "XYZ", strict=True)])
+            col = [_int(x, f"{where}: {k}") for x, k in zip(c[4:7], "RGB", strict=True)]
+            if any(not 0 <= v <= 255 for v in col):
+                raise InvalidInputError(f"{where}: colour {col} is not 0..255")
+            rgb.append(col)
+            err.append(finite_number(c[7], f"{where}: ERROR"))
+            for a in range(8, len(c), 2):
+                iid, idx = _int(c[a], f"{where}: IMAGE_ID"), _int(c[a + 1], f"{where}: POINT2D_IDX")
+                if iid not in image_index:
+                    raise InvalidInputError(f"{where}: track names IMAGE_ID {iid}, which images.txt lacks")
+                k = image_index[iid]
+                if not 0 <= idx < len(points2d[k]):
+                    raise InvalidInputError(f"{where}: track names POINT2D_IDX {idx} of image {poses[k].image!r}, "
+                                            f"which has {len(points2d[k])} 2D points")
+                o_pt.append(len(ids) - 1)
+                o_im.append(k)
+                o_px.append(points2d[k][idx])
+    tracks = None
+    if ids:
+        try:
+            tracks = Tracks(tuple(p.image for p in poses), tuple(ids), np.array(o_pt, dtype=np.int64),
+                            np.array(o_im, dtype=np.int64), np.array(o_px, dtype=np.float64).reshape(-1, 2))
+        except RectifyError as exc:
+            raise InvalidInputError(f"{str(p3)!r}: {exc}") from None
+    return ColmapModel(cameras=cameras, poses=poses, point_ids=tuple(ids),
+                       points=np.array(xyz, dtype=np.float64).reshape(-1, 3),
+                       colors=np.array(rgb, dtype=np.uint8).reshape(-1, 3), errors=np.array(err, dtype=np.float64),
+                       tracks=tracks, source=folder)
+
+
+# --------------------------------------------------------------------------- writing
+def _r(v: float) -> str:
+    return repr(float(v))
+
+
+def _int_ids(keys: Sequence[str]) -> dict[str, int]:
+    """Our ids -> COLMAP's: the ids themselves when all are positive integers, else 1, 2, ..."""
+    if all(re.fullmatch(r"[1-9]\d{0,9}", k) for k in keys) and len(set(map(int, keys))) == len(keys):
+        return {k: int(k) for k in keys}
+    return {k: i + 1 for i, k in enumerate(keys)}
+
+
+def _camera_line(cid: int, cam: Camera, name: str) -> str:
+    K = np.asarray(cam.K, dtype=np.float64)
+    if K[0, 1] != 0.0:
+        raise InvalidInputError(f"camera {name!r} has skew {K[0, 1]!r} px, which COLMAP's camera models cannot hold")
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5
+    d = cam.distortion
+    tangential = d["p1"] != 0.0 or d["p2"] != 0.0
+    if fx == fy and d["k3"] == 0.0 and not tangential:
+        if d["k2"] != 0.0:
+            model, vals = "RADIAL", [fx, cx, cy, d["k1"], d["k2"]]
+        elif d["k1"] != 0.0:
+            model, vals = "SIMPLE_RADIAL", [fx, cx, cy, d["k1"]]
+        else:
+            model, vals = "SIMPLE_PINHOLE", [fx, cx, cy]
+    elif not cam.has_distortion:
+        model, vals = "PINHOLE", [fx, fy, cx, cy]
+    elif d["k3"] == 0.0:
+        model, vals = "OPENCV", [fx, fy, cx, cy, d["k1"], d["k2"], d["p1"], d["p2"]]
+    else:
+        model, vals = "FULL_OPENCV", [fx, fy, cx, cy, d["k1"], d["k2"], d["p1"], d["p2"], d["k3"], 0.0, 0.0, 0.0]
+    return f"{cid} {model} {cam.width} {cam.height} " + " ".join(map(_r, vals))
+
+
+def colmap_texts(cameras: Mapping[str, Camera], poses: Sequence[Pose], *, points: ArrayLike | None = None,
+                 tracks: Tracks | None = None, colors: ArrayLike | None = None,
+                 errors: ArrayLike | None = None) -> dict[str, str]:
+    """The three files of a COLMAP text model (name -> text); see :func:`write_colmap`."""
+    cam_ids = _int_ids([str(k) for k in cameras])
+    for p in poses:
+        if p.camera not in cameras:
+            raise InvalidInputError(f"image {p.image!r} names camera {p.camera!r}, which is not given "
+                                    f"(cameras: {sorted(cameras)})")
+        if not p.image or re.search(r"\s", p.image):
+            raise InvalidInputError(f"image name {p.image!r} has white space, which COLMAP's images.txt cannot hold")
+    if len({p.image for p in poses}) != len(poses):
+        raise InvalidInputError("two poses have the same image name")
+    cam_txt = ["# Camera list with one line of data per camera:", "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]",
+               f"# Number of cameras: {len(cameras)}"]
+    cam_txt += [f"# rectify-stereo camera {cam_ids[str(k)]}: {k}" for k in cameras if str(cam_ids[str(k)]) != str(k)]
+    cam_txt += [_camera_line(cam_ids[str(k)], c, str(k)) for k, c in cameras.items()]
+    # observations per image (POINTS2D) and tracks per point
+    n_img = len(poses)
+    per_image: list[list[tuple[float, float, int]]] = [[] for _ in range(n_img)]
+    track_of: list[list[tuple[int, int]]] = []
+    pt_ids: dict[str, int] = {}
+    xyz = np.zeros((0, 3))
+    if tracks is not None or points is not None:
+        if tracks is None or points is None:
+            raise InvalidInputError("COLMAP points need both `points` (P, 3) and their `tracks`")
+        xyz = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if len(xyz) != tracks.n_points:
+            raise InvalidInputError(f"`points` has {len(xyz)} rows for {tracks.n_points} tracks")
+        pose_of = {p.image: k for k, p in enumerate(poses)}
+        missing = sorted(set(tracks.images) - set(pose_of))
+        if missing:
+            raise InvalidInputError(f"tracks observe images without a pose: {missing[:5]}")
+        pt_ids = _int_ids(list(tracks.point_ids))
+        track_of = [[] for _ in range(tracks.n_points)]
+        for pt, im, px in zip(tracks.obs_point, tracks.obs_image, tracks.obs_pixel, strict=True):
+            k = pose_of[tracks.images[int(im)]]
+            track_of[int(pt)].append((k + 1, len(per_image[k])))
+            per_image[k].append((float(px[0]) + 0.5, float(px[1]) + 0.5, pt_ids[tracks.point_ids[int(pt)]]))
+    n_obs = sum(len(v) for v in per_image)
+    img_txt = ["# Image list with two lines of data per image:",
+               "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
+               "#   POINTS2D[] as (X, Y, POINT3D_ID)",
+               f"# Number of images: {n_img}, mean observations per image: {n_obs / max(n_img, 1):.17g}"]
+    for k, p in enumerate(poses):
+        R_cw = _FLIP @ p.rotation.T
+        t = -R_cw @ p.position
+        qx, qy, qz, qw = Rotation.from_matrix(R_cw).as_quat()
+        if qw < 0:
+            qx, qy, qz, qw = -qx, -qy, -qz, -qw
+        img_txt.append(" ".join([str(k + 1), *map(_r, (qw, qx, qy, qz, *t)), str(cam_ids[p.camera]), p.image]))
+        img_txt.append(" ".join(f"{_r(x)} {_r(y)} {i}" for x, y, i in per_image[k]))
+    rgb = np.zeros((len(xyz), 3), dtype=np.int64) if colors is None else np.asarray(colors).reshape(-1, 3)
+    err = np.zeros(len(xyz)) if errors is None else np.asarray(errors, dtype=np.float64).reshape(-1)
+    if len(rgb) != len(xyz) or len(err) != len(xyz):
+        raise InvalidInputError(f"`colors` and `errors` need one row per point ({len(xyz)})")
+    mean_track = sum(len(t) for t in track_of) / max(len(track_of), 1)
+    pts_txt = ["# 3D point list with one line of data per point:",
+               "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)",
+               f"# Number of points: {len(xyz)}, mean track length: {mean_track:.17g}"]
+    if tracks is not None:
+        pts_txt += [f"# rectify-stereo point {pt_ids[k]}: {k}" for k in tracks.point_ids if str(pt_ids[k]) != k]
+        for j, pid in enumerate(tracks.point_ids):
+            track = " ".join(f"{a} {b}" for a, b in track_of[j])
+            pts_txt.append(" ".join([str(pt_ids[pid]), *map(_r, xyz[j]), *(str(int(v)) for v in rgb[j]),
+                                     _r(err[j]), track]).rstrip())
+    return {"cameras.txt": "\n".join(cam_txt) + "\n", "images.txt": "\n".join(img_txt) + "\n",
+            "points3D.txt": "\n".join(pts_txt) + "\n"}
+
+
+def write_colmap(folder: StrPath, cameras: Mapping[str, Camera], poses: Sequence[Pose], *,
+                 points: ArrayLike | None = None, tracks: Tracks | None = None, colors: ArrayLike | None = None,
+                 errors: ArrayLike | None = None, overwrite: bool = False) -> tuple[Path, ...]:
+    """Write cameras and poses (and points with their tracks) as a COLMAP text model in ``folder``.
+
+    Parameters
+    ----------
+    folder : path
+        An existing folder; ``cameras.txt``, ``images.txt`` and ``points3D.txt`` are written in it,
+        each atomically.
+    cameras : dict of str -> Camera
+    poses : sequence of Pose
+        Each names one of ``cameras``; image names without white space.
+    points : (P, 3) array_like, optional
+        World coordinates of the tracks' points (``tracks.point_ids`` order).
+    tracks : Tracks, optional
+        Their observations (pixels, our convention).
+    colors : (P, 3) array_like of 0..255, optional
+    errors : (P,) array_like, optional
+        Reprojection errors, px (COLMAP's ``ERROR``; 0 when not given).
+    overwrite : bool
+
+    Returns
+    -------
+    tuple of Path
+        The three files.
+
+    Raises
+    ------
+    InvalidInputError
+        A camera with skew, an image name with white space, a pose naming an unknown camera,
+        points without tracks (or the reverse), an existing file without ``overwrite``.
+    """
+    texts = colmap_texts(cameras, poses, points=points, tracks=tracks, colors=colors, errors=errors)
+    d = Path(folder)
+    if not d.is_dir():
+        raise RasterIOError(f"COLMAP model folder {str(d)!r} does not exist")
+    return tuple(atomic_write_text(d / name, text, overwrite=overwrite) for name, text in texts.items())
+
+
+def detect_colmap(path: StrPath) -> bool:
+    """Whether ``path`` is a COLMAP text model: a folder with ``cameras.txt`` and ``images.txt``, or one of
+    its files."""
+    p = Path(path)
+    if p.is_dir():
+        return (p / "cameras.txt").is_file() and (p / "images.txt").is_file()
+    return p.name in COLMAP_FILES and (p.parent / "cameras.txt").is_file()
