@@ -9,6 +9,7 @@ selection, the result) are shared with the tiled path (:mod:`.tiled`).
 from __future__ import annotations
 
 import enum
+import logging
 import math
 import os
 import time
@@ -32,6 +33,8 @@ __all__ = ["VERIFY_METHODS", "MatcherConfig", "MatchResult", "ProgressFn", "Veri
            "match_descriptors", "verify_matches"]
 
 ProgressFn = Callable[[int, int], None]
+
+logger = logging.getLogger(__name__)
 
 #: FLANN kd-tree search effort (leaves checked) of the forward search and of the mutual back-check. A
 #: cheaper back-check (16) lost 15 % of the matches on the NGI pair (fundamental verification, where no
@@ -217,9 +220,10 @@ class MatchResult:
         Matches refined by LSM, and those whose refinement did not converge: kept at their raw positions
         with a NaN score (``MatcherConfig.keep_unrefined``, whole-image mode) or dropped.
     rmse_px : float
-        Verification residual RMSE of the returned matches, px.
+        Verification residual RMSE of the returned matches, px: of the refined ones when refinement is on
+        (the model fitted to them; unrefined matches are check points of the residual table).
     rmse_raw_px : float
-        The same for the raw (unrefined) positions of the same matches.
+        The same matches' RMSE at their raw (unrefined) positions.
     verification : Verification
         Model and residual table of the returned matches.
     candidates_left, candidates_right, candidate_inlier : arrays
@@ -234,6 +238,19 @@ class MatchResult:
     n_guided : int
         Matches re-admitted after verification by the guided search (``MatcherConfig.guided``), included
         in ``n_verified``.
+    refined : (N,) bool or None
+        Which returned matches are refined (None when refinement is off: none is). The others are kept at
+        their raw positions (``MatcherConfig.keep_unrefined``); they are never counted in ``rmse_px``.
+    sigma_px : (N,) float64 or None
+        Standard deviation of each returned right position, sqrt(sx^2 + sy^2), px: the LSM one for refined
+        matches, and for the unrefined ones the RMS move of the refined matches from their raw positions
+        (the raw positions' own error; about 0.5 px on the NGI pair against 0.08 px refined). None when
+        unknown (refinement off).
+    n_screened : int
+        Refined matches whose residual against the model of the refined matches is too large for their
+        precision (a wrong convergence): moved back to their raw positions as unrefined, or dropped.
+    rmse_unrefined_px : float
+        Verification residual RMSE of the returned unrefined matches (NaN when there are none).
     """
 
     matches: Matches
@@ -253,6 +270,15 @@ class MatchResult:
     timings_s: dict[str, float] = field(default_factory=dict)
     n_duplicates: int = 0
     n_guided: int = 0
+    refined: NDArray[np.bool_] | None = None
+    sigma_px: NDArray[np.float64] | None = None
+    n_screened: int = 0
+    rmse_unrefined_px: float = float("nan")
+
+    @property
+    def n_unrefined(self) -> int:
+        """Returned matches kept at their raw positions (refinement on), 0 otherwise."""
+        return 0 if self.refined is None else int((~self.refined).sum())
 
     def summary(self) -> dict[str, Any]:
         return {"n_detected_left": self.n_detected[0], "n_detected_right": self.n_detected[1],
@@ -260,7 +286,8 @@ class MatchResult:
                 "n_refined": self.n_refined, "n_refine_failed": self.n_refine_failed,
                 "verification": self.verification.method, "rmse_px": self.rmse_px,
                 "rmse_raw_px": self.rmse_raw_px, "tiled": self.tiled, "n_duplicates": self.n_duplicates,
-                "n_guided": self.n_guided,
+                "n_guided": self.n_guided, "n_unrefined": self.n_unrefined, "n_screened": self.n_screened,
+                "rmse_unrefined_px": self.rmse_unrefined_px,
                 **{f"time_{k}_s": v for k, v in self.timings_s.items()}}
 
 
@@ -677,7 +704,13 @@ def _check_homography_sane(H, pl, cfg: MatcherConfig) -> None:
 
 def _refine(Lg, Rg, pl, pr, ver: Verification | None, cfg: MatcherConfig, progress=None, keypoints=None):
     A = _local_affine(pl, pr, ver, keypoints=keypoints)
-    return refine_matches(Lg, Rg, pl, pr, affine=A, config=cfg.lsm, progress=progress)
+    lim = None if keypoints is None else SHIFT_PER_SIZE * np.asarray(keypoints)[:, 2]
+    return refine_matches(Lg, Rg, pl, pr, affine=A, config=cfg.lsm, progress=progress, shift_limit_px=lim)
+
+
+#: a refined position may move from its keypoint by up to this share of the right keypoint's size (SIFT: the size
+#: is twice the scale; at coarse scales the detector's position is off by more than ``LsmConfig.max_shift_px``)
+SHIFT_PER_SIZE = 0.25
 
 
 def _keypoint_shapes(fl: Features, fr: Features, li: NDArray[np.int64], ri: NDArray[np.int64]) -> NDArray[np.float64]:
@@ -693,17 +726,32 @@ def _final_select(pl, pr, score, shape_left, budget, cap):
 
 
 def _result(pl, pr, score, ver, cfg, n_det, n_matched, n_verified, n_ref, n_fail, raw_pr, cand_l, cand_r,
-            cand_inl, tiled, shapes, timings, n_dup: int = 0, n_guided: int = 0) -> MatchResult:
+            cand_inl, tiled, shapes, timings, n_dup: int = 0, n_guided: int = 0, n_screened: int = 0
+            ) -> MatchResult:
     ids = tuple(str(i + 1) for i in range(len(pl)))
-    rmse = ver.rmse_px
+    refined = sigma = None
+    rmse, rmse_unref = ver.rmse_px, float("nan")
+    if cfg.refine:
+        refined = np.isfinite(score)
+        sigma = _sigmas(pr, raw_pr, score, refined)
+        if cfg.verify != "none":
+            e = ver.errors_px
+            rmse = rms(e[refined]) if refined.any() else float("nan")
+            rmse_unref = rms(e[~refined]) if (~refined).any() else float("nan")
     rmse_raw = float("nan")
     if cfg.verify != "none" and len(pl) >= 8:
-        if ver.method == "homography":
-            rmse_raw = rms(np.linalg.norm(_apply_h(ver.matrix, pl) - raw_pr, axis=1))
-        else:
-            rmse_raw = rms(np.linalg.norm(_sampson_vectors(ver.matrix, pl, raw_pr), axis=1))
+        rmse_raw = rms(_errors(ver.method, ver.matrix, pl, raw_pr))
     return MatchResult(Matches(ids, pl, pr, score), n_det, n_matched, n_verified, n_ref, n_fail, rmse,
-                       rmse_raw, ver, cand_l, cand_r, cand_inl, tiled, shapes, timings, n_dup, n_guided)
+                       rmse_raw, ver, cand_l, cand_r, cand_inl, tiled, shapes, timings, n_dup, n_guided,
+                       refined, sigma, n_screened, rmse_unref)
+
+
+def _sigmas(pr, raw_pr, score, refined) -> NDArray[np.float64]:
+    """Standard deviation of each right position (px): the LSM one where refined, else the RMS move of the refined
+    matches from their raw positions (what a raw position is off by; NaN with fewer than 8 refined matches)."""
+    moved = np.linalg.norm(pr[refined] - raw_pr[refined], axis=1)
+    raw_sigma = rms(moved) if len(moved) >= 8 else float("nan")
+    return np.where(refined, score, raw_sigma)
 
 
 def _finish(pl, pr, ratio, Lg, Rg, cfg: MatcherConfig, ver0: Verification | None, progress=None, keypoints=None):
@@ -808,13 +856,13 @@ def _match_whole(L, lv, R, rv, cfg: MatcherConfig, progress, names) -> MatchResu
     Rg = _grey_float(R, rv) if cfg.refine else None
     fl_, fr_, raw_pr, score, n_ref, n_fail = _finish(vl, vr, vratio, Lg, Rg, cfg, ver0,
                                                      keypoints=_keypoint_shapes(fl, fr, vli, vri))
-    out_l, out_r, raw, sc, ver, n_dup = _reverify_and_cap(fl_, fr_, raw_pr, score, cfg, L.shape[:2])
+    out_l, out_r, raw, sc, ver, n_dup, n_scr = _reverify_and_cap(fl_, fr_, raw_pr, score, cfg, L.shape[:2])
     t4 = time.perf_counter()
     tick(4, 4)
     timings = {"detect": t1 - t0, "match": t2 - t1, "verify": t3 - t2, "refine": t4 - t3, "total": t4 - t0}
     return _result(out_l, out_r, sc, ver, cfg, (len(fl), len(fr)), len(pairs.left), int(inl.sum()) + n_guided,
                    n_ref, n_fail, raw, cand_l, cand_r, cand_inl, False, (L.shape[:2], R.shape[:2]), timings,
-                   n_dup0 + n_dup, n_guided)
+                   n_dup0 + n_dup, n_guided, n_scr)
 
 
 def _one_to_one(pl, pr, score, tol_px: float = 0.1):
@@ -834,38 +882,104 @@ def _one_to_one(pl, pr, score, tol_px: float = 0.1):
 
 
 def _reverify_and_cap(pl, pr, raw_pr, score, cfg: MatcherConfig, shape_left):
+    """One-to-one, re-verification, the screening of refined matches (refinement on) and the even cap.
+
+    Returns the matches (left, right, raw right, score), the verification of exactly them (its model fitted to
+    the refined matches when there are enough), the duplicates removed and the refined matches screened out
+    (moved back to their raw positions, or dropped)."""
     u = _one_to_one(pl, pr, score)
     n_dup = len(pl) - len(u)
     pl, pr, raw_pr, score = pl[u], pr[u], raw_pr[u], score[u]
     if cfg.verify == "none":
         keep = _final_select(pl, pr, score, shape_left, cfg.max_matches, cfg.cell_cap)
         pl, pr, raw_pr, score = pl[keep], pr[keep], raw_pr[keep], score[keep]
-        return pl, pr, raw_pr, score, verify_matches(pl, pr, method="none"), n_dup
+        return pl, pr, raw_pr, score, verify_matches(pl, pr, method="none"), n_dup, 0
     ver = _verify_checked(pl, pr, cfg, cfg.verify)
     m = ver.inliers
     pl, pr, raw_pr, score = pl[m], pr[m], raw_pr[m], score[m]
+    n_screened = 0
+    if cfg.refine:
+        ver, pl, pr, raw_pr, score, n_screened = _screen_refined(ver, pl, pr, raw_pr, score, cfg)
     keep = _final_select(pl, pr, score, shape_left, cfg.max_matches, cfg.cell_cap)
     pl, pr, raw_pr, score = pl[keep], pr[keep], raw_pr[keep], score[keep]
     # the residual table of exactly the returned matches, with the same model
-    ver = _table_for(ver, pl, pr, cfg)
-    return pl, pr, raw_pr, score, ver, n_dup
+    ver = _table_for(ver, pl, pr, cfg, refined=np.isfinite(score) if cfg.refine else None)
+    return pl, pr, raw_pr, score, ver, n_dup, n_screened
 
 
-def _table_for(ver: Verification, pl, pr, cfg: MatcherConfig) -> Verification:
+#: Screening of refined matches (issue 30): a refined match whose verification residual exceeds this many times
+#: the median of the refined matches' residuals, each divided by its LSM standard deviation, is a wrong
+#: convergence (the 99.9 % point of the residual's distribution when it is Gaussian: the Sampson distance is the
+#: size of one Gaussian component, |N(0, s)|, median 0.674 s, 99.9 % point 3.29 s; the transfer error of a
+#: homography is the length of a 2D one, Rayleigh, median 1.177 s, 99.9 % point 3.72 s).
+SCREEN_RATIO = {"fundamental": 3.29 / 0.674, "homography": 3.72 / 1.177}
+#: floor of the LSM standard deviation in the screening (px): windows of strong texture report a few
+#: thousandths of a pixel, below what the model and the images hold
+SCREEN_STD_FLOOR_PX = 0.02
+
+
+def _errors(method: str, M: NDArray[np.float64], pl, pr) -> NDArray[np.float64]:
+    """Verification residual of each match (px): transfer error (homography) or Sampson distance (fundamental)."""
+    if method == "homography":
+        e = np.linalg.norm(_apply_h(M, pl) - pr, axis=1)
+    else:
+        e = np.linalg.norm(_sampson_vectors(M, pl, pr), axis=1)
+    return np.where(np.isfinite(e), e, np.inf)
+
+
+def _screen_refined(ver: Verification, pl, pr, raw_pr, score, cfg: MatcherConfig):
+    """The model re-fitted to the refined matches alone, and the refined matches it shows to be wrong convergences.
+
+    Refined matches (finite ``score``, the LSM standard deviation) whose residual exceeds
+    :data:`SCREEN_RATIO` times the median normalised residual are moved back to their raw position as unrefined
+    matches (``keep_unrefined``, when the raw position passes the threshold) or dropped; unrefined matches farther
+    than ``threshold_px`` from the refined matches' model are dropped. Returns (verification, pl, pr, raw_pr,
+    score, number screened out)."""
+    ref = np.isfinite(score)
+    need = 4 if ver.method == "homography" else 8
+    if int(ref.sum()) < max(need, cfg.min_inliers):
+        return ver, pl, pr, raw_pr, score, 0
+    try:    # the model of the precise matches: the unrefined ones (0.3-0.5 px) no longer pull it
+        vr = verify_matches(pl[ref], pr[ref], method=ver.method, threshold_px=cfg.threshold_px, seed=cfg.seed)
+        M = vr.matrix if vr.matrix is not None and int(vr.inliers.sum()) >= need else ver.matrix
+    except EstimationError:
+        M = ver.matrix
+    if M is None:
+        return ver, pl, pr, raw_pr, score, 0
+    e = _errors(ver.method, M, pl, pr)
+    z = e / np.maximum(np.where(ref, score, 1.0), SCREEN_STD_FLOOR_PX)
+    cut = SCREEN_RATIO.get(ver.method, 5.0) * float(np.median(z[ref]))
+    bad = ref & ~(z <= cut)
+    e_raw = _errors(ver.method, M, pl, raw_pr)
+    back = bad & (e_raw <= cfg.threshold_px) & cfg.keep_unrefined
+    pr = np.where(back[:, None], raw_pr, pr)
+    score = np.where(back, np.nan, score)
+    keep = ~(bad & ~back) & (ref | (e_raw <= cfg.threshold_px))
+    ver = Verification(ver.method, M, np.ones(int(keep.sum()), bool), e[keep], None)
+    logger.debug("screening: %d of %d refined matches off the refined model (cut %.3g x std), %d kept unrefined",
+                 int(bad.sum()), int(ref.sum()), cut, int(back.sum()))
+    return ver, pl[keep], pr[keep], raw_pr[keep], score[keep], int(bad.sum())
+
+
+def _table_for(ver: Verification, pl, pr, cfg: MatcherConfig, refined: NDArray[np.bool_] | None = None
+               ) -> Verification:
+    """The verification of exactly the returned matches with ``ver``'s model: residual table and errors. With
+    ``refined``, the unrefined matches are check points of the table (withheld from its RMSE and sigma0)."""
     ids = [str(i + 1) for i in range(len(pl))]
     M = ver.matrix
     if M is None:
         raise InvalidInputError(f"verification {ver.method!r} has no model matrix")
+    check = None if refined is None else ~refined
     if ver.method == "homography":
         pred = _apply_h(M, pl)
         err = np.linalg.norm(pred - pr, axis=1)
         table = ResidualTable("match verification (homography)", ids, pr, pred, "px", ("dx", "dy"),
-                              position_px=pl, n_params=8, extra={"threshold_px": cfg.threshold_px})
+                              position_px=pl, n_params=8, extra={"threshold_px": cfg.threshold_px}, check=check)
     else:
         d = _sampson_vectors(M, pl, pr)
         err = np.linalg.norm(d, axis=1)
         obs = np.c_[pl, pr]
         table = ResidualTable("match verification (fundamental)", ids, obs, obs + d, "px",
                               ("dx_left", "dy_left", "dx_right", "dy_right"), position_px=pl, n_params=7,
-                              extra={"threshold_px": cfg.threshold_px})
+                              extra={"threshold_px": cfg.threshold_px}, check=check)
     return Verification(ver.method, M, np.ones(len(pl), bool), err, table)

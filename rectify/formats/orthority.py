@@ -264,7 +264,8 @@ def _oty_camera_dict(cam: Camera, cam_id: str) -> dict[str, Any]:
     m = float(max(w, h))
     K = np.asarray(cam.K, dtype=np.float64)
     if K[0, 1] != 0.0:
-        raise InvalidInputError(f"camera {cam_id!r} has skew {K[0, 1]!r} px, which orthority's cameras cannot hold")
+        raise InvalidInputError(f"camera {cam_id!r} has skew {float(K[0, 1])!r} px, which orthority's cameras "
+                                "cannot hold")
     d: dict[str, Any] = {"type": "brown" if cam.has_distortion else "pinhole", "im_size": [w, h]}
     if cam.pixel_camera:  # a sensor in pixels: focal_len in pixels, no normalisation
         fx, fy = float(K[0, 0]), float(K[1, 1])

@@ -75,7 +75,9 @@ class BlockOptions:
     gnss_sigma_m : (3,) float or None
         A-priori standard deviations (x, y, z), metres, of the GNSS projection centres. When set
         (or when the pose file has ``sx, sy, sz``), the positions of the pose file are
-        observations of the adjustment; otherwise they are only initial values.
+        observations of the adjustment; otherwise they are only initial values. An OpenSfM
+        reconstruction's shots with ``gps_position`` are observed there (with this sigma, else
+        their ``gps_dop``); without any, this makes its projection centres observations.
     ins_sigma_rad : (3,) float or None
         A-priori standard deviations of the angles of the pose file (omega, phi, kappa), radians;
         when set the angles are observations too.
@@ -101,8 +103,9 @@ class BlockOptions:
         Adjustment options (image sigma, robust estimator, self-calibration, ...). The default is
         Tukey's robust weights with variance components per group: a-priori sigmas of tie points,
         GNSS and control are rarely known to better than a factor of two, and one wrong group sigma
-        would make every predicted standard error wrong. Up to 100 iterations: a start from
-        independent models can be metres off, and the robust stages come on top.
+        would make every predicted standard error wrong. Up to 100 iterations in all (the
+        variance-component rounds included): a start from independent models can be metres off,
+        and the robust stages come on top.
     report : bool
         Write the QA report into ``OUTDIR/report``.
     """

@@ -70,13 +70,15 @@ def _ids(text: str) -> tuple[str, ...]:
               help="Camera JSON for every image (optional with --poses reconstruction.json).")
 @click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output folder.")
 @click.option("--poses", "poses_path", type=click.Path(exists=True, dir_okay=False), default=None,
-              help="Known poses: position/angle CSV or OpenSfM reconstruction.json.")
+              help="Known poses: position/angle CSV or OpenSfM/ODM reconstruction.json (read in its own frame: "
+                   "OpenSfM's topocentric one, ODM's UTM one; see docs/block.md).")
 @click.option("--control", "control_path", type=click.Path(exists=True, dir_okay=False), default=None,
               help="Block control CSV (id,image,col,row,x,y,z[,sx,sy,sz]).")
 @click.option("--check", "check_ids", default="", help="Comma-separated control ids used only as check points.")
 @click.option("--gnss-sigma", type=Floats(), default=None,
               help="A-priori std of the GNSS projection centres, m (one value or sx,sy,sz): the pose file's "
-                   "positions become observations.")
+                   "positions become observations (a reconstruction.json's gps_position, else its centres; "
+                   "without the option its gps_position is observed with its gps_dop).")
 @click.option("--ins-sigma", type=Floats(), default=None,
               help="A-priori std of the pose file's angles, degrees (one value or three): the angles become "
                    "observations.")
@@ -97,7 +99,8 @@ def _ids(text: str) -> tuple[str, ...]:
 @click.option("--blunder-threshold", type=click.FloatRange(min=0, min_open=True), default=_B.blunder_threshold,
               show_default=True, help="Flag observations whose standardised residual exceeds this.")
 @click.option("--max-iterations", type=click.IntRange(min=1), default=_O.bundle.max_iterations, show_default=True,
-              help="Iteration limit of the bundle adjustment.")
+              help="Iteration limit of the bundle adjustment, over all its variance-component rounds (a free "
+                   "network gets at least 300).")
 @click.option("--free-network", is_flag=True, default=False,
               help="Allow a block without control and GNSS (datum from the initial projection centres).")
 @click.option("--lever-arm", type=Triple(), default=None, help="GNSS antenna offset in the camera frame, m: lx,ly,lz.")

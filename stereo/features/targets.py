@@ -400,11 +400,15 @@ class ChessboardDetection:
     n_corners: int
     method: str
 
-    def summary_lines(self) -> list[str]:
+    def summary_lines(self, *, max_listed: int = 30) -> list[str]:
+        """Corners kept and each rejected one by name (the first ``max_listed``; the report lists all)."""
         kept = self.n_corners - len(self.rejected)
         out = [f"corners ({self.method} refinement): {kept} of {self.n_corners} kept"
                + (f", {len(self.rejected)} rejected (left out of the fit):" if self.rejected else "")]
-        out += [f"  rejected {r.label} at ({r.col:.2f}, {r.row:.2f}) px: {r.reason}" for r in self.rejected]
+        out += [f"  rejected {r.label} at ({r.col:.2f}, {r.row:.2f}) px: {r.reason}"
+                for r in self.rejected[:max_listed]]
+        if len(self.rejected) > max_listed:
+            out.append(f"  ... and {len(self.rejected) - max_listed} more (all listed in the report)")
         return out
 
 

@@ -320,7 +320,8 @@ def _int_ids(keys: Sequence[str]) -> dict[str, int]:
 def _camera_line(cid: int, cam: Camera, name: str) -> str:
     K = np.asarray(cam.K, dtype=np.float64)
     if K[0, 1] != 0.0:
-        raise InvalidInputError(f"camera {name!r} has skew {K[0, 1]!r} px, which COLMAP's camera models cannot hold")
+        raise InvalidInputError(f"camera {name!r} has skew {float(K[0, 1])!r} px, which COLMAP's camera models "
+                                "cannot hold")
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5
     d = cam.distortion
     tangential = d["p1"] != 0.0 or d["p2"] != 0.0

@@ -56,7 +56,7 @@ class HeightComparison:
     def summary_line(self, unit: str = "m", cell: float | None = None) -> str:
         px = f" ({self.rmse / cell:.2f} cells)" if cell else ""
         return (f"DSM vs reference DEM: {self.n} cells, coverage {100 * self.coverage:.1f}% of the overlap, RMSE "
-                f"{self.rmse:.2f} {unit}{px}, mean {self.mean:+.2f}, median {self.median:+.2f}, NMAD "
+                f"{self.rmse:.2f} {unit}{px}, mean {self.mean:+.2f} {unit}, median {self.median:+.2f} {unit}, NMAD "
                 f"{self.nmad:.2f} {unit}, blunders {100 * self.blunder_share:.1f}% (|dz - median| > "
                 f"{self.blunder_factor:g} x max(NMAD, cell)), RMSE without them "
                 f"{self.rmse_without_blunders:.2f} {unit}")

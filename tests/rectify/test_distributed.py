@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import signal
 import time
+from typing import Any
 
 import numpy as np
 import pytest
@@ -219,7 +220,7 @@ def test_warp_on_the_cluster_equals_the_local_path(cluster, sources, tmp_path, w
 
 @pytest.mark.parametrize("source", ["u8.tif", "u8m.tif"])
 def test_cog_on_the_cluster(cluster, sources, tmp_path, writes, source):
-    kw = dict(resampling="bilinear", tile_px=128, cog=True)
+    kw: dict[str, Any] = dict(resampling="bilinear", tile_px=128, cog=True)
     warp_raster(sources / source, tmp_path / "local.tif", Homography(), GRID, options=WarpOptions(**kw))
     warp_raster(sources / source, tmp_path / "dask.tif", Homography(), GRID,
                 options=WarpOptions(scheduler=cluster.scheduler_address, **kw))
@@ -308,42 +309,115 @@ def test_opencv_uses_the_worker_threads_only(cluster):
 
 
 # ----------------------------------------------------------------- a worker lost mid-run
+class KillableCurved(Curved):
+    """:class:`Curved`, whose first call in one of ``worker_pids`` claims that worker as the victim (an
+    exclusive file, then ``victim.pid`` written atomically) and blocks there until the test kills it: the
+    kill always lands inside a running task, which the run cannot finish without. The replacement worker
+    (a new pid) and the other worker compute normally."""
+
+    def __init__(self, flag_dir, worker_pids):
+        self.claim = str(flag_dir / "victim.claim")
+        self.pid_file = str(flag_dir / "victim.pid")
+        self.worker_pids = frozenset(worker_pids)
+
+    def __call__(self, p):
+        if os.getpid() in self.worker_pids:
+            try:
+                os.close(os.open(self.claim, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+            except FileExistsError:
+                pass
+            else:
+                tmp = f"{self.pid_file}.tmp"
+                with open(tmp, "w") as f:
+                    f.write(str(os.getpid()))
+                os.replace(tmp, self.pid_file)
+                deadline = time.monotonic() + 600
+                while time.monotonic() < deadline:  # wait for SIGKILL
+                    time.sleep(0.02)
+                raise RuntimeError("the claimed worker was not killed within 600 s")
+        return super().__call__(p)
+
+
+def _wait_for(what, ok, timeout_s):
+    """Poll ``ok()`` until true; fail naming ``what`` after ``timeout_s`` (generous: the machine may be busy)."""
+    deadline = time.monotonic() + timeout_s
+    while not ok():
+        assert time.monotonic() < deadline, f"timed out after {timeout_s:g} s waiting for {what}"
+        time.sleep(0.1)
+
+
+def _gone(pid):
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    return False
+
+
 def test_a_killed_worker_is_replaced_and_the_output_is_complete(sources, tmp_path, caplog):
+    """A worker killed (SIGKILL) inside a running task: the scheduler removes it, its task runs elsewhere, the
+    nanny starts a replacement, and the output is complete and equal to the threads path's.
+
+    Deterministic under load: the kill waits for the task's own signal (``KillableCurved``) and every later
+    check polls for its event with a generous deadline; nothing depends on how long a step takes."""
     import logging
+    import threading
 
     caplog.set_level(logging.INFO, logger="distributed.scheduler")
-    kw = dict(resampling="cubic", tile_px=32)
-    warp_raster(sources / "f32.tif", tmp_path / "local.tif", Curved(), GRID, options=WarpOptions(**kw))
+    kw: dict[str, Any] = dict(resampling="cubic", tile_px=32)
+    out = tmp_path / "out"
+    out.mkdir()
+    flags = tmp_path / "flags"
+    flags.mkdir()
+    warp_raster(sources / "f32.tif", out / "local.tif", Curved(), GRID, options=WarpOptions(**kw))
     lc = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0")
     try:
         with distributed.Client(lc) as client:
-            pids = client.run(os.getpid)
-            victim_address, victim = sorted(pids.items())[0]
-            killed = []
+            pids = client.run(os.getpid)  # worker address -> pid
+            state = {"done": 0, "total": None, "killed": None, "done_at_kill": None}
 
-            def kill_one(done, total):
-                if not killed and done >= 8:  # tasks are queued on both workers: kill one mid-run
-                    os.kill(victim, signal.SIGKILL)
-                    killed.append(done)
-                    time.sleep(0.5)
+            def progress(done, total):
+                state["done"], state["total"] = done, total
 
-            r = warp_raster(sources / "f32.tif", tmp_path / "dask.tif", Curved(), GRID,
-                            options=WarpOptions(scheduler=lc.scheduler_address, **kw), progress=kill_one)
-            assert killed and killed[0] < r.n_tiles  # the kill happened before the end of the run
-            with pytest.raises(ProcessLookupError):
-                os.kill(victim, 0)
-            # the scheduler saw the worker go (its tasks, running or finished, are recomputed elsewhere)
-            assert any("Remove worker" in r.getMessage() and victim_address in r.getMessage()
-                       for r in caplog.records)
+            def kill_the_claimed_worker():
+                pid_file = flags / "victim.pid"
+                deadline = time.monotonic() + 600
+                while not pid_file.exists():
+                    if time.monotonic() > deadline:
+                        return
+                    time.sleep(0.02)
+                pid = int(pid_file.read_text())
+                state["done_at_kill"] = state["done"]
+                os.kill(pid, signal.SIGKILL)
+                state["killed"] = pid
+
+            killer = threading.Thread(target=kill_the_claimed_worker, daemon=True)
+            killer.start()
+            r = warp_raster(sources / "f32.tif", out / "dask.tif", KillableCurved(flags, pids.values()), GRID,
+                            options=WarpOptions(scheduler=lc.scheduler_address, **kw), progress=progress)
+            killer.join(timeout=60)
+            victim = state["killed"]
+            assert victim in pids.values(), "no worker claimed a task and was killed"
+            victim_address = next(a for a, p in pids.items() if p == victim)
+            # the kill happened inside a task of this run, before its end
+            assert state["done_at_kill"] is not None and state["done_at_kill"] < r.n_tiles == state["total"]
+            _wait_for(f"worker process {victim} to be gone", lambda: _gone(victim), 120)
+            # the scheduler saw the worker go (its task is recomputed elsewhere: the run completed)
+            _wait_for(f"the scheduler to log 'Remove worker' for {victim_address}",
+                      lambda: any("Remove worker" in m.getMessage() and victim_address in m.getMessage()
+                                  for m in caplog.records), 120)
             # the nanny started a new worker process in its place
-            deadline = time.time() + 20
-            while victim in client.run(os.getpid).values() or len(client.run(os.getpid)) < 2:
-                assert time.time() < deadline
-                time.sleep(0.2)
+            def replaced():
+                workers = set(client.scheduler_info()["workers"])
+                return victim_address not in workers and len(workers) == 2
+
+            _wait_for("a replacement worker", replaced, 300)
+            now = client.run(os.getpid)
+            assert len(now) == 2 and victim not in now.values()
     finally:
         lc.close()
-    _assert_same(tmp_path / "local.tif", tmp_path / "dask.tif")
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["dask.tif", "local.tif"]
+    _assert_same(out / "local.tif", out / "dask.tif")
+    assert sorted(p.name for p in out.iterdir()) == ["dask.tif", "local.tif"]
 
 
 def test_guided_task_sizes_cover_every_window_once_and_shrink():

@@ -73,12 +73,32 @@ def test_flat_window_does_not_converge_and_keeps_input():
     assert np.isnan(r.std_px[0])
 
 
-def test_window_off_image_or_nan_does_not_converge():
+def test_window_on_nan_does_not_converge_and_border_windows_move_inward():
     L = _texture()
     R = L.copy()
     R[30:50, 30:50] = np.nan
-    r = refine_matches(L, R, [[2.0, 2.0], [40.0, 40.0], [70.0, 70.0]], [[2.0, 2.0], [40.0, 40.0], [70.0, 70.0]])
-    assert r.converged.tolist() == [False, False, True]
+    pts = [[2.0, 2.0], [40.0, 40.0], [70.0, 70.0]]
+    r = refine_matches(L, R, pts, pts)
+    # (2, 2): the window moves inward (the point stays inside it) and finds the point; on nodata: no
+    assert r.converged.tolist() == [True, False, True]
+    np.testing.assert_allclose(r.right[[0, 2]], [[2.0, 2.0], [70.0, 70.0]], atol=0.01)
+    off = refine_matches(L, R, pts, pts, config=LsmConfig(border_shift=False))
+    assert off.converged.tolist() == [False, False, True]
+    # a point whose window cannot hold it inside the image (a right partner off the right image) fails
+    far = refine_matches(L, R[:60, :60], [[70.0, 70.0]], [[70.0, 70.0]])
+    assert not far.converged.any()
+
+
+def test_border_shift_off_centre_window_is_accurate():
+    """Points 0-8 px from the left or right image border, off-centre in their window: known subpixel truth."""
+    L = _texture(128, seed=5)
+    t = np.array([0.37, -0.21])
+    R = _warp(L, np.eye(2), t)
+    pl = np.array([[1.0, 60.0], [4.3, 30.6], [60.2, 2.4], [123.0, 80.0], [70.4, 126.0], [40.0, 7.7]])
+    r = refine_matches(L, R, pl, pl + t + 0.3)
+    assert r.converged.all()
+    np.testing.assert_allclose(r.right, pl + t, atol=0.03)
+    assert (r.std_px < 0.1).all()
 
 
 def test_wrong_partner_is_rejected():

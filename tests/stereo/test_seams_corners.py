@@ -69,7 +69,9 @@ def test_corner_error_at_most_opencv_cornersubpix(tmp_path, blur_px, noise, fill
     views = _views(tmp_path, 7, 3, (640, 480), blur_px=blur_px, noise=noise, fill=fill, tilt_deg=tilt_deg)
     found, missing, _size = detect_chessboards([p for p, _, _ in views], BOARD)
     assert missing == []
-    ours, cv_py, cv_cpp = [], [], []
+    ours: list[np.ndarray] = []
+    cv_py: list[np.ndarray] = []
+    cv_cpp: list[np.ndarray] = []
     for v, (_p, img, truth) in zip(found, views, strict=True):
         assert v.n == BOARD.cols * BOARD.rows, "a corner of a clean rendered board was rejected"
         ours.append(np.linalg.norm(_in_truth_order(v.pixel, truth) - truth, axis=1))
@@ -175,7 +177,8 @@ def test_bad_corner_method(tmp_path):
         find_chessboards([tmp_path / "x.png"], BOARD, method="fast")
     with pytest.raises(InvalidInputError, match="53 corners for a 9x6 chessboard"):
         refine_corners(np.zeros((40, 40), np.uint8), np.zeros((53, 2)), BOARD)
-    r = CliRunner().invoke(cli, ["calibrate", "--points", __file__, "--corners", "fast", "-o", str(tmp_path / "c.json")])
+    r = CliRunner().invoke(cli, ["calibrate", "--points", __file__, "--corners", "fast",
+                                 "-o", str(tmp_path / "c.json")])
     assert r.exit_code != 0 and "'fast' is not one of 'symmetry', 'opencv'" in r.output
 
 
@@ -185,8 +188,6 @@ def test_real_chessboards_rms_below_opencv_samples(shared_data: Path):
     """The 25 real views: our corners give a lower RMS reprojection error than OpenCV's calibration samples
     (findChessboardCorners, cornerSubPix with each sample's settings, calibrateCamera) on the same views, in
     the same run; no corner of these views is rejected."""
-    from stereo.features.targets import find_chessboards  # local: not in the code before item 15
-
     paths = sorted((shared_data / "calibration_chessboard").glob("left*.jpg"))
     if len(paths) < 25:
         pytest.skip(f"chessboard views not found under {shared_data / 'calibration_chessboard'}")
@@ -196,13 +197,18 @@ def test_real_chessboards_rms_below_opencv_samples(shared_data: Path):
         pts = []
         for p in paths:
             img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
+            assert img is not None
             ok, start = cv2.findChessboardCorners(img, PATTERN)
             assert ok
             pts.append(_corner_sub_pix(img, start, settings))
-        cv_rms[name] = cv2.calibrateCamera([obj] * len(pts), pts, (640, 512), None, None)[0]  # type: ignore
-    d = find_chessboards(paths, BOARD)
-    assert d.missing == [] and d.rejected == [] and d.n_corners == 1350
-    cal = Calibration.from_views(d.views, *d.size)
+        cv_rms[name] = cv2.calibrateCamera([obj] * len(pts), pts, (640, 512), None, None)[0]
+    views, missing, size = detect_chessboards(paths, BOARD)
+    assert missing == [] and sum(v.n for v in views) == 1350
+    cal = Calibration.from_views(views, *size)
     assert cal.rms_px < 0.85 * min(cv_rms.values()), (cal.rms_px, cv_rms)
     assert cal.rms_px == pytest.approx(0.1203, abs=0.002)
     assert cv_rms["python"] == pytest.approx(0.1525, abs=0.002) and cv_rms["cpp"] == pytest.approx(0.1489, abs=0.002)
+    from stereo.features.targets import find_chessboards  # local: not in the code before item 15
+
+    d = find_chessboards(paths, BOARD)
+    assert d.rejected == [] and d.n_corners == 1350

@@ -30,9 +30,12 @@ of a standard deviation. An observation is flagged when its standardised residua
 
 Variance components (Foerstner): after convergence each group's variance factor
 ``v_k^T P_k v_k / r_k`` rescales its sigma, and the adjustment repeats until the factors are 1
-within 1 %. The group redundancies ``r_k`` are exact sums of the redundancy numbers
-``r_i = 1 - p_i a_i^T Q a_i``, with Q from the inverse of the reduced camera system and the
-per-point back-substitution.
+within 1 %, in at most :data:`stereo.block.bundle.variance.VCE_MAX_ROUNDS` rounds and
+``max_iterations`` iterations in all; a factor estimated from a redundancy below
+:data:`stereo.block.bundle.variance.VCE_WARN_REDUNDANCY` is flagged. The group redundancies ``r_k``
+are exact sums of the redundancy numbers ``r_i = 1 - p_i a_i^T Q a_i``, with Q from the inverse of
+the reduced camera system and the per-point back-substitution (the robust weights:
+:mod:`stereo.block.bundle.robust`).
 """
 
 from __future__ import annotations
@@ -48,11 +51,12 @@ from numpy.typing import ArrayLike, NDArray
 
 from rectify.errors import ConvergenceError, EstimationError, InvalidInputError, ShapeError
 from rectify.geometry.camera import Camera
-from rectify.geometry.robust import ROBUST_METHODS, get_psi, robust_scale
+from rectify.geometry.robust import ROBUST_METHODS, get_psi
 from stereo.block.bundle import solve as bs
 from stereo.block.bundle.datum import datum_analysis
 from stereo.block.bundle.model import INTERIOR_NAMES, camera_from_interior, interior_from_camera
 from stereo.block.bundle.result import BundleResult
+from stereo.block.bundle.robust import local_redundancy, robust_scales, robust_update
 from stereo.block.bundle.variance import VCE_FACTOR_BOUNDS, VCE_MAX_ROUNDS, VCE_MIN_REDUNDANCY, weak_components
 from stereo.block.types import BlockControl, GnssObservations, Pose, Tracks, cameras_for
 
@@ -105,7 +109,9 @@ class BundleOptions:
     variance_components : bool
         Estimate a variance factor per observation group (iteratively).
     max_iterations : int
-        Limit of the Gauss-Newton/Levenberg-Marquardt iterations (per variance round).
+        Limit of the Gauss-Newton/Levenberg-Marquardt iterations, over all variance-component rounds
+        (a round that would need more is not run, or not kept: the solution of the round before is, with
+        a warning).
     tolerance : float
         Converged when every correction is below ``tolerance`` times the unknown's a-priori
         standard deviation ``1 / sqrt(N_ii)``.
@@ -431,10 +437,11 @@ def _setup(cameras: Mapping[str, Camera], poses: Sequence[Pose], tracks: Tracks,
             raise EstimationError(
                 f"datum defect: {len(prob.g_img)} GNSS positions, {has_plan} plan and {has_height} height control "
                 "points cannot fix shift, rotation and scale of the block; give control points (>= 2 plan, >= 3 "
-                "height) or GNSS positions (>= 3 images), or set free_network")
+                "height) or GNSS positions (>= 3 images), or adjust a free network (--free-network)")
         free = True
         if prob.lever is not None:
-            raise InvalidInputError("free_network with a GNSS lever arm is not supported; give no lever arm")
+            raise InvalidInputError("a free network (--free-network) with a GNSS lever arm is not supported; give no "
+                                    "lever arm")
         _minimum_constraints(prob, st)
     # points in front of the cameras at the start
     lin = bs.evaluate(prob, st, jacobian=False)
@@ -499,50 +506,6 @@ def _combine(a: bs.Weights, b: bs.Weights) -> bs.Weights:
     return bs.Weights(a.image * b.image, a.gnss * b.gnss, a.ins * b.ins, a.control * b.control)
 
 
-def _local_redundancy(prob: bs.Problem) -> F64:
-    """(M, 1) approximate redundancy of an image coordinate: (2 m - 3) / (2 m) for a point with m rays."""
-    m = prob.pt_count[prob.obs_pt].astype(np.float64)
-    return np.asarray(((2 * m - 3) / (2 * m))[:, None], dtype=np.float64)
-
-
-def _standardised(g: str, v: F64, w0: F64, rloc: F64, rbar: float) -> F64:
-    """Standardised residuals of a group before the robust scale: v / (sigma sqrt(r)); the image group gives
-    one value per observation (the RMS of its two coordinates), so a measurement is reweighted as a whole."""
-    if g == "image":
-        u = v * np.sqrt(w0) / np.sqrt(rloc)
-        return np.asarray(np.repeat(np.sqrt(np.mean(u ** 2, axis=1))[:, None], 2, axis=1), dtype=np.float64)
-    return np.asarray(v * np.sqrt(w0) / math.sqrt(rbar), dtype=np.float64)
-
-
-def _robust_scales(res: bs.Residuals, base: bs.Weights, groups: tuple[str, ...], rloc: F64,
-                   rbar: float) -> dict[str, float]:
-    """Scale of each group: max(1, robust scale of the standardised residuals), fixed during one IRLS run."""
-    out = {}
-    for g in groups:
-        v, w0 = getattr(res, g), getattr(base, g)
-        used = w0 > 0
-        s = robust_scale(_standardised(g, v, w0, rloc, rbar), mask=used) if used.any() else 0.0
-        out[g] = max(1.0, s)
-    return out
-
-
-def _robust_update(psi: object, res: bs.Residuals, base: bs.Weights, scales: Mapping[str, float], rloc: F64,
-                   rbar: float, old: bs.Weights) -> bs.Weights:
-    """IRLS weights psi(u) / u of the standardised residuals u (divided by the group's scale)."""
-    out = bs.Weights(old.image.copy(), old.gnss.copy(), old.ins.copy(), old.control.copy())
-    for g, s in scales.items():
-        v = getattr(res, g)
-        w0 = getattr(base, g)
-        if v.size == 0:
-            continue
-        used = w0 > 0
-        u = _standardised(g, v, w0, rloc, rbar) / s
-        # a floor keeps every point determined when all its rays are rejected
-        w = np.where(used, np.maximum(psi.weight(u), 1e-4), 1.0)  # type: ignore[attr-defined]
-        setattr(out, g, w)
-    return out
-
-
 def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: object | None,
              robust_w: bs.Weights, options: BundleOptions, progress: Callable[[int, int], None] | None,
              info: _Info, *, robust_from_start: bool, limit: int, done: int = 0, total: int | None = None,
@@ -568,7 +531,7 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
     nobs = 2 * len(prob.obs_pt) + prob.g_pos.size + prob.i_ang.size + int(np.isfinite(prob.c_sigma).sum())
     rbar = max(nobs - prob.n_c - 3 * prob.n_points, 1) / nobs
     scales: dict[str, float] | None = None
-    rloc = _local_redundancy(prob)
+    rloc = local_redundancy(prob)
     flat, last_cost = 0, math.inf
     total = total if total is not None else limit
     lin: bs.Linear | None = None
@@ -579,8 +542,8 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
         dw = 0.0
         if robust_on:
             if scales is None:
-                scales = _robust_scales(lin.res, base, options.robust_groups, rloc, rbar)
-            new_rw = _robust_update(cur_psi, lin.res, base, scales, rloc, rbar, robust_w)
+                scales = robust_scales(lin.res, base, options.robust_groups, rloc, rbar)
+            new_rw = robust_update(cur_psi, lin.res, base, scales, rloc, rbar, robust_w)
             dw = max(float(np.max(np.abs(new_rw.image - robust_w.image), initial=0.0)),
                      float(np.max(np.abs(new_rw.gnss - robust_w.gnss), initial=0.0)),
                      float(np.max(np.abs(new_rw.control - robust_w.control), initial=0.0)))
@@ -829,13 +792,13 @@ def _result(prob: bs.Problem, st: bs.State, info: _Info, factors: Mapping[str, f
         bad = (np.nan_to_num(zc) > options.blunder_threshold).any(axis=1) | (robust_w.control < 0.1).any(axis=1)
         flagged_control = [info.control.ids[info.control_rows[i]] for i in np.flatnonzero(bad & ctrl_ok)
                            ] if info.control is not None else []
-    # check points: compared only where the images determine them
+    # check points: not compared when every ray was flagged (the point is then determined by no measurement)
     check_ids: tuple[str, ...] = ()
     rejected_check: tuple[str, ...] = ()
     check_err = np.zeros((0, 3))
     check_std = np.zeros((0, 3))
     if info.control is not None and len(info.check_rows):
-        chk_ok = determined[info.check_pt]
+        chk_ok = n_good[info.check_pt] > 0
         rows, pts = info.check_rows[chk_ok], info.check_pt[chk_ok]
         check_ids = tuple(info.control.ids[i] for i in rows)
         rejected_check = tuple(info.control.ids[i] for i in info.check_rows[~chk_ok])
@@ -852,8 +815,8 @@ def _result(prob: bs.Problem, st: bs.State, info: _Info, factors: Mapping[str, f
                      "as blunders; it is not counted")
     for cid in rejected_check:
         k = by_id[cid]
-        warns.append(f"check point {cid} rejected: {int(n_good[k])} of its {int(n_rays[k])} image observations "
-                     f"not flagged as blunders (two are needed); it is not compared")
+        warns.append(f"check point {cid} rejected: all {int(n_rays[k])} of its image observations were flagged as "
+                     "blunders; it is not compared")
     warns.extend(notes)
     if not converged:
         warns.append("the adjustment did not converge")

@@ -75,8 +75,8 @@ class BundleResult:
         Control points whose standardised residual exceeds the threshold.
     check_ids, check_errors, check_std
         Check points, adjusted minus given coordinates (C, 3), m, and the predicted standard
-        error of that difference (C, 3), m. A check point with fewer than two rays not flagged is
-        not among them (``rejected_check``).
+        error of that difference (C, 3), m. A check point all of whose rays were flagged is not
+        among them (``rejected_check``).
     gnss_residuals : (g, 3) float64
         GNSS observed minus adjusted antenna positions, m.
     iterations : int
@@ -90,8 +90,8 @@ class BundleResult:
         Of the Jacobi-scaled reduced camera system (NaN when not computed).
     warnings : tuple of str
     rejected_control, rejected_check : tuple of str
-        Control points all of whose rays were flagged as blunders, and check points with fewer
-        than two rays not flagged: not used, not counted, named in ``warnings``.
+        Control and check points all of whose rays were flagged as blunders: not used, not
+        counted, named in ``warnings``.
     points_determined : (P,) bool
         Points finite and seen by at least two rays not flagged as blunders (the points a block
         writes; the datum statement's figures are of these).
@@ -192,7 +192,7 @@ class BundleResult:
                        + (f"; rejected (every ray flagged as a blunder): {list(self.rejected_control)}"
                           if self.rejected_control else ""))
         if self.rejected_check:
-            out.append(f"check points rejected (fewer than two rays not flagged): {list(self.rejected_check)}")
+            out.append(f"check points rejected (every ray flagged as a blunder): {list(self.rejected_check)}")
         if len(self.check_ids):
             e = self.check_errors
             out.append(f"check: {len(self.check_ids)} points, RMS error x {np.sqrt(np.mean(e[:, 0] ** 2)):.3f} "
