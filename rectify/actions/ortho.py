@@ -426,7 +426,7 @@ def ortho(ws: Workspace, src: str | Path, dst: str | Path, dem_path: str | Path,
     convert = use_rpc or (eo_vertical is not None and eo_vertical.ellipsoidal)
     dem = Dem.from_path(dem_path, undulation=o.undulation, geoid=o.geoid, convert_declared=convert)
     target = model_heights(use_rpc, eo_vertical, dem)
-    heights = {"heights": f"{dem.datum} -> {target.label}"}
+    heights = {"heights": f"{dem.datum}; the model takes {target.label}"}
     ground_check = None
     info = raster_info(src)
     if use_rpc:

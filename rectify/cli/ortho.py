@@ -18,7 +18,7 @@ report_opt = click.option("--report", "report_dir", type=click.Path(file_okay=Fa
 @click.argument("src", type=click.Path(dir_okay=False))
 @click.option("-o", "--output", "dst", type=click.Path(dir_okay=False), required=True, help="Output GeoTIFF.")
 @click.option("--dem", "dem_path", type=click.Path(dir_okay=False), required=True,
-              help="DEM GeoTIFF (any CRS and resolution).")
+              help="DEM GeoTIFF (any CRS and resolution; a compound CRS, e.g. EPSG:4326+3855, declares its heights).")
 @click.option("--rpc", "rpc", is_flag=False, flag_value="__image__", default=None,
               help="Use the image's RPC (bare --rpc) or an RPC file (_RPC.TXT, .RPB, DIMAP/DigitalGlobe XML).")
 @click.option("--camera", type=click.Path(dir_okay=False), default=None,
@@ -28,7 +28,7 @@ report_opt = click.option("--report", "report_dir", type=click.Path(file_okay=Fa
                    "('stereo block'; the image by --image-id).")
 @click.option("--image-id", default=None,
               help="Image of a block orientation JSON or poses CSV (its name or file stem; default: SRC's file stem).")
-@click.option("--eo-crs", default=None, help="CRS of the exterior orientation (when the JSON has none).")
+@click.option("--eo-crs", default=None, help="CRS of the exterior orientation (overrides the file's 'crs').")
 @click.option("--gcps", type=click.Path(dir_okay=False), default=None,
               help="GCP file: refines an RPC (bias compensation) or checks a frame model.")
 @click.option("--refinement", type=click.Choice(["shift", "drift", "affine"]), default="shift", show_default=True,

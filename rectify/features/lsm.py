@@ -293,10 +293,10 @@ def refine_matches(left_img: ArrayLike, right_img: ArrayLike, left_xy: ArrayLike
         if A0.shape != (n, 2, 2) or not np.isfinite(A0).all():
             raise ShapeError(f"`affine` must be finite (N, 2, 2) or (2, 2) with N={n}; got {np.shape(affine)}",
                              actual_shape=np.shape(affine), expected_shape=(n, 2, 2))
-    lim = np.zeros(n) if shift_limit_px is None else np.asarray(shift_limit_px, dtype=np.float64).reshape(-1)
+    lim = np.zeros(n) if shift_limit_px is None else np.asarray(shift_limit_px, dtype=np.float64)
     if lim.shape != (n,):
-        raise ShapeError(f"`shift_limit_px` must have shape ({n},); got {np.shape(shift_limit_px)}",
-                         actual_shape=np.shape(shift_limit_px), expected_shape=(n,))
+        raise ShapeError(f"`shift_limit_px` must have shape ({n},); got {lim.shape}", actual_shape=lim.shape,
+                         expected_shape=(n,))
     lim = np.where(np.isfinite(lim), lim, 0.0)
     out_r = pr.copy()
     conv = np.zeros(n, dtype=bool)
@@ -306,15 +306,16 @@ def refine_matches(left_img: ArrayLike, right_img: ArrayLike, left_xy: ArrayLike
     aff = np.array(A0, dtype=np.float64, copy=True)
     chunk = max(1, int(chunk))
     groups = _scale_groups(A0, cfg) if n else []
-    views = {}
-    for g in groups:      # the (blurred) images of each scale group, prepared once
-        views[g.level] = _ScaleView(R, g.level, cfg)
+    views: dict[int, _ScaleView] = {}
+    plain = _Sampler(R, cfg.sampler)
+    for g in groups:      # the (low-passed) right image of each scale group, prepared once
+        views[g.level] = _ScaleView(R, g.level, cfg, plain)
     spans = [(g.level, g.idx[s:s + chunk]) for g in groups for s in range(0, len(g.idx), chunk)]
 
     def run(span: tuple[int, NDArray[np.int64]]):
         level, idx = span
         v = views[level]
-        return _refine_chunk(L, v.sample, pl[idx], pr[idx], np.array(A0[idx]), cfg, v.scale, lim[idx])
+        return _refine_chunk(L, v.sample, pl[idx], pr[idx], np.array(A0[idx]), cfg, v.scale, lim[idx], v.radius)
 
     nw = max(1, min(int(workers) if workers else (os.cpu_count() or 1), len(spans), 4))
     done = 0
@@ -353,33 +354,45 @@ class _Group(NamedTuple):
 
 
 def _scale_groups(A0: NDArray[np.float64], cfg: LsmConfig) -> list[_Group]:
-    """Matches grouped by the scale of their start affine, s = sqrt|det A|, in half-octave steps where the right
-    image is finer (level round(2 log2 s) > 0); every other match is in group 0 (one group of all the matches
-    when ``cfg.scale_windows`` is off)."""
+    """Matches grouped by the scale of their start affine in half-octave steps: level round(2 log2 s) of its
+    smaller singular value s where that is above 1 (the right image finer in every direction), of its larger one
+    where that is below 1 (coarser in every direction), else 0 (a foreshortened, anisotropic window keeps its
+    size); one group of all the matches when ``cfg.scale_windows`` is off."""
     n = len(A0)
     if not cfg.scale_windows:
         return [_Group(0, np.arange(n))]
-    lv = np.clip(_scale_level(A0), 0, 8)
+    lv = np.clip(_scale_level(A0), -4, 8)
     return [_Group(int(v), np.flatnonzero(lv == v)) for v in np.unique(lv)]
 
 
 def _scale_level(A: NDArray[np.float64]) -> NDArray[np.int64]:
-    """round(2 log2 sqrt|det A|) = round(log2 |det A|) of (N, 2, 2) affines (0 where singular)."""
-    det = np.abs(A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0])
+    """The scale level of (N, 2, 2) affines (see :func:`_scale_groups`; 0 where not finite)."""
+    a, b, c, d = A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1]
+    # singular values of [[a, b], [c, d]]: sqrt((q +- sqrt(q^2 - 4 det^2)) / 2), q = a^2 + b^2 + c^2 + d^2
+    q = a * a + b * b + c * c + d * d
+    det = a * d - b * c
+    root = np.sqrt(np.maximum(q * q - 4 * det * det, 0.0))
+    s_max = np.sqrt(0.5 * (q + root))
+    s_min = np.sqrt(np.maximum(0.5 * (q - root), 0.0))
     with np.errstate(divide="ignore", invalid="ignore"):
-        return np.asarray(np.rint(np.log2(np.where(det > 0, det, 1.0))), dtype=np.int64)
+        up = np.rint(2 * np.log2(s_min))
+        down = np.rint(2 * np.log2(s_max))
+    lv = np.where(up > 0, up, np.where(down < 0, down, 0.0))
+    return np.where(np.isfinite(lv), lv, 0).astype(np.int64)
 
 
 class _ScaleView:
-    """The right image one scale group is sampled in: as it is (level 0), or, where it is finer by
-    s = 2 ** (level / 2), low-passed by ``PIXEL_SIGMA * sqrt(s^2 - 1)`` to the left image's resolution."""
+    """How one scale group (s = 2 ** (level / 2)) is matched: where the right image is finer (level > 0), in the
+    right image low-passed by ``PIXEL_SIGMA * sqrt(s^2 - 1)`` to the left one's resolution; where it is coarser
+    (level < 0), with a template of radius ``radius_px / s`` (at most 3 ``radius_px``), so that the right
+    window keeps about ``2 radius_px + 1`` pixels across."""
 
-    def __init__(self, R: NDArray[np.float32], level: int, cfg: LsmConfig):
+    def __init__(self, R: NDArray[np.float32], level: int, cfg: LsmConfig, plain: _Sampler):
         s = 2.0 ** (level / 2.0)
         self.scale = s
-        if level > 0:
-            R = _blur(R, PIXEL_SIGMA * math.sqrt(s * s - 1.0))
-        self.sample = _Sampler(R, cfg.sampler)
+        r = int(cfg.radius_px)
+        self.radius = min(3 * r, int(math.ceil(r / s))) if level < 0 else r
+        self.sample = _Sampler(_blur(R, PIXEL_SIGMA * math.sqrt(s * s - 1.0)), cfg.sampler) if level > 0 else plain
 
 
 def _blur(img: NDArray[np.float32], sigma: float) -> NDArray[np.float32]:
@@ -605,8 +618,8 @@ LATE_TOL_FACTOR = 3.0
 
 
 def _refine_chunk(L: NDArray[np.float32], sample: _Sampler, pl, pr, A, cfg: LsmConfig, scale: float = 1.0,
-                  shift_limit: NDArray[np.float64] | None = None):
-    r = int(cfg.radius_px)
+                  shift_limit: NDArray[np.float64] | None = None, radius: int | None = None):
+    r = int(cfg.radius_px if radius is None else radius)
     n1 = 2 * r + 1
     ux, uy = _window(r)
     m = len(pl)

@@ -8,12 +8,10 @@ selection, the result) are shared with the tiled path (:mod:`.tiled`).
 
 from __future__ import annotations
 
-import enum
 import logging
 import math
 import os
 import time
-import warnings
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -26,8 +24,19 @@ from numpy.typing import ArrayLike, NDArray
 from rectify.errors import EstimationError, InvalidInputError
 from rectify.features.detect import DETECTORS, Features, detect, grid_select
 from rectify.features.lsm import LsmConfig, refine_matches
-from rectify.geometry.points import Matches, as_pair
-from rectify.geometry.residuals import ResidualTable, rms
+from rectify.features.shape import local_affine as _local_affine
+from rectify.features.verify import (
+    VERIFY_METHODS,
+    Verification,
+    Verify,
+    _apply_h,
+    _errors,
+    screen_refined,
+    table_for,
+    verify_matches,
+)
+from rectify.geometry.points import Matches
+from rectify.geometry.residuals import rms
 
 __all__ = ["VERIFY_METHODS", "MatcherConfig", "MatchResult", "ProgressFn", "Verification", "Verify", "match_arrays",
            "match_descriptors", "verify_matches"]
@@ -41,15 +50,6 @@ logger = logging.getLogger(__name__)
 #: guided re-admission recovers them) for 0.2 s on the 2000 px pair.
 FLANN_CHECKS = 64
 FLANN_BACK_CHECKS = 64
-
-
-class Verify(str, enum.Enum):
-    HOMOGRAPHY = "homography"
-    FUNDAMENTAL = "fundamental"
-    NONE = "none"
-
-
-VERIFY_METHODS = tuple(v.value for v in Verify)
 
 
 @dataclass(frozen=True)
@@ -171,34 +171,6 @@ class MatcherConfig:
             raise InvalidInputError(f"min_inliers must be >= 4; got {self.min_inliers!r}")
         if self.overview_px < 64:
             raise InvalidInputError(f"overview_px must be >= 64; got {self.overview_px!r}")
-
-
-@dataclass(frozen=True, eq=False)
-class Verification:
-    """Result of geometric verification.
-
-    Attributes
-    ----------
-    method : str
-    matrix : (3, 3) float64 or None
-        H_right_from_left (homography) or F with x_r^T F x_l = 0 (fundamental).
-    inliers : (N,) bool
-    errors_px : (N,) float64
-        Transfer error |H x_l - x_r| (homography) or Sampson distance
-        (fundamental), px; NaN for ``none``.
-    table : ResidualTable or None
-    """
-
-    method: str
-    matrix: NDArray[np.float64] | None
-    inliers: NDArray[np.bool_]
-    errors_px: NDArray[np.float64]
-    table: ResidualTable | None
-
-    @property
-    def rmse_px(self) -> float:
-        e = self.errors_px[self.inliers]
-        return rms(e) if e.size and np.isfinite(e).all() else float("nan")
 
 
 @dataclass(frozen=True, eq=False)
@@ -459,209 +431,7 @@ def _guided(fl: Features, fr: Features, pairs: _Pairs, inl: NDArray[np.bool_], f
     return _Pairs(li[sel], ri[sel], rs[sel])
 
 
-# --------------------------------------------------------------------------- verification
-def _sampson_vectors(F: NDArray[np.float64], pl: NDArray[np.float64], pr: NDArray[np.float64]
-                     ) -> NDArray[np.float64]:
-    """First-order (Sampson) corrections (N, 4) to (xl, yl, xr, yr); their norm is the Sampson distance."""
-    xl = np.c_[pl, np.ones(len(pl))]
-    xr = np.c_[pr, np.ones(len(pr))]
-    Fx = xl @ F.T          # F x_l
-    Ftx = xr @ F           # F^T x_r
-    e = np.sum(xr * Fx, axis=1)
-    den = Fx[:, 0] ** 2 + Fx[:, 1] ** 2 + Ftx[:, 0] ** 2 + Ftx[:, 1] ** 2
-    k = -e / np.where(den > 0, den, np.nan)
-    return k[:, None] * np.c_[Ftx[:, 0], Ftx[:, 1], Fx[:, 0], Fx[:, 1]]
-
-
-def _apply_h(H: NDArray[np.float64], p: NDArray[np.float64]) -> NDArray[np.float64]:
-    q = np.c_[p, np.ones(len(p))] @ H.T
-    return q[:, :2] / q[:, 2:]
-
-
-def verify_matches(left_xy: ArrayLike, right_xy: ArrayLike, *, method: str = "homography",
-                   threshold_px: float = 1.5, ids: list[str] | None = None, seed: int = 0,
-                   max_iters: int = 10000, confidence: float = 0.9999) -> Verification:
-    """Geometric verification with OpenCV USAC (MAGSAC++).
-
-    Parameters
-    ----------
-    left_xy, right_xy : (N, 2) array_like
-        Matched positions, px.
-    method : {"homography", "fundamental", "none"}
-    threshold_px : float
-        USAC threshold, px.
-    ids : list of str, optional
-        Point ids for the residual table (default "1".."N").
-
-    Returns
-    -------
-    Verification
-        For ``homography`` the residual table holds the transfer error in the
-        right image (observed x_r, adjusted H x_l); for ``fundamental`` the
-        Sampson correction of (x_l, y_l, x_r, y_r), whose norm is the Sampson
-        distance. Non-inliers are flagged as outliers.
-
-    Raises
-    ------
-    EstimationError
-        Fewer than the minimal number of matches, or USAC finds no model.
-    """
-    if method not in VERIFY_METHODS:
-        raise InvalidInputError(f"unknown verification {method!r}; choose from {VERIFY_METHODS}")
-    pl, pr = as_pair(left_xy, right_xy, names=("left_xy", "right_xy"))
-    n = len(pl)
-    ids = [str(i + 1) for i in range(n)] if ids is None else list(ids)
-    if method == "none":
-        return Verification("none", None, np.ones(n, dtype=bool), np.full(n, np.nan), None)
-    need = 4 if method == "homography" else 8
-    if n < need:
-        raise EstimationError(f"{method} verification needs at least {need} matches; got {n}")
-    cv2.setRNGSeed(int(seed))
-    params_thr = float(threshold_px)
-    try:
-        if method == "homography":
-            M, mask = cv2.findHomography(pl, pr, cv2.USAC_MAGSAC, params_thr, maxIters=max_iters,
-                                         confidence=confidence)
-        else:
-            M, mask = cv2.findFundamentalMat(pl, pr, cv2.USAC_MAGSAC, params_thr, confidence, max_iters)
-    except cv2.error as exc:
-        raise EstimationError(f"USAC {method} estimation failed on {n} matches: {exc}") from exc
-    if M is None or mask is None or M.shape != (3, 3):
-        raise EstimationError(f"USAC found no {method} consistent with {n} matches")
-    Mf: NDArray[np.float64] = np.asarray(M, dtype=np.float64)
-    if method == "homography":
-        pred = _apply_h(Mf, pl)
-        err = np.linalg.norm(pred - pr, axis=1)
-        inl = mask.ravel().astype(bool) & (err <= max(2.5 * threshold_px, threshold_px + 1))
-        table = ResidualTable(f"match verification ({method})", ids, pr, pred, "px", ("dx", "dy"),
-                              outlier=~inl, position_px=pl, n_params=8,
-                              extra={"threshold_px": float(threshold_px)})
-    else:
-        d = _sampson_vectors(Mf, pl, pr)
-        err = np.linalg.norm(d, axis=1)
-        err = np.where(np.isfinite(err), err, np.inf)
-        inl = mask.ravel().astype(bool) & (err <= max(2.5 * threshold_px, threshold_px + 1))
-        obs = np.c_[pl, pr]
-        table = ResidualTable(f"match verification ({method})", ids, obs, obs + np.nan_to_num(d), "px",
-                              ("dx_left", "dy_left", "dx_right", "dy_right"), outlier=~inl,
-                              position_px=pl, n_params=7, extra={"threshold_px": float(threshold_px)})
-    return Verification(method, Mf, inl, err, table)
-
-
 # --------------------------------------------------------------------------- helpers
-def _local_affine(pl: NDArray[np.float64], pr: NDArray[np.float64], ver: Verification | None,
-                  k: int = 12, *, keypoints: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
-    """Initial local shape d(right)/d(left) at every match, (N, 2, 2).
-
-    Homography: its Jacobian. Otherwise a robust affine fit to the k nearest matches, checked against
-    the keypoints' own similarity (``keypoints``: (N, 4) size and orientation, radians, in the left and the
-    right image; the right keypoint is the left one turned by the difference of the orientations and scaled
-    by the ratio of the sizes), the median of the neighbours' similarities replacing the fit where the
-    two disagree by more than :data:`AFFINE_MAX_TURN` or :data:`AFFINE_MAX_SCALE` (too few or badly placed
-    neighbours, a wrong one among them). Without keypoints, identity where the fit fails.
-    """
-    n = len(pl)
-    if ver is not None and ver.method == "homography" and ver.matrix is not None:
-        return _h_jacobian(ver.matrix, pl)
-    kp = None if keypoints is None else _keypoint_similarity(np.asarray(keypoints, dtype=np.float64))
-    if n < 6:
-        if kp is None:
-            return np.broadcast_to(np.eye(2), (n, 2, 2)).copy()
-        return _similarity_matrix(np.repeat(_median_similarity(kp[None]), n, axis=0))
-    # local import: scipy.spatial takes about 0.6 s to import and only this fallback needs it
-    from scipy.spatial import cKDTree
-
-    kk = min(k, n)
-    _, nb = cKDTree(pl).query(pl, k=kk)
-    A = _neighbour_affine(pl, pr, nb)
-    bad = ~np.isfinite(A).all(axis=(1, 2)) | (np.abs(np.linalg.det(A)) < 0.05)
-    A[bad] = np.eye(2)
-    if kp is None:
-        return A
-    S = _median_similarity(kp[nb])              # (n, 2): the neighbours' median (s cos, s sin)
-    off = bad | _disagree(A, S)
-    A[off] = _similarity_matrix(S[off])
-    return A
-
-
-#: the neighbours' affine fit gives way to the keypoints' similarity when their rotations differ by more than
-#: this (radians) or their scales by more than this factor
-AFFINE_MAX_TURN = math.radians(20.0)
-AFFINE_MAX_SCALE = 1.3
-
-
-def _keypoint_similarity(kp: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(N, 2) similarity (s cos a, s sin a) of each match from its keypoints (size_l, angle_l, size_r, angle_r):
-    s = size_r / size_l, a = angle_r - angle_l (OpenCV's orientations: the right point is the left one
-    turned by a in the x right, y down frame). NaN where an orientation or a size is missing."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = kp[:, 2] / kp[:, 0]
-    a = kp[:, 3] - kp[:, 1]
-    return np.c_[s * np.cos(a), s * np.sin(a)]
-
-
-def _median_similarity(S: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Component-wise median over axis 1 of (n, k, 2) similarities, ignoring NaN (identity where none)."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)     # all-NaN slices: identity below
-        m = np.nanmedian(S, axis=1)
-    bad = ~np.isfinite(m).all(axis=1) | (np.hypot(m[:, 0], m[:, 1]) < 1e-3)
-    m[bad] = [1.0, 0.0]
-    return m
-
-
-def _similarity_matrix(S: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(n, 2, 2) matrices [[c, -s], [s, c]] of similarities (n, 2) = (c, s)."""
-    out = np.empty((len(S), 2, 2))
-    out[:, 0, 0] = out[:, 1, 1] = S[:, 0]
-    out[:, 0, 1] = -S[:, 1]
-    out[:, 1, 0] = S[:, 1]
-    return out
-
-
-def _disagree(A: NDArray[np.float64], S: NDArray[np.float64]) -> NDArray[np.bool_]:
-    """Where the affines A (n, 2, 2) and the similarities S (n, 2) differ in rotation or scale."""
-    # the similarity closest to A: c = (a00 + a11) / 2, s = (a10 - a01) / 2
-    c = 0.5 * (A[:, 0, 0] + A[:, 1, 1])
-    sn = 0.5 * (A[:, 1, 0] - A[:, 0, 1])
-    turn = np.abs(np.angle((c + 1j * sn) / (S[:, 0] + 1j * S[:, 1])))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = np.sqrt(np.abs(np.linalg.det(A))) / np.hypot(S[:, 0], S[:, 1])
-    return ~np.isfinite(ratio) | (turn > AFFINE_MAX_TURN) | (ratio > AFFINE_MAX_SCALE) | (ratio < 1 / AFFINE_MAX_SCALE)
-
-
-def _neighbour_affine(pl: NDArray[np.float64], pr: NDArray[np.float64], nb: NDArray[np.int64]
-                      ) -> NDArray[np.float64]:
-    """Affine d(right)/d(left) (n, 2, 2) fitted to each match's neighbours ``nb`` (n, k) by least squares, then
-    again without the neighbours whose residual exceeds 3 times the median one (a wrong match among them)."""
-    w = np.ones(nb.shape)
-    B = np.zeros((len(nb), 2, 2))
-    for _ in range(2):
-        sw = w.sum(axis=1, keepdims=True)
-        mx = np.einsum("nk,nki->ni", w, pl[nb])[:, None] / sw[:, :, None]
-        my = np.einsum("nk,nki->ni", w, pr[nb])[:, None] / sw[:, :, None]
-        X = pl[nb] - mx
-        Y = pr[nb] - my
-        XtX = np.einsum("nk,nki,nkj->nij", w, X, X) + 1e-9 * np.eye(2)
-        XtY = np.einsum("nk,nki,nkj->nij", w, X, Y)
-        with np.errstate(invalid="ignore"):
-            B = np.linalg.solve(XtX, XtY)                  # Y ~ X @ B -> A = B^T
-        res = np.linalg.norm(np.einsum("nki,nij->nkj", X, B) - Y, axis=2)
-        med = np.median(res, axis=1, keepdims=True)
-        w = (res <= 3.0 * med + 1e-6).astype(np.float64)
-    return np.transpose(B, (0, 2, 1))
-
-
-def _h_jacobian(H: NDArray[np.float64], p: NDArray[np.float64]) -> NDArray[np.float64]:
-    q = np.c_[p, np.ones(len(p))] @ H.T
-    w = q[:, 2]
-    J = np.empty((len(p), 2, 2))
-    for i in range(2):
-        for j in range(2):
-            J[:, i, j] = (H[i, j] * w - q[:, i] * H[2, j]) / (w * w)
-    return J
-
-
 def _grey_float(data: NDArray, valid: NDArray[np.bool_]) -> NDArray[np.float32]:
     g = data.astype(np.float32).mean(axis=2) if data.ndim == 3 else data.astype(np.float32)
     g[~valid] = np.nan
@@ -899,87 +669,13 @@ def _reverify_and_cap(pl, pr, raw_pr, score, cfg: MatcherConfig, shape_left):
     pl, pr, raw_pr, score = pl[m], pr[m], raw_pr[m], score[m]
     n_screened = 0
     if cfg.refine:
-        ver, pl, pr, raw_pr, score, n_screened = _screen_refined(ver, pl, pr, raw_pr, score, cfg)
+        ver, pl, pr, raw_pr, score, n_screened = screen_refined(
+            ver, pl, pr, raw_pr, score, threshold_px=cfg.threshold_px, min_inliers=cfg.min_inliers,
+            keep_unrefined=cfg.keep_unrefined, seed=cfg.seed)
     keep = _final_select(pl, pr, score, shape_left, cfg.max_matches, cfg.cell_cap)
     pl, pr, raw_pr, score = pl[keep], pr[keep], raw_pr[keep], score[keep]
     # the residual table of exactly the returned matches, with the same model
-    ver = _table_for(ver, pl, pr, cfg, refined=np.isfinite(score) if cfg.refine else None)
+    ver = table_for(ver, pl, pr, threshold_px=cfg.threshold_px, refined=np.isfinite(score) if cfg.refine else None)
     return pl, pr, raw_pr, score, ver, n_dup, n_screened
 
 
-#: Screening of refined matches (issue 30): a refined match whose verification residual exceeds this many times
-#: the median of the refined matches' residuals, each divided by its LSM standard deviation, is a wrong
-#: convergence (the 99.9 % point of the residual's distribution when it is Gaussian: the Sampson distance is the
-#: size of one Gaussian component, |N(0, s)|, median 0.674 s, 99.9 % point 3.29 s; the transfer error of a
-#: homography is the length of a 2D one, Rayleigh, median 1.177 s, 99.9 % point 3.72 s).
-SCREEN_RATIO = {"fundamental": 3.29 / 0.674, "homography": 3.72 / 1.177}
-#: floor of the LSM standard deviation in the screening (px): windows of strong texture report a few
-#: thousandths of a pixel, below what the model and the images hold
-SCREEN_STD_FLOOR_PX = 0.02
-
-
-def _errors(method: str, M: NDArray[np.float64], pl, pr) -> NDArray[np.float64]:
-    """Verification residual of each match (px): transfer error (homography) or Sampson distance (fundamental)."""
-    if method == "homography":
-        e = np.linalg.norm(_apply_h(M, pl) - pr, axis=1)
-    else:
-        e = np.linalg.norm(_sampson_vectors(M, pl, pr), axis=1)
-    return np.where(np.isfinite(e), e, np.inf)
-
-
-def _screen_refined(ver: Verification, pl, pr, raw_pr, score, cfg: MatcherConfig):
-    """The model re-fitted to the refined matches alone, and the refined matches it shows to be wrong convergences.
-
-    Refined matches (finite ``score``, the LSM standard deviation) whose residual exceeds
-    :data:`SCREEN_RATIO` times the median normalised residual are moved back to their raw position as unrefined
-    matches (``keep_unrefined``, when the raw position passes the threshold) or dropped; unrefined matches farther
-    than ``threshold_px`` from the refined matches' model are dropped. Returns (verification, pl, pr, raw_pr,
-    score, number screened out)."""
-    ref = np.isfinite(score)
-    need = 4 if ver.method == "homography" else 8
-    if int(ref.sum()) < max(need, cfg.min_inliers):
-        return ver, pl, pr, raw_pr, score, 0
-    try:    # the model of the precise matches: the unrefined ones (0.3-0.5 px) no longer pull it
-        vr = verify_matches(pl[ref], pr[ref], method=ver.method, threshold_px=cfg.threshold_px, seed=cfg.seed)
-        M = vr.matrix if vr.matrix is not None and int(vr.inliers.sum()) >= need else ver.matrix
-    except EstimationError:
-        M = ver.matrix
-    if M is None:
-        return ver, pl, pr, raw_pr, score, 0
-    e = _errors(ver.method, M, pl, pr)
-    z = e / np.maximum(np.where(ref, score, 1.0), SCREEN_STD_FLOOR_PX)
-    cut = SCREEN_RATIO.get(ver.method, 5.0) * float(np.median(z[ref]))
-    bad = ref & ~(z <= cut)
-    e_raw = _errors(ver.method, M, pl, raw_pr)
-    back = bad & (e_raw <= cfg.threshold_px) & cfg.keep_unrefined
-    pr = np.where(back[:, None], raw_pr, pr)
-    score = np.where(back, np.nan, score)
-    keep = ~(bad & ~back) & (ref | (e_raw <= cfg.threshold_px))
-    ver = Verification(ver.method, M, np.ones(int(keep.sum()), bool), e[keep], None)
-    logger.debug("screening: %d of %d refined matches off the refined model (cut %.3g x std), %d kept unrefined",
-                 int(bad.sum()), int(ref.sum()), cut, int(back.sum()))
-    return ver, pl[keep], pr[keep], raw_pr[keep], score[keep], int(bad.sum())
-
-
-def _table_for(ver: Verification, pl, pr, cfg: MatcherConfig, refined: NDArray[np.bool_] | None = None
-               ) -> Verification:
-    """The verification of exactly the returned matches with ``ver``'s model: residual table and errors. With
-    ``refined``, the unrefined matches are check points of the table (withheld from its RMSE and sigma0)."""
-    ids = [str(i + 1) for i in range(len(pl))]
-    M = ver.matrix
-    if M is None:
-        raise InvalidInputError(f"verification {ver.method!r} has no model matrix")
-    check = None if refined is None else ~refined
-    if ver.method == "homography":
-        pred = _apply_h(M, pl)
-        err = np.linalg.norm(pred - pr, axis=1)
-        table = ResidualTable("match verification (homography)", ids, pr, pred, "px", ("dx", "dy"),
-                              position_px=pl, n_params=8, extra={"threshold_px": cfg.threshold_px}, check=check)
-    else:
-        d = _sampson_vectors(M, pl, pr)
-        err = np.linalg.norm(d, axis=1)
-        obs = np.c_[pl, pr]
-        table = ResidualTable("match verification (fundamental)", ids, obs, obs + d, "px",
-                              ("dx_left", "dy_left", "dx_right", "dy_right"), position_px=pl, n_params=7,
-                              extra={"threshold_px": cfg.threshold_px}, check=check)
-    return Verification(ver.method, M, np.ones(len(pl), bool), err, table)

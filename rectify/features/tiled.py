@@ -30,18 +30,18 @@ from numpy.typing import NDArray
 from rectify.features.detect import Features, detect, grid_select
 from rectify.features.lsm import refine_matches
 from rectify.features.match import (
+    SHIFT_PER_SIZE,
     MatcherConfig,
     MatchResult,
-    _apply_h,
     _check_blank,
     _grey_float,
-    _h_jacobian,
     _no_overlap,
     _result,
     _reverify_and_cap,
     _verify_checked,
     match_descriptors,
 )
+from rectify.features.verify import _apply_h, _h_jacobian
 from rectify.raster import io as rio
 from rectify.raster.distributed import Scheduler, resolve_scheduler, run_windows
 
@@ -295,26 +295,30 @@ class _TilePairs:
         pl = fl.xy[pairs.left] + [c0, r0]
         pr = fr.xy[pairs.right]
         ratio = pairs.ratio
+        size_r = fr.size[pairs.right]
         inside = (pl[:, 0] >= core[0]) & (pl[:, 0] < core[2]) & (pl[:, 1] >= core[1]) & (pl[:, 1] < core[3])
         ok = inside & (np.linalg.norm(_apply_h(H, pl) - pr, axis=1) < gate)
-        pl, pr, ratio = pl[ok], pr[ok], ratio[ok]
+        pl, pr, ratio, size_r = pl[ok], pr[ok], ratio[ok], size_r[ok]
         n_matched += len(pl)
         if not len(pl):
             return out()
         if len(pl) > self.quota:     # keep what the output can use, evenly over the tile core
             keep = grid_select(pl - [c0, r0], -ratio, (h, w), self.quota, cell_cap=cfg.cell_cap)
-            pl, pr, ratio = pl[keep], pr[keep], ratio[keep]
+            pl, pr, ratio, size_r = pl[keep], pr[keep], ratio[keep], size_r[keep]
         raw = pr.copy()
         score = ratio
         if cfg.refine:
-            m = int(cfg.lsm.radius_px) + 4
+            A = _h_jacobian(H, pl)
+            # the right windows' reach: the template's radius times the affine's largest row sum
+            reach = float(np.abs(A).sum(axis=2).max()) if len(A) else 1.0
+            m = int(math.ceil(cfg.lsm.radius_px * max(1.0, reach))) + 4
             bx0, by0 = np.floor(pr.min(axis=0)).astype(int) - m
             bx1, by1 = np.ceil(pr.max(axis=0)).astype(int) + m
             Rd, Rv = rio.read_window(right_path, bx0, by0, bx1 - bx0 + 1, by1 - by0 + 1)
             Lg = _grey_float(Ld, Lv)
             Rg = _grey_float(Rd, Rv)
-            A = _h_jacobian(H, pl)
-            lr = refine_matches(Lg, Rg, pl - [c0, r0], pr - [bx0, by0], affine=A, config=cfg.lsm)
+            lr = refine_matches(Lg, Rg, pl - [c0, r0], pr - [bx0, by0], affine=A, config=cfg.lsm,
+                                shift_limit_px=SHIFT_PER_SIZE * size_r)
             okr = lr.converged
             n_ref += int(okr.sum())
             n_fail += int((~okr).sum())

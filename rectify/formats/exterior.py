@@ -163,15 +163,18 @@ def _block_image(doc: dict[str, Any], path: StrPath, image_id: str, defaulted: b
         raise InvalidInputError(f"{str(path)!r}: `cameras` must be an object (camera id -> camera)")
     names = [str(im.get("image")) for im in images]
     im = images[_pick_image(names, image_id, path, "block orientation", defaulted=defaulted)]
-    where = f"{str(path)} image {im.get('image')!r}"
+    where = f"{str(path)!r} image {im.get('image')!r}"
     for key, shape in (("position", (3,)), ("rotation", (3, 3))):
         if key not in im:
-            raise InvalidInputError(f"{where!r} lacks {key!r}")
-        check_numbers(im, key, shape, where)
-    R = check_rotation(im["rotation"], "rotation")
+            raise InvalidInputError(f"{where} lacks {key!r}")
+        check_numbers(im, key, shape, path)
+    try:
+        R = check_rotation(im["rotation"], "rotation")
+    except RectifyError as err:
+        raise InvalidInputError(f"{where}: {err}") from err
     cam_id = str(im.get("camera"))
     if cam_id not in cameras or not isinstance(cameras[cam_id], dict):
-        raise InvalidInputError(f"{where!r} names camera {cam_id!r}, which is not in `cameras` {sorted(cameras)}")
+        raise InvalidInputError(f"{where} names camera {cam_id!r}, which is not in `cameras` {sorted(cameras)}")
     try:
         cam = Camera.from_dict(cameras[cam_id])
     except RectifyError as err:

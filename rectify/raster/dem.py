@@ -202,7 +202,7 @@ class Dem:
 
     def _lonlat_lattice(self, n: int) -> NDArray[np.float64]:
         """WGS 84 lon/lat of an n x n lattice of DEM pixel centres (the corners and centre for n = 3)."""
-        t = self.transform
+        t: Any = self.transform
         k = np.linspace(0.0, 1.0, n) if n > 1 else np.array([0.5])
         cc, rr = np.meshgrid(k * (self.width - 1), k * (self.height - 1))
         px = np.column_stack([cc.ravel(), rr.ravel()]) + 0.5

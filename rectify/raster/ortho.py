@@ -727,8 +727,9 @@ def orthorectify(src: str | Path, dst: str | Path, model: SensorModel, dem: Dem,
     relief = relief_shift(model, grid, engine.lattice_samples(), engine.stride)
     dt = time.perf_counter() - t0
     logger.info("ortho %s -> %s: %d x %d, %d tiles in %.2f s", src, dst, grid.width, grid.height, len(windows), dt)
-    return OrthoResult(Path(dst), grid, dt, len(windows), n_empty, dem.path, (lo, hi),
-                       relief.max if math.isfinite(relief.max) else 0.0, engine.n_occluded, nodata, type(model).__name__,
+    max_shift = relief.max if math.isfinite(relief.max) else 0.0
+    return OrthoResult(Path(dst), grid, dt, len(windows), n_empty, dem.path, (lo, hi), max_shift, engine.n_occluded,
+                       nodata, type(model).__name__,
                        {"true_ortho": opts.true_ortho, "visibility_band": count if opts.true_ortho else None,
                         "margin_px": margin, "dem_datum": dem.datum}, relief)
 
@@ -827,14 +828,15 @@ def relief_shift(model: SensorModel, grid: Grid, samples: NDArray[np.float64], s
     tr = Affine(t[0] * stride, 0.0, t[2], 0.0, t[4] * stride, t[5])
     a = np.asarray(samples, dtype=np.float64).reshape(-1, 3)
     a = a[np.isfinite(a).all(axis=1)]
+    gcrs = str(grid.crs)
     if not len(a):
         nan = float("nan")
         return ReliefShift(nan, 0, 0, nan, nan, nan, nan, shift_map, tr, stride)
     rows, cols, z = a[:, 0], a[:, 1], a[:, 2]
     h_ref = float(z.mean())
     world = np.column_stack([t[2] + t[0] * (cols + 0.5), t[5] + t[4] * (rows + 0.5)])
-    same = same_crs(grid.crs, model.crs)
-    ground = world if same else _xy_or_nan(grid.crs, model.crs, world)
+    same = same_crs(gcrs, model.crs)
+    ground = world if same else _xy_or_nan(gcrs, model.crs, world)
     pix = model.project(np.column_stack([ground, z]))
     dist = np.full(len(a), np.nan)
     ok = np.isfinite(pix).all(axis=1)
@@ -843,12 +845,12 @@ def relief_shift(model: SensorModel, grid: Grid, samples: NDArray[np.float64], s
         ok2 = np.isfinite(g).all(axis=1)
         idx = np.flatnonzero(ok)[ok2]
         if len(idx):
-            plane = g[ok2, :2] if same else _xy_or_nan(model.crs, grid.crs, g[ok2, :2])
+            plane = g[ok2, :2] if same else _xy_or_nan(model.crs, gcrs, g[ok2, :2])
             here = world[idx]
-            if unit_label(grid.crs) != "m":  # measure in metres: the UTM zone of the cells
-                c = transform_xy(grid.crs, "EPSG:4326", here[:1])[0]
+            if unit_label(gcrs) != "m":  # measure in metres: the UTM zone of the cells
+                c = transform_xy(gcrs, "EPSG:4326", here[:1])[0]
                 utm = _utm_for(float(c[0]), float(c[1]))
-                plane, here = _xy_or_nan(grid.crs, utm, plane), _xy_or_nan(grid.crs, utm, here)
+                plane, here = _xy_or_nan(gcrs, utm, plane), _xy_or_nan(gcrs, utm, here)
             dist[idx] = np.hypot(*(plane - here).T)
     fin = np.isfinite(dist)
     shift_map[(rows[fin] // stride).astype(np.intp), (cols[fin] // stride).astype(np.intp)] = dist[fin]

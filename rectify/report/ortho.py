@@ -44,6 +44,7 @@ def relief_figure(relief: ReliefShift) -> Figure:
     fig.colorbar(im, ax=ax, label="relief displacement removed (m)")
     ax.set_title(f"DEM vs a plane at {relief.h_ref:.1f} m: median {relief.median:.2f} m, max {relief.max:.2f} m"
                  if relief.n_cells else "no valid output cell", fontsize=9)
+    ax.ticklabel_format(useOffset=False, style="plain")
     ax.set_xlabel("x (output CRS)")
     ax.set_ylabel("y (output CRS)")
     fig.tight_layout()

@@ -44,6 +44,7 @@ from stereo.block.models import IndependentOptions
 from stereo.block.types import BlockControl, GnssObservations, Pose, Tracks
 from stereo.features.tracks import BlockMatchOptions, block_tie_points
 from stereo.formats.block import BlockControlTable, block_orientation_text, observations_text, read_block_control
+from stereo.formats.odm import detect_odm_gcps, read_odm_gcps
 from stereo.formats.opensfm import crs_label, read_opensfm
 from stereo.formats.points import LasWriter, dump_ply, points_csv_text
 from stereo.formats.poses import PoseTable, pose_csv_text, read_pose_csv
@@ -213,6 +214,7 @@ class _Inputs:
     gps_dop: NDArray[np.float64] | None = None  # (n,) their gps_dop, m
     pose_kind: str = ""  # "csv" or "opensfm"
     pose_name: str = ""
+    control_note: str = ""  # where the control came from, when not from --control's block CSV
 
 
 def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera | Mapping[str, Camera] | None,
@@ -225,9 +227,13 @@ def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera
     elif camera is not None:
         cameras = {DEFAULT_CAMERA: ws.load_camera(camera)}
     ctrl = None
+    gcp_path = None
     if control is not None:
         ws.add_inputs(control)
-        ctrl = read_block_control(control)
+        if detect_odm_gcps(control):  # OpenDroneMap's gcp_list.txt: read once the poses' frame is known
+            gcp_path = Path(control)
+        else:
+            ctrl = read_block_control(control)
     pose_list: list[Pose] | None = None
     sigma = gps = dop = reference = None
     crs = None
@@ -264,6 +270,16 @@ def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera
             sigma = np.asarray(sigma)[idx]
         if gps is not None and dop is not None:
             gps, dop = gps[idx], dop[idx]
+    control_note = ""
+    if gcp_path is None and control is None and kind == "opensfm" and crs is not None and poses is not None:
+        gcp_path = _project_gcps(Path(poses))  # the GCPs of the reconstruction's own project
+        if gcp_path is not None:
+            ws.add_inputs(gcp_path)
+    if gcp_path is not None:
+        gcps = read_odm_gcps(gcp_path, crs=crs)
+        ctrl = gcps.control_table()
+        control_note = (f"control: the {len(gcps.ids)} GCPs of {str(gcp_path)!r} (OpenDroneMap gcp_list.txt, "
+                        f"{len(gcps.meas_id)} image measurements, in {crs_label(gcps.crs)})")
     if not cameras:
         raise InvalidInputError("no camera: give --camera CAM.json (or --poses with an OpenSfM reconstruction.json)")
     if pose_list is not None:
@@ -275,17 +291,20 @@ def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera
     for n, c in zip(names, camera_of, strict=True):
         if c not in cameras:
             raise InvalidInputError(f"image {n!r} names camera {c!r}, which is not given (cameras: {sorted(cameras)})")
-    if ctrl is not None and control is not None:
+    if ctrl is not None:
+        source = str(control if control is not None else gcp_path)
         unknown = sorted({m for m in ctrl.meas_image if m not in names and Path(m).stem not in
                           {Path(n).stem for n in names}})
         if unknown:
-            raise InvalidInputError(f"{str(control)!r} measures points in image(s) {unknown[:5]} that are not in the "
+            raise InvalidInputError(f"{source!r} measures points in image(s) {unknown[:5]} that are not in the "
                                     f"block (images: {list(names)[:5]} ...)")
         missing_checks = sorted(set(opts.check_ids) - set(ctrl.ids))
         if missing_checks:
-            raise InvalidInputError(f"check id(s) {missing_checks} are not in {str(control)!r}")
+            raise InvalidInputError(f"check id(s) {missing_checks} are not in {source!r}")
         if crs is None:
             crs = ctrl.crs
+            if crs is not None:
+                frame = frame or f"{crs_label(crs)} (the CRS of the control file)"
             if kind == "opensfm" and crs is not None:
                 frame = (f"{crs_label(crs)} of the control file (the reconstruction is not georeferenced: its poses "
                          "are taken as given in that CRS)")
@@ -295,10 +314,27 @@ def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera
     elif opts.check_ids:
         raise InvalidInputError(f"check ids {list(opts.check_ids)} given without a control file")
     if not frame:
-        frame = (f"{crs_label(crs)} (the CRS of the {'pose' if kind == 'csv' else 'control'} file)" if crs is not None
+        frame = (f"{crs_label(crs)} (the CRS of the pose file)" if crs is not None
                  else "the frame of the given coordinates (no CRS given: not georeferenced)")
     return _Inputs(cameras, camera_of, pose_list, sigma, angle_system, crs, ctrl, frame, reference, gps, dop, kind,
-                   Path(poses).name if poses is not None else "")
+                   Path(poses).name if poses is not None else "", control_note)
+
+
+#: where an OpenSfM dataset or an OpenDroneMap project keeps its GCPs, relative to its reconstruction.json
+#: (ODM's copy in the CRS of its georeferencing first, then the user's, then OpenSfM's dataset folder)
+PROJECT_GCPS = ("../odm_georeferencing/gcp_list.txt", "../gcp_list.txt", "gcp_list.txt")
+
+
+def _project_gcps(reconstruction: Path) -> Path | None:
+    """The ``gcp_list.txt`` of the reconstruction's own OpenSfM dataset (beside it) or ODM project (the
+    reconstruction in ``opensfm/``), None when there is none."""
+    for rel in PROJECT_GCPS:
+        if rel.startswith("../") and reconstruction.parent.name != "opensfm":
+            continue
+        c = reconstruction.parent / rel
+        if c.is_file() and detect_odm_gcps(c):
+            return c.resolve()
+    return None
 
 
 def _with_control(tracks: Tracks, ctrl: BlockControlTable | None, names: tuple[str, ...],
@@ -353,6 +389,9 @@ def _gnss(inp: _Inputs, opts: BlockOptions) -> tuple[GnssObservations | None, st
     n = len(inp.poses)
     names = tuple(p.image for p in inp.poses)
     given = None if opts.gnss_sigma_m is None else np.tile(np.asarray(opts.gnss_sigma_m, dtype=np.float64), (n, 1))
+    all_angles = np.array([p.angles for p in inp.poses]).reshape(n, 3)
+    ins = None if opts.ins_sigma_rad is None else np.tile(np.asarray(opts.ins_sigma_rad, dtype=np.float64), (n, 1))
+    ins_text = "" if ins is None else "; its angles as INS observations (--ins-sigma)"
     if inp.pose_kind == "opensfm":
         gps = np.full((n, 3), np.nan) if inp.gps_position is None else np.asarray(inp.gps_position)
         has = np.isfinite(gps).all(axis=1)
@@ -369,13 +408,17 @@ def _gnss(inp: _Inputs, opts: BlockOptions) -> tuple[GnssObservations | None, st
                 return None, (f"{inp.pose_name} has gps_position but no gps_dop to weigh it: give --gnss-sigma S to "
                               "observe it")
             k = np.flatnonzero(has)
-            return (GnssObservations(images=tuple(names[i] for i in k), position=gps[k], sigma_m=sig[k]),
-                    f"the gps_position of {len(k)} of {n} shots of {inp.pose_name} ({how})")
+            return (GnssObservations(images=tuple(names[i] for i in k), position=gps[k], sigma_m=sig[k],
+                                     angles=None if ins is None else all_angles[k],
+                                     sigma_rad=None if ins is None else ins[k]),
+                    f"the gps_position of {len(k)} of {n} shots of {inp.pose_name} ({how}){ins_text}")
         if given is None:
             return None, (f"{inp.pose_name} has no gps_position: its poses are initial values only (--gnss-sigma S "
                           "observes its projection centres)")
-        return (GnssObservations(images=names, position=np.array([p.position for p in inp.poses]), sigma_m=given),
-                f"the projection centres of {inp.pose_name} (no gps_position in it; sigma from --gnss-sigma)")
+        return (GnssObservations(images=names, position=np.array([p.position for p in inp.poses]), sigma_m=given,
+                                 angles=None if ins is None else all_angles, sigma_rad=ins),
+                f"the projection centres of {inp.pose_name} (no gps_position in it; sigma from --gnss-sigma)"
+                f"{ins_text}")
     sig_pos = given
     how = "sigma from --gnss-sigma"
     if sig_pos is None and inp.pose_sigma is not None and np.isfinite(inp.pose_sigma[:, :3]).all():
@@ -384,16 +427,15 @@ def _gnss(inp: _Inputs, opts: BlockOptions) -> tuple[GnssObservations | None, st
     if sig_pos is None:
         return None, (f"the positions of {inp.pose_name} are initial values only (no sx,sy,sz in it; --gnss-sigma S "
                       "observes them)")
-    angles = sig_ang = None
-    if opts.ins_sigma_rad is not None:
-        sig_ang = np.tile(np.asarray(opts.ins_sigma_rad, dtype=np.float64), (n, 1))
-    elif inp.pose_sigma is not None and np.isfinite(inp.pose_sigma[:, 3:]).all():
+    angles = None
+    sig_ang = ins
+    if sig_ang is None and inp.pose_sigma is not None and np.isfinite(inp.pose_sigma[:, 3:]).all():
         # a navigation file's sigmas are of heading, pitch and roll; for a near-nadir camera they are
         # those of kappa, phi/omega and omega/phi: their mean is used for each of omega, phi, kappa
         sa = np.asarray(inp.pose_sigma[:, 3:], dtype=np.float64)
         sig_ang = sa if inp.angle_system == "omega-phi-kappa" else np.repeat(sa.mean(axis=1, keepdims=True), 3, 1)
     if sig_ang is not None:
-        angles = np.array([p.angles for p in inp.poses])
+        angles = all_angles
     return (GnssObservations(images=names, position=np.array([p.position for p in inp.poses]), sigma_m=sig_pos,
                              angles=angles, sigma_rad=sig_ang),
             f"the positions of {n} images of {inp.pose_name} ({how})" + ("; its angles as INS observations"
@@ -517,7 +559,8 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
     inp = _load_inputs(ws, names, camera, poses, control, opts)
     gnss, gnss_text = _gnss(inp, opts)
     _check_datum(inp, gnss, gnss_text, names, opts)
-    input_lines = (f"frame: {inp.frame}", f"GNSS: {gnss_text}" if gnss is not None else f"GNSS: none ({gnss_text})")
+    input_lines = (f"frame: {inp.frame}", f"GNSS: {gnss_text}" if gnss is not None else f"GNSS: none ({gnss_text})",
+                   *((inp.control_note,) if inp.control_note else ()))
     ws.plan(*camera_paths(Path(out_dir), inp.cameras))
     if tracks is not None and tuple(tracks.images) != names:
         raise InvalidInputError(f"the given tracks name images {list(tracks.images)[:4]}, not the block's "

@@ -43,6 +43,7 @@ from rectify.geometry.camera import Camera
 from rectify.geometry.crs import same_crs
 from rectify.geometry.robust import ROBUST_METHODS
 from rectify.raster.distributed import Scheduler, resolve_scheduler
+from rectify.raster.georef import crs_label
 from rectify.raster.io import (
     WindowReader,
     bound_gdal_cache,
@@ -679,25 +680,16 @@ def _ground_crs(crs: str | None, crs_from: str, photo_crs: list[str | None], fra
         return crs, None
     a, b = photo_crs
     if a and b and same_crs(a, b):
-        note = (f"CRS: taken from the photos ({_crs_label(a)}): there is none in {crs_from}; the ground coordinates "
+        note = (f"CRS: taken from the photos ({crs_label(a)}): there is none in {crs_from}; the ground coordinates "
                 "are assumed to be in it")
         logger.info("%s", note)
         return a, note
-    why = (f"the photos name different ones ({_crs_label(a)}, {_crs_label(b)})" if a and b else
+    why = (f"the photos name different ones ({crs_label(a)}, {crs_label(b)})" if a and b else
            "none in the photos" if not (a or b) else f"only the {'left' if a else 'right'} photo names one")
     note = (f"warning: no CRS: none in {crs_from}, {why}; dsm.tif and the point cloud are written without a CRS "
             "(give it in the orientation file, key `crs`)")
     logger.warning("%s", note)
     return None, note
-
-
-def _crs_label(crs: str | None) -> str:
-    if not crs:
-        return "none"
-    if crs.upper().startswith("EPSG:"):
-        return crs
-    name = crs.split('"')[1] if crs.count('"') >= 2 else crs[:40]
-    return f"{name!r} (WKT)"
 
 
 def _picture_from_raster(src: Path, dst: Path, title: str) -> None:

@@ -10,11 +10,13 @@ its CRS (:attr:`OpenSfMReconstruction.crs`): the topocentric frame as a WKT2 pro
 OpenDroneMap replaces ``opensfm/reconstruction.json`` by a georeferenced copy (OpenSfM's
 ``export_geocoords --reconstruction --proj ... --offset-x E --offset-y N``) and keeps the
 topocentric one as ``reconstruction.topocentric.json`` beside it. The copy's poses and points are in
-ODM's projected CRS (UTM) *minus* the offset (E, N) -- its ``reference_lla`` stays, but no longer
+ODM's projected CRS (UTM) *minus* the offset (E, N), mapped by the affine map tangent to the
+projection at ``reference_lla`` (:func:`odm_affine`) -- its ``reference_lla`` stays, but no longer
 describes the frame -- and its shots' ``gps_position`` stay topocentric. The CRS and the offset are
 the two lines of ``odm_georeferencing/coords.txt`` of the ODM project (``WGS84 UTM 32N`` or
 ``EPSG:n`` or a PROJ string; ``E N``). Such a file is read in that CRS with the offset added back
-(the coordinates of ODM's orthophoto and DSM); the GPS positions are converted into it by pyproj.
+(the coordinates of ODM's orthophoto and DSM); the GPS positions are mapped into it by the same
+affine map.
 
 Camera axes are OpenCV's (x right, y down, z forward); poses are returned in the project's
 convention: projection centre in the world frame and rotation photo vector (x, y, -f) -> world
@@ -40,9 +42,10 @@ from rectify.geometry.camera import Camera
 from rectify.geometry.crs import crs_to_string, parse_crs, same_crs, transform_xyz
 from rectify.geometry.rotation import rodrigues
 from stereo.block.types import Pose
+from stereo.formats.odm import odm_crs
 
 __all__ = ["FOCAL_ASPECT_TOLERANCE", "ODM_COORDS", "ODM_TOPOCENTRIC", "OPENSFM_PROJECTIONS", "OpenSfMReconstruction",
-           "crs_label", "read_odm_coords", "read_opensfm", "topocentric_crs_wkt"]
+           "crs_label", "odm_affine", "read_odm_coords", "read_opensfm", "topocentric_crs_wkt"]
 
 logger = logging.getLogger(__name__)
 
@@ -194,6 +197,19 @@ def topocentric_crs_wkt(lonlat_h: Any) -> str:
             f'AXIS["topocentric North (V)",north,ORDER[2],{m}],AXIS["topocentric Up (W)",up,ORDER[3],{m}]]')
 
 
+def odm_affine(lonlat_h: Any, crs: str) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The affine map (A, b) of OpenSfM's ``export_geocoords`` (ODM's default): topocentric x -> A x + b in ``crs``.
+
+    A's columns are the images of the three unit vectors at the topocentric origin minus the image of the
+    origin, b that image (through pyproj, as OpenSfM does through its reference and PROJ). It departs from
+    the exact conversion by the earth's curvature in height (d^2 / 2R: 0.7 cm at 300 m, 7.8 cm at 1 km
+    from the origin; in plan by about 1 mm at 1 km).
+    """
+    q = transform_xyz(topocentric_crs_wkt(lonlat_h), crs, np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0],
+                                                                     [0.0, 0.0, 1.0], [0.0, 0.0, 0.0]]))
+    return (q[:3] - q[3]).T, q[3].copy()
+
+
 def read_odm_coords(path: StrPath) -> tuple[str, NDArray[np.float64]]:
     """ODM's ``odm_georeferencing/coords.txt``: the CRS (``"EPSG:n"`` or a PROJ string) and the offset (E, N).
 
@@ -202,8 +218,10 @@ def read_odm_coords(path: StrPath) -> tuple[str, NDArray[np.float64]]:
 
     Raises
     ------
+    CRSError
+        A first line ODM would not read (:func:`stereo.formats.odm.odm_crs`).
     InvalidInputError
-        A first or second line of another form (named with its value).
+        A second line of another form (named with its value).
     RasterIOError
         The file cannot be read.
     """
@@ -212,20 +230,7 @@ def read_odm_coords(path: StrPath) -> tuple[str, NDArray[np.float64]]:
     if len(lines) < 2:
         raise InvalidInputError(f"{str(path)!r}: an ODM coordinates file has a CRS line and an offset line; got "
                                 f"{len(lines)} line(s)")
-    head = lines[0].strip("'\"")
-    parts = head.split()
-    if len(parts) == 3 and parts[0].upper() == "WGS84" and parts[1].upper() == "UTM" and parts[2][-1:].upper() in "NS" \
-            and parts[2][:-1].isdigit() and 1 <= int(parts[2][:-1]) <= 60:
-        crs = f"EPSG:{(32600 if parts[2][-1].upper() == 'N' else 32700) + int(parts[2][:-1])}"
-    elif head.lower().startswith("epsg:") or head.startswith("+proj"):
-        crs = head.upper() if head.lower().startswith("epsg:") else head
-    else:
-        raise InvalidInputError(f"{str(path)!r} line 1: unknown CRS {lines[0]!r} (expected 'WGS84 UTM <zone><N|S>', "
-                                "'EPSG:<code>' or a PROJ string)")
-    try:
-        parse_crs(crs)
-    except CRSError as err:
-        raise InvalidInputError(f"{str(path)!r} line 1: {err}") from err
+    crs = odm_crs(lines[0], path)  # ODM's own header syntax, read as ODM reads it
     try:
         off = [float(v) for v in lines[1].split()]
     except ValueError:
@@ -442,7 +447,8 @@ def read_opensfm(path: StrPath, *, index: int | None = None) -> OpenSfMReconstru
         xyz = xyz + offset
         have = np.isfinite(g).all(axis=1)
         if have.any() and ref is not None:  # OpenSfM's gps_position stays topocentric in ODM's copy
-            g[have] = transform_xyz(topocentric_crs_wkt(ref), crs, g[have])
+            A, b = odm_affine(ref, crs)
+            g[have] = g[have] @ A.T + b
         elif have.any():
             logger.warning("%s: gps_position without reference_lla cannot be put into %s; not used", p, crs)
             g[:] = np.nan

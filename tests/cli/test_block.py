@@ -197,3 +197,29 @@ def test_block_interrupted_by_sigterm_leaves_nothing(scene, tmp_path):
     assert not out.exists()
     assert proc.returncode == 143, err.decode()
     assert b"Traceback" not in err
+
+
+def test_block_with_a_reconstruction_and_no_datum_stops_before_matching(scene, tmp_path, monkeypatch):
+    """Issue 24 item 8: the documented `stereo block IMAGES --poses reconstruction.json` without GPS in it: one
+    line naming --gnss-sigma and --free-network, before any matching, nothing written."""
+    import stereo.actions.block as action
+    from tests.support.block_example import write_example_reconstruction
+
+    d, images, poses, _xyz = scene
+    rec = write_example_reconstruction(tmp_path, images, poses)
+    doc = json.loads(rec.read_text())
+    for shot in doc[0]["shots"].values():
+        del shot["gps_position"], shot["gps_dop"]
+    rec.write_text(json.dumps(doc))
+
+    def no_matching(*args, **kwargs):
+        raise AssertionError("matching started")
+
+    monkeypatch.setattr(action, "block_tie_points", no_matching)
+    out = tmp_path / "out"
+    r = CliRunner().invoke(cli, ["block", *map(str, images), "--poses", str(rec), "-o", str(out)])
+    assert r.exit_code != 0
+    assert "datum defect" in r.output and "reconstruction.json has no gps_position" in r.output
+    assert "--gnss-sigma" in r.output and "--free-network" in r.output and "free_network" not in r.output
+    assert "Traceback" not in r.output and "matching started" not in r.output
+    assert not out.exists()

@@ -15,6 +15,7 @@ import pytest
 from click.testing import CliRunner
 
 import rectify.actions.common
+import rectify.actions.match
 from rectify.cli.main import cli
 from rectify.features import MatcherConfig, match_images
 from rectify.raster import io as rio

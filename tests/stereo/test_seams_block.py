@@ -23,14 +23,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from rectify.errors import EstimationError, InvalidInputError
+from rectify.errors import CRSError, EstimationError, InvalidInputError
 from rectify.geometry.camera import Camera
 from rectify.geometry.crs import parse_crs, transform_xyz
 from stereo.actions.block import BlockOptions, run_block
 from stereo.block.bundle.adjust import BundleOptions, adjust_bundle
 from stereo.block.types import Pose, project_pixel
 from stereo.formats.block import read_block_orientation
-from stereo.formats.opensfm import read_odm_coords, read_opensfm, topocentric_crs_wkt
+from stereo.formats.opensfm import odm_affine, read_odm_coords, read_opensfm, topocentric_crs_wkt
 from stereo.formats.points import read_points_csv
 from stereo.formats.poses import read_pose_csv
 from tests.support.block_files import write_block_files
@@ -294,11 +294,23 @@ def test_bundle_datum_defect_names_the_cli_option():
 
 
 def _odm_affine(ref):
-    """OpenSfM's export_geocoords (ODM's default, affine): the linear map of topocentric -> UTM at the origin."""
+    """OpenSfM's export_geocoords (ODM's default, affine): the linear map of topocentric -> UTM at the origin,
+    as OpenSfM computes it (the images of the unit vectors)."""
     wkt = topocentric_crs_wkt(ref)
     q = transform_xyz(wkt, "EPSG:32632", np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [0, 0, 0]]))
     A = (q[:3] - q[3]).T
     return A, q[3]
+
+
+def test_odm_affine_is_opensfms_and_close_to_the_projection():
+    A, b = odm_affine(REF, "EPSG:32632")
+    A2, b2 = _odm_affine(REF)
+    np.testing.assert_allclose(A, A2)
+    np.testing.assert_allclose(b, b2)
+    assert np.degrees(np.arctan2(A[1, 0], A[0, 0])) == pytest.approx(1.153, abs=1e-3)  # grid convergence
+    P = np.array([[1000.0, 0.0, 0.0], [0.0, 1000.0, 0.0]])
+    d = transform_xyz(topocentric_crs_wkt(REF), "EPSG:32632", P) - (P @ A.T + b)
+    assert np.abs(d[:, :2]).max() < 0.005 and np.allclose(d[:, 2], 0.078, atol=0.002)  # curvature, 1 km
 
 
 def test_odm_georeferenced_reconstruction_is_read_in_its_utm_crs(small_block, tmp_path):
@@ -348,15 +360,15 @@ def test_odm_georeferenced_reconstruction_without_coords_txt_is_refused(small_bl
 
 @pytest.mark.parametrize("head, crs", [("WGS84 UTM 32N", "EPSG:32632"), ("WGS84 UTM 18S", "EPSG:32718"),
                                        ("EPSG:25833", "EPSG:25833"),
-                                       ("+proj=utm +zone=32 +datum=WGS84 +units=m +no_defs", None)])
+                                       ("+proj=utm +zone=32 +datum=WGS84 +units=m +no_defs", "EPSG:32632")])
 def test_odm_coords_file(tmp_path, head, crs):
     p = tmp_path / "coords.txt"
     p.write_text(f"{head}\n440143 4588391\n1.0 2.0 3.0\n")
     got, off = read_odm_coords(p)
-    assert got == (crs or head)
+    assert parse_crs(got).equals(parse_crs(crs))
     np.testing.assert_allclose(off, [440143, 4588391, 0])
     p.write_text("WGS84 UTM 99X\n1 2\n")
-    with pytest.raises(InvalidInputError, match="line 1: unknown CRS 'WGS84 UTM 99X'"):
+    with pytest.raises(CRSError, match="line 1: unknown CRS header 'WGS84 UTM 99X'"):
         read_odm_coords(p)
     p.write_text(f"{head}\n1 zwei\n")
     with pytest.raises(InvalidInputError, match="line 2: the offset must be two numbers"):
@@ -381,3 +393,40 @@ def test_opensfm_reconstruction_converted_into_the_control_crs(small_block, tmp_
         inside = np.isfinite(a).all(axis=1) & (np.abs(a[:, 0] - 1000) < 1000) & (np.abs(a[:, 1] - 750) < 750)
         worst = max(worst, float(np.abs(a[inside] - b[inside]).max(initial=0.0)))
     assert worst < 0.5, worst  # without the rotation: some 20 px
+
+
+def test_odm_project_gcps_fix_the_datum(small_block, tmp_path):
+    """Item 8: an ODM project without GPS in its reconstruction but with its gcp_list.txt: the GCPs are the
+    control (named on the console), read in the reconstruction's CRS."""
+    blk = small_block
+    A, b0 = _odm_affine(REF)
+    offset = np.array([np.floor(b0[0]), np.floor(b0[1]), 0.0])
+    U, _, Vt = np.linalg.svd(A)
+    Q = U @ Vt
+    proj = tmp_path / "odm"
+    (proj / "opensfm").mkdir(parents=True)
+    (proj / "odm_georeferencing").mkdir()
+    odm_poses = [Pose(p.image, p.camera, A @ p.position + b0 - offset, Q @ p.rotation) for p in blk.initial_poses]
+    (proj / "opensfm" / "reconstruction.json").write_text(json.dumps(_reconstruction(blk, odm_poses, gps=False)))
+    (proj / "opensfm" / "reconstruction.topocentric.json").write_text(
+        json.dumps(_reconstruction(blk, blk.initial_poses, gps=False)))
+    (proj / "odm_georeferencing" / "coords.txt").write_text(f"WGS84 UTM 32N\n{offset[0]:.0f} {offset[1]:.0f}\n")
+    t = blk.tracks
+    used = [c for c, chk in zip(blk.control.ids, blk.control.check, strict=True) if not chk]
+    where = {c: k for k, c in enumerate(blk.control.ids)}
+    lines = ["WGS84 UTM 32N"]
+    for k in range(t.n_obs):
+        pid = t.point_ids[t.obs_point[k]]
+        if pid in used:
+            g = A @ blk.control.xyz[where[pid]] + b0
+            lines.append(f"{g[0]:.4f} {g[1]:.4f} {g[2]:.4f} {t.obs_pixel[k, 0]:.3f} {t.obs_pixel[k, 1]:.3f} "
+                         f"{t.images[t.obs_image[k]]} {pid}")
+    (proj / "odm_georeferencing" / "gcp_list.txt").write_text("\n".join(lines) + "\n")
+    res = run_block(_placeholders(tmp_path, blk), out_dir=tmp_path / "out", camera=None,
+                    poses=proj / "opensfm" / "reconstruction.json", tracks=_ties(blk))
+    text = "\n".join(res.summary_lines())
+    assert f"control: the {len(used)} GCPs of " in text and "gcp_list.txt' (OpenDroneMap gcp_list.txt" in text
+    assert f"datum: no GNSS, control at {len(used)} points ({len(used)} full" in text
+    truth = {p.image: A @ p.position + b0 for p in blk.true_poses}
+    err = np.array([p.position - truth[p.image] for p in res.bundle.poses])
+    assert np.all(np.abs(err) < 4 * res.bundle.pose_std[:, 3:] + 0.05), (err, res.bundle.pose_std[:, 3:])

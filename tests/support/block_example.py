@@ -7,6 +7,10 @@ ground pixel, :mod:`tests.support.block_render`), with the inputs a user gives `
 sees them with 0.2 px noise). Write them with::
 
     python -m tests.support.block_example OUTDIR
+
+:func:`write_example_reconstruction` writes the same block as an OpenSfM ``reconstruction.json`` (its
+local frame taken as topocentric about :data:`REFERENCE_LLA`, the shots' ``gps_position`` with 5 cm noise
+and ``gps_dop`` 0.05 m; angles 0.5 deg off), as ``python -m tests.support.block_example OUTDIR --opensfm``.
 """
 
 from __future__ import annotations
@@ -17,13 +21,15 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from rectify.geometry.camera import Camera
-from rectify.geometry.rotation import angles_from_matrix
+from rectify.geometry.rotation import angles_from_matrix, matrix_from_angles
 from stereo.block.types import Pose, project_pixel
 from tests.support.block_render import make_terrain, render_block, strip_poses
 
-__all__ = ["CAM", "CRS", "E0", "GSD", "H_FLY", "N0", "Z0", "write_example_block"]
+__all__ = ["CAM", "CRS", "E0", "GSD", "H_FLY", "N0", "REFERENCE_LLA", "Z0", "write_example_block",
+           "write_example_reconstruction"]
 
 CAM = Camera(focal_length_mm=20.0, pixel_size_mm=0.05, width=400, height=300)
 H_FLY = 100.0
@@ -31,6 +37,8 @@ Z0 = 50.0
 GSD = H_FLY * CAM.pixel_size_mm / CAM.focal_length_mm  # 0.25 m
 CRS = "EPSG:32633"
 E0, N0 = 500000.0, 5000000.0  # the block sits at these map coordinates
+#: the topocentric origin of the example's OpenSfM reconstruction: longitude, latitude (deg), height (m)
+REFERENCE_LLA = (15.0, 45.13, 0.0)
 
 
 def write_example_block(d: Path) -> tuple[list[Path], list[Pose], NDArray[np.float64]]:
@@ -70,7 +78,33 @@ def write_example_block(d: Path) -> tuple[list[Path], list[Pose], NDArray[np.flo
     return images, poses, xyz
 
 
+def write_example_reconstruction(d: Path, images: list[Path], poses: list[Pose]) -> Path:
+    """``d/reconstruction.json``: the example block as OpenSfM writes it (one ``perspective`` camera ``v1``;
+    poses 0.5 deg and 5 cm off, ``gps_position`` with 5 cm noise, ``gps_dop`` 0.05 m; ``reference_lla``)."""
+    rng = np.random.default_rng(7)
+    s = max(CAM.width, CAM.height)
+    shots = {}
+    for p, path in zip(poses, images, strict=True):
+        R = p.rotation @ matrix_from_angles(*rng.normal(0.0, np.radians(0.5), 3))
+        C = p.position + rng.normal(0.0, 0.05, 3)
+        R_cw = np.diag([1.0, -1.0, -1.0]) @ R.T  # world -> OpenCV camera axes
+        shots[path.name] = {"camera": "v1", "rotation": Rotation.from_matrix(R_cw).as_rotvec().tolist(),
+                            "translation": (-R_cw @ C).tolist(),
+                            "gps_position": (p.position + rng.normal(0.0, 0.05, 3)).tolist(), "gps_dop": 0.05}
+    rec = [{"cameras": {"v1": {"projection_type": "perspective", "width": CAM.width, "height": CAM.height,
+                               "focal": CAM.focal_px / s, "k1": 0.0, "k2": 0.0}},
+            "shots": shots, "points": {},
+            "reference_lla": {"longitude": REFERENCE_LLA[0], "latitude": REFERENCE_LLA[1],
+                              "altitude": REFERENCE_LLA[2]}}]
+    out = Path(d) / "reconstruction.json"
+    out.write_text(json.dumps(rec, indent=1))
+    return out
+
+
 if __name__ == "__main__":  # pragma: no cover - the docs' example inputs
     out = Path(sys.argv[1] if len(sys.argv) > 1 else "block_example")
-    for p in write_example_block(out)[0]:
+    imgs, true_poses, _ = write_example_block(out)
+    if "--opensfm" in sys.argv[2:]:
+        write_example_reconstruction(out, imgs, true_poses)
+    for p in imgs:
         print(p)
