@@ -14,7 +14,7 @@ import os
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple
 
 import cv2
@@ -116,6 +116,12 @@ class MatcherConfig:
         Keep verified matches whose refinement does not converge, at their unrefined positions and with
         an empty (NaN) score, instead of dropping them (issue 12: on wide-baseline pairs the square LSM
         window fails where the affine distortion is strong, and those matches are good). Whole-image mode.
+    derotate : bool
+        Whole-image mode (issue 30): when the verified matches show the right image turned by about k quarter
+        turns (their keypoints' orientations differ by more than 45 degrees; neighbouring aerial strips
+        flown in opposite directions differ by 180), the right image is turned back by ``np.rot90`` (exact,
+        no resampling) and matched again, so the pair is matched as an unturned one; the positions are
+        returned in the given images' pixels (``MatchResult.n_turns``).
     lsm : LsmConfig
         Refinement options.
     percentiles : (float, float)
@@ -145,6 +151,7 @@ class MatcherConfig:
     guided_ratio: float = 0.95
     guided_fill: int = 5000
     keep_unrefined: bool = True
+    derotate: bool = True
     lsm: LsmConfig = field(default_factory=LsmConfig)
     percentiles: tuple[float, float] = (0.5, 99.5)
     seed: int = 0
@@ -223,6 +230,9 @@ class MatchResult:
         precision (a wrong convergence): moved back to their raw positions as unrefined, or dropped.
     rmse_unrefined_px : float
         Verification residual RMSE of the returned unrefined matches (NaN when there are none).
+    n_turns : int
+        Quarter turns (0-3, ``np.rot90``) the right image was turned by before the final matching
+        (``MatcherConfig.derotate``); the positions are always in the given images' pixels.
     """
 
     matches: Matches
@@ -246,6 +256,7 @@ class MatchResult:
     sigma_px: NDArray[np.float64] | None = None
     n_screened: int = 0
     rmse_unrefined_px: float = float("nan")
+    n_turns: int = 0
 
     @property
     def n_unrefined(self) -> int:
@@ -259,7 +270,7 @@ class MatchResult:
                 "verification": self.verification.method, "rmse_px": self.rmse_px,
                 "rmse_raw_px": self.rmse_raw_px, "tiled": self.tiled, "n_duplicates": self.n_duplicates,
                 "n_guided": self.n_guided, "n_unrefined": self.n_unrefined, "n_screened": self.n_screened,
-                "rmse_unrefined_px": self.rmse_unrefined_px,
+                "rmse_unrefined_px": self.rmse_unrefined_px, "n_turns": self.n_turns,
                 **{f"time_{k}_s": v for k, v in self.timings_s.items()}}
 
 
@@ -572,13 +583,16 @@ def match_arrays(left: ArrayLike, right: ArrayLike, *, left_valid: ArrayLike | N
     return _match_whole(L, lv, R, rv, cfg, progress, ("left", "right"))
 
 
-def _match_whole(L, lv, R, rv, cfg: MatcherConfig, progress, names) -> MatchResult:
+def _match_whole(L, lv, R, rv, cfg: MatcherConfig, progress, names, fl: Features | None = None) -> MatchResult:
+    """Whole-image matching; ``fl``: the left image's features when already detected (the second, turned pass)."""
     t0 = time.perf_counter()
     tick = progress or (lambda d, t: None)
     tick(0, 4)
-    fl = detect(L, valid=lv, detector=cfg.detector, max_keypoints=cfg.max_keypoints, cell_cap=cfg.cell_cap,
-                percentiles=cfg.percentiles)
-    _check_blank(fl, "left", names[0])
+    first = fl is None
+    if fl is None:
+        fl = detect(L, valid=lv, detector=cfg.detector, max_keypoints=cfg.max_keypoints, cell_cap=cfg.cell_cap,
+                    percentiles=cfg.percentiles)
+        _check_blank(fl, "left", names[0])
     fr = detect(R, valid=rv, detector=cfg.detector, max_keypoints=cfg.max_keypoints, cell_cap=cfg.cell_cap,
                 percentiles=cfg.percentiles)
     _check_blank(fr, "right", names[1])
@@ -597,6 +611,15 @@ def _match_whole(L, lv, R, rv, cfg: MatcherConfig, progress, names) -> MatchResu
     else:
         ver0 = _verify_checked(pl, pr, cfg, cfg.verify)
         inl = ver0.inliers
+    k = _quarter_turns(fl, fr, pairs, inl) if first and cfg.derotate else 0
+    if k:   # the right image turned by about k quarter turns: match again with it turned back (exact, lossless)
+        try:
+            res = _match_whole(L, lv, np.rot90(R, k), np.rot90(rv, k), cfg, progress, names, fl=fl)
+        except EstimationError as err:
+            logger.info("matching with the right image turned by %d quarter turns failed (%s); matching as given",
+                        k, err)
+        else:
+            return _turned_back(res, k, R.shape[:2], cfg, time.perf_counter() - t0)
     cand_l, cand_r, cand_inl = pl, pr, inl
     vl, vr, vratio = pl[inl], pr[inl], ratio[inl]
     vli, vri = pairs.left[inl], pairs.right[inl]          # keypoint indices (their sizes and orientations)
@@ -633,6 +656,52 @@ def _match_whole(L, lv, R, rv, cfg: MatcherConfig, progress, names) -> MatchResu
     return _result(out_l, out_r, sc, ver, cfg, (len(fl), len(fr)), len(pairs.left), int(inl.sum()) + n_guided,
                    n_ref, n_fail, raw, cand_l, cand_r, cand_inl, False, (L.shape[:2], R.shape[:2]), timings,
                    n_dup0 + n_dup, n_guided, n_scr)
+
+
+def _quarter_turns(fl: Features, fr: Features, pairs: _Pairs, inl: NDArray[np.bool_]) -> int:
+    """k in 0..3: the right image's content is turned by about k quarter turns against the left one (the median
+    difference of the verified keypoints' orientations, x right, y down), so ``np.rot90(right, k)`` turns it
+    back to within 45 degrees (0 without orientations or with fewer than 8 verified matches)."""
+    d = fr.angle[pairs.right[inl]] - fl.angle[pairs.left[inl]]
+    d = d[np.isfinite(d)]
+    if len(d) < 8:
+        return 0
+    turn = float(np.angle(np.median(np.cos(d)) + 1j * np.median(np.sin(d))))
+    return int(round(turn / (math.pi / 2))) % 4
+
+
+def _turn_matrix(k: int, shape: tuple[int, int]) -> NDArray[np.float64]:
+    """T (3, 3): pixel of ``np.rot90(img, k)`` -> pixel of ``img`` (shape (H, W)), homogeneous."""
+    T = np.eye(3)
+    h, w = shape
+    for _ in range(k % 4):
+        # one quarter turn: new[i, j] = old[j, w - 1 - i], so (x, y) in new is (w - 1 - y, x) in old
+        q = np.array([[0.0, -1.0, w - 1.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+        T = T @ q
+        h, w = w, h
+    return T
+
+
+def _turned_back(res: MatchResult, k: int, shape_right: tuple[int, int], cfg: MatcherConfig,
+                 t_first: float) -> MatchResult:
+    """``res`` (matched with the right image turned by ``np.rot90(right, k)``) in the given right image's pixels."""
+    T = _turn_matrix(k, shape_right)
+
+    def back(p: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.asarray(p, dtype=np.float64) @ T[:2, :2].T + T[:2, 2]
+
+    m = res.matches
+    matches = Matches(m.ids, m.left, back(m.right), m.score)
+    ver = res.verification
+    M = ver.matrix
+    if M is not None:     # H' = T H (x_r = T x_turned); F' = T^-T F; transfer and Sampson errors are unchanged
+        M = T @ M if ver.method == "homography" else np.linalg.inv(T).T @ M
+        ver = table_for(Verification(ver.method, M, ver.inliers, ver.errors_px, None), m.left, matches.right,
+                        threshold_px=cfg.threshold_px, refined=res.refined)
+    timings = {**res.timings_s, "turned": t_first, "total": res.timings_s.get("total", 0.0) + t_first}
+    logger.info("the right image is turned by %d quarter turns against the left one: matched turned back", k)
+    return replace(res, matches=matches, verification=ver, candidates_right=back(res.candidates_right),
+                   image_shapes=(res.image_shapes[0], shape_right), timings_s=timings, n_turns=k)
 
 
 def _one_to_one(pl, pr, score, tol_px: float = 0.1):

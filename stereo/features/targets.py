@@ -453,7 +453,7 @@ def find_chessboards(paths: Sequence[str | Path], board: Chessboard, *, method: 
         bad = [RejectedCorner(path.name, int(k), ids[k], float(c.pixel[k, 0]), float(c.pixel[k, 1]), c.reasons[k])
                for k in np.flatnonzero(~c.ok)]
         for r in bad:
-            logger.warning("rejected %s: %s", r.label, r.reason)
+            logger.info("rejected %s: %s", r.label, r.reason)
         rejected += bad
         if int(c.ok.sum()) < 4:
             logger.warning("%s: only %d good corners, view left out", path.name, int(c.ok.sum()))
@@ -488,4 +488,6 @@ def detect_chessboards(paths: Sequence[str | Path], board: Chessboard, *, method
         Images of different sizes.
     """
     d = find_chessboards(paths, board, method=method, refine_window=refine_window)
+    for r in d.rejected:
+        logger.warning("rejected %s at (%.2f, %.2f) px: %s", r.label, r.col, r.row, r.reason)
     return d.views, d.missing, d.size
