@@ -55,6 +55,7 @@ def test_calibrate_chessboard_images(tmp_path):
     assert r.exit_code == 0, r.output
     assert "board not found in 1 of 6 images: blank.png (left out)" in r.output
     assert "found in 5 of 6 images, 320 x 240 px" in r.output
+    assert "corners (symmetry refinement): 175 of 175 kept" in r.output
     cam = camera_from_dict(json.loads(out.read_text()))
     assert abs(cam.intrinsics.fx - 420) < 4 and abs(cam.intrinsics.cx - 161) < 4 and abs(cam.intrinsics.cy - 118) < 4
     assert cam.sigma0_px is not None and cam.sigma0_px < 0.2
