@@ -16,6 +16,16 @@ peer; with ``--orient``, ``stereo orient LEFT RIGHT`` within 2x of SIFT + findEs
 warpPerspective refuse it) and its warped copy, matches them with
 ``rectify match`` only (the peer would need > 200 GB), checks the recovered
 homography and the peak RSS (< 2 GB), and deletes the files afterwards.
+
+``--ngi`` (issue 30) times ``rectify match --verify fundamental`` on the real NGI pair of the shared data
+(``$RECTIFY_SHARED_DATA``, else ``../shared/data``) and on variants of it (``--ngi-variants``: the right image
+turned by 90, 180, 270 degrees, scaled, cropped to a small overlap; written losslessly) against OpenCV SIFT + FLANN
++ ``findFundamentalMat`` (USAC MAGSAC, 1.5 px), and scores both against the aero-triangulated orientation:
+Sampson distance to the known epipolar geometry (refined and all matches), the verification RMSE, the refined
+share, and the relative orientation (``stereo.relative``, plain least squares) against the known one.
+
+Every case prints its precision beside its time: the synthetic pairs the error against the known homography (all
+matches, and the refined ones alone), ``--orient`` that of the tie points ``stereo orient`` used.
 """
 
 from __future__ import annotations
@@ -65,7 +75,9 @@ p1 = np.float64([k1[g.queryIdx].pt for g in good]); p2 = np.float64([k2[g.trainI
 K = np.array([[f_px, 0, a.shape[1] / 2], [0, f_px, a.shape[0] / 2], [0, 0, 1.0]])
 E, mask = cv2.findEssentialMat(p1, p2, K, method=cv2.USAC_MAGSAC, prob=0.999, threshold=1.0)
 n, R, t, mask2 = cv2.recoverPose(E, p1, p2, K, mask=mask)
-json.dump({"n_matched": len(good), "n_inliers": int(n), "R": R.tolist(), "t": t.ravel().tolist()}, open(out, "w"))
+k = mask2.ravel() > 0
+json.dump({"n_matched": len(good), "n_inliers": int(n), "R": R.tolist(), "t": t.ravel().tolist(),
+           "left": p1[k].tolist(), "right": p2[k].tolist()}, open(out, "w"))
 '''
 
 
@@ -86,8 +98,10 @@ def timed(cmd: list[str], log: Path) -> dict:
             "exit": p.returncode, "load_before": round(load, 2)}
 
 
-def score(left: np.ndarray, right: np.ndarray, H: np.ndarray, size: int, cell: int = 500) -> dict:
-    """Correct matches (within 1 px of the truth) and their spread over the overlap."""
+def score(left: np.ndarray, right: np.ndarray, H: np.ndarray, size: int, cell: int = 500,
+          refined: np.ndarray | None = None) -> dict:
+    """Correct matches (within 1 px of the truth), their error (RMS, median; of the ``refined`` ones alone too) and
+    their spread over the overlap."""
     q = np.c_[left, np.ones(len(left))] @ H.T
     e = np.linalg.norm(q[:, :2] / q[:, 2:] - right, axis=1)
     ok = e < 1.0
@@ -101,9 +115,15 @@ def score(left: np.ndarray, right: np.ndarray, H: np.ndarray, size: int, cell: i
     ij = np.clip((left[ok] // cell).astype(int), 0, n - 1)
     np.add.at(counts, ij[:, 1] * n + ij[:, 0], 1)
     cov = counts[overlap]
-    return {"verified": len(left), "correct": int(ok.sum()),
-            "rms_error_px": float(np.sqrt(np.mean(e[ok] ** 2))) if ok.any() else None,
-            "cells_covered": float((cov > 0).mean()), "cells_cv": float(cov.std() / max(cov.mean(), 1e-9))}
+    out = {"verified": len(left), "correct": int(ok.sum()),
+           "rms_error_px": float(np.sqrt(np.mean(e[ok] ** 2))) if ok.any() else None,
+           "median_error_px": float(np.median(e[ok])) if ok.any() else None,
+           "cells_covered": float((cov > 0).mean()), "cells_cv": float(cov.std() / max(cov.mean(), 1e-9))}
+    if refined is not None:     # the refined matches alone (the unrefined ones carry a larger sigma)
+        r = ok & refined
+        out.update(refined=int(refined.sum()), rms_error_refined_px=float(np.sqrt(np.mean(e[r] ** 2))) if r.any()
+                   else None, median_error_refined_px=float(np.median(e[r])) if r.any() else None)
+    return out
 
 
 def run_pair(work: Path, size: int, skip_peer: bool) -> dict:
@@ -123,7 +143,7 @@ def run_pair(work: Path, size: int, skip_peer: bool) -> dict:
               d / "ours.log")
     print((d / "ours.log").read_text(), flush=True)
     mt = read_matches(ours_csv)
-    res["ours"] = {**m, **score(mt.left, mt.right, H, size)}
+    res["ours"] = {**m, **score(mt.left, mt.right, H, size, refined=_refined(mt))}
     print("ours", json.dumps(res["ours"]), flush=True)
     if not skip_peer:
         script = d / "baseline.py"
@@ -140,6 +160,11 @@ def run_pair(work: Path, size: int, skip_peer: bool) -> dict:
     return res
 
 
+def _refined(m) -> np.ndarray | None:
+    """Refined matches of a matches CSV read back (a score: refined; empty: kept unrefined)."""
+    return None if m.score is None else np.isfinite(m.score)
+
+
 def run_orient(work: Path, size: int) -> dict:
     """``stereo orient LEFT RIGHT`` (match with fundamental verification, then relative orientation) against
     OpenCV SIFT + FLANN + findEssentialMat (USAC MAGSAC) + recoverPose on the pair of :func:`run_pair`."""
@@ -149,20 +174,174 @@ def run_orient(work: Path, size: int) -> dict:
     cam.write_text(json.dumps({"focal_length_mm": f_px * pix_mm, "pixel_size_mm": pix_mm, "width": size,
                                "height": size}))
     res: dict = {"size": size}
+    from rectify.formats.tables import read_matches
+
+    H = np.array(json.loads((d / "truth.json").read_text())["H_right_from_left"])
     m = timed(["stereo", "orient", str(d / "left.tif"), str(d / "right.tif"), "--camera", str(cam), "-o",
-               str(d / "ro.json"), "--overwrite"], d / "orient_ours.log")
+               str(d / "ro.json"), "--matches-out", str(d / "orient_matches.csv"), "--overwrite"],
+              d / "orient_ours.log")
     print((d / "orient_ours.log").read_text(), flush=True)
-    res["ours"] = m
+    mt = read_matches(d / "orient_matches.csv")
+    res["ours"] = {**m, **{f"tie_{k}": v for k, v in score(mt.left, mt.right, H, size, refined=_refined(mt)).items()
+                           if not k.startswith("cells")}}
     script = d / "orient_baseline.py"
     script.write_text(ORIENT_BASELINE)
     m = timed([sys.executable, str(script), str(d / "left.tif"), str(d / "right.tif"), str(f_px),
                str(d / "orient_peer.json")], d / "orient_peer.log")
-    res["peer"] = {**m, **{k: v for k, v in json.loads((d / "orient_peer.json").read_text()).items()
-                           if k.startswith("n_")}}
+    peer = json.loads((d / "orient_peer.json").read_text())
+    pl, pr = np.array(peer["left"]).reshape(-1, 2) - 0.25, np.array(peer["right"]).reshape(-1, 2) - 0.25
+    res["peer"] = {**m, **{k: v for k, v in peer.items() if k.startswith("n_")},
+                   **{f"tie_{k}": v for k, v in score(pl, pr, H, size).items() if not k.startswith("cells")}}
     res["ratio_time_ours_over_peer"] = round(res["ours"]["wall_s"] / res["peer"]["wall_s"], 3)
     res["ratio_cpu_ours_over_peer"] = round(res["ours"]["cpu_s"] / res["peer"]["cpu_s"], 3)
     print("orient", json.dumps(res), flush=True)
     return res
+
+
+# --------------------------------------------------------------------------- the real NGI pair (issue 30)
+SHARED = Path(os.environ.get("RECTIFY_SHARED_DATA", str(ROOT.parent / "shared" / "data")))
+NGI_LEFT, NGI_RIGHT = "3324c_2015_1004_05_0182_RGB.tif", "3324c_2015_1004_05_0184_RGB.tif"
+#: variants of the NGI pair's right image: quarter turns (``np.rot90``), scale, columns kept (before the rest)
+NGI_VARIANTS: dict[str, dict] = {
+    "plain": {}, "rot90": {"turns": 1}, "rot180": {"turns": 2}, "rot270": {"turns": 3},
+    "scale0.5": {"scale": 0.5}, "scale0.7": {"scale": 0.7}, "scale1.5": {"scale": 1.5}, "scale2": {"scale": 2.0},
+    "crop": {"cols": (0, 140)}, "rot180-crop": {"turns": 2, "cols": (0, 140)},
+    "rot180-scale0.7": {"turns": 2, "scale": 0.7}, "rot90-scale1.5": {"turns": 1, "scale": 1.5},
+}
+NGI_PEER = r'''
+import sys, numpy as np, cv2
+l, r, out = sys.argv[1:4]
+a = cv2.imread(l, cv2.IMREAD_GRAYSCALE); b = cv2.imread(r, cv2.IMREAD_GRAYSCALE)
+s = cv2.SIFT_create()
+k1, d1 = s.detectAndCompute(a, None); k2, d2 = s.detectAndCompute(b, None)
+m = cv2.FlannBasedMatcher(dict(algorithm=1, trees=4), dict(checks=64)).knnMatch(d1, d2, k=2)
+good = [x[0] for x in m if len(x) == 2 and x[0].distance < 0.8 * x[1].distance]
+p1 = np.float64([k1[g.queryIdx].pt for g in good]); p2 = np.float64([k2[g.trainIdx].pt for g in good])
+F, mask = cv2.findFundamentalMat(p1, p2, cv2.USAC_MAGSAC, 1.5, 0.9999, 10000)
+inl = mask.ravel().astype(bool)
+np.savez(out, left=p1[inl], right=p2[inl])
+'''
+
+
+def ngi_variant(img: np.ndarray, *, turns: int = 0, scale: float = 1.0, cols: tuple[int, int] | None = None):
+    """A variant of an (H, W[, C]) image: columns ``cols`` kept, resized by ``scale`` (area average down, cubic
+    up), turned by ``np.rot90(., turns)``. Returns the variant and ``back``, which maps its pixels (N, 2) to the
+    given image's pixels (pixel centres at integers)."""
+    a = img if cols is None else img[:, cols[0]:cols[1]]
+    x0 = 0 if cols is None else cols[0]
+    h, w = a.shape[:2]
+    sx = sy = 1.0
+    if scale != 1.0:
+        import cv2
+
+        nw, nh = int(round(w * scale)), int(round(h * scale))
+        a = cv2.resize(a, (nw, nh), interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_CUBIC)
+        sx, sy = nw / w, nh / h
+    shapes = []
+    hh, ww = a.shape[:2]
+    for _ in range(turns % 4):
+        shapes.append(ww)
+        hh, ww = ww, hh
+    a = np.ascontiguousarray(np.rot90(a, turns))
+
+    def back(p: np.ndarray) -> np.ndarray:
+        q = np.array(p, dtype=np.float64, copy=True).reshape(-1, 2)
+        for w_before in reversed(shapes):      # a quarter turn: (x, y) -> (w_before - 1 - y, x)
+            q = np.c_[w_before - 1 - q[:, 1], q[:, 0]]
+        return np.c_[(q[:, 0] + 0.5) / sx - 0.5 + x0, (q[:, 1] + 0.5) / sy - 0.5]
+
+    return a, back
+
+
+def ngi_truth() -> dict:
+    """The NGI pair's known geometry: F (pixels), the relative rotation R1^T R2 and the base in the left camera
+    frame (scripts/ngi_geometry.py, the README's orientations), and the camera."""
+    import ngi_geometry as g
+
+    from rectify.geometry.camera import Camera
+    from rectify.geometry.rotation import matrix_from_angles
+
+    R1 = matrix_from_angles(*np.radians(g.EO["0182"][3:]))
+    R2 = matrix_from_angles(*np.radians(g.EO["0184"][3:]))
+    base = R1.T @ (np.array(g.EO["0184"][:3]) - np.array(g.EO["0182"][:3]))
+    return {"F": g.fundamental(), "R_rel": R1.T @ R2, "base": base,
+            "camera": Camera(g.F_MM, g.PIXEL_MM, g.WIDTH, g.HEIGHT)}
+
+
+def _angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
+    return float(np.degrees(2 * np.arcsin(min(1.0, np.linalg.norm(Ra - Rb) / (2 * np.sqrt(2))))))
+
+
+def ngi_score(left: np.ndarray, right: np.ndarray, refined: np.ndarray | None = None) -> dict:
+    """Precision of NGI tie points (left and right in the original images' pixels) against the known geometry:
+    Sampson distance to the known epipolar geometry (RMS, median; of the refined matches and of all), and the
+    relative orientation from them (stereo.relative, left-image system, plain least squares) against the known
+    one: rotation and base-direction errors, deg."""
+    import ngi_geometry as g
+
+    from stereo.relative import RelativeOrientation
+
+    t = ngi_truth()
+    ref = np.ones(len(left), bool) if refined is None else np.asarray(refined, bool)
+    s = g.sampson(t["F"], left, right)
+    out: dict = {"n": int(len(left)), "n_refined": int(ref.sum()), "refined_share": round(float(ref.mean()), 4),
+                 "sampson_rms_px": round(float(np.sqrt(np.mean(s ** 2))), 4),
+                 "sampson_median_px": round(float(np.median(s)), 4),
+                 "sampson_rms_refined_px": round(float(np.sqrt(np.mean(s[ref] ** 2))), 4),
+                 "sampson_median_refined_px": round(float(np.median(s[ref])), 4)}
+    for key, sel in (("all", np.ones(len(left), bool)), ("refined", ref)):
+        ro = RelativeOrientation.from_pixels(left[sel], right[sel], t["camera"], system="left-image")
+        b = ro.base_left
+        out[f"ro_{key}_rotation_deg"] = round(_angle_deg(ro.relative_rotation, t["R_rel"]), 4)
+        out[f"ro_{key}_base_deg"] = round(float(np.degrees(np.arctan2(np.linalg.norm(np.cross(b, t["base"])),
+                                                                         float(b @ t["base"])))), 4)
+    return out
+
+
+def _write_png(path: Path, img: np.ndarray) -> None:
+    import cv2
+
+    cv2.imwrite(str(path), img[..., ::-1] if img.ndim == 3 else img)   # lossless; RGB -> OpenCV's BGR
+
+
+def run_ngi(work: Path, shared: Path, variants: list[str], skip_peer: bool) -> dict:
+    """``rectify match --verify fundamental`` and the peer on NGI variants: time and precision (see the module
+    docstring)."""
+    from rectify.formats.tables import read_matches
+    from rectify.raster import io as rio
+
+    d = work / "ngi"
+    d.mkdir(parents=True, exist_ok=True)
+    src = shared / "ngi_strip05"
+    L, _ = rio.read_window(src / NGI_LEFT, 0, 0, 640, 1152)
+    R, _ = rio.read_window(src / NGI_RIGHT, 0, 0, 640, 1152)
+    left = d / "left.png"
+    _write_png(left, L)
+    out: dict = {}
+    for name in variants:
+        img, back = ngi_variant(R, **NGI_VARIANTS[name])
+        right = d / f"right_{name}.png"
+        _write_png(right, img)
+        csv = d / f"ours_{name}.csv"
+        t = timed(["rectify", "match", str(left), str(right), "-o", str(csv), "--verify", "fundamental",
+                   "--overwrite"], d / f"ours_{name}.log")
+        log = (d / f"ours_{name}.log").read_text()
+        rmse = next((float(ln.split()[2]) for ln in log.splitlines() if ln.startswith("verification RMSE:")), None)
+        m = read_matches(csv)
+        refined = np.isfinite(m.score) if m.score is not None else None
+        res = {"ours": {**t, "verification_rmse_px": rmse, **ngi_score(m.left, back(m.right), refined)}}
+        if not skip_peer:
+            script = d / "ngi_peer.py"
+            script.write_text(NGI_PEER)
+            t = timed([sys.executable, str(script), str(left), str(right), str(d / f"peer_{name}.npz")],
+                      d / f"peer_{name}.log")
+            z = np.load(d / f"peer_{name}.npz")
+            # OpenCV's SIFT positions are 0.25 px off the pixel-centre convention (docs/features.md)
+            res["peer"] = {**t, **ngi_score(z["left"] - 0.25, back(z["right"] - 0.25))}
+            res["ratio_time_ours_over_peer"] = round(res["ours"]["wall_s"] / res["peer"]["wall_s"], 3)
+        out[name] = res
+        print("ngi", name, json.dumps(res), flush=True)
+    return out
 
 
 def run_large(work: Path, size: int) -> dict:
@@ -201,6 +380,10 @@ def run_large(work: Path, size: int) -> dict:
     return res
 
 
+def _fmt(v) -> str:
+    return "-" if v is None else f"{v:.4f}"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description="rectify match vs OpenCV whole-image baseline")
     ap.add_argument("--size", type=int, default=8000)
@@ -210,6 +393,9 @@ def main() -> None:
     ap.add_argument("--skip-pair", action="store_true")
     ap.add_argument("--orient", action="store_true",
                     help="also time `stereo orient LEFT RIGHT` against SIFT + findEssentialMat + recoverPose")
+    ap.add_argument("--ngi", action="store_true", help="also the real NGI pair and its variants (shared data)")
+    ap.add_argument("--ngi-variants", nargs="+", default=["plain", "rot180"], choices=list(NGI_VARIANTS))
+    ap.add_argument("--shared", type=Path, default=SHARED, help="the shared data folder")
     ap.add_argument("--repeat", type=int, default=1,
                     help="run the pair (and orient) comparison this many times (shared machines are noisy) and "
                          "print one line per run")
@@ -222,7 +408,9 @@ def main() -> None:
             out["pair"] = run_pair(a.work, a.size, a.skip_peer)
         if a.orient:
             out["orient"] = run_orient(a.work, a.size)
-        runs.append({k: out[k] for k in ("pair", "orient") if k in out})
+        if a.ngi:
+            out["ngi"] = run_ngi(a.work, a.shared, a.ngi_variants, a.skip_peer)
+        runs.append({k: out[k] for k in ("pair", "orient", "ngi") if k in out})
     if len(runs) > 1:
         out["runs"] = runs
     for i, r in enumerate(runs):
@@ -233,6 +421,21 @@ def main() -> None:
                 cells.append(f"{k}: ours {o['wall_s']} s (cpu {o['cpu_s']}, load {o['load_before']}) "
                              f"peer {p_['wall_s']} s (cpu {p_['cpu_s']}, load {p_['load_before']}) "
                              f"ratio {r[k]['ratio_time_ours_over_peer']} (cpu {r[k]['ratio_cpu_ours_over_peer']})")
+        for k in ("pair", "orient"):
+            if k in r:
+                o = r[k]["ours"]
+                pre = "tie_" if k == "orient" else ""
+                cells.append(f"{k} precision: ours RMS {_fmt(o.get(pre + 'rms_error_px'))} px (refined "
+                             f"{_fmt(o.get(pre + 'rms_error_refined_px'))}, median {_fmt(o.get(pre + 'median_error_refined_px'))})"
+                             + (f", peer {_fmt(r[k]['peer'].get(pre + 'rms_error_px'))} px" if "peer" in r[k] else ""))
+        for name, v in r.get("ngi", {}).items():
+            o = v["ours"]
+            cells.append(f"ngi {name}: ours {o['wall_s']} s, refined {o['refined_share']:.1%}, verification RMSE "
+                         f"{_fmt(o['verification_rmse_px'])} px, known-F Sampson RMS {o['sampson_rms_refined_px']} px "
+                         f"(all {o['sampson_rms_px']}), RO {o['ro_refined_rotation_deg']} deg (all matches "
+                         f"{o['ro_all_rotation_deg']})" + (f"; peer {v['peer']['wall_s']} s, Sampson RMS "
+                                                          f"{v['peer']['sampson_rms_px']} px, RO "
+                                                          f"{v['peer']['ro_all_rotation_deg']} deg" if "peer" in v else ""))
         print(f"run {i + 1}: " + "; ".join(cells), flush=True)
     if a.large:
         out["large"] = run_large(a.work, a.large)

@@ -30,7 +30,6 @@ from numpy.typing import NDArray
 from rectify.features.detect import Features, detect, grid_select
 from rectify.features.lsm import refine_matches
 from rectify.features.match import (
-    SHIFT_PER_SIZE,
     MatcherConfig,
     MatchResult,
     _check_blank,
@@ -38,6 +37,7 @@ from rectify.features.match import (
     _no_overlap,
     _result,
     _reverify_and_cap,
+    _shift_limits,
     _verify_checked,
     match_descriptors,
 )
@@ -318,7 +318,7 @@ class _TilePairs:
             Lg = _grey_float(Ld, Lv)
             Rg = _grey_float(Rd, Rv)
             lr = refine_matches(Lg, Rg, pl - [c0, r0], pr - [bx0, by0], affine=A, config=cfg.lsm,
-                                shift_limit_px=SHIFT_PER_SIZE * size_r)
+                                shift_limit_px=_shift_limits(size_r))
             okr = lr.converged
             n_ref += int(okr.sum())
             n_fail += int((~okr).sum())

@@ -197,8 +197,9 @@ def calibrate_rig_images(left: Sequence[str | Path], right: Sequence[str | Path]
                          corners: str = "symmetry", **model: Any) -> RigRun:
     """Calibrate a two-camera rig from synchronous chessboard images (``left[i]`` with ``right[i]``).
 
-    Pairs where the board is missing in either image are left out (named). Writes the rig JSON
-    (:meth:`.rig.RigCalibration.to_dict`).
+    Pairs where the board is missing in either image are left out (named); chessboard corners whose
+    refinement failed (``corners``: ``symmetry`` or ``opencv``) are left out and named in the summary.
+    Writes the rig JSON (:meth:`.rig.RigCalibration.to_dict`).
 
     Raises
     ------
