@@ -10,6 +10,11 @@ with SIGKILL (no chance to clean up) may leave such a file behind: it is never r
 and can be deleted. Outputs get the permissions of a normal file (``0o666`` minus the umask), not
 the ``0o600`` of :func:`tempfile.mkstemp`. A write failure is reported as :class:`RasterIOError`
 naming the file and the reason ("no space left on device" when the disk is full).
+
+Every JSON file of both packages is read by :func:`read_json` (or, for text already read, parsed by
+:func:`parse_json`): a file larger than :data:`JSON_MAX_BYTES` or nesting arrays and objects deeper
+than :data:`JSON_MAX_DEPTH` levels is refused before parsing, with one line naming the file and the
+limit, so that no JSON file can exhaust the memory or the parser's recursion.
 """
 
 from __future__ import annotations
@@ -25,14 +30,21 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from rectify.errors import InvalidInputError, RasterIOError, RectifyError
 
-__all__ = ["check_output", "atomic_output", "atomic_write_text", "read_json", "read_text", "write_failure_reason",
-           "apply_umask", "current_umask", "make_temp", "NO_SPACE"]
+__all__ = ["check_output", "atomic_output", "atomic_write_text", "read_json", "parse_json", "json_depth", "read_text",
+           "write_failure_reason", "apply_umask", "current_umask", "make_temp", "NO_SPACE", "JSON_MAX_BYTES",
+           "JSON_MAX_DEPTH"]
 
 NO_SPACE = "no space left on device"
 #: below this many free bytes on the destination's file system a write failure is blamed on a full disk
 _NEARLY_FULL = 1 << 20
+#: the largest JSON file read (bytes): parsed, JSON takes several times its size in memory
+JSON_MAX_BYTES = 256 * 1024 * 1024
+#: the deepest nesting of arrays and objects in a JSON file read (the project's files nest 6 levels or fewer)
+JSON_MAX_DEPTH = 64
 
 
 def write_failure_reason(err: BaseException | None, path: str | os.PathLike[str] | None = None) -> str:
@@ -169,19 +181,131 @@ def read_text(path: str | Path, what: str = "file") -> str:
         raise RasterIOError(f"cannot read {what} {str(p)!r}: {err}") from err
 
 
-def read_json(path: str | os.PathLike[str], what: str = "JSON file") -> Any:
-    """Parse a JSON file; ``what`` names it in errors ("camera file", ...).
+def read_json(path: str | os.PathLike[str], what: str = "JSON file", *, max_bytes: int = JSON_MAX_BYTES,
+              max_depth: int = JSON_MAX_DEPTH) -> Any:
+    """Parse a JSON file (UTF-8, a byte-order mark allowed); ``what`` names it in errors ("camera file", ...).
+
+    The file is refused before parsing when it holds more than ``max_bytes`` bytes or nests arrays and
+    objects deeper than ``max_depth`` levels (:func:`parse_json`).
 
     Raises
     ------
     RasterIOError
         If the file is missing or unreadable.
     InvalidInputError
-        If it is not valid JSON.
+        If it is too large, too deeply nested, not UTF-8 or not valid JSON (one line naming the file).
     """
     p = Path(path)
-    text = read_text(p, what)
+    label = f"{what} {str(p)!r}"
+    try:
+        with open(p, "rb") as fh:
+            size = os.fstat(fh.fileno()).st_size
+            if size > max_bytes:
+                raise InvalidInputError(f"{label} holds {size} bytes, more than the {max_bytes} a JSON file may have")
+            data = fh.read(max_bytes + 1)  # a pipe or special file has no size: read one byte past the limit
+    except FileNotFoundError as err:
+        raise RasterIOError(f"cannot read {label}: file not found") from err
+    except IsADirectoryError as err:
+        raise RasterIOError(f"cannot read {label}: is a directory") from err
+    except OSError as err:
+        raise RasterIOError(f"cannot read {label}: {err.strerror or err}") from err
+    if len(data) > max_bytes:
+        raise InvalidInputError(f"{label} holds more than the {max_bytes} bytes a JSON file may have")
+    return parse_json(data, label, max_depth=max_depth)
+
+
+def parse_json(data: bytes | str, label: str, *, max_depth: int = JSON_MAX_DEPTH) -> Any:
+    """Parse JSON text, refusing nesting deeper than ``max_depth`` before the parser sees it.
+
+    ``label`` names the source in errors (``"camera file 'cam.json'"``). Bytes must be UTF-8 (a leading
+    byte-order mark is dropped).
+
+    Raises
+    ------
+    InvalidInputError
+        Too deeply nested, not UTF-8, not valid JSON (or a number Python cannot hold, e.g. an integer of
+        more than 4300 digits).
+    """
+    raw = data.encode("utf-8", "surrogatepass") if isinstance(data, str) else bytes(data)
+    if raw.startswith(b"\xef\xbb\xbf"):
+        raw = raw[3:]
+    depth = json_depth(raw, max_depth)
+    if depth > max_depth:
+        raise InvalidInputError(f"{label} nests arrays and objects more than {max_depth} levels deep "
+                                f"(the most a JSON file may have)")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise InvalidInputError(f"{label} is not UTF-8 text: byte {err.start} is {raw[err.start:err.start + 1]!r}"
+                                ) from None
+    del raw
     try:
         return json.loads(text)
     except json.JSONDecodeError as err:
-        raise InvalidInputError(f"{what} {str(p)!r} is not valid JSON: {err}") from err
+        raise InvalidInputError(f"{label} is not valid JSON: {err}") from None
+    except (ValueError, RecursionError) as err:  # e.g. an integer of more than 4300 digits
+        msg = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise InvalidInputError(f"{label} is not valid JSON: {msg}") from None
+
+
+#: the bytes that matter to nesting: '"', '[', ']', '{', '}'
+_JSON_STRUCTURAL = np.zeros(256, dtype=bool)
+_JSON_STRUCTURAL[[34, 91, 93, 123, 125]] = True
+_JSON_DELTA = np.zeros(256, dtype=np.int64)
+_JSON_DELTA[[91, 123]] = 1
+_JSON_DELTA[[93, 125]] = -1
+_SCAN_CHUNK = 1 << 22
+
+
+def json_depth(data: bytes, stop: int | None = None, *, chunk: int = _SCAN_CHUNK) -> int:
+    r"""The deepest nesting of arrays and objects in JSON text (UTF-8 bytes); brackets inside strings
+    (escaped quotes included) do not count.
+
+    The scan is vectorised over chunks of ``chunk`` bytes (4 MiB) and needs memory proportional to a
+    chunk, not to the text. It stops as soon as the depth passes ``stop``. For text that is not valid
+    JSON the number is at least the nesting of its longest valid beginning, all a parser could reach.
+
+    >>> json_depth(b'{"a": [1, [2, "]]]"], {"b": "\\\"[["}]}')
+    3
+    """
+    a = np.frombuffer(data, dtype=np.uint8)
+    depth = deepest = 0
+    in_string = False
+    carry = 0  # length of the run of backslashes that ends the previous chunk
+    for start in range(0, a.size, chunk):
+        c = a[start:start + chunk]
+        pos = np.flatnonzero(_JSON_STRUCTURAL[c])
+        b = np.flatnonzero(c == 92)
+        run_start = b
+        if b.size:  # first backslash of the run each backslash belongs to
+            new_run = np.empty(b.size, dtype=bool)
+            new_run[0] = True
+            np.not_equal(np.diff(b), 1, out=new_run[1:])
+            run_start = b[new_run][np.cumsum(new_run) - 1]
+        if pos.size:
+            kind = c[pos]
+            quote = kind == 34
+            if b.size or carry:
+                # a quote after an odd run of backslashes is escaped: it neither opens nor closes a string
+                q = pos[quote]
+                run = np.where(q == 0, carry, 0)
+                if b.size:
+                    k = np.maximum(np.searchsorted(b, q) - 1, 0)
+                    adjacent = b[k] == q - 1
+                    run = np.where(adjacent, q - run_start[k] + np.where(run_start[k] == 0, carry, 0), run)
+                keep = np.ones(pos.size, dtype=bool)
+                keep[np.flatnonzero(quote)] = run % 2 == 0
+                kind, quote = kind[keep], quote[keep]
+            inside = ((np.cumsum(quote) - quote) % 2 == 1) != in_string
+            level = depth + np.cumsum(np.where(inside | quote, 0, _JSON_DELTA[kind]))
+            if level.size:
+                deepest = max(deepest, int(level.max()))
+                depth = int(level[-1])
+            in_string ^= bool(int(quote.sum()) % 2)
+            if stop is not None and deepest > stop:
+                return deepest
+        if b.size and b[-1] == c.size - 1:
+            carry = int(c.size - run_start[-1]) + (carry if run_start[-1] == 0 else 0)
+        else:
+            carry = 0
+    return deepest

@@ -372,7 +372,7 @@ def run_large(work: Path, size: int) -> dict:
         inside = corners  # left corners; their images may leave the right frame, the error is still defined
         err = np.linalg.norm(ap(Hest, inside) - ap(H, inside), axis=1)
         res = {"size": size, "generate_s": round(gen_s, 1), "disk_gb": round(disk_gb, 2), **m,
-               **score(mt.left, mt.right, H, size, cell=2000),
+               **score(mt.left, mt.right, H, size, cell=2000, refined=_refined(mt)),
                "H_corner_error_px_max": float(err.max())}
     finally:
         shutil.rmtree(d, ignore_errors=True)
@@ -382,6 +382,30 @@ def run_large(work: Path, size: int) -> dict:
 
 def _fmt(v) -> str:
     return "-" if v is None else f"{v:.4f}"
+
+
+def _precision_cells(r: dict) -> list[str]:
+    """The precision of each case of one run, for its summary line."""
+    cells = []
+    for k in ("pair", "orient"):
+        if k in r:
+            o = r[k]["ours"]
+            pre = "tie_" if k == "orient" else ""
+            peer = f", peer {_fmt(r[k]['peer'].get(pre + 'rms_error_px'))} px" if "peer" in r[k] else ""
+            cells.append(f"{k} precision: ours RMS {_fmt(o.get(pre + 'rms_error_px'))} px (refined "
+                         f"{_fmt(o.get(pre + 'rms_error_refined_px'))}, median "
+                         f"{_fmt(o.get(pre + 'median_error_refined_px'))}){peer}")
+    for name, v in r.get("ngi", {}).items():
+        o = v["ours"]
+        peer = ""
+        if "peer" in v:
+            p_ = v["peer"]
+            peer = f"; peer {p_['wall_s']} s, Sampson RMS {p_['sampson_rms_px']} px, RO {p_['ro_all_rotation_deg']} deg"
+        cells.append(f"ngi {name}: ours {o['wall_s']} s, refined {o['refined_share']:.1%}, verification RMSE "
+                     f"{_fmt(o['verification_rmse_px'])} px, known-F Sampson RMS {o['sampson_rms_refined_px']} px "
+                     f"(all {o['sampson_rms_px']}), RO {o['ro_refined_rotation_deg']} deg (all matches "
+                     f"{o['ro_all_rotation_deg']}){peer}")
+    return cells
 
 
 def main() -> None:
@@ -421,21 +445,7 @@ def main() -> None:
                 cells.append(f"{k}: ours {o['wall_s']} s (cpu {o['cpu_s']}, load {o['load_before']}) "
                              f"peer {p_['wall_s']} s (cpu {p_['cpu_s']}, load {p_['load_before']}) "
                              f"ratio {r[k]['ratio_time_ours_over_peer']} (cpu {r[k]['ratio_cpu_ours_over_peer']})")
-        for k in ("pair", "orient"):
-            if k in r:
-                o = r[k]["ours"]
-                pre = "tie_" if k == "orient" else ""
-                cells.append(f"{k} precision: ours RMS {_fmt(o.get(pre + 'rms_error_px'))} px (refined "
-                             f"{_fmt(o.get(pre + 'rms_error_refined_px'))}, median {_fmt(o.get(pre + 'median_error_refined_px'))})"
-                             + (f", peer {_fmt(r[k]['peer'].get(pre + 'rms_error_px'))} px" if "peer" in r[k] else ""))
-        for name, v in r.get("ngi", {}).items():
-            o = v["ours"]
-            cells.append(f"ngi {name}: ours {o['wall_s']} s, refined {o['refined_share']:.1%}, verification RMSE "
-                         f"{_fmt(o['verification_rmse_px'])} px, known-F Sampson RMS {o['sampson_rms_refined_px']} px "
-                         f"(all {o['sampson_rms_px']}), RO {o['ro_refined_rotation_deg']} deg (all matches "
-                         f"{o['ro_all_rotation_deg']})" + (f"; peer {v['peer']['wall_s']} s, Sampson RMS "
-                                                          f"{v['peer']['sampson_rms_px']} px, RO "
-                                                          f"{v['peer']['ro_all_rotation_deg']} deg" if "peer" in v else ""))
+        cells += _precision_cells(r)
         print(f"run {i + 1}: " + "; ".join(cells), flush=True)
     if a.large:
         out["large"] = run_large(a.work, a.large)

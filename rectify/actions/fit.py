@@ -6,7 +6,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rectify.actions.common import check_method
-from rectify.actions.workspace import Workspace
+from rectify.actions.workspace import Workspace, check_table_crs
+from rectify.formats.detect import GCP_PIXEL, input_paths, read_gcp_file
 from rectify.formats.gcps import TIFF_SUFFIXES
 from rectify.geometry.points import GcpTable
 from rectify.geometry.transforms import METHODS, FitResult, fit_gcps
@@ -16,11 +17,14 @@ from rectify.raster.io import raster_info
 
 @dataclass(frozen=True)
 class FitOptions:
-    """Options of :func:`fit`: the model (a key of :data:`rectify.geometry.transforms.METHODS`), rows printed."""
+    """Options of :func:`fit`: the model (a key of :data:`rectify.geometry.transforms.METHODS`), rows printed, the
+    source image (its size judges the GCP geometry; its file name picks the GCPs of a file of several images)
+    and the pixel convention of GCPs embedded in a GeoTIFF (``corner``, GDAL's, by default; ``centre``)."""
 
     method: str = "homography"
     max_rows: int = 50
     image: str | Path | None = None
+    gcp_pixel: str | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -33,6 +37,7 @@ class FitRun:
     output: Path
     report: Path | None = None
     geometry: GcpGeometry | None = None
+    gcp_source: str = ""
 
     def summary_lines(self) -> list[str]:
         """The residual table (degrees and metres in a geographic CRS), the cotangent control points, RMSE
@@ -42,6 +47,8 @@ class FitRun:
             lines = geographic_lines(table, max_rows=self.options.max_rows)
         else:
             lines = [table.format_text(max_rows=self.options.max_rows)]
+        if self.gcp_source:
+            lines.insert(0, f"GCPs: {self.gcp_source}")
         if "control_ids" in table.extra:
             lines.append(f"cotangent method: control points {', '.join(table.extra['control_ids'])} "
                          "(best-conditioned quadrilateral); the other fit rows are reported as check points")
@@ -61,6 +68,7 @@ class FitRun:
         return lines
 
 
+__all__ = ["GCP_PIXEL", "FitOptions", "FitRun", "fit"]
 
 
 def fit(ws: Workspace, gcps_path: str | Path, output: str | Path, options: FitOptions = FitOptions()) -> FitRun:
@@ -72,16 +80,20 @@ def fit(ws: Workspace, gcps_path: str | Path, output: str | Path, options: FitOp
     """
     check_method(options.method)
     image = options.image
-    if image is None and Path(gcps_path).suffix.lower() in TIFF_SUFFIXES:
-        image = gcps_path
-    ws.add_inputs(gcps_path, image)
+    gcp_file = input_paths(gcps_path)[0]
+    if image is None and gcp_file.suffix.lower() in TIFF_SUFFIXES:
+        image = gcp_file
+    ws.add_inputs(gcp_file, image)
     size = None
     if image is not None:
         info = raster_info(image)
         size = (info.width, info.height)
     ws.plan(output)
     ws.check_report_dir()
-    gcps = ws.load_gcps(gcps_path)
+    # any GCP file; of a file of several images, the GCPs of --image's
+    gs = read_gcp_file(gcps_path, image=options.image, pixel=options.gcp_pixel, option="--image")
+    gcps = gs.table
+    check_table_crs(gs.path, gcps.crs, gcps.target, gcps.ids)
     result = fit_gcps(gcps, options.method)
     geometry = None
     if size is not None:
@@ -93,6 +105,6 @@ def fit(ws: Workspace, gcps_path: str | Path, output: str | Path, options: FitOp
             # local: the report (matplotlib, 0.24 s) loads only when --report asks for it
             from rectify.report.builder import write_fit_report
 
-            report = write_fit_report(ws.report_dir, result, gcps, gcps_path=gcps_path, transform_path=out,
+            report = write_fit_report(ws.report_dir, result, gcps, gcps_path=gs.path, transform_path=out,
                                       overwrite=ws.overwrite)
-    return FitRun(result, gcps, options, out, report, geometry)
+    return FitRun(result, gcps, options, out, report, geometry, gs.description)

@@ -9,6 +9,7 @@ from typing import Any
 from rectify.actions.common import Progress
 from rectify.actions.workspace import Workspace
 from rectify.features import DETECTORS, VERIFY_METHODS, MatcherConfig, MatchResult, match_images
+from rectify.raster.distributed import check_scheduler
 
 #: the command's choices (the lists live in :mod:`rectify.features`)
 __all__ = ["DETECTORS", "VERIFY_METHODS", "MatchOptions", "MatchRun", "match"]
@@ -101,10 +102,12 @@ def match(ws: Workspace, left: str | Path, right: str | Path, output: str | Path
     ws.add_inputs(left, right)
     ws.plan(output)
     ws.check_report_dir()
+    # the scheduler (or $RECTIFY_SCHEDULER) is checked before any work, even when a small pair will not tile
+    sched = check_scheduler(options.scheduler)
 
     cfg = options.config()
     # the Dask tasks' block files go beside the output (on a cluster, a folder the workers share)
-    res = match_images(left, right, config=cfg, progress=progress, scheduler=options.scheduler,
+    res = match_images(left, right, config=cfg, progress=progress, scheduler=sched,
                        workdir=Path(output).resolve().parent)
     report = None
     with ws.transaction():  # the matches and the report, all or none

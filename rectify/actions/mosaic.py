@@ -1,18 +1,24 @@
 """``rectify mosaic``: one GeoTIFF/COG from several orthophotos (nearest-nadir seams, feathering).
 
 The file step of :func:`rectify.raster.mosaic.mosaic`: the orthophotos are the job's inputs, the
-output is written atomically with the workspace's overwrite policy.
+output is written through the workspace (checked against every input before any work, renamed into place
+at the end, nothing left on an error or SIGTERM), with its overwrite policy.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from rectify.actions.common import Progress
+from rectify.actions.products import options_of, raster_grid, raster_roles, stac_path, write_stac
 from rectify.actions.workspace import Workspace
-from rectify.raster.mosaic import MosaicOptions, MosaicResult
+from rectify.errors import InvalidInputError
+from rectify.formats.stac import StacAsset
+from rectify.raster.mosaic import MAX_PIXELS, MosaicOptions, MosaicResult
 from rectify.raster.mosaic import mosaic as mosaic_orthos
 
 __all__ = ["MosaicOptions", "MosaicRunOptions", "MosaicRun", "mosaic"]
@@ -20,11 +26,19 @@ __all__ = ["MosaicOptions", "MosaicRunOptions", "MosaicRun", "mosaic"]
 
 @dataclass(frozen=True)
 class MosaicRunOptions:
-    """Options of :func:`mosaic`: the output pixel size (default: the finest input's) and the engine's
-    options (feathering, tiles, threads, compression, COG, scheduler)."""
+    """Options of :func:`mosaic`: the output pixel size (default: the finest input's), the engine's
+    options (feathering, tiles, threads, compression, COG, scheduler) and the largest output grid
+    (pixels; orthophotos far apart would otherwise make a grid of mostly nothing)."""
 
     resolution: float | None = None
     engine: MosaicOptions = field(default_factory=MosaicOptions)
+    max_pixels: float = MAX_PIXELS
+    stac: bool = True  # write the STAC Item <output stem>.stac.json beside the mosaic, in the same transaction
+
+    def __post_init__(self) -> None:
+        v = self.max_pixels
+        if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 1):
+            raise InvalidInputError(f"max_pixels must be a number >= 1; got {v!r}")
 
 
 @dataclass(frozen=True)
@@ -32,10 +46,11 @@ class MosaicRun:
     """Result of :func:`mosaic`: what the mosaic engine wrote."""
 
     result: MosaicResult
+    stac: Path | None = None
 
     def summary_lines(self) -> list[str]:
-        """The output grid, CRS, inputs and time, then each input's share of the mosaic."""
-        return self.result.summary_lines()
+        """The output grid, CRS, inputs and time, then each input's share of the mosaic; the STAC Item."""
+        return self.result.summary_lines() + ([f"wrote {self.stac} (STAC Item)"] if self.stac is not None else [])
 
 
 def mosaic(ws: Workspace, orthos: Sequence[str | Path], dst: str | Path,
@@ -48,6 +63,14 @@ def mosaic(ws: Workspace, orthos: Sequence[str | Path], dst: str | Path,
         As :func:`rectify.raster.mosaic.mosaic`.
     """
     ws.add_inputs(*orthos)
-    res = mosaic_orthos(list(orthos), dst, resolution=options.resolution, options=options.engine,
-                        overwrite=ws.overwrite, progress=progress)
-    return MosaicRun(res)
+    item = stac_path(dst) if options.stac else None
+    ws.plan(dst, item)  # the output against every input (resolved, hard links and symlinks included), before any work
+    # the grid is checked (size, inputs far apart) before any tile; the mosaic is renamed into place at the end
+    with ws.transaction(), ws.output(dst, suffix=Path(dst).suffix or ".tif") as tmp:
+        res = mosaic_orthos(list(orthos), tmp, resolution=options.resolution, options=options.engine,
+                            overwrite=True, progress=progress, max_pixels=options.max_pixels)
+        if item is not None:
+            write_stac(ws, item, item_id=Path(dst).stem, grid=raster_grid(tmp), command="rectify mosaic",
+                       assets={"mosaic": StacAsset(dst, raster_roles(tmp), "orthophoto mosaic", source=tmp)},
+                       options=options_of(options, orthos=[str(p) for p in orthos]), inputs=list(orthos))
+    return MosaicRun(dataclasses.replace(res, path=Path(dst)), item)

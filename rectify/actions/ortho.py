@@ -1,11 +1,15 @@
 """``rectify ortho``: orthorectify an RPC or frame image over a DEM, optionally refined or checked by GCPs.
 
 The file step of :func:`rectify.raster.ortho.orthorectify`: the sensor model from the image's RPC or
-an RPC file (:mod:`rectify.formats.rpc`), or from a camera and an exterior orientation (an EO JSON, or
-one image of a block orientation JSON or a position/angle CSV:
-:func:`rectify.formats.exterior.read_frame_source`); GCPs (:func:`rectify.formats.gcps.read_gcps`,
-heights from the file or the DEM) refine an RPC (:class:`rectify.geometry.rpc.RPCRefinement`) or check
-a frame model; the report (:func:`rectify.report.ortho.write_ortho_report`).
+an RPC file (:mod:`rectify.formats.rpc`), or from a camera and an exterior orientation of any file
+:mod:`rectify.formats.detect` recognises (an EO JSON; one image of a block orientation JSON, a
+position/angle CSV, orthority's exterior parameters, a COLMAP model or a Metashape XML; the camera from
+a camera JSON, orthority's int_param, an OpenCV calibration, COLMAP or Metashape:
+:func:`rectify.formats.detect.read_frame_source_any`); GCPs of any file it recognises
+(:func:`rectify.formats.detect.read_gcp_file`: the image's GCPs of orthority's, ODM's or Metashape's
+files; heights from the file or the DEM) refine an RPC (:class:`rectify.geometry.rpc.RPCRefinement`) or
+check a frame model; the report (:func:`rectify.report.ortho.write_ortho_report`); the STAC Item
+(:mod:`rectify.actions.products`), staged with the orthophoto and the report.
 
 Heights. Every height reaches the model's vertical frame once, by one stated conversion
 (:func:`model_heights`): the model takes WGS 84 ellipsoidal heights (RPC) or its exterior orientation's
@@ -25,6 +29,7 @@ independent point would have on the orthophoto.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,12 +38,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rectify.actions.common import Progress
+from rectify.actions.products import options_of, raster_grid, raster_roles, residual_accuracy, stac_path, write_stac
 from rectify.actions.workspace import Workspace
-from rectify.atomic import check_output
 from rectify.errors import CRSError, InvalidInputError
-from rectify.formats.exterior import read_frame_source
-from rectify.formats.gcps import read_gcps
+from rectify.formats.detect import GCP_PIXEL, input_paths, read_frame_source_any, read_gcp_file
 from rectify.formats.rpc import read_rpc, rpc_from_raster
+from rectify.formats.stac import StacAsset
 from rectify.geometry.crs import (
     VerticalDatum,
     geoid_height,
@@ -56,8 +61,8 @@ from rectify.raster.dem import Dem, ground_on_dem
 from rectify.raster.io import bound_gdal_cache, raster_info
 from rectify.raster.ortho import OrthoOptions, OrthoResult, orthorectify
 
-__all__ = ["OrthoOptions", "OrthoRunOptions", "OrthoRun", "GCP_HEIGHTS", "ModelHeights", "ortho", "ortho_from_files",
-           "gcp_heights", "ground_errors"]
+__all__ = ["OrthoOptions", "OrthoRunOptions", "OrthoRun", "GCP_HEIGHTS", "GCP_PIXEL", "ModelHeights", "ortho",
+           "ortho_from_files", "gcp_heights", "ground_errors"]
 
 #: the named datums of ``--gcp-heights`` (any vertical CRS, ``EPSG:5773``, is accepted too)
 GCP_HEIGHTS = ("ellipsoidal", "dem")
@@ -88,7 +93,17 @@ class OrthoRunOptions:
         Datum of the GCP heights: ``ellipsoidal``, ``dem`` (the DEM file's) or a vertical CRS
         (``EPSG:5773``); default the GCP file's CRS, else the DEM's when the DEM is not converted.
     image_id : str, optional
-        The image of a block orientation JSON or position/angle CSV (default the source's file stem).
+        The image of a file of several orientations (a block orientation JSON, a position/angle CSV,
+        orthority's exterior parameters, a COLMAP model, a Metashape XML; default the source's file
+        name or stem).
+    camera_id : str, optional
+        The camera of a camera file of several (orthority, COLMAP, Metashape; default the one the
+        exterior orientation names, else the only one).
+    gcp_pixel : str, optional
+        Pixel convention of GCPs embedded in a GeoTIFF: ``corner`` (GDAL's, the default) or ``centre``
+        (orthority's).
+    stac : bool
+        Write the STAC Item ``<output stem>.stac.json`` beside the orthophoto.
     engine : OrthoOptions
         Resampling, tiles, threads, compression, COG, true ortho, scheduler.
     """
@@ -101,6 +116,9 @@ class OrthoRunOptions:
     geoid: str | None = None
     gcp_heights: str | None = None
     image_id: str | None = None
+    camera_id: str | None = None
+    gcp_pixel: str | None = None
+    stac: bool = True
     engine: OrthoOptions = field(default_factory=OrthoOptions)
 
 
@@ -136,11 +154,15 @@ class OrthoRun:
     heights: dict[str, str] = field(default_factory=dict)
     ground: dict[str, Any] | None = None
     source: str = ""
+    gcp_source: str = ""
+    stac: Path | None = None
 
     def summary_lines(self) -> list[str]:
         out = []
         if self.source:
             out.append(f"orientation: {self.source}")
+        if self.gcp_source:
+            out.append(f"GCPs: {self.gcp_source}")
         out += [f"{k}: {v}" for k, v in self.heights.items()]
         if self.residuals is not None:
             out.append(f"{self.residuals.step}: {self.residuals.summary_line()}")
@@ -157,6 +179,8 @@ class OrthoRun:
         out += self.result.summary_lines()
         if self.report_files:
             out.append(f"report: {', '.join(str(p) for p in self.report_files)}")
+        if self.stac is not None:
+            out.append(f"wrote {self.stac} (STAC Item)")
         return out
 
 
@@ -390,7 +414,7 @@ def ortho(ws: Workspace, src: str | Path, dst: str | Path, dem_path: str | Path,
         datum with a converted DEM.
     """
     bound_gdal_cache()  # before any pixel IO
-    overwrite, report_dir = ws.overwrite, ws.report_dir
+    report_dir = ws.report_dir
     use_rpc = bool(rpc)
     if use_rpc == (camera is not None or exterior is not None):
         raise InvalidInputError("give either an RPC (--rpc) or a frame camera (--camera and --exterior)")
@@ -400,18 +424,16 @@ def ortho(ws: Workspace, src: str | Path, dst: str | Path, dem_path: str | Path,
     if use_rpc and options.image_id is not None:
         raise InvalidInputError(f"--image-id {options.image_id!r} names an image of a block orientation or pose "
                                 f"file (--exterior); an RPC image needs none")
-    for p in (src, dem_path, camera, exterior, gcps, rpc if isinstance(rpc, (str, Path)) else None):
-        if p is not None and Path(dst).exists() and Path(p).exists() and Path(dst).resolve() == Path(p).resolve():
-            raise InvalidInputError(f"output {str(dst)!r} is an input; inputs are never modified")
-    ws.add_inputs(src, dem_path, camera, exterior, gcps, rpc if isinstance(rpc, (str, Path)) else None)
-    check_output(dst, overwrite=overwrite)
-    if report_dir is not None:  # fail before the work, not after
+    # the output plan (the orthophoto and every report file) against every input, before any work
+    rpc_file = rpc if isinstance(rpc, (str, Path)) else None
+    ws.add_inputs(*input_paths(src, dem_path, camera, exterior, gcps, rpc_file))
+    item = stac_path(dst) if options.stac else None
+    if report_dir is not None:
         rd = Path(report_dir)
         if rd.exists() and not rd.is_dir():
             raise InvalidInputError(f"report folder {str(rd)!r} is a file")
-        if rd.is_dir():
-            for name in _REPORT_FILES:
-                check_output(rd / name, overwrite=overwrite)
+        ws.check_report_dir()
+    ws.plan(dst, item, *((Path(report_dir) / n for n in _REPORT_FILES) if report_dir is not None else ()))
     o = options
     if o.gcp_heights is not None and gcps is None:
         raise InvalidInputError(f"--gcp-heights {o.gcp_heights} given without --gcps")
@@ -420,8 +442,17 @@ def ortho(ws: Workspace, src: str | Path, dst: str | Path, dem_path: str | Path,
     source = ""
     eo_vertical = None
     if not use_rpc:
-        fs = read_frame_source(camera, exterior, crs=o.eo_crs, image_id=o.image_id, image_path=src)  # type: ignore[arg-type]
+        fs = read_frame_source_any(camera, exterior, crs=o.eo_crs, image_id=o.image_id,  # type: ignore[arg-type]
+                                   image_path=src, camera_id=o.camera_id)
         model, source, eo_vertical = fs.model, fs.description, fs.vertical
+    elif o.camera_id is not None:
+        raise InvalidInputError(f"--camera-id {o.camera_id!r} names a camera of a camera file; an RPC image needs none")
+    gs = None
+    if gcps is not None:  # any GCP file; one of several images: the source's (or --image-id's)
+        gs = read_gcp_file(gcps, image=o.image_id or src, pixel=o.gcp_pixel, option="--image-id")
+        gcps = gs.path
+    elif o.gcp_pixel is not None:
+        raise InvalidInputError(f"--gcp-pixel {o.gcp_pixel} given without --gcps")
     # a frame orientation in the DEM's declared heights keeps them; an RPC (or an ellipsoidal EO) converts them
     convert = use_rpc or (eo_vertical is not None and eo_vertical.ellipsoidal)
     dem = Dem.from_path(dem_path, undulation=o.undulation, geoid=o.geoid, convert_declared=convert)
@@ -432,15 +463,15 @@ def ortho(ws: Workspace, src: str | Path, dst: str | Path, dem_path: str | Path,
     if use_rpc:
         r = rpc_from_raster(src) if rpc is True else read_rpc(rpc)  # type: ignore[arg-type]
         model_rpc: Any = r
-        if gcps is not None:
-            g = read_gcps(gcps)
-            ground, how = _gcp_ground(g, gcps, dem, "EPSG:4326", target, o.gcp_heights)
+        if gs is not None:
+            g = gs.table
+            ground, how = _gcp_ground(g, gs.path, dem, "EPSG:4326", target, o.gcp_heights)
             ref = RPCRefinement.from_gcps(r, g.pixel, ground, model=o.refinement, ids=list(g.ids), check=g.check)
             model_rpc, table = ref, ref.residuals
         model = RPCModel(model_rpc, info.width, info.height)
-    elif gcps is not None:
-        g = read_gcps(gcps)
-        ground, how = _gcp_ground(g, gcps, dem, model.crs, target, o.gcp_heights)
+    elif gs is not None:
+        g = gs.table
+        ground, how = _gcp_ground(g, gs.path, dem, model.crs, target, o.gcp_heights)
         adj = model.project(ground)
         table = ResidualTable(step="GCP check (frame model)", ids=list(g.ids), observed=g.pixel, adjusted=adj,
                               units="px", check=np.ones(len(g.ids), bool), position_px=g.pixel)
@@ -450,16 +481,35 @@ def ortho(ws: Workspace, src: str | Path, dst: str | Path, dem_path: str | Path,
         if diff is not None:
             heights["GCP heights - DEM at the GCPs"] = diff
         ground_check = ground_errors(model, dem, g, ground, table)
-    result = orthorectify(src, dst, model, dem, dst_crs=o.dst_crs, resolution=o.resolution, options=o.engine,
-                          overwrite=overwrite, progress=progress)
-    run = OrthoRun(result, table, type(model).__name__, None, heights, ground_check, source)
-    if report_dir is not None:
-        # local: the report code and matplotlib load only when --report asks for them
-        from rectify.report.ortho import write_ortho_report
+    # the orthophoto and the report, all or none (a full disk, an error or SIGTERM leaves neither)
+    with ws.transaction():
+        with ws.output(dst, suffix=Path(dst).suffix or ".tif") as tmp:
+            result = orthorectify(src, tmp, model, dem, dst_crs=o.dst_crs, resolution=o.resolution,
+                                  options=o.engine, overwrite=True, progress=progress)
+        result = dataclasses.replace(result, path=Path(dst))
+        gcp_note = gs.description if gs is not None else ""
+        run = OrthoRun(result, table, type(model).__name__, None, heights, ground_check, source, gcp_note)
+        if report_dir is not None:
+            # local: the report code and matplotlib load only when --report asks for them
+            from rectify.report.ortho import write_ortho_report
 
-        paths = write_ortho_report(report_dir, result, table, run.summary_lines(), model, dem, overwrite=overwrite,
-                                   heights=heights, gcp_ground=ground_check)
-        run = OrthoRun(result, table, type(model).__name__, paths, heights, ground_check, source)
+            with ws.report_folder() as stage:
+                written = write_ortho_report(stage, result, table, run.summary_lines(), model, dem, overwrite=True,
+                                             heights=heights, gcp_ground=ground_check)
+            paths = [Path(report_dir) / Path(q).relative_to(stage) for q in written]
+            run = OrthoRun(result, table, type(model).__name__, paths, heights, ground_check, source, gcp_note)
+        if item is not None:  # the STAC Item of the staged orthophoto, in the same transaction
+            acc = residual_accuracy(table, "gcp")
+            for key in ("leave_one_out", "check"):
+                if ground_check and ground_check.get(key):
+                    acc[f"gcp_{key}_rmse_m"] = ground_check[key]["rmse_m"]
+            acc["max_relief_shift_m"] = result.max_relief_shift
+            write_stac(ws, item, item_id=Path(dst).stem, grid=raster_grid(tmp), accuracy=acc, command="rectify ortho",
+                       assets={"ortho": StacAsset(dst, raster_roles(tmp), "orthophoto", source=tmp)},
+                       options=options_of(o, rpc=rpc_file or bool(rpc), camera=camera, exterior=exterior, gcps=gcps,
+                                          dem=dem_path, model=type(model).__name__),
+                       inputs=input_paths(src, dem_path, camera, exterior, gcps, rpc_file))
+            run = dataclasses.replace(run, stac=item)
     return run
 
 

@@ -3,10 +3,16 @@
 A :class:`Workspace` is made by an action (``rectify.actions.common``, ``stereo.actions.common``) before any work
 starts. It checks every planned output at once (exists without ``overwrite``, folder missing or not
 writable, equal to an input), so that bad paths fail in seconds, not after minutes of matching.
+"Equal to an input" is judged on the resolved paths (symlinks and ``..`` followed) and, when both
+exist, on the file's identity (``st_dev``/``st_ino``: a hard link or a symlink to an input is the
+input); the check is made again for every file at the commit.
+
 Outputs written inside :meth:`Workspace.transaction` are staged as hidden temporary files beside
-their destinations and renamed into place together when the block ends without error; on any error
-(including ``KeyboardInterrupt`` or ``SystemExit`` from a signal handler) every staged file is
-removed, so a command that writes several files writes them all or none.
+their destinations, and a report (:meth:`Workspace.report_folder`) as a hidden folder beside the
+report folder; they are renamed into place together when the block ends without error. On any
+error (including ``KeyboardInterrupt`` or ``SystemExit`` from the SIGTERM handler of the commands)
+every staged file and folder is removed, and the folders the job created are removed again, so a
+command that writes several files writes them all or none.
 
 Readers and writers of the artefacts themselves live in ``rectify.formats`` (one module per file family) and
 ``stereo.formats``; the ``load_*``/``save_*`` methods of a workspace call them with the workspace's
@@ -18,12 +24,13 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
 import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
-from rectify.atomic import apply_umask, check_output, make_temp, write_failure_reason
+from rectify.atomic import apply_umask, check_output, current_umask, make_temp, write_failure_reason
 from rectify.errors import CRSError, InvalidInputError, RasterIOError, RectifyError
 from rectify.formats.camera import camera_document, read_camera
 from rectify.formats.gcps import gcps_text, read_gcps
@@ -40,14 +47,18 @@ StrPath = str | os.PathLike[str]
 
 
 def same_file(a: StrPath, b: StrPath) -> bool:
-    """True when two paths name the same file (resolved, or the same inode when both exist)."""
+    """True when two paths name the same file: the same ``st_dev``/``st_ino`` when both exist (hard links,
+    symlinks), else the same resolved path (symlinks and ``..`` followed)."""
     pa, pb = Path(a), Path(b)
     try:
         if pa.exists() and pb.exists():
             return os.path.samefile(pa, pb)
     except OSError:
         pass
-    return pa.resolve() == pb.resolve()
+    try:
+        return pa.resolve() == pb.resolve()
+    except (OSError, RuntimeError):  # a symlink loop: compare the absolute paths
+        return Path(os.path.abspath(pa)) == Path(os.path.abspath(pb))
 
 
 class Workspace:
@@ -73,6 +84,8 @@ class Workspace:
         self.inputs: tuple[Path, ...] = tuple(Path(p) for p in inputs if p is not None)
         self.report_dir = Path(report_dir) if report_dir is not None else None
         self._staged: list[tuple[Path, Path]] | None = None
+        self._staged_dirs: list[tuple[Path, Path]] = []  # (hidden staging folder, report folder)
+        self._made_dirs: list[Path] = []  # parents of a report folder made for its staging folder (outermost last)
         self._created_root = False
         self._created_top: Path | None = None  # the outermost folder prepare() created (root or an ancestor)
 
@@ -87,27 +100,38 @@ class Workspace:
         """Record more input files (outputs equal to them are refused)."""
         self.inputs = self.inputs + tuple(Path(p) for p in paths if p is not None)
 
-    def check_output(self, path: StrPath) -> Path:
-        """Check one planned output before work: not an input, overwrite policy, folder writable."""
+    def check_not_input(self, path: StrPath) -> Path:
+        """Refuse an output that is one of the job's inputs (even with ``overwrite``): the same resolved path,
+        or the same file (``st_dev``/``st_ino``: a hard link, or a symlink to the input)."""
         p = Path(path)
         for i in self.inputs:
             if same_file(p, i):
-                raise InvalidInputError(f"output {str(p)!r} is also an input; choose another output path")
-        return check_output(p, overwrite=self.overwrite)
+                same = "" if Path(os.path.abspath(p)) == Path(os.path.abspath(i)) else f" ({str(i)!r})"
+                raise InvalidInputError(f"output {str(p)!r} is also an input{same}; an output that is an input is "
+                                        "refused (inputs are never modified): choose another output path")
+        return p
+
+    def check_output(self, path: StrPath) -> Path:
+        """Check one planned output before work: not an input, overwrite policy, folder writable."""
+        return check_output(self.check_not_input(path), overwrite=self.overwrite)
 
     def plan(self, *paths: StrPath | None) -> list[Path]:
-        """Check every planned output at once; return them as paths (``None`` entries are skipped)."""
+        """Check every planned output at once; return them as paths (``None`` entries are skipped).
+
+        Outputs inside a folder the job creates (the output folder, the report folder or a folder
+        below them that does not exist yet) are checked against the inputs and for a file in the
+        way; the others also for the overwrite policy and a writable folder.
+        """
         out = [Path(p) for p in paths if p is not None]
         seen: list[Path] = []
         for p in out:
             if any(same_file(p, q) for q in seen):
                 raise InvalidInputError(f"output {str(p)!r} is named twice")
             seen.append(p)
-            if self.root is not None and not self.root.exists() and self.root in p.parents:
-                # the folder is created by prepare(); check only the policy for now
-                for i in self.inputs:
-                    if same_file(p, i):
-                        raise InvalidInputError(f"output {str(p)!r} is also an input; choose another output path")
+            self.check_not_input(p)
+            if not p.parent.exists() and any(d is not None and (d == p.parent or d in p.parents)
+                                             for d in (self.root, self.report_dir)):
+                _check_creatable(p.parent)  # the job creates the folder; nothing in it exists yet
                 continue
             self.check_output(p)
         return out
@@ -169,19 +193,26 @@ class Workspace:
     def transaction(self) -> Iterator[Workspace]:
         """Stage every output written inside the block; rename them all into place at its end.
 
-        On any exception every staged file is removed and the destinations are left as they were;
-        an output folder created by :meth:`prepare` is removed again when it is left empty.
+        On any exception (SIGTERM's ``SystemExit`` included) every staged file and report folder is
+        removed and the destinations are left as they were; an output folder created by
+        :meth:`prepare` is removed again when it is left empty, so are the parents made for a report.
         """
         if self._staged is not None:
             yield self  # nested: the outer transaction commits
             return
         self._staged = []
+        self._staged_dirs = []
         try:
             yield self
             # the commit holds a lock on every destination folder, so two runs writing one output set
             # commit one after the other: the set is all from one run, never a mix
-            with _folder_locks(dst.parent for _tmp, dst in self._staged):
-                for _tmp, dst in self._staged:
+            moves = [(tmp, dst) for tmp, dst in self._staged]
+            for stage, final in self._staged_dirs:
+                moves += [(stage / f, final / f) for f in _report_files(stage)]
+            with _folder_locks([dst.parent for _tmp, dst in self._staged] + [final.parent for _s, final in
+                                                                              self._staged_dirs]):
+                for _tmp, dst in moves:
+                    self.check_not_input(dst)
                     if dst.exists() and not self.overwrite:
                         raise InvalidInputError(f"output {str(dst)!r} appeared while writing; pass --overwrite")
                 for tmp, dst in self._staged:
@@ -189,14 +220,82 @@ class Workspace:
                         os.replace(tmp, dst)
                     except OSError as err:
                         raise RasterIOError(f"cannot write {str(dst)!r}: {write_failure_reason(err, dst)}") from err
+                for stage, final in self._staged_dirs:
+                    _publish_report(stage, final)
         except BaseException:
-            for tmp, _ in self._staged:
-                with contextlib.suppress(OSError):
-                    tmp.unlink()
-            self.discard_root()
+            self._discard_staged()
             raise
         finally:
             self._staged = None
+            self._staged_dirs = []
+            self._made_dirs = []
+
+    def _discard_staged(self) -> None:
+        """After a failure: remove every staged file and report folder, and the folders made for them."""
+        for tmp, _ in self._staged or ():
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+        for stage, _final in self._staged_dirs:
+            shutil.rmtree(stage, ignore_errors=True)
+        self._staged_dirs = []
+        self.discard_root()
+        for d in self._made_dirs:  # innermost first
+            with contextlib.suppress(OSError):
+                d.rmdir()
+        self._made_dirs = []
+
+    @contextlib.contextmanager
+    def report_folder(self) -> Iterator[Path]:
+        """Yield a hidden staging folder to write the report into, in place of :attr:`report_dir`.
+
+        Its files are moved into the report folder when the enclosing :meth:`transaction` commits
+        (at once outside one): the report and the other outputs appear together or not at all. The
+        report folder (and missing parents) is created then; a report file that exists is replaced
+        only with ``overwrite``; files a previous report listed in its ``report.json`` and this one
+        does not write are removed.
+        """
+        final = self.report_dir
+        if final is None:
+            raise InvalidInputError("this job writes no report (no report folder given)")
+        parent = final.parent if str(final.parent) else Path(".")
+        made = []
+        d = parent
+        while not d.exists() and d.parent != d:
+            made.append(d)
+            d = d.parent
+        try:
+            parent.mkdir(parents=True, exist_ok=True)
+            stage = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".part", dir=parent))
+            os.chmod(stage, 0o777 & ~current_umask())  # mkdtemp makes it private; a report folder is an ordinary one
+        except OSError as err:
+            for m in made:
+                with contextlib.suppress(OSError):
+                    m.rmdir()
+            raise RasterIOError(f"cannot create the report folder {str(final)!r}: "
+                                f"{write_failure_reason(err, parent / 'x')}") from err
+        self._made_dirs = self._made_dirs + made
+        try:
+            yield stage
+        except BaseException as err:
+            shutil.rmtree(stage, ignore_errors=True)
+            if self._staged is None:
+                for m in made:
+                    with contextlib.suppress(OSError):
+                        m.rmdir()
+            _reraise_os_error(err, final)
+            raise
+        if self._staged is not None:
+            self._staged_dirs.append((stage, final))
+            return
+        try:  # outside a transaction: published at once
+            for f in _report_files(stage):
+                self.check_not_input(final / f)
+                if (final / f).exists() and not self.overwrite:
+                    raise InvalidInputError(f"output {str(final / f)!r} exists; pass --overwrite to replace it")
+            _publish_report(stage, final)
+        except BaseException:
+            shutil.rmtree(stage, ignore_errors=True)
+            raise
 
     @contextlib.contextmanager
     def output(self, path: StrPath, *, suffix: str | None = None) -> Iterator[Path]:
@@ -334,6 +433,46 @@ def check_table_crs(path: StrPath, crs: str | None, xy: Any, ids: Any = None) ->
             check_area_of_use(crs, xy, ids)
     except CRSError as err:
         raise CRSError(f"{str(path)!r}: {err}") from err
+
+
+def _check_creatable(folder: Path) -> None:
+    """A folder the job will create: its nearest existing ancestor must be a writable folder."""
+    probe = next((p for p in folder.parents if p.exists()), Path("."))
+    if not probe.is_dir():
+        raise InvalidInputError(f"output folder {str(folder)!r} cannot be created: {str(probe)!r} is a file")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise RasterIOError(f"output folder {str(folder)!r} cannot be created: {str(probe)!r} is not writable")
+
+
+def _report_files(stage: Path) -> list[str]:
+    """The files of a staged report (relative paths, sorted; ``report.html`` last: a reader of the folder
+    never sees a page whose files are missing)."""
+    files = sorted(p.relative_to(stage).as_posix() for p in stage.rglob("*") if not p.is_dir())
+    return sorted(files, key=lambda f: f == "report.html")
+
+
+def _publish_report(stage: Path, final: Path) -> None:
+    """Move a staged report into its folder (one rename when the folder is new); remove the files a previous
+    report listed and this one does not write."""
+    try:
+        if not final.exists():
+            os.rename(stage, final)
+            return
+        previous: list[str] = []
+        with contextlib.suppress(OSError, ValueError, TypeError, AttributeError):
+            listed = json.loads((final / "report.json").read_text(encoding="utf-8")).get("files", [])
+            previous = [str(f) for f in listed]
+        files = _report_files(stage)
+        for f in files:
+            (final / f).parent.mkdir(parents=True, exist_ok=True)
+            os.replace(stage / f, final / f)
+        for f in previous:
+            if f not in files and "/" not in f and not f.startswith(".") and (final / f).is_file():
+                with contextlib.suppress(OSError):
+                    (final / f).unlink()
+        shutil.rmtree(stage, ignore_errors=True)
+    except OSError as err:
+        raise RasterIOError(f"cannot move the report into {str(final)!r}: {write_failure_reason(err, final)}") from err
 
 
 def _write(tmp: Path, text: str) -> None:

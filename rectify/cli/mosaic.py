@@ -17,15 +17,17 @@ from rectify.cli.options import echo, handle_errors, overwrite_opt, progress, sc
 @click.option("--feather", type=click.FloatRange(0, None), default=16.0, show_default=True,
               help="Blend width across seams, output pixels (0: hard seams).")
 @click.option("--cog", is_flag=True, default=False, help="Write a Cloud Optimized GeoTIFF.")
+@click.option("--stac/--no-stac", default=True, show_default=True,
+              help="Write the STAC Item <output stem>.stac.json beside the mosaic.")
 @click.option("--threads", type=click.IntRange(1, 256), default=None, help="Worker threads (default: all cores).")
 @scheduler_opt
 @overwrite_opt
 @handle_errors
-def mosaic(orthos, dst, resolution, feather, cog, threads, scheduler, overwrite):
+def mosaic(orthos, dst, resolution, feather, cog, stac, threads, scheduler, overwrite):
     """Mosaic the orthophotos ORTHOS (one CRS) into the GeoTIFF given by -o."""
 
     opts = MosaicRunOptions(resolution, MosaicOptions(feather_px=feather, cog=cog, threads=threads,
-                                                      scheduler=scheduler))
+                                                      scheduler=scheduler), stac=stac)
     with progress("mosaicking", enabled=True) as cb:
         run = run_mosaic(Workspace(overwrite=overwrite), list(orthos), dst, opts, progress=cb)
     for line in run.summary_lines():

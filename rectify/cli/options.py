@@ -21,7 +21,7 @@ from typing import Any
 import click
 
 from rectify.atomic import write_failure_reason
-from rectify.errors import RectifyError, RectifyWarning
+from rectify.errors import RectifyError, RectifyWarning, SchedulerError
 
 __all__ = ["overwrite_opt", "verbosity_opts", "report_opt", "scheduler_opt", "handle_errors", "progress",
            "setup_logging", "VerbosityGroup", "subcommand_verbosity_params"]
@@ -33,14 +33,23 @@ report_opt = click.option("--report", "report_dir", type=click.Path(file_okay=Fa
 
 
 def _check_scheduler(ctx: click.Context, param: click.Parameter, value: str | None) -> str | None:
-    """Refuse a bad --scheduler at parse time (exit 2, one line); the library checks it again."""
+    """Check --scheduler at parse time, before any work: a bad value is refused (exit 2, one line); a cluster
+    address must answer as a Dask scheduler with a worker within the bounds of
+    :func:`rectify.raster.distributed.check_scheduler` (else exit 1, one line). A scheduler taken from
+    $RECTIFY_SCHEDULER is checked by the command itself."""
+    if ctx.resilient_parsing:
+        return value
+    # local: rasterio (imported by the raster wing) must load after cli.main's defer_import("boto3")
+    from rectify.raster.distributed import check_scheduler, follow_cli_logging
+
+    follow_cli_logging()  # Dask's own log lines only with -v
     if value is None:
         return None
-    # local: rasterio (imported by the raster wing) must load after cli.main's defer_import("boto3")
-    from rectify.raster.distributed import resolve_scheduler
 
     try:
-        resolve_scheduler(value)
+        check_scheduler(value)
+    except SchedulerError as err:
+        raise click.ClickException(f"{type(err).__name__}: {err}") from err
     except RectifyError as err:
         raise click.BadParameter(str(err), ctx=ctx, param=param) from err
     return value
@@ -49,7 +58,9 @@ def _check_scheduler(ctx: click.Context, param: click.Parameter, value: str | No
 scheduler_opt = click.option(
     "--scheduler", default=None, metavar="threads|processes[:N]|tcp://HOST:PORT", callback=_check_scheduler,
     help="Where the tiles run: local threads (default), N local Dask worker processes, or an existing Dask "
-         "cluster; default from $RECTIFY_SCHEDULER, else threads. Every choice writes the same pixels.")
+         "cluster; default from $RECTIFY_SCHEDULER, else threads. Every choice writes the same pixels. A cluster "
+         "must answer as a Dask scheduler with a worker: bounds from $RECTIFY_SCHEDULER_TIMEOUT (10 s), "
+         "$RECTIFY_SCHEDULER_WORKER_TIMEOUT (60 s), $RECTIFY_SCHEDULER_STALL_TIMEOUT (600 s).")
 
 
 def setup_logging(verbose: int, quiet: int) -> None:

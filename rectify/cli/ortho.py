@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from rectify.actions.ortho import OrthoOptions, OrthoRunOptions
+from rectify.actions.ortho import GCP_PIXEL, OrthoOptions, OrthoRunOptions
 from rectify.actions.ortho import ortho as run_ortho
 from rectify.actions.workspace import Workspace
 from rectify.cli.options import echo, handle_errors, overwrite_opt, progress, scheduler_opt
@@ -21,16 +21,30 @@ report_opt = click.option("--report", "report_dir", type=click.Path(file_okay=Fa
               help="DEM GeoTIFF (any CRS and resolution; a compound CRS, e.g. EPSG:4326+3855, declares its heights).")
 @click.option("--rpc", "rpc", is_flag=False, flag_value="__image__", default=None,
               help="Use the image's RPC (bare --rpc) or an RPC file (_RPC.TXT, .RPB, DIMAP/DigitalGlobe XML).")
-@click.option("--camera", type=click.Path(dir_okay=False), default=None,
-              help="Camera JSON (frame camera); optional with a block orientation JSON, which holds the cameras.")
-@click.option("--exterior", type=click.Path(dir_okay=False), default=None,
-              help="Exterior orientation: EO JSON ('stereo resect'), or a block's orientation.json or poses.csv "
-                   "('stereo block'; the image by --image-id).")
+@click.option("--camera", type=click.Path(), default=None,
+              help="Frame camera: camera JSON, orthority int_param.yaml, OpenCV calibration (.yml/.xml/.json), "
+                   "COLMAP model (folder or cameras.txt) or Metashape cameras XML, found by content (KIND:PATH "
+                   "names the kind: camera, orthority, opencv, colmap, metashape). Optional when --exterior holds "
+                   "the cameras (block orientation.json, COLMAP, Metashape).")
+@click.option("--camera-id", default=None,
+              help="The camera of a file of several (default: the one the exterior orientation names, else the "
+                   "only one).")
+@click.option("--exterior", type=click.Path(), default=None,
+              help="Exterior orientation: EO JSON ('stereo resect'), a block's orientation.json or poses.csv "
+                   "('stereo block'), orthority ext_param.geojson or xyz_opk/lla_rpy CSV (+ .prj), COLMAP model "
+                   "or Metashape cameras XML, found by content (KIND:PATH: exterior, orthority, orthority-csv, "
+                   "colmap, metashape). The image of a file of several by --image-id.")
 @click.option("--image-id", default=None,
-              help="Image of a block orientation JSON or poses CSV (its name or file stem; default: SRC's file stem).")
+              help="Image of a file of several orientations or GCP images (its name or file stem; default: SRC's "
+                   "file name).")
 @click.option("--eo-crs", default=None, help="CRS of the exterior orientation (overrides the file's 'crs').")
 @click.option("--gcps", type=click.Path(dir_okay=False), default=None,
-              help="GCP file: refines an RPC (bias compensation) or checks a frame model.")
+              help="GCP file: refines an RPC (bias compensation) or checks a frame model. Any GCP file rectify "
+                   "reads, orthority GCP GeoJSON (ji), ODM gcp_list.txt or Metashape markers XML (the image's "
+                   "GCPs; KIND:PATH: gcps, orthority, odm, metashape).")
+@click.option("--gcp-pixel", type=click.Choice(list(GCP_PIXEL)), default=None,
+              help="Pixel convention of GCPs embedded in a GeoTIFF: corner (GDAL's; the default) or centre "
+                   "(orthority's).")
 @click.option("--refinement", type=click.Choice(["shift", "drift", "affine"]), default="shift", show_default=True,
               help="RPC bias model fitted to the GCPs.")
 @click.option("--dst-crs", default=None, help="Output CRS (default: the EO CRS, or UTM for RPC images).")
@@ -47,19 +61,22 @@ report_opt = click.option("--report", "report_dir", type=click.Path(file_okay=Fa
 @click.option("--true-ortho", is_flag=True, default=False,
               help="Occluded ground gets nodata; adds a visibility band (0 outside, 1 occluded, 2 visible).")
 @click.option("--cog", is_flag=True, default=False, help="Write a Cloud Optimized GeoTIFF.")
+@click.option("--stac/--no-stac", default=True, show_default=True,
+              help="Write the STAC Item <output stem>.stac.json beside the orthophoto.")
 @click.option("--threads", type=click.IntRange(1, 256), default=None, help="Worker threads (default: all cores).")
 @scheduler_opt
 @report_opt
 @overwrite_opt
 @handle_errors
-def ortho(src, dst, dem_path, rpc, camera, exterior, image_id, eo_crs, gcps, refinement, dst_crs, resolution,
-          undulation, geoid, gcp_heights, resampling, true_ortho, cog, threads, scheduler, report_dir, overwrite):
+def ortho(src, dst, dem_path, rpc, camera, camera_id, exterior, image_id, eo_crs, gcps, gcp_pixel, refinement,
+          dst_crs, resolution, undulation, geoid, gcp_heights, resampling, true_ortho, cog, stac, threads, scheduler,
+          report_dir, overwrite):
     """Orthorectify SRC over a DEM into the GeoTIFF given by -o."""
 
     engine = OrthoOptions(resampling=resampling, cog=cog, threads=threads, true_ortho=true_ortho, scheduler=scheduler)
     opts = OrthoRunOptions(eo_crs=eo_crs, refinement=refinement, dst_crs=dst_crs, resolution=resolution,
                            undulation=undulation, geoid=geoid, gcp_heights=gcp_heights, image_id=image_id,
-                           engine=engine)
+                           camera_id=camera_id, gcp_pixel=gcp_pixel, stac=stac, engine=engine)
     rpc_arg = True if rpc == "__image__" else (rpc or False)
     ws = Workspace(overwrite=overwrite, report_dir=report_dir)
     with progress("orthorectifying", enabled=True) as cb:

@@ -65,13 +65,15 @@ class LsmConfig:
         Matches whose estimated position standard deviation exceeds this are
         declared non-converged (flat, ill-conditioned windows).
     scale_windows : bool
-        Windows follow the scale of the start affine ``A`` (issue 30): where the right image is finer
-        (``s = sqrt|det A|`` above 2 ** 0.25, in half-octave groups) it is low-passed to the left
-        image's resolution before sampling (Gaussian, sigma ``0.5 sqrt(s^2 - 1)`` right px), so the
-        window samples it without aliasing; ``max_shift_px`` then counts left pixels (``s`` right
-        pixels each). Where the right image is coarser nothing changes: low-passing the template or
-        widening it was less precise on the NGI pair scaled by 0.5 and 0.7 (median Sampson error
-        0.063-0.094 px against 0.058 px). Off: one window for every scale.
+        Windows follow the scale of the start affine ``A`` (issue 30), in half-octave groups of its
+        singular values: where the right image is finer in every direction (the smaller one, s, above
+        2 ** 0.25) it is low-passed before sampling (Gaussian, sigma ``0.3 sqrt(s^2 - 1)`` right px) and
+        ``max_shift_px`` counts left pixels (``s`` right pixels each); where it is coarser in every
+        direction (the larger one, s, below 2 ** -0.25) the template's radius is ``radius_px / s`` (at
+        most 3 ``radius_px``), so the right window keeps about ``2 radius_px + 1`` pixels across. A
+        foreshortened (anisotropic) window keeps its size. On a synthetic pair scaled by 0.5 the
+        refined matches' RMS error fell from 0.23 to 0.10 right px (78 -> 91 % refined); scaled by 2,
+        0.040 -> 0.028 px. Off: one window for every scale.
     border_shift : bool
         A window that would leave the left or the right image near the border is moved inward (the
         point stays inside it, off-centre; its position comes from the window's affine, and its
@@ -344,8 +346,10 @@ class _Serial:
         return map(fn, items)
 
 
-#: the pixel's own blur (Gaussian sigma, px) assumed when one image is low-passed to the other's resolution
-PIXEL_SIGMA = 0.5
+#: the blur (Gaussian sigma, left px) that a right image finer by s gets, times sqrt(s^2 - 1) right px: 0.3 was
+#: the most precise of 0, 0.3 and 0.5 on a synthetic pair scaled by 1.5 and 2 and on the NGI pair scaled alike
+#: (an image against its own exact warp, finer by 2, prefers none: 0.002 px RMS error, 0.010 with 0.3)
+PIXEL_SIGMA = 0.3
 
 
 class _Group(NamedTuple):
@@ -397,6 +401,8 @@ class _ScaleView:
 
 def _blur(img: NDArray[np.float32], sigma: float) -> NDArray[np.float32]:
     """Gaussian low-pass (``sigma`` px); NaN (nodata) spreads over the kernel's reach."""
+    if sigma <= 0:
+        return img
     return np.asarray(cv2.GaussianBlur(img, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE), dtype=np.float32)
 
 

@@ -270,7 +270,8 @@ class MatchResult:
                 "verification": self.verification.method, "rmse_px": self.rmse_px,
                 "rmse_raw_px": self.rmse_raw_px, "tiled": self.tiled, "n_duplicates": self.n_duplicates,
                 "n_guided": self.n_guided, "n_unrefined": self.n_unrefined, "n_screened": self.n_screened,
-                "rmse_unrefined_px": self.rmse_unrefined_px, "n_turns": self.n_turns,
+                "rmse_unrefined_px": self.rmse_unrefined_px if math.isfinite(self.rmse_unrefined_px) else None,
+                "n_turns": self.n_turns,
                 **{f"time_{k}_s": v for k, v in self.timings_s.items()}}
 
 
@@ -622,7 +623,8 @@ def _match_whole(L, lv, R, rv, cfg: MatcherConfig, progress, names, fl: Features
     k = _quarter_turns(fl, fr, pairs, inl) if first and cfg.derotate else 0
     if k:   # the right image turned by about k quarter turns: match again with it turned back (exact, lossless)
         try:
-            res = _match_whole(L, lv, np.rot90(R, k), np.rot90(rv, k), cfg, progress, names, fl=fl)
+            again = None if progress is None else (lambda d, t: progress(max(d, 2), t))   # no step back
+            res = _match_whole(L, lv, np.rot90(R, k), np.rot90(rv, k), cfg, again, names, fl=fl)
         except EstimationError as err:
             logger.info("matching with the right image turned by %d quarter turns failed (%s); matching as given",
                         k, err)
@@ -728,12 +730,12 @@ def _one_to_one(pl, pr, score, tol_px: float = 0.1):
     return np.sort(keep)
 
 
-def _reverify_and_cap(pl, pr, raw_pr, score, cfg: MatcherConfig, shape_left):
+def _reverify_and_cap(pl, pr, raw_pr, score, cfg: MatcherConfig, shape_left, keep_unrefined: bool | None = None):
     """One-to-one, re-verification, the screening of refined matches (refinement on) and the even cap.
 
     Returns the matches (left, right, raw right, score), the verification of exactly them (its model fitted to
     the refined matches when there are enough), the duplicates removed and the refined matches screened out
-    (moved back to their raw positions, or dropped)."""
+    (kept unrefined when ``keep_unrefined``, default ``cfg.keep_unrefined``, or dropped)."""
     u = _one_to_one(pl, pr, score)
     n_dup = len(pl) - len(u)
     pl, pr, raw_pr, score = pl[u], pr[u], raw_pr[u], score[u]
@@ -748,7 +750,7 @@ def _reverify_and_cap(pl, pr, raw_pr, score, cfg: MatcherConfig, shape_left):
     if cfg.refine:
         ver, pl, pr, raw_pr, score, n_screened = screen_refined(
             ver, pl, pr, raw_pr, score, threshold_px=cfg.threshold_px, min_inliers=cfg.min_inliers,
-            keep_unrefined=cfg.keep_unrefined, seed=cfg.seed)
+            keep_unrefined=cfg.keep_unrefined if keep_unrefined is None else keep_unrefined, seed=cfg.seed)
     keep = _final_select(pl, pr, score, shape_left, cfg.max_matches, cfg.cell_cap)
     pl, pr, raw_pr, score = pl[keep], pr[keep], raw_pr[keep], score[keep]
     # the residual table of exactly the returned matches, with the same model

@@ -158,8 +158,9 @@ def _match_tiled(left_path, right_path, il, ir, cfg: MatcherConfig, progress, *,
         inl = ver0.inliers
     cand = _cap_candidates(pl, pr, inl, 200000)
     n_verified = int(inl.sum())
+    # tiled: no unrefined match is kept (failures are dropped in their tile), so the screened ones are dropped too
     out_l, out_r, out_raw, out_s, ver, n_dup, n_scr = _reverify_and_cap(pl[inl], pr[inl], raw[inl], sc[inl], cfg,
-                                                                 (il.height, il.width))
+                                                                 (il.height, il.width), keep_unrefined=False)
     t3 = time.perf_counter()
     timings = {"coarse": t1 - t0, "tiles": t2 - t1, "verify": t3 - t2, "total": t3 - t0}
     return _result(out_l, out_r, out_s, ver, cfg, (n_det_l, n_det_r), n_matched, n_verified, n_ref, n_fail,

@@ -171,6 +171,9 @@ SCREEN_RATIO = {"fundamental": 3.29 / 0.674, "homography": 3.72 / 1.177}
 #: floor of the LSM standard deviation in the screening (px): windows of strong texture report a few
 #: thousandths of a pixel, below what the model and the images hold
 SCREEN_STD_FLOOR_PX = 0.02
+#: a refined match this close to the model (px) is never screened out, however small the others' residuals (an
+#: image against a copy of itself: residuals of 1e-6 px)
+SCREEN_MIN_PX = 0.05
 
 
 def _errors(method: str, M: NDArray[np.float64], pl, pr) -> NDArray[np.float64]:
@@ -205,7 +208,7 @@ def screen_refined(ver: Verification, pl, pr, raw_pr, score, *, threshold_px: fl
     e = _errors(ver.method, M, pl, pr)
     z = e / np.maximum(np.where(ref, score, 1.0), SCREEN_STD_FLOOR_PX)
     cut = SCREEN_RATIO.get(ver.method, 5.0) * float(np.median(z[ref]))
-    bad = ref & ~(z <= cut)
+    bad = ref & ~(z <= cut) & ~(e <= SCREEN_MIN_PX)
     # a screened match stays, unrefined (NaN score), at whichever of its raw and refined positions agrees better
     # with the model, when that one passes the threshold
     e_raw = _errors(ver.method, M, pl, raw_pr)

@@ -6,8 +6,12 @@ files of release 0.1.0 and reject a wrong format name or a version newer than th
 naming the file and value.
 
 CSV toolkit (the point tables of :mod:`rectify.formats.gcps` and :mod:`rectify.formats.tables`, and the
-CSV files of :mod:`stereo.formats`): :func:`read_table_text` (UTF-8, byte-order mark dropped),
-:func:`table_rows` (rows by header name, ``#`` comments, the ``# crs=`` line), :func:`load_table`,
+CSV files of :mod:`stereo.formats`): :class:`TableReader` (the point tables' reader: the file is read as a
+stream, chunk by chunk, and the rows go straight into one float64 array per numeric column and one list
+per text column, so that memory follows the size of the table, not of its text; a table of more rows
+than its kind may have, :data:`MAX_POINT_ROWS` or :data:`MAX_MATCH_ROWS`, is refused while reading with
+the limit named), :func:`read_table_text` (UTF-8, byte-order mark dropped), :func:`table_rows` (rows by
+header name, ``#`` comments, the ``# crs=`` line; for small tables held as text), :func:`load_table`,
 :func:`need_columns`, :func:`cell_number` and :func:`no_duplicates`. Their errors name the file, the line
 and the column: :class:`~rectify.errors.RasterIOError` for unreadable files,
 :class:`~rectify.errors.InvalidInputError` for malformed content.
@@ -17,24 +21,39 @@ from __future__ import annotations
 
 import csv
 import io
+import itertools
 import math
 import os
 from collections import Counter
-from collections.abc import Mapping
+from collections.abc import Collection, Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from types import TracebackType
 from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
 
 from rectify.errors import InvalidInputError, RasterIOError
 
 __all__ = [
     "FORMAT_PREFIX", "StrPath", "stamp", "check_format", "unstamped", "check_numbers",
     "read_table_text", "table_rows", "load_table", "need_columns", "cell_number", "finite_number", "no_duplicates",
+    "TableReader", "Columns", "MAX_POINT_ROWS", "MAX_MATCH_ROWS",
 ]
 
 #: Prefix of every ``format`` value written by this project.
 FORMAT_PREFIX = "rectify-stereo/"
 
 StrPath = str | os.PathLike[str]
+
+#: the most rows a point table may have: GCP, stereo control, block control, pose and calibration observation
+#: CSVs (refused while reading, the limit named; such tables hold hundreds or thousands of rows)
+MAX_POINT_ROWS = 1_000_000
+#: the most rows a matches CSV may have
+MAX_MATCH_ROWS = 10_000_000
+#: rows parsed at a time by :class:`TableReader`
+_CHUNK_ROWS = 65536
 
 
 # --------------------------------------------------------------------------- versioning
@@ -138,6 +157,8 @@ def check_numbers(d: dict[str, Any], key: str, shape: tuple[int, ...], path: Str
 def read_table_text(path: StrPath) -> str:
     """The text of a CSV table (UTF-8; a byte-order mark anywhere is dropped).
 
+    The whole file is read: the point tables are read as a stream by :class:`TableReader`.
+
     Raises
     ------
     RasterIOError
@@ -153,11 +174,21 @@ def read_table_text(path: StrPath) -> str:
         raise RasterIOError(f"cannot read {str(p)!r}: {err}") from err
 
 
+def _crs_comment(body: str) -> tuple[bool, str | None]:
+    """Whether a comment line's text (after ``#``) gives the CRS, and the CRS it gives."""
+    if body.lower().startswith("crs="):
+        return True, body[4:].strip()
+    if body.upper().startswith("CRS:"):  # QGIS .points header
+        return True, body[4:].strip() or None
+    return False, None
+
+
 def table_rows(text: str, path: StrPath) -> tuple[list[dict[str, str]], list[int], str | None]:
     """Parse CSV text with comment lines; return rows, their line numbers and the crs comment.
 
     Lines starting with ``#`` are comments; ``# crs=...`` (or a QGIS ``CRS:`` header) gives the CRS.
     Rows are dicts keyed by the stripped header names, values stripped; ``path`` is named in errors.
+    For small tables held as text; the point tables are read by :class:`TableReader`.
 
     Raises
     ------
@@ -171,28 +202,246 @@ def table_rows(text: str, path: StrPath) -> tuple[list[dict[str, str]], list[int
         if not s:
             continue
         if s.startswith("#"):
-            body = s.lstrip("#").strip()
-            if body.lower().startswith("crs="):
-                crs = body[4:].strip()
-            elif body.upper().startswith("CRS:"):  # QGIS .points header
-                crs = body[4:].strip() or None
+            found, value = _crs_comment(s.lstrip("#").strip())
+            if found:
+                crs = value
             continue
         data_lines.append((no, line))
     if not data_lines:
         raise InvalidInputError(f"{str(path)!r} has no header and no rows")
-    reader = csv.DictReader(io.StringIO("\n".join(text for _, text in data_lines)))
-    reader.fieldnames = [f.strip() for f in (reader.fieldnames or [])]
-    rows = [{k: (v or "").strip() for k, v in r.items() if k is not None} for r in reader]
+    try:
+        reader = csv.DictReader(io.StringIO("\n".join(text for _, text in data_lines)))
+        reader.fieldnames = [f.strip() for f in (reader.fieldnames or [])]
+        rows = [{k: (v or "").strip() for k, v in r.items() if k is not None} for r in reader]
+    except csv.Error as err:
+        raise InvalidInputError(f"{str(path)!r} is not a readable CSV table: {err}") from None
     return rows, [no for no, _ in data_lines[1:]], crs
 
 
-def load_table(path: StrPath, what: str) -> tuple[list[dict[str, str]], list[int], str | None, list[str]]:
-    """Read a point table: its rows, their line numbers, the ``# crs=`` value and the header;
-    raise when the file has a header but no ``what`` (``"GCP rows"``, ``"matches"``)."""
-    rows, lines, crs = table_rows(read_table_text(path), path)
-    if not rows:
-        raise InvalidInputError(f"{str(path)!r} has a header but no {what}")
-    return rows, lines, crs, list(rows[0].keys())
+def load_table(path: StrPath, what: str, *, max_rows: int = MAX_POINT_ROWS
+               ) -> tuple[list[dict[str, str]], list[int], str | None, list[str]]:
+    """Read a table as dict rows: its rows, their line numbers, the ``# crs=`` value and the header;
+    raise when the file has a header but no ``what`` (``"residual rows"``) or more than ``max_rows`` rows.
+
+    Every cell is kept as text: for small tables (the point tables use :class:`TableReader` directly).
+    """
+    with TableReader(path) as t:
+        cols = t.read(what, texts=t.fields, max_rows=max_rows)
+    fields = list(dict.fromkeys(cols.fields))
+    values = [cols.texts[f] for f in fields]
+    rows = [dict(zip(fields, r, strict=True)) for r in zip(*values, strict=True)]
+    return rows, cols.lines.tolist(), cols.crs, fields
+
+
+@dataclass(frozen=True, eq=False)
+class Columns:
+    """The columns of a CSV table read by :meth:`TableReader.read`.
+
+    Attributes
+    ----------
+    path : Path
+    fields : tuple of str
+        The header, names stripped.
+    lines : (N,) int64
+        The file line (1-based) where each row starts.
+    numbers : dict str -> (N,) float64
+        The numeric columns asked for: finite numbers, NaN for an empty cell where allowed.
+    texts : dict str -> list of str
+        The text columns asked for, cells stripped ("" for a missing cell).
+    crs : str or None
+        The ``# crs=`` (or QGIS ``CRS:``) comment line's value; the last one wins.
+    settings : tuple of (line, key, value)
+        Every ``# key=value`` comment line, key lower-case, key and value stripped, in file order.
+    """
+
+    path: Path
+    fields: tuple[str, ...]
+    lines: NDArray[np.int64]
+    numbers: dict[str, NDArray[np.float64]]
+    texts: dict[str, list[str]]
+    crs: str | None
+    settings: tuple[tuple[int, str, str], ...]
+
+    def __len__(self) -> int:
+        return int(self.lines.size)
+
+
+class TableReader:
+    """A CSV table read as a stream: the header first, then the columns asked for.
+
+    ``with TableReader(path) as t:`` opens the file and reads up to the header (``t.fields``);
+    :meth:`read` then reads the rows chunk by chunk into arrays. Lines starting with ``#`` are comments
+    (anywhere in the file); ``# crs=...`` (or a QGIS ``CRS:`` header) gives the CRS and every
+    ``# key=value`` line is kept (:attr:`Columns.settings`); blank lines are skipped; a byte-order mark
+    anywhere is dropped; quoted cells may hold commas and line breaks.
+
+    Memory: the numbers of a row take 8 bytes a column, its text cells a Python string each; the text of
+    the file is never held whole. A table of more rows than ``max_rows`` is refused as soon as the reader
+    passes the limit, so that a huge file costs neither the memory nor the time of reading it.
+
+    Raises
+    ------
+    RasterIOError
+        The file is missing, unreadable or not UTF-8 text.
+    InvalidInputError
+        No header, a malformed CSV line, too many rows, a bad number (file, line, column and value named).
+    """
+
+    def __init__(self, path: StrPath, *, lower: bool = False) -> None:
+        self.path = Path(path)
+        self._label = repr(str(self.path))
+        self._crs: str | None = None
+        self._settings: list[tuple[int, str, str]] = []
+        self._nos: list[int] = []  # file lines of the data lines handed to the CSV parser since the last chunk
+        self._no = 0
+        try:
+            self._fh = open(self.path, encoding="utf-8-sig", newline=None)  # noqa: SIM115 (closed by close())
+        except FileNotFoundError as err:
+            raise RasterIOError(f"file not found: {self._label}") from err
+        except OSError as err:
+            raise RasterIOError(f"cannot read {self._label}: {err.strerror or err}") from err
+        try:
+            self._reader = csv.reader(self._data_lines())
+            header = self._rows(1)
+            if not header:
+                raise InvalidInputError(f"{self._label} has no header and no rows")
+            self._nos.clear()
+            self.fields: tuple[str, ...] = tuple(f.strip().lower() if lower else f.strip() for f in header[0])
+        except BaseException:
+            self.close()
+            raise
+
+    def __enter__(self) -> TableReader:
+        return self
+
+    def __exit__(self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._fh.close()
+
+    def _data_lines(self) -> Iterator[str]:
+        """The file's lines for the CSV parser: comments noted and dropped, blank lines dropped."""
+        nos = self._nos
+        try:
+            for line in self._fh:
+                self._no += 1
+                if "\ufeff" in line:
+                    line = line.replace("\ufeff", "")
+                c0 = line[:1]
+                if c0 == "#" or c0.isspace() or not c0:
+                    s = line.strip()
+                    if not s:
+                        continue
+                    if s[0] == "#":
+                        self._comment(s.lstrip("#").strip())
+                        continue
+                nos.append(self._no)
+                yield line
+        except UnicodeDecodeError as err:
+            raise RasterIOError(f"cannot read {self._label}: line {self._no + 1} is not UTF-8 text "
+                                f"({err.reason})") from None
+        except OSError as err:
+            raise RasterIOError(f"cannot read {self._label}: {err.strerror or err}") from err
+
+    def _comment(self, body: str) -> None:
+        found, value = _crs_comment(body)
+        if found:
+            self._crs = value
+        key, sep, val = body.partition("=")
+        if sep:
+            self._settings.append((self._no, key.strip().lower(), val.strip()))
+
+    def _rows(self, n: int) -> list[list[str]]:
+        try:
+            return list(itertools.islice(self._reader, n))
+        except csv.Error as err:
+            raise InvalidInputError(f"{self._label} line {self._no}: not a readable CSV line: {err}") from None
+
+    def read(self, what: str, *, numbers: Sequence[str] = (), texts: Sequence[str] = (),
+             empty: Collection[str] = (), max_rows: int = MAX_POINT_ROWS) -> Columns:
+        """Read the rows: the ``numbers`` columns as float64 arrays, the ``texts`` columns as lists of str.
+
+        Parameters
+        ----------
+        what : str
+            The rows' name in errors (``"GCP rows"``).
+        numbers, texts : sequence of str
+            Column names; a column missing from the header reads as empty cells.
+        empty : collection of str
+            Numeric columns whose empty cells read as NaN (elsewhere an empty cell is an error).
+        max_rows : int
+            The most rows the table may have.
+
+        Raises
+        ------
+        InvalidInputError
+            A header but no rows, more than ``max_rows`` rows, a cell of ``numbers`` that is not a finite
+            number (file, line, column and value named).
+        """
+        index = {f: i for i, f in enumerate(self.fields)}  # a repeated name: the last column (as csv.DictReader)
+        nf = len(self.fields)
+        num_parts: dict[str, list[NDArray[np.float64]]] = {k: [] for k in numbers}
+        text_cols: dict[str, list[str]] = {k: [] for k in texts}
+        line_parts: list[NDArray[np.int64]] = []
+        n = 0
+        while True:
+            rows = self._rows(_CHUNK_ROWS)
+            if not rows:
+                break
+            lines = self._row_lines(rows)
+            n += len(rows)
+            if n > max_rows:
+                raise InvalidInputError(f"{self._label} has more than {max_rows} {what} (line {int(lines[-1])}); "
+                                        f"{max_rows} is the most this table may have")
+            for r in rows:
+                if len(r) < nf:
+                    r.extend([""] * (nf - len(r)))
+            for k, parts in num_parts.items():
+                i = index.get(k)
+                col = [r[i] for r in rows] if i is not None else [""] * len(rows)
+                parts.append(self._numbers(col, k, lines, allow_empty=k in empty))
+            for k, cells in text_cols.items():
+                i = index.get(k)
+                cells.extend([r[i].strip() for r in rows] if i is not None else [""] * len(rows))
+            line_parts.append(lines)
+            del rows
+        if n == 0:
+            raise InvalidInputError(f"{self._label} has a header but no {what}")
+        arrays = {}
+        for k in list(num_parts):
+            arrays[k] = np.concatenate(num_parts.pop(k))
+        return Columns(self.path, self.fields, np.concatenate(line_parts), arrays, text_cols, self._crs,
+                       tuple(self._settings))
+
+    def _row_lines(self, rows: list[list[str]]) -> NDArray[np.int64]:
+        """The file line where each row of a chunk starts (a quoted cell may hold line breaks)."""
+        nos = self._nos
+        if len(nos) == len(rows):
+            out = np.array(nos, dtype=np.int64)
+        else:
+            starts, k = [], 0
+            for r in rows:
+                starts.append(nos[min(k, len(nos) - 1)])
+                k += 1 + sum(c.count("\n") for c in r)
+            out = np.array(starts, dtype=np.int64)
+        nos.clear()
+        return out
+
+    def _numbers(self, col: list[str], key: str, lines: NDArray[np.int64], *, allow_empty: bool
+                 ) -> NDArray[np.float64]:
+        try:
+            v = np.array(col, dtype=np.float64)
+            if np.isfinite(v).all():
+                return v
+        except ValueError:
+            pass
+        out = np.empty(len(col))  # a bad, empty or non-finite cell: cell by cell, the first bad one named
+        for j, cell in enumerate(col):
+            c = cell.strip()
+            out[j] = math.nan if c == "" and allow_empty else \
+                finite_number(c, f"{self._label} line {int(lines[j])}: column {key!r}")
+        return out
 
 
 def need_columns(fields: list[str], required: tuple[str, ...], path: StrPath) -> None:
@@ -222,9 +471,25 @@ def finite_number(value: str | float, label: str) -> float:
     return v
 
 
-def no_duplicates(ids: list[str], path: StrPath, what: str) -> None:
-    """Raise :class:`InvalidInputError` naming the duplicated ``ids`` (``what``: ``"GCP id(s)"``)."""
-    counts = Counter(ids)
-    dup = {i for i, n in counts.items() if n > 1}
+def no_duplicates(ids: Sequence[str], path: StrPath, what: str) -> None:
+    """Raise :class:`InvalidInputError` naming the duplicated ``ids`` (``what``: ``"GCP id(s)"``).
+
+    Ids are compared by their hashes first (sorted int64), so that a table of millions of ids needs
+    three int64 arrays, not a dictionary of its ids.
+    """
+    n = len(ids)
+    if n < 2:
+        return
+    h = np.fromiter(map(hash, ids), dtype=np.int64, count=n)
+    order = np.argsort(h, kind="stable")
+    hs = h[order]
+    same = np.flatnonzero(hs[1:] == hs[:-1])
+    if not same.size:
+        return
+    candidates = np.unique(np.concatenate([order[same], order[same + 1]]))
+    counts = Counter(ids[int(i)] for i in candidates)
+    dup = {i for i, c in counts.items() if c > 1}
     if dup:
-        raise InvalidInputError(f"{str(path)!r}: duplicate {what} {sorted(dup)}")
+        listed = sorted(dup)
+        more = f" and {len(listed) - 20} more" if len(listed) > 20 else ""
+        raise InvalidInputError(f"{str(path)!r}: duplicate {what} {listed[:20]}{more}")

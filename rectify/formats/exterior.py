@@ -29,6 +29,7 @@ Parsed here with :mod:`rectify.formats.common` (``rectify`` never imports ``ster
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -53,8 +54,8 @@ from rectify.geometry.crs import VerticalDatum, horizontal_crs, parse_crs, verti
 from rectify.geometry.rotation import check_rotation, matrix_from_angles
 from rectify.geometry.sensors import FrameModel
 
-__all__ = ["EXTERIOR_NAME", "EXTERIOR_VERSION", "BLOCK_ORIENTATION_NAME", "FrameSource", "exterior_fields",
-           "read_exterior", "read_frame_model", "read_frame_source"]
+__all__ = ["EXTERIOR_NAME", "EXTERIOR_VERSION", "BLOCK_ORIENTATION_NAME", "CameraChooser", "FrameSource",
+           "exterior_fields", "read_exterior", "read_frame_model", "read_frame_source"]
 
 #: format name (after ``rectify-stereo/``) and newest version of the block orientation JSON read here
 BLOCK_ORIENTATION_NAME = "block-orientation"
@@ -220,14 +221,29 @@ def _pose_row(path: StrPath, image_id: str, defaulted: bool) -> dict[str, Any]:
             "image": names[k], "camera": r.get("camera", "")}
 
 
-def read_frame_source(camera_json: StrPath | None, exterior: StrPath, *, crs: str | None = None,
-                      image_id: str | None = None, image_path: StrPath | None = None) -> FrameSource:
+#: picks a camera of a file holding several, given the camera id the orientation names (None: it names none)
+CameraChooser = Callable[[str | None], Camera]
+
+
+def _camera(camera: StrPath | Camera | CameraChooser, camera_id: str | None) -> Camera:
+    if isinstance(camera, Camera):
+        return camera
+    if callable(camera):
+        return camera(camera_id)
+    return read_camera(camera)
+
+
+def read_frame_source(camera_json: StrPath | Camera | CameraChooser | None, exterior: StrPath, *,
+                      crs: str | None = None, image_id: str | None = None, image_path: StrPath | None = None,
+                      camera_note: str | None = None) -> FrameSource:
     """The frame model of one image from an EO JSON, a block orientation JSON or a position/angle CSV.
 
     Parameters
     ----------
-    camera_json : path or None
-        A camera JSON; None takes the image's camera from a block orientation JSON.
+    camera_json : path, Camera, callable or None
+        A camera JSON; or a camera read from another file, or a function choosing one of a file's
+        cameras by the camera id the orientation names (``camera_note`` says which file); None takes
+        the image's camera from a block orientation JSON.
     exterior : path
         EO JSON (``stereo resect``), block orientation JSON (``stereo block``'s ``orientation.json``)
         or position/angle CSV (``.csv``, ``stereo block``'s ``poses.csv``).
@@ -250,7 +266,7 @@ def read_frame_source(camera_json: StrPath | None, exterior: StrPath, *, crs: st
     ext = Path(exterior)
     explicit = image_id is not None
     iid = image_id if explicit else (Path(image_path).stem if image_path is not None else None)
-    cam_note = f"camera {str(camera_json)!r}" if camera_json is not None else ""
+    cam_note = camera_note or (f"camera {str(camera_json)!r}" if camera_json is not None else "")
     if ext.suffix.lower() == ".csv":
         if iid is None:
             raise InvalidInputError(f"pose file {str(ext)!r} holds several images: name one (--image-id)")
@@ -258,7 +274,7 @@ def read_frame_source(camera_json: StrPath | None, exterior: StrPath, *, crs: st
         if camera_json is None:
             raise InvalidInputError(f"pose file {str(ext)!r} has no camera model: pass the camera JSON (--camera) "
                                     f"of its camera {eo['camera'] or '(unnamed)'!r}")
-        cam = read_camera(camera_json)
+        cam = _camera(camera_json, eo["camera"] or None)
         what = f"image {eo['image']!r} of pose file {str(ext)!r}"
     else:
         doc = read_json(ext, "exterior orientation file")
@@ -270,7 +286,7 @@ def read_frame_source(camera_json: StrPath | None, exterior: StrPath, *, crs: st
             if camera_json is None:
                 cam, cam_note = block_cam, f"camera {cam_id!r} of the block"
             else:
-                cam = read_camera(camera_json)
+                cam = _camera(camera_json, cam_id)
             what = f"image {eo['image']!r} of block orientation {str(ext)!r}"
         else:
             if explicit:
@@ -280,7 +296,7 @@ def read_frame_source(camera_json: StrPath | None, exterior: StrPath, *, crs: st
                 raise InvalidInputError(f"exterior orientation {str(ext)!r} has no camera model: pass the camera "
                                         f"JSON (--camera)")
             eo = exterior_fields(doc, ext)
-            cam = read_camera(camera_json)
+            cam = _camera(camera_json, None)
             what = f"exterior orientation {str(ext)!r}"
     c = crs or eo["crs"]
     if c is None:

@@ -28,18 +28,16 @@ from typing import Any
 
 import numpy as np
 
-from rectify.atomic import atomic_output, atomic_write_text
+from rectify.atomic import atomic_output, atomic_write_text, read_json
 from rectify.errors import InvalidInputError, RasterIOError
 from rectify.formats.common import (
     StrPath,
-    cell_number,
+    TableReader,
     finite_number,
-    load_table,
     need_columns,
     no_duplicates,
-    read_table_text,
 )
-from rectify.formats.tables import read_matches
+from rectify.formats.tables import read_matches_table
 from rectify.geometry.crs import parse_crs
 from rectify.geometry.points import GcpTable
 from rectify.raster.io import _crs_string, open_raster
@@ -79,43 +77,42 @@ def read_gcps(path: StrPath) -> GcpTable:
         return read_gcps_gpkg(path)
     if suffix in TIFF_SUFFIXES:
         return read_gcps_embedded(path)
-    rows, lines, crs, fields = load_table(path, "GCP rows")
-    ids: list[str] = []
-    pix: list[tuple[float, float]] = []
-    tgt: list[tuple[float, float]] = []
-    zs: list[float] = []
-    chk: list[bool] = []
-    if "col_left" in fields and "x" not in fields:  # a matches CSV: fit the right image to the left
-        m = read_matches(path)
-        return GcpTable(m.ids, m.right.copy(), m.left.copy(), None, np.zeros(len(m), dtype=bool), crs)
-    if "mapX" in fields:
-        sx = "sourceX" if "sourceX" in fields else "pixelX"
-        sy = "sourceY" if "sourceY" in fields else "pixelY"
-        need_columns(fields, ("mapX", "mapY", sx, sy), path)
-        for k, (r, ln) in enumerate(zip(rows, lines, strict=False)):
-            ids.append(str(k + 1))
+    with TableReader(path) as t:
+        fields = list(t.fields)
+        if "col_left" in fields and "x" not in fields:  # a matches CSV: fit the right image to the left
+            m, crs = read_matches_table(t)
+            return GcpTable(m.ids, m.right, m.left, None, np.zeros(len(m), dtype=bool), crs)
+        if "mapX" in fields:
+            sx = "sourceX" if "sourceX" in fields else "pixelX"
+            sy = "sourceY" if "sourceY" in fields else "pixelY"
+            need_columns(fields, ("mapX", "mapY", sx, sy), path)
+            cols = t.read("GCP rows", numbers=("mapX", "mapY", sx, sy), texts=("enable",))
+            n = len(cols)
+            ids = tuple(str(k + 1) for k in range(n))
             # QGIS: corner convention, row axis negative
-            pix.append((cell_number(r, sx, ln, path) - 0.5, -cell_number(r, sy, ln, path) - 0.5))
-            tgt.append((cell_number(r, "mapX", ln, path), cell_number(r, "mapY", ln, path)))
-            chk.append(r.get("enable", "1") in ("0", "false", "False"))
-        z = None
-    else:
-        need_columns(fields, ("id", "col", "row", "x", "y"), path)
-        has_z = "z" in fields
-        for r, ln in zip(rows, lines, strict=False):
-            ids.append(r["id"])
-            pix.append((cell_number(r, "col", ln, path), cell_number(r, "row", ln, path)))
-            tgt.append((cell_number(r, "x", ln, path), cell_number(r, "y", ln, path)))
-            if has_z:
-                zs.append(cell_number(r, "z", ln, path))
-            c = r.get("check", "0") or "0"
-            if c not in ("0", "1"):
-                raise InvalidInputError(f"{str(path)!r} line {ln}: column 'check' must be 0 or 1; got {c!r}")
-            chk.append(c == "1")
-        z = np.array(zs) if has_z else None
+            pix = np.column_stack([cols.numbers[sx] - 0.5, -cols.numbers[sy] - 0.5])
+            tgt = np.column_stack([cols.numbers["mapX"], cols.numbers["mapY"]])
+            enable = cols.texts["enable"] if "enable" in fields else ["1"] * n
+            chk = np.array([e in ("0", "false", "False") for e in enable], dtype=bool)
+            z = None
+        else:
+            need_columns(fields, ("id", "col", "row", "x", "y"), path)
+            has_z = "z" in fields
+            cols = t.read("GCP rows", numbers=("col", "row", "x", "y") + (("z",) if has_z else ()),
+                          texts=("id", "check") if "check" in fields else ("id",))
+            ids = tuple(cols.texts.pop("id"))
+            pix = np.column_stack([cols.numbers.pop("col"), cols.numbers.pop("row")])
+            tgt = np.column_stack([cols.numbers.pop("x"), cols.numbers.pop("y")])
+            z = cols.numbers.pop("z") if has_z else None
+            flags = cols.texts.pop("check", None) or [""] * len(ids)
+            bad = next((k for k, c in enumerate(flags) if c not in ("0", "1", "")), None)
+            if bad is not None:
+                raise InvalidInputError(f"{str(path)!r} line {int(cols.lines[bad])}: column 'check' must be 0 or 1; "
+                                        f"got {flags[bad]!r}")
+            chk = np.array([c == "1" for c in flags], dtype=bool)
+            del flags
     no_duplicates(ids, path, "GCP id(s)")
-    return GcpTable(tuple(ids), np.array(pix, dtype=float).reshape(-1, 2),
-                    np.array(tgt, dtype=float).reshape(-1, 2), z, np.array(chk, dtype=bool), crs)
+    return GcpTable(ids, pix.reshape(-1, 2), tgt.reshape(-1, 2), z, chk, cols.crs)
 
 
 def gcps_text(gcps: GcpTable) -> str:
@@ -225,11 +222,7 @@ def read_gcps_geojson(path: StrPath) -> GcpTable:
     The CRS is the ``crs`` member, else a ``crs`` property, else EPSG:4326 (RFC 7946) when the values
     are longitudes/latitudes. Ids from ``id``/``name``/``gcp_id`` properties or the feature ``id``.
     """
-    text = read_table_text(path)
-    try:
-        doc = json.loads(text)
-    except json.JSONDecodeError as err:
-        raise InvalidInputError(f"{str(path)!r} is not valid JSON: {err}") from None
+    doc = read_json(path, "GeoJSON GCP file")
     if not isinstance(doc, dict) or doc.get("type") not in ("FeatureCollection", "Feature"):
         got = doc.get("type") if isinstance(doc, dict) else type(doc).__name__
         raise InvalidInputError(f"{str(path)!r}: expected a GeoJSON FeatureCollection of Point features; got {got!r}")

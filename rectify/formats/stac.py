@@ -122,6 +122,9 @@ class StacAsset:
         Default from the suffix (:data:`MEDIA_TYPES`).
     grid : RasterGrid, optional
         The asset's own grid when it differs from the product's (an overview, a residual raster).
+    source : path, optional
+        The file whose bytes are described when it is not yet at ``path`` (the staged temporary file
+        of a transaction that renames it there); default ``path``.
     """
 
     path: StrPath
@@ -129,6 +132,7 @@ class StacAsset:
     title: str | None = None
     media_type: str | None = None
     grid: RasterGrid | None = None
+    source: StrPath | None = None
 
 
 @dataclass(frozen=True)
@@ -157,6 +161,9 @@ class StacProduct:
         Its input files (hashed).
     created : datetime, optional
         Processing time (default: now, UTC).
+    unlocated : bool
+        The product is in no map frame (an image rectified onto another image's pixels): the Item's
+        geometry and bbox are null, as STAC allows, and ``rectify:frame`` says ``pixel``.
     """
 
     item_id: str
@@ -169,6 +176,7 @@ class StacProduct:
     options: Mapping[str, Any] = field(default_factory=dict)
     inputs: Sequence[StrPath] = ()
     created: dt.datetime | None = None
+    unlocated: bool = False
 
 
 def file_checksum(path: StrPath) -> str:
@@ -244,12 +252,16 @@ def stac_item(product: StacProduct, href: StrPath) -> pystac.Item:
     """
     if not product.assets:
         raise InvalidInputError(f"STAC Item {product.item_id!r} needs at least one asset")
+    geometry: dict[str, Any] | None
+    bbox: list[float] | None
     if product.grid is not None:
         geometry, bbox = _lonlat_geometry(product.grid.crs, product.grid.outline())
     elif product.footprint is not None:
         crs, (x0, y0, x1, y1) = product.footprint
         g = RasterGrid(crs, (x1 - x0, 0.0, x0, 0.0, y0 - y1, y1), 1, 1)
         geometry, bbox = _lonlat_geometry(g.crs, g.outline())
+    elif product.unlocated:
+        geometry = bbox = None
     else:
         raise InvalidInputError(f"STAC Item {product.item_id!r} needs a grid or a footprint (where the product lies)")
     created = _utc(product.created or dt.datetime.now(dt.timezone.utc))
@@ -265,6 +277,8 @@ def stac_item(product: StacProduct, href: StrPath) -> pystac.Item:
         "rectify:options": _json_safe(dict(product.options)),
         "rectify:inputs": inputs,
     }
+    if geometry is None:
+        props["rectify:frame"] = "pixel"
     item = pystac.Item(id=product.item_id, geometry=geometry, bbox=bbox, datetime=when, properties=props,
                        stac_extensions=[PROCESSING_SCHEMA])
     if product.grid is not None:
@@ -276,7 +290,8 @@ def stac_item(product: StacProduct, href: StrPath) -> pystac.Item:
         asset = pystac.Asset(href=Path(rel).as_posix(), title=a.title,
                              media_type=a.media_type or MEDIA_TYPES.get(p.suffix.lower()), roles=list(a.roles))
         item.add_asset(key, asset)
-        FileExtension.ext(asset).apply(size=_size(p), checksum=file_checksum(p))
+        data = a.source if a.source is not None else p
+        FileExtension.ext(asset).apply(size=_size(data), checksum=file_checksum(data))
         if a.grid is not None:
             _apply_grid(ProjectionExtension.ext(asset, add_if_missing=True), a.grid)
     return item

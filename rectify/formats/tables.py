@@ -21,28 +21,61 @@ from pathlib import Path
 import numpy as np
 
 from rectify.atomic import atomic_write_text
-from rectify.errors import InvalidInputError
-from rectify.formats.common import StrPath, cell_number, load_table, need_columns, no_duplicates
+from rectify.errors import CRSError, InvalidInputError
+from rectify.formats.common import (
+    MAX_MATCH_ROWS,
+    Columns,
+    StrPath,
+    TableReader,
+    need_columns,
+    no_duplicates,
+)
+from rectify.geometry.crs import parse_crs
 from rectify.geometry.points import ControlTable, Matches
 
-__all__ = ["read_matches", "write_matches", "matches_text", "read_control", "write_control", "control_text"]
+__all__ = ["read_matches", "read_matches_table", "write_matches", "matches_text", "read_control", "write_control",
+           "control_text", "check_crs_comment"]
+
+_MATCH_COLUMNS = ("id", "col_left", "row_left", "col_right", "row_right")
+_CONTROL_COLUMNS = ("id", "col_left", "row_left", "col_right", "row_right", "x", "y", "z")
+
+
+def check_crs_comment(cols: Columns) -> None:
+    """Refuse a table whose ``# crs=`` value is not a CRS, naming the file and the line (before any work:
+    a CRS found unknown only when a product is written would waste the run)."""
+    if not cols.crs:
+        return
+    line = next((no for no, key, _ in reversed(cols.settings) if key == "crs"), None)
+    try:
+        parse_crs(cols.crs)
+    except CRSError as err:
+        where = f" line {line}" if line is not None else ""
+        raise CRSError(f"{str(cols.path)!r}{where}: {err}") from None
 
 
 def read_matches(path: StrPath) -> Matches:
-    """Read a matches CSV (``id,col_left,row_left,col_right,row_right[,score]``), pixel frame."""
-    rows, lines, _, fields = load_table(path, "matches")
-    need_columns(fields, ("id", "col_left", "row_left", "col_right", "row_right"), path)
-    has_score = "score" in fields
-    ids, left, right, score = [], [], [], []
-    for r, ln in zip(rows, lines, strict=False):
-        ids.append(r["id"])
-        left.append((cell_number(r, "col_left", ln, path), cell_number(r, "row_left", ln, path)))
-        right.append((cell_number(r, "col_right", ln, path), cell_number(r, "row_right", ln, path)))
-        if has_score:
-            score.append(cell_number(r, "score", ln, path, allow_empty=True))
+    """Read a matches CSV (``id,col_left,row_left,col_right,row_right[,score]``), pixel frame.
+
+    Read as a stream (:class:`rectify.formats.common.TableReader`); more than
+    :data:`rectify.formats.common.MAX_MATCH_ROWS` rows are refused.
+    """
+    with TableReader(path) as t:
+        return read_matches_table(t)[0]
+
+
+def read_matches_table(t: TableReader) -> tuple[Matches, str | None]:
+    """The matches of an open matches CSV (its header read) and its ``# crs=`` value."""
+    path = t.path
+    need_columns(list(t.fields), _MATCH_COLUMNS, path)
+    has_score = "score" in t.fields
+    cols = t.read("matches", numbers=_MATCH_COLUMNS[1:] + (("score",) if has_score else ()), texts=("id",),
+                  empty=("score",), max_rows=MAX_MATCH_ROWS)
+    ids = tuple(cols.texts.pop("id"))
     no_duplicates(ids, path, "match id(s)")
-    return Matches(tuple(ids), np.array(left).reshape(-1, 2), np.array(right).reshape(-1, 2),
-                   np.array(score) if has_score else None)
+    num = cols.numbers
+    return Matches(ids, np.column_stack([num.pop("col_left"), num.pop("row_left")]),
+                   np.column_stack([num.pop("col_right"), num.pop("row_right")]),
+                   num.pop("score") if has_score else None), cols.crs
 
 
 def matches_text(matches: Matches) -> str:
@@ -69,22 +102,35 @@ def write_matches(path: StrPath, matches: Matches, *, overwrite: bool = False) -
 def read_control(path: StrPath) -> ControlTable:
     """Read a stereo control CSV (``id,col_left,row_left,col_right,row_right,x,y,z``).
 
-    Empty ``x, y, z`` make a tie point (NaN in ``xyz``); partly empty rows are refused.
+    Empty ``x, y, z`` make a tie point (NaN in ``xyz``); partly empty rows are refused. The ``# crs=``
+    value must name a CRS (checked here, before any work, with the line named). Read as a stream; more
+    than :data:`rectify.formats.common.MAX_POINT_ROWS` rows are refused.
+
+    Raises
+    ------
+    RasterIOError
+        The file is missing or unreadable.
+    InvalidInputError
+        Missing columns, a bad number (line, column and value named), partly empty ground
+        coordinates, duplicate ids, too many rows.
+    CRSError
+        The ``# crs=`` value is not a CRS.
     """
-    rows, lines, crs, fields = load_table(path, "rows")
-    need_columns(fields, ("id", "col_left", "row_left", "col_right", "row_right", "x", "y", "z"), path)
-    ids, left, right, xyz = [], [], [], []
-    for r, ln in zip(rows, lines, strict=False):
-        ids.append(r["id"])
-        left.append((cell_number(r, "col_left", ln, path), cell_number(r, "row_left", ln, path)))
-        right.append((cell_number(r, "col_right", ln, path), cell_number(r, "row_right", ln, path)))
-        p = [cell_number(r, k, ln, path, allow_empty=True) for k in ("x", "y", "z")]
-        if any(math.isnan(v) for v in p) and not all(math.isnan(v) for v in p):
-            raise InvalidInputError(f"{str(path)!r} line {ln}: x, y, z must be all given or all empty")
-        xyz.append(p)
+    with TableReader(path) as t:
+        need_columns(list(t.fields), _CONTROL_COLUMNS, path)
+        cols = t.read("rows", numbers=_CONTROL_COLUMNS[1:], texts=("id",), empty=("x", "y", "z"))
+    check_crs_comment(cols)
+    num = cols.numbers
+    xyz = np.column_stack([num.pop("x"), num.pop("y"), num.pop("z")])
+    given = np.isfinite(xyz)
+    partial = np.flatnonzero(given.any(axis=1) & ~given.all(axis=1))
+    if partial.size:
+        raise InvalidInputError(f"{str(path)!r} line {int(cols.lines[partial[0]])}: x, y, z must be all given or all "
+                                "empty")
+    ids = tuple(cols.texts.pop("id"))
     no_duplicates(ids, path, "id(s)")
-    return ControlTable(tuple(ids), np.array(left).reshape(-1, 2), np.array(right).reshape(-1, 2),
-                        np.array(xyz, dtype=float).reshape(-1, 3), crs)
+    return ControlTable(ids, np.column_stack([num.pop("col_left"), num.pop("row_left")]),
+                        np.column_stack([num.pop("col_right"), num.pop("row_right")]), xyz, cols.crs)
 
 
 def control_text(control: ControlTable) -> str:

@@ -27,6 +27,16 @@ Faults: every task is submitted with ``retries`` (default 2) and Dask reruns the
 that dies on another worker; tasks are idempotent (block files are renamed into place). Progress is
 reported through the ``progress(done, total)`` callback (windows done) as the tasks complete; the
 Dask dashboard link, when the dashboard runs, is logged at INFO level.
+
+Bounds (each a one-line :class:`SchedulerError` naming the address and the bound): before Dask's
+client connects to a cluster, :mod:`rectify.raster.daskpeer` checks on a plain socket, within
+``timeout_s`` (``$RECTIFY_SCHEDULER_TIMEOUT``, default 10 s), that a Dask *scheduler* answers there
+(Dask's own client waits for a handshake without limit and sizes its first buffer from the peer's
+first 8 bytes), and waits at most ``worker_timeout_s`` (``$RECTIFY_SCHEDULER_WORKER_TIMEOUT``, default
+60 s) for it to have a worker; during a run, a cluster left without workers for ``worker_timeout_s``,
+or a run in which no task finishes for ``stall_timeout_s`` (``$RECTIFY_SCHEDULER_STALL_TIMEOUT``,
+default 600 s), stops. :func:`check_scheduler` runs the check up front (the commands call it before
+any work).
 """
 
 from __future__ import annotations
@@ -38,7 +48,7 @@ import importlib.util
 import logging
 import math
 import os
-import re
+import queue
 import shutil
 import tempfile
 import time
@@ -53,10 +63,13 @@ import numpy as np
 
 from rectify.errors import InvalidInputError, SchedulerError
 from rectify.raster import tiles as tilepool
+from rectify.raster.daskpeer import SchedulerIdentity, split_address, wait_for_workers
+from rectify.raster.daskpeer import identify as identify_scheduler
 from rectify.raster.io import bound_gdal_cache
 
-__all__ = ["ENV_VAR", "TIMEOUT_ENV_VAR", "Scheduler", "SchedulerError", "BlockEngine", "resolve_scheduler",
-           "run_windows", "DEFAULT_RETRIES", "DEFAULT_CONNECT_TIMEOUT_S"]
+__all__ = ["ENV_VAR", "TIMEOUT_ENV_VAR", "WORKER_TIMEOUT_ENV_VAR", "STALL_TIMEOUT_ENV_VAR", "Scheduler",
+           "SchedulerError", "BlockEngine", "resolve_scheduler", "check_scheduler", "run_windows", "DEFAULT_RETRIES",
+           "DEFAULT_CONNECT_TIMEOUT_S", "DEFAULT_WORKER_TIMEOUT_S", "DEFAULT_STALL_TIMEOUT_S"]
 
 logger = logging.getLogger(__name__)
 
@@ -64,13 +77,22 @@ logger = logging.getLogger(__name__)
 ENV_VAR = "RECTIFY_SCHEDULER"
 #: times Dask reruns a failed task (a task whose worker died is rerun by the scheduler as well)
 DEFAULT_RETRIES = 2
-#: seconds to wait for an existing cluster's scheduler before giving up (``$RECTIFY_SCHEDULER_TIMEOUT`` overrides)
+#: seconds to connect to a cluster's scheduler and exchange the handshake (``$RECTIFY_SCHEDULER_TIMEOUT`` overrides)
 DEFAULT_CONNECT_TIMEOUT_S = 10.0
-#: environment variable: seconds to wait for a cluster's scheduler
+#: environment variable: seconds to connect to a cluster's scheduler and exchange the handshake
 TIMEOUT_ENV_VAR = "RECTIFY_SCHEDULER_TIMEOUT"
+#: seconds a run waits for a cluster to have a worker, before it starts and whenever it has none left
+DEFAULT_WORKER_TIMEOUT_S = 60.0
+#: environment variable: seconds to wait for a worker
+WORKER_TIMEOUT_ENV_VAR = "RECTIFY_SCHEDULER_WORKER_TIMEOUT"
+#: seconds a run may go without any task finishing (a hung worker or scheduler)
+DEFAULT_STALL_TIMEOUT_S = 600.0
+#: environment variable: seconds without a finished task
+STALL_TIMEOUT_ENV_VAR = "RECTIFY_SCHEDULER_STALL_TIMEOUT"
+#: seconds between the checks of a cluster's workers while no task finishes (shorter when a bound is shorter)
+POLL_S = 2.0
 
 _SPEC_HELP = "expected 'threads', 'processes', 'processes:N' or 'tcp://HOST:PORT'"
-_ADDRESS = re.compile(r"^(tcp|tls|ucx|inproc)://[^\s/:]+(:\d{1,5})?/?$")
 
 
 @dataclass(frozen=True)
@@ -87,9 +109,13 @@ class Scheduler:
     address : str or None
         Scheduler address of ``"cluster"`` (``tcp://HOST:PORT``).
     timeout_s : float
-        Seconds to wait for a cluster's scheduler (``"cluster"``).
+        Seconds to connect to a cluster's scheduler and exchange the handshake (``"cluster"``).
     retries : int
         Reruns of a failed task (Dask ``retries``).
+    worker_timeout_s : float
+        Seconds to wait for the cluster to have a worker: before the run and whenever it has none left.
+    stall_timeout_s : float
+        Seconds a run may go without any task finishing.
     """
 
     kind: str = "threads"
@@ -97,6 +123,8 @@ class Scheduler:
     address: str | None = None
     timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S
     retries: int = DEFAULT_RETRIES
+    worker_timeout_s: float = DEFAULT_WORKER_TIMEOUT_S
+    stall_timeout_s: float = DEFAULT_STALL_TIMEOUT_S
 
     def __post_init__(self) -> None:
         if self.kind not in ("threads", "processes", "cluster"):
@@ -105,8 +133,12 @@ class Scheduler:
             raise InvalidInputError(f"scheduler workers must be in 1..1024; got {self.workers!r}")
         if self.kind == "cluster" and not self.address:
             raise InvalidInputError("a cluster scheduler needs an address (tcp://HOST:PORT)")
-        if not (math.isfinite(self.timeout_s) and self.timeout_s > 0):
-            raise InvalidInputError(f"scheduler timeout_s must be > 0; got {self.timeout_s!r}")
+        if self.kind == "cluster":
+            split_address(str(self.address))
+        for name in ("timeout_s", "worker_timeout_s", "stall_timeout_s"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise InvalidInputError(f"scheduler {name} must be a number of seconds > 0; got {value!r}")
         if self.retries < 0:
             raise InvalidInputError(f"scheduler retries must be >= 0; got {self.retries!r}")
 
@@ -124,8 +156,8 @@ class Scheduler:
 
         Examples
         --------
-        >>> Scheduler.parse("processes:2")
-        Scheduler(kind='processes', workers=2, address=None, timeout_s=10.0, retries=2)
+        >>> Scheduler.parse("processes:2").workers
+        2
         >>> Scheduler.parse("tcp://10.0.0.5:8786").address
         'tcp://10.0.0.5:8786'
         >>> Scheduler.parse("gpu")
@@ -133,22 +165,26 @@ class Scheduler:
         ...
         rectify.errors.InvalidInputError: unknown scheduler 'gpu'; expected 'threads', 'processes', \
 'processes:N' or 'tcp://HOST:PORT'
+
+        The bounds of a Dask scheduler come from ``$RECTIFY_SCHEDULER_TIMEOUT``,
+        ``$RECTIFY_SCHEDULER_WORKER_TIMEOUT`` and ``$RECTIFY_SCHEDULER_STALL_TIMEOUT`` when set.
         """
         s = str(spec).strip()
         low = s.lower()
         if low == "threads":
             return cls("threads")
         if low == "processes":
-            return cls("processes")
+            return cls("processes", **_env_bounds())
         if low.startswith("processes:"):
             n = low.split(":", 1)[1]
             if not n.isdigit() or not 1 <= int(n) <= 1024:
                 raise InvalidInputError(f"bad {source} {s!r}: the worker count must be an integer in 1..1024")
-            return cls("processes", workers=int(n))
+            return cls("processes", workers=int(n), **_env_bounds())
         if "://" in s:
-            if not _ADDRESS.match(s):
-                raise InvalidInputError(f"bad {source} address {s!r}; expected tcp://HOST:PORT")
-            return cls("cluster", address=s.rstrip("/"), timeout_s=_env_timeout())
+            host, port = split_address(s, source=source)
+            host = f"[{host}]" if ":" in host else host
+            return cls("cluster", address=f"tcp://{host}:{port}", timeout_s=_env_seconds(TIMEOUT_ENV_VAR,
+                       DEFAULT_CONNECT_TIMEOUT_S), **_env_bounds())
         raise InvalidInputError(f"unknown {source} {s!r}; {_SPEC_HELP}")
 
     @property
@@ -162,17 +198,23 @@ class Scheduler:
         return self.address if self.kind == "cluster" else "threads"  # type: ignore[return-value]
 
 
-def _env_timeout() -> float:
-    raw = os.environ.get(TIMEOUT_ENV_VAR, "").strip()
+def _env_seconds(var: str, default: float) -> float:
+    """Seconds from the environment variable ``var`` (a number > 0), else ``default``."""
+    raw = os.environ.get(var, "").strip()
     if not raw:
-        return DEFAULT_CONNECT_TIMEOUT_S
+        return default
     try:
         value = float(raw)
     except ValueError:
         value = math.nan
     if not (math.isfinite(value) and value > 0):
-        raise InvalidInputError(f"${TIMEOUT_ENV_VAR} must be a number of seconds > 0; got {raw!r}")
+        raise InvalidInputError(f"${var} must be a number of seconds > 0; got {raw!r}")
     return value
+
+
+def _env_bounds() -> dict[str, float]:
+    return {"worker_timeout_s": _env_seconds(WORKER_TIMEOUT_ENV_VAR, DEFAULT_WORKER_TIMEOUT_S),
+            "stall_timeout_s": _env_seconds(STALL_TIMEOUT_ENV_VAR, DEFAULT_STALL_TIMEOUT_S)}
 
 
 def resolve_scheduler(spec: Scheduler | str | None = None) -> Scheduler:
@@ -191,6 +233,32 @@ def resolve_scheduler(spec: Scheduler | str | None = None) -> Scheduler:
     if env:
         return Scheduler.parse(env, source=f"scheduler in ${ENV_VAR}")
     return Scheduler()
+
+
+def check_scheduler(spec: Scheduler | str | None = None) -> Scheduler:
+    """:func:`resolve_scheduler`, and for a cluster the check that a Dask scheduler with a worker answers.
+
+    What the commands call before any work: a cluster that cannot be reached, is not a Dask
+    scheduler, or has no worker within ``worker_timeout_s`` fails here, in one line, whether or not
+    the run would have needed it (``rectify match`` of a small pair does not tile). Local schedulers
+    need no check (a local cluster is started by the run).
+
+    Raises
+    ------
+    InvalidInputError
+        A bad ``spec`` or environment variable.
+    SchedulerError
+        See :func:`rectify.raster.daskpeer.identify` and :func:`rectify.raster.daskpeer.wait_for_workers`.
+    """
+    sched = resolve_scheduler(spec)
+    if sched.kind == "cluster":
+        _wait_for_workers(sched, str(sched.address))
+    return sched
+
+
+def _wait_for_workers(sched: Scheduler, address: str) -> SchedulerIdentity:
+    return wait_for_workers(address, sched.timeout_s, sched.worker_timeout_s, timeout_var=f"${TIMEOUT_ENV_VAR}",
+                            worker_var=f"${WORKER_TIMEOUT_ENV_VAR}")
 
 
 class BlockEngine(Protocol):
@@ -266,9 +334,9 @@ def run_windows(engine: BlockEngine, write: Callable[[Any, int, int], bool], win
             return bool(encoded[2])
 
         write = write_raw
-    with _client(sched) as client:
+    with _client(sched) as (client, address, ident):
         return _run_on_client(client, sched, engine, write, list(windows), progress, Path(workdir), name,
-                              windows_per_task, encoder)
+                              windows_per_task, encoder, address=address, slots=max(ident.total_threads, 1))
 
 
 # --------------------------------------------------------------------------- clients
@@ -290,16 +358,41 @@ LOCAL_CLUSTER_CONFIG: dict[str, Any] = {
 }
 
 
+#: Dask's loggers (in this process) whose lines the command line hides without -v
+DASK_LOGGERS = ("distributed", "tornado", "bokeh")
+_cli_logging = {"follow": False}
+
+
+def follow_cli_logging() -> None:
+    """Let Dask's log lines follow the command line's verbosity (called by ``--scheduler``'s option).
+
+    Dask logs at INFO level by default, with its own handler, and some of its lines carry tracebacks
+    (a stream closed by SIGTERM); a run's failures reach the user as one :class:`SchedulerError` line.
+    So when a Dask scheduler is used and the root logger is above INFO (no -v), Dask's loggers are
+    silenced here and in the worker processes of a local cluster; with -v they keep Dask's levels.
+    Library callers' logging is left alone."""
+    _cli_logging["follow"] = True
+
+
+def _quiet_dask() -> bool:
+    return _cli_logging["follow"] and logging.getLogger().getEffectiveLevel() > logging.INFO
+
+
 def _distributed() -> Any:
     """The ``dask.distributed`` package, imported when a Dask scheduler is first used."""
     import distributed  # local: importing Dask takes about a second; the default (threads) never needs it
+
+    if _quiet_dask():  # after the import: importing distributed sets its loggers' levels
+        for name in DASK_LOGGERS:
+            logging.getLogger(name).setLevel(logging.CRITICAL + 1)
 
     return distributed
 
 
 @contextlib.contextmanager
-def _client(sched: Scheduler) -> Iterator[Any]:
-    """A ``distributed.Client`` for ``sched`` (a local cluster is started and closed around the run)."""
+def _client(sched: Scheduler) -> Iterator[tuple[Any, str, SchedulerIdentity]]:
+    """A ``distributed.Client`` for ``sched``, its scheduler's address and what the scheduler said of itself
+    (a local cluster is started and closed around the run; a cluster's scheduler is checked first)."""
     try:
         distributed = _distributed()
     except ImportError as err:  # pragma: no cover - a declared dependency
@@ -310,30 +403,39 @@ def _client(sched: Scheduler) -> Iterator[Any]:
         try:
             import dask  # local: start-up time, as in _distributed
 
-            with dask.config.set(LOCAL_CLUSTER_CONFIG):
+            config = dict(LOCAL_CLUSTER_CONFIG)
+            if _quiet_dask():  # the workers' own log lines (read by Dask from the environment at start-up)
+                config["distributed.nanny.pre-spawn-environ.DASK_LOGGING__DISTRIBUTED"] = "critical"
+            with dask.config.set(config):
                 cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                                                    dashboard_address=":0")
         except Exception as err:  # noqa: BLE001 - any start-up failure, one line
             raise SchedulerError(f"cannot start a local Dask cluster of {n} worker process(es): {err}") from err
         try:
             with distributed.Client(cluster) as client:
+                ident = _wait_for_workers(sched, cluster.scheduler_address)
                 logger.info("local Dask cluster of %d worker processes started in %.1f s%s", n,
                             time.perf_counter() - t0, _dashboard_note(client))
-                yield client
+                yield client, cluster.scheduler_address, ident
         finally:
             cluster.close()
         return
+    address = str(sched.address)
+    # Dask's client would wait for a silent peer's handshake without limit, and size its first buffer from
+    # whatever 8 bytes a peer sends: a Dask scheduler with a worker must answer the check first
+    ident = _wait_for_workers(sched, address)
     try:
-        client = distributed.Client(sched.address, timeout=f"{sched.timeout_s}s")
+        client = distributed.Client(address, timeout=f"{sched.timeout_s}s")
     except (OSError, TimeoutError) as err:
-        raise SchedulerError(f"cannot reach the Dask scheduler {sched.address!r} within {sched.timeout_s:g} s: "
-                             f"{_one_line(err)}") from err
+        raise SchedulerError(f"cannot reach the Dask scheduler {address!r} within {sched.timeout_s:g} s "
+                             f"(${TIMEOUT_ENV_VAR}): {_one_line(err)}") from err
     try:
-        logger.info("connected to the Dask scheduler %s (%d workers)%s", sched.address,
-                    len(client.scheduler_info().get("workers", {})), _dashboard_note(client))
-        yield client
+        logger.info("connected to the Dask scheduler %s (%d workers, %d threads)%s", address, ident.n_workers,
+                    ident.total_threads, _dashboard_note(client))
+        yield client, address, ident
     finally:
-        client.close()
+        with contextlib.suppress(Exception):  # a scheduler gone or hung: closing gives up after the timeout
+            client.close(timeout=sched.timeout_s)
 
 
 def _has_dashboard() -> bool:
@@ -375,26 +477,19 @@ def _guided_groups(windows: list[Window], slots: int) -> list[list[Window]]:
     return out
 
 
-def _worker_slots(client: Any) -> int:
-    with contextlib.suppress(Exception):
-        info = client.scheduler_info().get("workers", {})
-        slots = sum(int(w.get("nthreads", 1)) for w in info.values())
-        if slots:
-            return slots
-    return 1
-
-
 def _run_on_client(client: Any, sched: Scheduler, engine: BlockEngine, write: Callable[[Any, int, int], bool],
                    windows: list[Window], progress: Callable[[int, int], None] | None, workdir: Path, name: str,
-                   windows_per_task: int | None, encoder: Callable[[Any], Any] | None = None) -> int:
-    """Run the windows as Dask tasks; ``write`` receives each window's result (encoded when ``encoder``)."""
-    distributed = _distributed()
+                   windows_per_task: int | None, encoder: Callable[[Any], Any] | None = None, *,
+                   address: str, slots: int = 1) -> int:
+    """Run the windows as Dask tasks; ``write`` receives each window's result (encoded when ``encoder``).
+
+    ``address`` is the scheduler's (checked by :class:`_Watch` while no task finishes); ``slots`` the
+    cluster's worker threads when the run starts."""
     total, done, n_empty = len(windows), 0, 0
     if progress:
         progress(0, total)
     if not windows:
         return 0
-    slots = _worker_slots(client)
     if windows_per_task:
         groups = _groups(windows, windows_per_task)
     elif encoder is not None:
@@ -412,9 +507,11 @@ def _run_on_client(client: Any, sched: Scheduler, engine: BlockEngine, write: Ca
     logger.info("%s: %d windows in %d Dask tasks of up to %d windows on %d worker thread(s) (%s)", name, total,
                 len(groups), per_task, slots, sched)
     futures: dict[Any, int] = {}
+    finished: queue.SimpleQueue[Any] = queue.SimpleQueue()  # futures as they finish (Dask's callback thread)
     it = iter(enumerate(groups))
+    watch = _Watch(sched, address, name)
 
-    def submit_next(ac: Any | None) -> None:
+    def submit_next() -> None:
         nxt = next(it, None)
         if nxt is None:
             return
@@ -423,14 +520,18 @@ def _run_on_client(client: Any, sched: Scheduler, engine: BlockEngine, write: Ca
         fut = client.submit(_compute_block, portable, group, path, encoder, key=f"{name}-block-{run_id}-{i}",
                             retries=sched.retries, pure=False)
         futures[fut] = i
-        if ac is not None:
-            ac.add(fut)
+        fut.add_done_callback(finished.put)
 
     try:
         for _ in range(max_inflight):
-            submit_next(None)
-        ac = distributed.as_completed(list(futures))
-        for fut in ac:
+            submit_next()
+        while futures:
+            try:
+                fut = finished.get(timeout=watch.wait_s())
+            except queue.Empty:
+                watch.check(len(futures))
+                continue
+            watch.progressed()
             i = futures.pop(fut)
             path, stats, index = _result(fut, sched)
             if merge is not None and stats is not None:
@@ -443,14 +544,54 @@ def _run_on_client(client: Any, sched: Scheduler, engine: BlockEngine, write: Ca
                     progress(done, total)
             Path(path).unlink(missing_ok=True)
             fut.release()
-            submit_next(ac)
+            submit_next()
     except BaseException:
-        for f in futures:
-            f.cancel()
+        with contextlib.suppress(Exception):  # queued to the scheduler; no wait for its answer
+            client.cancel(list(futures))
         raise
     finally:
         shutil.rmtree(blockdir, ignore_errors=True)
     return n_empty
+
+
+class _Watch:
+    """The bounds of a run while no task finishes: workers present (``worker_timeout_s``), some task
+    finishing (``stall_timeout_s``), the scheduler answering (its check's ``timeout_s``)."""
+
+    def __init__(self, sched: Scheduler, address: str, name: str, clock: Callable[[], float] = time.monotonic):
+        self.sched, self.address, self.name, self.clock = sched, address, name, clock
+        self.last = clock()            # when a task last finished (or the run started)
+        self.no_workers_since: float | None = None
+        self.poll_s = min(POLL_S, sched.worker_timeout_s / 4, sched.stall_timeout_s / 4)
+
+    def wait_s(self) -> float:
+        """How long to wait for the next finished task before checking the cluster."""
+        return max(self.poll_s, 0.01)
+
+    def progressed(self) -> None:
+        self.last = self.clock()
+        self.no_workers_since = None
+
+    def check(self, in_flight: int) -> None:
+        """No task finished for a while: raise :class:`SchedulerError` past a bound."""
+        now = self.clock()
+        try:
+            ident = identify_scheduler(self.address, self.sched.timeout_s, env_var=f"${TIMEOUT_ENV_VAR}")
+        except SchedulerError as err:
+            raise SchedulerError(f"{self.name}: lost the Dask scheduler {self.address!r} during the run: {err}") \
+                from err
+        if ident.n_workers > 0:
+            self.no_workers_since = None
+        else:
+            self.no_workers_since = self.no_workers_since if self.no_workers_since is not None else now
+            if now - self.no_workers_since >= self.sched.worker_timeout_s:
+                raise SchedulerError(f"{self.name}: the Dask scheduler {self.address!r} has had no workers for "
+                                     f"{self.sched.worker_timeout_s:g} s (${WORKER_TIMEOUT_ENV_VAR}); {in_flight} "
+                                     "task(s) unfinished")
+        if now - self.last >= self.sched.stall_timeout_s:
+            raise SchedulerError(f"{self.name}: no Dask task finished for {self.sched.stall_timeout_s:g} s "
+                                 f"(${STALL_TIMEOUT_ENV_VAR}) on the scheduler {self.address!r} "
+                                 f"({ident.n_workers} worker(s)); {in_flight} task(s) unfinished")
 
 
 def _result(fut: Any, sched: Scheduler) -> tuple[str, Any, Any]:

@@ -46,7 +46,10 @@ from rectify.raster.engine import TileEngine, tile_windows, worker_count, write_
 from rectify.raster.georef import Grid, crs_label, pixel_from_world_matrix
 from rectify.raster.io import MaskPolicy, bound_gdal_cache, open_raster
 
-__all__ = ["MosaicOptions", "MosaicResult", "mosaic"]
+__all__ = ["MAX_PIXELS", "MosaicOptions", "MosaicResult", "mosaic"]
+
+#: the largest output grid :func:`mosaic` writes, pixels (that of ``rectify warp --max-pixels``)
+MAX_PIXELS = 2e9
 
 logger = logging.getLogger(__name__)
 
@@ -248,14 +251,16 @@ class _Engine(TileEngine):
 
 def mosaic(orthos: Sequence[str | Path], dst: str | Path, *, resolution: float | None = None,
            options: MosaicOptions | None = None, overwrite: bool = False,
-           progress: Callable[[int, int], None] | None = None) -> MosaicResult:
+           progress: Callable[[int, int], None] | None = None, max_pixels: float = MAX_PIXELS) -> MosaicResult:
     """Mosaic orthophotos into one GeoTIFF (COG with ``options.cog``).
 
     Raises
     ------
     InvalidInputError
         Fewer than one input, an input given twice, the output among the
-        inputs, different band counts, existing output without ``overwrite``.
+        inputs, different band counts, existing output without ``overwrite``;
+        an output grid of more than ``max_pixels`` (orthophotos far apart, a tiny ``resolution``),
+        refused before any tile with its size and the share the inputs cover.
     CRSError
         Inputs in different CRSs (reproject them first) or without a CRS.
     """
@@ -303,8 +308,15 @@ def mosaic(orthos: Sequence[str | Path], dst: str | Path, *, resolution: float |
     y0 = math.floor(min(bottoms) / res + eps) * res
     x1 = math.ceil(max(rights) / res - eps) * res
     y1 = math.ceil(max(tops) / res - eps) * res
-    grid = Grid(max(1, int(round((x1 - x0) / res))), max(1, int(round((y1 - y0) / res))),
-                Affine(res, 0.0, x0, 0.0, -res, y1), crs)
+    nx, ny = max(1, int(round((x1 - x0) / res))), max(1, int(round((y1 - y0) / res)))
+    if float(nx) * float(ny) > max_pixels:
+        covered = sum((r - left) * (t - b) for left, b, r, t in zip(lefts, bottoms, rights, tops, strict=True))
+        raise InvalidInputError(
+            f"the mosaic's output grid would be {nx} x {ny} px ({float(nx) * float(ny):.3g} px at {res:.6g} "
+            f"{unit_label(crs)}/px), above the limit of {max_pixels:.3g} px; the {len(paths)} orthophotos cover at "
+            f"most {100 * covered / ((x1 - x0) * (y1 - y0)):.3g} % of it (x {x0:.10g} .. {x1:.10g}, y {y0:.10g} .. "
+            f"{y1:.10g}): mosaic orthophotos that lie together, or give a coarser --resolution")
+    grid = Grid(nx, ny, Affine(res, 0.0, x0, 0.0, -res, y1), crs)
     nd0 = inputs[0].nodata
     nodata = float(nd0) if nd0 is not None else (float("nan") if dtype.kind == "f" else 0.0)
     engine = _Engine(inputs, grid, dtype, nodata, opts.feather_px * res)

@@ -48,9 +48,10 @@ from affine import Affine
 from numpy.typing import NDArray
 
 from rectify.atomic import check_output
-from rectify.errors import CRSError, InvalidInputError, RasterIOError
+from rectify.errors import CRSError, InvalidInputError, RasterIOError, SchedulerError
 from rectify.geometry.crs import crs_to_string, same_crs, transform_xy, unit_label
 from rectify.geometry.sensors import SensorModel
+from rectify.raster.coverage import check_coverage
 from rectify.raster.dem import Dem, bilinear
 from rectify.raster.distributed import Scheduler, resolve_scheduler
 from rectify.raster.engine import TileEngine, tile_windows, worker_count, write_tiled
@@ -58,12 +59,14 @@ from rectify.raster.georef import Grid, boundary_pixels, crs_label, pixel_from_w
 from rectify.raster.io import MaskPolicy, raster_info
 
 __all__ = ["OrthoOptions", "OrthoResult", "ReliefShift", "orthorectify", "ortho_grid", "relief_shift",
-           "relief_stride", "VISIBILITY_OUTSIDE",
+           "relief_stride", "MIN_VALID_SHARE", "VISIBILITY_OUTSIDE",
            "VISIBILITY_OCCLUDED", "VISIBILITY_VISIBLE"]
 
 logger = logging.getLogger(__name__)
 
 VISIBILITY_OUTSIDE, VISIBILITY_OCCLUDED, VISIBILITY_VISIBLE = 0, 1, 2
+#: default :attr:`OrthoOptions.min_valid_share`: an orthophoto with less than 1 % valid cells is refused
+MIN_VALID_SHARE = 0.01
 
 
 # =========================================================================== options / result
@@ -81,6 +84,9 @@ class OrthoOptions:
     true_ortho : z-buffer (line-of-sight) visibility and the visibility band
     map_step_px : spacing of the exactly transformed points for CRS changes
     max_window_px : largest source window read for one tile (bigger tiles are split)
+    min_valid_share : an output grid of which a smaller share would get a value (a DEM height whose
+        ground point the image sees; estimated before any tile, :func:`rectify.raster.coverage.ortho_coverage`)
+        is refused with the numbers (the share, the DEM's extent, the image footprint); 0: never refused
     scheduler : where the tiles run: ``threads``, ``processes[:N]`` or ``tcp://HOST:PORT``; None:
         ``$RECTIFY_SCHEDULER``, else ``threads`` (:mod:`rectify.raster.distributed`; same output bytes on every one)
     """
@@ -94,6 +100,7 @@ class OrthoOptions:
     map_step_px: int = 16
     max_window_px: int = 8192
     scheduler: Scheduler | str | None = None
+    min_valid_share: float = MIN_VALID_SHARE
 
     def __post_init__(self) -> None:
         if self.scheduler is not None:
@@ -106,6 +113,9 @@ class OrthoOptions:
             raise InvalidInputError(f"threads must be >= 1; got {self.threads}")
         if self.map_step_px < 1:
             raise InvalidInputError(f"map_step_px must be >= 1; got {self.map_step_px}")
+        v = self.min_valid_share
+        if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v <= 1):
+            raise InvalidInputError(f"min_valid_share must be a number in [0, 1]; got {v!r}")
 
     @property
     def n_threads(self) -> int:
@@ -152,10 +162,14 @@ class OrthoResult:
     def summary_lines(self) -> list[str]:
         g = self.grid
         u = unit_label(g.crs)
+        lo, hi = self.dem_range
+        share = self.extra.get("valid_share")
+        about = f" (about {100 * share:.1f} % of the grid)" if share is not None else ""
+        heights = (f"heights {lo:.2f} .. {hi:.2f} m on the valid output cells{about}"
+                   if math.isfinite(lo) and math.isfinite(hi) else "no valid output cell")
         out = [f"wrote {self.path}: {g.width} x {g.height} px, {g.resolution[0]:.6g} {u}/px, CRS {crs_label(g.crs)}, "
                f"{self.model}, {self.seconds:.2f} s",
-               f"DEM {self.dem_path}: heights {self.dem_range[0]:.2f} .. {self.dem_range[1]:.2f} m on the valid "
-               f"output cells"]
+               f"DEM {self.dem_path}: {heights}"]
         if self.relief is not None:
             out.append(self.relief.summary_line())
         if self.extra.get("true_ortho"):
@@ -699,6 +713,8 @@ def orthorectify(src: str | Path, dst: str | Path, model: SensorModel, dem: Dem,
         nodata = float(info.nodata)
     else:
         nodata = float("nan") if dtype.kind == "f" else 0.0
+    # an orthophoto that would be empty or mostly nodata is refused before any tile (with the numbers)
+    coverage = check_coverage(model, dem, grid, opts.min_valid_share) if opts.min_valid_share > 0 else None
     hr = dem.range()
     h_ref = 0.5 * (hr[0] + hr[1])
     margin = _margin_px(model, dem, grid, hr) if opts.true_ortho else 0
@@ -719,7 +735,7 @@ def orthorectify(src: str | Path, dst: str | Path, model: SensorModel, dem: Dem,
                               band_descriptions={count: "visibility: 0 outside, 1 occluded, 2 visible"}
                               if opts.true_ortho else None)
     except OSError as err:
-        if isinstance(err, RasterIOError):
+        if isinstance(err, (RasterIOError, SchedulerError)):  # a Dask scheduler's failure is not a write failure
             raise
         raise RasterIOError(f"cannot write {str(dst)!r}: {err}") from err
     lo = engine.hmin if math.isfinite(engine.hmin) else float("nan")
@@ -731,7 +747,8 @@ def orthorectify(src: str | Path, dst: str | Path, model: SensorModel, dem: Dem,
     return OrthoResult(Path(dst), grid, dt, len(windows), n_empty, dem.path, (lo, hi), max_shift, engine.n_occluded,
                        nodata, type(model).__name__,
                        {"true_ortho": opts.true_ortho, "visibility_band": count if opts.true_ortho else None,
-                        "margin_px": margin, "dem_datum": dem.datum}, relief)
+                        "margin_px": margin, "dem_datum": dem.datum,
+                        "valid_share": None if coverage is None else coverage.valid_share}, relief)
 
 
 def _nadir_in(model: SensorModel, crs: str) -> NDArray[np.float64]:

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import math
 import os
 import shutil
 import time
@@ -227,29 +228,69 @@ class _Mapping:
                     from err
         return out
 
-    def dense(self, c0: int, r0: int, w: int, h: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-        """Source x, y maps (h, w) float32 for a tile, by sparse exact points + bilinear interpolation."""
+    def matrix_maps(self, c0: int, r0: int, w: int, h: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Exact source x, y maps (h, w) float32 of a tile for a matrix mapping; NaN behind the horizon.
+
+        Each pixel's value is computed from its grid position alone (float64, then rounded to float32), so
+        it is the same whatever tile holds the pixel: OpenCV's own warpAffine/warpPerspective round a
+        tile-relative transform and move some pixels by 1/32 px from one tiling to another.
+        """
+        M = self.matrix
+        assert M is not None
+        x = np.arange(c0, c0 + w, dtype=np.float64)[None, :]
+        y = np.arange(r0, r0 + h, dtype=np.float64)[:, None]
+        if self.affine:  # float64 sums stored as float32 in one pass each
+            X = np.add(M[0, 0] * x, M[0, 1] * y + M[0, 2], out=np.empty((h, w), np.float32), casting="same_kind")
+            Y = np.add(M[1, 0] * x, M[1, 1] * y + M[1, 2], out=np.empty((h, w), np.float32), casting="same_kind")
+            return X, Y
+        Z = M[2, 0] * x + (M[2, 1] * y + M[2, 2])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            X = (M[0, 0] * x + (M[0, 1] * y + M[0, 2])) / Z
+            Y = (M[1, 0] * x + (M[1, 1] * y + M[1, 2])) / Z
+        behind = ~(Z > 0)
+        X[behind] = np.nan
+        Y[behind] = np.nan
+        return X.astype(np.float32), Y.astype(np.float32)
+
+    def knots(self, lo: int, hi: int, n: int) -> NDArray[np.float64]:
+        """The exactly evaluated columns (or rows) of the sparse lattice from ``lo`` to ``hi`` (grid pixels):
+        whole multiples of the step and the grid's last pixel ``n - 1``, from the last knot at or before ``lo``
+        to the first at or after ``hi``. The lattice is the grid's, not the tile's: every tiling interpolates
+        every pixel between the same two knots."""
         s = self.step
-        xs = np.unique(np.r_[np.arange(0, w, s), w - 1]).astype(np.float64)
-        ys = np.unique(np.r_[np.arange(0, h, s), h - 1]).astype(np.float64)
-        gx, gy = np.meshgrid(xs + c0, ys + r0)
+        first = (lo // s) * s
+        last = min(-(-hi // s) * s, n - 1)
+        k = np.arange(first, last + 1, s, dtype=np.float64)
+        if k[-1] < last:
+            k = np.r_[k, float(last)]
+        return k
+
+    def dense(self, c0: int, r0: int, w: int, h: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Source x, y maps (h, w) float32 for a tile, by sparse exact points + bilinear interpolation.
+
+        The exact points lie on the grid's lattice (:meth:`knots`), so a pixel's value does not depend on
+        the tile that holds it.
+        """
+        xs = self.knots(c0, c0 + w - 1, self._grid.width)
+        ys = self.knots(r0, r0 + h - 1, self._grid.height)
+        gx, gy = np.meshgrid(xs, ys)
         src = self.points(np.column_stack([gx.ravel(), gy.ravel()])).reshape(len(ys), len(xs), 2)
+        cols = np.arange(c0, c0 + w, dtype=np.float64)
+        rows = np.arange(r0, r0 + h, dtype=np.float64)
+        ix = np.clip(np.searchsorted(xs, cols, side="right") - 1, 0, max(len(xs) - 2, 0))
+        iy = np.clip(np.searchsorted(ys, rows, side="right") - 1, 0, max(len(ys) - 2, 0))
         # separable linear interpolation onto every pixel
         out = []
         for k in range(2):
             v = src[:, :, k]
-            cols = np.arange(w, dtype=np.float64)
-            rows = np.arange(h, dtype=np.float64)
-            ix = np.clip(np.searchsorted(xs, cols, side="right") - 1, 0, max(len(xs) - 2, 0))
-            iy = np.clip(np.searchsorted(ys, rows, side="right") - 1, 0, max(len(ys) - 2, 0))
             if len(xs) > 1:
                 fx = (cols - xs[ix]) / (xs[ix + 1] - xs[ix])
-                vx = v[:, ix] * (1 - fx) + v[:, np.minimum(ix + 1, len(xs) - 1)] * fx
+                vx = v[:, ix] * (1 - fx) + v[:, ix + 1] * fx
             else:
                 vx = np.repeat(v[:, :1], w, axis=1)
             if len(ys) > 1:
                 fy = (rows - ys[iy]) / (ys[iy + 1] - ys[iy])
-                vv = vx[iy, :] * (1 - fy)[:, None] + vx[np.minimum(iy + 1, len(ys) - 1), :] * fy[:, None]
+                vv = vx[iy, :] * (1 - fy)[:, None] + vx[iy + 1, :] * fy[:, None]
             else:
                 vv = np.repeat(vx[:1, :], h, axis=0)
             out.append(vv.astype(np.float32))
@@ -314,38 +355,31 @@ class _Engine(TileEngine):
     def tile(self, c0: int, r0: int, w: int, h: int) -> tuple[NDArray, NDArray[np.bool_] | None, bool]:
         """Compute one output tile -> (data (h, w, C), valid or None, empty)."""
         m = self.mapping
-        if m.matrix is not None:
-            corners = np.array([[c0 - 0.5, r0 - 0.5], [c0 + w - 0.5, r0 - 0.5], [c0 - 0.5, r0 + h - 0.5],
-                                [c0 + w - 0.5, r0 + h - 0.5]])
-            sp = m.points(corners)
-            maps = None
-            if not np.isfinite(sp).all():  # tile crosses the horizon: fall back to exact maps
-                maps = self._exact_maps(c0, r0, w, h)
-                sp = np.column_stack([maps[0].ravel(), maps[1].ravel()])
-        else:
-            maps = m.dense(c0, r0, w, h)
-            sp = np.column_stack([maps[0].ravel(), maps[1].ravel()])
-        ok = np.isfinite(sp).all(axis=1)
-        ok &= (sp[:, 0] >= -0.5 - self.radius) & (sp[:, 0] <= self.W - 0.5 + self.radius) & \
-            (sp[:, 1] >= -0.5 - self.radius) & (sp[:, 1] <= self.H - 0.5 + self.radius)
-        if maps is not None and not ok.any():
+        # per-pixel maps computed from grid positions: the tiling does not change a pixel's source position
+        maps = m.matrix_maps(c0, r0, w, h) if m.matrix is not None else m.dense(c0, r0, w, h)
+        mx, my = maps
+        # NaN compares False: finite and within the source (plus the kernel) in one pass each
+        ok = (mx >= -0.5 - self.radius) & (mx <= self.W - 0.5 + self.radius) & \
+            (my >= -0.5 - self.radius) & (my <= self.H - 0.5 + self.radius)
+        if not ok.any():
             return self._empty(w, h), np.zeros((h, w), bool), True
-        sel = sp[ok] if maps is not None else sp
-        lo = np.floor(np.nanmin(sel, axis=0)).astype(np.int64) - self.radius
-        hi = np.ceil(np.nanmax(sel, axis=0)).astype(np.int64) + self.radius
-        x0, y0 = max(int(lo[0]), 0), max(int(lo[1]), 0)
-        x1, y1 = min(int(hi[0]) + 1, self.W), min(int(hi[1]) + 1, self.H)
+        if ok.all():
+            bx, by = (float(mx.min()), float(mx.max())), (float(my.min()), float(my.max()))
+        else:
+            sx, sy = mx[ok], my[ok]
+            bx, by = (float(sx.min()), float(sx.max())), (float(sy.min()), float(sy.max()))
+        x0 = max(math.floor(bx[0]) - self.radius, 0)
+        y0 = max(math.floor(by[0]) - self.radius, 0)
+        x1 = min(math.ceil(bx[1]) + self.radius + 1, self.W)
+        y1 = min(math.ceil(by[1]) + self.radius + 1, self.H)
         if x1 <= x0 or y1 <= y0:
             return self._empty(w, h), np.zeros((h, w), bool), True
         if (x1 - x0 > self.opts.max_window_px or y1 - y0 > self.opts.max_window_px) and max(w, h) > 16:
             return self._split(c0, r0, w, h)
         data, valid = self.reader().read(x0, y0, x1 - x0, y1 - y0)
-        return self._resample(data, valid, x0, y0, c0, r0, w, h, maps)
-
-    def _exact_maps(self, c0, r0, w, h):
-        gx, gy = np.meshgrid(np.arange(c0, c0 + w, dtype=np.float64), np.arange(r0, r0 + h, dtype=np.float64))
-        p = self.mapping.points(np.column_stack([gx.ravel(), gy.ravel()]))
-        return p[:, 0].reshape(h, w).astype(np.float32), p[:, 1].reshape(h, w).astype(np.float32)
+        # every output pixel maps inside the source raster (not just the window): no footprint edge in the tile
+        full_inside = bool(ok.all() and bx[0] >= 0 and by[0] >= 0 and bx[1] <= self.W - 1 and by[1] <= self.H - 1)
+        return self._resample(data, valid, x0, y0, w, h, maps, full_inside)
 
     def _empty(self, w: int, h: int) -> NDArray:
         return np.full((h, w, self.count), self.fill, dtype=self.dtype)
@@ -363,22 +397,19 @@ class _Engine(TileEngine):
                 valid[rr - r0:rr - r0 + hgt, cc - c0:cc - c0 + ww] = True if v is None else v
         return out, (None if valid.all() else valid), not valid.any()
 
-    def _resample(self, data, valid, x0, y0, c0, r0, w, h, maps):
+    def _resample(self, data, valid, x0, y0, w, h, maps, full_inside):
 
-        m = self.mapping
-        if maps is None:
-            # shift: output tile pixel (i, j) -> window pixel
-            T_out = np.array([[1.0, 0, c0], [0, 1.0, r0], [0, 0, 1.0]])
-            T_src = np.array([[1.0, 0, -x0], [0, 1.0, -y0], [0, 0, 1.0]])
-            M = T_src @ m.matrix @ T_out
-            kw = dict(M=M, affine=m.affine, maps=None, size=(w, h))
-        else:
-            kw = dict(M=None, affine=False, maps=(maps[0] - np.float32(x0), maps[1] - np.float32(y0)), size=(w, h))
+        # window-relative maps: float32 minus a whole number is exact, so the shift changes no value
+        kw = dict(M=None, affine=False, maps=(maps[0] - np.float32(x0), maps[1] - np.float32(y0)), size=(w, h))
         src = _cv_dtype(data)
         out = _warp_channels(src, interp=self.interp, border=cv2.BORDER_REPLICATE, **kw)
         # footprint: nearest source pixel inside the window and valid
         win_h, win_w = data.shape[:2]
-        full_inside = self._tile_inside(kw, win_w, win_h, x0, y0)
+        if valid is None and self.opts.resampling != "nearest" and \
+                (x0 == 0 or y0 == 0 or x0 + win_w == self.W or y0 + win_h == self.H):
+            # at the source's edge the kernel is renormalised over the source pixels, as in a window with nodata:
+            # whether the window also holds nodata must not change an edge pixel (it depends on the tiling)
+            valid = np.ones((win_h, win_w), bool)
         if valid is None and full_inside:
             out_valid = None
         else:
@@ -406,20 +437,6 @@ class _Engine(TileEngine):
             if out_valid.all():
                 out_valid = None
         return out, out_valid, False
-
-    def _tile_inside(self, kw, win_w, win_h, x0, y0) -> bool:
-        """True when every output pixel of the tile maps inside the source raster (not just the window)."""
-        h_, w_ = kw["size"][1], kw["size"][0]
-        if kw["M"] is not None:
-            c = np.array([[-0.5, -0.5, 1], [w_ - 0.5, -0.5, 1], [-0.5, h_ - 0.5, 1], [w_ - 0.5, h_ - 0.5, 1]])
-            p = c @ kw["M"].T
-            p = p[:, :2] / p[:, 2:3]
-        else:
-            p = np.column_stack([kw["maps"][0].ravel(), kw["maps"][1].ravel()]).astype(np.float64)
-            p = np.array([p.min(axis=0), p.max(axis=0)])
-        gx, gy = p[:, 0] + x0, p[:, 1] + y0
-        return bool(np.isfinite(p).all() and gx.min() >= 0 and gy.min() >= 0 and gx.max() <= self.W - 1
-                    and gy.max() <= self.H - 1)
 
 
 def _cast(a: NDArray, dtype: np.dtype) -> NDArray:

@@ -32,11 +32,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rectify.actions.workspace import StrPath, Workspace
-from rectify.errors import EstimationError, InvalidInputError
+from rectify.errors import InvalidInputError
 from rectify.formats.camera import camera_document
+from rectify.formats.detect import input_paths, read_camera_file
 from rectify.geometry.camera import Camera
 from rectify.geometry.crs import parse_crs, same_crs
 from rectify.geometry.residuals import ResidualTable, rms
+from stereo.actions.block_checks import check_block_inputs, check_datum
+from stereo.actions.workspace import PairWorkspace
 from stereo.block.bundle.adjust import BundleOptions, adjust_bundle
 from stereo.block.bundle.result import BundleResult
 from stereo.block.independent import independent_models, to_ground, triangulate_tracks
@@ -44,10 +47,11 @@ from stereo.block.models import IndependentOptions
 from stereo.block.types import BlockControl, GnssObservations, Pose, Tracks
 from stereo.features.tracks import BlockMatchOptions, block_tie_points
 from stereo.formats.block import BlockControlTable, block_orientation_text, observations_text, read_block_control
-from stereo.formats.odm import detect_odm_gcps, read_odm_gcps
-from stereo.formats.opensfm import crs_label, read_opensfm
+from stereo.formats.detect import read_control_file, read_pose_file, resolve_control
+from stereo.formats.odm import OdmGeo, detect_odm_gcps
+from stereo.formats.opensfm import crs_label
 from stereo.formats.points import LasWriter, dump_ply, points_csv_text
-from stereo.formats.poses import PoseTable, pose_csv_text, read_pose_csv
+from stereo.formats.poses import pose_csv_text
 from stereo.report.block import write_block_report
 
 __all__ = ["BLOCK_LAYOUT", "BlockOptions", "BlockResult", "run_block"]
@@ -196,6 +200,12 @@ def _match_pose_names(names: Sequence[str], poses: Sequence[Pose], source: StrPa
     if missing:
         raise InvalidInputError(f"{str(source)!r} has no pose for image(s) {missing[:5]}"
                                 f"{' ...' if len(missing) > 5 else ''} (it names {sorted(by_name)[:5]} ...)")
+    given = set(names) | {Path(n).stem for n in names}
+    extra = [p.image for p in poses if p.image not in given]
+    if extra:
+        raise InvalidInputError(f"{str(source)!r} has poses of {len(extra)} image(s) that are not given: {extra[:5]}"
+                                f"{' ...' if len(extra) > 5 else ''} (the block's images: {list(names)[:5]}"
+                                f"{' ...' if len(names) > 5 else ''}): give those images, or leave their rows out")
     return out
 
 
@@ -212,9 +222,11 @@ class _Inputs:
     reference: NDArray[np.float64] | None = None  # OpenSfM's topocentric origin (lon, lat, h)
     gps_position: NDArray[np.float64] | None = None  # (n, 3) an OpenSfM reconstruction's GPS, NaN where none
     gps_dop: NDArray[np.float64] | None = None  # (n,) their gps_dop, m
-    pose_kind: str = ""  # "csv" or "opensfm"
+    pose_kind: str = ""  # the kind of the pose file (stereo.formats.detect.POSE_KINDS: "poses", "opensfm", ...)
     pose_name: str = ""
     control_note: str = ""  # where the control came from, when not from --control's block CSV
+    geo: OdmGeo | None = None  # ODM geo.txt: positions (GNSS) without rotations
+    tracks: Tracks | None = None  # a pose file's tracks (COLMAP) on the block's images
 
 
 def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera | Mapping[str, Camera] | None,
@@ -224,27 +236,34 @@ def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera
         cameras = {DEFAULT_CAMERA: camera}
     elif isinstance(camera, Mapping):
         cameras = dict(camera)
-    elif camera is not None:
-        cameras = {DEFAULT_CAMERA: ws.load_camera(camera)}
+    elif camera is not None:  # any camera file (camera JSON, orthority, OpenCV, COLMAP, Metashape)
+        ws.add_inputs(*input_paths(camera))
+        cameras = dict(read_camera_file(camera).cameras)
     ctrl = None
-    gcp_path = None
+    deferred = None
     if control is not None:
-        ws.add_inputs(control)
-        if detect_odm_gcps(control):  # OpenDroneMap's gcp_list.txt: read once the poses' frame is known
-            gcp_path = Path(control)
-        else:
-            ctrl = read_block_control(control)
+        ws.add_inputs(*input_paths(control))
+        ckind, cpath = resolve_control(control)
+        if ckind.name == "control":
+            ctrl = read_block_control(cpath)
+        else:  # OpenDroneMap's gcp_list.txt, Metashape markers: read once the poses' frame is known
+            deferred = control
     pose_list: list[Pose] | None = None
     sigma = gps = dop = reference = None
     crs = None
     frame = ""
     kind = ""
     angle_system = "omega-phi-kappa"
+    geo = None
+    file_tracks = None
     if poses is not None:
-        ws.add_inputs(poses)
-        if str(poses).lower().endswith(".json"):
-            kind = "opensfm"
-            rec = read_opensfm(poses)
+        ws.add_inputs(*input_paths(poses))
+        pf = read_pose_file(poses, camera=DEFAULT_CAMERA if len(cameras) <= 1 else None,
+                            boresight_rad=opts.boresight_rad, lever_arm_m=opts.lever_arm_m,
+                            crs=ctrl.crs if ctrl is not None else None)
+        kind = pf.kind.name
+        if pf.reconstruction is not None:
+            rec = pf.reconstruction
             if ctrl is not None and ctrl.crs is not None and rec.crs is not None and not same_crs(ctrl.crs, rec.crs):
                 rec = rec.to_crs(ctrl.crs)  # the control's CRS is the frame of the outputs
             crs, frame, reference = rec.crs, rec.frame, rec.reference_lonlat_h
@@ -255,33 +274,38 @@ def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera
             if camera is not None and len(cameras) == 1:  # one camera given: every image uses it
                 only = next(iter(cameras))
                 pose_list = [Pose(p.image, only, p.position, p.rotation) for p in pose_list]
+        elif pf.geo is not None:  # ODM geo.txt: positions only (GNSS observations), no rotations
+            geo, crs, frame = pf.geo, pf.crs, pf.frame
         else:
-            kind = "csv"
-            table: PoseTable = read_pose_csv(poses, camera=DEFAULT_CAMERA if len(cameras) <= 1 else None,
-                                             boresight_rad=opts.boresight_rad, lever_arm_m=opts.lever_arm_m)
-            pose_list, sigma, crs, angle_system = list(table.poses), table.sigma, table.crs, table.angle_system
-            if len(cameras) == 1:
+            pose_list, sigma, crs, angle_system, frame = list(pf.poses), pf.sigma, pf.crs, pf.angle_system, pf.frame
+            if not cameras:
+                cameras = dict(pf.cameras)
+            elif len(cameras) == 1:
                 only = next(iter(cameras))
                 pose_list = [Pose(p.image, only, p.position, p.rotation) for p in pose_list]
-        order = {p.image: k for k, p in enumerate(pose_list)}
-        pose_list = _match_pose_names(names, pose_list, poses)
-        idx = [order.get(n, order.get(Path(n).stem, 0)) for n in names]
-        if sigma is not None:
-            sigma = np.asarray(sigma)[idx]
-        if gps is not None and dop is not None:
-            gps, dop = gps[idx], dop[idx]
+            if pf.tracks is not None:
+                file_tracks = _block_tracks(pf.tracks, names)
+        if pose_list is not None:
+            order = {p.image: k for k, p in enumerate(pose_list)}
+            pose_list = _match_pose_names(names, pose_list, pf.path)
+            idx = [order.get(n, order.get(Path(n).stem, 0)) for n in names]
+            if sigma is not None:
+                sigma = np.asarray(sigma)[idx]
+            if gps is not None and dop is not None:
+                gps, dop = gps[idx], dop[idx]
     control_note = ""
-    if gcp_path is None and control is None and kind == "opensfm" and crs is not None and poses is not None:
-        gcp_path = _project_gcps(Path(poses))  # the GCPs of the reconstruction's own project
+    gcp_path = None
+    if deferred is None and control is None and kind == "opensfm" and crs is not None and poses is not None:
+        gcp_path = _project_gcps(input_paths(poses)[0])  # the GCPs of the reconstruction's own project
         if gcp_path is not None:
             ws.add_inputs(gcp_path)
-    if gcp_path is not None:
-        gcps = read_odm_gcps(gcp_path, crs=crs)
-        ctrl = gcps.control_table()
-        control_note = (f"control: the {len(gcps.ids)} GCPs of {str(gcp_path)!r} (OpenDroneMap gcp_list.txt, "
-                        f"{len(gcps.meas_id)} image measurements, in {crs_label(gcps.crs)})")
+            deferred = gcp_path
+    if deferred is not None:
+        ctrl, control_note = read_control_file(deferred, crs=crs)
     if not cameras:
-        raise InvalidInputError("no camera: give --camera CAM.json (or --poses with an OpenSfM reconstruction.json)")
+        raise InvalidInputError("no camera: give --camera (a camera JSON, orthority int_param, OpenCV calibration, "
+                                "COLMAP or Metashape cameras), or --poses with a file that holds the cameras "
+                                "(OpenSfM reconstruction.json, COLMAP model, Metashape XML)")
     if pose_list is not None:
         camera_of = tuple(p.camera for p in pose_list)
     elif len(cameras) == 1:
@@ -292,7 +316,7 @@ def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera
         if c not in cameras:
             raise InvalidInputError(f"image {n!r} names camera {c!r}, which is not given (cameras: {sorted(cameras)})")
     if ctrl is not None:
-        source = str(control if control is not None else gcp_path)
+        source = str(input_paths(control if control is not None else gcp_path)[0])
         unknown = sorted({m for m in ctrl.meas_image if m not in names and Path(m).stem not in
                           {Path(n).stem for n in names}})
         if unknown:
@@ -305,8 +329,8 @@ def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera
             crs = ctrl.crs
             if crs is not None:
                 frame = frame or f"{crs_label(crs)} (the CRS of the control file)"
-            if kind == "opensfm" and crs is not None:
-                frame = (f"{crs_label(crs)} of the control file (the reconstruction is not georeferenced: its poses "
+            if kind in ("opensfm", "colmap") and crs is not None:
+                frame = (f"{crs_label(crs)} of the control file (the {pf.kind.label} is not georeferenced: its poses "
                          "are taken as given in that CRS)")
         elif ctrl.crs is not None and ctrl.crs != crs:
             if parse_crs(ctrl.crs) != parse_crs(crs):
@@ -317,7 +341,22 @@ def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera
         frame = (f"{crs_label(crs)} (the CRS of the pose file)" if crs is not None
                  else "the frame of the given coordinates (no CRS given: not georeferenced)")
     return _Inputs(cameras, camera_of, pose_list, sigma, angle_system, crs, ctrl, frame, reference, gps, dop, kind,
-                   Path(poses).name if poses is not None else "", control_note)
+                   input_paths(poses)[0].name if poses is not None else "", control_note, geo, file_tracks)
+
+
+def _block_tracks(t: Tracks, names: tuple[str, ...]) -> Tracks | None:
+    """A pose file's tracks (a COLMAP model's) on the block's images (by name or stem; the others' rays dropped),
+    point ids prefixed ``colmap``; None when no track keeps two rays."""
+    index = {n: k for k, n in enumerate(names)}
+    stems = {Path(n).stem: k for k, n in enumerate(names)}
+    img = np.array([index.get(im, stems.get(Path(im).stem, -1)) for im in t.images], dtype=np.int64)
+    new = img[t.obs_image] if t.n_obs else np.zeros(0, dtype=np.int64)
+    keep = new >= 0
+    if not keep.any():
+        return None
+    tr = Tracks(names, tuple(f"colmap{p}" for p in t.point_ids), t.obs_point[keep], new[keep], t.obs_pixel[keep],
+                t.obs_sigma_px[keep]).subset(np.ones(int(keep.sum()), dtype=bool))
+    return tr if tr.n_points else None
 
 
 #: where an OpenSfM dataset or an OpenDroneMap project keeps its GCPs, relative to its reconstruction.json
@@ -442,35 +481,6 @@ def _gnss(inp: _Inputs, opts: BlockOptions) -> tuple[GnssObservations | None, st
                                                                          if angles is not None else ""))
 
 
-def _check_datum(inp: _Inputs, gnss: GnssObservations | None, gnss_text: str, names: tuple[str, ...],
-                 opts: BlockOptions) -> None:
-    """Refuse a block whose datum nothing fixes, before any matching (the bundle's own rule: GNSS at >= 3 images,
-    or >= 2 plan and >= 3 height control points, each measured in >= 2 images of the block)."""
-    if opts.bundle.free_network or (gnss is not None and len(gnss.images) >= 3):
-        return
-    plan = height = 0
-    ctrl = inp.control
-    if ctrl is not None:
-        block = set(names) | {Path(n).stem for n in names}
-        counts: dict[str, int] = {}
-        for pid, im in zip(ctrl.meas_id, ctrl.meas_image, strict=True):
-            if im in block:
-                counts[pid] = counts.get(pid, 0) + 1
-        for pid, kind in zip(ctrl.ids, ctrl.kind, strict=True):
-            if counts.get(pid, 0) >= 2 and pid not in opts.check_ids:
-                plan += kind in ("full", "plan")
-                height += kind in ("full", "height")
-    if plan >= 2 and height >= 3:
-        return
-    g = gnss_text if gnss is None else f"GNSS at only {len(gnss.images)} images ({gnss_text})"
-    c = ("no control (--control)" if ctrl is None else
-         f"the control gives {plan} plan and {height} height points measured in two images or more (check points "
-         "excluded)")
-    raise EstimationError(f"datum defect: nothing fixes the position, rotation and scale of the block: {g}; {c}. "
-                          "Give --gnss-sigma S with poses, control points (--control: >= 2 plan and >= 3 height "
-                          "points), or --free-network (the frame of the initial poses)")
-
-
 # --------------------------------------------------------------------------- the job
 #: the bundle's pose standard errors (omega, phi, kappa, x, y, z) in the pose CSV's order (x, y, z, omega, phi, kappa)
 POSE_CSV_STD_ORDER = [3, 4, 5, 0, 1, 2]
@@ -481,11 +491,11 @@ FULL_COVARIANCE_MAX_OBS = 200_000
 
 
 def plan_block(out_dir: StrPath, *, overwrite: bool, inputs: Sequence[StrPath | None],
-               report: bool) -> Workspace:
+               report: bool) -> PairWorkspace:
     """The workspace of a block job: every output of :data:`BLOCK_LAYOUT` and the report folder checked."""
     root = Path(out_dir)
-    ws = Workspace(root, overwrite=overwrite, inputs=[p for p in inputs if p is not None],
-                   report_dir=root / _REPORT if report else None)
+    ws = PairWorkspace(root, overwrite=overwrite, inputs=[p for p in inputs if p is not None],
+                       report_dir=root / _REPORT if report else None)
     if root.exists() and not root.is_dir():
         raise InvalidInputError(f"output {str(root)!r} exists and is not a folder")
     parent = next((p for p in root.parents if p.exists()), Path("."))
@@ -558,7 +568,10 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
     ws = plan_block(out_dir, overwrite=overwrite, inputs=[*images, cam_input, poses, control], report=opts.report)
     inp = _load_inputs(ws, names, camera, poses, control, opts)
     gnss, gnss_text = _gnss(inp, opts)
-    _check_datum(inp, gnss, gnss_text, names, opts)
+    check_datum(inp.poses is not None, inp.control, gnss, gnss_text, names, free_network=opts.bundle.free_network,
+                check_ids=opts.check_ids)
+    check_block_inputs(ws, images, names, inp.cameras, inp.camera_of, inp.poses, inp.crs, inp.control,
+                       control=control, poses_path=poses, matching=tracks is None)
     input_lines = (f"frame: {inp.frame}", f"GNSS: {gnss_text}" if gnss is not None else f"GNSS: none ({gnss_text})",
                    *((inp.control_note,) if inp.control_note else ()))
     ws.plan(*camera_paths(Path(out_dir), inp.cameras))

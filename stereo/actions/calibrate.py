@@ -1,4 +1,10 @@
-"""One call per CLI use: detect or read the target, calibrate, write the camera JSON and the report."""
+"""One call per CLI use: detect or read the target, calibrate, write the camera JSON and the report.
+
+The output plan (the camera JSON, the report files) is checked against every input before any
+detection (:class:`rectify.actions.workspace.Workspace`: an output that is an input, through a
+symlink, ``..`` or a hard link, is refused even with ``overwrite``); the camera JSON and the report
+are written in one transaction, so a full disk or SIGTERM leaves neither.
+"""
 
 from __future__ import annotations
 
@@ -9,8 +15,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from rectify.atomic import atomic_write_text, check_output
+from rectify.actions.workspace import Workspace
 from rectify.errors import CalibrationError, InvalidInputError
+from rectify.formats.common import unstamped
+from rectify.formats.opencv import opencv_calibration_text
+from rectify.geometry.camera import Camera
 from stereo.calibration.result import Calibration
 from stereo.calibration.rig import RigCalibration
 from stereo.features.targets import (
@@ -27,8 +36,8 @@ from stereo.report.calibration import write_calibration_report
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["CORNER_METHODS", "CalibrationRun", "RigRun", "calibrate_images", "calibrate_points", "calibrate_rig_images",
-           "parse_size"]
+__all__ = ["CORNER_METHODS", "OPENCV_OUTPUT_SUFFIXES", "CalibrationRun", "RigRun", "calibrate_images",
+           "calibrate_points", "calibrate_rig_images", "parse_size"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -106,18 +115,45 @@ def parse_size(text: str) -> tuple[int, int]:
     return w, h
 
 
-def _finish(cal: Calibration, output: str | Path, *, pixel_size_mm: float | None, report_dir: str | Path | None,
-            overwrite: bool, detection: ChessboardDetection | None = None) -> tuple[Path, Path | None]:
+#: suffixes of ``-o`` written as an OpenCV calibration file (``.json`` is the camera JSON)
+OPENCV_OUTPUT_SUFFIXES = (".yml", ".yaml", ".xml")
+#: files of the calibration report planned before any work (the commit checks every file it writes again)
+_REPORT_FILES = ("calibration.json", "report.json", "report.html")
+
+
+def _plan(output: str | Path, inputs: Sequence[str | Path | None], *, report_dir: str | Path | None = None,
+          overwrite: bool) -> Workspace:
+    """The workspace of a calibration: the camera JSON and the report files checked against every input
+    (resolved: symlinks, ``..``, hard links) and the overwrite policy, before any detection."""
+    ws = Workspace(overwrite=overwrite, inputs=[p for p in inputs if p is not None], report_dir=report_dir)
+    ws.check_report_dir()
+    ws.plan(output, *((Path(report_dir) / n for n in _REPORT_FILES) if report_dir is not None else ()))
+    return ws
+
+
+def _finish(ws: Workspace, cal: Calibration, output: str | Path, *, pixel_size_mm: float | None,
+            detection: ChessboardDetection | None = None) -> tuple[Path, Path | None]:
+    """Write the camera JSON and the report in one transaction: both or neither (a full disk, SIGTERM)."""
     d = cal.camera_dict(pixel_size_mm=pixel_size_mm)
-    atomic_write_text(output, json.dumps(d, indent=2) + "\n", overwrite=overwrite)
+    text = json.dumps(d, indent=2) + "\n"
+    suffix = Path(output).suffix.lower()
+    if suffix in OPENCV_OUTPUT_SUFFIXES:  # an OpenCV calibration file (.yml, .yaml, .xml): K, distortion, size
+        if d.get("point_of_symmetry_px") is not None or d.get("point_of_symmetry_mm") is not None:
+            raise InvalidInputError(f"{str(output)!r}: an OpenCV calibration file has no separate point of symmetry "
+                                    "of distortion (--symmetry); write a camera JSON (.json)")
+        text = opencv_calibration_text(Camera.from_dict(unstamped(d)), fmt=suffix)
     rep = None
-    if report_dir is not None:
-        corners = None
-        if detection is not None:
-            corners = {"method": detection.method, "found": detection.n_corners,
-                       "kept": detection.n_corners - len(detection.rejected),
-                       "rejected": [r.as_dict() for r in detection.rejected]}
-        rep = write_calibration_report(report_dir, cal, overwrite=overwrite, corners=corners)
+    with ws.transaction():
+        ws.write_text(output, text)
+        if ws.report_dir is not None:
+            corners = None
+            if detection is not None:
+                corners = {"method": detection.method, "found": detection.n_corners,
+                           "kept": detection.n_corners - len(detection.rejected),
+                           "rejected": [r.as_dict() for r in detection.rejected]}
+            with ws.report_folder() as stage:
+                page = write_calibration_report(stage, cal, overwrite=True, corners=corners)
+            rep = ws.report_dir / Path(page).relative_to(stage)
     return Path(output), rep
 
 
@@ -154,7 +190,7 @@ def calibrate_images(images: Sequence[str | Path], *, pattern: str, square: str 
     ------
     InvalidInputError, CalibrationError, RasterIOError
     """
-    check_output(output, overwrite=overwrite)
+    ws = _plan(output, list(images), report_dir=report_dir, overwrite=overwrite)
     if not images:
         raise InvalidInputError("no images given")
     cols, rows = parse_pattern(pattern)
@@ -168,8 +204,7 @@ def calibrate_images(images: Sequence[str | Path], *, pattern: str, square: str 
     if len(views) < 3:
         raise CalibrationError(f"too few views: {len(views)} images of the chessboard {cols}x{rows}, at least 3 needed")
     cal = Calibration.from_views(views, w, h, **_model_kwargs(model, pixel_size_mm))
-    out, rep = _finish(cal, output, pixel_size_mm=pixel_size_mm, report_dir=report_dir, overwrite=overwrite,
-                       detection=det)
+    out, rep = _finish(ws, cal, output, pixel_size_mm=pixel_size_mm, detection=det)
     src = (f"chessboard {cols}x{rows} (square {sq:g} {unit}) found in {len(views)} of {len(images)} images, "
            f"{w} x {h} px")
     return CalibrationRun(cal, out, tuple(missing), len(images), rep, "mm" if pixel_size_mm else "pixel", src, det)
@@ -182,11 +217,11 @@ def calibrate_points(points: str | Path, *, field: str | Path | None, size: str,
 
     See :mod:`.targets` for the CSV formats; ``size`` is ``"640x480"``.
     """
-    check_output(output, overwrite=overwrite)
+    ws = _plan(output, [points, field], report_dir=report_dir, overwrite=overwrite)
     w, h = parse_size(size)
     views = views_from_csv(points, field)
     cal = Calibration.from_views(views, w, h, **_model_kwargs(model, pixel_size_mm))
-    out, rep = _finish(cal, output, pixel_size_mm=pixel_size_mm, report_dir=report_dir, overwrite=overwrite)
+    out, rep = _finish(ws, cal, output, pixel_size_mm=pixel_size_mm)
     kind = "plane target" if all(v.is_planar for v in views) else "3D test field"
     src = f"{kind}: {sum(v.n for v in views)} measured points in {len(views)} views, {w} x {h} px"
     return CalibrationRun(cal, out, (), len(views), rep, "mm" if pixel_size_mm else "pixel", src)
@@ -208,7 +243,7 @@ def calibrate_rig_images(left: Sequence[str | Path], right: Sequence[str | Path]
     CalibrationError
         Fewer than 3 complete pairs, or as :meth:`Calibration.from_views`.
     """
-    check_output(output, overwrite=overwrite)
+    ws = _plan(output, [*left, *right], overwrite=overwrite)
     if len(left) != len(right):
         raise InvalidInputError(f"{len(left)} left images but {len(right)} right images")
     if not left:
@@ -235,8 +270,8 @@ def calibrate_rig_images(left: Sequence[str | Path], right: Sequence[str | Path]
     kw = _model_kwargs(model, pixel_size_mm)
     kw.pop("robust", None)
     rig = RigCalibration.from_views([p[0] for p in pairs], [p[1] for p in pairs], *lsize, right_size=rsize, **kw)
-    atomic_write_text(output, json.dumps(rig.to_dict(pixel_size_mm=pixel_size_mm), indent=2) + "\n",
-                      overwrite=overwrite)
+    with ws.transaction():
+        ws.write_text(output, json.dumps(rig.to_dict(pixel_size_mm=pixel_size_mm), indent=2) + "\n")
     src = (f"rig: chessboard {cols}x{rows} (square {sq:g} {unit}) in {len(pairs)} of {len(left)} pairs, "
            f"left {lsize[0]} x {lsize[1]} px, right {rsize[0]} x {rsize[1]} px")
     return RigRun(rig, Path(output), tuple(missing), len(left), src, (ldet, rdet))

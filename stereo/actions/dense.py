@@ -37,12 +37,12 @@ from rectify.actions.workspace import Workspace
 from rectify.atomic import read_json
 from rectify.errors import InvalidInputError, StereoError
 from rectify.features import MatcherConfig, match_images
-from rectify.formats.camera import read_camera
+from rectify.formats.detect import read_one_camera
 from rectify.formats.tables import read_control, read_matches
 from rectify.geometry.camera import Camera
 from rectify.geometry.crs import same_crs
 from rectify.geometry.robust import ROBUST_METHODS
-from rectify.raster.distributed import Scheduler, resolve_scheduler
+from rectify.raster.distributed import Scheduler, check_scheduler, resolve_scheduler
 from rectify.raster.georef import crs_label
 from rectify.raster.io import (
     WindowReader,
@@ -246,7 +246,7 @@ class DenseResult:
 
 def _camera_from(doc: dict[str, Any], camera: StrPath | None, what: str) -> Camera:
     if camera is not None:
-        return read_camera(camera)
+        return read_one_camera(camera)  # any camera file (camera JSON, orthority, OpenCV, COLMAP, Metashape)
     if isinstance(doc.get("camera"), dict):
         return Camera.from_dict(doc["camera"])
     raise InvalidInputError(f"{what} stores no camera; pass --camera")
@@ -478,6 +478,7 @@ def run_dense(
                     ("reference DEM", opts.reference_dem)):
         if p is not None and not Path(p).is_file():
             raise InvalidInputError(f"{name} file not found: {str(p)!r}")
+    scheduler = check_scheduler(scheduler)  # a cluster: reachable, a Dask scheduler, with a worker
     doc = read_json(orientation, "orientation file")
     if not isinstance(doc, dict):
         raise InvalidInputError(f"{str(orientation)!r} is not an orientation JSON object")
@@ -503,8 +504,10 @@ def run_dense(
         if eo_l.image == eo_r.image:
             raise InvalidInputError(f"the left and right photos are the same block image {eo_l.image!r}: pass "
                                     "--left-id/--right-id")
-        cam_l = read_camera(camera) if camera is not None else bo.cameras[eo_l.camera]
-        cam_r = read_camera(camera) if camera is not None else bo.cameras[eo_r.camera]
+        cam_l = (read_one_camera(camera, eo_l.camera, named_by="the block") if camera is not None
+                 else bo.cameras[eo_l.camera])
+        cam_r = (read_one_camera(camera, eo_r.camera, named_by="the block") if camera is not None
+                 else bo.cameras[eo_r.camera])
         crs = bo.crs
         source = (f"orientation: block images {eo_l.image!r} (left) and {eo_r.image!r} (right) of {str(orientation)!r}"
                   f" (cameras {eo_l.camera!r}, {eo_r.camera!r})")
@@ -534,9 +537,11 @@ def run_dense(
     names = ["left_normal.tif", "right_normal.tif", "disparity.tif", "confidence.tif", "dsm.tif", "dense.json"]
     if suffix:
         names.append("points" + suffix)
-    ws = Workspace(out_dir, overwrite=overwrite,
-                   inputs=[p for p in (orientation, left, right, right_orientation, camera, matches, control) if p])
-    ws.prepare(*names)
+    out = Path(out_dir)
+    ws = Workspace(out, overwrite=overwrite, report_dir=out / "report",
+                   inputs=[p for p in (orientation, left, right, right_orientation, camera, matches, control,
+                                       opts.reference_dem) if p])
+    _plan_outputs(ws, names, opts)  # every output and report file against every input; nothing is created yet
 
     def prog(stage: str) -> Callable[[int, int], None] | None:
         if progress is None:
@@ -556,12 +561,11 @@ def run_dense(
         frame = "ground"
         crs_from = "the control file"
     crs, crs_note = _ground_crs(crs, crs_from, photo_crs, frame)
-    out = Path(out_dir)
     files: list[Path] = []
     rep = out / "report"
     rep_files: list[Path] = []
-    made_rep = False
     try:
+        ws.prepare()  # the output folder, created only now (removed again on any error, SIGTERM included)
         # GDAL's block cache (default 5 % of the RAM) would hold the rasters read and written here:
         # bounded, so that memory stays that of the tiles whatever the photo size
         with gdal_cache_limit(GDAL_CACHE_MB), ws.transaction(), \
@@ -622,30 +626,42 @@ def run_dense(
             }
             with open(paths["dense.json"], "w", encoding="utf-8") as fh:
                 json.dump(json_safe(summary), fh, indent=2)
-            if not rep.exists():
-                rep.mkdir()
-                made_rep = True
-            with ws.output(rep / "disparity.png") as tmp:
-                _picture_from_raster(paths["disparity.tif"], tmp, "disparity (px)")
-            rep_files.append(rep / "disparity.png")
-            with ws.output(rep / "dsm.png") as tmp:
-                save_picture(tmp, dsm.height, title="DSM", cmap="terrain", label="height", nodata=-9999.0)
-            rep_files.append(rep / "dsm.png")
-            if comparison is not None and dz is not None:
-                with ws.output(rep / "dz_histogram.png") as tmp:
-                    save_histogram(tmp, comparison)
-                with ws.output(rep / "dz.png") as tmp:
-                    save_picture(tmp, dz, title="DSM - reference DEM", cmap="RdBu_r", label="dz", symmetric=True)
-                rep_files += [rep / "dz_histogram.png", rep / "dz.png"]
+            with ws.report_folder() as stage:  # staged: committed with the other outputs
+                _picture_from_raster(paths["disparity.tif"], stage / "disparity.png", "disparity (px)")
+                save_picture(stage / "dsm.png", dsm.height, title="DSM", cmap="terrain", label="height",
+                             nodata=-9999.0)
+                rep_files += [rep / "disparity.png", rep / "dsm.png"]
+                if comparison is not None and dz is not None:
+                    save_histogram(stage / "dz_histogram.png", comparison)
+                    save_picture(stage / "dz.png", dz, title="DSM - reference DEM", cmap="RdBu_r", label="dz",
+                                 symmetric=True)
+                    rep_files += [rep / "dz_histogram.png", rep / "dz.png"]
     except BaseException:
-        if made_rep:
-            with contextlib.suppress(OSError):
-                rep.rmdir()
         ws.discard_root()
         raise
     return DenseResult(out, tuple(files + rep_files), rect, par, stats, n_pts, dsm, cell, frame, crs, comparison,
                        control_rmse, time.perf_counter() - t0, crs_note, ground_unit(crs, "map"), n_control,
                        gsd if opts.dsm_cell is None else None, source)
+
+
+#: the files of the report folder (``report/``) of ``stereo dense``; the last two with a reference DEM
+REPORT_FILES = ("disparity.png", "dsm.png", "dz_histogram.png", "dz.png")
+
+
+def _plan_outputs(ws: Workspace, names: list[str], opts: DenseOptions) -> None:
+    """Check the output folder, its files and the report's before any work; create nothing.
+
+    Raises when the folder is a file or lies below one, when an output exists without ``overwrite``,
+    and when an output or report file is one of the inputs (resolved: symlinks, ``..``, hard links;
+    even with ``overwrite``), e.g. a ``--reference-dem`` at ``OUT/dsm.tif``.
+    """
+    root = ws.root
+    assert root is not None and ws.report_dir is not None
+    if root.exists() and not root.is_dir():
+        raise InvalidInputError(f"output {str(root)!r} exists and is not a folder")
+    report = REPORT_FILES if opts.reference_dem is not None else REPORT_FILES[:2]
+    ws.plan(*(root / n for n in names), *(ws.report_dir / n for n in report))
+    ws.check_report_dir()
 
 
 def _block_pose(bo: BlockOrientation, image_id: str | None, photo: StrPath, side: str, path: StrPath) -> Any:

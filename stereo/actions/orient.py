@@ -8,6 +8,7 @@ from pathlib import Path
 
 from rectify.errors import InvalidInputError
 from rectify.features import MatcherConfig
+from rectify.formats.detect import read_one_camera
 from rectify.geometry.camera import Camera
 from stereo.actions.common import ORIENT_MATCHER, PathArg, given, match_photos, sigma0_text
 from stereo.actions.workspace import PairWorkspace
@@ -107,8 +108,8 @@ def orient(*, camera: PathArg, output: PathArg, matches: PathArg | None = None,
                        report_dir=report_dir)
     ws.plan(output, matches_out)
     ws.check_report_dir()
-    cam = ws.load_camera(camera)
-    cam_r = ws.load_camera(camera_right) if camera_right else None
+    cam = read_one_camera(camera)  # any camera file (camera JSON, orthority, OpenCV, COLMAP, Metashape)
+    cam_r = read_one_camera(camera_right) if camera_right else None
     n_matched = rmse = None
     if images is not None:  # check the cameras against the photos before matching
         ws.check_camera_image(cam, images[0], "left")

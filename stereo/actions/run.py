@@ -11,9 +11,10 @@ import numpy as np
 
 from rectify.errors import InvalidInputError
 from rectify.features import MatcherConfig
+from rectify.formats.detect import read_one_camera
 from rectify.geometry.camera import Camera
 from rectify.geometry.points import ControlTable
-from rectify.raster.distributed import resolve_scheduler
+from rectify.raster.distributed import check_scheduler
 from stereo.actions.common import PathArg, Progress, match_photos, parallax_sigma0_mm, sigma0_text
 from stereo.actions.dense import DenseOptions, DenseResult, run_dense
 from stereo.actions.workspace import PairWorkspace
@@ -83,8 +84,8 @@ def run(left: PathArg, right: PathArg, *, camera: PathArg | Camera, out_dir: Pat
     if dense is not None and dense_dir.exists() and not overwrite:
         raise InvalidInputError(f"output {str(dense_dir)!r} exists; pass --overwrite to replace it")
     if dense is not None:  # the dense step's scheduler (or $RECTIFY_SCHEDULER) is checked before any work
-        resolve_scheduler(dense.scheduler)
-    cam = camera if isinstance(camera, Camera) else ws.load_camera(camera)
+        check_scheduler(dense.scheduler)  # a cluster: reachable, a Dask scheduler, with a worker
+    cam = camera if isinstance(camera, Camera) else read_one_camera(camera)  # any camera file
     ctrl = ws.load_control(control) if isinstance(control, (str, Path)) else control
     # the camera against both photos and the control image points, before matching
     ws.check_camera_image(cam, left, "left")

@@ -3,12 +3,19 @@
 from __future__ import annotations
 
 import glob
+from pathlib import Path
 
 import click
 
 from rectify.cli.options import echo, handle_errors, overwrite_opt, report_opt
 from rectify.errors import InvalidInputError
-from stereo.actions.calibrate import CORNER_METHODS, calibrate_images, calibrate_points, calibrate_rig_images
+from stereo.actions.calibrate import (
+    CORNER_METHODS,
+    OPENCV_OUTPUT_SUFFIXES,
+    calibrate_images,
+    calibrate_points,
+    calibrate_rig_images,
+)
 
 
 @click.command(short_help="Camera calibration: chessboard images or measured points of a plane/3D target.")
@@ -26,7 +33,9 @@ from stereo.actions.calibrate import CORNER_METHODS, calibrate_images, calibrate
               help="Chessboard corner refinement: 'symmetry' (the centre of point symmetry of each corner's "
                    "neighbourhood) or 'opencv' (cornerSubPix). Corners whose refinement fails are left out, by name.")
 @click.option("--size", default=None, help="Image size WxH in pixels (with --points), e.g. 640x480.")
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False), help="Camera JSON to write.")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
+              help="Camera JSON to write (.json), or an OpenCV calibration file (.yml, .yaml, .xml: camera_matrix, "
+                   "distortion_coefficients, image size; a rig writes JSON only).")
 @click.option("--pixel-size", "pixel_size_mm", type=float, default=None,
               help="Pixel size in mm: write a millimetre camera (one focal length).")
 @click.option("--equal-focal", is_flag=True, default=False, help="One principal distance (square pixels).")
@@ -46,6 +55,12 @@ def calibrate(images, pattern, square, points_path, field_path, right_glob, corn
     dist = () if distortion.strip().lower() == "none" else tuple(d.strip() for d in distortion.split(",") if d.strip())
     model = {"equal_focal": equal_focal, "distortion": dist, "symmetry": symmetry,
              "robust": None if robust == "none" else robust}
+    if Path(output).suffix.lower() in OPENCV_OUTPUT_SUFFIXES:  # refused before any detection
+        if symmetry:
+            raise InvalidInputError(f"-o {output!r}: an OpenCV calibration file has no separate point of symmetry "
+                                    "(--symmetry); write a camera JSON (.json)")
+        if right_glob:
+            raise InvalidInputError(f"-o {output!r}: a rig is written as a rig JSON (.json)")
     if points_path:
         if images or pattern:
             raise InvalidInputError("give either IMAGES with --chessboard or --points, not both")

@@ -26,8 +26,10 @@ _D = DenseOptions()
                    "[default: the block image named as LEFT's file, with or without extension].")
 @click.option("--right-id", default=None, help="With a block orientation: RIGHT's image id in it [default: as "
                                                "--left-id, from RIGHT's file name].")
-@click.option("--camera", type=click.Path(dir_okay=False), default=None,
-              help="Camera JSON (default: the camera stored in ORIENTATION).")
+@click.option("--camera", type=click.Path(), default=None,
+              help="Camera (default: the camera stored in ORIENTATION): camera JSON, orthority int_param, OpenCV "
+                   "calibration, COLMAP model or Metashape cameras XML, found by content (KIND:PATH: camera, "
+                   "orthority, opencv, colmap, metashape).")
 @click.option("--matches", type=click.Path(dir_okay=False), default=None,
               help="Tie points CSV (default: match the photos).")
 @click.option("--control", type=click.Path(dir_okay=False), default=None,

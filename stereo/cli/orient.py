@@ -16,10 +16,12 @@ _D = OrientOptions()
 
 @click.command(short_help="Relative orientation (coplanarity) of a stereo pair.")
 @click.argument("images", nargs=-1, type=click.Path(exists=True, dir_okay=False))
-@click.option("--camera", "camera_path", required=True, type=click.Path(exists=True, dir_okay=False),
-              help="Camera JSON (both images, or the left one with --camera-right).")
-@click.option("--camera-right", "camera_right_path", type=click.Path(exists=True, dir_okay=False), default=None,
-              help="Camera JSON of the right image when it differs.")
+@click.option("--camera", "camera_path", required=True, type=click.Path(),
+              help="Camera (both images, or the left one with --camera-right): camera JSON, orthority int_param, "
+                   "OpenCV calibration, COLMAP model or Metashape cameras XML, found by content (KIND:PATH: camera, "
+                   "orthority, opencv, colmap, metashape).")
+@click.option("--camera-right", "camera_right_path", type=click.Path(), default=None,
+              help="Camera of the right image when it differs (any camera file, as --camera).")
 @click.option("--matches", "matches_path", type=click.Path(exists=True, dir_okay=False), default=None,
               help="Matches CSV (id,col_left,row_left,col_right,row_right). Omit to match LEFT RIGHT first.")
 @click.option("-o", "--output", "output", required=True, type=click.Path(dir_okay=False),

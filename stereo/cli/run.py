@@ -18,7 +18,9 @@ _D = ModelOptions()
 @click.command(short_help="Match, orient, intersect and orient to ground: everything with a QA report.")
 @click.argument("left", type=click.Path(exists=True, dir_okay=False))
 @click.argument("right", type=click.Path(exists=True, dir_okay=False))
-@click.option("--camera", "camera_path", required=True, type=click.Path(exists=True, dir_okay=False))
+@click.option("--camera", "camera_path", required=True, type=click.Path(),
+              help="Camera: camera JSON, orthority int_param, OpenCV calibration, COLMAP model or Metashape cameras "
+                   "XML, found by content (KIND:PATH: camera, orthority, opencv, colmap, metashape).")
 @click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output folder.")
 @click.option("--control", "control_path", type=click.Path(exists=True, dir_okay=False), default=None)
 @click.option("--check", "check_ids", default="", help="Comma-separated control ids used only as checks.")

@@ -51,10 +51,16 @@ from rectify.raster.io import (
 logger = logging.getLogger(__name__)
 
 __all__ = ["EpipolarRectification", "ParallaxReport", "RectifiedView", "rectify_pair", "resample_view",
-           "tie_parallax"]
+           "tie_parallax", "check_base_parallax", "BASE_PRECISION", "MIN_PARALLAX_PX", "MIN_BASE_RATIO"]
 
 StrPath = str | Path
 
+#: a base shorter than this share of the largest coordinate of the left projection centre (at least 1) is zero
+BASE_PRECISION = 1e-9
+#: the smallest median x-parallax of the tie points in the normal case, px (:func:`check_base_parallax`)
+MIN_PARALLAX_PX = 1.0
+#: the smallest base-to-distance ratio B / Z of the tie points (:func:`check_base_parallax`)
+MIN_BASE_RATIO = 1e-3
 #: the rectified photos may cover at most this many times the original area (strongly convergent pairs)
 MAX_AREA_RATIO = 4.0
 
@@ -254,6 +260,35 @@ def normal_frame(rotation_left: ArrayLike, rotation_right: ArrayLike, base: Arra
     return np.column_stack([e1, e2, e3])
 
 
+def check_base_parallax(parallax_px: ArrayLike, focal_px: float, base: NDArray[np.float64]) -> None:
+    """Refuse a pair without a usable base, judged by its tie points' x-parallax in the normal case.
+
+    A point at distance Z (along the normal frame's z) has the parallax ``p = focal_px * B / Z``, so
+    the median parallax gives the base-to-distance ratio ``B / Z = p / focal_px``. Photos taken from
+    one point (a zero or near-zero base: a copied orientation, a mistyped position) give no parallax
+    and no heights; a tiny ratio gives heights of no precision.
+
+    Raises
+    ------
+    StereoError
+        "no base", with the median parallax (px), the ratio, the base and the limits
+        (:data:`MIN_PARALLAX_PX`, :data:`MIN_BASE_RATIO`).
+    """
+    p = np.asarray(parallax_px, dtype=np.float64).reshape(-1)
+    p = p[np.isfinite(p)]
+    if p.size == 0:
+        return
+    med = float(np.median(p))
+    ratio = med / float(focal_px)
+    nb = float(np.linalg.norm(base))
+    if med < MIN_PARALLAX_PX or ratio < MIN_BASE_RATIO:
+        raise StereoError(
+            f"no base: the tie points' parallax in the normal case is {med:.3g} px (median of {p.size}; principal "
+            f"distance {focal_px:.1f} px), a base-to-distance ratio of {ratio:.2g} (base {nb:.4g} orientation units): "
+            f"the photos were taken from (nearly) one point, which gives no heights; at least "
+            f"{MIN_PARALLAX_PX:g} px and a ratio of {MIN_BASE_RATIO:g} are needed (check the orientations' positions)")
+
+
 def _boundary(camera: Camera, n: int = 16) -> NDArray[np.float64]:
     """Points along the border of the image (pixel centres of the outer pixels)."""
     W, H = camera.width - 1, camera.height - 1
@@ -310,13 +345,20 @@ def rectify_pair(
     for name, cam in (("camera_left", camera_left), ("camera_right", camera_right)):
         if not isinstance(cam, Camera):
             raise InvalidInputError(f"`{name}` must be a rectify.geometry.camera.Camera; got {type(cam).__name__}")
-    N = normal_frame(rotation_left, rotation_right, base)
-    R1 = np.array(rotation_left, dtype=np.float64)
-    R2 = np.array(rotation_right, dtype=np.float64)
     C1 = np.array(centre_left, dtype=np.float64).reshape(-1)
     if C1.shape != (3,) or not np.isfinite(C1).all():
         raise ShapeError(f"`centre_left` must be 3 finite numbers; got {C1.tolist()}", actual_shape=C1.shape,
                          expected_shape=(3,))
+    b = np.asarray(base, dtype=np.float64).reshape(-1)
+    nb, scale = float(np.linalg.norm(b)), max(1.0, float(np.abs(C1).max()))
+    if b.shape == (3,) and np.isfinite(b).all() and nb < BASE_PRECISION * scale:
+        raise StereoError(f"no base: the base is zero{'' if nb == 0 else ' as far as the coordinates tell'} (the "
+                          f"projection centres are {nb:.3g} orientation units apart, below {BASE_PRECISION:g} of "
+                          f"{scale:.6g}): the photos were taken from one point, which gives no heights (check the "
+                          "orientations' positions)")
+    N = normal_frame(rotation_left, rotation_right, base)
+    R1 = np.array(rotation_left, dtype=np.float64)
+    R2 = np.array(rotation_right, dtype=np.float64)
     if not (isinstance(margin_px, (int, float)) and math.isfinite(margin_px) and margin_px >= 0):
         raise InvalidInputError(f"`margin_px` must be a finite number >= 0; got {margin_px!r}")
     fpx = 0.5 * (camera_left.focal_px + camera_right.focal_px)
@@ -339,6 +381,7 @@ def rectify_pair(
         ul = _normal_from_photo(camera_left.photo_from_pixel(tl), camera_left.focal_length_mm, R1, N, fpx)
         ur = _normal_from_photo(camera_right.photo_from_pixel(tr), camera_right.focal_length_mm, R2, N, fpx)
         d = ul[:, 0] - ur[:, 0]
+        check_base_parallax(d, fpx, np.asarray(base, dtype=np.float64).reshape(3))
         disparity_range = (float(np.min(d)) - margin_px, float(np.max(d)) + margin_px)
     # rows: the common range of both photos
     w0, w1 = max(wl0, wr0), min(wl1, wr1)

@@ -39,7 +39,8 @@ from numpy.typing import NDArray
 
 from rectify.atomic import read_json
 from rectify.errors import InvalidInputError
-from rectify.formats.common import FORMAT_PREFIX, cell_number, check_format, load_table, need_columns
+from rectify.formats.common import FORMAT_PREFIX, TableReader, check_format, need_columns
+from rectify.formats.tables import check_crs_comment
 from rectify.geometry.camera import Camera
 from rectify.report.builder import json_safe
 from stereo.block.types import Pose, Tracks
@@ -103,73 +104,105 @@ class BlockControlTable:
 def read_block_control(path: StrPath) -> BlockControlTable:
     """Read a block control CSV (see the module docstring).
 
+    Read as a stream into arrays (:class:`rectify.formats.common.TableReader`); a file of more than
+    :data:`rectify.formats.common.MAX_POINT_ROWS` rows is refused. When a file has several faults, the one
+    on the earliest line is named.
+
     Raises
     ------
     InvalidInputError
         Missing columns, a non-numeric value (line and value named), an id whose rows give
-        different ground coordinates, a negative or zero sigma, an id measured twice in one image.
+        different ground coordinates, a negative or zero sigma, an id measured twice in one image,
+        too many rows.
+    CRSError
+        The ``# crs=`` value is not a CRS (line named).
     RasterIOError
         The file cannot be read.
     """
-    rows, lines, crs, fields = load_table(path, "rows")
-    need_columns(fields, ("id", "image", "col", "row", "x", "y", "z"), path)
-    has_sigma = all(k in fields for k in ("sx", "sy", "sz"))
-    ground: dict[str, NDArray[np.float64]] = {}
-    sig: dict[str, NDArray[np.float64]] = {}
-    order: list[str] = []
-    m_id: list[str] = []
-    m_img: list[str] = []
-    m_px: list[tuple[float, float]] = []
-    seen: set[tuple[str, str]] = set()
-    for r, ln in zip(rows, lines, strict=False):
-        pid = r["id"]
-        if not pid:
-            raise InvalidInputError(f"{str(path)!r} line {ln}: empty id")
-        if pid not in ground:
-            order.append(pid)
-            ground[pid] = np.full(3, np.nan)
-            sig[pid] = np.full(3, np.nan)
-        g = np.array([cell_number(r, k, ln, path, allow_empty=True) for k in ("x", "y", "z")])
-        if np.isnan(g[0]) != np.isnan(g[1]):
-            raise InvalidInputError(f"{str(path)!r} line {ln}: x and y must be both given or both empty "
-                                    f"(id {pid!r})")
-        old = ground[pid]
-        both = np.isfinite(g) & np.isfinite(old)
-        if np.any(np.abs(g[both] - old[both]) > 1e-9 * np.maximum(1.0, np.abs(old[both]))):
-            raise InvalidInputError(f"{str(path)!r} line {ln}: id {pid!r} has ground coordinates "
-                                    f"{g.tolist()} here and {old.tolist()} on an earlier row")
-        ground[pid] = np.where(np.isfinite(g), g, old)
-        if has_sigma:
-            s = np.array([cell_number(r, k, ln, path, allow_empty=True) for k in ("sx", "sy", "sz")])
-            if np.any(s[np.isfinite(s)] <= 0):
-                raise InvalidInputError(f"{str(path)!r} line {ln}: standard deviations must be > 0; "
-                                        f"got {s.tolist()}")
-            sig[pid] = np.where(np.isfinite(s), s, sig[pid])
-        image = r["image"]
-        col_s, row_s = r.get("col", ""), r.get("row", "")
-        if image == "":
-            if col_s or row_s:
-                raise InvalidInputError(f"{str(path)!r} line {ln}: col/row given without an image (id {pid!r})")
-            continue
-        if (pid, image) in seen:
-            raise InvalidInputError(f"{str(path)!r} line {ln}: id {pid!r} is measured twice in image {image!r}")
-        seen.add((pid, image))
-        m_id.append(pid)
-        m_img.append(image)
-        m_px.append((cell_number(r, "col", ln, path), cell_number(r, "row", ln, path)))
-    xyz = np.array([ground[k] for k in order]).reshape(-1, 3)
+    with TableReader(path) as t:
+        fields = list(t.fields)
+        need_columns(fields, ("id", "image", "col", "row", "x", "y", "z"), path)
+        has_sigma = all(k in fields for k in ("sx", "sy", "sz"))
+        sig_cols = ("sx", "sy", "sz") if has_sigma else ()
+        cols = t.read("rows", numbers=("col", "row", "x", "y", "z", *sig_cols), texts=("id", "image"),
+                      empty=("col", "row", "x", "y", "z", *sig_cols))
+    check_crs_comment(cols)
+    label, lines, num = repr(str(path)), cols.lines, cols.numbers
+    ids, images = cols.texts["id"], cols.texts["image"]
+    n = len(cols)
+    order: dict[str, int] = {}
+    point = np.fromiter((order.setdefault(pid, len(order)) for pid in ids), dtype=np.int64, count=n)
+    g = np.column_stack([num["x"], num["y"], num["z"]])
+    s = np.column_stack([num[k] for k in sig_cols]) if has_sigma else np.full((n, 3), np.nan)
+    px = np.column_stack([num["col"], num["row"]])
+    faults: list[tuple[int, str]] = []  # (row, message): the earliest row's fault is raised
+
+    def first(mask: NDArray[np.bool_]) -> int | None:
+        k = np.flatnonzero(mask)
+        return int(k[0]) if k.size else None
+
+    if (i := first(np.array([pid == "" for pid in ids], dtype=bool))) is not None:
+        faults.append((i, f"{label} line {lines[i]}: empty id"))
+    if (i := first(np.isnan(g[:, 0]) != np.isnan(g[:, 1]))) is not None:
+        faults.append((i, f"{label} line {lines[i]}: x and y must be both given or both empty (id {ids[i]!r})"))
+    xyz = _first_given(g, point, len(order))
+    ref = xyz[point]
+    both = np.isfinite(g) & np.isfinite(ref)
+    with np.errstate(invalid="ignore"):
+        differ = both & (np.abs(g - ref) > 1e-9 * np.maximum(1.0, np.abs(ref)))
+    if (i := first(differ.any(axis=1))) is not None:
+        earlier = _first_given(g[:i], point[:i], len(order))[point[i]]
+        faults.append((i, f"{label} line {lines[i]}: id {ids[i]!r} has ground coordinates {g[i].tolist()} here and "
+                          f"{earlier.tolist()} on an earlier row"))
+    with np.errstate(invalid="ignore"):
+        if (i := first((s <= 0).any(axis=1))) is not None:
+            faults.append((i, f"{label} line {lines[i]}: standard deviations must be > 0; got {s[i].tolist()}"))
+    no_image = np.array([im == "" for im in images], dtype=bool)
+    if (i := first(no_image & np.isfinite(px).any(axis=1))) is not None:
+        faults.append((i, f"{label} line {lines[i]}: col/row given without an image (id {ids[i]!r})"))
+    if (i := first(~no_image & np.isnan(px).any(axis=1))) is not None:
+        c = "col" if np.isnan(px[i, 0]) else "row"
+        faults.append((i, f"{label} line {lines[i]}: column {c!r} is not a number: ''"))
+    meas = np.flatnonzero(~no_image)
+    image_no: dict[str, int] = {}
+    img = np.fromiter((image_no.setdefault(images[k], len(image_no)) for k in meas), dtype=np.int64, count=meas.size)
+    key = point[meas] * max(len(image_no), 1) + img
+    srt = np.argsort(key, kind="stable")
+    twice = srt[1:][key[srt][1:] == key[srt][:-1]]
+    if twice.size:
+        i = int(meas[twice.min()])
+        faults.append((i, f"{label} line {lines[i]}: id {ids[i]!r} is measured twice in image {images[i]!r}"))
+    if faults:
+        raise InvalidInputError(min(faults)[1])
+    sigma = _last_given(s, point, len(order))
     kinds = []
-    for g in xyz:
-        if np.isfinite(g).all():
+    for q in xyz:
+        if np.isfinite(q).all():
             kinds.append("full")
-        elif np.isfinite(g[2]):
+        elif np.isfinite(q[2]):
             kinds.append("height")
-        elif np.isfinite(g[:2]).all():
+        elif np.isfinite(q[:2]).all():
             kinds.append("plan")
         else:
             kinds.append("tie")
-    return BlockControlTable(tuple(order), xyz, tuple(kinds), np.array([sig[k] for k in order]).reshape(-1, 3),
-                             tuple(m_id), tuple(m_img), np.array(m_px, dtype=np.float64).reshape(-1, 2), crs)
+    return BlockControlTable(tuple(order), xyz.reshape(-1, 3), tuple(kinds), sigma.reshape(-1, 3),
+                             tuple(ids[k] for k in meas), tuple(images[k] for k in meas),
+                             px[meas].reshape(-1, 2), cols.crs)
+
+
+def _first_given(v: NDArray[np.float64], group: NDArray[np.int64], k: int) -> NDArray[np.float64]:
+    """(k, 3): for each group and column, the value of its first row where ``v`` is finite (NaN if none)."""
+    out = np.full((k, v.shape[1]), np.nan)
+    for c in range(v.shape[1]):
+        rows = np.flatnonzero(np.isfinite(v[:, c]))
+        groups, at = np.unique(group[rows], return_index=True)  # the first occurrence of each group
+        out[groups, c] = v[rows[at], c]
+    return out
+
+
+def _last_given(v: NDArray[np.float64], group: NDArray[np.int64], k: int) -> NDArray[np.float64]:
+    """(k, 3): for each group and column, the value of its last row where ``v`` is finite (NaN if none)."""
+    return _first_given(v[::-1], group[::-1], k)
 
 
 def observations_text(tracks: Tracks, residual_px: NDArray[np.float64] | None = None,

@@ -1,7 +1,8 @@
 """COLMAP text models in and out: ``cameras.txt``, ``images.txt``, ``points3D.txt``.
 
 :func:`read_colmap` reads a model folder (or one of its three files) into the project's cameras,
-poses and tie points (:class:`ColmapModel`); :func:`write_colmap` writes cameras and poses (and,
+poses and tie points (:class:`ColmapModel`; the cameras and image poses through
+:func:`rectify.formats.colmap.read_colmap_images`); :func:`write_colmap` writes cameras and poses (and,
 optionally, points with their tracks) as a model COLMAP and pycolmap open; :func:`detect_colmap`
 recognises one. Numbers are written as ``repr`` (17 significant digits), so our model -> COLMAP ->
 our model is exact to rounding.
@@ -36,46 +37,34 @@ frame
 
 from __future__ import annotations
 
-import logging
-import os
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from rectify.atomic import atomic_write_text
-from rectify.errors import CalibrationError, InvalidInputError, RasterIOError, RectifyError
-from rectify.formats.common import finite_number, read_table_text
+from rectify.errors import InvalidInputError, RasterIOError, RectifyError
+from rectify.formats.colmap import (
+    COLMAP_FILES,
+    COLMAP_MODELS,
+    ColmapImages,
+    colmap_int,
+    colmap_lines,
+    detect_colmap,
+    read_colmap_images,
+)
+from rectify.formats.common import StrPath, finite_number
 from rectify.geometry.camera import Camera
 from stereo.block.types import Pose, Tracks
 
 __all__ = ["COLMAP_FILES", "COLMAP_MODELS", "ColmapModel", "read_colmap", "colmap_texts", "write_colmap",
            "detect_colmap"]
 
-logger = logging.getLogger(__name__)
-
-StrPath = str | os.PathLike[str]
-
-#: the three files of a text model
-COLMAP_FILES = ("cameras.txt", "images.txt", "points3D.txt")
-#: COLMAP camera models read here -> their parameter names
-COLMAP_MODELS: dict[str, tuple[str, ...]] = {
-    "SIMPLE_PINHOLE": ("f", "cx", "cy"),
-    "PINHOLE": ("fx", "fy", "cx", "cy"),
-    "SIMPLE_RADIAL": ("f", "cx", "cy", "k1"),
-    "RADIAL": ("f", "cx", "cy", "k1", "k2"),
-    "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
-    "FULL_OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
-}
-_REFUSED = ("SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "OPENCV_FISHEYE", "FOV", "THIN_PRISM_FISHEYE",
-            "RAD_TAN_THIN_PRISM_FISHEYE", "SIMPLE_DIVISION", "DIVISION", "SIMPLE_FISHEYE", "FISHEYE")
 _FLIP = np.diag([1.0, -1.0, -1.0])
-_NAME_LINE = re.compile(r"#\s*rectify-stereo (camera|point) (\d+): (.+)$")
 
 
 @dataclass(frozen=True, eq=False)
@@ -111,80 +100,6 @@ class ColmapModel:
     source: Path | None = None
 
 
-# --------------------------------------------------------------------------- reading
-def _folder(path: StrPath) -> Path:
-    p = Path(path)
-    if p.is_dir():
-        if not (p / "cameras.txt").is_file() and (p / "cameras.bin").is_file():
-            raise InvalidInputError(f"{str(p)!r} holds a binary COLMAP model; convert it to text first "
-                                    "(colmap model_converter --output_type TXT)")
-        return p
-    if p.suffix == ".bin":
-        raise InvalidInputError(f"{str(p)!r} is a binary COLMAP file; convert the model to text first "
-                                "(colmap model_converter --output_type TXT)")
-    if p.name in COLMAP_FILES:
-        return p.parent
-    if not p.exists():
-        raise RasterIOError(f"file not found: {str(p)!r}")
-    raise InvalidInputError(f"{str(p)!r} is not a COLMAP text model (a folder with {list(COLMAP_FILES)})")
-
-
-def _lines(path: Path) -> tuple[list[tuple[int, str]], dict[str, dict[int, str]]]:
-    """Non-comment lines (number, text; empty lines kept) and the names kept in our comment lines."""
-    names: dict[str, dict[int, str]] = {"camera": {}, "point": {}}
-    out = []
-    for no, line in enumerate(read_table_text(path).splitlines(), start=1):
-        s = line.strip()
-        if s.startswith("#"):
-            m = _NAME_LINE.match(s)
-            if m:
-                names[m[1]][int(m[2])] = m[3].strip()
-            continue
-        out.append((no, s))
-    return out, names
-
-
-def _int(tok: str, label: str) -> int:
-    try:
-        return int(tok)
-    except ValueError:
-        raise InvalidInputError(f"{label} is not an integer: {tok!r}") from None
-
-
-def _camera(cells: list[str], path: Path, no: int) -> tuple[int, Camera]:
-    where = f"{str(path)!r} line {no}"
-    if len(cells) < 4:
-        raise InvalidInputError(f"{where}: expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]; got {' '.join(cells)!r}")
-    cid = _int(cells[0], f"{where}: CAMERA_ID")
-    model = cells[1].upper()
-    if model in _REFUSED:
-        raise InvalidInputError(f"{where}: camera model {model!r} is not in the frame camera model; supported: "
-                                f"{list(COLMAP_MODELS)}")
-    if model not in COLMAP_MODELS:
-        raise InvalidInputError(f"{where}: unknown camera model {model!r}; supported: {list(COLMAP_MODELS)}")
-    w, h = _int(cells[2], f"{where}: WIDTH"), _int(cells[3], f"{where}: HEIGHT")
-    names = COLMAP_MODELS[model]
-    if len(cells) - 4 != len(names):
-        raise InvalidInputError(f"{where}: {model} takes {len(names)} parameters {list(names)}; got {cells[4:]}")
-    v = {k: finite_number(c, f"{where}: {model} parameter {k!r}") for k, c in zip(names, cells[4:], strict=True)}
-    for k in ("k4", "k5", "k6"):
-        if v.get(k, 0.0) != 0.0:
-            raise InvalidInputError(f"{where}: FULL_OPENCV {k} = {v[k]!r}; the frame camera model has no rational "
-                                    "distortion (k4, k5, k6 must be 0)")
-    fx = v.get("f", v.get("fx", 0.0))
-    fy = v.get("f", v.get("fy", 0.0))
-    d: dict[str, Any] = {"width": w, "height": h, "principal_point_px": [v["cx"] - 0.5, v["cy"] - 0.5],
-                         "distortion": {k: v.get(k, 0.0) for k in ("k1", "k2", "k3", "p1", "p2")}}
-    if fx == fy:
-        d["focal_length_px"] = fx
-    else:
-        d.update(fx_px=fx, fy_px=fy)
-    try:
-        return cid, Camera.from_dict(d)
-    except CalibrationError as err:
-        raise CalibrationError(f"{where}: camera {cid}: {err}") from None
-
-
 def read_colmap(path: StrPath) -> ColmapModel:
     """Read a COLMAP text model (a folder with ``cameras.txt``, ``images.txt`` and optionally ``points3D.txt``).
 
@@ -197,74 +112,23 @@ def read_colmap(path: StrPath) -> ColmapModel:
         (named), an image naming an unknown camera, a track naming an unknown image or 2D point,
         a non-unit quaternion.
     """
-    folder = _folder(path)
-    cam_lines, cam_names = _lines(folder / "cameras.txt")
-    raw_cams: dict[int, Camera] = {}
-    for no, s in cam_lines:
-        if s:
-            cid, cam = _camera(s.split(), folder / "cameras.txt", no)
-            if cid in raw_cams:
-                raise InvalidInputError(f"{str(folder / 'cameras.txt')!r} line {no}: CAMERA_ID {cid} appears twice")
-            raw_cams[cid] = cam
-    cam_key = {cid: cam_names["camera"].get(cid, str(cid)) for cid in raw_cams}
-    cameras = {cam_key[cid]: cam for cid, cam in raw_cams.items()}
-    img_path = folder / "images.txt"
-    img_lines, _ = _lines(img_path)
-    poses: list[Pose] = []
-    image_index: dict[int, int] = {}
-    points2d: list[NDArray[np.float64]] = []
-    i = 0
-    while i < len(img_lines):
-        no, s = img_lines[i]
-        i += 1
-        if not s:
-            continue
-        c = s.split()
-        where = f"{str(img_path)!r} line {no}"
-        if len(c) != 10:
-            raise InvalidInputError(f"{where}: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME; got {s!r:.120}")
-        iid = _int(c[0], f"{where}: IMAGE_ID")
-        q = np.array([finite_number(x, f"{where}: {k}") for x, k in zip(c[1:5], ("QW", "QX", "QY", "QZ"),
-                                                                       strict=True)])
-        t = np.array([finite_number(x, f"{where}: {k}") for x, k in zip(c[5:8], ("TX", "TY", "TZ"), strict=True)])
-        cid = _int(c[8], f"{where}: CAMERA_ID")
-        if cid not in raw_cams:
-            raise InvalidInputError(f"{where}: image {c[9]!r} names CAMERA_ID {cid}, which cameras.txt lacks")
-        if abs(np.linalg.norm(q) - 1.0) > 1e-6:
-            raise InvalidInputError(f"{where}: quaternion {q.tolist()} is not a unit quaternion (norm "
-                                    f"{np.linalg.norm(q):.9g})")
-        if iid in image_index:
-            raise InvalidInputError(f"{where}: IMAGE_ID {iid} appears twice")
-        R_cw = Rotation.from_quat([q[1], q[2], q[3], q[0]]).as_matrix()
-        try:
-            poses.append(Pose(c[9], cam_key[cid], -R_cw.T @ t, R_cw.T @ _FLIP))
-        except RectifyError as err:
-            raise InvalidInputError(f"{where}: {err}") from None
-        image_index[iid] = len(poses) - 1
-        pts = img_lines[i][1].split() if i < len(img_lines) else []
-        i += 1
-        if len(pts) % 3:
-            raise InvalidInputError(f"{str(img_path)!r} line {img_lines[i - 1][0]}: POINTS2D must be triples "
-                                    f"(X, Y, POINT3D_ID); got {len(pts)} values")
-        xy = np.array([finite_number(x, f"{str(img_path)!r} line {img_lines[i - 1][0]}: POINTS2D value")
-                       for k, x in enumerate(pts) if k % 3 != 2], dtype=np.float64).reshape(-1, 2)
-        points2d.append(xy - 0.5)
-    names = [p.image for p in poses]
-    if len(set(names)) != len(names):
-        raise InvalidInputError(f"{str(img_path)!r}: an image NAME appears twice")
-    return _with_points(folder, cameras, tuple(poses), image_index, points2d)
+    im = read_colmap_images(path)
+    poses = tuple(Pose(n, c, p, R) for n, c, p, R in zip(im.images, im.image_camera, im.positions, im.rotations,
+                                                        strict=True))
+    return _with_points(im, poses)
 
 
-def _with_points(folder: Path, cameras: dict[str, Camera], poses: tuple[Pose, ...], image_index: dict[int, int],
-                 points2d: list[NDArray[np.float64]]) -> ColmapModel:
-    p3 = folder / "points3D.txt"
+def _with_points(im: ColmapImages, poses: tuple[Pose, ...]) -> ColmapModel:
+    p3 = im.folder / "points3D.txt"
+    image_index = {iid: k for k, iid in enumerate(im.image_ids)}
+    points2d = im.points2d
     ids: list[str] = []
     xyz, rgb, err = [], [], []
     o_pt: list[int] = []
     o_im: list[int] = []
     o_px: list[NDArray[np.float64]] = []
     if p3.is_file():
-        lines, names = _lines(p3)
+        lines, names = colmap_lines(p3)
         for no, s in lines:
             if not s:
                 continue
@@ -273,16 +137,16 @@ def _with_points(folder: Path, cameras: dict[str, Camera], poses: tuple[Pose, ..
             if len(c) < 8 or (len(c) - 8) % 2:
                 raise InvalidInputError(f"{where}: expected POINT3D_ID X Y Z R G B ERROR (IMAGE_ID POINT2D_IDX)...; "
                                         f"got {s!r:.120}")
-            pid = _int(c[0], f"{where}: POINT3D_ID")
+            pid = colmap_int(c[0], f"{where}: POINT3D_ID")
             ids.append(names["point"].get(pid, str(pid)))
             xyz.append([finite_number(x, f"{where}: {k}") for x, k in zip(c[1:4], "XYZ", strict=True)])
-            col = [_int(x, f"{where}: {k}") for x, k in zip(c[4:7], "RGB", strict=True)]
+            col = [colmap_int(x, f"{where}: {k}") for x, k in zip(c[4:7], "RGB", strict=True)]
             if any(not 0 <= v <= 255 for v in col):
                 raise InvalidInputError(f"{where}: colour {col} is not 0..255")
             rgb.append(col)
             err.append(finite_number(c[7], f"{where}: ERROR"))
             for a in range(8, len(c), 2):
-                iid, idx = _int(c[a], f"{where}: IMAGE_ID"), _int(c[a + 1], f"{where}: POINT2D_IDX")
+                iid, idx = colmap_int(c[a], f"{where}: IMAGE_ID"), colmap_int(c[a + 1], f"{where}: POINT2D_IDX")
                 if iid not in image_index:
                     raise InvalidInputError(f"{where}: track names IMAGE_ID {iid}, which images.txt lacks")
                 k = image_index[iid]
@@ -299,10 +163,10 @@ def _with_points(folder: Path, cameras: dict[str, Camera], poses: tuple[Pose, ..
                             np.array(o_im, dtype=np.int64), np.array(o_px, dtype=np.float64).reshape(-1, 2))
         except RectifyError as exc:
             raise InvalidInputError(f"{str(p3)!r}: {exc}") from None
-    return ColmapModel(cameras=cameras, poses=poses, point_ids=tuple(ids),
+    return ColmapModel(cameras=dict(im.cameras), poses=poses, point_ids=tuple(ids),
                        points=np.array(xyz, dtype=np.float64).reshape(-1, 3),
                        colors=np.array(rgb, dtype=np.uint8).reshape(-1, 3), errors=np.array(err, dtype=np.float64),
-                       tracks=tracks, source=folder)
+                       tracks=tracks, source=im.folder)
 
 
 # --------------------------------------------------------------------------- writing
@@ -449,12 +313,3 @@ def write_colmap(folder: StrPath, cameras: Mapping[str, Camera], poses: Sequence
     if not d.is_dir():
         raise RasterIOError(f"COLMAP model folder {str(d)!r} does not exist")
     return tuple(atomic_write_text(d / name, text, overwrite=overwrite) for name, text in texts.items())
-
-
-def detect_colmap(path: StrPath) -> bool:
-    """Whether ``path`` is a COLMAP text model: a folder with ``cameras.txt`` and ``images.txt``, or one of
-    its files."""
-    p = Path(path)
-    if p.is_dir():
-        return (p / "cameras.txt").is_file() and (p / "images.txt").is_file()
-    return p.name in COLMAP_FILES and (p.parent / "cameras.txt").is_file()

@@ -1,4 +1,12 @@
-"""OpenSfM / OpenDroneMap ``reconstruction.json`` in: cameras, poses and points (``docs/formats.md``).
+"""OpenSfM / OpenDroneMap ``reconstruction.json`` in, and ``reconstruction.json`` / ``camera_models.json`` out.
+
+:func:`read_opensfm` reads cameras, poses and points (``docs/formats.md``); :func:`opensfm_texts` and
+:func:`write_opensfm` write a block (cameras, poses, points) as OpenSfM reads it: the frame of a block
+with a CRS becomes OpenSfM's topocentric frame about a ``reference_lla`` (the mean projection centre,
+or the one given), through :meth:`OpenSfMReconstruction.to_crs`; a block without a CRS is written in
+its own frame without ``reference_lla``. Cameras are written as ``brown`` (``focal_x``, ``focal_y``,
+``c_x``, ``c_y`` normalised by the larger image side, k1, k2, k3, p1, p2); a camera with skew is
+refused (OpenSfM has none).
 
 Frames
 ------
@@ -26,26 +34,30 @@ convention: projection centre in the world frame and rotation photo vector (x, y
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import os
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
 
-from rectify.atomic import read_json, read_text
+from rectify.atomic import atomic_write_text, read_json, read_text
 from rectify.errors import CRSError, InvalidInputError, RectifyError
 from rectify.geometry.camera import Camera
-from rectify.geometry.crs import crs_to_string, parse_crs, same_crs, transform_xyz
+from rectify.geometry.crs import crs_to_string, is_geographic, parse_crs, same_crs, transform_xyz
 from rectify.geometry.rotation import rodrigues
 from stereo.block.types import Pose
 from stereo.formats.odm import odm_crs
 
-__all__ = ["FOCAL_ASPECT_TOLERANCE", "ODM_COORDS", "ODM_TOPOCENTRIC", "OPENSFM_PROJECTIONS", "OpenSfMReconstruction",
-           "crs_label", "odm_affine", "read_odm_coords", "read_opensfm", "topocentric_crs_wkt"]
+__all__ = ["FOCAL_ASPECT_TOLERANCE", "ODM_COORDS", "ODM_TOPOCENTRIC", "OPENSFM_PROJECTIONS", "OPENSFM_FILES",
+           "OpenSfMReconstruction", "crs_label", "odm_affine", "read_odm_coords", "read_opensfm", "topocentric_crs_wkt",
+           "opensfm_camera", "opensfm_texts", "write_opensfm"]
 
 logger = logging.getLogger(__name__)
 
@@ -464,3 +476,111 @@ def read_opensfm(path: StrPath, *, index: int | None = None) -> OpenSfMReconstru
                                  points=xyz, colors=colors, reference_lonlat_h=ref, frame=frame,
                                  gps_position=g, gps_dop=np.array(dop, dtype=float), index=index,
                                  n_reconstructions=len(doc), source=p, crs=crs, offset=offset)
+
+
+# --------------------------------------------------------------------------- writing
+#: the files :func:`write_opensfm` writes
+OPENSFM_FILES = ("reconstruction.json", "camera_models.json")
+
+
+def opensfm_camera(camera: Camera, name: str = "camera") -> dict[str, Any]:
+    """OpenSfM's ``brown`` camera of ``camera`` (focal lengths and principal point normalised by max(w, h)).
+
+    Raises
+    ------
+    InvalidInputError
+        A camera with skew (OpenSfM has none).
+    """
+    K = np.asarray(camera.K, dtype=np.float64)
+    if K[0, 1] != 0.0:
+        raise InvalidInputError(f"camera {name!r} has skew {float(K[0, 1])!r} px, which OpenSfM's cameras cannot hold")
+    w, h = camera.width, camera.height
+    s = float(max(w, h))
+    d = camera.distortion
+    return {"projection_type": "brown", "width": int(w), "height": int(h),
+            "focal_x": float(K[0, 0]) / s, "focal_y": float(K[1, 1]) / s,
+            "c_x": (float(K[0, 2]) - (w - 1) / 2.0) / s, "c_y": (float(K[1, 2]) - (h - 1) / 2.0) / s,
+            "k1": float(d["k1"]), "k2": float(d["k2"]), "k3": float(d["k3"]), "p1": float(d["p1"]),
+            "p2": float(d["p2"])}
+
+
+def opensfm_texts(cameras: Mapping[str, Camera], poses: Sequence[Pose], *, crs: str | None = None,
+                  points: ArrayLike | None = None, point_ids: Sequence[str] | None = None,
+                  colors: ArrayLike | None = None, reference_lonlat_h: ArrayLike | None = None) -> dict[str, str]:
+    """``reconstruction.json`` and ``camera_models.json`` of a block (name -> text), as OpenSfM reads them.
+
+    Parameters
+    ----------
+    cameras : dict of str -> Camera
+    poses : sequence of Pose
+        In the frame of ``crs``.
+    crs : str, optional
+        The block's CRS: the poses and points are converted into OpenSfM's topocentric frame about
+        ``reference_lonlat_h`` (default: the mean projection centre, on the ellipsoid's normal) and
+        ``reference_lla`` is written. None: written in their own frame, no ``reference_lla``.
+    points : (P, 3) array_like, optional
+    point_ids : sequence of str, optional
+        Default ``1 .. P``.
+    colors : (P, 3) array_like of 0..255, optional
+    reference_lonlat_h : (3,) array_like, optional
+
+    Raises
+    ------
+    InvalidInputError
+        A camera with skew, a pose naming an unknown camera, points and ids of different lengths.
+    CRSError
+        A CRS PROJ cannot convert.
+    """
+    for p in poses:
+        if p.camera not in cameras:
+            raise InvalidInputError(f"image {p.image!r} names camera {p.camera!r}, which is not given "
+                                    f"(cameras: {sorted(cameras)})")
+    xyz = np.zeros((0, 3)) if points is None else np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    ids = [str(i + 1) for i in range(len(xyz))] if point_ids is None else [str(i) for i in point_ids]
+    if len(ids) != len(xyz):
+        raise InvalidInputError(f"{len(ids)} point ids for {len(xyz)} points")
+    rgb = None if colors is None else np.clip(np.rint(np.asarray(colors, dtype=np.float64)), 0, 255).reshape(-1, 3)
+    if rgb is not None and len(rgb) != len(xyz):
+        raise InvalidInputError(f"{len(rgb)} colours for {len(xyz)} points")
+    rec = OpenSfMReconstruction(cameras=dict(cameras), poses=tuple(poses), point_ids=tuple(ids), points=xyz,
+                                colors=None, reference_lonlat_h=None, frame="the block's", gps_position=np.full(
+                                    (len(poses), 3), np.nan), gps_dop=np.full(len(poses), np.nan), crs=crs)
+    ref = None
+    if crs is not None:
+        if reference_lonlat_h is not None:
+            ref = np.asarray(reference_lonlat_h, dtype=np.float64).reshape(3)
+        else:
+            if is_geographic(crs):
+                raise CRSError(f"the block's CRS must be projected to write OpenSfM's topocentric frame; got {crs!r}")
+            C = np.array([p.position for p in poses]).reshape(-1, 3)
+            ref = transform_xyz(crs, "EPSG:4979", C.mean(axis=0, keepdims=True))[0]
+        rec = rec.to_crs(topocentric_crs_wkt(ref))
+    flip = np.diag([1.0, -1.0, -1.0])
+    shots = {}
+    for q in rec.poses:
+        R_cw = flip @ q.rotation.T
+        shots[q.image] = {"camera": q.camera, "rotation": [float(v) for v in Rotation.from_matrix(R_cw).as_rotvec()],
+                          "translation": [float(v) for v in -R_cw @ q.position]}
+    pts = {}
+    for k, pid in enumerate(rec.point_ids):
+        pt: dict[str, Any] = {"coordinates": [float(v) for v in rec.points[k]]}
+        if rgb is not None:
+            pt["color"] = [float(v) for v in rgb[k]]
+        pts[pid] = pt
+    cams = {str(k): opensfm_camera(c, str(k)) for k, c in cameras.items()}
+    body: dict[str, Any] = {"cameras": cams, "shots": shots, "points": pts}
+    if ref is not None:
+        body["reference_lla"] = {"latitude": float(ref[1]), "longitude": float(ref[0]), "altitude": float(ref[2])}
+    return {"reconstruction.json": json.dumps([body], indent=1) + "\n",
+            "camera_models.json": json.dumps(cams, indent=1) + "\n"}
+
+
+def write_opensfm(folder: StrPath, cameras: Mapping[str, Camera], poses: Sequence[Pose], *, crs: str | None = None,
+                  points: ArrayLike | None = None, point_ids: Sequence[str] | None = None,
+                  colors: ArrayLike | None = None, overwrite: bool = False) -> tuple[Path, ...]:
+    """Write :func:`opensfm_texts` into the existing ``folder`` (each file atomically); return the paths."""
+    d = Path(folder)
+    if not d.is_dir():
+        raise InvalidInputError(f"OpenSfM folder {str(d)!r} does not exist")
+    texts = opensfm_texts(cameras, poses, crs=crs, points=points, point_ids=point_ids, colors=colors)
+    return tuple(atomic_write_text(d / n, t, overwrite=overwrite) for n, t in texts.items())

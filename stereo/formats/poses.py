@@ -21,7 +21,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from rectify.atomic import atomic_write_text
 from rectify.errors import CRSError, InvalidInputError, ShapeError
-from rectify.formats.common import cell_number, need_columns, no_duplicates, read_table_text, table_rows
+from rectify.formats.common import TableReader, need_columns, no_duplicates
 from rectify.geometry.crs import parse_crs
 from rectify.geometry.rotation import angles_from_matrix, matrix_from_angles
 from stereo.block.navigation import body_rotation, boresight_matrix, check_convention, lever_arm
@@ -100,22 +100,15 @@ class PoseTable:
         return tuple(p.image for p in self.poses)
 
 
-def _comment_settings(text: str, path: StrPath) -> tuple[str, str | None, int | None]:
-    """The ``# angles=`` unit (default ``deg``), the ``# crs=`` value and its line."""
+def _comment_settings(settings: tuple[tuple[int, str, str], ...], path: StrPath
+                      ) -> tuple[str, str | None, int | None]:
+    """The ``# angles=`` unit (default ``deg``), the ``# crs=`` value and its line, from a table's
+    ``# key=value`` comment lines (:attr:`rectify.formats.common.Columns.settings`)."""
     unit: str | None = None
     unit_line: int | None = None
     crs: str | None = None
     crs_line: int | None = None
-    for no, line in enumerate(text.splitlines(), start=1):
-        s = line.strip()
-        if not s.startswith("#"):
-            continue
-        body = s.lstrip("#").strip()
-        key, sep, value = body.partition("=")
-        key = key.strip().lower()
-        if not sep:
-            continue
-        value = value.strip()
+    for no, key, value in settings:
         if key == "angles":
             u = value.lower()
             if u not in ANGLE_UNITS:
@@ -175,58 +168,58 @@ def read_pose_csv(path: StrPath, *, camera: str | None = None, boresight_rad: Ar
     if camera is not None and (not isinstance(camera, str) or not camera):
         raise InvalidInputError(f"camera must be a non-empty camera id; got {camera!r}")
     default_camera = camera or DEFAULT_CAMERA_ID
-    text = read_table_text(p)
-    unit, crs, crs_line = _comment_settings(text, p)
+    with TableReader(p) as t:
+        fields = list(t.fields)
+        has_opk = any(f in fields for f in _OPK)
+        has_nav = any(f in fields for f in _NAV)
+        if has_opk and has_nav:
+            raise InvalidInputError(f"{str(p)!r}: give either omega,phi,kappa or heading,pitch,roll, not both; "
+                                    f"header is {fields}")
+        nav = has_nav
+        angle_cols = _NAV if nav else _OPK
+        angle_sigma_cols = _NAV_SIGMA if nav else _OPK_SIGMA
+        need_columns(fields, ("image", *_POS, *angle_cols), p)
+        allowed = {"image", "camera", *_POS, *angle_cols, *_POS_SIGMA, *angle_sigma_cols}
+        unknown = [f for f in fields if f not in allowed]
+        if unknown:
+            raise InvalidInputError(f"{str(p)!r}: unknown column(s) {unknown}; allowed are {sorted(allowed)}")
+        if boresight_rad is not None and not nav:
+            raise InvalidInputError(f"{str(p)!r}: boresight_rad applies to heading,pitch,roll files only; this "
+                                    "file has omega,phi,kappa (the camera's own angles)")
+        sigma_cols = (*_POS_SIGMA, *angle_sigma_cols)
+        present_sigma = tuple(k for k in sigma_cols if k in fields)
+        cols = t.read("pose rows", numbers=(*_POS, *angle_cols, *present_sigma), texts=("image", "camera"),
+                      empty=present_sigma)
+    unit, crs, crs_line = _comment_settings(cols.settings, p)
     if crs is not None:
         try:
             parse_crs(crs)
         except CRSError as err:
             raise CRSError(f"{str(p)!r} line {crs_line}: {err}") from err
-    rows, lines, _ = table_rows(text, p)
-    if not rows:
-        raise InvalidInputError(f"{str(p)!r} has a header but no pose rows")
-    fields = list(rows[0].keys())
-    has_opk = any(f in fields for f in _OPK)
-    has_nav = any(f in fields for f in _NAV)
-    if has_opk and has_nav:
-        raise InvalidInputError(f"{str(p)!r}: give either omega,phi,kappa or heading,pitch,roll, not both; "
-                                f"header is {fields}")
-    nav = has_nav
-    angle_cols = _NAV if nav else _OPK
-    angle_sigma_cols = _NAV_SIGMA if nav else _OPK_SIGMA
-    need_columns(fields, ("image", *_POS, *angle_cols), p)
-    allowed = {"image", "camera", *_POS, *angle_cols, *_POS_SIGMA, *angle_sigma_cols}
-    unknown = [f for f in fields if f not in allowed]
-    if unknown:
-        raise InvalidInputError(f"{str(p)!r}: unknown column(s) {unknown}; allowed are {sorted(allowed)}")
-    if boresight_rad is not None and not nav:
-        raise InvalidInputError(f"{str(p)!r}: boresight_rad applies to heading,pitch,roll files only; this file "
-                                "has omega,phi,kappa (the camera's own angles)")
     lever = lever_arm(lever_arm_m)
-    sigma_cols = (*_POS_SIGMA, *angle_sigma_cols)
-    has_sigma = any(f in fields for f in sigma_cols)
+    has_sigma = bool(present_sigma)
     scale = math.pi / 180.0 if unit == "deg" else 1.0
-
-    images: list[str] = []
-    cams: list[str] = []
-    pos = np.empty((len(rows), 3))
-    ang = np.empty((len(rows), 3))
-    sig = np.full((len(rows), 6), np.nan)
-    for i, (r, ln) in enumerate(zip(rows, lines, strict=False)):
-        name = r.get("image", "")
-        if not name:
-            raise InvalidInputError(f"{str(p)!r} line {ln}: empty image name")
-        images.append(name)
-        cams.append(r.get("camera", "") or default_camera)
-        pos[i] = [cell_number(r, k, ln, p) for k in _POS]
-        ang[i] = [cell_number(r, k, ln, p) * scale for k in angle_cols]
-        for j, k in enumerate(sigma_cols):
-            if k in fields:
-                v = cell_number(r, k, ln, p, allow_empty=True)
-                if v < 0:
-                    raise InvalidInputError(f"{str(p)!r} line {ln}: standard deviation {k!r} must be >= 0; "
-                                            f"got {r[k]!r}")
-                sig[i, j] = v * (scale if j >= 3 else 1.0)
+    lines, num = cols.lines, cols.numbers
+    images = cols.texts["image"]
+    n = len(cols)
+    empty = next((i for i, name in enumerate(images) if not name), None)
+    if empty is not None:
+        raise InvalidInputError(f"{str(p)!r} line {lines[empty]}: empty image name")
+    cams = [c or default_camera for c in cols.texts["camera"]]
+    pos = np.column_stack([num[k] for k in _POS])
+    ang = np.column_stack([num[k] for k in angle_cols]) * scale
+    sig = np.full((n, 6), np.nan)
+    for j, k in enumerate(sigma_cols):
+        if k not in num:
+            continue
+        v = num[k]
+        with np.errstate(invalid="ignore"):
+            neg = np.flatnonzero(v < 0)
+        if neg.size:
+            i = int(neg[0])
+            raise InvalidInputError(f"{str(p)!r} line {lines[i]}: standard deviation {k!r} must be >= 0; "
+                                    f"got {str(float(v[i]))!r}")
+        sig[:, j] = v * (scale if j >= 3 else 1.0)
     no_duplicates(images, p, "image name(s)")
 
     if nav:
@@ -246,7 +239,7 @@ def read_pose_csv(path: StrPath, *, camera: str | None = None, boresight_rad: Ar
         Rb = R
     if lever is not None:
         pos = pos - Rb @ lever
-    poses = tuple(Pose(images[i], cams[i], pos[i], R[i]) for i in range(len(rows)))
+    poses = tuple(Pose(images[i], cams[i], pos[i], R[i]) for i in range(n))
     return PoseTable(poses, crs, sig if has_sigma else None, unit, "navigation" if nav else "omega-phi-kappa", p)
 
 

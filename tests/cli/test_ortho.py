@@ -94,8 +94,8 @@ def test_ortho_rpc_cli_with_gcps(rpc_scene):
     # with an RPC file instead of the tags
     (d / "sat_RPC.TXT").write_text(RPC.from_dict(rasterio.open(d / "sat.tif").rpcs.to_dict()).to_rpc_txt())
     r = CliRunner().invoke(cli, ["ortho", str(d / "sat.tif"), "--dem", str(d / "dem.tif"), "--rpc",
-                                 str(d / "sat_RPC.TXT"), "-o", str(d / "o2.tif"), "--resolution", "2",
-                                 "--dst-crs", "EPSG:4326"])
+                                 str(d / "sat_RPC.TXT"), "-o", str(d / "o2.tif"), "--resolution", "0.00002",
+                                 "--dst-crs", "EPSG:4326"])  # degrees: about 2 m (2 degrees: one empty cell)
     assert r.exit_code == 0, r.output
     with rasterio.open(d / "o2.tif") as ds:
         assert ds.crs.to_epsg() == 4326

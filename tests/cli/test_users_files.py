@@ -221,7 +221,8 @@ def test_gcp_files_rectify_end_to_end(tmp_path, kind):
     assert r.exit_code == 0, r.output
     assert "7 fit points" in r.output
     _check_output(out)
-    assert {p.name: _hash(p) for p in tmp_path.iterdir() if p != out} == before
+    assert (tmp_path / "out.stac.json").is_file()  # the STAC Item beside the output (issue 29)
+    assert {p.name: _hash(p) for p in tmp_path.iterdir() if p.name not in ("out.tif", "out.stac.json")} == before
     r = CliRunner().invoke(cli, ["fit", str(g), "-o", str(tmp_path / "t.json"), "--method", "affine"])
     assert r.exit_code == 0, r.output
 

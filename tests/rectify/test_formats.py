@@ -17,6 +17,7 @@ from rectify.formats.report import REPORT_VERSION, read_report, read_residuals, 
 from rectify.formats.tables import read_control, read_matches, write_control, write_matches
 from rectify.formats.transform import TRANSFORM_VERSION, read_transform, write_transform
 from rectify.geometry.camera import Camera
+from rectify.geometry.crs import parse_crs
 from rectify.geometry.points import ControlTable, GcpTable, Matches
 from rectify.geometry.residuals import ResidualTable
 from rectify.geometry.transforms import METHODS, fit_gcps
@@ -65,8 +66,9 @@ def test_matches_round_trip(tmp_path):
 
 def test_control_round_trip(tmp_path):
     xyz = np.array([[1.5, 2.25, 3.0], [np.nan] * 3, [-4.0, 5.0, 6.125]])
+    wkt = parse_crs("EPSG:32633").to_wkt()  # a WKT label (quotes, commas) reads back as written; it must be a CRS
     c = ControlTable(("a", "b", "c"), np.array([[1.0, 2], [3, 4], [5, 6]]), np.array([[7.0, 8], [9, 10], [11, 12]]),
-                     xyz, 'PROJCRS["x"]')
+                     xyz, wkt)
     back = read_control(write_control(tmp_path / "c.csv", c))
     assert back.ids == c.ids and back.crs == c.crs
     assert_array_equal(back.left, c.left)
