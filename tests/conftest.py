@@ -9,10 +9,12 @@ from pathlib import Path
 import matplotlib
 import pytest
 
+from tests.support.shared_data import shared_data_dir
+
 matplotlib.use("Agg")
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED_DATA = Path(os.environ.get("RECTIFY_SHARED_DATA", ROOT.parent / "shared" / "data"))
+SHARED_DATA = shared_data_dir()  # $RECTIFY_SHARED_DATA, else ../shared/data
 
 
 @pytest.fixture(scope="session")

@@ -24,7 +24,7 @@ from rectify.formats.stac import RasterGrid, StacAsset, StacProduct, stac_item_t
 from rectify.raster.io import raster_info
 
 __all__ = ["STAC_SUFFIX", "FOLDER_ITEM", "stac_path", "staged", "raster_grid", "raster_roles", "input_files",
-           "options_of", "residual_accuracy", "write_stac"]
+           "options_of", "residual_accuracy", "stac_text", "write_stac"]
 
 #: the suffix of the Item beside a product file
 STAC_SUFFIX = ".stac.json"
@@ -103,6 +103,17 @@ def options_of(*objs: Any, **extra: Any) -> dict[str, Any]:
     return out
 
 
+def stac_text(item: StrPath, *, item_id: str, assets: Mapping[str, StacAsset], grid: RasterGrid | None = None,
+              footprint: tuple[str, tuple[float, float, float, float]] | None = None,
+              accuracy: Mapping[str, float] | None = None, command: str, options: Mapping[str, Any] | None = None,
+              inputs: Sequence[StrPath | None] = ()) -> str:
+    """The text of the Item :func:`write_stac` stages (for a job that stages the Item's file itself)."""
+    product = StacProduct(item_id=item_id, assets=dict(assets), grid=grid, footprint=footprint,
+                          accuracy=dict(accuracy or {}), command=command, options=dict(options or {}),
+                          inputs=input_files(*inputs), unlocated=grid is None and footprint is None)
+    return stac_item_text(product, item)
+
+
 def write_stac(ws: Workspace, item: StrPath, *, item_id: str, assets: Mapping[str, StacAsset],
                grid: RasterGrid | None = None, footprint: tuple[str, tuple[float, float, float, float]] | None = None,
                accuracy: Mapping[str, float] | None = None, command: str, options: Mapping[str, Any] | None = None,
@@ -132,7 +143,5 @@ def write_stac(ws: Workspace, item: StrPath, *, item_id: str, assets: Mapping[st
         An unreadable file, no asset or extent, a CRS PROJ cannot place in WGS 84: the transaction
         then writes nothing.
     """
-    product = StacProduct(item_id=item_id, assets=dict(assets), grid=grid, footprint=footprint,
-                          accuracy=dict(accuracy or {}), command=command, options=dict(options or {}),
-                          inputs=input_files(*inputs), unlocated=grid is None and footprint is None)
-    return ws.write_text(item, stac_item_text(product, item))
+    return ws.write_text(item, stac_text(item, item_id=item_id, assets=assets, grid=grid, footprint=footprint,
+                                         accuracy=accuracy, command=command, options=options, inputs=inputs))

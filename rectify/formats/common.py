@@ -19,11 +19,14 @@ and the column: :class:`~rectify.errors.RasterIOError` for unreadable files,
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import gc
 import io
 import itertools
 import math
 import os
+import re
 from collections import Counter
 from collections.abc import Collection, Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -34,12 +37,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from rectify.errors import InvalidInputError, RasterIOError
+from rectify.errors import InvalidInputError, RasterIOError, RectifyError
 
 __all__ = [
     "FORMAT_PREFIX", "StrPath", "stamp", "check_format", "unstamped", "check_numbers",
     "read_table_text", "table_rows", "load_table", "need_columns", "cell_number", "finite_number", "no_duplicates",
-    "TableReader", "Columns", "MAX_POINT_ROWS", "MAX_MATCH_ROWS",
+    "TableReader", "Columns", "MAX_POINT_ROWS", "MAX_MATCH_ROWS", "malformed",
 ]
 
 #: Prefix of every ``format`` value written by this project.
@@ -106,6 +109,8 @@ def check_format(doc: Any, name: str, version: int, path: StrPath | None = None,
                                 f"got {type(doc).__name__})")
     legacy = dict(legacy or {})
     fmt = doc.get("format")
+    if fmt is not None and not isinstance(fmt, str):
+        raise InvalidInputError(f"{label} has format {fmt!r}; expected {FORMAT_PREFIX + name!r}")
     if fmt is None:
         found = doc.get(version_key, doc.get("version", 0))
     elif fmt == FORMAT_PREFIX + name or fmt in legacy:
@@ -117,6 +122,26 @@ def check_format(doc: Any, name: str, version: int, path: StrPath | None = None,
     if found > version:
         raise InvalidInputError(f"{label} has version {found}, newer than this release reads (<= {version})")
     return found
+
+
+@contextlib.contextmanager
+def malformed(label: str) -> Iterator[None]:
+    """Turn the built-in errors a reader meets in a malformed document into one line naming ``label``.
+
+    Inside the block, a ``TypeError``, ``ValueError``, ``KeyError``, ``IndexError``, ``AttributeError`` or
+    ``OverflowError`` (a string where a number belongs, ``int(None)``, a missing key, ``int(inf)``)
+    becomes :class:`~rectify.errors.InvalidInputError` "<label> is malformed: <reason>"; the project's
+    own errors pass unchanged. The readers check what they can by name first; this is the net under them.
+    """
+    try:
+        yield
+    except RectifyError:
+        raise
+    except KeyError as err:
+        raise InvalidInputError(f"{label} is malformed: missing key {err}") from err
+    except (TypeError, ValueError, IndexError, AttributeError, OverflowError) as err:
+        reason = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise InvalidInputError(f"{label} is malformed: {reason}") from err
 
 
 def unstamped(doc: Mapping[str, Any]) -> dict[str, Any]:
@@ -266,6 +291,12 @@ class Columns:
         return int(self.lines.size)
 
 
+#: a line of a block that is not a data line: a comment or a blank line
+_SKIP_LINE = re.compile(r"^[^\S\n]*(?:#|\n)", re.MULTILINE)
+#: characters of text read at a time by :class:`TableReader`
+_BLOCK_CHARS = 1 << 20
+
+
 class TableReader:
     """A CSV table read as a stream: the header first, then the columns asked for.
 
@@ -276,8 +307,9 @@ class TableReader:
     anywhere is dropped; quoted cells may hold commas and line breaks.
 
     Memory: the numbers of a row take 8 bytes a column, its text cells a Python string each; the text of
-    the file is never held whole. A table of more rows than ``max_rows`` is refused as soon as the reader
-    passes the limit, so that a huge file costs neither the memory nor the time of reading it.
+    the file is never held whole (it is read in blocks of about a mebibyte). A table of more rows than
+    ``max_rows`` is refused as soon as the reader passes the limit, so that a huge file costs neither the
+    memory nor the time of reading it.
 
     Raises
     ------
@@ -292,8 +324,12 @@ class TableReader:
         self._label = repr(str(self.path))
         self._crs: str | None = None
         self._settings: list[tuple[int, str, str]] = []
-        self._nos: list[int] = []  # file lines of the data lines handed to the CSV parser since the last chunk
-        self._no = 0
+        self._no = 0  # file lines read
+        self._data = 0  # data lines handed to the CSV parser
+        # data line -> file line: data line d is file line seg_line[j] + d - seg_data[j] (j: last seg_data <= d)
+        self._seg_data: list[int] = []
+        self._seg_line: list[int] = []
+        self._parsed = 0  # data lines the CSV parser consumed before the current chunk
         try:
             self._fh = open(self.path, encoding="utf-8-sig", newline=None)  # noqa: SIM115 (closed by close())
         except FileNotFoundError as err:
@@ -305,7 +341,7 @@ class TableReader:
             header = self._rows(1)
             if not header:
                 raise InvalidInputError(f"{self._label} has no header and no rows")
-            self._nos.clear()
+            self._parsed = self._reader.line_num
             self.fields: tuple[str, ...] = tuple(f.strip().lower() if lower else f.strip() for f in header[0])
         except BaseException:
             self.close()
@@ -321,28 +357,41 @@ class TableReader:
         self._fh.close()
 
     def _data_lines(self) -> Iterator[str]:
-        """The file's lines for the CSV parser: comments noted and dropped, blank lines dropped."""
-        nos = self._nos
+        """The file's data lines for the CSV parser: comments noted and dropped, blank lines dropped."""
         try:
-            for line in self._fh:
-                self._no += 1
-                if "\ufeff" in line:
+            while True:
+                block = self._fh.readlines(_BLOCK_CHARS)
+                if not block:
+                    return
+                text = "".join(block)
+                if "\ufeff" not in text and _SKIP_LINE.search(text) is None and block[-1].strip():
+                    self._segment(self._no + 1)  # every line of the block is a data line
+                    self._no += len(block)
+                    self._data += len(block)
+                    yield from block
+                    continue
+                for line in block:
+                    self._no += 1
                     line = line.replace("\ufeff", "")
-                c0 = line[:1]
-                if c0 == "#" or c0.isspace() or not c0:
                     s = line.strip()
                     if not s:
                         continue
                     if s[0] == "#":
                         self._comment(s.lstrip("#").strip())
                         continue
-                nos.append(self._no)
-                yield line
+                    if not self._seg_data or self._seg_line[-1] + self._data - self._seg_data[-1] != self._no:
+                        self._segment(self._no)
+                    self._data += 1
+                    yield line
         except UnicodeDecodeError as err:
-            raise RasterIOError(f"cannot read {self._label}: line {self._no + 1} is not UTF-8 text "
+            raise RasterIOError(f"cannot read {self._label}: not UTF-8 text after line {self._no} "
                                 f"({err.reason})") from None
         except OSError as err:
             raise RasterIOError(f"cannot read {self._label}: {err.strerror or err}") from err
+
+    def _segment(self, line: int) -> None:
+        self._seg_data.append(self._data)
+        self._seg_line.append(line)
 
     def _comment(self, body: str) -> None:
         found, value = _crs_comment(body)
@@ -367,7 +416,8 @@ class TableReader:
         what : str
             The rows' name in errors (``"GCP rows"``).
         numbers, texts : sequence of str
-            Column names; a column missing from the header reads as empty cells.
+            Column names; a column missing from the header, or a cell missing from a short row, reads
+            as an empty cell.
         empty : collection of str
             Numeric columns whose empty cells read as NaN (elsewhere an empty cell is an error).
         max_rows : int
@@ -379,6 +429,16 @@ class TableReader:
             A header but no rows, more than ``max_rows`` rows, a cell of ``numbers`` that is not a finite
             number (file, line, column and value named).
         """
+        collecting = gc.isenabled()
+        gc.disable()  # rows make no reference cycles: the collector would only walk them again and again
+        try:
+            return self._read(what, numbers, texts, empty, max_rows)
+        finally:
+            if collecting:
+                gc.enable()
+
+    def _read(self, what: str, numbers: Sequence[str], texts: Sequence[str], empty: Collection[str],
+              max_rows: int) -> Columns:
         index = {f: i for i, f in enumerate(self.fields)}  # a repeated name: the last column (as csv.DictReader)
         nf = len(self.fields)
         num_parts: dict[str, list[NDArray[np.float64]]] = {k: [] for k in numbers}
@@ -394,18 +454,19 @@ class TableReader:
             if n > max_rows:
                 raise InvalidInputError(f"{self._label} has more than {max_rows} {what} (line {int(lines[-1])}); "
                                         f"{max_rows} is the most this table may have")
-            for r in rows:
-                if len(r) < nf:
-                    r.extend([""] * (nf - len(r)))
+            if max(map(len, rows)) > nf:  # cells past the header are ignored (as csv.DictReader)
+                rows = [r[:nf] for r in rows]
+            columns = list(itertools.zip_longest(*rows, fillvalue=""))  # short rows padded with empty cells
+            blank = ("",) * len(rows)
             for k, parts in num_parts.items():
                 i = index.get(k)
-                col = [r[i] for r in rows] if i is not None else [""] * len(rows)
-                parts.append(self._numbers(col, k, lines, allow_empty=k in empty))
+                parts.append(self._numbers(columns[i] if i is not None and i < len(columns) else blank, k, lines,
+                                           allow_empty=k in empty))
             for k, cells in text_cols.items():
                 i = index.get(k)
-                cells.extend([r[i].strip() for r in rows] if i is not None else [""] * len(rows))
+                cells.extend([c.strip() for c in columns[i]] if i is not None and i < len(columns) else blank)
             line_parts.append(lines)
-            del rows
+            del rows, columns
         if n == 0:
             raise InvalidInputError(f"{self._label} has a header but no {what}")
         arrays = {}
@@ -416,19 +477,21 @@ class TableReader:
 
     def _row_lines(self, rows: list[list[str]]) -> NDArray[np.int64]:
         """The file line where each row of a chunk starts (a quoted cell may hold line breaks)."""
-        nos = self._nos
-        if len(nos) == len(rows):
-            out = np.array(nos, dtype=np.int64)
-        else:
-            starts, k = [], 0
-            for r in rows:
-                starts.append(nos[min(k, len(nos) - 1)])
-                k += 1 + sum(c.count("\n") for c in r)
-            out = np.array(starts, dtype=np.int64)
-        nos.clear()
+        start, stop = self._parsed, self._reader.line_num
+        self._parsed = stop
+        if stop - start == len(rows):
+            first = np.arange(start, stop, dtype=np.int64)
+        else:  # a row spans one data line more for each line break in its cells
+            spans = np.fromiter((1 + sum(c.count("\n") for c in r) for r in rows), dtype=np.int64, count=len(rows))
+            first = start + np.cumsum(spans) - spans
+        seg_data = np.array(self._seg_data, dtype=np.int64)
+        j = np.searchsorted(seg_data, first, side="right") - 1
+        out = np.array(self._seg_line, dtype=np.int64)[j] + first - seg_data[j]
+        keep = max(int(j[-1]) if j.size else 0, 0)  # segments before the last one used are done with
+        del self._seg_data[:keep], self._seg_line[:keep]
         return out
 
-    def _numbers(self, col: list[str], key: str, lines: NDArray[np.int64], *, allow_empty: bool
+    def _numbers(self, col: Sequence[str], key: str, lines: NDArray[np.int64], *, allow_empty: bool
                  ) -> NDArray[np.float64]:
         try:
             v = np.array(col, dtype=np.float64)

@@ -368,8 +368,8 @@ class ExteriorFile:
 def read_exterior_file(path: Path, kind: FileKind, *, crs: str | None = None) -> ExteriorFile:
     """Read the exterior orientations of a file of another tool (a kind of :data:`EXTERIOR_KINDS` but the first).
 
-    ``crs``: the world CRS (orthority CSV: checked against the file's; Metashape: the projected CRS
-    to return the poses in; COLMAP: the CRS of the model's frame).
+    ``crs``: the world CRS (orthority CSV: checked against the file's; a georeferenced Metashape chunk:
+    the projected CRS to return the poses in; COLMAP, a local Metashape chunk: the CRS of the frame).
 
     Raises
     ------
@@ -383,9 +383,14 @@ def read_exterior_file(path: Path, kind: FileKind, *, crs: str | None = None) ->
     if kind.name == "colmap":
         im = read_colmap_images(path)
         return ExteriorFile(path, kind, im.exteriors(crs), dict(im.cameras), "the COLMAP model's frame")
-    if kind.name == "metashape":
-        doc = read_metashape_chunk(path, crs=crs)
-        return ExteriorFile(path, kind, doc.exteriors(), dict(doc.cameras), doc.frame)
+    if kind.name == "metashape":  # a georeferenced chunk is converted into crs; crs names a local chunk's frame
+        doc = read_metashape_chunk(path)
+        if doc.reference_crs is not None and crs is not None:
+            doc = read_metashape_chunk(path, crs=crs)
+        eos = doc.exteriors()
+        if doc.crs is None:
+            eos = {n: {**eo, "crs": crs} for n, eo in eos.items()}
+        return ExteriorFile(path, kind, eos, dict(doc.cameras), doc.frame)
     raise InvalidInputError(f"{str(path)!r}: {kind.label} is read by rectify.formats.exterior")
 
 

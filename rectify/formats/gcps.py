@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from rectify.atomic import atomic_output, atomic_write_text, read_json
-from rectify.errors import InvalidInputError, RasterIOError
+from rectify.errors import CRSError, InvalidInputError, RasterIOError
 from rectify.formats.common import (
     StrPath,
     TableReader,
@@ -37,7 +37,7 @@ from rectify.formats.common import (
     need_columns,
     no_duplicates,
 )
-from rectify.formats.tables import read_matches_table
+from rectify.formats.tables import check_crs_comment, read_matches_table
 from rectify.geometry.crs import parse_crs
 from rectify.geometry.points import GcpTable
 from rectify.raster.io import _crs_string, open_raster
@@ -111,6 +111,7 @@ def read_gcps(path: StrPath) -> GcpTable:
                                         f"got {flags[bad]!r}")
             chk = np.array([c == "1" for c in flags], dtype=bool)
             del flags
+    check_crs_comment(cols)
     no_duplicates(ids, path, "GCP id(s)")
     return GcpTable(ids, pix.reshape(-1, 2), tgt.reshape(-1, 2), z, chk, cols.crs)
 
@@ -284,7 +285,7 @@ def gcps_geojson_text(gcps: GcpTable) -> str:
 
 def _gpkg_point(blob: Any, where: str, path: StrPath) -> tuple[float, float, float | None]:
     """x, y[, z] of a GeoPackage geometry blob: the ``GP`` header (with its envelope) and a WKB Point."""
-    b = bytes(blob) if blob is not None else b""
+    b = bytes(blob) if isinstance(blob, (bytes, bytearray, memoryview)) else b""
     if len(b) < 8 or b[:2] != b"GP":
         raise InvalidInputError(f"{str(path)!r} {where}: not a GeoPackage geometry")
     flags = b[3]
@@ -319,7 +320,8 @@ def read_gcps_gpkg(path: StrPath, layer: str | None = None) -> GcpTable:
     if not p.is_file():
         raise RasterIOError(f"file not found: {str(p)!r}")
     try:
-        con = sqlite3.connect(f"file:{p}?mode=ro", uri=True)
+        # a URI, percent-encoded: '?', '#' and '%' in the name stay part of it; mode=ro creates nothing
+        con = sqlite3.connect(p.resolve().as_uri() + "?mode=ro", uri=True)
     except sqlite3.Error as err:
         raise RasterIOError(f"cannot read {str(p)!r}: {err}") from err
     try:
@@ -342,11 +344,20 @@ def read_gcps_gpkg(path: StrPath, layer: str | None = None) -> GcpTable:
         if srs is not None and srs_id not in (0, -1):
             org, code, definition = srs
             crs = f"{str(org).upper()}:{code}" if org and str(org).upper() == "EPSG" else (definition or None)
-        cur = con.execute(f'SELECT * FROM "{table}"')
+        cur = con.execute(f"SELECT * FROM {_sql_name(str(table))}")
         names = [d[0] for d in cur.description]
         records = cur.fetchall()
+    except sqlite3.Error as err:
+        raise InvalidInputError(f"{str(p)!r} is not a readable GeoPackage: {err}") from None
     finally:
         con.close()
+    if gcol not in names:
+        raise InvalidInputError(f"{str(p)!r} layer {table!r} has no geometry column {gcol!r}")
+    if crs is not None:
+        try:
+            parse_crs(crs)
+        except CRSError as err:
+            raise CRSError(f"{str(p)!r} layer {table!r}: {err}") from None
     rows: list[tuple[str, float, float, float, float, float | None, bool]] = []
     for k, rec in enumerate(records):
         props = {n: v for n, v in zip(names, rec, strict=True) if n != gcol}
@@ -359,6 +370,11 @@ def read_gcps_gpkg(path: StrPath, layer: str | None = None) -> GcpTable:
                    props.get("fid", k + 1))
         rows.append((str(gid), col, row, x, y, z, _check_flag(props)))
     return _gcp_rows_table(rows, crs, p)
+
+
+def _sql_name(name: str) -> str:
+    """An SQL identifier quoted for SQLite (double quotes, inner ones doubled)."""
+    return '"' + name.replace('"', '""') + '"'
 
 
 def _gpkg_blob(x: float, y: float, z: float | None, srs_id: int) -> bytes:
@@ -374,7 +390,10 @@ def write_gcps_gpkg(path: StrPath, gcps: GcpTable, *, overwrite: bool = False, l
     m = re.fullmatch(r"EPSG:(\d+)", gcps.crs or "")
     srs_id = int(m[1]) if m else 0
     with atomic_output(path, overwrite=overwrite) as tmp:
-        con = sqlite3.connect(str(tmp))
+        try:
+            con = sqlite3.connect(Path(tmp).resolve().as_uri() + "?mode=rw", uri=True)
+        except sqlite3.Error as err:
+            raise RasterIOError(f"cannot write {str(path)!r}: {err}") from err
         try:
             con.executescript(
                 "PRAGMA application_id = 1196444487; PRAGMA user_version = 10300;"
@@ -395,14 +414,16 @@ def write_gcps_gpkg(path: StrPath, gcps: GcpTable, *, overwrite: bool = False, l
                         "(?, 'features', ?, ?)", (layer, layer, srs_id))
             con.execute("INSERT INTO gpkg_geometry_columns VALUES (?, 'geom', 'POINT', ?, ?, 0)",
                         (layer, srs_id, int(gcps.z is not None)))
-            con.execute(f'CREATE TABLE "{layer}" (fid INTEGER PRIMARY KEY AUTOINCREMENT, geom BLOB, id TEXT, '
-                        "col DOUBLE, row DOUBLE, \"check\" INTEGER)")
+            con.execute(f"CREATE TABLE {_sql_name(layer)} (fid INTEGER PRIMARY KEY AUTOINCREMENT, geom BLOB, "
+                        "id TEXT, col DOUBLE, row DOUBLE, \"check\" INTEGER)")
             for i in range(len(gcps)):
                 z = float(gcps.z[i]) if gcps.z is not None else None
-                con.execute(f'INSERT INTO "{layer}" (geom, id, col, row, "check") VALUES (?, ?, ?, ?, ?)',
+                con.execute(f'INSERT INTO {_sql_name(layer)} (geom, id, col, row, "check") VALUES (?, ?, ?, ?, ?)',
                             (_gpkg_blob(float(gcps.target[i, 0]), float(gcps.target[i, 1]), z, srs_id),
                              gcps.ids[i], float(gcps.pixel[i, 0]), float(gcps.pixel[i, 1]), int(gcps.check[i])))
             con.commit()
+        except sqlite3.Error as err:
+            raise RasterIOError(f"cannot write {str(path)!r}: {err}") from err
         finally:
             con.close()
     return Path(path)

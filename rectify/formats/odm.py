@@ -242,27 +242,24 @@ def _crs_header(line: str) -> bool:
 
 
 def detect_odm_gcps(path: StrPath) -> bool:
-    """Whether ``path`` looks like an ODM ``gcp_list.txt``: a CRS line, then five numbers and an image name."""
+    """Whether ``path`` looks like an ODM ``gcp_list.txt``: a first line that is not a CSV header (the CRS; the
+    reader names one it does not know), then lines of at least six values that start with two numbers."""
     lines = _first_lines(path)
-    if len(lines) < 2 or not _crs_header(lines[0]):
+    if len(lines) < 2 or "," in lines[0]:  # a CRS line of any form: its reader names one it does not know
         return False
     c = lines[1].split()
-    try:
-        [float(v) for v in c[:5]]
-    except ValueError:
-        return False
-    return len(c) >= 6
+    return len(c) >= 6 and _is_number(c[0]) and _is_number(c[1])
 
 
 def detect_odm_geo(path: StrPath) -> bool:
-    """Whether ``path`` looks like an ODM ``geo.txt``: a CRS line, then an image name and numbers."""
+    """Whether ``path`` looks like an ODM ``geo.txt``: a first line that is not a CSV header, then lines of an
+    image name and at least two more values (a CRS line, or a number after the name; the reader names a
+    malformed value)."""
     lines = _first_lines(path)
-    if len(lines) < 2 or not _crs_header(lines[0]):
+    if len(lines) < 2 or "," in lines[0] or "," in lines[1]:
         return False
     c = lines[1].split()
-    if len(c) < 3 or _is_number(c[0]) or not all(_is_number(v) for v in c[1:3]):
-        return False
-    return not detect_odm_gcps(path)
+    return len(c) >= 3 and not _is_number(c[0]) and (_crs_header(lines[0]) or _is_number(c[1]))
 
 
 def _is_number(s: str) -> bool:

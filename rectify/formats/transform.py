@@ -16,7 +16,8 @@ from typing import Any
 import numpy as np
 
 from rectify.atomic import atomic_write_text, read_json
-from rectify.formats.common import StrPath, check_format, stamp
+from rectify.errors import InvalidInputError
+from rectify.formats.common import StrPath, check_format, malformed, stamp
 from rectify.geometry.residuals import ResidualTable
 from rectify.geometry.transforms import transform_from_dict, transform_to_dict
 
@@ -128,7 +129,12 @@ def read_transform(path: StrPath) -> TransformFile:
     """
     doc = read_json(path, "transform file")
     version = check_format(doc, "transform", TRANSFORM_VERSION, path, legacy={"rectify-transform": 1})
-    model = transform_from_dict(doc)
+    for key, kind, name in (("method", str, "a method name"), ("summary", dict, "an object"),
+                            ("residuals", list, "a list")):
+        if doc.get(key) is not None and not isinstance(doc[key], kind):
+            raise InvalidInputError(f"transform file {str(path)!r}: `{key}` must be {name}; got {doc[key]!r:.80}")
+    with malformed(f"transform file {str(path)!r}"):  # a third-party error of a malformed value: one line
+        model = transform_from_dict(doc)
     return TransformFile(model=model, method=str(doc["method"]), crs=doc.get("crs"), units=doc.get("units"),
                          rmse=doc.get("rmse"), rmse_check=doc.get("rmse_check"), summary=dict(doc.get("summary") or {}),
                          residuals=list(doc.get("residuals") or []), version=version or 1,

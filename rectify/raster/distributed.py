@@ -174,17 +174,21 @@ class Scheduler:
         if low == "threads":
             return cls("threads")
         if low == "processes":
-            return cls("processes", **_env_bounds())
+            wt, st = _env_bounds()
+            return cls("processes", worker_timeout_s=wt, stall_timeout_s=st)
         if low.startswith("processes:"):
             n = low.split(":", 1)[1]
             if not n.isdigit() or not 1 <= int(n) <= 1024:
                 raise InvalidInputError(f"bad {source} {s!r}: the worker count must be an integer in 1..1024")
-            return cls("processes", workers=int(n), **_env_bounds())
+            wt, st = _env_bounds()
+            return cls("processes", workers=int(n), worker_timeout_s=wt, stall_timeout_s=st)
         if "://" in s:
             host, port = split_address(s, source=source)
             host = f"[{host}]" if ":" in host else host
-            return cls("cluster", address=f"tcp://{host}:{port}", timeout_s=_env_seconds(TIMEOUT_ENV_VAR,
-                       DEFAULT_CONNECT_TIMEOUT_S), **_env_bounds())
+            wt, st = _env_bounds()
+            return cls("cluster", address=f"tcp://{host}:{port}",
+                       timeout_s=_env_seconds(TIMEOUT_ENV_VAR, DEFAULT_CONNECT_TIMEOUT_S), worker_timeout_s=wt,
+                       stall_timeout_s=st)
         raise InvalidInputError(f"unknown {source} {s!r}; {_SPEC_HELP}")
 
     @property
@@ -212,9 +216,10 @@ def _env_seconds(var: str, default: float) -> float:
     return value
 
 
-def _env_bounds() -> dict[str, float]:
-    return {"worker_timeout_s": _env_seconds(WORKER_TIMEOUT_ENV_VAR, DEFAULT_WORKER_TIMEOUT_S),
-            "stall_timeout_s": _env_seconds(STALL_TIMEOUT_ENV_VAR, DEFAULT_STALL_TIMEOUT_S)}
+def _env_bounds() -> tuple[float, float]:
+    """(worker timeout, stall timeout) from the environment, else the defaults."""
+    return (_env_seconds(WORKER_TIMEOUT_ENV_VAR, DEFAULT_WORKER_TIMEOUT_S),
+            _env_seconds(STALL_TIMEOUT_ENV_VAR, DEFAULT_STALL_TIMEOUT_S))
 
 
 def resolve_scheduler(spec: Scheduler | str | None = None) -> Scheduler:

@@ -173,8 +173,10 @@ class _Engine(TileEngine):
         M = pixel_from_world_matrix(inp.transform)
         px = M[0, 0] * X + M[0, 1] * Y + M[0, 2]
         py = M[1, 0] * X + M[1, 1] * Y + M[1, 2]
-        c0 = max(int(math.floor(px.min())) - 1, 0)
-        r0 = max(int(math.floor(py.min())) - 1, 0)
+        # even window origins: np.rint rounds half-way positions to the even pixel of the window, the same pixel
+        # whatever the tiling only when the origin is even
+        c0 = max(int(math.floor(px.min())) - 1, 0) // 2 * 2
+        r0 = max(int(math.floor(py.min())) - 1, 0) // 2 * 2
         c1 = min(int(math.ceil(px.max())) + 2, inp.width)
         r1 = min(int(math.ceil(py.max())) + 2, inp.height)
         if c1 <= c0 or r1 <= r0:
@@ -187,16 +189,20 @@ class _Engine(TileEngine):
             valid &= ~np.isnan(data).all(axis=0)
         if inp.vis_band is not None:
             valid &= ds.read(inp.vis_band, window=win) == 2
-        mx = (px - c0).astype(np.float32)
-        my = (py - r0).astype(np.float32)
+        # window-relative positions from float32 raster positions (exact: a whole number subtracted), so that a
+        # pixel's position, and OpenCV's 1/32 px rounding of it, does not depend on the tile's window
+        mx = px.astype(np.float32) - np.float32(c0)
+        my = py.astype(np.float32) - np.float32(r0)
         near_c, near_r = np.rint(mx).astype(int), np.rint(my).astype(int)
         inside = (near_c >= 0) & (near_r >= 0) & (near_c < c1 - c0) & (near_r < r1 - r0)
         v = np.zeros(X.shape, bool)
         v[inside] = valid[near_r[inside], near_c[inside]]
         img = np.moveaxis(data, 0, -1)
         img = np.where(valid[..., None], img, 0.0).astype(np.float32)
+        # zero outside the raster as at invalid pixels, so that the division by the weights of the valid
+        # neighbours below renormalises there too (a replicated edge divided by them came out up to 2x too large)
         out = np.stack([cv2.remap(np.ascontiguousarray(img[..., k]), mx, my, cv2.INTER_LINEAR,
-                                  borderMode=cv2.BORDER_REPLICATE) for k in range(inp.count)], axis=-1)
+                                  borderMode=cv2.BORDER_CONSTANT, borderValue=0) for k in range(inp.count)], axis=-1)
         # renormalise bilinear weights over valid neighbours
         wv = cv2.remap(valid.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                        borderValue=0)

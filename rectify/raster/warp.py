@@ -368,8 +368,10 @@ class _Engine(TileEngine):
         else:
             sx, sy = mx[ok], my[ok]
             bx, by = (float(sx.min()), float(sx.max())), (float(sy.min()), float(sy.max()))
-        x0 = max(math.floor(bx[0]) - self.radius, 0)
-        y0 = max(math.floor(by[0]) - self.radius, 0)
+        # the window starts at an even column and row: OpenCV rounds a position half-way between two pixels to
+        # the even one of the window, so an even origin makes it the same pixel whatever the tiling
+        x0 = max(math.floor(bx[0]) - self.radius, 0) // 2 * 2
+        y0 = max(math.floor(by[0]) - self.radius, 0) // 2 * 2
         x1 = min(math.ceil(bx[1]) + self.radius + 1, self.W)
         y1 = min(math.ceil(by[1]) + self.radius + 1, self.H)
         if x1 <= x0 or y1 <= y0:

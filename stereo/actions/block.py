@@ -3,10 +3,11 @@
 Steps (each in its own module):
 
 1. the workspace checks every planned output and the report folder before any work;
-2. the inputs: one camera JSON for every image, or the cameras of an OpenSfM
-   ``reconstruction.json``; known poses from a position/angle CSV or the reconstruction
-   (:mod:`stereo.formats.poses`, :mod:`stereo.formats.opensfm`); the block control CSV
-   (:mod:`stereo.formats.block`);
+2. the inputs, of any format :mod:`stereo.formats.detect` recognises: one camera file for every
+   image (or the cameras of the pose file); known poses from a position/angle CSV, an OpenSfM
+   ``reconstruction.json``, a COLMAP model (its tracks spare the matching), a Metashape XML or
+   orthority's files, or GNSS positions from ODM's ``geo.txt``; the control from the block control
+   CSV, ODM's ``gcp_list.txt`` or Metashape markers (:mod:`stereo.actions.block_users`);
 3. block tie points: pairs from footprints (poses known) or all pairs / an overview match,
    tracks by union-find, evenly spread (:mod:`stereo.features.tracks`); the control points'
    image measurements join them as tracks of their own;
@@ -16,11 +17,13 @@ Steps (each in its own module):
 5. the bundle adjustment with the observation groups and their precisions
    (:mod:`stereo.block.bundle.adjust`);
 6. the outputs, all or none (the layout in :data:`BLOCK_LAYOUT`, ``camera_<id>.json`` per camera),
-   and the report.
+   the report, the STAC Item of the point cloud and the requested exports (COLMAP, OpenSfM,
+   orthority).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -39,6 +42,17 @@ from rectify.geometry.camera import Camera
 from rectify.geometry.crs import parse_crs, same_crs
 from rectify.geometry.residuals import ResidualTable, rms
 from stereo.actions.block_checks import check_block_inputs, check_datum
+from stereo.actions.block_users import (
+    FOLDER_ITEM,
+    BlockExports,
+    block_stac,
+    block_tracks,
+    check_exports,
+    export_folders,
+    geo_gnss,
+    plan_exports,
+    write_exports,
+)
 from stereo.actions.workspace import PairWorkspace
 from stereo.block.bundle.adjust import BundleOptions, adjust_bundle
 from stereo.block.bundle.result import BundleResult
@@ -54,7 +68,7 @@ from stereo.formats.points import LasWriter, dump_ply, points_csv_text
 from stereo.formats.poses import pose_csv_text
 from stereo.report.block import write_block_report
 
-__all__ = ["BLOCK_LAYOUT", "BlockOptions", "BlockResult", "run_block"]
+__all__ = ["BLOCK_LAYOUT", "BlockExports", "BlockOptions", "BlockResult", "run_block"]
 
 Progress = Callable[[int, int], None]
 
@@ -113,6 +127,13 @@ class BlockOptions:
         and the robust stages come on top.
     report : bool
         Write the QA report into ``OUTDIR/report``.
+    reuse_tracks : bool
+        Take the tracks of a pose file that has some (a COLMAP model) as the tie points, sparing the
+        matching, when they reach every image (``--rematch``: False).
+    stac : bool
+        Write the STAC Item of the point cloud, ``OUTDIR/item.stac.json``.
+    exports : BlockExports
+        Folders to write the adjusted block into in other tools' formats (COLMAP, OpenSfM, orthority).
     """
 
     gnss_sigma_m: tuple[float, float, float] | None = None
@@ -128,6 +149,9 @@ class BlockOptions:
     bundle: BundleOptions = field(default_factory=lambda: BundleOptions(robust="tukey", variance_components=True,
                                                                         max_iterations=100))
     report: bool = True
+    reuse_tracks: bool = True
+    stac: bool = True
+    exports: BlockExports = field(default_factory=BlockExports)
 
     def __post_init__(self) -> None:
         for name in ("gnss_sigma_m", "ins_sigma_rad", "control_sigma_m"):
@@ -227,6 +251,7 @@ class _Inputs:
     control_note: str = ""  # where the control came from, when not from --control's block CSV
     geo: OdmGeo | None = None  # ODM geo.txt: positions (GNSS) without rotations
     tracks: Tracks | None = None  # a pose file's tracks (COLMAP) on the block's images
+    block_names: tuple[str, ...] = ()  # the block's image names, in order
 
 
 def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera | Mapping[str, Camera] | None,
@@ -284,7 +309,7 @@ def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera
                 only = next(iter(cameras))
                 pose_list = [Pose(p.image, only, p.position, p.rotation) for p in pose_list]
             if pf.tracks is not None:
-                file_tracks = _block_tracks(pf.tracks, names)
+                file_tracks = block_tracks(pf.tracks, names)
         if pose_list is not None:
             order = {p.image: k for k, p in enumerate(pose_list)}
             pose_list = _match_pose_names(names, pose_list, pf.path)
@@ -329,7 +354,7 @@ def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera
             crs = ctrl.crs
             if crs is not None:
                 frame = frame or f"{crs_label(crs)} (the CRS of the control file)"
-            if kind in ("opensfm", "colmap") and crs is not None:
+            if kind in ("opensfm", "colmap", "metashape") and crs is not None:
                 frame = (f"{crs_label(crs)} of the control file (the {pf.kind.label} is not georeferenced: its poses "
                          "are taken as given in that CRS)")
         elif ctrl.crs is not None and ctrl.crs != crs:
@@ -341,22 +366,7 @@ def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera
         frame = (f"{crs_label(crs)} (the CRS of the pose file)" if crs is not None
                  else "the frame of the given coordinates (no CRS given: not georeferenced)")
     return _Inputs(cameras, camera_of, pose_list, sigma, angle_system, crs, ctrl, frame, reference, gps, dop, kind,
-                   input_paths(poses)[0].name if poses is not None else "", control_note, geo, file_tracks)
-
-
-def _block_tracks(t: Tracks, names: tuple[str, ...]) -> Tracks | None:
-    """A pose file's tracks (a COLMAP model's) on the block's images (by name or stem; the others' rays dropped),
-    point ids prefixed ``colmap``; None when no track keeps two rays."""
-    index = {n: k for k, n in enumerate(names)}
-    stems = {Path(n).stem: k for k, n in enumerate(names)}
-    img = np.array([index.get(im, stems.get(Path(im).stem, -1)) for im in t.images], dtype=np.int64)
-    new = img[t.obs_image] if t.n_obs else np.zeros(0, dtype=np.int64)
-    keep = new >= 0
-    if not keep.any():
-        return None
-    tr = Tracks(names, tuple(f"colmap{p}" for p in t.point_ids), t.obs_point[keep], new[keep], t.obs_pixel[keep],
-                t.obs_sigma_px[keep]).subset(np.ones(int(keep.sum()), dtype=bool))
-    return tr if tr.n_points else None
+                   input_paths(poses)[0].name if poses is not None else "", control_note, geo, file_tracks, names)
 
 
 #: where an OpenSfM dataset or an OpenDroneMap project keeps its GCPs, relative to its reconstruction.json
@@ -422,7 +432,10 @@ def _gnss(inp: _Inputs, opts: BlockOptions) -> tuple[GnssObservations | None, st
     An OpenSfM reconstruction's shots with ``gps_position`` are observed there, with ``--gnss-sigma``
     or else their ``gps_dop``; without any, ``--gnss-sigma`` makes the reconstruction's projection
     centres observations. A pose CSV's positions are observed with ``--gnss-sigma`` or its ``sx,sy,sz``.
+    ODM's ``geo.txt`` positions (no rotations) are observed with its accuracies, else ``--gnss-sigma``.
     """
+    if inp.geo is not None:
+        return geo_gnss(inp.geo, inp.block_names, inp.pose_name, opts.gnss_sigma_m)
     if inp.poses is None:
         return None, "no poses given (--poses)"
     n = len(inp.poses)
@@ -486,6 +499,8 @@ def _gnss(inp: _Inputs, opts: BlockOptions) -> tuple[GnssObservations | None, st
 POSE_CSV_STD_ORDER = [3, 4, 5, 0, 1, 2]
 #: an image keeps at least this many rays after the intersection through initial poses (else all of them)
 MIN_RAYS_PER_IMAGE = 12
+#: a pose file's tracks are the tie points when every image has at least this many of their rays
+MIN_FILE_TRACKS_PER_IMAGE = 6
 #: above this many image observations the default full covariance (every point's) becomes "poses"
 FULL_COVARIANCE_MAX_OBS = 200_000
 
@@ -545,13 +560,15 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
     out_dir : path
         Output folder (layout :data:`BLOCK_LAYOUT` plus ``report/``).
     camera : path, Camera or mapping id -> Camera, optional
-        One camera for every image, or the cameras by id (with poses that name them). Optional
-        when ``poses`` is an OpenSfM ``reconstruction.json``.
+        One camera for every image, or the cameras by id (with poses that name them): any camera file
+        (:func:`rectify.formats.detect.read_camera_file`). Optional when ``poses`` holds the cameras
+        (OpenSfM ``reconstruction.json``, COLMAP model, Metashape XML).
     poses : path, optional
-        Position/angle CSV or OpenSfM ``reconstruction.json``: initial values, and GNSS/INS
+        Any pose file of :data:`stereo.formats.detect.POSE_KINDS` (position/angle CSV, OpenSfM, COLMAP,
+        Metashape, orthority; ODM ``geo.txt`` gives positions only): initial values, and GNSS/INS
         observations with ``gnss_sigma_m``/``ins_sigma_rad`` or standard-deviation columns.
     control : path, optional
-        Block control CSV.
+        Block control CSV, ODM ``gcp_list.txt`` or Metashape markers XML.
     tracks : Tracks, optional
         Tie points already measured (the matching is skipped); its images must be the file names.
 
@@ -567,14 +584,19 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
     cam_input = camera if isinstance(camera, (str, Path)) else None
     ws = plan_block(out_dir, overwrite=overwrite, inputs=[*images, cam_input, poses, control], report=opts.report)
     inp = _load_inputs(ws, names, camera, poses, control, opts)
+    # a pose file's tracks (a COLMAP model's) are the tie points when they reach every image
+    file_tracks = (inp.tracks if tracks is None and inp.tracks is not None and opts.reuse_tracks
+                   and bool((inp.tracks.points_per_image() >= MIN_FILE_TRACKS_PER_IMAGE).all()) else None)
     gnss, gnss_text = _gnss(inp, opts)
     check_datum(inp.poses is not None, inp.control, gnss, gnss_text, names, free_network=opts.bundle.free_network,
                 check_ids=opts.check_ids)
     check_block_inputs(ws, images, names, inp.cameras, inp.camera_of, inp.poses, inp.crs, inp.control,
-                       control=control, poses_path=poses, matching=tracks is None)
+                       control=control, poses_path=poses, matching=tracks is None and file_tracks is None)
+    check_exports(opts.exports, inp.cameras, names, inp.crs)  # what the requested formats cannot hold, before work
     input_lines = (f"frame: {inp.frame}", f"GNSS: {gnss_text}" if gnss is not None else f"GNSS: none ({gnss_text})",
                    *((inp.control_note,) if inp.control_note else ()))
-    ws.plan(*camera_paths(Path(out_dir), inp.cameras))
+    ws.plan(*camera_paths(Path(out_dir), inp.cameras), Path(out_dir) / FOLDER_ITEM if opts.stac else None)
+    plan_exports(ws, opts.exports.files(inp.crs))
     if tracks is not None and tuple(tracks.images) != names:
         raise InvalidInputError(f"the given tracks name images {list(tracks.images)[:4]}, not the block's "
                                 f"{list(names)[:4]}")
@@ -592,6 +614,10 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
         tie_lines = tuple(tp.summary_lines())
     else:
         tie = tracks
+    if file_tracks is not None:
+        tie = file_tracks
+        tie_lines = (f"tie points: {tie.n_points} tracks of {inp.pose_name} ({tie.n_obs} rays) on the block's images "
+                     "(matching skipped; --rematch matches)",)
     n_tie = tie.n_points
     all_tracks = _with_control(tie, inp.control, names, opts.control_sigma_px)
     timings["tie_points_s"] = time.perf_counter() - t0
@@ -605,11 +631,16 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
                                 progress=progress)
         ctrl0 = _block_control(inp.control, all_tracks, opts)
         use = None if ctrl0 is None else ~ctrl0.check & np.array([k == "full" or k == "height" for k in ctrl0.kind])
-        if ctrl0 is not None and use is not None and use.any():
-            gb = to_ground(mb, control=([i for i, u in zip(ctrl0.ids, use, strict=True) if u], ctrl0.xyz[use]))
+        # GNSS positions without poses (ODM geo.txt) bring the models to the ground too
+        gn = (list(gnss.images), np.asarray(gnss.position)) if gnss is not None and inp.poses is None else None
+        if (ctrl0 is not None and use is not None and use.any()) or gn is not None:
+            cc = (None if ctrl0 is None or use is None or not use.any()
+                  else ([i for i, u in zip(ctrl0.ids, use, strict=True) if u], ctrl0.xyz[use]))
+            gb = to_ground(mb, control=cc, gnss=gn)
             poses0, X0 = list(gb.poses), np.asarray(gb.points)
             initial = (f"independent models ({len(mb.joins)} models), to the ground by {len(gb.control_ids)} "
-                       f"control points (7-parameter similarity)")
+                       f"control points" + (f" and {len(gb.gnss_images)} GNSS positions" if gn is not None else "")
+                       + " (7-parameter similarity)")
         else:
             poses0, X0 = list(mb.poses), np.asarray(mb.points)
             initial = f"independent models ({len(mb.joins)} models), in the model frame of the first pair"
@@ -637,7 +668,8 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
     res = adjust_bundle(inp.cameras, poses0, all_tracks, points0, control=bcontrol, gnss=gnss, options=bopts,
                         progress=progress)
     timings["bundle_s"] = time.perf_counter() - t2
-    files, report_path = _write(ws, res, all_tracks, inp, names, n_tie, initial, timings, gnss)
+    files, report_path = _write(ws, res, all_tracks, inp, names, n_tie, initial, timings, gnss, opts,
+                                [*images, camera if isinstance(camera, (str, Path)) else None, poses, control])
     n_written = int(res.determined.sum())
     return BlockResult(res, all_tracks, n_tie, len(res.control_ids), len(res.check_ids), initial, Path(out_dir),
                        tuple(files), report_path, timings, tie_lines, n_written, input_lines)
@@ -696,7 +728,8 @@ def _residual_mm(res: BundleResult, tracks: Tracks, inp: _Inputs) -> NDArray[np.
 
 
 def _write(ws: Workspace, res: BundleResult, tracks: Tracks, inp: _Inputs, names: tuple[str, ...], n_tie: int,
-           initial: str, timings: dict[str, float], gnss: GnssObservations | None) -> tuple[list[Path], Path | None]:
+           initial: str, timings: dict[str, float], gnss: GnssObservations | None, opts: BlockOptions,
+           inputs: Sequence[StrPath | None]) -> tuple[list[Path], Path | None]:
     root = Path(str(ws.root))
     X = np.asarray(res.points, dtype=np.float64)
     # the points determined by the images: at least two rays not flagged as blunders (a point whose rays were
@@ -731,7 +764,8 @@ def _write(ws: Workspace, res: BundleResult, tracks: Tracks, inp: _Inputs, names
     wkt = None
     if inp.crs is not None:
         wkt = parse_crs(inp.crs).to_wkt()
-    with ws.transaction():
+    staged: dict[str, tuple[Path, Path]] = {}  # the point cloud files: final and staged paths (the STAC Item)
+    with export_folders(opts.exports), ws.transaction():
         p = root / BLOCK_LAYOUT["orientation"]
         ws.write_text(p, block_orientation_text(res.cameras, res.poses, std_errors=res.pose_std, crs=inp.crs,
                                                 sigma0={"all": res.sigma0, **res.sigma0_groups},
@@ -746,12 +780,14 @@ def _write(ws: Workspace, res: BundleResult, tracks: Tracks, inp: _Inputs, names
         p = root / BLOCK_LAYOUT["points"]
         with ws.output(p) as tmp:
             dump_ply(tmp, X[ok], comment=f"stereo block points, crs {inp.crs or 'local'}")
+            staged["points_ply"] = (p, tmp)
         written.append(p)
         p = root / BLOCK_LAYOUT["points_csv"]
         ws.write_text(p, points_csv_text(ids, X[ok], resid_mm[ok], std=std, crs=inp.crs))
         written.append(p)
         p = root / BLOCK_LAYOUT["points_las"]
         with ws.output(p) as tmp:
+            staged["points_las"] = (p, tmp)
             las = LasWriter(tmp, X[ok].min(axis=0) if ok.any() else np.zeros(3), crs_wkt=wkt)
             try:
                 las.write(X[ok])
@@ -766,9 +802,25 @@ def _write(ws: Workspace, res: BundleResult, tracks: Tracks, inp: _Inputs, names
         # the CSV's residuals are adjusted - observed; the bundle's observed - computed
         ws.write_text(p, observations_text(tracks, -np.asarray(res.residuals_px), w, np.asarray(res.flagged)))
         written.append(p)
-        if ws.report_dir is not None:
-            report_path = _report(ws.report_dir, res, tracks, inp, summary, units, gnss)
+        if ws.report_dir is not None:  # staged: committed with the other outputs, or removed with them
+            with ws.report_folder() as stage:
+                page = _report(stage, res, tracks, inp, summary, units, gnss)
+            report_path = ws.report_dir / Path(page).relative_to(stage)
+        written += write_exports(ws, opts.exports, res.cameras, res.poses, inp.crs, tracks, ids, X[ok])
+        if opts.stac:
+            acc: dict[str, float] = {k: summary[k] for k in ("rms_image_px", "sigma0", "gnss_rms_3d_m") if k in summary}
+            for axis, v in zip("xyz", summary.get("check_rmse_xyz_m") or (), strict=False):
+                acc[f"check_rmse_{axis}_m"] = v
+            written.append(block_stac(ws, root, staged, X[ok], inp.crs, acc, {"frame": inp.frame, "initial": initial,
+                                                                            **_options_dict(opts)}, inputs))
     return written, report_path
+
+
+def _options_dict(opts: BlockOptions) -> dict[str, Any]:
+    """The options of a block run for its STAC Item (JSON-safe: nested dataclasses as dicts)."""
+    d = dataclasses.asdict(opts)
+    d["exports"] = {k: (None if v is None else str(v)) for k, v in d.get("exports", {}).items()}
+    return d
 
 
 def _report(out: Path, res: BundleResult, tracks: Tracks, inp: _Inputs, summary: dict[str, Any],

@@ -55,9 +55,9 @@ def check_block_inputs(ws: PairWorkspace, images: Sequence[StrPath], names: tupl
     RasterIOError
         An image that cannot be read (when it is to be matched).
     """
-    for name, path, cid in zip(names, images, camera_of, strict=True):
+    for path, cid in zip(images, camera_of, strict=True):
         try:
-            ws.check_camera_image(cameras[cid], path, which=f"block ({name!r}, camera {cid!r})")
+            ws.check_camera_image(cameras[cid], path, which="block" if len(cameras) == 1 else f"camera {cid!r}'s")
         except RasterIOError:
             if matching:
                 raise

@@ -14,6 +14,8 @@ Outputs in ``out_dir`` (all written together at the end, or none on an error):
                                   band 3: 1 where a hole was filled
 ``dense.json``                    the summary (parallax, density, DSM, comparison) and the
                                   rectification
+``item.stac.json``                the STAC Item of the DSM and the point cloud (``--no-stac``:
+                                  none; ``rectify.actions.products``)
 ``report/``                       disparity and DSM pictures, height-difference histogram
 ================================  ==========================================================
 """
@@ -33,11 +35,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from rectify.actions.products import FOLDER_ITEM, options_of, raster_grid, stac_text
 from rectify.actions.workspace import Workspace
 from rectify.atomic import read_json
 from rectify.errors import InvalidInputError, StereoError
 from rectify.features import MatcherConfig, match_images
 from rectify.formats.detect import read_one_camera
+from rectify.formats.stac import StacAsset
 from rectify.formats.tables import read_control, read_matches
 from rectify.geometry.camera import Camera
 from rectify.geometry.crs import same_crs
@@ -134,6 +138,8 @@ class DenseOptions:
         in this process), ``processes[:N]`` (a local Dask cluster of N worker processes) or
         ``tcp://HOST:PORT`` (an existing Dask cluster); None: ``$RECTIFY_SCHEDULER``, else
         ``threads``. See :func:`stereo.dense.matching.match_rasters` and ``docs/scale.md``.
+    stac : bool
+        Write the STAC Item of the DSM and the point cloud, ``OUTDIR/item.stac.json``.
     """
 
     matching: MatchOptions = field(default_factory=lambda: MatchOptions(fill_max_px=200))
@@ -152,6 +158,7 @@ class DenseOptions:
     dsm_radius: float = 1.0
     dsm_max_spread: float = 2.0
     scheduler: str | Scheduler | None = None
+    stac: bool = True
 
     def __post_init__(self) -> None:
         if self.scheduler is not None and not isinstance(self.scheduler, Scheduler):
@@ -537,6 +544,8 @@ def run_dense(
     names = ["left_normal.tif", "right_normal.tif", "disparity.tif", "confidence.tif", "dsm.tif", "dense.json"]
     if suffix:
         names.append("points" + suffix)
+    if opts.stac:
+        names.append(FOLDER_ITEM)
     out = Path(out_dir)
     ws = Workspace(out, overwrite=overwrite, report_dir=out / "report",
                    inputs=[p for p in (orientation, left, right, right_orientation, camera, matches, control,
@@ -636,6 +645,24 @@ def run_dense(
                     save_picture(stage / "dz.png", dz, title="DSM - reference DEM", cmap="RdBu_r", label="dz",
                                  symmetric=True)
                     rep_files += [rep / "dz_histogram.png", rep / "dz.png"]
+            if opts.stac:  # the STAC Item of the DSM and the point cloud, committed with them
+                acc: dict[str, float] = {k: v for k, v in (
+                    ("vertical_parallax_rms_px", par.rms_geometric_px), ("disparity_density", stats.density),
+                    ("control_rmse", control_rmse), ("dsm_coverage", dsm.coverage)) if v is not None}
+                if comparison is not None:
+                    acc.update({f"reference_dem_{k}": v for k, v in comparison.__dict__.items()
+                                if isinstance(v, (int, float)) and not isinstance(v, bool)})
+                assets = {"dsm": StacAsset(out / "dsm.tif", ("data",), "DSM", source=paths["dsm.tif"]),
+                          "metadata": StacAsset(out / "dense.json", ("metadata",), "summary",
+                                                source=paths["dense.json"])}
+                if suffix:
+                    assets["points"] = StacAsset(out / ("points" + suffix), ("data",), "point cloud",
+                                                 source=paths["points" + suffix])
+                Path(paths[FOLDER_ITEM]).write_text(stac_text(
+                    out / FOLDER_ITEM, item_id=out.name or "dense", assets=assets, command="stereo dense",
+                    grid=raster_grid(paths["dsm.tif"]) if crs is not None else None, accuracy=acc,
+                    options=options_of(opts, orientation=orientation, camera=camera, control=control),
+                    inputs=[orientation, left, right, right_orientation, camera, matches, control]), encoding="utf-8")
     except BaseException:
         ws.discard_root()
         raise

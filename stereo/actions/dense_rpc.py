@@ -29,6 +29,7 @@ created is removed again on an error):
 (``.laz``, ``.ply``)
 ``dense_rpc.json``     the summary: per-tile vertical parallax, affine fit, disparity range,
                        points; ROI coverage of the DSM; the comparison with a reference DEM
+``item.stac.json``     the STAC Item of the DSM and the point cloud (``--no-stac``: none)
 ``report/``            with a reference DEM: ``dsm.png``, ``dz.png`` (DSM - DEM) and
                        ``dz_histogram.png``
 =====================  ==================================================================
@@ -53,11 +54,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from rectify.actions.products import FOLDER_ITEM, options_of, raster_grid, stac_text
 from rectify.actions.workspace import Workspace
 from rectify.errors import EstimationError, InvalidInputError, ShapeError, StereoError
 from rectify.features import MatcherConfig
 from rectify.features.match import match_arrays
 from rectify.formats.rpc import rpc_from_raster
+from rectify.formats.stac import StacAsset
 from rectify.geometry.crs import transform_xy
 from rectify.geometry.rpc import RPC
 from rectify.raster.io import gdal_cache_limit, gdal_wkt, raster_info, read_window
@@ -132,6 +135,8 @@ class RpcDenseOptions:
         Compare the DSM with this DEM (any CRS; resampled bilinearly onto the DSM grid; its heights
         are taken as they are: the DSM's are ellipsoidal). Statistics in the summary, pictures in
         ``report/``.
+    stac : bool
+        Write the STAC Item of the DSM and the point cloud, ``OUTDIR/item.stac.json``.
     """
 
     tile: int = 300
@@ -151,6 +156,7 @@ class RpcDenseOptions:
     cloud_format: str = "las"
     interpolation: str = "cubic"
     reference_dem: str | None = None
+    stac: bool = True
 
     def __post_init__(self) -> None:
         if isinstance(self.tile, bool) or not isinstance(self.tile, int) or not 64 <= self.tile <= 4096:
@@ -488,7 +494,8 @@ def run_dense_rpc(
     box = _check_roi(roi, il.width, il.height)
     prior = opts.height_range if opts.height_range is not None else rl.validity_box[2]
     suffix = None if opts.cloud_format == "none" else "." + opts.cloud_format
-    names = ["dsm.tif", "dense_rpc.json"] + ([f"points{suffix}"] if suffix else [])
+    names = ["dsm.tif", "dense_rpc.json"] + ([f"points{suffix}"] if suffix else []) + ([FOLDER_ITEM] if opts.stac
+                                                                                       else [])
     ws = Workspace(out_dir, overwrite=overwrite, inputs=[left, right] + ([opts.reference_dem]
                                                                        if opts.reference_dem else []))
     ws.prepare(*names)
@@ -636,6 +643,23 @@ def _run(left: StrPath, right: StrPath, out: Path, ws: Workspace, names: list[st
                         with ws.output(rep / name) as tmp:
                             draw(tmp)
                         files.append(rep / name)
+                if opts.stac:  # the STAC Item of the DSM and the point cloud, committed with them
+                    acc = {"vertical_parallax_rms_px": rms(after), "dsm_coverage": dsm.coverage}
+                    if comparison is not None:
+                        acc.update({f"reference_dem_{k}": v for k, v in comparison.__dict__.items()
+                                    if isinstance(v, (int, float)) and not isinstance(v, bool)})
+                    assets = {"dsm": StacAsset(out / "dsm.tif", ("data",), "DSM (ellipsoidal heights)",
+                                               source=paths["dsm.tif"]),
+                              "metadata": StacAsset(out / "dense_rpc.json", ("metadata",), "summary",
+                                                    source=paths["dense_rpc.json"])}
+                    if suffix:
+                        assets["points"] = StacAsset(out / f"points{suffix}", ("data",), "point cloud",
+                                                     source=paths[f"points{suffix}"])
+                    Path(paths[FOLDER_ITEM]).write_text(stac_text(
+                        out / FOLDER_ITEM, item_id=out.name or "dense-rpc", assets=assets, command="stereo dense-rpc",
+                        grid=raster_grid(paths["dsm.tif"]), accuracy=acc,
+                        options=options_of(opts, roi=list(box)), inputs=[left, right, opts.reference_dem]),
+                        encoding="utf-8")
         except BaseException:
             if made_rep:
                 with contextlib.suppress(OSError):

@@ -8,7 +8,7 @@ import click
 
 from rectify.cli.options import echo, handle_errors, matcher_opts, overwrite_opt, progress
 from rectify.geometry.robust import ROBUST_METHODS
-from stereo.actions.block import BlockOptions, run_block
+from stereo.actions.block import BlockExports, BlockOptions, run_block
 from stereo.actions.common import matcher_config
 from stereo.block.bundle.adjust import INTERIOR_NAMES, BundleOptions
 from stereo.features.tracks import BLOCK_MATCHER, PAIR_STRATEGIES, BlockMatchOptions
@@ -66,14 +66,20 @@ def _ids(text: str) -> tuple[str, ...]:
 
 @click.command(short_help="Block triangulation: tie points, independent models, bundle adjustment with GNSS/INS.")
 @click.argument("images", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False))
-@click.option("--camera", "camera_path", type=click.Path(exists=True, dir_okay=False), default=None,
-              help="Camera JSON for every image (optional with --poses reconstruction.json).")
+@click.option("--camera", "camera_path", type=click.Path(), default=None,
+              help="Camera file: camera JSON, orthority int_param (cameras by id), OpenCV calibration, COLMAP model "
+                   "or Metashape cameras XML, found by content (KIND:PATH: camera, orthority, opencv, colmap, "
+                   "metashape). Optional when --poses holds the cameras (OpenSfM, COLMAP, Metashape).")
 @click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output folder.")
-@click.option("--poses", "poses_path", type=click.Path(exists=True, dir_okay=False), default=None,
-              help="Known poses: position/angle CSV or OpenSfM/ODM reconstruction.json (read in its own frame: "
-                   "OpenSfM's topocentric one, ODM's UTM one; see docs/block.md).")
-@click.option("--control", "control_path", type=click.Path(exists=True, dir_okay=False), default=None,
-              help="Block control CSV (id,image,col,row,x,y,z[,sx,sy,sz]).")
+@click.option("--poses", "poses_path", type=click.Path(), default=None,
+              help="Known poses: position/angle CSV, OpenSfM/ODM reconstruction.json (in its own frame: OpenSfM's "
+                   "topocentric one, ODM's UTM one), COLMAP model (with its tracks as tie points), Metashape "
+                   "cameras XML, orthority ext_param.geojson or CSV (+ .prj), or ODM geo.txt (positions only: GNSS "
+                   "observations), found by content (KIND:PATH: poses, opensfm, colmap, metashape, orthority, "
+                   "orthority-csv, odm-geo; see docs/block.md).")
+@click.option("--control", "control_path", type=click.Path(dir_okay=False), default=None,
+              help="Control: block control CSV (id,image,col,row,x,y,z[,sx,sy,sz]), ODM gcp_list.txt or Metashape "
+                   "markers XML, found by content (KIND:PATH: control, odm, metashape).")
 @click.option("--check", "check_ids", default="", help="Comma-separated control ids used only as check points.")
 @click.option("--gnss-sigma", type=Floats(), default=None,
               help="A-priori std of the GNSS projection centres, m (one value or sx,sy,sz): the pose file's "
@@ -111,13 +117,25 @@ def _ids(text: str) -> tuple[str, ...]:
 @click.option("--pairs", "pair_strategy", type=click.Choice(list(PAIR_STRATEGIES)),
               default=BlockMatchOptions().pair_strategy, show_default=True, help="How image pairs are chosen.")
 @click.option("--report/--no-report", "report", default=True, show_default=True, help="Write OUTDIR/report.")
+@click.option("--rematch", is_flag=True, default=False,
+              help="Match tie points even when --poses brings tracks (a COLMAP model's).")
+@click.option("--stac/--no-stac", default=True, show_default=True,
+              help="Write the STAC Item of the point cloud, OUTDIR/item.stac.json.")
+@click.option("--colmap", "colmap_dir", type=click.Path(file_okay=False), default=None,
+              help="Also write the adjusted block as a COLMAP text model into this folder.")
+@click.option("--opensfm", "opensfm_dir", type=click.Path(file_okay=False), default=None,
+              help="Also write it as OpenSfM reconstruction.json and camera_models.json into this folder "
+                   "(topocentric about the mean projection centre when the block has a CRS).")
+@click.option("--orthority", "orthority_dir", type=click.Path(file_okay=False), default=None,
+              help="Also write orthority's int_param.yaml and ext_param.geojson (xyz_opk.csv without a projected "
+                   "CRS) into this folder.")
 @matcher_opts(BLOCK_MATCHER)
 @overwrite_opt
 @handle_errors
 def block(images, camera_path, out_dir, poses_path, control_path, check_ids, gnss_sigma, ins_sigma, control_sigma,
           control_sigma_px, self_calibrate, calibrate_names, robust, variance_components, blunder_threshold,
-          max_iterations, free_network, lever_arm, boresight, ground_z, pair_strategy, report, detector, verify,
-          refine, max_matches, max_keypoints, overwrite):
+          max_iterations, free_network, lever_arm, boresight, ground_z, pair_strategy, report, rematch, stac,
+          colmap_dir, opensfm_dir, orthority_dir, detector, verify, refine, max_matches, max_keypoints, overwrite):
     """Orient the block IMAGES... into OUTDIR: orientation.json, poses.csv, points (PLY, CSV, LAS),
     observations.csv and the report."""
     calib: tuple[str, ...] = ()
@@ -138,7 +156,8 @@ def block(images, camera_path, out_dir, poses_path, control_path, check_ids, gns
         bundle=BundleOptions(robust=robust, self_calibrate=calib, variance_components=variance_components,
                              blunder_threshold=blunder_threshold, free_network=free_network,
                              max_iterations=max_iterations),
-        report=report)
+        report=report, reuse_tracks=not rematch, stac=stac,
+        exports=BlockExports(colmap=colmap_dir, opensfm=opensfm_dir, orthority=orthority_dir))
     with progress("block") as cb:
         result = run_block(list(images), out_dir=out_dir, camera=camera_path, poses=poses_path,
                            control=control_path, options=opts, overwrite=overwrite, progress=cb)

@@ -50,17 +50,19 @@ _D = DenseOptions()
 @click.option("--tile", type=int, default=_D.matching.tile, show_default=True,
               help="Core side of the matcher's tiles, pixels (a multiple of 16, at least 64; each tile is matched "
                    "with a 48 px overlap).")
+@click.option("--stac/--no-stac", default=True, show_default=True,
+              help="Write the STAC Item of the DSM and the point cloud, OUTDIR/item.stac.json.")
 @scheduler_opt
 @overwrite_opt
 @handle_errors
 def dense(orientation, left, right, out_dir, right_orientation, left_id, right_id, camera, matches, control, cloud,
-          dsm_cell, dsm_stat, fill_holes, min_confidence, reference_dem, despike, tile, scheduler, overwrite):
+          dsm_cell, dsm_stat, fill_holes, min_confidence, reference_dem, despike, tile, stac, scheduler, overwrite):
     """Resample LEFT and RIGHT into the normal case from ORIENTATION (ro.json of `stereo orient`, the
     left exterior orientation with --right-orientation, or the orientation.json of `stereo block`),
     match them densely and write the point cloud and the DSM."""
     opts = DenseOptions(matching=dataclasses.replace(_D.matching, tile=tile), cloud_format=cloud, dsm_cell=dsm_cell,
                         dsm_statistic=dsm_stat, fill_holes=fill_holes, min_confidence=min_confidence,
-                        reference_dem=reference_dem, despike_cells=despike, scheduler=scheduler)
+                        reference_dem=reference_dem, despike_cells=despike, scheduler=scheduler, stac=stac)
     result = run_dense(orientation, left, right, out_dir, right_orientation=right_orientation, camera=camera,
                        matches=matches, control=control, options=opts, overwrite=overwrite, left_id=left_id,
                        right_id=right_id)

@@ -39,7 +39,14 @@ from numpy.typing import NDArray
 
 from rectify.atomic import read_json
 from rectify.errors import InvalidInputError
-from rectify.formats.common import FORMAT_PREFIX, TableReader, check_format, need_columns
+from rectify.formats.common import (
+    FORMAT_PREFIX,
+    TableReader,
+    check_format,
+    check_numbers,
+    malformed,
+    need_columns,
+)
 from rectify.formats.tables import check_crs_comment
 from rectify.geometry.camera import Camera
 from rectify.report.builder import json_safe
@@ -312,6 +319,11 @@ def read_block_orientation(path: StrPath) -> BlockOrientation:
     """
     d = read_json(path, "block orientation file")
     check_format(d, "block-orientation", BLOCK_VERSION, path, what="block orientation file")
+    with malformed(f"block orientation file {str(path)!r}"):
+        return _block_orientation(d, path)
+
+
+def _block_orientation(d: dict[str, Any], path: StrPath) -> BlockOrientation:
     if d.get("format") != BLOCK_FORMAT:
         raise InvalidInputError(f"{str(path)!r} is not a block orientation file (no format {BLOCK_FORMAT!r})")
     cams_raw = d.get("cameras")
@@ -320,6 +332,10 @@ def read_block_orientation(path: StrPath) -> BlockOrientation:
         raise InvalidInputError(f"{str(path)!r}: `cameras` must be a non-empty object (id -> camera)")
     if not isinstance(imgs, list) or not imgs:
         raise InvalidInputError(f"{str(path)!r}: `images` must be a non-empty list")
+    for key, kind in (("sigma0", dict), ("summary", dict), ("datum", list)):
+        if d.get(key) is not None and not isinstance(d[key], kind):
+            raise InvalidInputError(f"{str(path)!r}: `{key}` must be {'an object' if kind is dict else 'a list'}; "
+                                    f"got {d[key]!r:.80}")
     cameras = {}
     for k, v in cams_raw.items():
         if not isinstance(v, dict):
@@ -330,6 +346,13 @@ def read_block_orientation(path: StrPath) -> BlockOrientation:
         if not isinstance(im, dict):
             raise InvalidInputError(f"{str(path)!r}: images[{i}] must be an object; got {im!r}")
         name = im.get("image")
+        for key, shape in (("position", (3,)), ("rotation", (3, 3))):
+            if key not in im:
+                raise InvalidInputError(f"{str(path)!r}: image {name!r} lacks {key!r}")
+            try:
+                check_numbers(im, key, shape, path)
+            except InvalidInputError as err:
+                raise InvalidInputError(f"{err} (image {name!r})") from None
         try:
             pose = Pose(str(name), str(im.get("camera")), np.asarray(im.get("position"), dtype=np.float64),
                         np.asarray(im.get("rotation"), dtype=np.float64))

@@ -28,8 +28,6 @@ Object coordinates of the target points (plane or 3D), any unit::
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,9 +36,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from rectify.atomic import read_text
 from rectify.errors import CalibrationError, InvalidInputError
-from rectify.formats.common import FORMAT_PREFIX, finite_number
+from rectify.formats.common import FORMAT_PREFIX, Columns, TableReader
 from stereo.calibration.model import Intrinsics
 from stereo.calibration.views import TargetView
 
@@ -104,6 +101,10 @@ def camera_from_dict(d: dict[str, Any]) -> CameraFile:
         if k not in d:
             raise CalibrationError(f"camera JSON lacks required key {k!r}")
     w, h = d["width"], d["height"]
+    for k, v in (("width", w), ("height", h)):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or int(v) != v or v <= 0:
+            raise CalibrationError(f"camera JSON key {k!r} must be a positive whole number of pixels; got {v!r}")
+    w, h = int(w), int(h)
     dist = d.get("distortion") or {}
     if not isinstance(dist, dict) or set(dist) - set(_DIST):
         raise CalibrationError(f"camera JSON `distortion` must map {list(_DIST)} to numbers; got {dist!r}")
@@ -147,76 +148,71 @@ def camera_from_dict(d: dict[str, Any]) -> CameraFile:
 
 
 # ---------------------------------------------------------------------- CSV files
-def _read_rows(path: str | Path, what: str) -> tuple[list[str], list[list[str]]]:
-    p = Path(path)
-    text = read_text(p, what)
-    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
-    if not lines:
-        raise InvalidInputError(f"{what} {str(p)!r} is empty")
-    rows = list(csv.reader(io.StringIO("\n".join(lines))))
-    header = [h.strip().lower() for h in rows[0]]
-    return header, [[c.strip() for c in r] for r in rows[1:]]
-
-
-def _num(v: str, what: str, line: int, col: str) -> float:
-    return finite_number(v, f"{what} line {line}: column {col!r}")
+def _open(path: str | Path, what: str, texts: tuple[str, ...], numbers: tuple[str, ...],
+          optional: tuple[str, ...] = ()) -> tuple[Columns, str]:
+    """The columns of a calibration CSV (header names lower-case): ``texts`` and ``numbers``, and the
+    ``optional`` numbers when the header has them all."""
+    label = f"{what} {str(path)!r}"
+    need = [*texts, *numbers]
+    try:
+        with TableReader(path, lower=True) as t:
+            miss = [c for c in need if c not in t.fields]
+            if miss:
+                raise InvalidInputError(f"{label} lacks column(s) {miss}; expected {','.join(need)}"
+                                        f"{'[,' + ','.join(optional) + ']' if optional else ''}")
+            extra = optional if optional and all(c in t.fields for c in optional) else ()
+            cols = t.read("rows", numbers=(*numbers, *extra), texts=texts)
+    except InvalidInputError as err:
+        msg = str(err)
+        if "has no header and no rows" in msg:
+            raise InvalidInputError(f"{label} is empty") from None
+        raise
+    return cols, label
 
 
 def read_field_csv(path: str | Path) -> dict[str, F64]:
     """Read a field CSV ``point,x,y,z`` -> {point id: (3,) object coordinates}.
 
+    Read as a stream; more than :data:`rectify.formats.common.MAX_POINT_ROWS` rows are refused.
+
     Raises
     ------
     InvalidInputError
-        Missing columns, bad numbers, duplicate point ids.
+        Missing columns, bad numbers, duplicate point ids, too many rows.
     """
-    what = f"field file {str(path)!r}"
-    header, rows = _read_rows(path, "field file")
-    need = ["point", "x", "y", "z"]
-    miss = [c for c in need if c not in header]
-    if miss:
-        raise InvalidInputError(f"{what} lacks column(s) {miss}; expected point,x,y,z")
-    ix = [header.index(c) for c in need]
+    cols, what = _open(path, "field file", ("point",), ("x", "y", "z"))
+    xyz = np.column_stack([cols.numbers[c] for c in ("x", "y", "z")])
     out: dict[str, F64] = {}
-    for k, r in enumerate(rows, start=2):
-        if len(r) < len(header):
-            raise InvalidInputError(f"{what} line {k}: {len(r)} fields, expected {len(header)}")
-        pid = r[ix[0]]
+    for k, pid in enumerate(cols.texts["point"]):
         if pid in out:
-            raise InvalidInputError(f"{what} line {k}: duplicate point {pid!r}")
-        out[pid] = np.array([_num(r[i], what, k, c) for i, c in zip(ix[1:], need[1:], strict=True)])
+            raise InvalidInputError(f"{what} line {cols.lines[k]}: duplicate point {pid!r}")
+        out[pid] = xyz[k]
     return out
 
 
 def read_observations_csv(path: str | Path) -> tuple[list[tuple[str, str, float, float]], dict[str, F64]]:
-    """Read an observation CSV -> ([(view, point, col, row), ...], {point: xyz} from optional x,y,z columns)."""
-    what = f"observation file {str(path)!r}"
-    header, rows = _read_rows(path, "observation file")
-    need = ["view", "point", "col", "row"]
-    miss = [c for c in need if c not in header]
-    if miss:
-        raise InvalidInputError(f"{what} lacks column(s) {miss}; expected view,point,col,row[,x,y,z]")
-    ix = [header.index(c) for c in need]
-    has_xyz = all(c in header for c in ("x", "y", "z"))
-    ixyz = [header.index(c) for c in ("x", "y", "z")] if has_xyz else []
+    """Read an observation CSV -> ([(view, point, col, row), ...], {point: xyz} from optional x,y,z columns).
+
+    Read as a stream; more than :data:`rectify.formats.common.MAX_POINT_ROWS` rows are refused.
+    """
+    cols, what = _open(path, "observation file", ("view", "point"), ("col", "row"), ("x", "y", "z"))
+    has_xyz = "x" in cols.numbers
+    views, points, lines = cols.texts["view"], cols.texts["point"], cols.lines
+    col, row = cols.numbers["col"].tolist(), cols.numbers["row"].tolist()
+    xyz_rows = np.column_stack([cols.numbers[c] for c in ("x", "y", "z")]) if has_xyz else None
     obs: list[tuple[str, str, float, float]] = []
     xyz: dict[str, F64] = {}
     seen: set[tuple[str, str]] = set()
-    for k, r in enumerate(rows, start=2):
-        if len(r) < len(header):
-            raise InvalidInputError(f"{what} line {k}: {len(r)} fields, expected {len(header)}")
-        view, pid = r[ix[0]], r[ix[1]]
+    for k, (view, pid) in enumerate(zip(views, points, strict=True)):
         if (view, pid) in seen:
-            raise InvalidInputError(f"{what} line {k}: point {pid!r} measured twice in view {view!r}")
+            raise InvalidInputError(f"{what} line {lines[k]}: point {pid!r} measured twice in view {view!r}")
         seen.add((view, pid))
-        obs.append((view, pid, _num(r[ix[2]], what, k, "col"), _num(r[ix[3]], what, k, "row")))
-        if has_xyz:
-            p = np.array([_num(r[i], what, k, c) for i, c in zip(ixyz, "xyz", strict=True)])
-            if pid in xyz and not np.allclose(xyz[pid], p):
-                raise InvalidInputError(f"{what} line {k}: point {pid!r} has two different object coordinates")
-            xyz[pid] = p
-    if not obs:
-        raise InvalidInputError(f"{what} has no observations")
+        obs.append((view, pid, col[k], row[k]))
+        if xyz_rows is not None:
+            q = xyz_rows[k]
+            if pid in xyz and not np.allclose(xyz[pid], q):
+                raise InvalidInputError(f"{what} line {lines[k]}: point {pid!r} has two different object coordinates")
+            xyz[pid] = q
     return obs, xyz
 
 

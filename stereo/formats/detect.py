@@ -148,8 +148,8 @@ def read_pose_file(value: StrPath, *, camera: str | None = None, boresight_rad: 
     boresight_rad, lever_arm_m : (3,) array_like, optional
         A pose CSV's boresight and lever arm (:func:`stereo.formats.poses.read_pose_csv`).
     crs : str, optional
-        The projected CRS to return georeferenced poses in (Metashape, geo.txt), or the CRS of a
-        frame the file does not name (COLMAP); checked against an orthority CSV's.
+        The projected CRS to return georeferenced poses in (a georeferenced Metashape chunk, geo.txt),
+        or the CRS of a frame the file does not name (COLMAP); checked against an orthority CSV's.
 
     Raises
     ------
@@ -166,8 +166,10 @@ def read_pose_file(value: StrPath, *, camera: str | None = None, boresight_rad: 
         model = read_colmap(path)
         return PoseFile(path, kind, tuple(model.poses), dict(model.cameras), crs,
                         f"the COLMAP model's frame{f' (taken as {crs})' if crs else ''}", tracks=model.tracks)
-    if kind.name == "metashape":
-        doc = read_metashape(path, crs=crs)
+    if kind.name == "metashape":  # a georeferenced chunk is converted into crs; a local one keeps its frame
+        doc = read_metashape(path)
+        if doc.reference_crs is not None and crs is not None:
+            doc = read_metashape(path, crs=crs)
         return PoseFile(path, kind, doc.poses, dict(doc.cameras), doc.crs, doc.frame)
     if kind.name == "orthority":
         eos = read_ext_param(path)
@@ -209,8 +211,10 @@ def read_control_file(value: StrPath, *, crs: str | None = None) -> tuple[BlockC
         g = read_odm_gcps(path, crs=crs)
         return g.control_table(), (f"control: the {len(g.ids)} GCPs of {str(path)!r} (OpenDroneMap gcp_list.txt, "
                                    f"{len(g.meas_id)} image measurements, in {g.crs})")
-    if kind.name == "metashape":
-        doc = read_metashape(path, crs=crs)
+    if kind.name == "metashape":  # a georeferenced chunk is converted into crs; a local one keeps its frame
+        doc = read_metashape(path)
+        if doc.reference_crs is not None and crs is not None:
+            doc = read_metashape(path, crs=crs)
         t = doc.control_table()
         n_full = sum(k == "full" for k in t.kind)
         return t, (f"control: the {len(t.ids)} markers of {str(path)!r} (Metashape XML, {n_full} with reference "

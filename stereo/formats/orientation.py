@@ -34,7 +34,7 @@ import numpy as np
 
 from rectify.atomic import atomic_output, read_json, write_failure_reason
 from rectify.errors import InvalidInputError, RasterIOError
-from rectify.formats.common import check_format, check_numbers
+from rectify.formats.common import check_format, check_numbers, malformed
 from rectify.formats.exterior import exterior_fields
 from rectify.report.builder import json_safe
 from stereo.pair.resection import ExteriorOrientation
@@ -153,12 +153,8 @@ def read_relative(path: StrPath) -> RelativeGeometry:
     for key in ("sigma0_mm", "pixel_size_mm"):
         if d.get(key) is not None:
             check_numbers(d, key, (), p)
-    try:
+    with malformed(f"relative orientation file {str(p)!r}"):
         return RelativeGeometry.from_dict(d, source=repr(str(p)))
-    except (TypeError, ValueError, KeyError) as err:
-        if isinstance(err, InvalidInputError):
-            raise
-        raise InvalidInputError(f"{str(p)!r}: bad relative orientation: {err}") from err
 
 
 # ---------------------------------------------------------- exterior orientation
@@ -203,6 +199,11 @@ def read_exterior(path: StrPath) -> ExteriorOrientation:
     p = Path(path)
     d = read_json(p, "exterior orientation file")
     geometry = exterior_fields(d, p)
+    with malformed(f"exterior orientation file {str(p)!r}"):
+        return _exterior(d, p, geometry)
+
+
+def _exterior(d: dict[str, Any], p: Path, geometry: dict[str, Any]) -> ExteriorOrientation:
     if "focal_length_mm" in d:
         check_numbers(d, "focal_length_mm", (), p)
     if d.get("principal_point_mm") is not None:
@@ -210,6 +211,8 @@ def read_exterior(path: StrPath) -> ExteriorOrientation:
     for key in ("sigma0_mm", "iterations"):
         if d.get(key) is not None:
             check_numbers(d, key, (), p)
+    if d.get("converged") is not None and not isinstance(d["converged"], bool):
+        raise InvalidInputError(f"{str(p)!r}: `converged` must be true or false; got {d['converged']!r}")
     try:
         eo = ExteriorOrientation(position=geometry["position"], rotation=geometry["rotation"],
                                  focal_length_mm=d["focal_length_mm"],
@@ -223,7 +226,11 @@ def read_exterior(path: StrPath) -> ExteriorOrientation:
     std = d.get("std_errors")
     names: tuple[str, ...] = eo.param_names
     if isinstance(corr, dict) and isinstance(std, dict) and corr.get("matrix") is not None:
-        names = tuple(corr.get("names") or names)
+        given = corr.get("names") or names
+        if not isinstance(given, (list, tuple)) or not all(isinstance(k, str) for k in given):
+            raise InvalidInputError(f"{str(p)!r}: `correlation.names` must be a list of parameter names; "
+                                    f"got {given!r:.80}")
+        names = tuple(given)
         try:
             s = np.array([float(std[k]) for k in names])
             cov = np.array(corr["matrix"], dtype=np.float64) * np.outer(s, s)
@@ -236,8 +243,8 @@ def read_exterior(path: StrPath) -> ExteriorOrientation:
     return ExteriorOrientation(
         position=eo.position, rotation=eo.rotation, focal_length_mm=eo.focal_length_mm,
         principal_point_mm=eo.principal_point_mm, covariance=cov, param_names=names,
-        sigma0=float("nan") if sigma0 is None else float(sigma0), iterations=int(d.get("iterations", 0)),
-        converged=bool(d.get("converged", True)), crs=eo.crs,
+        sigma0=float("nan") if sigma0 is None else float(sigma0), iterations=int(d.get("iterations") or 0),
+        converged=d.get("converged") is not False, crs=eo.crs,
         extra={k: v for k, v in d.items() if k not in known})
 
 

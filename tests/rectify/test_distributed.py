@@ -18,15 +18,26 @@ import rasterio
 from affine import Affine
 
 from rectify.errors import InvalidInputError
+from rectify.raster import daskpeer
+from rectify.raster.daskpeer import split_address
 from rectify.raster.dem import Dem
-from rectify.raster.distributed import ENV_VAR, Scheduler, SchedulerError, resolve_scheduler
+from rectify.raster.distributed import (
+    ENV_VAR,
+    STALL_TIMEOUT_ENV_VAR,
+    TIMEOUT_ENV_VAR,
+    WORKER_TIMEOUT_ENV_VAR,
+    Scheduler,
+    SchedulerError,
+    check_scheduler,
+    resolve_scheduler,
+)
 from rectify.raster.georef import Grid
 from rectify.raster.io import TiledWriter, mask_policy, verify_geotiff, write_raster
 from rectify.raster.mosaic import MosaicOptions, mosaic
 from rectify.raster.ortho import OrthoOptions, orthorectify
 from rectify.raster.warp import WarpOptions, warp_raster
 from tests.rectify.test_ortho import _flat_ortho, frame_scene
-from tests.support.dask_support import DASK_WARNING_FILTERS, local_cluster
+from tests.support.dask_support import DASK_WARNING_FILTERS, FakeServer, closed_port, local_cluster
 from tests.support.rectify_support import cog_problems
 
 distributed = pytest.importorskip("distributed")
@@ -173,6 +184,205 @@ def test_scheduler_error_lives_in_rectify_errors():
 
     assert SchedulerError is errors.SchedulerError and "SchedulerError" in errors.__all__
     assert issubclass(SchedulerError, errors.RectifyError) and issubclass(SchedulerError, OSError)
+
+
+@pytest.mark.parametrize(("spec", "message"), [
+    ("tcp://127.0.0.1", "bad scheduler address 'tcp://127.0.0.1': no port; expected tcp://HOST:PORT"),
+    ("tcp://[::1]", "bad scheduler address 'tcp://[::1]': no port; expected tcp://HOST:PORT"),
+    ("tcp://127.0.0.1:0", "bad scheduler address 'tcp://127.0.0.1:0': port 0 is outside 1..65535"),
+    ("tcp://127.0.0.1:70000", "bad scheduler address 'tcp://127.0.0.1:70000': port 70000 is outside 1..65535"),
+    ("tls://10.0.0.5:8786", "bad scheduler address 'tls://10.0.0.5:8786': only tcp:// schedulers are supported; "
+                            "expected tcp://HOST:PORT"),
+    ("tcp://user@host:8786", "bad scheduler address 'tcp://user@host:8786'; expected tcp://HOST:PORT"),
+])
+def test_addresses_dask_cannot_use_are_refused_by_name(spec, message):
+    """``tcp://127.0.0.1`` (no port) made Dask raise a ValueError traceback; other schemes cannot be checked."""
+    with pytest.raises(InvalidInputError) as err:
+        Scheduler.parse(spec)
+    assert str(err.value) == message
+    with pytest.raises(InvalidInputError):
+        Scheduler("cluster", address=spec)
+
+
+def test_ipv6_and_trailing_slash_addresses():
+    assert Scheduler.parse("tcp://[::1]:8786").address == "tcp://[::1]:8786"
+    assert Scheduler.parse("tcp://node-3.cluster.local:8786/").address == "tcp://node-3.cluster.local:8786"
+    assert split_address("tcp://[fe80::1]:1") == ("fe80::1", 1)
+
+
+def test_bounds_from_the_environment(monkeypatch):
+    for var in (TIMEOUT_ENV_VAR, WORKER_TIMEOUT_ENV_VAR, STALL_TIMEOUT_ENV_VAR):
+        monkeypatch.delenv(var, raising=False)
+    s = Scheduler.parse("tcp://10.1.2.3:8786")
+    assert (s.timeout_s, s.worker_timeout_s, s.stall_timeout_s) == (10.0, 60.0, 600.0)
+    monkeypatch.setenv(TIMEOUT_ENV_VAR, "2.5")
+    monkeypatch.setenv(WORKER_TIMEOUT_ENV_VAR, "7")
+    monkeypatch.setenv(STALL_TIMEOUT_ENV_VAR, "90")
+    s = Scheduler.parse("tcp://10.1.2.3:8786")
+    assert (s.timeout_s, s.worker_timeout_s, s.stall_timeout_s) == (2.5, 7.0, 90.0)
+    p = Scheduler.parse("processes:2")
+    assert (p.worker_timeout_s, p.stall_timeout_s) == (7.0, 90.0)
+    for var, bad in ((WORKER_TIMEOUT_ENV_VAR, "0"), (STALL_TIMEOUT_ENV_VAR, "inf"), (WORKER_TIMEOUT_ENV_VAR, "-1"),
+                     (STALL_TIMEOUT_ENV_VAR, "a while")):
+        monkeypatch.setenv(var, bad)
+        with pytest.raises(InvalidInputError) as err:
+            Scheduler.parse("tcp://10.1.2.3:8786")
+        assert str(err.value) == f"${var} must be a number of seconds > 0; got {bad!r}"
+        monkeypatch.setenv(var, "5")
+    with pytest.raises(InvalidInputError, match="scheduler stall_timeout_s must be a number of seconds > 0; got 0"):
+        Scheduler("cluster", address="tcp://h:1", stall_timeout_s=0)
+    with pytest.raises(InvalidInputError, match="scheduler worker_timeout_s must be"):
+        Scheduler("processes", worker_timeout_s=float("nan"))
+
+
+def test_check_scheduler_needs_no_network_for_local_schedulers(monkeypatch):
+    def no_network(*a, **k):
+        raise AssertionError("a local scheduler was checked over the network")
+
+    monkeypatch.setattr(daskpeer.socket, "create_connection", no_network)
+    monkeypatch.delenv(ENV_VAR, raising=False)
+    assert check_scheduler(None) == Scheduler()
+    assert check_scheduler("threads") == Scheduler()
+    assert check_scheduler("processes:2").workers == 2
+
+
+# ----------------------------------------------------------------- peers that are not a Dask scheduler
+@pytest.mark.parametrize(("mode", "expect", "waits"), [
+    ("silent", "the peer at {a!r} sent no Dask handshake within 1 s ($T); is it a Dask scheduler?", True),
+    ("http", "{a!r} is not a Dask scheduler: where a Dask handshake was expected it sent b'HTTP/1.1' (read as a "
+             "Dask message length: 3543824036068086856 bytes, outside 16..1048576)", False),
+    ("huge", "{a!r} is not a Dask scheduler: where a Dask handshake was expected it sent "
+             "b'\\x00\\x00\\x00\\x00\\x00\\x00\\x00\\x80' (read as a Dask message length: "
+             "9223372036854775808 bytes, outside 16..1048576)", False),
+    ("not-handshake", "{a!r} is not a Dask scheduler: its first message is not a Dask handshake (list [1, 2, 3])",
+     False),
+])
+def test_identify_refuses_peers_that_are_not_dask_within_the_timeout(mode, expect, waits):
+    """The check never waits past its timeout and never sizes a buffer from the peer's bytes: a length of
+    2**63 (or 'HTTP/1.1', 3.5e18) is refused from the first 8 bytes (Dask allocated it: 3.07 EiB)."""
+    with FakeServer(mode) as srv:
+        t0 = time.monotonic()
+        with pytest.raises(SchedulerError) as err:
+            daskpeer.identify(srv.address, 1.0, env_var="$T")
+        dt = time.monotonic() - t0
+    assert str(err.value) == expect.format(a=srv.address, T="$T")
+    assert (1.0 <= dt < 3.0) if waits else dt < 0.9, dt
+
+
+def test_identify_a_closed_port_retries_until_the_timeout():
+    port = closed_port()
+    t0 = time.monotonic()
+    with pytest.raises(SchedulerError) as err:
+        daskpeer.identify(f"tcp://127.0.0.1:{port}", 1.0, env_var="$T")
+    dt = time.monotonic() - t0
+    assert str(err.value) == f"cannot reach the Dask scheduler 'tcp://127.0.0.1:{port}' within 1 s ($T): " \
+                             "connection refused"
+    assert 1.0 <= dt < 3.0
+
+
+def test_identify_a_real_scheduler_and_its_workers(cluster):
+    ident = daskpeer.identify(cluster.scheduler_address, 5.0)
+    assert (ident.n_workers, ident.total_threads) == (2, 2)
+    with distributed.Client(cluster, set_as_default=False) as client:
+        worker = next(iter(client.scheduler_info()["workers"]))
+    with pytest.raises(SchedulerError, match=r"is not a Dask scheduler: it answers as a Dask Worker$"):
+        daskpeer.identify(worker, 5.0)
+    assert check_scheduler(cluster.scheduler_address).address == cluster.scheduler_address
+
+
+def test_wait_for_workers_is_bounded():
+    lc = distributed.LocalCluster(n_workers=0, processes=True, dashboard_address=None)
+    try:
+        t0 = time.monotonic()
+        with pytest.raises(SchedulerError) as err:
+            check_scheduler(Scheduler("cluster", address=lc.scheduler_address, timeout_s=2.0, worker_timeout_s=1.5))
+        dt = time.monotonic() - t0
+    finally:
+        lc.close()
+    assert str(err.value) == f"the Dask scheduler {lc.scheduler_address!r} has no workers: none joined within " \
+                             "1.5 s ($RECTIFY_SCHEDULER_WORKER_TIMEOUT)"
+    assert 1.5 <= dt < 4.0
+
+
+def test_a_silent_peer_fails_a_warp_within_the_timeout_and_leaves_nothing(sources, tmp_path):
+    with FakeServer("silent") as srv:
+        t0 = time.monotonic()
+        with pytest.raises(SchedulerError, match="sent no Dask handshake within 1 s"):
+            warp_raster(sources / "u8.tif", tmp_path / "out.tif", Homography(), GRID,
+                        options=WarpOptions(scheduler=Scheduler("cluster", address=srv.address, timeout_s=1.0)))
+        assert time.monotonic() - t0 < 3.0
+    assert list(tmp_path.iterdir()) == []
+
+
+# ----------------------------------------------------------------- bounds during a run
+class _Clock:
+    def __init__(self):
+        self.t = 0.0
+
+    def __call__(self):
+        return self.t
+
+
+def _watch(monkeypatch, workers, **bounds):
+    """A run's watch on a fake clock, the scheduler answering with ``workers()`` workers (or raising)."""
+    from rectify.raster import distributed as dist
+
+    def ident(address, timeout_s, env_var=""):
+        n = workers()
+        if isinstance(n, Exception):
+            raise n
+        return daskpeer.SchedulerIdentity(address, n, n)
+
+    monkeypatch.setattr(dist, "identify_scheduler", ident)
+    clock = _Clock()
+    sched = Scheduler("cluster", address="tcp://10.9.8.7:8786", **bounds)
+    return dist._Watch(sched, sched.address, "warp", clock=clock), clock
+
+
+def test_watch_stops_a_run_left_without_workers(monkeypatch):
+    n = {"workers": 1}
+    watch, clock = _watch(monkeypatch, lambda: n["workers"], worker_timeout_s=10.0, stall_timeout_s=1000.0)
+    assert watch.wait_s() == 2.0
+    clock.t = 5.0
+    watch.check(4)                         # workers present: fine
+    n["workers"] = 0
+    clock.t = 6.0
+    watch.check(4)                         # none since t=6
+    clock.t = 15.9
+    watch.check(4)
+    n["workers"] = 2                       # a worker came back: the wait restarts
+    clock.t = 16.5
+    watch.check(4)
+    n["workers"] = 0
+    clock.t = 17.0
+    watch.check(4)
+    clock.t = 27.0
+    with pytest.raises(SchedulerError) as err:
+        watch.check(3)
+    assert str(err.value) == "warp: the Dask scheduler 'tcp://10.9.8.7:8786' has had no workers for 10 s " \
+                             "($RECTIFY_SCHEDULER_WORKER_TIMEOUT); 3 task(s) unfinished"
+
+
+def test_watch_stops_a_run_without_progress(monkeypatch):
+    watch, clock = _watch(monkeypatch, lambda: 2, worker_timeout_s=10.0, stall_timeout_s=100.0)
+    clock.t = 99.0
+    watch.check(5)
+    watch.progressed()                     # a task finished at t=99: the stall clock restarts
+    clock.t = 198.0
+    watch.check(5)
+    clock.t = 199.0
+    with pytest.raises(SchedulerError) as err:
+        watch.check(5)
+    assert str(err.value) == "warp: no Dask task finished for 100 s ($RECTIFY_SCHEDULER_STALL_TIMEOUT) on the " \
+                             "scheduler 'tcp://10.9.8.7:8786' (2 worker(s)); 5 task(s) unfinished"
+
+
+def test_watch_stops_a_run_whose_scheduler_is_gone(monkeypatch):
+    watch, clock = _watch(monkeypatch, lambda: SchedulerError("cannot reach X"), worker_timeout_s=1.0)
+    assert watch.wait_s() == 0.25          # polls faster under a short bound
+    with pytest.raises(SchedulerError, match=r"^warp: lost the Dask scheduler 'tcp://10.9.8.7:8786' during the "
+                                             r"run: cannot reach X$"):
+        watch.check(1)
 
 
 def test_unreachable_cluster_fails_quickly_and_leaves_nothing(sources, tmp_path):

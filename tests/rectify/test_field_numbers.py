@@ -89,7 +89,8 @@ def _edges(w: int, h: int, n: int = 401) -> np.ndarray:
 @pytest.mark.parametrize("resampling", ["bilinear", "cubic"])
 def test_warp_geotransform_and_half_pixel_in_the_transforms_crs(tmp_path, resampling):
     """A homography (matrix path): the grid from the footprint of the outer pixel edges; every valid output
-    pixel holds the source position of its centre, H^-1(rasterio's centre), to 1e-3 px."""
+    pixel holds the source position of its centre, H^-1(rasterio's centre), to OpenCV's resolution of source
+    positions (1/32 px: 0.022 px measured; cubic 0.068 px: its weights are tabulated at that step too)."""
     src = _position_source(tmp_path / "src.tif")
     res = 0.7
     rectify_with_transform(src, tmp_path / "out.tif", Homography(H_SRC), model_crs=CRS, resolution=res,
@@ -106,7 +107,9 @@ def test_warp_geotransform_and_half_pixel_in_the_transforms_crs(tmp_path, resamp
     inner = valid & (expect[..., 0] > 2) & (expect[..., 0] < 137) & (expect[..., 1] > 2) & (expect[..., 1] < 107)
     assert inner.sum() > 0.5 * valid.sum()
     err = np.hypot(a[0] - expect[..., 0], a[1] - expect[..., 1])[inner]
-    assert err.max() < 1e-3, err.max()
+    assert err.max() < (0.03 if resampling == "bilinear" else 0.08), err.max()
+    assert abs(float(np.median(a[0][inner] - expect[..., 0][inner]))) < 0.005
+    assert abs(float(np.median(a[1][inner] - expect[..., 1][inner]))) < 0.005
     # the footprint: valid exactly where the nearest source pixel exists
     inside = (expect[..., 0] > -0.5 + 1e-6) & (expect[..., 0] < 139.5 - 1e-6) & \
         (expect[..., 1] > -0.5 + 1e-6) & (expect[..., 1] < 109.5 - 1e-6)
@@ -117,7 +120,8 @@ def test_warp_geotransform_and_half_pixel_in_the_transforms_crs(tmp_path, resamp
 
 def test_warp_geotransform_and_half_pixel_across_crss(tmp_path):
     """The same homography written in another CRS (UTM 34N; the map path through pyproj, maps on a sparse
-    lattice): the grid from the pyproj-transformed footprint, the values at the centres to 5e-3 px."""
+    lattice): the grid from the pyproj-transformed footprint, the values at the centres to 0.03 px (OpenCV's
+    1/32 px), their median to 0.005 px."""
     src = _position_source(tmp_path / "src.tif")
     res = 0.7
     out_crs = "EPSG:32634"
@@ -138,7 +142,9 @@ def test_warp_geotransform_and_half_pixel_across_crss(tmp_path):
     inner = valid & (expect[..., 0] > 2) & (expect[..., 0] < 137) & (expect[..., 1] > 2) & (expect[..., 1] < 107)
     assert inner.sum() > 0.5 * valid.sum()
     err = np.hypot(a[0] - expect[..., 0], a[1] - expect[..., 1])[inner]
-    assert err.max() < 5e-3, err.max()
+    assert err.max() < 0.03, err.max()
+    assert abs(float(np.median(a[0][inner] - expect[..., 0][inner]))) < 0.005
+    assert abs(float(np.median(a[1][inner] - expect[..., 1][inner]))) < 0.005
 
 
 class _Smooth:
@@ -188,9 +194,10 @@ def _texture_source(tmp_path: Path, dtype: str) -> tuple[Path, Affine]:
 @pytest.mark.parametrize("path", ["matrix", "map"])
 @pytest.mark.parametrize("dtype", ["float32", "uint8"])
 def test_warp_does_not_depend_on_the_tile_size(tmp_path, resampling, path, dtype):
-    """Tiles of 16, 48 and 512 px give the same raster: the same mask, and values equal up to OpenCV's
-    rounding of a tile-relative transform (float32: 0.01 DN; uint8: 1 DN). A kernel that reads too small a
-    window reaches past it at tile borders (the cubic kernel needs 2 source pixels, Lanczos 4)."""
+    """Tiles of 16, 48 and 512 px give the same raster, byte for byte (mask and values), with a nodata hole
+    and the source's edge in the output. A kernel that reads too small a window reaches past it at tile
+    borders (the cubic kernel needs 2 source pixels, Lanczos 4); OpenCV's warpAffine on a tile-relative
+    transform moved some pixels by 1/32 px from one tiling to another (up to 8 DN on this texture)."""
     src, t = _texture_source(tmp_path, dtype)
     f = _Matrix(t) if path == "matrix" else _Smooth(t)
     grid = Grid(150, 120, Affine(0.9, 0, 995.0, 0, -0.9, 2004.0), CRS)
@@ -199,21 +206,49 @@ def test_warp_does_not_depend_on_the_tile_size(tmp_path, resampling, path, dtype
         out = tmp_path / f"o{tile}.tif"
         warp_raster(src, out, f, grid, options=WarpOptions(resampling=resampling, tile_px=tile, threads=1))
         with rasterio.open(out) as ds:
-            outs.append((ds.read().astype(np.float64), ds.read_masks(1) > 0))
+            outs.append((ds.read(), ds.read_masks(1) > 0))
     a, ma = outs[0]
     assert 0.5 < ma.mean() < 1.0
     for b, mb in outs[1:]:
         assert np.array_equal(ma, mb)
-        d = np.abs(a - b)[:, ma]
-        tol = 0.01 if dtype == "float32" else 1.0
-        assert d.max() <= tol, (resampling, path, dtype, float(d.max()), int((d > tol).sum()))
+        d = np.abs(a.astype(np.float64) - b)[:, ma]
+        assert np.array_equal(a[:, ma], b[:, ma]), (float(d.max()), int((d > 0).sum()))
+
+
+@pytest.mark.parametrize("path", ["matrix", "map"])
+def test_warp_nearest_half_way_positions_do_not_depend_on_the_tile_size(tmp_path, path):
+    """Halving the resolution on the source's lattice puts every output centre half-way between four source
+    pixels: nearest-neighbour must choose the same one in every tiling (OpenCV rounds half-way positions to the
+    even pixel of the window: half the pixels changed with the window's origin)."""
+    rng = np.random.default_rng(8)
+    h, w = 200, 240
+    src = _write(tmp_path / "s.tif", rng.integers(1, 255, (1, h, w)).astype(np.uint8), Affine(1, 0, 0, 0, -1, h), CRS)
+    inv = np.linalg.inv(np.array([[1, 0, 0.5], [0, -1, h - 0.5], [0, 0, 1.0]]))
+
+    class Lattice:
+        matrix = inv
+
+        def __call__(self, p: np.ndarray) -> np.ndarray:
+            return _apply_h(inv, p)
+
+    f = Lattice() if path == "matrix" else (lambda p: _apply_h(inv, p))
+    grid = Grid(w // 2, h // 2, Affine(2, 0, 0, 0, -2, h), CRS)
+    outs = []
+    for tile in (16, 48, 512):
+        warp_raster(src, tmp_path / f"o{tile}.tif", f, grid, options=WarpOptions(resampling="nearest", tile_px=tile))
+        with rasterio.open(tmp_path / f"o{tile}.tif") as ds:
+            outs.append(ds.read(1))
+    assert np.array_equal(outs[0], outs[1]) and np.array_equal(outs[0], outs[2])
 
 
 # ====================================================================== mosaic
+X0, Y0 = 500_000.0, 5_000_000.0
+
+
 def _world_ortho(path: Path, T: Affine, w: int, h: int) -> Path:
-    """float32 orthophoto whose bands are the world x, y of each pixel centre (nodata NaN)."""
+    """float32 orthophoto whose bands are the world x - X0, y - Y0 of each pixel centre (nodata NaN)."""
     X, Y = _centres(T, w, h)
-    return _write(path, np.stack([X, Y]).astype(np.float64), T, CRS, nodata=float("nan"))
+    return _write(path, np.stack([X - X0, Y - Y0]).astype(np.float32), T, CRS, nodata=float("nan"))
 
 
 def test_mosaic_geotransform_and_half_pixel(tmp_path):
@@ -234,17 +269,24 @@ def test_mosaic_geotransform_and_half_pixel(tmp_path):
     X, Y = _centres(Affine(res, 0, left, 0, -res, top), w, h)
     ok = np.isfinite(m).all(axis=0)
     assert ok.mean() > 0.5
-    err = np.hypot(m[0] - X, m[1] - Y)[ok]
-    # bilinear between the inputs' centres is exact for a linear function, except at the footprint edge,
-    # where the outermost half pixel repeats the border pixel
-    from scipy.ndimage import binary_erosion
-
-    inner = binary_erosion(ok, np.ones((5, 5), bool))[ok]
-    assert err[inner].max() < 1e-6, err[inner].max()
-    assert err.max() < 0.5 * 0.5 + 1e-6
+    err = np.hypot(m[0] - (X - X0), m[1] - (Y - Y0))[ok]
+    # bilinear between the inputs' centres is exact for a linear function, except within half an input pixel
+    # of an input's edge, where the border pixel is repeated (an error of at most 0.25 m here)
+    near_edge = np.zeros_like(ok)
+    for x0, y0, x1, y1 in ((500_000.13, 5_000_065.41, 500_045.13, 5_000_100.41),
+                           (500_030.37, 5_000_047.72, 500_070.37, 5_000_085.22)):
+        d = np.minimum.reduce([X - x0, x1 - X, Y - y0, y1 - Y])  # > 0 inside
+        near_edge |= np.abs(d) < res
+    far = ok & ~near_edge
+    assert far.sum() > 0.8 * ok.sum()
+    assert err[far[ok]].max() < 1e-4, err[far[ok]].max()  # float32 bands
+    assert err.max() < 0.25 * math.sqrt(2) + 1e-4, err.max()  # (a corner repeats its pixel in x and y)
 
 
 def test_mosaic_does_not_depend_on_the_tile_size(tmp_path):
+    """Three overlapping inputs, feathered, at a resolution whose lattice meets an input's edge exactly (a
+    mosaic pixel centre on the edge: the nearest-pixel validity test rounds a half-way position), with tiles
+    of 16, 48 and 512 px: the same bytes."""
     rng = np.random.default_rng(9)
     ins = []
     for k, (x0, y0) in enumerate(((500_000.0, 5_000_100.0), (500_021.0, 5_000_093.0), (500_005.0, 5_000_070.0))):
@@ -324,6 +366,7 @@ def test_ortho_does_not_depend_on_the_tile_size(tmp_path, resampling, true_ortho
         fa, fb = np.isfinite(a), np.isfinite(b)
         assert np.array_equal(fa, fb)
         d = np.abs(a - b)[fa]
+        # the projection is interpolated per tile within PROJECTION_TOLERANCE_PX (1e-3 px): 1e-3 DN measured
         assert d.max() <= 0.01, (float(d.max()), int((d > 0.01).sum()))
 
 
@@ -340,5 +383,27 @@ def test_fit_residuals_are_adjusted_minus_observed(method):
     tab = fit.table
     np.testing.assert_allclose(tab.observed, dst, atol=1e-9)
     np.testing.assert_allclose(tab.adjusted, fit.model(src), atol=1e-6)
-    np.testing.assert_allclose(tab.residuals, fit.model(src) - dst, atol=1e-6)
+    np.testing.assert_allclose(tab.residual, fit.model(src) - dst, atol=1e-6)
     assert "residual = adjusted - observed" in tab.to_csv().splitlines()[0]
+
+
+# ====================================================================== the shared data's location
+def test_every_shared_data_lookup_honours_RECTIFY_SHARED_DATA(tmp_path):
+    """No test builds the shared data path itself; the modules that read it take ``$RECTIFY_SHARED_DATA``
+    (checked in a fresh interpreter with the variable pointing elsewhere)."""
+    import re
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[2]
+    pattern = re.compile(r"""["']shared["']\s*\)?\s*/\s*["']data["']|["'][./]*\.\./shared/data""")
+    offenders = [str(p.relative_to(root)) for p in sorted((root / "tests").rglob("*.py"))
+                 if p.name != "shared_data.py" and pattern.search(p.read_text(encoding="utf-8"))]
+    assert offenders == [], offenders
+    probe = ("import tests.conftest as c, tests.rectify.test_rpc as a, tests.rectify.test_ortho as b, "
+             "tests.stereo.test_calibration as d, tests.stereo.test_dense as e; "
+             "print(c.SHARED_DATA, a.SHARED, b.NGI.parent, d.SHARED, e.DATA, sep='\\n')")
+    env = {**__import__("os").environ, "RECTIFY_SHARED_DATA": str(tmp_path / "elsewhere")}
+    r = subprocess.run([sys.executable, "-c", probe], cwd=root, env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.split() == [str(tmp_path / "elsewhere")] * 5, r.stdout

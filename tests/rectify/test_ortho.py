@@ -23,6 +23,7 @@ from rectify.geometry.sensors import FrameModel, RPCModel
 from rectify.raster.dem import Dem, bilinear
 from rectify.raster.georef import Grid, pixel_from_world
 from rectify.raster.ortho import OrthoOptions, orthorectify
+from tests.support.shared_data import SHARED_DATA
 
 CRS = "EPSG:32632"
 E0, N0 = 500_000.0, 5_000_000.0
@@ -378,7 +379,7 @@ def test_mosaic_bad_input(tmp_path):
 
 
 # ----------------------------------------------------------------- real aerial pair (shared data)
-NGI = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "ngi_strip05"
+NGI = SHARED_DATA / "ngi_strip05"  # $RECTIFY_SHARED_DATA, else ../shared/data
 LO25 = "+proj=tmerc +lat_0=0 +lon_0=25 +k=1 +x_0=0 +y_0=0 +datum=WGS84 +units=m +no_defs"
 NGI_EO = {"0182": (-55094.504480, -3727407.037480, 5258.307930, -0.349216, 0.298484, -179.086702),
           "0184": (-57710.435280, -3727433.893020, 5256.764790, 0.269761, -0.281937, -179.027883)}

@@ -14,8 +14,9 @@ from hypothesis import strategies as st
 from rectify.errors import ConvergenceError, EstimationError, InvalidInputError, RasterIOError, ShapeError
 from rectify.formats.rpc import read_rpc
 from rectify.geometry.rpc import GDAL_PIXEL_OFFSET, RPC, RPCRefinement, fit_rpc
+from tests.support.shared_data import SHARED_DATA
 
-SHARED = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+SHARED = SHARED_DATA  # $RECTIFY_SHARED_DATA, else ../shared/data
 M_PER_DEG = 111_320.0
 
 

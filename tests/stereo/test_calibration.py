@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,8 +20,9 @@ from stereo.features.targets import parse_pattern, parse_square
 from stereo.formats.calibration import camera_from_dict, views_from_csv
 from tests.support.calibration_synthetic import DEFAULT_CAMERA, board_scene, field_scene
 from tests.support.scripts_support import load_script
+from tests.support.shared_data import SHARED_DATA
 
-SHARED = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+SHARED = SHARED_DATA  # $RECTIFY_SHARED_DATA, else ../shared/data
 TRUTH = DEFAULT_CAMERA
 
 

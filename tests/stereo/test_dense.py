@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -20,10 +19,11 @@ from stereo.dense.epipolar import normal_frame, rectify_pair
 from stereo.dense.matching import MatchOptions, fill_background, match_pair
 from stereo.dense.triangulate import triangulate_disparity
 from stereo.formats.points import PlyWriter, point_writer
+from tests.support.shared_data import SHARED_DATA
 from tests.support.stereo_support import occlusion_from_truth
 
 CAM = Camera(focal_length_mm=120.0, pixel_size_mm=0.144, width=320, height=240)
-DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+DATA = SHARED_DATA  # $RECTIFY_SHARED_DATA, else ../shared/data
 
 
 @settings(max_examples=30, deadline=None)
