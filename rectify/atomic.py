@@ -34,7 +34,8 @@ import numpy as np
 
 from rectify.errors import InvalidInputError, RasterIOError, RectifyError
 
-__all__ = ["check_output", "atomic_output", "atomic_write_text", "read_json", "parse_json", "json_depth", "read_text",
+__all__ = ["check_output", "atomic_output", "atomic_write_text", "read_json", "parse_json", "json_depth",
+           "check_nesting", "read_text",
            "write_failure_reason", "apply_umask", "current_umask", "make_temp", "NO_SPACE", "JSON_MAX_BYTES",
            "JSON_MAX_DEPTH"]
 
@@ -229,10 +230,7 @@ def parse_json(data: bytes | str, label: str, *, max_depth: int = JSON_MAX_DEPTH
     raw = data.encode("utf-8", "surrogatepass") if isinstance(data, str) else bytes(data)
     if raw.startswith(b"\xef\xbb\xbf"):
         raw = raw[3:]
-    depth = json_depth(raw, max_depth)
-    if depth > max_depth:
-        raise InvalidInputError(f"{label} nests arrays and objects more than {max_depth} levels deep "
-                                f"(the most a JSON file may have)")
+    check_nesting(raw, label, max_depth=max_depth)
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as err:
@@ -246,6 +244,21 @@ def parse_json(data: bytes | str, label: str, *, max_depth: int = JSON_MAX_DEPTH
     except (ValueError, RecursionError) as err:  # e.g. an integer of more than 4300 digits
         msg = str(err).splitlines()[0] if str(err) else type(err).__name__
         raise InvalidInputError(f"{label} is not valid JSON: {msg}") from None
+
+
+def check_nesting(data: bytes | str, label: str, *, max_depth: int = JSON_MAX_DEPTH) -> None:
+    """Refuse text nesting arrays and objects deeper than ``max_depth`` levels (:func:`json_depth`): JSON, and
+    the flow style (``[...]``, ``{...}``) of YAML, before a recursive parser sees it.
+
+    Raises
+    ------
+    InvalidInputError
+        "<label> nests arrays and objects more than <max_depth> levels deep".
+    """
+    raw = data.encode("utf-8", "surrogatepass") if isinstance(data, str) else data
+    if json_depth(raw, max_depth) > max_depth:
+        raise InvalidInputError(f"{label} nests arrays and objects more than {max_depth} levels deep "
+                                f"(the most a JSON file may have)")
 
 
 #: the bytes that matter to nesting: '"', '[', ']', '{', '}'

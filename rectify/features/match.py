@@ -25,6 +25,7 @@ from rectify.errors import EstimationError, InvalidInputError
 from rectify.features.detect import DETECTORS, Features, detect, grid_select
 from rectify.features.lsm import LsmConfig, refine_matches
 from rectify.features.shape import local_affine as _local_affine
+from rectify.features.shape import neighbour_residuals
 from rectify.features.verify import (
     VERIFY_METHODS,
     Verification,
@@ -730,6 +731,22 @@ def _one_to_one(pl, pr, score, tol_px: float = 0.1):
     return np.sort(keep)
 
 
+#: a match (fundamental verification) farther than this many times the median from where its neighbours put it,
+#: and than ``OFF_NEIGHBOURS_MIN_PX``, is a wrong partner along its epipolar line (its parallax is not the relief's)
+OFF_NEIGHBOURS_RATIO = 20.0
+OFF_NEIGHBOURS_MIN_PX = 20.0
+
+
+def _off_neighbours(pl, pr) -> NDArray[np.bool_]:
+    """Matches whose right point lies far from where the affine of their 8 nearest matches puts it (fundamental
+    verification lets a wrong partner along the epipolar line through); none with fewer than 20 matches."""
+    if len(pl) < 20:
+        return np.zeros(len(pl), bool)
+    e = neighbour_residuals(pl, pr)
+    cut = max(OFF_NEIGHBOURS_MIN_PX, OFF_NEIGHBOURS_RATIO * float(np.median(e[np.isfinite(e)])))
+    return np.asarray(e > cut, dtype=bool)
+
+
 def _reverify_and_cap(pl, pr, raw_pr, score, cfg: MatcherConfig, shape_left, keep_unrefined: bool | None = None):
     """One-to-one, re-verification, the screening of refined matches (refinement on) and the even cap.
 
@@ -743,14 +760,19 @@ def _reverify_and_cap(pl, pr, raw_pr, score, cfg: MatcherConfig, shape_left, kee
         keep = _final_select(pl, pr, score, shape_left, cfg.max_matches, cfg.cell_cap)
         pl, pr, raw_pr, score = pl[keep], pr[keep], raw_pr[keep], score[keep]
         return pl, pr, raw_pr, score, verify_matches(pl, pr, method="none"), n_dup, 0
+    n_screened = 0
+    if cfg.verify == "fundamental":    # wrong partners along the epipolar lines, before the model is fitted
+        odd = _off_neighbours(pl, pr)
+        pl, pr, raw_pr, score = pl[~odd], pr[~odd], raw_pr[~odd], score[~odd]
+        n_screened += int(odd.sum())
     ver = _verify_checked(pl, pr, cfg, cfg.verify)
     m = ver.inliers
     pl, pr, raw_pr, score = pl[m], pr[m], raw_pr[m], score[m]
-    n_screened = 0
     if cfg.refine:
-        ver, pl, pr, raw_pr, score, n_screened = screen_refined(
+        ver, pl, pr, raw_pr, score, n_off = screen_refined(
             ver, pl, pr, raw_pr, score, threshold_px=cfg.threshold_px, min_inliers=cfg.min_inliers,
             keep_unrefined=cfg.keep_unrefined if keep_unrefined is None else keep_unrefined, seed=cfg.seed)
+        n_screened += n_off
     keep = _final_select(pl, pr, score, shape_left, cfg.max_matches, cfg.cell_cap)
     pl, pr, raw_pr, score = pl[keep], pr[keep], raw_pr[keep], score[keep]
     # the residual table of exactly the returned matches, with the same model

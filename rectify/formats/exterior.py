@@ -42,12 +42,11 @@ from rectify.formats.camera import read_camera
 from rectify.formats.common import (
     FORMAT_PREFIX,
     StrPath,
-    cell_number,
+    TableReader,
     check_format,
     check_numbers,
+    finite_number,
     need_columns,
-    read_table_text,
-    table_rows,
 )
 from rectify.geometry.camera import Camera
 from rectify.geometry.crs import VerticalDatum, horizontal_crs, parse_crs, vertical_datum
@@ -187,30 +186,33 @@ def _block_image(doc: dict[str, Any], path: StrPath, image_id: str, defaulted: b
 
 def _pose_row(path: StrPath, image_id: str, defaulted: bool) -> dict[str, Any]:
     """Position, rotation and CRS of one image of a position/angle CSV (omega, phi, kappa)."""
-    text = read_table_text(path)
+    with TableReader(path) as t:  # read as a stream (a pose file may list many images)
+        fields = list(t.fields)
+        if any(f in fields for f in ("heading", "pitch", "roll")):
+            raise InvalidInputError(f"{str(path)!r} gives navigation angles (heading, pitch, roll); rectify ortho "
+                                    f"reads poses with omega,phi,kappa, as `stereo block` writes them in its poses.csv")
+        need_columns(fields, ("image", "x", "y", "z", "omega", "phi", "kappa"), path)
+        angles = ("omega", "phi", "kappa")
+        cols = t.read("pose rows", numbers=("x", "y", "z", *angles), texts=("image", "camera"),
+                      empty=("x", "y", "z", *angles))
     unit = "deg"
-    for no, line in enumerate(text.splitlines(), start=1):
-        body = line.strip().lstrip("#").strip() if line.strip().startswith("#") else ""
-        key, sep, value = body.partition("=")
-        if sep and key.strip().lower() == "angles":
-            unit = value.strip().lower()
+    for no, key, value in cols.settings:
+        if key == "angles":
+            unit = value.lower()
             if unit not in ("deg", "rad"):
-                raise InvalidInputError(f"{str(path)!r} line {no}: unknown angle unit {value.strip()!r}; "
+                raise InvalidInputError(f"{str(path)!r} line {no}: unknown angle unit {value!r}; "
                                         f"expected 'deg' or 'rad'")
-    rows, lines, crs = table_rows(text, path)
-    if not rows:
-        raise InvalidInputError(f"{str(path)!r} has a header but no pose rows")
-    fields = list(rows[0].keys())
-    if any(f in fields for f in ("heading", "pitch", "roll")):
-        raise InvalidInputError(f"{str(path)!r} gives navigation angles (heading, pitch, roll); rectify ortho reads "
-                                f"poses with omega,phi,kappa, as `stereo block` writes them in its poses.csv")
-    need_columns(fields, ("image", "x", "y", "z", "omega", "phi", "kappa"), path)
-    names = [r.get("image", "") for r in rows]
+    crs = cols.crs
+    names = cols.texts["image"]
     k = _pick_image(names, image_id, path, "pose file", defaulted=defaulted)
-    r, ln = rows[k], lines[k]
-    pos = [cell_number(r, c, ln, path) for c in ("x", "y", "z")]
+    ln = int(cols.lines[k])
+    for c in ("x", "y", "z", *angles):
+        if math.isnan(cols.numbers[c][k]):
+            finite_number("", f"{str(path)!r} line {ln}: column {c!r}")
+    pos = [float(cols.numbers[c][k]) for c in ("x", "y", "z")]
     scale = math.pi / 180.0 if unit == "deg" else 1.0
-    ang = [cell_number(r, c, ln, path) * scale for c in ("omega", "phi", "kappa")]
+    ang = [float(cols.numbers[c][k]) * scale for c in angles]
+    r = {"camera": cols.texts["camera"][k]}
     if crs is not None:
         try:
             parse_crs(crs)

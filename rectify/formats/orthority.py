@@ -16,7 +16,7 @@ GCPs (GeoJSON with ``ji``)          :func:`read_oty_gcps` / :func:`oty_gcps_text
 GCPs embedded in a TIFF             :func:`read_embedded_gcps_centre`            (the caller's choice)
 ==================================  ===========================================  ==================================
 
-Conventions, converted once here (layouts and examples in ``docs/users_files.md``):
+Conventions, converted once here (layouts and examples in ``docs/formats.md``, "Users' files of other tools"):
 
 pixels
     orthority's pixel coordinates (``ji``, and its principal point) are ours: x = column right,
@@ -71,7 +71,7 @@ import numpy as np
 import yaml
 from numpy.typing import ArrayLike, NDArray
 
-from rectify.atomic import atomic_write_text
+from rectify.atomic import atomic_write_text, check_nesting, parse_json
 from rectify.errors import CalibrationError, CRSError, InvalidInputError, RasterIOError
 from rectify.formats.common import StrPath, finite_number, read_table_text
 from rectify.geometry.camera import Camera
@@ -132,18 +132,18 @@ def _numbers(v: Any, n: int, label: str) -> list[float]:
 
 def _load_yaml(path: StrPath) -> Any:
     text = read_table_text(path)
+    check_nesting(text, _where(path))  # bounded before the recursive parser (rectify.atomic)
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as err:
         reason = str(err).replace("\n", " ")
         raise InvalidInputError(f"{_where(path)} is not valid YAML or JSON: {reason}") from None
+    except RecursionError:  # block-style nesting (by indentation) deeper than the parser's recursion
+        raise InvalidInputError(f"{_where(path)} nests mappings or lists too deeply to be read") from None
 
 
 def _load_json(path: StrPath) -> Any:
-    try:
-        return json.loads(read_table_text(path))
-    except json.JSONDecodeError as err:
-        raise InvalidInputError(f"{_where(path)} is not valid JSON: {err}") from None
+    return parse_json(read_table_text(path), _where(path))  # bounded size of nesting, one-line errors
 
 
 def _head(path: StrPath) -> str:
@@ -163,7 +163,8 @@ def _camera_sections(doc: Any, path: StrPath) -> dict[str, Any]:
         raise InvalidInputError(f"{_where(path)}: orthority interior parameters must be a mapping of camera id "
                                 f"-> parameters; got {got}")
     if isinstance(doc.get("camera"), dict) and "type" in doc["camera"]:  # legacy simple-ortho config.yaml
-        doc = doc["camera"]
+        # (or a camera whose id is "camera": the same camera either way, the id "camera" unless named)
+        return {str(doc["camera"].get("name", "camera")): doc["camera"]}
     if "type" in doc and not isinstance(doc["type"], dict):  # flat form: one camera
         return {str(doc.get("name", "unknown")): doc}
     return {str(k): v for k, v in doc.items()}
@@ -305,8 +306,10 @@ def detect_int_param(path: StrPath) -> bool:
     if Path(path).suffix.lower() not in (".yaml", ".yml", ".json"):
         return False
     try:
-        doc = yaml.safe_load(_head(path))
-    except yaml.YAMLError:
+        head = _head(path)
+        check_nesting(head, _where(path))
+        doc = yaml.safe_load(head)
+    except (yaml.YAMLError, RecursionError, InvalidInputError):  # not orthority's: the reader names the problem
         return False
     try:
         sections = _camera_sections(doc, path)
@@ -422,9 +425,10 @@ def write_ext_param(path: StrPath, exteriors: Mapping[str, Mapping[str, Any]], c
 
 
 def detect_ext_param(path: StrPath) -> bool:
-    """Whether ``path`` is a GeoJSON with ``world_crs`` and features carrying ``xyz`` and ``opk``."""
+    """Whether ``path`` is a GeoJSON ``FeatureCollection`` with orthority's ``world_crs`` (its features carry ``xyz``
+    and ``opk``: the reader names what is missing)."""
     head = _head(path)
-    return '"world_crs"' in head and '"opk"' in head and '"xyz"' in head
+    return '"world_crs"' in head and '"FeatureCollection"' in head
 
 
 # --------------------------------------------------------------------------- CSV exterior parameters

@@ -96,9 +96,10 @@ def transform_document(model: Any, *, table: ResidualTable | None = None, crs: s
         out["units"] = table.units
         out["summary"] = {k: v for k, v in s.items() if _jsonable(v)}
         res, check = table.residual, np.asarray(table.check, dtype=bool)
+        norm, observed, adjusted = table.norm, table.observed, table.adjusted  # each computed once, not per row
         out["residuals"] = [
-            {"id": table.ids[i], "observed": table.observed[i].tolist(), "adjusted": table.adjusted[i].tolist(),
-             "dx": float(res[i, 0]), "dy": float(res[i, 1]), "norm": float(table.norm[i]),
+            {"id": table.ids[i], "observed": observed[i].tolist(), "adjusted": adjusted[i].tolist(),
+             "dx": float(res[i, 0]), "dy": float(res[i, 1]), "norm": float(norm[i]),
              "check": bool(check[i])} for i in range(table.n)]
     if extra:
         out.update(extra)

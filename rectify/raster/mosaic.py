@@ -309,6 +309,13 @@ def mosaic(orthos: Sequence[str | Path], dst: str | Path, *, resolution: float |
         rights.append(c0 + a * i.width)
         tops.append(f)
         bottoms.append(f + e * i.height)
+    # a resolution so fine that the grid's size overflows a float: refused before any integer arithmetic
+    cols, rows = (max(rights) - min(lefts)) / res, (max(tops) - min(bottoms)) / res
+    if not all(math.isfinite(v) for v in (cols * rows, min(lefts) / res, max(rights) / res, min(bottoms) / res,
+                                          max(tops) / res)):
+        raise InvalidInputError(f"the mosaic's output grid at {res:.6g} {unit_label(crs)}/px would be {cols:.6g} x "
+                                f"{rows:.6g} px, above the limit of {max_pixels:.3g} px; give a coarser --resolution "
+                                f"(the finest orthophoto's is {min(abs(_gt(i.transform)[0]) for i in inputs):.6g})")
     eps = 1e-9
     x0 = math.floor(min(lefts) / res + eps) * res
     y0 = math.floor(min(bottoms) / res + eps) * res

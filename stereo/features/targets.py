@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -18,6 +19,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from rectify.errors import InvalidInputError, RasterIOError
+from rectify.raster.io import ignore_not_georeferenced, raster_info
 from stereo.calibration.views import TargetView
 
 logger = logging.getLogger(__name__)
@@ -412,6 +414,43 @@ class ChessboardDetection:
         return out
 
 
+def _opencv_pixel_limit() -> int:
+    """The most pixels OpenCV decodes from one image file (``OPENCV_IO_MAX_IMAGE_PIXELS``, default 2^30)."""
+    try:
+        return int(os.environ.get("OPENCV_IO_MAX_IMAGE_PIXELS", "")) or 1 << 30
+    except ValueError:
+        return 1 << 30
+
+
+def _read_grey(path: Path) -> NDArray[np.uint8]:
+    """An image file as 8-bit grey; an image OpenCV refuses (too many pixels, corrupt) is named in one line.
+
+    Raises
+    ------
+    RasterIOError
+        The file is missing, unreadable, or declares more pixels than OpenCV decodes (the size and the
+        limit named).
+    """
+    try:
+        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    except cv2.error as err:
+        limit = _opencv_pixel_limit()
+        try:
+            with ignore_not_georeferenced():
+                info = raster_info(path)  # the size the file declares, read from its header
+        except RasterIOError:
+            info = None
+        if info is not None and info.width * info.height > limit:
+            raise RasterIOError(f"cannot read image {str(path)!r}: it declares {info.width} x {info.height} px "
+                                f"({info.width * info.height} pixels), more than OpenCV reads ({limit} pixels, "
+                                "OPENCV_IO_MAX_IMAGE_PIXELS)") from None
+        reason = (err.err or str(err)).strip().splitlines()[0] if str(err) else "decoding failed"
+        raise RasterIOError(f"cannot read image {str(path)!r}: OpenCV refused it ({reason})") from None
+    if img is None:
+        raise RasterIOError(f"cannot read image {str(path)!r}")
+    return np.asarray(img, dtype=np.uint8)
+
+
 def find_chessboards(paths: Sequence[str | Path], board: Chessboard, *, method: str = "symmetry",
                      refine_window: int = 11) -> ChessboardDetection:
     """Detect the board in image files, refine and check its corners (:func:`refine_corners`).
@@ -436,9 +475,7 @@ def find_chessboards(paths: Sequence[str | Path], board: Chessboard, *, method: 
     X = board.object_xyz
     for p in paths:
         path = Path(p)
-        img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        if img is None:
-            raise RasterIOError(f"cannot read image {str(path)!r}")
+        img = _read_grey(path)
         s = (int(img.shape[1]), int(img.shape[0]))
         if size is None:
             size = s

@@ -91,7 +91,7 @@ W, H = 80, 60
 PIXCAM = {"width": W, "height": H, "focal_length_px": 500.0, "principal_point_px": [39.5, 29.5],
           "distortion": {"k1": -0.0625, "k2": 0.0, "k3": 0.0, "p1": 0.0, "p2": 0.0}}
 R0 = matrix_from_angles(0.03, -0.02, 0.2)
-C0 = [E0, N0, 600.0]
+C0 = np.array([E0, N0, 600.0])
 
 
 def _dem(path):
@@ -116,7 +116,7 @@ def frame(tmp_path):
     _dem(tmp_path / "dem.tif")
     _image(tmp_path / "img.tif")
     (tmp_path / "cam.json").write_text(json.dumps(PIXCAM))
-    (tmp_path / "eo.json").write_text(json.dumps({"position": C0, "rotation": R0.tolist(), "crs": UTM}))
+    (tmp_path / "eo.json").write_text(json.dumps({"position": C0.tolist(), "rotation": R0.tolist(), "crs": UTM}))
     return tmp_path
 
 
@@ -438,7 +438,7 @@ def test_products_write_a_stac_item_in_their_transaction(frame, monkeypatch):
     _ortho(d, d / "o.tif", "--camera", d / "cam.json", "--exterior", d / "eo.json")
     item = pystac.Item.from_file(str(d / "o.stac.json"))
     a = item.assets["ortho"]
-    assert a.href == "o.tif" and "data" in a.roles
+    assert a.href == "o.tif" and "data" in (a.roles or [])
     assert a.extra_fields["file:checksum"] == file_checksum(d / "o.tif")
     assert item.properties["proj:code"] == UTM and item.properties["proj:shape"][0] > 0
     assert item.properties["processing:software"]["rectify-stereo"]
@@ -555,7 +555,8 @@ def test_block_through_pycolmap(block, tmp_path):
     pycolmap = pytest.importorskip("pycolmap")
     d, images, _poses, out = block
     rec = pycolmap.Reconstruction(str(d / "colmap"))
-    assert rec.num_images() == len(images) and rec.num_points3D() == read_colmap(d / "colmap").tracks.n_points
+    tracks = read_colmap(d / "colmap").tracks
+    assert tracks is not None and rec.num_images() == len(images) and rec.num_points3D() == tracks.n_points
     (tmp_path / "pc").mkdir()
     rec.write_text(str(tmp_path / "pc"))
     again = read_colmap_images(tmp_path / "pc")
@@ -617,7 +618,8 @@ def test_block_bad_input_of_the_readers(block, tmp_path):
     cases = {"geo": (["--poses", tmp_path / "geo.txt"], ["geo.txt", "line 2", "accuracies must be > 0", "-1"]),
              "odm": (["--control", tmp_path / "gcp_list.txt"], ["gcp_list.txt", "line 1", "'UTM 33N'"]),
              "ext": (["--poses", tmp_path / "ext.geojson"], ["ext.geojson", "world_crs", "projected"]),
-             "colmap_skew": (["--colmap", tmp_path / "cm", "--camera", tmp_path / "skew.json"],
+             "colmap_skew": (["--colmap", tmp_path / "cm", "--camera", tmp_path / "skew.json", "--poses",
+                              d / "poses.csv"],
                              ["skew", "colmap"])}
     (tmp_path / "skew.json").write_text(json.dumps({"width": CAM.width, "height": CAM.height, "fx_px": 400.0,
                                                     "fy_px": 400.0, "skew_px": 0.5,

@@ -204,7 +204,9 @@ def test_warp_does_not_depend_on_the_tile_size(tmp_path, resampling, path, dtype
     outs = []
     for tile in (16, 48, 512):
         out = tmp_path / f"o{tile}.tif"
-        warp_raster(src, out, f, grid, options=WarpOptions(resampling=resampling, tile_px=tile, threads=1))
+        # a lattice step (12) that does not divide every tile size: the map path's lattice must be the grid's
+        warp_raster(src, out, f, grid, options=WarpOptions(resampling=resampling, tile_px=tile, threads=1,
+                                                           map_step_px=12))
         with rasterio.open(out) as ds:
             outs.append((ds.read(), ds.read_masks(1) > 0))
     a, ma = outs[0]

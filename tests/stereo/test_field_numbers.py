@@ -281,9 +281,10 @@ def test_absolute_orientation_residuals_and_point_covariance():
 def test_model_ground_std_against_monte_carlo_in_a_rotated_frame():
     """A stereo model oriented to control in a ground frame turned by large angles: the ground standard
     deviations of the tie points (intersection covariance rotated to ground plus the absolute orientation's
-    parameters) equal the spread over 150 noise draws (per axis, measured 0.98 .. 1.03), and the weighted
-    absolute orientation's sigma0 is about 1 (measured 1.00). A covariance rotated R^T C R instead of
-    R C R^T puts the model's depth noise on the wrong ground axes."""
+    parameters) equal the spread over 150 noise draws (per axis, measured 0.98 .. 0.99), and the weighted
+    least-squares absolute orientation's sigma0 is about 1 (measured 0.99). A covariance rotated R^T C R
+    instead of R C R^T puts the model's depth noise on the wrong ground axes: control weighted that way
+    gives sigma0 2.8 and ratios 0.79 .. 0.85."""
     rng = np.random.default_rng(51)
     f, sigma = 150.0, 0.005
     R1 = matrix_from_angles(0.01, -0.02, 0.0)
@@ -307,7 +308,8 @@ def test_model_ground_std_against_monte_carlo_in_a_rotated_frame():
         ctrl = ControlTable(cids, np.zeros((n_ctrl, 2)), np.zeros((n_ctrl, 2)), ground[n_tie:], crs=None)
         mdl = build_model(n1[:n_tie], n2[:n_tie], geo, ids=ids, control=ctrl,
                           control_mm=(n1[n_tie:], n2[n_tie:]),
-                          options=ModelOptions(frame="map", control_sigma_px=sigma / 0.01), pixel_size_mm=0.01)
+                          options=ModelOptions(frame="map", control_sigma_px=sigma / 0.01, robust="none"),
+                          pixel_size_mm=0.01)
         k = [mdl.ids.index(i) for i in ids]
         errs.append(mdl.ground[k] - ground[:n_tie])
         stds.append(mdl.ground_std[k])
@@ -315,8 +317,11 @@ def test_model_ground_std_against_monte_carlo_in_a_rotated_frame():
     ratio = np.sqrt(np.mean(np.square(errs), axis=0)) / np.sqrt(np.mean(np.square(stds), axis=0))
     per_axis = ratio.mean(axis=0)
     assert np.all((per_axis > 0.9) & (per_axis < 1.1)), per_axis
+    # each point and axis: a 150-trial ratio has a sampling sd of 6 % (measured 0.88 .. 1.16; the wrong
+    # rotation of the model covariance gives 0.35 .. 2.1)
+    assert 0.75 < ratio.min() and ratio.max() < 1.3, (ratio.min(), ratio.max())
     s0r = math.sqrt(float(np.mean(np.square(s0))))
-    assert 0.85 < s0r < 1.15, s0r
+    assert 0.9 < s0r < 1.1, s0r
 
 
 # ====================================================================== resection
