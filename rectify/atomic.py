@@ -42,8 +42,9 @@ __all__ = ["check_output", "atomic_output", "atomic_write_text", "read_json", "p
 NO_SPACE = "no space left on device"
 #: below this many free bytes on the destination's file system a write failure is blamed on a full disk
 _NEARLY_FULL = 1 << 20
-#: the largest JSON file read (bytes): parsed, JSON takes several times its size in memory
-JSON_MAX_BYTES = 256 * 1024 * 1024
+#: the largest JSON file read (bytes): parsed, JSON takes up to eight times its size in memory (an OpenSfM
+#: reconstruction of 190 MiB: 1.5 GB), so that reading one stays within 2 GB
+JSON_MAX_BYTES = 200 * 1024 * 1024
 #: the deepest nesting of arrays and objects in a JSON file read (the project's files nest 6 levels or fewer)
 JSON_MAX_DEPTH = 64
 
@@ -202,7 +203,8 @@ def read_json(path: str | os.PathLike[str], what: str = "JSON file", *, max_byte
         with open(p, "rb") as fh:
             size = os.fstat(fh.fileno()).st_size
             if size > max_bytes:
-                raise InvalidInputError(f"{label} holds {size} bytes, more than the {max_bytes} a JSON file may have")
+                raise InvalidInputError(f"{label} holds {size} bytes, more than the {max_bytes} bytes a JSON file may "
+                                        "have")
             data = fh.read(max_bytes + 1)  # a pipe or special file has no size: read one byte past the limit
     except FileNotFoundError as err:
         raise RasterIOError(f"cannot read {label}: file not found") from err

@@ -15,11 +15,13 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import re
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from rectify.actions.workspace import StrPath, Workspace
+from rectify.errors import RectifyError
 from rectify.formats.stac import RasterGrid, StacAsset, StacProduct, stac_item_text
 from rectify.raster.io import raster_info
 
@@ -44,9 +46,21 @@ def stac_path(product: StrPath, *, folder: bool = False) -> Path:
 def staged(ws: Workspace, dst: StrPath) -> Iterator[Path]:
     """A transaction with ``dst`` staged: yields the temporary path to write the product to (writers called
     with it need ``overwrite=True``: the file exists, empty); everything staged in the block is renamed
-    into place at its end, or removed on any error."""
+    into place at its end, or removed on any error. An error naming the temporary file (or one beside
+    it, ``<tmp>.body.tif``...) names ``dst`` instead."""
     with ws.transaction(), ws.output(dst) as tmp:
-        yield tmp
+        try:
+            yield tmp
+        except RectifyError as err:
+            msg = str(err)
+            if str(tmp) not in msg:
+                raise
+            named = re.sub(re.escape(str(tmp)) + r"[^'\"]*", str(dst), msg)
+            try:
+                renamed = type(err)(named)
+            except TypeError:  # an error class that needs more than a message: keep it as it is
+                raise err from None
+            raise renamed from err
 
 
 def raster_grid(path: StrPath) -> RasterGrid | None:

@@ -59,8 +59,9 @@ def _nearest(p: NDArray[np.float64], k: int) -> NDArray[np.int64]:
 
 
 def neighbour_residuals(pl: NDArray[np.float64], pr: NDArray[np.float64], k: int = 8) -> NDArray[np.float64]:
-    """(N,) distance (right px) of every right point from where the robust affine fit to its ``k`` nearest
-    matches (by the left points, itself excluded) puts it; NaN with fewer than ``k + 1`` matches.
+    """(N,) distance (right px) of every right point from where its ``k`` nearest matches (by the left points,
+    itself excluded) put it: the median of their predictions through the pair's affine (the median of the
+    neighbours' affine fits), so one or two wrong neighbours are outvoted; NaN with fewer than ``k + 1`` matches.
 
     A wrong partner along the epipolar line passes a fundamental matrix, but its parallax disagrees with its
     neighbours' by far more than the relief makes them differ (on the NGI pair: one match 607 px off its
@@ -69,9 +70,13 @@ def neighbour_residuals(pl: NDArray[np.float64], pr: NDArray[np.float64], k: int
     if n < k + 1:
         return np.full(n, np.nan)
     nb = _nearest(pl, k + 1)[:, 1:]
-    A = _neighbour_affine(pl, pr, nb)
-    pred = pr[nb].mean(axis=1) + np.einsum("nij,nj->ni", A, pl - pl[nb].mean(axis=1))
-    e = np.linalg.norm(pred - pr, axis=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)     # degenerate neighbourhoods: NaN, ignored
+        A = np.nanmedian(_neighbour_affine(pl, pr, nb), axis=0)
+    if not np.isfinite(A).all():
+        A = np.eye(2)
+    each = pr[nb] + (pl[:, None, :] - pl[nb]) @ A.T                 # (n, k, 2): each neighbour's prediction
+    e = np.linalg.norm(np.median(each, axis=1) - pr, axis=1)
     return np.where(np.isfinite(e), e, np.inf)
 
 
@@ -124,11 +129,13 @@ def _disagree(A: NDArray[np.float64], S: NDArray[np.float64]) -> NDArray[np.bool
 def _neighbour_affine(pl: NDArray[np.float64], pr: NDArray[np.float64], nb: NDArray[np.int64]
                       ) -> NDArray[np.float64]:
     """Affine d(right)/d(left) (n, 2, 2) fitted to each match's neighbours ``nb`` (n, k) by least squares, then
-    again without the neighbours whose residual exceeds 3 times the median one (a wrong match among them)."""
+    again without the neighbours whose residual exceeds 3 times the median one (a wrong match among them). (A
+    fit on the three quarters with the smallest residuals first was less precise on the NGI pair: RMS Sampson
+    error of the refined matches 0.071 against 0.068 px.)"""
     w = np.ones(nb.shape)
     B = np.zeros((len(nb), 2, 2))
     for _ in range(2):
-        sw = w.sum(axis=1, keepdims=True)
+        sw = np.maximum(w.sum(axis=1, keepdims=True), 1.0)
         mx = np.einsum("nk,nki->ni", w, pl[nb])[:, None] / sw[:, :, None]
         my = np.einsum("nk,nki->ni", w, pr[nb])[:, None] / sw[:, :, None]
         X = pl[nb] - mx

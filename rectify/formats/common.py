@@ -50,11 +50,13 @@ FORMAT_PREFIX = "rectify-stereo/"
 
 StrPath = str | os.PathLike[str]
 
-#: the most rows a point table may have: GCP, stereo control, block control, pose and calibration observation
-#: CSVs (refused while reading, the limit named; such tables hold hundreds or thousands of rows)
-MAX_POINT_ROWS = 1_000_000
-#: the most rows a matches CSV may have
-MAX_MATCH_ROWS = 10_000_000
+#: the most rows a table of surveyed or hand-measured points may have: GCP, stereo control, block control and
+#: pose CSVs (such tables hold hundreds or thousands of rows; more are refused while reading, the limit named,
+#: so that neither the reading nor the adjustments and reports after it can exhaust the memory)
+MAX_POINT_ROWS = 100_000
+#: the most rows a table of measured points may have: matches, calibration observation and field CSVs, and
+#: the tables read as dict rows (:func:`load_table`)
+MAX_MATCH_ROWS = 1_000_000
 #: rows parsed at a time by :class:`TableReader`
 _CHUNK_ROWS = 65536
 
@@ -243,7 +245,7 @@ def table_rows(text: str, path: StrPath) -> tuple[list[dict[str, str]], list[int
     return rows, [no for no, _ in data_lines[1:]], crs
 
 
-def load_table(path: StrPath, what: str, *, max_rows: int = MAX_POINT_ROWS
+def load_table(path: StrPath, what: str, *, max_rows: int = MAX_MATCH_ROWS
                ) -> tuple[list[dict[str, str]], list[int], str | None, list[str]]:
     """Read a table as dict rows: its rows, their line numbers, the ``# crs=`` value and the header;
     raise when the file has a header but no ``what`` (``"residual rows"``) or more than ``max_rows`` rows.
@@ -452,8 +454,9 @@ class TableReader:
             lines = self._row_lines(rows)
             n += len(rows)
             if n > max_rows:
-                raise InvalidInputError(f"{self._label} has more than {max_rows} {what} (line {int(lines[-1])}); "
-                                        f"{max_rows} is the most this table may have")
+                extra = int(lines[max_rows - (n - len(rows))])
+                raise InvalidInputError(f"{self._label} has more than {max_rows} {what} (row {max_rows + 1} is on line "
+                                        f"{extra}): {max_rows} is the most such a table may have")
             if max(map(len, rows)) > nf:  # cells past the header are ignored (as csv.DictReader)
                 rows = [r[:nf] for r in rows]
             columns = list(itertools.zip_longest(*rows, fillvalue=""))  # short rows padded with empty cells

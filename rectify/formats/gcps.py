@@ -31,6 +31,7 @@ import numpy as np
 from rectify.atomic import atomic_output, atomic_write_text, read_json
 from rectify.errors import CRSError, InvalidInputError, RasterIOError
 from rectify.formats.common import (
+    MAX_POINT_ROWS,
     StrPath,
     TableReader,
     finite_number,
@@ -80,7 +81,7 @@ def read_gcps(path: StrPath) -> GcpTable:
     with TableReader(path) as t:
         fields = list(t.fields)
         if "col_left" in fields and "x" not in fields:  # a matches CSV: fit the right image to the left
-            m, crs = read_matches_table(t)
+            m, crs = read_matches_table(t, max_rows=MAX_POINT_ROWS)  # GCPs: the GCP table's limit
             return GcpTable(m.ids, m.right, m.left, None, np.zeros(len(m), dtype=bool), crs)
         if "mapX" in fields:
             sx = "sourceX" if "sourceX" in fields else "pixelX"
@@ -230,6 +231,9 @@ def read_gcps_geojson(path: StrPath) -> GcpTable:
     feats = doc.get("features") if doc["type"] == "FeatureCollection" else [doc]
     if not isinstance(feats, list):
         raise InvalidInputError(f"{str(path)!r}: 'features' must be a list; got {type(feats).__name__}")
+    if len(feats) > MAX_POINT_ROWS:
+        raise InvalidInputError(f"{str(path)!r} has {len(feats)} features, more than the {MAX_POINT_ROWS} GCPs a GCP "
+                                "table may have")
     crs = _crs_name(doc.get("crs"))
     rows: list[tuple[str, float, float, float, float, float | None, bool]] = []
     for k, f in enumerate(feats):
@@ -321,7 +325,7 @@ def read_gcps_gpkg(path: StrPath, layer: str | None = None) -> GcpTable:
         raise RasterIOError(f"file not found: {str(p)!r}")
     try:
         # a URI, percent-encoded: '?', '#' and '%' in the name stay part of it; mode=ro creates nothing
-        con = sqlite3.connect(p.resolve().as_uri() + "?mode=ro", uri=True)
+        con = sqlite3.connect(f"file:{p}?mode=ro", uri=True)
     except sqlite3.Error as err:
         raise RasterIOError(f"cannot read {str(p)!r}: {err}") from err
     try:
@@ -344,9 +348,12 @@ def read_gcps_gpkg(path: StrPath, layer: str | None = None) -> GcpTable:
         if srs is not None and srs_id not in (0, -1):
             org, code, definition = srs
             crs = f"{str(org).upper()}:{code}" if org and str(org).upper() == "EPSG" else (definition or None)
-        cur = con.execute(f"SELECT * FROM {_sql_name(str(table))}")
+        cur = con.execute(f"SELECT * FROM {_sql_name(str(table))} LIMIT ?", (MAX_POINT_ROWS + 1,))
         names = [d[0] for d in cur.description]
         records = cur.fetchall()
+        if len(records) > MAX_POINT_ROWS:
+            raise InvalidInputError(f"{str(p)!r} layer {table!r} has more than {MAX_POINT_ROWS} features, the most "
+                                    "GCPs a GCP table may have")
     except sqlite3.Error as err:
         raise InvalidInputError(f"{str(p)!r} is not a readable GeoPackage: {err}") from None
     finally:

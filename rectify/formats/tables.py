@@ -63,13 +63,14 @@ def read_matches(path: StrPath) -> Matches:
         return read_matches_table(t)[0]
 
 
-def read_matches_table(t: TableReader) -> tuple[Matches, str | None]:
-    """The matches of an open matches CSV (its header read) and its ``# crs=`` value."""
+def read_matches_table(t: TableReader, *, max_rows: int = MAX_MATCH_ROWS) -> tuple[Matches, str | None]:
+    """The matches of an open matches CSV (its header read) and its ``# crs=`` value; more than ``max_rows``
+    rows are refused."""
     path = t.path
     need_columns(list(t.fields), _MATCH_COLUMNS, path)
     has_score = "score" in t.fields
     cols = t.read("matches", numbers=_MATCH_COLUMNS[1:] + (("score",) if has_score else ()), texts=("id",),
-                  empty=("score",), max_rows=MAX_MATCH_ROWS)
+                  empty=("score",), max_rows=max_rows)
     ids = tuple(cols.texts.pop("id"))
     no_duplicates(ids, path, "match id(s)")
     num = cols.numbers

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -181,7 +182,7 @@ def _in_image(model: SensorModel, pix: NDArray[np.float64]) -> NDArray[np.bool_]
 
 def _dem_edge(dem: Dem, n: int = 17) -> NDArray[np.float64]:
     """Points along the DEM's outer edge (its corners included), DEM CRS."""
-    t = dem.transform
+    t: Any = dem.transform
     k = np.linspace(0.0, 1.0, n)
     W, H = float(dem.width), float(dem.height)
     px = np.vstack([np.column_stack([k * W, np.zeros(n)]), np.column_stack([k * W, np.full(n, H)]),

@@ -11,17 +11,23 @@ GDAL release the GIL) and written by the calling thread.
 Mappings (output pixel -> source pixel):
 
 - a model with a ``(3, 3)`` ``matrix`` (affine, homography) is composed
-  analytically with the output grid and applied by ``cv2.warpAffine`` /
-  ``cv2.warpPerspective`` on the window -- no coordinate arrays at all;
+  analytically with the output grid and evaluated exactly at every pixel;
 - any other callable (polynomials, the cotangent method, a change of CRS
-  through pyproj) is evaluated exactly on a sparse grid (every
-  ``WarpOptions.map_step_px`` output pixels) and interpolated bilinearly,
-  then applied by ``cv2.remap`` -- like GDAL's approximate transformer.
+  through pyproj) is evaluated exactly on a sparse lattice of the output grid
+  (every ``WarpOptions.map_step_px`` pixels) and interpolated bilinearly --
+  like GDAL's approximate transformer.
+
+Either way a pixel's source position is computed from its position in the
+output grid alone (float64, stored as float32) and applied by ``cv2.remap``
+on a window starting at an even column and row: the output does not depend
+on the tile size (``cv2.warpAffine`` on a tile-relative transform moved some
+pixels by OpenCV's 1/32 px step from one tiling to another, and OpenCV rounds
+a half-way position to the window's even pixel).
 
 Validity: an output pixel is valid when the source pixel nearest to its
 source position is valid (so the footprint reaches the outer pixel edges, as
-GDAL's); near invalid source pixels, bilinear weights are renormalised over
-the valid neighbours. Invalid pixels receive the nodata value, alpha 0 or an
+GDAL's); near invalid source pixels and the source's edge, the kernel weights
+are renormalised over the valid neighbours. Invalid pixels receive the nodata value, alpha 0 or an
 internal mask, following the source (:class:`rectify.raster.io.MaskPolicy`).
 
 The tile engine runs on the shared base and output tail of :mod:`rectify.raster.engine`;
@@ -311,25 +317,22 @@ def _cv_dtype(a: NDArray) -> NDArray:
     return a.astype(np.float64)
 
 
-def _apply(img: NDArray, *, M: NDArray | None, affine: bool, maps, size: tuple[int, int], interp: int,
-           border: int) -> NDArray:
-    """Warp ``img`` (h, w[, C<=4]) to ``size`` (w, h) with a 3x3 inverse map M or maps."""
+Maps = tuple[NDArray[np.float32], NDArray[np.float32]]
 
-    if M is not None:
-        flags = interp | cv2.WARP_INVERSE_MAP
-        if affine:
-            return cv2.warpAffine(img, M[:2], size, flags=flags, borderMode=border, borderValue=0)
-        return cv2.warpPerspective(img, M, size, flags=flags, borderMode=border, borderValue=0)
+
+def _apply(img: NDArray, *, maps: Maps, interp: int, border: int) -> NDArray:
+    """Resample ``img`` (h, w[, C<=4]) at the window positions ``maps`` (each (h', w') float32)."""
     return cv2.remap(img, maps[0], maps[1], interp, borderMode=border, borderValue=0)
 
 
-def _warp_channels(data: NDArray, **kw) -> NDArray:
-    """Warp (h, w, C) in chunks of at most 4 channels (OpenCV's limit for some kernels)."""
+def _warp_channels(data: NDArray, *, maps: Maps, interp: int, border: int) -> NDArray:
+    """Resample (h, w, C) in chunks of at most 4 channels (OpenCV's limit for some kernels)."""
     c = data.shape[2]
     if c <= 4:
-        out = _apply(data if c > 1 else data[:, :, 0], **kw)
+        out = _apply(data if c > 1 else data[:, :, 0], maps=maps, interp=interp, border=border)
         return out.reshape(out.shape[0], out.shape[1], c)
-    parts = [_apply(np.ascontiguousarray(data[:, :, i:i + 4]), **kw) for i in range(0, c, 4)]
+    parts = [_apply(np.ascontiguousarray(data[:, :, i:i + 4]), maps=maps, interp=interp, border=border)
+             for i in range(0, c, 4)]
     parts = [p[:, :, None] if p.ndim == 2 else p for p in parts]
     return np.concatenate(parts, axis=2)
 
@@ -402,9 +405,9 @@ class _Engine(TileEngine):
     def _resample(self, data, valid, x0, y0, w, h, maps, full_inside):
 
         # window-relative maps: float32 minus a whole number is exact, so the shift changes no value
-        kw = dict(M=None, affine=False, maps=(maps[0] - np.float32(x0), maps[1] - np.float32(y0)), size=(w, h))
+        wm = (maps[0] - np.float32(x0), maps[1] - np.float32(y0))
         src = _cv_dtype(data)
-        out = _warp_channels(src, interp=self.interp, border=cv2.BORDER_REPLICATE, **kw)
+        out = _warp_channels(src, maps=wm, interp=self.interp, border=cv2.BORDER_REPLICATE)
         # footprint: nearest source pixel inside the window and valid
         win_h, win_w = data.shape[:2]
         if valid is None and self.opts.resampling != "nearest" and \
@@ -416,16 +419,16 @@ class _Engine(TileEngine):
             out_valid = None
         else:
             vm = np.full((win_h, win_w), 255, np.uint8) if valid is None else valid.astype(np.uint8) * 255
-            near = _apply(vm, interp=cv2.INTER_NEAREST, border=cv2.BORDER_CONSTANT, **kw)
+            near = _apply(vm, maps=wm, interp=cv2.INTER_NEAREST, border=cv2.BORDER_CONSTANT)
             out_valid = near > 0
             if valid is not None and self.opts.resampling != "nearest":
                 # renormalise the kernel over valid neighbours near invalid source pixels
-                lin = _apply(valid.astype(np.float32), interp=self.interp, border=cv2.BORDER_CONSTANT, **kw)
+                lin = _apply(valid.astype(np.float32), maps=wm, interp=self.interp, border=cv2.BORDER_CONSTANT)
                 edge = out_valid & (lin < 1.0 - 1e-6)
                 if edge.any():
                     src0 = src.astype(np.float32) if src.dtype.kind in "ui" else src.copy()
                     src0[~valid] = 0
-                    part = _warp_channels(src0, interp=self.interp, border=cv2.BORDER_CONSTANT, **kw)
+                    part = _warp_channels(src0, maps=wm, interp=self.interp, border=cv2.BORDER_CONSTANT)
                     wgt = lin[edge].astype(np.float64)[:, None]
                     vals = part[edge].astype(np.float64) / np.maximum(wgt, 1e-6)
                     out = out.copy() if not out.flags.writeable else out

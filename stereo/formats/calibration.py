@@ -37,7 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rectify.errors import CalibrationError, InvalidInputError
-from rectify.formats.common import FORMAT_PREFIX, Columns, TableReader
+from rectify.formats.common import FORMAT_PREFIX, MAX_MATCH_ROWS, Columns, TableReader
 from stereo.calibration.model import Intrinsics
 from stereo.calibration.views import TargetView
 
@@ -161,7 +161,7 @@ def _open(path: str | Path, what: str, texts: tuple[str, ...], numbers: tuple[st
                 raise InvalidInputError(f"{label} lacks column(s) {miss}; expected {','.join(need)}"
                                         f"{'[,' + ','.join(optional) + ']' if optional else ''}")
             extra = optional if optional and all(c in t.fields for c in optional) else ()
-            cols = t.read("rows", numbers=(*numbers, *extra), texts=texts)
+            cols = t.read("rows", numbers=(*numbers, *extra), texts=texts, max_rows=MAX_MATCH_ROWS)
     except InvalidInputError as err:
         msg = str(err)
         if "has no header and no rows" in msg:
@@ -173,7 +173,7 @@ def _open(path: str | Path, what: str, texts: tuple[str, ...], numbers: tuple[st
 def read_field_csv(path: str | Path) -> dict[str, F64]:
     """Read a field CSV ``point,x,y,z`` -> {point id: (3,) object coordinates}.
 
-    Read as a stream; more than :data:`rectify.formats.common.MAX_POINT_ROWS` rows are refused.
+    Read as a stream; more than :data:`rectify.formats.common.MAX_MATCH_ROWS` rows are refused.
 
     Raises
     ------
@@ -193,7 +193,7 @@ def read_field_csv(path: str | Path) -> dict[str, F64]:
 def read_observations_csv(path: str | Path) -> tuple[list[tuple[str, str, float, float]], dict[str, F64]]:
     """Read an observation CSV -> ([(view, point, col, row), ...], {point: xyz} from optional x,y,z columns).
 
-    Read as a stream; more than :data:`rectify.formats.common.MAX_POINT_ROWS` rows are refused.
+    Read as a stream; more than :data:`rectify.formats.common.MAX_MATCH_ROWS` rows are refused.
     """
     cols, what = _open(path, "observation file", ("view", "point"), ("col", "row"), ("x", "y", "z"))
     has_xyz = "x" in cols.numbers

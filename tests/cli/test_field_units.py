@@ -83,8 +83,9 @@ def test_resect_prints_degrees_of_the_radians_it_writes(tmp_path):
     mm = np.column_stack([-50.0 * p[:, 0] / p[:, 2], -50.0 * p[:, 1] / p[:, 2]]) + rng.normal(0, 0.002, (12, 2))
     px = cam.pixel_from_photo(mm)
     (tmp_path / "cam.json").write_text(json.dumps(cam.to_dict()))
-    (tmp_path / "g.csv").write_text("# crs=EPSG:32633\nid,col,row,x,y,z\n" + "".join(
-        f"g{i},{float(a[0])!r},{float(a[1])!r},{float(g[0])!r},{float(g[1])!r},{float(g[2])!r}\n" for i, (a, g) in enumerate(zip(px, G, strict=True))))
+    rows = [",".join([f"g{i}", *(repr(float(v)) for v in (*a, *g))])
+            for i, (a, g) in enumerate(zip(px, G, strict=True))]
+    (tmp_path / "g.csv").write_text("# crs=EPSG:32633\nid,col,row,x,y,z\n" + "\n".join(rows) + "\n")
     out = _run(["resect", "--camera", str(tmp_path / "cam.json"), "--gcps", str(tmp_path / "g.csv"), "-o",
                 str(tmp_path / "eo.json")])
     eo = json.loads((tmp_path / "eo.json").read_text())

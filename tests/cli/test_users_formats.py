@@ -10,11 +10,13 @@ describes it), with our own values, no file of the tools copied. The NGI frames 
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pystac
 import pytest
@@ -24,7 +26,9 @@ from numpy.testing import assert_allclose
 from rasterio.control import GroundControlPoint
 from scipy import ndimage
 
+import rectify.actions.ortho as ortho_action
 from rectify.cli.main import cli as rectify_cli
+from rectify.errors import CRSError, InvalidInputError, RasterIOError
 from rectify.formats.colmap import read_colmap_images
 from rectify.formats.opencv import read_opencv_calibration, write_opencv_calibration
 from rectify.formats.orthority import (
@@ -41,16 +45,19 @@ from rectify.geometry.camera import Camera
 from rectify.geometry.crs import same_crs
 from rectify.geometry.points import GcpTable
 from rectify.geometry.rotation import angles_from_matrix, matrix_from_angles
+from stereo.actions.scene import make_scene, render
 from stereo.block.types import Pose, project_pixel
 from stereo.cli.main import cli as stereo_cli
 from stereo.formats.block import read_block_orientation
 from stereo.formats.colmap import read_colmap, write_colmap
-from stereo.formats.opensfm import read_opensfm
+from stereo.formats.opensfm import opensfm_texts, read_opensfm, write_opensfm
+from stereo.formats.orientation import write_exterior
 from stereo.formats.poses import read_pose_csv
 from tests.support.block_example import CAM, write_example_block
 from tests.support.block_example import CRS as BLOCK_CRS
 from tests.support.block_example import E0 as BE0
 from tests.support.block_example import N0 as BN0
+from tests.support.calibration_synthetic import field_scene
 
 FLIP = np.diag([1.0, -1.0, -1.0])
 
@@ -454,9 +461,6 @@ def test_products_write_a_stac_item_in_their_transaction(frame, monkeypatch):
     r = _run(rectify_cli, ["ortho", d / "img.tif", "--dem", d / "dem.tif", "-o", d / "p.tif", "--camera",
                            d / "cam.json", "--exterior", d / "eo.json"])
     assert r.exit_code == 1 and "p.stac.json" in r.output and "exists" in r.output and not (d / "p.tif").exists()
-    import rectify.actions.ortho as ortho_action
-    from rectify.errors import RasterIOError
-
     def fail(*args, **kwargs):
         raise RasterIOError("cannot write 'q.stac.json': disk full (injected)")
 
@@ -467,10 +471,59 @@ def test_products_write_a_stac_item_in_their_transaction(frame, monkeypatch):
     assert not any(p.name.startswith((".q", "q.")) for p in d.iterdir())
 
 
+def test_dense_writes_the_stac_item_of_its_dsm_and_cloud(tmp_path):
+    sc = make_scene(3, size_px=160)
+    cv2.imwrite(str(tmp_path / "l.png"), render(sc, "left"))
+    cv2.imwrite(str(tmp_path / "r.png"), render(sc, "right"))
+    for side, eo in (("l", sc.left), ("r", sc.right)):
+        write_exterior(tmp_path / f"{side}.json", dataclasses.replace(eo, sigma0=0.0, crs=sc.crs),
+                       camera=sc.camera.to_dict())
+    args = ["dense", tmp_path / "l.json", tmp_path / "l.png", tmp_path / "r.png", "--right-orientation",
+            tmp_path / "r.json", "--cloud", "ply"]
+    _ok(stereo_cli, [*args, "-o", tmp_path / "out"])
+    item = pystac.Item.from_file(str(tmp_path / "out" / "item.stac.json"))
+    assert {k: a.href for k, a in item.assets.items()} == {"dsm": "dsm.tif", "metadata": "dense.json",
+                                                            "points": "points.ply"}
+    for a in item.assets.values():
+        assert a.extra_fields["file:checksum"] == file_checksum(tmp_path / "out" / a.href)
+    with rasterio.open(tmp_path / "out" / "dsm.tif") as ds:
+        assert item.properties["proj:shape"] == [ds.height, ds.width]
+        assert item.properties["proj:transform"] == list(ds.transform)[:6]
+    assert item.properties["rectify:accuracy"]["vertical_parallax_rms_px"] >= 0
+    _ok(stereo_cli, [*args, "-o", tmp_path / "out2", "--no-stac"])
+    assert not (tmp_path / "out2" / "item.stac.json").exists()
+
+
+def test_opensfm_writer_round_trip_and_refusals(tmp_path):
+    cam = Camera.from_dict({"width": 4000, "height": 3000, "focal_length_px": 3300.0,
+                            "principal_point_px": [2001.25, 1498.5],
+                            "distortion": {"k1": -0.05, "k2": 0.01, "k3": 1e-3, "p1": 1e-4, "p2": -2e-4}})
+    rng = np.random.default_rng(4)
+    poses = []
+    for i in range(3):
+        om, ph = rng.uniform(-0.1, 0.1, 2)
+        poses.append(Pose(f"I{i}.JPG", "c", rng.uniform(-50, 50, 3), matrix_from_angles(om, ph, rng.uniform(-3, 3))))
+    pts = rng.uniform(-20, 20, (5, 3))
+    (tmp_path / "local").mkdir()
+    write_opensfm(tmp_path / "local", {"c": cam}, poses, points=pts)  # no CRS: its own frame, no reference_lla
+    rec = read_opensfm(tmp_path / "local" / "reconstruction.json")
+    assert rec.crs is None and rec.reference_lonlat_h is None
+    _close({p.image: p for p in rec.poses}, {p.image: p for p in poses}, 1e-12, 1e-13)
+    assert_allclose(rec.points, pts, rtol=0, atol=0)
+    assert_allclose(np.asarray(rec.cameras["c"].K), np.asarray(cam.K), rtol=1e-15)
+    assert rec.cameras["c"].distortion == pytest.approx(cam.distortion, rel=1e-15)
+    skew = Camera.from_dict({"width": 40, "height": 30, "fx_px": 30.0, "fy_px": 30.0, "skew_px": 0.5,
+                             "principal_point_px": [19.5, 14.5]})
+    with pytest.raises(InvalidInputError, match="skew 0.5"):
+        opensfm_texts({"c": skew}, poses)
+    with pytest.raises(InvalidInputError, match="names camera 'c'"):
+        opensfm_texts({"d": cam}, poses)
+    with pytest.raises(CRSError, match="must be projected"):
+        opensfm_texts({"c": cam}, poses, crs="EPSG:4326")
+
+
 # ------------------------------------------------------------------ stereo calibrate -o *.yml
 def test_calibrate_writes_an_opencv_file(tmp_path):
-    from tests.support.calibration_synthetic import field_scene
-
     sc = field_scene(np.random.default_rng(3), n_views=2, n_points=40, noise_px=0.2)
     (tmp_path / "obs.csv").write_text("view,point,col,row\n" + "".join(
         f"{v.name},{p},{c!r},{r!r}\n" for v in sc.views for p, (c, r) in zip(v.ids, v.pixel.tolist(), strict=True)))

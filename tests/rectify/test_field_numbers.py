@@ -346,10 +346,25 @@ def test_ortho_geotransform_from_the_footprint(tmp_path):
         assert (ds.width, ds.height) == (w, h)
         a = ds.read().astype(np.float64)
     assert res.grid.width == w
-    # content at the centres: back-projecting the ortho pixel centre (on the DEM surface) gives the source pixel
-    # the photo's bands hold there; checked loosely here (the geolocation test is tests/rectify/test_ortho.py)
-    ok = np.isfinite(a).all(axis=0)
-    assert ok.mean() > 0.3
+    # content at the centres: each ortho pixel holds the photo position (bands 1, 2) of its centre on the DEM
+    # (bilinear between the DEM's cell centres), projected by our own collinearity
+    from scipy.ndimage import map_coordinates
+
+    X, Y = _centres(Affine(0.8, 0, left, 0, -0.8, top), w, h)
+    dem_c = (X - (E0 - 300)) / 2.0 - 0.5
+    dem_r = ((N0 + 300) - Y) / 2.0 - 0.5
+    Zc = map_coordinates(z.astype(np.float64), [dem_r.ravel(), dem_c.ravel()], order=1).reshape(h, w)
+    G = np.stack([X, Y, Zc], axis=-1).reshape(-1, 3)
+    q = (G - model.position) @ model.rotation
+    xm, ym = -cam.focal_length_mm * q[:, 0] / q[:, 2], -cam.focal_length_mm * q[:, 1] / q[:, 2]
+    col = ((cam.width - 1) / 2 + xm / cam.pixel_size_mm).reshape(h, w)
+    row = ((cam.height - 1) / 2 - ym / cam.pixel_size_mm).reshape(h, w)
+    ok = np.isfinite(a).all(axis=0) & (col > 1) & (col < cam.width - 2) & (row > 1) & (row < cam.height - 2)
+    ok &= (dem_c > 0) & (dem_r > 0) & (dem_c < z.shape[1] - 1) & (dem_r < z.shape[0] - 1)
+    assert ok.sum() > 0.3 * ok.size
+    err = np.hypot(a[0] - col, a[1] - row)[ok]
+    assert err.max() < 0.03, err.max()  # OpenCV's 1/32 px positions; half a pixel off is 0.5
+    assert abs(float(np.median((a[0] - col)[ok]))) < 0.005 and abs(float(np.median((a[1] - row)[ok]))) < 0.005
 
 
 @pytest.mark.parametrize("resampling", ["bilinear", "cubic"])

@@ -214,3 +214,22 @@ def test_shift_limit_per_match_and_its_shape():
     np.testing.assert_allclose(r.right[0], pl[0] + [3.0, 0.0], atol=0.01)
     with pytest.raises(ShapeError, match="shift_limit_px"):
         refine_matches(img, shifted, pl, start, shift_limit_px=[4.0, 1.0])
+
+
+def test_a_wrong_partner_along_the_epipolar_line_is_off_its_neighbours():
+    """Fundamental verification cannot see a partner displaced along its epipolar line; its neighbours can (the
+    parallax of the relief varies smoothly; here +-6 px)."""
+    from rectify.features.match import _off_neighbours
+    from rectify.features.shape import neighbour_residuals
+
+    rng = np.random.default_rng(2)
+    pl = rng.uniform(0, 600, (400, 2))
+    parallax = 6.0 * np.sin(pl[:, 0] / 90.0) * np.cos(pl[:, 1] / 120.0)
+    pr = pl + np.c_[-420.0 + parallax, np.full(400, -12.0)] + rng.normal(0, 0.1, (400, 2))
+    pr[[5, 50]] += [[150.0, 0.0], [-35.0, 0.0]]                      # two wrong partners on their (horizontal) lines
+    e = neighbour_residuals(pl, pr)
+    assert e[5] > 100 and e[50] > 25 and np.median(e) < 1.0
+    odd = _off_neighbours(pl, pr)
+    assert np.flatnonzero(odd).tolist() == [5, 50]
+    assert not _off_neighbours(pl[:15], pr[:15]).any()               # too few matches to judge
+    assert np.isnan(neighbour_residuals(pl[:8], pr[:8])).all()
