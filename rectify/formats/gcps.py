@@ -325,7 +325,7 @@ def read_gcps_gpkg(path: StrPath, layer: str | None = None) -> GcpTable:
         raise RasterIOError(f"file not found: {str(p)!r}")
     try:
         # a URI, percent-encoded: '?', '#' and '%' in the name stay part of it; mode=ro creates nothing
-        con = sqlite3.connect(f"file:{p}?mode=ro", uri=True)
+        con = sqlite3.connect(p.resolve().as_uri() + "?mode=ro", uri=True)
     except sqlite3.Error as err:
         raise RasterIOError(f"cannot read {str(p)!r}: {err}") from err
     try:

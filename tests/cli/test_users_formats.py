@@ -600,8 +600,9 @@ def test_block_from_a_colmap_model_reuses_its_tracks(block, tmp_path):
     r = _ok(stereo_cli, ["block", *images, "--camera", d / "camera.json", "--poses", d / "colmap", "--gnss-sigma",
                          "0.05", "--control", d / "control.csv", "--no-report", "-o", tmp_path / "c"])
     assert "tracks of colmap" in r.output and "matching skipped" in r.output
-    # the same block from its own adjusted result: the adjustment lands where it started (to its convergence)
-    _close(_poses_of(tmp_path / "c"), _poses_of(out), 2e-3, 2e-5)
+    # the same block from its own adjusted result and written points: the adjustment lands where it started
+    # (measured: 4.3e-6 m, 2.5e-6 rad; the tracks are the written points only, a few dozen fewer)
+    _close(_poses_of(tmp_path / "c"), _poses_of(out), 1e-4, 2e-5)
 
 
 def test_block_through_pycolmap(block, tmp_path):
@@ -620,7 +621,7 @@ def test_block_through_pycolmap(block, tmp_path):
     r = _ok(stereo_cli, ["block", *images, "--poses", tmp_path / "pc", "--gnss-sigma", "0.05", "--control",
                          d / "control.csv", "--no-report", "-o", tmp_path / "b"])
     assert "matching skipped" in r.output
-    _close(_poses_of(tmp_path / "b"), _poses_of(out), 2e-3, 2e-5)
+    _close(_poses_of(tmp_path / "b"), _poses_of(out), 1e-4, 2e-5)
 
 
 def test_block_control_from_odm_and_metashape(block, tmp_path):
