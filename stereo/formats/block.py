@@ -144,7 +144,7 @@ def read_block_control(path: StrPath) -> BlockControlTable:
     px = np.column_stack([num["col"], num["row"]])
     faults: list[tuple[int, str]] = []  # (row, message): the earliest row's fault is raised
 
-    def first(mask: NDArray[np.bool_]) -> int | None:
+    def first(mask: Any) -> int | None:
         k = np.flatnonzero(mask)
         return int(k[0]) if k.size else None
 

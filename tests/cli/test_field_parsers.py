@@ -209,6 +209,7 @@ def test_pose_block_control_and_stereo_control_past_the_limit(scene, tmp_path):
 
 
 _PEAK = textwrap.dedent("""
+    # the command's peak RSS: the child inherits this small wrapper's peak across exec, not the test runner's
     import json, resource, subprocess, sys, time
     t = time.perf_counter()
     r = subprocess.run([sys.executable, "-c", "from rectify.cli.main import cli; cli()", *sys.argv[1:]],
