@@ -754,3 +754,87 @@ def test_report_on_a_full_disk(noise_scene, small_disk):
     _one_line_error(r)
     assert "no space left on device" in r.output and "rep" in r.output
     assert _entries(d) == names and _entries(small_disk) == [filler.name] and _hash(gcps) == before
+
+
+# --- 11. the workspace: outputs against inputs resolved, the report staged with the transaction (issue 32)
+@pytest.mark.parametrize("how", ["symlink", "hardlink", "dotdot", "folder_symlink"])
+def test_workspace_refuses_an_output_that_resolves_to_an_input(tmp_path, how):
+    from rectify.actions.workspace import Workspace
+    from rectify.errors import InvalidInputError
+
+    src = tmp_path / "in" / "gcps.csv"
+    src.parent.mkdir()
+    src.write_text("id,col,row,x,y\n")
+    out = {"symlink": tmp_path / "link.csv", "hardlink": tmp_path / "hard.csv",
+           "dotdot": tmp_path / "new" / ".." / "in" / "gcps.csv",
+           "folder_symlink": tmp_path / "alias" / "gcps.csv"}[how]
+    if how == "symlink":
+        out.symlink_to(src)
+    elif how == "hardlink":
+        os.link(src, out)
+    elif how == "folder_symlink":
+        (tmp_path / "alias").symlink_to(src.parent, target_is_directory=True)
+    names = sorted(p.name for p in tmp_path.rglob("*"))
+    for overwrite in (False, True):
+        ws = Workspace(overwrite=overwrite, inputs=[src])
+        with pytest.raises(InvalidInputError, match="is also an input"):
+            ws.plan(out)
+        with pytest.raises(InvalidInputError, match="is also an input"):
+            ws.write_text(out, "x")
+    assert src.read_text() == "id,col,row,x,y\n" and sorted(p.name for p in tmp_path.rglob("*")) == names
+    Workspace(inputs=[src]).plan(tmp_path / "other.csv")  # another file is fine
+
+
+def test_report_folder_is_staged_with_the_transaction(tmp_path):
+    """The report is written into a hidden folder beside the report folder and moved in at the commit, with the
+    other outputs: an error (or SIGTERM's SystemExit) leaves neither, and removes the parents made for it."""
+    from rectify.actions.workspace import Workspace
+    from rectify.errors import InvalidInputError
+
+    rep = tmp_path / "a" / "b" / "rep"
+    ws = Workspace(report_dir=rep)
+    for exc in (RuntimeError("boom"), SystemExit(143)):
+        with pytest.raises(type(exc)), ws.transaction():
+            ws.write_text(tmp_path / "out.json", "{}")
+            with ws.report_folder() as stage:
+                (stage / "report.html").write_text("<html></html>")
+                (stage / "residuals.csv").write_text("id\n")
+            assert not rep.exists() and stage.parent == rep.parent  # staged beside it, not yet in place
+            raise exc
+        assert _entries(tmp_path) == []  # no output, no staging folder, no parent folder left
+    with ws.transaction():
+        ws.write_text(tmp_path / "out.json", "{}")
+        with ws.report_folder() as stage:
+            (stage / "report.html").write_text("<html>1</html>")
+            (stage / "report.json").write_text('{"files": ["report.html", "old.png"]}')
+            (stage / "old.png").write_bytes(b"x")
+    assert _entries(rep) == ["old.png", "report.html", "report.json"] and _entries(rep.parent) == ["rep"]
+    # a second report (with --overwrite) replaces the files and removes those only the previous one listed
+    ws2 = Workspace(report_dir=rep, overwrite=True)
+    with ws2.transaction():
+        with ws2.report_folder() as stage:
+            (stage / "report.html").write_text("<html>2</html>")
+            (stage / "report.json").write_text('{"files": ["report.html"]}')
+    assert _entries(rep) == ["report.html", "report.json"] and (rep / "report.html").read_text() == "<html>2</html>"
+    # without --overwrite an existing report file is refused at the commit and nothing moves
+    with pytest.raises(InvalidInputError, match="exists|appeared"), Workspace(report_dir=rep).transaction() as ws3:
+        with ws3.report_folder() as stage:
+            (stage / "report.html").write_text("<html>3</html>")
+    assert (rep / "report.html").read_text() == "<html>2</html>" and _entries(rep.parent) == ["rep"]
+
+
+def test_report_commit_never_replaces_an_input(tmp_path):
+    """The commit checks every staged destination against the inputs again (report files are named only when
+    written): an input in the report folder under a report file's name is refused, with --overwrite too."""
+    from rectify.actions.workspace import Workspace
+    from rectify.errors import InvalidInputError
+
+    rep = tmp_path / "rep"
+    rep.mkdir()
+    mine = rep / "residuals.csv"
+    mine.write_text("my GCPs\n")
+    ws = Workspace(report_dir=rep, overwrite=True, inputs=[mine])
+    with pytest.raises(InvalidInputError, match="is also an input"), ws.transaction():
+        with ws.report_folder() as stage:
+            (stage / "residuals.csv").write_text("id\n")
+    assert mine.read_text() == "my GCPs\n" and _entries(rep) == ["residuals.csv"] and _entries(tmp_path) == ["rep"]
