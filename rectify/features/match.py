@@ -738,13 +738,17 @@ OFF_NEIGHBOURS_MIN_PX = 20.0
 
 
 def _off_neighbours(pl, pr) -> NDArray[np.bool_]:
-    """Matches whose right point lies far from where the affine of their 8 nearest matches puts it (fundamental
-    verification lets a wrong partner along the epipolar line through); none with fewer than 20 matches."""
+    """Matches whose right point lies far from where their 8 nearest matches put it (fundamental verification lets
+    a wrong partner along the epipolar line through); judged again against the nearest of the others only, so
+    a good match among wrong ones is kept. None with fewer than 20 matches."""
     if len(pl) < 20:
         return np.zeros(len(pl), bool)
     e = neighbour_residuals(pl, pr)
     cut = max(OFF_NEIGHBOURS_MIN_PX, OFF_NEIGHBOURS_RATIO * float(np.median(e[np.isfinite(e)])))
-    return np.asarray(e > cut, dtype=bool)
+    off = e > cut
+    if off.any() and (~off).sum() >= 20:
+        off &= neighbour_residuals(pl, pr, among=~off) > cut
+    return np.asarray(off, dtype=bool)
 
 
 def _reverify_and_cap(pl, pr, raw_pr, score, cfg: MatcherConfig, shape_left, keep_unrefined: bool | None = None):

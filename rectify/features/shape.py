@@ -49,32 +49,43 @@ def local_affine(pl: NDArray[np.float64], pr: NDArray[np.float64], ver: Verifica
     return A
 
 
-def _nearest(p: NDArray[np.float64], k: int) -> NDArray[np.int64]:
-    """(N, k) indices of the k nearest points of every point (itself first)."""
+def _nearest(p: NDArray[np.float64], k: int, q: NDArray[np.float64] | None = None) -> NDArray[np.int64]:
+    """(M, k) indices into ``p`` of the k nearest points of ``p`` to every point of ``q`` (default ``p``: itself
+    first)."""
     # local import: scipy.spatial takes about 0.6 s to import and only the fundamental/none paths need it
     from scipy.spatial import cKDTree
 
-    _, nb = cKDTree(p).query(p, k=k)
-    return np.asarray(nb, dtype=np.int64).reshape(len(p), k)
+    q = p if q is None else q
+    _, nb = cKDTree(p).query(q, k=k)
+    return np.asarray(nb, dtype=np.int64).reshape(len(q), k)
 
 
-def neighbour_residuals(pl: NDArray[np.float64], pr: NDArray[np.float64], k: int = 8) -> NDArray[np.float64]:
+def neighbour_residuals(pl: NDArray[np.float64], pr: NDArray[np.float64], k: int = 8, *,
+                        among: NDArray[np.bool_] | None = None) -> NDArray[np.float64]:
     """(N,) distance (right px) of every right point from where its ``k`` nearest matches (by the left points,
-    itself excluded) put it: the median of their predictions through the pair's affine (the median of the
-    neighbours' affine fits), so one or two wrong neighbours are outvoted; NaN with fewer than ``k + 1`` matches.
+    itself excluded; only those in ``among`` when given) put it: the median of their predictions through the
+    pair's affine (the median of the matches' neighbour affine fits), so a few wrong neighbours are outvoted;
+    NaN with fewer than ``k + 1`` matches.
 
     A wrong partner along the epipolar line passes a fundamental matrix, but its parallax disagrees with its
     neighbours' by far more than the relief makes them differ (on the NGI pair: one match 607 px off its
     neighbours' prediction, every other within 10 px)."""
     n = len(pl)
-    if n < k + 1:
+    pool = np.arange(n) if among is None else np.flatnonzero(among)
+    if len(pool) < k + 1:
         return np.full(n, np.nan)
-    nb = _nearest(pl, k + 1)[:, 1:]
+    nb_all = _nearest(pl, k + 1)[:, 1:]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)     # degenerate neighbourhoods: NaN, ignored
-        A = np.nanmedian(_neighbour_affine(pl, pr, nb), axis=0)
+        A = np.nanmedian(_neighbour_affine(pl, pr, nb_all), axis=0)
     if not np.isfinite(A).all():
         A = np.eye(2)
+    nb = pool[_nearest(pl[pool], k + 1, pl)]                    # (n, k + 1): may hold the match itself
+    own = nb == np.arange(n)[:, None]
+    last = np.where(own.any(axis=1), np.argmax(own, axis=1), k)  # drop the match itself, else the farthest
+    keep = np.ones(nb.shape, bool)
+    keep[np.arange(n), last] = False
+    nb = nb[keep].reshape(n, k)
     each = pr[nb] + (pl[:, None, :] - pl[nb]) @ A.T                 # (n, k, 2): each neighbour's prediction
     e = np.linalg.norm(np.median(each, axis=1) - pr, axis=1)
     return np.where(np.isfinite(e), e, np.inf)

@@ -324,13 +324,13 @@ def mosaic(orthos: Sequence[str | Path], dst: str | Path, *, resolution: float |
     nx, ny = max(1, int(round((x1 - x0) / res))), max(1, int(round((y1 - y0) / res)))
     if float(nx) * float(ny) > max_pixels:
         covered = sum((r - left) * (t - b) for left, b, r, t in zip(lefts, bottoms, rights, tops, strict=True))
-        share = covered / ((x1 - x0) * (y1 - y0))
+        cover = covered / ((x1 - x0) * (y1 - y0))
         fix = ("the orthophotos lie far apart: mosaic those that lie together, or give a coarser --resolution"
-               if share < 0.1 else "give a coarser --resolution")
+               if cover < 0.1 else "give a coarser --resolution")
         raise InvalidInputError(
             f"the mosaic's output grid would be {nx} x {ny} px ({float(nx) * float(ny):.3g} px at {res:.6g} "
             f"{unit_label(crs)}/px), above the limit of {max_pixels:.3g} px; the {len(paths)} orthophoto(s) cover at "
-            f"most {100 * share:.3g} % of it (x {x0:.10g} .. {x1:.10g}, y {y0:.10g} .. {y1:.10g}): {fix}")
+            f"most {100 * cover:.3g} % of it (x {x0:.10g} .. {x1:.10g}, y {y0:.10g} .. {y1:.10g}): {fix}")
     grid = Grid(nx, ny, Affine(res, 0.0, x0, 0.0, -res, y1), crs)
     nd0 = inputs[0].nodata
     nodata = float(nd0) if nd0 is not None else (float("nan") if dtype.kind == "f" else 0.0)

@@ -40,7 +40,8 @@ def check_block_inputs(ws: PairWorkspace, images: Sequence[StrPath], names: tupl
     - the projection centres of the poses (``poses_path``) and the control's coordinates are possible
       in their CRS (a geographic CRS label on projected numbers, a UTM zone far from the points:
       :func:`rectify.actions.workspace.check_table_crs`);
-    - every control measurement lies in the frame of its image's camera (1 px tolerance);
+    - every control measurement lies in the frame of its image's camera (1 px tolerance, as
+      :meth:`PairWorkspace.check_points_in_frame`);
     - with poses, every measured control point projects near (within :data:`CONTROL_FRAME_MARGIN` of
       the frame size) at least one image it is measured in.
 
@@ -71,11 +72,22 @@ def check_block_inputs(ws: PairWorkspace, images: Sequence[StrPath], names: tupl
         check_table_crs(source, ctrl.crs, ctrl.xyz[:, :2], ctrl.ids)
     where = {Path(n).stem: k for k, n in enumerate(names)} | {n: k for k, n in enumerate(names)}
     img = np.array([where.get(m, where.get(Path(m).stem, -1)) for m in ctrl.meas_image], dtype=np.int64)
+    outside = np.zeros(len(img), dtype=bool)
     for k in np.unique(img[img >= 0]):
         sel = np.flatnonzero(img == k)
-        ws.check_points_in_frame(cameras[camera_of[k]], ctrl.meas_pixel[sel],
-                                 [f"{ctrl.meas_id[i]} in {names[k]}" for i in sel],
-                                 f"control measurements of {source!r}")
+        cam = cameras[camera_of[k]]
+        px = ctrl.meas_pixel[sel]
+        with np.errstate(invalid="ignore"):
+            off = (px[:, 0] < -1.5) | (px[:, 1] < -1.5) | (px[:, 0] > cam.width + 0.5) | (px[:, 1] > cam.height + 0.5)
+        outside[sel] = np.isfinite(px).all(axis=1) & off
+    if outside.any():
+        bad = np.flatnonzero(outside)
+        e = ", ".join(f"{ctrl.meas_id[i]} in {names[img[i]]} ({ctrl.meas_pixel[i, 0]:.1f}, {ctrl.meas_pixel[i, 1]:.1f})"
+                      for i in bad[:3])
+        sizes = sorted({f"{cameras[camera_of[img[i]]].width} x {cameras[camera_of[img[i]]].height} px" for i in bad})
+        raise InvalidInputError(f"{bad.size} control measurements of {source!r} outside the camera's "
+                                f"{', '.join(sizes)} frame, e.g. {e}: wrong camera file, or points measured on "
+                                "another image size")
     if poses is not None:
         _check_control_near_images(ctrl, source, img, cameras, camera_of, poses)
 
