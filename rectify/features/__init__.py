@@ -6,7 +6,8 @@ Pipeline (:func:`match_images`)::
       -> detect (SIFT | ORB | AKAZE), bias-free subpixel positions, even spread (cap per grid cell)
       -> match (ratio test + mutual check; FLANN for float, Hamming brute force for binary)
       -> verify (OpenCV USAC MAGSAC++: homography | fundamental | none)
-      -> refine (least-squares matching, :mod:`rectify.features.lsm`) -> re-verify -> even selection
+      -> refine (least-squares matching, :mod:`rectify.features.lsm`, started by :mod:`rectify.features.shape`)
+      -> re-verify, screen the refined matches (:mod:`rectify.features.verify`) -> even selection
 
 Small images (both sides <= ``MatcherConfig.tiled_above_px``) are matched whole.
 Larger ones go coarse-to-fine: both images are read as area-averaged overviews
@@ -28,8 +29,11 @@ bytes each): about 1.3 GB. Measured peak RSS: 1.10 GB on an 8000^2 pair and
 Modules
 -------
 detect   keypoint detection with the detector bias removed, even spread (:func:`detect`, :func:`grid_select`)
-match    descriptor matching, geometric verification, whole-image matching (:func:`match_arrays`),
-         the options (:class:`MatcherConfig`) and results
+match    descriptor matching, whole-image matching (:func:`match_arrays`; a right image turned by quarter
+         turns is turned back), the options (:class:`MatcherConfig`) and results
+verify   geometric verification (:func:`verify_matches`), the screening of refined matches, residual tables
+shape    start shapes of the refinement (homography Jacobian, neighbours' affine, keypoints' similarity)
+lsm      least-squares matching (:func:`rectify.features.lsm.refine_matches`)
 tiled    coarse-to-fine matching of large rasters by tiles, bounded memory
 images   :func:`match_images`: two raster files, whole or tiled
 

@@ -623,6 +623,7 @@ def _match_whole(L, lv, R, rv, cfg: MatcherConfig, progress, names, fl: Features
         inl = ver0.inliers
     k = _quarter_turns(fl, fr, pairs, inl) if first and cfg.derotate else 0
     if k:   # the right image turned by about k quarter turns: match again with it turned back (exact, lossless)
+        t_first = time.perf_counter() - t0
         try:
             again = None if progress is None else (lambda d, t: progress(max(d, 2), t))   # no step back
             res = _match_whole(L, lv, np.rot90(R, k), np.rot90(rv, k), cfg, again, names, fl=fl)
@@ -630,7 +631,7 @@ def _match_whole(L, lv, R, rv, cfg: MatcherConfig, progress, names, fl: Features
             logger.info("matching with the right image turned by %d quarter turns failed (%s); matching as given",
                         k, err)
         else:
-            return _turned_back(res, k, R.shape[:2], cfg, time.perf_counter() - t0)
+            return _turned_back(res, k, R.shape[:2], cfg, t_first)
     cand_l, cand_r, cand_inl = pl, pr, inl
     vl, vr, vratio = pl[inl], pr[inl], ratio[inl]
     vli, vri = pairs.left[inl], pairs.right[inl]          # keypoint indices (their sizes and orientations)
@@ -709,7 +710,7 @@ def _turned_back(res: MatchResult, k: int, shape_right: tuple[int, int], cfg: Ma
         M = T @ M if ver.method == "homography" else np.linalg.inv(T).T @ M
         ver = table_for(Verification(ver.method, M, ver.inliers, ver.errors_px, None), m.left, matches.right,
                         threshold_px=cfg.threshold_px, refined=res.refined)
-    timings = {**res.timings_s, "turned": t_first, "total": res.timings_s.get("total", 0.0) + t_first}
+    timings = {**res.timings_s, "first_pass": t_first, "total": res.timings_s.get("total", 0.0) + t_first}
     logger.info("the right image is turned by %d quarter turns against the left one: matched turned back", k)
     return replace(res, matches=matches, verification=ver, candidates_right=back(res.candidates_right),
                    image_shapes=(res.image_shapes[0], shape_right), timings_s=timings, n_turns=k)

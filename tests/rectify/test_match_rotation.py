@@ -233,3 +233,17 @@ def test_a_wrong_partner_along_the_epipolar_line_is_off_its_neighbours():
     assert np.flatnonzero(odd).tolist() == [5, 50]
     assert not _off_neighbours(pl[:15], pr[:15]).any()               # too few matches to judge
     assert np.isnan(neighbour_residuals(pl[:8], pr[:8])).all()
+
+
+def test_a_good_match_among_wrong_neighbours_is_kept():
+    """Five wrong partners around a good match outvote its neighbours' first prediction; judged again against
+    the others only, the good match stays and the five go."""
+    from rectify.features.match import _off_neighbours
+    from rectify.features.shape import _nearest
+
+    rng = np.random.default_rng(4)
+    pl = rng.uniform(0, 600, (300, 2))
+    pr = pl @ np.array([[0.0, -1.0], [1.0, 0.0]]).T + [700.0, 40.0] + rng.normal(0, 0.1, (300, 2))   # turned 90
+    bad = _nearest(pl, 6)[17, 1:]                                    # the five nearest to match 17
+    pr[bad] += [60.0, -45.0]
+    assert sorted(np.flatnonzero(_off_neighbours(pl, pr)).tolist()) == sorted(bad.tolist())
