@@ -78,10 +78,22 @@ class MatchRun:
                          f"{self.config.max_matches}, re-verified)")
         if o.verify != "none":
             metric = "transfer error" if o.verify == "homography" else "Sampson distance"
-            line = f"verification RMSE: {res.rmse_px:.3f} px ({metric}, n={len(res.matches)})"
+            n_fig = len(res.matches) - res.n_unrefined
+            line = f"verification RMSE: {res.rmse_px:.3f} px ({metric}, n={n_fig}"
+            line += " refined)" if o.refine else ")"
             if o.refine:
                 line += f"; raw positions {res.rmse_raw_px:.3f} px"
             lines.append(line)
+            if res.n_unrefined:
+                unref = (f"{res.rmse_unrefined_px:.3f} px" if res.rmse_unrefined_px == res.rmse_unrefined_px
+                         else "n/a")
+                lines.append(f"unrefined: {res.n_unrefined} matches kept at their detector positions, RMSE {unref} "
+                             "(not in the figure above; written with an empty score)")
+            if res.n_screened:
+                lines.append(f"screened: {res.n_screened} refined matches whose residual exceeded their precision "
+                             "(kept at their raw positions or dropped)")
+            if res.n_turns:
+                lines.append(f"right image matched turned back by {res.n_turns * 90} deg")
             if res.verification.table is not None:
                 lines.append(res.verification.table.summary_line())
         lines.append(f"wrote {len(res.matches)} matches to {self.output}")
