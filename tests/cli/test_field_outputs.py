@@ -381,3 +381,19 @@ def test_dense_killed_by_sigterm_leaves_nothing(tmp_path, stage):
     assert b"Traceback" not in err
     assert not out.exists()
     assert _hash(*inputs) == before
+
+
+def test_dense_with_a_vertical_base_is_refused_by_name(tmp_path):
+    """The right photo taken 300 m straight above the left one (the base along the viewing direction): no normal
+    case exists; refused in one line before any output folder is made, inputs unchanged."""
+    d = _dense_pair(tmp_path / "in")
+    eo_l = json.loads((d / "l.json").read_text())
+    eo_r = json.loads((d / "r.json").read_text())
+    eo_r["position"] = list(eo_l["position"])
+    eo_r["position"][2] += 300.0
+    (d / "r_bad.json").write_text(json.dumps(eo_r))
+    inputs = sorted(d.iterdir())
+    before, names = _hash(*inputs), _tree(tmp_path)
+    r = CliRunner().invoke(stereo_cli, _dense_args(d, tmp_path / "new" / "out", "r_bad.json"))
+    _one_line_error(r, "viewing direction", "no normal case")
+    assert _hash(*inputs) == before and _tree(tmp_path) == names
