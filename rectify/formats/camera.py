@@ -40,7 +40,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from rectify.atomic import atomic_write_text, read_json
-from rectify.errors import InvalidInputError
+from rectify.errors import CalibrationError, InvalidInputError
 from rectify.formats.common import StrPath, check_format, stamp, unstamped
 from rectify.geometry.camera import Camera
 
@@ -81,6 +81,25 @@ def read_camera(path: StrPath) -> Camera:
     doc = read_json(path, "camera file")
     check_format(doc, "camera", CAMERA_VERSION, path)
     return Camera.from_dict(unstamped(doc))
+
+
+def camera_from_focals(body: Mapping[str, Any], fx: float, fy: float, skew: float = 0.0, *, where: str) -> Camera:
+    """A pixel camera from ``body`` (width, height, principal point, distortion) and K's fx, fy, skew (px).
+
+    The one place other tools' camera files become a :class:`Camera`: ``focal_length_px`` when fx = fy and
+    skew = 0, else ``fx_px``/``fy_px`` (and ``skew_px``). Errors name ``where`` (the file and entry).
+    """
+    d = dict(body)
+    if fx == fy and skew == 0.0:
+        d["focal_length_px"] = fx
+    else:
+        d.update(fx_px=fx, fy_px=fy)
+        if skew != 0.0:
+            d["skew_px"] = skew
+    try:
+        return Camera.from_dict(d)
+    except CalibrationError as err:
+        raise CalibrationError(f"{where}: {err}") from None
 
 
 def camera_document(camera: Camera) -> dict[str, Any]:

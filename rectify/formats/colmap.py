@@ -41,7 +41,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from rectify.errors import CalibrationError, InvalidInputError, RasterIOError, RectifyError
+from rectify.errors import InvalidInputError, RasterIOError, RectifyError
+from rectify.formats.camera import camera_from_focals
 from rectify.formats.common import StrPath, finite_number, read_table_text
 from rectify.geometry.camera import Camera
 from rectify.geometry.rotation import check_rotation
@@ -168,14 +169,7 @@ def _camera(cells: list[str], path: Path, no: int) -> tuple[int, Camera]:
     fy = v.get("f", v.get("fy", 0.0))
     d: dict[str, Any] = {"width": w, "height": h, "principal_point_px": [v["cx"] - 0.5, v["cy"] - 0.5],
                          "distortion": {k: v.get(k, 0.0) for k in ("k1", "k2", "k3", "p1", "p2")}}
-    if fx == fy:
-        d["focal_length_px"] = fx
-    else:
-        d.update(fx_px=fx, fy_px=fy)
-    try:
-        return cid, Camera.from_dict(d)
-    except CalibrationError as err:
-        raise CalibrationError(f"{where}: camera {cid}: {err}") from None
+    return cid, camera_from_focals(d, fx, fy, where=f"{where}: camera {cid}")
 
 
 def _read_cameras(folder: Path) -> tuple[dict[int, Camera], dict[int, str]]:

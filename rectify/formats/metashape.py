@@ -46,7 +46,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from rectify.errors import CalibrationError, CRSError, InvalidInputError, RectifyError
+from rectify.errors import CRSError, InvalidInputError, RectifyError
+from rectify.formats.camera import camera_from_focals
 from rectify.formats.common import StrPath, finite_number, read_table_text
 from rectify.geometry.camera import Camera
 from rectify.geometry.crs import crs_to_string, parse_crs, transform_xyz
@@ -198,16 +199,7 @@ def _sensor_camera(sensor: ET.Element, where: str) -> Camera | None:
     d: dict[str, Any] = {"width": w, "height": h,
                          "principal_point_px": [(w - 1) / 2.0 + v["cx"], (h - 1) / 2.0 + v["cy"]],
                          "distortion": {"k1": v["k1"], "k2": v["k2"], "k3": v["k3"], "p1": v["p2"], "p2": v["p1"]}}
-    if fx == fy and s == 0.0:
-        d["focal_length_px"] = fx
-    else:
-        d.update(fx_px=fx, fy_px=fy)
-        if s != 0.0:
-            d["skew_px"] = s
-    try:
-        return Camera.from_dict(d)
-    except CalibrationError as err:
-        raise CalibrationError(f"{where}: {err}") from None
+    return camera_from_focals(d, fx, fy, s, where=where)
 
 
 def _similarity(el: ET.Element | None, label: str) -> NDArray[np.float64] | None:

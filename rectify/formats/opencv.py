@@ -27,7 +27,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from rectify.atomic import atomic_write_text
-from rectify.errors import CalibrationError, InvalidInputError
+from rectify.errors import InvalidInputError
+from rectify.formats.camera import camera_from_focals
 from rectify.formats.common import StrPath, read_table_text
 from rectify.geometry.camera import Camera
 
@@ -141,16 +142,7 @@ def read_opencv_calibration(path: StrPath) -> Camera:
     d: dict[str, Any] = {"width": w, "height": h, "principal_point_px": [float(K[0, 2]), float(K[1, 2])],
                          "distortion": {OPENCV_DISTORTION_NAMES[i]: float(v) for i, v in enumerate(dist[:5])}}
     fx, fy, s = float(K[0, 0]), float(K[1, 1]), float(K[0, 1])
-    if fx == fy and s == 0.0:
-        d["focal_length_px"] = fx
-    else:
-        d.update(fx_px=fx, fy_px=fy)
-        if s != 0.0:
-            d["skew_px"] = s
-    try:
-        return Camera.from_dict(d)
-    except CalibrationError as err:
-        raise CalibrationError(f"{where}: {err}") from None
+    return camera_from_focals(d, fx, fy, s, where=where)
 
 
 def opencv_calibration_text(camera: Camera, *, fmt: str = ".yml") -> str:
