@@ -7,23 +7,12 @@ optionally, points with their tracks) as a model COLMAP and pycolmap open; :func
 recognises one. Numbers are written as ``repr`` (17 significant digits), so our model -> COLMAP ->
 our model is exact to rounding.
 
-Conventions, converted once here:
+Conventions: the pixel origin (0.5 px), the world -> camera quaternions and the camera models are
+converted where they are read, in :mod:`rectify.formats.colmap` (its docstring states them); writing
+applies the inverse conversions. Here:
 
-pixels
-    COLMAP puts the top-left corner of the image at (0, 0), so the centre of the top-left pixel is at
-    (0.5, 0.5); ours is at (0, 0). Principal points and 2D points lose 0.5 on reading and gain it on
-    writing.
-poses
-    An image's ``QW QX QY QZ`` is the unit quaternion (Hamilton, scalar first) of R_cw, the rotation
-    world -> camera, and ``TX TY TZ`` the translation t with x_cam = R_cw X + t, camera axes x right,
-    y down, z forward (OpenCV's). Our pose is the projection centre C = -R_cw^T t and the rotation
-    of photo vectors (x right, y up, z back) into the world, R = R_cw^T diag(1, -1, -1).
-cameras
-    ``SIMPLE_PINHOLE`` (f, cx, cy), ``PINHOLE`` (fx, fy, cx, cy), ``SIMPLE_RADIAL`` (f, cx, cy, k),
-    ``RADIAL`` (f, cx, cy, k1, k2), ``OPENCV`` (fx, fy, cx, cy, k1, k2, p1, p2) and ``FULL_OPENCV``
-    (fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6 with k4 = k5 = k6 = 0) have OpenCV's distortion
-    definition, which is ours; fisheye, FOV and thin-prism models are refused by name. On writing
-    the smallest exact model is chosen; a camera with skew is refused (COLMAP has none).
+writing
+    the smallest exact camera model is chosen; a camera with skew is refused (COLMAP has none).
 ids
     COLMAP's camera, image and point ids are integers. Ours are kept when they are positive
     integers; otherwise they are numbered from 1 and the names are kept in comment lines
