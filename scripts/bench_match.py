@@ -272,7 +272,8 @@ def _angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
     return float(np.degrees(2 * np.arcsin(min(1.0, np.linalg.norm(Ra - Rb) / (2 * np.sqrt(2))))))
 
 
-def ngi_score(left: np.ndarray, right: np.ndarray, refined: np.ndarray | None = None) -> dict:
+def ngi_score(left: np.ndarray, right: np.ndarray, refined: np.ndarray | None = None,
+              weights: np.ndarray | None = None) -> dict:
     """Precision of NGI tie points (left and right in the original images' pixels) against the known geometry:
     Sampson distance to the known epipolar geometry (RMS, median; of the refined matches and of all), and the
     relative orientation from them (stereo.relative, left-image system, plain least squares) against the known
@@ -289,8 +290,11 @@ def ngi_score(left: np.ndarray, right: np.ndarray, refined: np.ndarray | None = 
                  "sampson_median_px": round(float(np.median(s)), 4),
                  "sampson_rms_refined_px": round(float(np.sqrt(np.mean(s[ref] ** 2))), 4),
                  "sampson_median_refined_px": round(float(np.median(s[ref])), 4)}
-    for key, sel in (("all", np.ones(len(left), bool)), ("refined", ref)):
-        ro = RelativeOrientation.from_pixels(left[sel], right[sel], t["camera"], system="left-image")
+    cases = [("all", np.ones(len(left), bool), None), ("refined", ref, None)]
+    if weights is not None:   # all matches, each by its own precision (what `stereo orient` does)
+        cases.append(("weighted", np.ones(len(left), bool), np.asarray(weights, dtype=np.float64)))
+    for key, sel, w in cases:
+        ro = RelativeOrientation.from_pixels(left[sel], right[sel], t["camera"], system="left-image", weights=w)
         b = ro.base_left
         out[f"ro_{key}_rotation_deg"] = round(_angle_deg(ro.relative_rotation, t["R_rel"]), 4)
         out[f"ro_{key}_base_deg"] = round(float(np.degrees(np.arctan2(np.linalg.norm(np.cross(b, t["base"])),
@@ -329,7 +333,7 @@ def run_ngi(work: Path, shared: Path, variants: list[str], skip_peer: bool) -> d
         rmse = next((float(ln.split()[2]) for ln in log.splitlines() if ln.startswith("verification RMSE:")), None)
         m = read_matches(csv)
         refined = np.isfinite(m.score) if m.score is not None else None
-        res = {"ours": {**t, "verification_rmse_px": rmse, **ngi_score(m.left, back(m.right), refined)}}
+        res = {"ours": {**t, "verification_rmse_px": rmse, **ngi_score(m.left, back(m.right), refined, m.weights())}}
         if not skip_peer:
             script = d / "ngi_peer.py"
             script.write_text(NGI_PEER)

@@ -532,7 +532,7 @@ def _result(pl, pr, score, ver, cfg, n_det, n_matched, n_verified, n_ref, n_fail
     rmse_raw = float("nan")
     if cfg.verify != "none" and len(pl) >= 8:
         rmse_raw = rms(_errors(ver.method, ver.matrix, pl, raw_pr))
-    return MatchResult(Matches(ids, pl, pr, score), n_det, n_matched, n_verified, n_ref, n_fail, rmse,
+    return MatchResult(Matches(ids, pl, pr, score, sigma), n_det, n_matched, n_verified, n_ref, n_fail, rmse,
                        rmse_raw, ver, cand_l, cand_r, cand_inl, tiled, shapes, timings, n_dup, n_guided,
                        refined, sigma, n_screened, rmse_unref)
 
@@ -703,7 +703,7 @@ def _turned_back(res: MatchResult, k: int, shape_right: tuple[int, int], cfg: Ma
         return np.asarray(p, dtype=np.float64) @ T[:2, :2].T + T[:2, 2]
 
     m = res.matches
-    matches = Matches(m.ids, m.left, back(m.right), m.score)
+    matches = Matches(m.ids, m.left, back(m.right), m.score, m.sigma)
     ver = res.verification
     M = ver.matrix
     if M is not None:     # H' = T H (x_r = T x_turned); F' = T^-T F; transfer and Sampson errors are unchanged

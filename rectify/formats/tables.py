@@ -3,7 +3,7 @@
 ==================  ===========================================  ================================
 file                reader / writer                              header
 ==================  ===========================================  ================================
-matches CSV         :func:`read_matches` / :func:`write_matches` ``id,col_left,row_left,col_right,row_right[,score]``
+matches CSV         :func:`read_matches` / :func:`write_matches` ``id,col_left,row_left,col_right,row_right[,score]...``
 stereo control CSV  :func:`read_control` / :func:`write_control` ``id,col_left,row_left,col_right,row_right,x,y,z``
 ==================  ===========================================  ================================
 
@@ -54,7 +54,7 @@ def check_crs_comment(cols: Columns) -> None:
 
 
 def read_matches(path: StrPath) -> Matches:
-    """Read a matches CSV (``id,col_left,row_left,col_right,row_right[,score]``), pixel frame.
+    """Read a matches CSV (``id,col_left,row_left,col_right,row_right[,score][,sigma_px]``), pixel frame.
 
     Read as a stream (:class:`rectify.formats.common.TableReader`); more than
     :data:`rectify.formats.common.MAX_MATCH_ROWS` rows are refused.
@@ -69,14 +69,22 @@ def read_matches_table(t: TableReader, *, max_rows: int = MAX_MATCH_ROWS) -> tup
     path = t.path
     need_columns(list(t.fields), _MATCH_COLUMNS, path)
     has_score = "score" in t.fields
-    cols = t.read("matches", numbers=_MATCH_COLUMNS[1:] + (("score",) if has_score else ()), texts=("id",),
-                  empty=("score",), max_rows=max_rows)
+    has_sigma = "sigma_px" in t.fields
+    optional = (("score",) if has_score else ()) + (("sigma_px",) if has_sigma else ())
+    cols = t.read("matches", numbers=_MATCH_COLUMNS[1:] + optional, texts=("id",),
+                  empty=("score", "sigma_px"), max_rows=max_rows)
     ids = tuple(cols.texts.pop("id"))
     no_duplicates(ids, path, "match id(s)")
     num = cols.numbers
+    sigma = num.pop("sigma_px") if has_sigma else None
+    if sigma is not None:
+        bad = np.flatnonzero(np.isfinite(sigma) & (sigma <= 0))
+        if len(bad):
+            raise InvalidInputError(f"{str(path)!r}: match {ids[bad[0]]!r} has sigma_px {sigma[bad[0]]:g}; "
+                                    "a standard deviation must be > 0 (or empty: unknown)")
     return Matches(ids, np.column_stack([num.pop("col_left"), num.pop("row_left")]),
                    np.column_stack([num.pop("col_right"), num.pop("row_right")]),
-                   num.pop("score") if has_score else None), cols.crs
+                   num.pop("score") if has_score else None, sigma), cols.crs
 
 
 def matches_text(matches: Matches) -> str:
@@ -86,11 +94,15 @@ def matches_text(matches: Matches) -> str:
     cols = ["id", "col_left", "row_left", "col_right", "row_right"]
     if matches.score is not None:
         cols.append("score")
+    if matches.sigma is not None:
+        cols.append("sigma_px")
     buf.write(",".join(cols) + "\n")
     for i in range(len(matches)):
         vals = [matches.ids[i]] + [f"{v:.6f}" for v in (*matches.left[i], *matches.right[i])]
         if matches.score is not None:  # NaN (a match kept unrefined) is written empty
             vals.append(f"{matches.score[i]:.6g}" if math.isfinite(matches.score[i]) else "")
+        if matches.sigma is not None:  # NaN (unknown) is written empty
+            vals.append(f"{matches.sigma[i]:.4g}" if math.isfinite(matches.sigma[i]) else "")
         buf.write(",".join(vals) + "\n")
     return buf.getvalue()
 

@@ -227,6 +227,15 @@ class GcpTable:
                         None if self.z is None else self.z[m], self.check[m], self.crs)
 
 
+#: Position std assumed for a match kept unrefined (raw keypoint) when its file gives no ``sigma_px``, px
+#: (measured: about 0.5 px on the NGI aerial pair; ``MatchResult.sigma_px``).
+ASSUMED_RAW_SIGMA_PX = 0.5
+#: Position std assumed for a refined match when the file gives no ``sigma_px``, px (0.08 px measured there).
+ASSUMED_REFINED_SIGMA_PX = 0.1
+#: An unrefined match never weighs more than this against the refined median (its sigma at least twice theirs).
+UNREFINED_MAX_WEIGHT = 0.25
+
+
 @dataclass(frozen=True, eq=False)
 class Matches:
     """Tie points between two images, pixel frame.
@@ -237,15 +246,49 @@ class Matches:
     left, right : (N, 2) float64
         (col, row) in the left and right image.
     score : (N,) float64 or None
+        The matcher's score: the least-squares position std (px) of a refined match, NaN for a match kept
+        unrefined at its raw keypoint position.
+    sigma : (N,) float64 or None
+        Standard deviation of each right position, px (the matcher's ``sigma_px``: the LSM one for a refined
+        match, the raw keypoints' measured one for an unrefined match), or None when unknown.
     """
 
     ids: tuple[str, ...]
     left: NDArray[np.float64]
     right: NDArray[np.float64]
     score: NDArray[np.float64] | None = None
+    sigma: NDArray[np.float64] | None = None
 
     def __len__(self) -> int:
         return len(self.ids)
+
+    def weights(self) -> NDArray[np.float64] | None:
+        """(N,) relative weights of the matches for an adjustment, or None when all are equal.
+
+        With ``sigma``: ``(s0 / sigma)**2``, s0 the median sigma of the refined matches (finite score), so a
+        refined match weighs about 1 and an unrefined one (about 0.5 px against 0.08 px on aerial frames) far
+        less (at most ``UNREFINED_MAX_WEIGHT``); a match without a sigma weighs as a raw keypoint
+        (``ASSUMED_RAW_SIGMA_PX``). Without ``sigma`` but with unrefined matches (an empty score in a
+        matches CSV of an older version): the refined ones weigh 1 and the unrefined ones
+        ``(ASSUMED_REFINED_SIGMA_PX / ASSUMED_RAW_SIGMA_PX)**2``. An unrefined match is never counted with
+        the weight of a refined one.
+        """
+        refined = None if self.score is None else np.isfinite(self.score)
+        if self.sigma is not None and len(self.sigma) == len(self.ids):
+            s = np.asarray(self.sigma, dtype=np.float64)
+            ok = np.isfinite(s) & (s > 0)
+            if ok.any():
+                ref = ok if refined is None or not (refined & ok).any() else refined & ok
+                s0 = float(np.median(s[ref]))
+                floor = 0.1 * s0   # a degenerate LSM std must not dominate the set
+                unknown = min((s0 / ASSUMED_RAW_SIGMA_PX) ** 2, UNREFINED_MAX_WEIGHT)  # an empty sigma_px
+                w = np.where(ok, (s0 / np.maximum(np.where(ok, s, 1.0), floor)) ** 2, unknown)
+                if refined is not None:
+                    w = np.where(refined, w, np.minimum(w, UNREFINED_MAX_WEIGHT))
+                return np.asarray(w, dtype=np.float64)
+        if refined is not None and not refined.all():
+            return np.where(refined, 1.0, (ASSUMED_REFINED_SIGMA_PX / ASSUMED_RAW_SIGMA_PX) ** 2)
+        return None
 
 
 @dataclass(frozen=True, eq=False)

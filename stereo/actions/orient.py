@@ -127,8 +127,9 @@ def orient(*, camera: PathArg, output: PathArg, matches: PathArg | None = None,
     cam2 = cam_r or cam
     check_base(cam.photo_from_pixel(m.left), cam2.photo_from_pixel(m.right),
                (cam.focal_length_mm, cam2.focal_length_mm), cam.pixel_size_mm)
+    # each match by its own precision: an unrefined match (raw keypoints) never weighs as a refined one
     ro = RelativeOrientation.from_pixels(m.left, m.right, cam, camera_right=cam_r, system=opts.system,
-                                         robust=opts.robust, initial=opts.initial, ids=m.ids)
+                                         robust=opts.robust, initial=opts.initial, ids=m.ids, weights=m.weights())
     # the cameras travel with the orientation, so `stereo model` needs no --camera
     cams = {"camera": cam.to_dict(), **({"camera_right": cam_r.to_dict()} if cam_r else {})}
     report = None

@@ -105,9 +105,12 @@ def run(left: PathArg, right: PathArg, *, camera: PathArg | Camera, out_dir: Pat
         ids_all += list(ctrl.ids)
     left_mm, right_mm = cam.photo_from_pixel(left_px), cam.photo_from_pixel(right_px)
     check_base(left_mm, right_mm, cam.focal_length_mm, cam.pixel_size_mm)  # "no base" before the adjustment
+    # each match by its own precision (unrefined matches weigh less); control image points weigh 1
+    w = m.weights()
+    weights = None if w is None else np.concatenate([w, np.ones(len(ids_all) - len(m))])
     ro = RelativeOrientation.from_points(left_mm, right_mm, focal_length_mm=(cam.focal_length_mm,
                                          cam.focal_length_mm), system=opts.ro_system, robust=opts.ro_robust,
-                                         ids=ids_all, pixel_size_mm=cam.pixel_size_mm)
+                                         ids=ids_all, pixel_size_mm=cam.pixel_size_mm, weights=weights)
     ro = replace(ro, left_px=np.asarray(left_px, dtype=np.float64))
     n = len(m)
     keep = ~np.asarray(ro.outlier)[:n]

@@ -64,6 +64,31 @@ def test_matches_round_trip(tmp_path):
     assert read_matches(write_matches(tmp_path / "n.csv", no_score)).score is None
 
 
+def test_matches_sigma_round_trip_and_weights(tmp_path):
+    """Issue 30: the matcher's per-match sigma travels in the matches CSV (``sigma_px``) and gives the weights
+    that `stereo orient` uses: an unrefined match (empty score) never weighs as much as a refined one."""
+    ids = ("a", "b", "c", "d")
+    pts = np.arange(8, dtype=float).reshape(4, 2)
+    score = np.array([0.05, 0.1, np.nan, 0.08])
+    sigma = np.array([0.05, 0.1, 0.5, np.nan])
+    back = read_matches(write_matches(tmp_path / "m.csv", Matches(ids, pts, pts + 1, score, sigma)))
+    assert back.sigma is not None
+    assert_allclose(back.sigma[:3], sigma[:3], rtol=1e-3)
+    assert np.isnan(back.sigma[3])
+    w = back.weights()
+    assert w is not None
+    # s0 = median sigma of the refined matches with a sigma = 0.075; an unknown sigma weighs as a raw keypoint's
+    assert_allclose(w, [(0.075 / 0.05) ** 2, (0.075 / 0.1) ** 2, (0.075 / 0.5) ** 2, (0.075 / 0.5) ** 2],
+                    rtol=1e-3)
+    # an older file: scores only, unrefined ones empty -> refined 1, unrefined (0.1 / 0.5)^2
+    old = read_matches(write_matches(tmp_path / "o.csv", Matches(ids, pts, pts + 1, score)))
+    assert_allclose(old.weights(), [1, 1, 0.04, 1])
+    assert read_matches(write_matches(tmp_path / "p.csv", Matches(ids, pts, pts + 1))).weights() is None
+    (tmp_path / "bad.csv").write_text("id,col_left,row_left,col_right,row_right,sigma_px\n1,1,2,3,4,-0.5\n")
+    with pytest.raises(errors.InvalidInputError, match=r"sigma_px -0.5"):
+        read_matches(tmp_path / "bad.csv")
+
+
 def test_control_round_trip(tmp_path):
     xyz = np.array([[1.5, 2.25, 3.0], [np.nan] * 3, [-4.0, 5.0, 6.125]])
     wkt = parse_crs("EPSG:32633").to_wkt()  # a WKT label (quotes, commas) reads back as written; it must be a CRS
