@@ -9,6 +9,7 @@ from rectify.actions.common import check_method
 from rectify.actions.workspace import Workspace, check_table_crs
 from rectify.formats.detect import GCP_PIXEL, input_paths, read_gcp_file
 from rectify.formats.gcps import TIFF_SUFFIXES
+from rectify.geometry.accuracy import check_point_statement
 from rectify.geometry.points import GcpTable
 from rectify.geometry.transforms import METHODS, FitResult, fit_gcps
 from rectify.geometry.transforms.quality import GcpGeometry, geographic_lines, judge_gcp_geometry
@@ -57,6 +58,9 @@ class FitRun:
         lines.append(f"RMSE {s['rmse']:.4g} {table.units} (fit, n={s['n_fit']}, {n_params} parameters)"
                      + (f"; check RMSE {s['rmse_check']:.4g} {table.units} (n={s['n_check']})"
                         if s["n_check"] else ""))
+        acc = check_point_statement(table)
+        if acc is not None:
+            lines += acc.lines()
         if self.geometry is not None:
             lines += self.geometry.summary_lines()
         elif 2 * s["n_fit"] <= n_params:

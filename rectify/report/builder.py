@@ -50,6 +50,7 @@ from numpy.typing import ArrayLike, NDArray
 from rectify.atomic import current_umask, write_failure_reason
 from rectify.errors import InvalidInputError, RasterIOError, RectifyError, ShapeError
 from rectify.formats.report import REPORT_VERSION, read_report, report_json_text
+from rectify.geometry.accuracy import check_point_statement
 from rectify.geometry.crs import crs_to_string, parse_crs
 from rectify.geometry.points import GcpTable
 from rectify.geometry.residuals import ResidualTable
@@ -795,9 +796,11 @@ def write_fit_report(report_dir: str | os.PathLike, result: FitResult, gcps: Gcp
     table = result.table
     s = table.summary()
     ground = {table.step: gcps.target} if gcps.crs else None
+    acc = check_point_statement(table)
+    extra = {} if acc is None else {"accuracy_statement": acc.to_dict()}
     return write_report(report_dir, title=f"rectify fit: {result.method} on {gcps_path}", tables=[table],
                         summary={"method": result.method, "gcps": str(gcps_path), "transform": str(transform_path),
-                                 **{k: v for k, v in s.items() if k != "step"}},
+                                 **{k: v for k, v in s.items() if k != "step"}, **extra},
                         crs=gcps.crs, ground_xy=ground, overwrite=overwrite)
 
 

@@ -73,3 +73,24 @@ def test_fit_report(tmp_path):
     assert (rep / "report.html").is_file() and (rep / "report.json").is_file()
     assert list(rep.glob("*.csv"))
     assert "RMSE" in r.output and " m," in r.output  # EPSG:32633 is in metres
+
+
+def test_fit_states_check_point_accuracy_in_the_standard_forms(tmp_path):
+    """Issue 27: a GCP fit with check points prints per-axis RMSE, RMSE_r, CE90 and the ASPRS (2023) sentence,
+    computed here by hand from the check points' residuals in the transform JSON; the report's JSON holds them."""
+    g = tmp_path / "gcps.csv"
+    _write_gcps(g, n=20, checks=tuple(range(14, 20)), noise=0.3, crs="EPSG:32633")
+    out = tmp_path / "t.json"
+    r = CliRunner().invoke(cli, ["fit", str(g), "-o", str(out), "--report", str(tmp_path / "rep")])
+    assert r.exit_code == 0, r.output
+    rows = [row for row in json.loads(out.read_text())["residuals"] if row["check"]]
+    assert len(rows) == 6
+    v = np.array([[row["dx"], row["dy"]] for row in rows])
+    rx, ry = np.sqrt(np.mean(v ** 2, axis=0))
+    assert "accuracy statement from 6 check points (m;" in r.output
+    assert f"RMSE_r {np.hypot(rx, ry):.3f} m" in r.output
+    assert f"x: mean {v[:, 0].mean():+.3f}, std {v[:, 0].std(ddof=1):.3f}, RMSE {rx:.3f}" in r.output
+    assert f"RMSE_H = {np.hypot(rx, ry) * 100:.1f} (cm)" in r.output and "produced to meet" in r.output
+    rep = json.loads((tmp_path / "rep" / "report.json").read_text())
+    acc = rep["summary"]["accuracy_statement"]
+    assert acc["n"] == 6 and acc["rmse_r"] == pytest.approx(np.hypot(rx, ry), rel=1e-9)
