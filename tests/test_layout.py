@@ -28,7 +28,7 @@ MAX_LINES = 900
 #: rank of each wing (first name under the package); a module may import its own wing or a lower rank.
 #: Wings of equal rank are independent of each other.
 RECTIFY_RANKS = {"__init__": 0, "errors": 0, "atomic": 1, "geometry": 2, "raster": 3, "features": 4,
-                 "formats": 4, "report": 5, "actions": 6, "cli": 7}
+                 "formats": 4, "report": 5, "view": 5, "actions": 6, "cli": 7}
 STEREO_RANKS = {"__init__": 0, "relative": 1, "calibration": 1, "pair": 2, "block": 3, "dense": 3,
                 "features": 4, "formats": 5, "report": 5, "actions": 6, "cli": 7}
 RANKS = {"rectify": RECTIFY_RANKS, "stereo": STEREO_RANKS}

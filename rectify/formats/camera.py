@@ -29,6 +29,11 @@ Millimetre camera (the version-1 keys plus the same extras)::
      "principal_point_mm": [x0, y0],               # offset from the image centre, photo axes (y up)
      "distortion": {...}, "std_errors": {"focal_length_mm": ..., "x0_mm": ..., "y0_mm": ..., "k1": ...},
      "sigma0_px": ...}
+
+Zoom camera (``"format": "rectify-stereo/zoom-camera"``, :data:`ZOOM_CAMERA_VERSION`, written by
+``stereo calibrate --zoom``): the interior orientation as polynomials of the focal setting
+(:class:`rectify.geometry.zoom.ZoomCamera`). :func:`read_camera` gives the camera of one image when
+given its focal setting, and refuses a zoom camera without one or outside the calibrated range.
 """
 
 from __future__ import annotations
@@ -41,14 +46,17 @@ from typing import Any, Protocol
 
 from rectify.atomic import atomic_write_text, read_json
 from rectify.errors import CalibrationError, InvalidInputError
-from rectify.formats.common import StrPath, check_format, stamp, unstamped
+from rectify.formats.common import FORMAT_PREFIX, StrPath, check_format, stamp, unstamped
 from rectify.geometry.camera import Camera
+from rectify.geometry.zoom import ZoomCamera
 
-__all__ = ["CAMERA_VERSION", "PinholeIntrinsics", "read_camera", "write_camera", "camera_document",
-           "intrinsics_document"]
+__all__ = ["CAMERA_VERSION", "ZOOM_CAMERA_VERSION", "PinholeIntrinsics", "read_camera", "write_camera",
+           "camera_document", "intrinsics_document", "is_zoom_document", "read_zoom_camera", "zoom_camera_document"]
 
 #: Version of the camera JSON (1: the 0.1.0 keys plus ``format``/``version``).
 CAMERA_VERSION = 2  # 2: pixel cameras, std_errors, sigma0_px (1: millimetre cameras)
+#: Version of the zoom camera JSON.
+ZOOM_CAMERA_VERSION = 1
 
 
 class PinholeIntrinsics(Protocol):
@@ -76,11 +84,60 @@ class PinholeIntrinsics(Protocol):
     def distortion(self) -> dict[str, float]: ...
 
 
-def read_camera(path: StrPath) -> Camera:
-    """Read a camera JSON file (:meth:`Camera.from_dict` keys; ``rectify-stereo/camera``)."""
+def read_camera(path: StrPath, *, focal_setting: float | None = None) -> Camera:
+    """Read a camera JSON file (:meth:`Camera.from_dict` keys; ``rectify-stereo/camera``), or a zoom camera
+    JSON evaluated at ``focal_setting`` (the image's focal setting, the unit of the zoom calibration).
+
+    Raises
+    ------
+    InvalidInputError
+        A zoom camera without ``focal_setting``; a malformed file.
+    CalibrationError
+        A bad camera; a focal setting outside the zoom camera's calibrated range.
+    """
     doc = read_json(path, "camera file")
+    if is_zoom_document(doc):
+        zoom = _zoom_from_doc(doc, path)
+        if focal_setting is None:
+            raise InvalidInputError(f"camera file {str(path)!r} is a zoom camera (calibrated {zoom.low:g}.."
+                                    f"{zoom.high:g}{' ' + zoom.unit if zoom.unit else ''}): give the image's focal "
+                                    "setting (stereo orient --focal-setting, or an image with EXIF FocalLength)")
+        try:
+            return zoom.camera(focal_setting)
+        except CalibrationError as err:
+            raise CalibrationError(f"zoom camera {str(path)!r}: {err}") from None
     check_format(doc, "camera", CAMERA_VERSION, path)
     return Camera.from_dict(unstamped(doc))
+
+
+def is_zoom_document(doc: Any) -> bool:
+    """Whether a parsed JSON document is a zoom camera (``"format": "rectify-stereo/zoom-camera"``)."""
+    return isinstance(doc, dict) and doc.get("format") == FORMAT_PREFIX + "zoom-camera"
+
+
+def _zoom_from_doc(doc: Any, path: StrPath) -> ZoomCamera:
+    check_format(doc, "zoom-camera", ZOOM_CAMERA_VERSION, path, what="zoom camera file")
+    try:
+        return ZoomCamera.from_dict(unstamped(doc))
+    except CalibrationError as err:
+        raise CalibrationError(f"zoom camera file {str(path)!r}: {err}") from None
+
+
+def read_zoom_camera(path: StrPath) -> ZoomCamera:
+    """Read a zoom camera JSON file (``rectify-stereo/zoom-camera``, ``docs/formats.md``).
+
+    Raises
+    ------
+    InvalidInputError, CalibrationError
+        Not a zoom camera file (its format named); malformed keys.
+    """
+    return _zoom_from_doc(read_json(path, "zoom camera file"), path)
+
+
+def zoom_camera_document(zoom: ZoomCamera, **extra: Any) -> dict[str, Any]:
+    """The zoom camera JSON object: the format stamp, :meth:`ZoomCamera.to_dict` and ``extra`` keys (the
+    calibration of each setting, the fit's chi2/dof: informative, not read back)."""
+    return stamp("zoom-camera", ZOOM_CAMERA_VERSION, {**zoom.to_dict(), **extra})
 
 
 def camera_from_focals(body: Mapping[str, Any], fx: float, fy: float, skew: float = 0.0, *, where: str) -> Camera:

@@ -73,11 +73,12 @@ from rectify.geometry.camera import Camera
 from rectify.geometry.crs import horizontal_crs, vertical_datum
 from rectify.geometry.points import GcpTable
 from rectify.geometry.sensors import FrameModel
+from rectify.raster.exif import exif_focal_length
 
 __all__ = ["FileKind", "CAMERA_KINDS", "EXTERIOR_KINDS", "GCP_KINDS", "GCP_PIXEL", "STEREO_KIND_NAMES", "split_kind",
            "resolve_kind", "input_paths", "CameraFile", "read_camera_file", "read_one_camera", "ExteriorFile",
            "read_exterior_file", "read_frame_source_any", "GcpSource", "read_gcp_file", "pick_image",
-           "head_has_format", "detect_pose_csv"]
+           "head_has_format", "detect_pose_csv", "image_focal_setting", "is_zoom_camera"]
 
 #: pixel conventions of GCPs embedded in a GeoTIFF (``--gcp-pixel``)
 GCP_PIXEL = tuple(EMBEDDED_CONVENTIONS)
@@ -305,15 +306,40 @@ class CameraFile:
         return pick
 
 
-def read_camera_file(value: StrPath) -> CameraFile:
+def image_focal_setting(focal_setting: float | None, image: StrPath | None) -> float | None:
+    """The focal setting of an image: ``focal_setting`` when given (``--focal-setting``), else the image's
+    EXIF FocalLength (mm, :func:`rectify.raster.exif.exif_focal_length`), else None."""
+    if focal_setting is not None:
+        return float(focal_setting)
+    return exif_focal_length(image) if image is not None else None
+
+
+def is_zoom_camera(value: StrPath) -> bool:
+    """Whether a ``--camera`` value (``PATH`` or ``KIND:PATH``) names a zoom camera JSON (stereo calibrate --zoom)."""
+    kind, path = split_kind(value, CAMERA_KINDS)
+    return kind in (None, OUR_CAMERA) and head_has_format(path, "zoom-camera")
+
+
+def read_camera_file(value: StrPath, *, focal_setting: float | None = None,
+                     image: StrPath | None = None) -> CameraFile:
     """Read a ``--camera`` file of any kind of :data:`CAMERA_KINDS` (``KIND:PATH`` picks one).
+
+    A zoom camera (``stereo calibrate --zoom``) gives the camera at the image's focal setting:
+    ``focal_setting`` when given, else the EXIF FocalLength of ``image`` (read only for a zoom camera).
 
     Raises
     ------
     RasterIOError, InvalidInputError, CalibrationError, CRSError
-        The reader's one-line errors (file, key and value named); an ambiguous file (choices named).
+        The reader's one-line errors (file, key and value named); an ambiguous file (choices named); a
+        zoom camera without a focal setting, or one outside its calibrated range.
     """
     kind, path = resolve_kind(value, CAMERA_KINDS, "camera file")
+    if kind is OUR_CAMERA and head_has_format(path, "zoom-camera"):
+        setting = image_focal_setting(focal_setting, image)
+        if setting is None and image is not None:
+            raise InvalidInputError(f"camera file {str(path)!r} is a zoom camera, but image {str(image)!r} has no "
+                                    "EXIF FocalLength: give its focal setting (stereo orient --focal-setting)")
+        return CameraFile(path, kind, {"camera": read_camera(path, focal_setting=setting)})
     cams: dict[str, Camera]
     if kind.name == "orthority":
         cams = read_int_param(path)
@@ -330,15 +356,17 @@ def read_camera_file(value: StrPath) -> CameraFile:
     return CameraFile(path, kind, cams)
 
 
-def read_one_camera(value: StrPath, camera_id: str | None = None, *, named_by: str | None = None) -> Camera:
-    """The one camera of a ``--camera`` file of any kind (:func:`read_camera_file`, :meth:`CameraFile.choose`).
+def read_one_camera(value: StrPath, camera_id: str | None = None, *, named_by: str | None = None,
+                    focal_setting: float | None = None, image: StrPath | None = None) -> Camera:
+    """The one camera of a ``--camera`` file of any kind (:func:`read_camera_file`, :meth:`CameraFile.choose`);
+    a zoom camera at ``focal_setting`` or at the EXIF focal length of ``image``.
 
     Raises
     ------
     RasterIOError, InvalidInputError, CalibrationError
         As :func:`read_camera_file`; a file of several cameras without a choice (their ids named).
     """
-    return read_camera_file(value).choose(camera_id, named_by=named_by)[1]
+    return read_camera_file(value, focal_setting=focal_setting, image=image).choose(camera_id, named_by=named_by)[1]
 
 
 # --------------------------------------------------------------------------- exterior orientations

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import os
 import warnings
 from dataclasses import dataclass
 
@@ -36,7 +37,7 @@ from rectify.geometry.points import as_points
 
 __all__ = ["unit_label", "parse_crs", "crs_to_string", "get_transformer", "transform_xy", "transform_xyz",
            "transform_arrays", "geographic3d_wkt", "geocentric_wkt", "same_crs", "is_geographic", "check_area_of_use",
-           "VerticalDatum", "vertical_datum", "horizontal_crs", "geoid_height"]
+           "VerticalDatum", "vertical_datum", "horizontal_crs", "geoid_height", "grid_undulation"]
 
 logger = logging.getLogger(__name__)
 
@@ -420,3 +421,61 @@ def geoid_height(vertical, lonlat: ArrayLike) -> NDArray[np.float64]:
         i = int(np.flatnonzero(~np.isfinite(n))[0])
         raise CRSError(f"{v.name!r}: no geoid undulation at lon/lat {p[i].tolist()} (outside the grid?)")
     return n
+
+
+@functools.lru_cache(maxsize=8)
+def _grid_transformer(path: str, mtime_ns: int) -> Transformer:
+    """(lon, lat, 0) degrees -> (lon, lat, N): PROJ's vgridshift on the grid file ``path`` (absolute; cached
+    per modification time)."""
+    if '"' in path:
+        raise CRSError(f"geoid grid path {path!r} contains a double quote, which PROJ cannot take")
+    pipe = ("+proj=pipeline +step +proj=unitconvert +xy_in=deg +xy_out=rad "
+            f'+step +proj=vgridshift +grids="{path}" +multiplier=1 +step +proj=unitconvert +xy_in=rad +xy_out=deg')
+    try:
+        return Transformer.from_pipeline(pipe)
+    except ProjError as err:
+        raise CRSError(f"geoid grid {path!r} is not a grid PROJ can read (GeoTIFF or GTX of heights on "
+                       f"longitude/latitude): {err}") from err
+
+
+def grid_undulation(path, lonlat: ArrayLike) -> NDArray[np.float64]:
+    """Geoid undulation or height anomaly N (m) from a user's grid file at (lon, lat) points: h = H + N.
+
+    The grid (a PROJ vertical grid: GeoTIFF or GTX, heights of the geoid or quasi-geoid above the
+    ellipsoid on a longitude/latitude grid) is read by PROJ's ``vgridshift`` with bilinear
+    interpolation; nothing is downloaded.
+
+    Parameters
+    ----------
+    path : str or Path
+        The grid file (must exist).
+    lonlat : (N, 2) float64
+        Degrees, on the grid's geodetic datum.
+
+    Raises
+    ------
+    CRSError
+        The file is missing or not a grid PROJ reads; a point outside the grid (named).
+    """
+    p = os.path.abspath(os.fspath(path))
+    if not os.path.isfile(p):
+        raise CRSError(f"geoid grid {str(path)!r} not found")
+    pts = as_points(lonlat, "lonlat", 2)
+    if len(pts) == 0:
+        return np.zeros(0)
+    t = _grid_transformer(p, os.stat(p).st_mtime_ns)
+    try:
+        _, _, n = t.transform(pts[:, 0], pts[:, 1], np.zeros(len(pts)), errcheck=True)
+        out = np.asarray(n, dtype=np.float64).reshape(-1)
+    except ProjError:
+        out = np.empty(len(pts))
+        for i, (lon, lat) in enumerate(pts):  # the first point without a value is named
+            try:
+                out[i] = t.transform(lon, lat, 0.0, errcheck=True)[2]
+            except ProjError as err:
+                raise CRSError(f"geoid grid {str(path)!r} has no value at lon {lon:.6f}, lat {lat:.6f} deg "
+                               f"(outside the grid?): {err}") from err
+    if not np.isfinite(out).all():
+        i = int(np.flatnonzero(~np.isfinite(out))[0])
+        raise CRSError(f"geoid grid {str(path)!r} has no value at lon {pts[i, 0]:.6f}, lat {pts[i, 1]:.6f} deg")
+    return out

@@ -17,7 +17,20 @@ Scale
 -----
 The robust scale is the median of the absolute non-zero residuals divided by
 0.6745 (the MAD of a zero-mean normal distribution), recomputed at every
-iteration (seed 002, eq. 2.29).
+iteration (seed 002, eq. 2.29). From the second iteration on the seed takes the
+median with the weights of the previous iteration (found "by dichotomy"):
+:func:`weighted_median` and :func:`weighted_scale`, whose divisor is the
+weighted median of |u| at the standard normal for the psi function in use
+(:func:`weighted_mad_constant`), so that the scale is consistent for normal errors.
+
+Covariance of M-estimates
+-------------------------
+:func:`m_covariance_factor` is the factor of seed 002 eq. 2.28 (Huber's):
+``K^2 [sum psi(u)^2 / (n - p)] / [sum psi'(u) / n]^2`` with
+``K = 1 + (p / n) var(psi') / mean(psi')^2``, ``u = v sqrt(p_i) / s``; the
+covariance of the estimate is ``factor s^2 (A^T P A)^-1`` (``P`` the a-priori
+weights, not the robust ones). For least squares (psi(u) = u) it is
+``v^T P v / (n - p) / s^2``: the usual ``sigma0^2``.
 
 Tuning constants
 ----------------
@@ -59,8 +72,13 @@ __all__ = [
     "get_psi",
     "irls",
     "irls_linear",
+    "m_covariance_factor",
+    "psi_covariance_factor",
     "ransac",
     "robust_scale",
+    "weighted_mad_constant",
+    "weighted_median",
+    "weighted_scale",
 ]
 
 #: median(|e|) / MAD_TO_SIGMA estimates sigma for zero-mean normal errors
@@ -255,6 +273,184 @@ def robust_scale(residuals: ArrayLike, *, mask: ArrayLike | None = None) -> floa
     if r.size == 0:
         return 0.0
     return float(np.median(r) / MAD_TO_SIGMA)
+
+
+def weighted_median(values: ArrayLike, weights: ArrayLike) -> float:
+    """Weighted median: the smallest value m with ``sum(w[v <= m]) >= sum(w) / 2``.
+
+    Found by dichotomy (seed 002, the text after eq. 2.29): the interval [min, max] is halved
+    until it holds one value; no sort.
+
+    Parameters
+    ----------
+    values : (N,) float64
+    weights : (N,) float64
+        Non-negative, not all zero.
+
+    Raises
+    ------
+    InvalidInputError
+        Empty input, shapes that differ, non-finite numbers, a negative weight or only zero weights.
+    """
+    v = np.asarray(values, dtype=np.float64).reshape(-1)
+    w = np.asarray(weights, dtype=np.float64).reshape(-1)
+    if v.shape != w.shape or v.size == 0:
+        raise InvalidInputError(f"weighted median needs values and weights of one non-empty shape; got "
+                                f"{v.shape} and {w.shape}")
+    if not (np.isfinite(v).all() and np.isfinite(w).all()):
+        raise InvalidInputError("weighted median: values or weights contain NaN or infinity")
+    if (w < 0).any():
+        raise InvalidInputError(f"weighted median: negative weight {float(w[w < 0][0])!r}")
+    keep = w > 0
+    if not keep.any():
+        raise InvalidInputError("weighted median: every weight is zero")
+    v, w = v[keep], w[keep]
+    half = 0.5 * float(w.sum())
+    lo, hi = float(v.min()), float(v.max())
+    if float(w[v <= lo].sum()) >= half:
+        return lo
+    # invariant: W(v <= lo) < half <= W(v <= hi); the answer is the smallest value in (lo, hi]. The values
+    # inside the interval are kept apart, so each halving works on fewer of them.
+    below = float(w[v <= lo].sum())
+    inside = v > lo
+    cv, cw = v[inside], w[inside]
+    for _ in range(200):
+        if cv.size <= 1 or not lo < hi:
+            break
+        mid = lo + 0.5 * (hi - lo)
+        if mid <= lo or mid >= hi:  # adjacent floats
+            break
+        low = cv <= mid
+        wl = float(cw[low].sum())
+        if below + wl >= half:
+            hi, cv, cw = mid, cv[low], cw[low]
+        else:
+            lo, below, cv, cw = mid, below + wl, cv[~low], cw[~low]
+    return float(cv.min())
+
+
+_WMAD_CACHE: dict[tuple[str, tuple[float, ...]], float] = {}
+
+
+def weighted_mad_constant(psi: str | PsiFunction) -> float:
+    """The weighted median of |u| with weights ``psi(u) / u`` at the standard normal distribution.
+
+    The divisor that makes :func:`weighted_scale` consistent for normal errors (0.6745, the MAD, for
+    equal weights; smaller for down-weighting psi functions). Computed once per psi by numerical
+    integration on [0, 12].
+    """
+    p = get_psi(psi)
+    key = (p.name, tuple(float(getattr(p, k)) for k in ("a", "b", "c") if hasattr(p, k)))
+    got = _WMAD_CACHE.get(key)
+    if got is None:
+        u = np.linspace(0.0, 12.0, 240_001)
+        dens = p.weight(u) * np.exp(-0.5 * u * u)
+        cum = np.cumsum(dens)
+        got = float(np.interp(0.5 * cum[-1], cum, u))
+        _WMAD_CACHE[key] = got
+    return got
+
+
+def weighted_scale(residuals: ArrayLike, weights: ArrayLike, psi: str | PsiFunction, *,
+                   mask: ArrayLike | None = None) -> float:
+    """Robust scale from the second iteration on (seed 002, eq. 2.29 with the weights ``P`` of eq. 2.24).
+
+    ``weighted_median(|v|, w) / weighted_mad_constant(psi)`` over the non-zero residuals with positive
+    weight, ``w`` the robust weights of the previous iteration (``psi(u) / u``).
+
+    Parameters
+    ----------
+    residuals : (N,) float64
+        Residuals (standardised by their a-priori sigma when the sigmas differ).
+    weights : (N,) float64
+        Robust weights in [0, 1].
+    psi : str or PsiFunction
+        The psi function the weights come from.
+    mask : (N,) bool, optional
+        Only these residuals take part.
+
+    Returns
+    -------
+    float
+        0.0 when every residual is zero.
+    """
+    r = np.abs(np.asarray(residuals, dtype=np.float64).reshape(-1))
+    w = np.asarray(weights, dtype=np.float64).reshape(-1)
+    if r.shape != w.shape:
+        raise ShapeError(f"`weights` must have the shape of `residuals` {r.shape}; got {w.shape}",
+                         actual_shape=w.shape, expected_shape=r.shape)
+    if mask is not None:
+        m = np.asarray(mask, dtype=bool).reshape(-1)
+        r, w = r[m], w[m]
+    if not np.isfinite(r).all():
+        raise InvalidInputError("residuals contain NaN or infinity; cannot estimate a scale")
+    ref = float(r.max()) if r.size else 0.0
+    keep = (r > 1e-14 * max(ref, 1e-300)) & (w > 0)
+    if not keep.any():
+        return 0.0
+    return weighted_median(r[keep], w[keep]) / weighted_mad_constant(psi)
+
+
+def m_covariance_factor(u: ArrayLike, psi: str | PsiFunction, n_unknowns: int, *,
+                        mask: ArrayLike | None = None) -> float:
+    """Factor of the covariance of an M-estimate (seed 002, eq. 2.28; Huber 1981, sec. 7.6).
+
+    ``K^2 [sum psi(u)^2 / (n - p)] / [sum psi'(u) / n]^2`` with the correction
+    ``K = 1 + (p / n) var(psi'(u)) / mean(psi'(u))^2``; the covariance of the estimate is
+    ``factor * s^2 * (A^T P A)^-1`` (``s`` the robust scale, ``u = v sqrt(p_i) / s`` the standardised
+    residuals at the solution, ``P`` the a-priori weights).
+
+    Parameters
+    ----------
+    u : (N,) float64
+        Standardised residuals at the solution.
+    psi : str or PsiFunction
+        ``"none"`` (least squares: psi(u) = u) is accepted too.
+    n_unknowns : int
+        p, the number of estimated parameters.
+    mask : (N,) bool, optional
+        The observations that take part (a-priori weight > 0).
+
+    Raises
+    ------
+    InvalidInputError
+        n <= p, non-finite residuals, or a psi whose derivative averages to zero or less
+        (a redescending psi with most residuals beyond its rejection point).
+    """
+    uu = np.asarray(u, dtype=np.float64).reshape(-1)
+    if mask is not None:
+        uu = uu[np.asarray(mask, dtype=bool).reshape(-1)]
+    if not np.isfinite(uu).all():
+        raise InvalidInputError("standardised residuals contain NaN or infinity")
+    if isinstance(psi, str) and psi.lower() == "none":
+        return psi_covariance_factor(uu, np.ones_like(uu), n_unknowns)
+    f = get_psi(psi)
+    return psi_covariance_factor(f.psi(uu), f.dpsi(uu), n_unknowns, name=f.name)
+
+
+def psi_covariance_factor(psi_values: ArrayLike, dpsi_values: ArrayLike, n_unknowns: int, *,
+                          name: str = "psi") -> float:
+    """Eq. 2.28's factor from the values psi(u_i) and psi'(u_i) of every observation (N,) each.
+
+    The form :func:`m_covariance_factor` evaluates; used directly where observation groups differ
+    (least-squares groups contribute psi = u, psi' = 1), e.g. by the bundle adjustment.
+    """
+    ps = np.asarray(psi_values, dtype=np.float64).reshape(-1)
+    d = np.asarray(dpsi_values, dtype=np.float64).reshape(-1)
+    n, p_ = ps.size, int(n_unknowns)
+    if d.shape != ps.shape:
+        raise ShapeError(f"psi and psi' values must have one shape; got {ps.shape} and {d.shape}",
+                         actual_shape=d.shape, expected_shape=ps.shape)
+    if p_ < 0 or n <= p_:
+        raise InvalidInputError(f"the M-estimate covariance needs more observations ({n}) than unknowns ({p_})")
+    if not (np.isfinite(ps).all() and np.isfinite(d).all()):
+        raise InvalidInputError("psi values contain NaN or infinity")
+    md = float(np.mean(d))
+    if not md > 0:
+        raise InvalidInputError(f"the mean derivative of psi ({name}) over the residuals is {md:.3g}: the "
+                                "M-estimate has no covariance (most residuals beyond the rejection point)")
+    k = 1.0 + (p_ / n) * float(np.var(d)) / md ** 2
+    return float(k * k * (np.sum(ps * ps) / (n - p_)) / md ** 2)
 
 
 # ------------------------------------------------------------------------ IRLS

@@ -41,7 +41,9 @@ from rectify.formats.detect import input_paths, read_camera_file
 from rectify.geometry.camera import Camera
 from rectify.geometry.crs import parse_crs, same_crs
 from rectify.geometry.residuals import ResidualTable, rms
+from stereo.actions import block_frame as bf
 from stereo.actions.block_checks import check_block_inputs, check_datum
+from stereo.actions.block_models import MODEL_METHOD, ModelMethodOptions, check_block_method, run_models
 from stereo.actions.block_users import (
     FOLDER_ITEM,
     BlockExports,
@@ -56,16 +58,18 @@ from stereo.actions.block_users import (
 from stereo.actions.workspace import PairWorkspace
 from stereo.block.bundle.adjust import BundleOptions, adjust_bundle
 from stereo.block.bundle.result import BundleResult
+from stereo.block.bundle.systematic import summary_dict as systematic_summary
 from stereo.block.independent import independent_models, to_ground, triangulate_tracks
 from stereo.block.models import IndependentOptions
 from stereo.block.types import BlockControl, GnssObservations, Pose, Tracks
 from stereo.features.tracks import BlockMatchOptions, block_tie_points
 from stereo.formats.block import BlockControlTable, block_orientation_text, observations_text, read_block_control
-from stereo.formats.detect import read_control_file, read_pose_file, resolve_control
+from stereo.formats.detect import read_control_file, resolve_control
 from stereo.formats.odm import OdmGeo, detect_odm_gcps
 from stereo.formats.opensfm import crs_label
 from stereo.formats.points import LasWriter, dump_ply, points_csv_text
 from stereo.formats.poses import pose_csv_text
+from stereo.formats.trajectory import PoseExtras, block_gnss, image_times_names, read_poses_with_extras
 from stereo.report.block import write_block_report
 
 __all__ = ["BLOCK_LAYOUT", "BlockExports", "BlockOptions", "BlockResult", "run_block"]
@@ -134,6 +138,13 @@ class BlockOptions:
         Write the STAC Item of the point cloud, ``OUTDIR/item.stac.json``.
     exports : BlockExports
         Folders to write the adjusted block into in other tools' formats (COLMAP, OpenSfM, orthority).
+    frame : {"topocentric", "geocentric", "map"} or None
+        The adjustment frame (:mod:`stereo.block.frames`); None: topocentric with a CRS, else map.
+    trajectory : path or None
+        A GNSS/INS trajectory CSV (:mod:`stereo.formats.trajectory`): the pose file is then an image-times
+        CSV (``image,time[,strip]``) and the poses are the trajectory's at the images' times.
+    method : {"bundle", "independent-models"}
+        The adjustment; ``models`` the options of independent models (:mod:`stereo.actions.block_models`).
     """
 
     gnss_sigma_m: tuple[float, float, float] | None = None
@@ -152,8 +163,13 @@ class BlockOptions:
     reuse_tracks: bool = True
     stac: bool = True
     exports: BlockExports = field(default_factory=BlockExports)
+    frame: str | None = None
+    trajectory: str | None = None
+    method: str = "bundle"
+    models: ModelMethodOptions = field(default_factory=ModelMethodOptions)
 
     def __post_init__(self) -> None:
+        check_block_method(self.method, self.models)
         for name in ("gnss_sigma_m", "ins_sigma_rad", "control_sigma_m"):
             v = getattr(self, name)
             if v is None:
@@ -186,12 +202,13 @@ class BlockResult:
     tie_lines: tuple[str, ...] = ()
     n_points_written: int = 0
     input_lines: tuple[str, ...] = ()
+    method_lines: tuple[str, ...] = ()  # in place of the bundle's lines (--method independent-models)
 
     def summary_lines(self) -> list[str]:
         out = list(self.input_lines)
         out.extend(self.tie_lines)
         out.append(f"initial orientation: {self.initial}")
-        out.extend(self.bundle.summary_lines())
+        out.extend(self.method_lines or self.bundle.summary_lines())
         left = len(self.bundle.points) - self.n_points_written
         out.append(f"points written: {self.n_points_written}" + (f" ({left} left out: fewer than two rays not "
                                                                   "flagged as blunders)" if left else ""))
@@ -252,6 +269,7 @@ class _Inputs:
     geo: OdmGeo | None = None  # ODM geo.txt: positions (GNSS) without rotations
     tracks: Tracks | None = None  # a pose file's tracks (COLMAP) on the block's images
     block_names: tuple[str, ...] = ()  # the block's image names, in order
+    extras: PoseExtras | None = None  # a pose CSV's time, strip and corr_* columns (stereo.formats.trajectory)
 
 
 def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera | Mapping[str, Camera] | None,
@@ -275,17 +293,24 @@ def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera
             deferred = control
     pose_list: list[Pose] | None = None
     sigma = gps = dop = reference = None
+    extras = None
     crs = None
     frame = ""
     kind = ""
     angle_system = "omega-phi-kappa"
     geo = None
     file_tracks = None
+    if opts.trajectory is not None and poses is None:
+        raise InvalidInputError("--trajectory needs --poses: the image-times CSV (image,time[,strip]) of the images")
     if poses is not None:
         ws.add_inputs(*input_paths(poses))
-        pf = read_pose_file(poses, camera=DEFAULT_CAMERA if len(cameras) <= 1 else None,
-                            boresight_rad=opts.boresight_rad, lever_arm_m=opts.lever_arm_m,
-                            crs=ctrl.crs if ctrl is not None else None)
+        if opts.trajectory is not None:
+            ws.add_inputs(opts.trajectory)
+        # a pose CSV's time, strip and corr_* columns; with --trajectory the poses at the images' times
+        pf, extras = read_poses_with_extras(poses, opts.trajectory,
+                                            camera=DEFAULT_CAMERA if len(cameras) <= 1 else None,
+                                            boresight_rad=opts.boresight_rad, lever_arm_m=opts.lever_arm_m,
+                                            crs=ctrl.crs if ctrl is not None else None)
         kind = pf.kind.name
         if pf.reconstruction is not None:
             rec = pf.reconstruction
@@ -366,7 +391,8 @@ def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera
         frame = (f"{crs_label(crs)} (the CRS of the pose file)" if crs is not None
                  else "the frame of the given coordinates (no CRS given: not georeferenced)")
     return _Inputs(cameras, camera_of, pose_list, sigma, angle_system, crs, ctrl, frame, reference, gps, dop, kind,
-                   input_paths(poses)[0].name if poses is not None else "", control_note, geo, file_tracks, names)
+                   input_paths(poses)[0].name if poses is not None else "", control_note, geo, file_tracks, names,
+                   extras)
 
 
 #: where an OpenSfM dataset or an OpenDroneMap project keeps its GCPs, relative to its reconstruction.json
@@ -391,7 +417,7 @@ def _with_control(tracks: Tracks, ctrl: BlockControlTable | None, names: tuple[s
     """Add the control points' image measurements to the tie tracks (as tracks of their own)."""
     if ctrl is None or not len(ctrl.meas_id):
         return tracks
-    clash = sorted(set(ctrl.ids) & set(tracks.point_ids))
+    clash = sorted(set(ctrl.meas_id) & set(tracks.point_ids))  # ids with coordinates only are measured by tracks
     if clash:
         raise InvalidInputError(f"control id(s) {clash[:5]} clash with tie-point ids; rename them in the control file")
     stem = {Path(n).stem: k for k, n in enumerate(names)}
@@ -550,7 +576,7 @@ def _points_of(ids: Sequence[str], all_ids: Sequence[str], X: NDArray[np.float64
 def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | Camera | Mapping[str, Camera] | None,
               poses: StrPath | None = None, control: StrPath | None = None, options: BlockOptions | None = None,
               overwrite: bool = False, progress: Progress | None = None,
-              tracks: Tracks | None = None) -> BlockResult:
+              tracks: Tracks | None = None, observations: StrPath | None = None) -> BlockResult:
     """``stereo block``: tie points, initial orientation, bundle adjustment, outputs and report.
 
     Parameters
@@ -571,6 +597,9 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
         Block control CSV, ODM ``gcp_list.txt`` or Metashape markers XML.
     tracks : Tracks, optional
         Tie points already measured (the matching is skipped); its images must be the file names.
+    observations : path, optional
+        An observations CSV (:mod:`stereo.formats.observations`): the tie points without the images
+        (``images`` empty; the pose file names the images).
 
     Raises
     ------
@@ -578,23 +607,34 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
         With a one-line reason; nothing is left at the output paths.
     """
     opts = options or BlockOptions()
+    if observations is not None:
+        images = (image_times_names(poses) if opts.trajectory is not None and poses is not None and not images
+                  else bf.observation_images(images, poses, observations))
     if len(images) < 2:
         raise InvalidInputError(f"a block needs at least 2 images; got {len(images)}")
     names = _image_names(images)
     cam_input = camera if isinstance(camera, (str, Path)) else None
-    ws = plan_block(out_dir, overwrite=overwrite, inputs=[*images, cam_input, poses, control], report=opts.report)
+    ws = plan_block(out_dir, overwrite=overwrite, inputs=[*images, cam_input, poses, control, observations],
+                    report=opts.report)
     inp = _load_inputs(ws, names, camera, poses, control, opts)
+    obs_line: tuple[str, ...] = ()
+    if observations is not None:
+        tracks, line = bf.observation_tracks(observations, inp, names, opts.check_ids, opts.tie_sigma_px)
+        obs_line = (line,)
     # a pose file's tracks (a COLMAP model's) are the tie points when they reach every image
     file_tracks = (inp.tracks if tracks is None and inp.tracks is not None and opts.reuse_tracks
                    and bool((inp.tracks.points_per_image() >= MIN_FILE_TRACKS_PER_IMAGE).all()) else None)
     gnss, gnss_text = _gnss(inp, opts)
+    gnss = block_gnss(gnss, inp.extras, inp.poses, inp.pose_sigma, boresight_rad=opts.boresight_rad,
+                      gnss_drift=opts.bundle.gnss_drift, boresight=opts.bundle.boresight_unknown)  # times, strips, cov.
     check_datum(inp.poses is not None, inp.control, gnss, gnss_text, names, free_network=opts.bundle.free_network,
                 check_ids=opts.check_ids)
     check_block_inputs(ws, images, names, inp.cameras, inp.camera_of, inp.poses, inp.crs, inp.control,
                        control=control, poses_path=poses, matching=tracks is None and file_tracks is None)
     check_exports(opts.exports, inp.cameras, names, inp.crs)  # what the requested formats cannot hold, before work
+    frame, nav = bf.frame_for(inp, opts.frame), inp.angle_system == "navigation"
     input_lines = (f"frame: {inp.frame}", f"GNSS: {gnss_text}" if gnss is not None else f"GNSS: none ({gnss_text})",
-                   *((inp.control_note,) if inp.control_note else ()))
+                   *((inp.control_note,) if inp.control_note else ()), *obs_line, *bf.frame_lines(frame, inp))
     ws.plan(*camera_paths(Path(out_dir), inp.cameras), Path(out_dir) / FOLDER_ITEM if opts.stac else None)
     plan_exports(ws, opts.exports.files(inp.crs))
     if tracks is not None and tuple(tracks.images) != names:
@@ -621,7 +661,22 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
     n_tie = tie.n_points
     all_tracks = _with_control(tie, inp.control, names, opts.control_sigma_px)
     timings["tie_points_s"] = time.perf_counter() - t0
+    # into the adjustment frame (stereo.actions.block_frame); the files are written in the inputs' CRS
+    inp_map, gnss_map = inp, gnss
+    inp, gnss = replace(inp, poses=bf.poses_to_frame(frame, inp.poses, navigation=nav)), bf.gnss_to_frame(frame, gnss,
+                                                                                                    navigation=nav)
     t1 = time.perf_counter()
+    if opts.method == MODEL_METHOD:  # independent models with control (seed 002, 3.1-3.2): no bundle
+        bc = bf.control_to_frame(frame, _block_control(inp.control, all_tracks, opts))
+        res, initial, mlines = run_models(inp.cameras, inp.camera_of, all_tracks, bc, gnss, opts.models,
+                                          opts.tie_sigma_px, progress)
+        timings["models_s"] = time.perf_counter() - t1
+        res = bf.result_to_map(frame, res)
+        files, report_path = _write(ws, res, all_tracks, inp_map, names, n_tie, initial, timings, gnss_map, opts,
+                                    [*images, cam_input, poses, control, observations])
+        return BlockResult(res, all_tracks, n_tie, len(res.control_ids), len(res.check_ids), initial, Path(out_dir),
+                           tuple(files), report_path, timings, tie_lines, int(res.determined.sum()), input_lines,
+                           mlines)
     if inp.poses is not None:
         poses0: list[Pose] = list(inp.poses)
         all_tracks, points0 = _triangulated(inp.cameras, poses0, all_tracks)
@@ -629,7 +684,7 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
     else:
         mb = independent_models(inp.cameras, inp.camera_of, all_tracks, options=IndependentOptions(),
                                 progress=progress)
-        ctrl0 = _block_control(inp.control, all_tracks, opts)
+        ctrl0 = bf.control_to_frame(frame, _block_control(inp.control, all_tracks, opts))
         use = None if ctrl0 is None else ~ctrl0.check & np.array([k == "full" or k == "height" for k in ctrl0.kind])
         # GNSS positions without poses (ODM geo.txt) bring the models to the ground too
         gn = (list(gnss.images), np.asarray(gnss.position)) if gnss is not None and inp.poses is None else None
@@ -661,6 +716,8 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
         all_tracks = sub
     timings["initial_s"] = time.perf_counter() - t1
     bcontrol = _block_control(inp.control, all_tracks, opts)
+    if bcontrol is not None:
+        bcontrol = bf.control_to_frame(frame, bcontrol, _points_of(bcontrol.ids, all_tracks.point_ids, points0))
     bopts = opts.bundle
     if bopts.covariance == "full" and all_tracks.n_obs > FULL_COVARIANCE_MAX_OBS:
         bopts = replace(bopts, covariance="poses")
@@ -668,8 +725,10 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
     res = adjust_bundle(inp.cameras, poses0, all_tracks, points0, control=bcontrol, gnss=gnss, options=bopts,
                         progress=progress)
     timings["bundle_s"] = time.perf_counter() - t2
-    files, report_path = _write(ws, res, all_tracks, inp, names, n_tie, initial, timings, gnss, opts,
-                                [*images, camera if isinstance(camera, (str, Path)) else None, poses, control])
+    res = bf.result_to_map(frame, res)
+    files, report_path = _write(ws, res, all_tracks, inp_map, names, n_tie, initial, timings, gnss_map, opts,
+                                [*images, camera if isinstance(camera, (str, Path)) else None, poses, control,
+                                 observations])
     n_written = int(res.determined.sum())
     return BlockResult(res, all_tracks, n_tie, len(res.control_ids), len(res.check_ids), initial, Path(out_dir),
                        tuple(files), report_path, timings, tie_lines, n_written, input_lines)
@@ -740,8 +799,8 @@ def _write(ws: Workspace, res: BundleResult, tracks: Tracks, inp: _Inputs, names
     std = pstd[ok] if np.isfinite(pstd[ok]).all() and ok.any() else None
     resid_mm = _residual_mm(res, tracks, inp)
     units = "m"
-    summary: dict[str, Any] = {"images": len(names), "tie_points": n_tie, "points": int(ok.sum()),
-                               "points_left_out": int((~ok).sum()),
+    summary: dict[str, Any] = {"method": opts.method, "images": len(names), "tie_points": n_tie,
+                               "points": int(ok.sum()), "points_left_out": int((~ok).sum()),
                                "observations": tracks.n_obs, "initial": initial,
                                "rms_image_px": res.rms_px, "sigma0": res.sigma0, "iterations": res.iterations,
                                "iteration_limit": res.iteration_limit, "converged": res.converged,
@@ -752,6 +811,7 @@ def _write(ws: Workspace, res: BundleResult, tracks: Tracks, inp: _Inputs, names
     if len(res.gnss_residuals):
         lab = _rms_labels(np.asarray(res.gnss_residuals, dtype=np.float64))
         summary["gnss_rms_per_component_m"], summary["gnss_rms_3d_m"] = lab["rms_per_component_m"], lab["rms_3d_m"]
+    summary.update(systematic_summary(res.systematic_names, res.systematic, res.systematic_std))  # GNSS/INS unknowns
     ck_err = np.asarray(res.check_errors, dtype=np.float64).reshape(-1, 3)
     if len(ck_err):
         ck_std = np.asarray(res.check_std, dtype=np.float64).reshape(-1, 3)

@@ -20,8 +20,11 @@ from rectify.errors import CalibrationError, InvalidInputError
 from rectify.formats.common import unstamped
 from rectify.formats.opencv import opencv_calibration_text
 from rectify.geometry.camera import Camera
+from rectify.raster.exif import exif_focal_length
 from stereo.calibration.result import Calibration
 from stereo.calibration.rig import RigCalibration
+from stereo.calibration.views import TargetView
+from stereo.calibration.zoom import HeldOut, ZoomModel, held_out_checks, min_settings
 from stereo.features.targets import (
     CORNER_METHODS,
     Chessboard,
@@ -32,12 +35,13 @@ from stereo.features.targets import (
     parse_square,
 )
 from stereo.formats.calibration import views_from_csv
+from stereo.formats.zoom import observation_settings, read_settings_csv, setting_for
 from stereo.report.calibration import write_calibration_report
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["CORNER_METHODS", "OPENCV_OUTPUT_SUFFIXES", "CalibrationRun", "RigRun", "calibrate_images",
-           "calibrate_points", "calibrate_rig_images", "parse_size"]
+__all__ = ["CORNER_METHODS", "OPENCV_OUTPUT_SUFFIXES", "CalibrationRun", "RigRun", "ZoomRun", "calibrate_images",
+           "calibrate_points", "calibrate_rig_images", "calibrate_zoom", "parse_size"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -275,3 +279,154 @@ def calibrate_rig_images(left: Sequence[str | Path], right: Sequence[str | Path]
     src = (f"rig: chessboard {cols}x{rows} (square {sq:g} {unit}) in {len(pairs)} of {len(left)} pairs, "
            f"left {lsize[0]} x {lsize[1]} px, right {rsize[0]} x {rsize[1]} px")
     return RigRun(rig, Path(output), tuple(missing), len(left), src, (ldet, rdet))
+
+
+# ------------------------------------------------------------------------------------------- zoom lenses
+@dataclass(frozen=True, eq=False)
+class ZoomRun:
+    """What a zoom calibration did: the calibration of each setting, the zoom model, the leave-one-out checks."""
+
+    model: ZoomModel
+    calibrations: tuple[Calibration, ...]
+    n_views: tuple[int, ...]
+    held_out: tuple[HeldOut, ...]
+    output: Path
+    unit: str
+    source: str
+    missing: tuple[str, ...] = ()
+
+    def summary_lines(self) -> list[str]:
+        m, u = self.model, (f" {self.unit}" if self.unit else "")
+        out = [self.source]
+        if self.missing:
+            out.append(f"board not found in {len(self.missing)} images: {', '.join(self.missing)} (left out)")
+        for z, c, n in zip(m.settings, self.calibrations, self.n_views, strict=True):
+            f = "f" if "f" in c.names else "fx"
+            out.append(f"setting {z:g}{u}: {n} views, {c.n_points} points, {f} {c.value(f):.3f} +- "
+                       f"{c.std_errors[f]:.3f} px, cx {c.value('cx'):.3f}, cy {c.value('cy'):.3f} px, "
+                       f"sigma0 {c.sigma0_px:.4f} px")
+        out.append(f"zoom model: degree {m.degree} over {len(m.settings)} settings {m.settings.min():g}.."
+                   f"{m.settings.max():g}{u}; chi2/dof " + ", ".join(
+                       f"{n} {v:.2f}" for n, v in m.chi2_dof.items()))
+        for h in self.held_out:
+            name, worst = h.worst
+            out.append(f"held out {h.setting:g}{u} (predicted from the other settings): RMS "
+                       f"{h.rms:.2f} standard errors over {len(h.z)} elements, worst {name} {worst:+.2f}")
+        zc = m.zoom_camera(self.unit)
+        out.append(f"wrote {self.output} (zoom camera: evaluated at an image's focal setting within "
+                   f"{zc.low:g}..{zc.high:g}{u}, margin {zc.margin:.3g}{u})")
+        return out
+
+
+def _group_settings(names: Sequence[str], table: dict[str, float] | None, fallback: Any, what: str,
+                    hint: str) -> list[float]:
+    """The setting of each view (the settings file first, then ``fallback(name)``); missing ones named."""
+    out: list[float | None] = []
+    for n in names:
+        z = setting_for(n, table) if table is not None else None
+        out.append(z if z is not None else fallback(n))
+    missing = [n for n, z in zip(names, out, strict=True) if z is None]
+    if missing:
+        more = " ..." if len(missing) > 5 else ""
+        raise InvalidInputError(f"no focal setting for {len(missing)} {what}: {', '.join(missing[:5])}{more} "
+                                f"({hint})")
+    return [float(z) for z in out if z is not None]
+
+
+def _check_enough(settings: Sequence[float], degree: int) -> list[float]:
+    zs = sorted(set(settings))
+    need = min_settings(degree)
+    if len(zs) < need:
+        raise CalibrationError(f"a zoom model of degree {degree} needs views at {need} focal settings at least; "
+                               f"got {len(zs)} ({', '.join(f'{z:g}' for z in zs)})")
+    return zs
+
+
+def calibrate_zoom(*, output: str | Path, degree: int = 2, images: Sequence[str | Path] = (),
+                   pattern: str | None = None, square: str = "1", corners: str = "symmetry",
+                   points: str | Path | None = None, field: str | Path | None = None, size: str | None = None,
+                   settings: str | Path | None = None, overwrite: bool = False, **model: Any) -> ZoomRun:
+    """Calibrate a zoom lens: each focal setting on its own views, then the zoom model over the settings.
+
+    Views come from chessboard ``images`` (``pattern``) or an observation CSV ``points`` (``field``,
+    ``size``). The focal setting of a view is read from the ``settings`` CSV (``view,setting``), else a
+    ``setting`` column of ``points``, else an image's EXIF FocalLength (mm) (:mod:`stereo.formats.zoom`).
+    Views of one setting make one calibration (:meth:`Calibration.from_views`, ``model`` keywords);
+    :class:`ZoomModel` of ``degree`` is fitted over them and written as the zoom camera JSON
+    (:func:`rectify.formats.camera.zoom_camera_document`) in one transaction.
+
+    Raises
+    ------
+    InvalidInputError
+        Views without a focal setting (named), an output that is not ``.json``, bad options.
+    CalibrationError
+        Fewer settings than ``degree + 1`` (the minimum named); a setting whose calibration fails (named).
+    """
+    if Path(output).suffix.lower() != ".json":
+        raise InvalidInputError(f"-o {str(output)!r}: a zoom camera is written as a zoom camera JSON (.json)")
+    if model.get("symmetry"):
+        raise InvalidInputError("--symmetry is not available with --zoom (the zoom model holds no point of symmetry)")
+    model = {k: v for k, v in model.items() if k != "symmetry"}
+    if isinstance(degree, bool) or not isinstance(degree, int) or degree < 0:
+        raise InvalidInputError(f"zoom degree must be an integer >= 0; got {degree!r}")
+    ws = _plan(output, [*images, points, field, settings], overwrite=overwrite)
+    table = read_settings_csv(settings) if settings is not None else None
+    missing: tuple[str, ...] = ()
+    views: list[TargetView]
+    if points is not None:
+        if images or pattern:
+            raise InvalidInputError("give either IMAGES with --chessboard or --points, not both")
+        if not size:
+            raise InvalidInputError("--points needs --size WxH (the image size in pixels)")
+        w, h = parse_size(size)
+        views = views_from_csv(points, field)
+        obs = observation_settings(points) or {}
+        zs = _group_settings([v.name for v in views], table, obs.get, "views",
+                             "give a `setting` column in the observation CSV, or --settings view,setting")
+        _check_enough(zs, degree)
+        unit, by = "", dict(zip([v.name for v in views], zs, strict=True))
+        src = f"zoom: {sum(v.n for v in views)} measured points in {len(views)} views, {w} x {h} px"
+    else:
+        if not images:
+            raise InvalidInputError("no input: give IMAGES with --chessboard 9x6, or --points obs.csv")
+        if not pattern:
+            raise InvalidInputError("IMAGES need --chessboard COLSxROWS (inner corners, e.g. 9x6)")
+        names = [Path(p).name for p in images]
+        exif = {Path(p).name: p for p in images}
+        zs = _group_settings(names, table, lambda n: exif_focal_length(exif[n]), "images",
+                             "no EXIF FocalLength; give --settings image,setting")
+        _check_enough(zs, degree)
+        unit = "" if table is not None else "mm"
+        cols, rows = parse_pattern(pattern)
+        sq, _ = parse_square(square)
+        board = Chessboard(cols, rows, sq)
+        det = find_chessboards(images, board, method=corners)
+        views, missing, (w, h) = list(det.views), tuple(det.missing), det.size
+        by = dict(zip(names, zs, strict=True))
+        src = (f"zoom: chessboard {board.cols}x{board.rows} found in {len(views)} of {len(images)} images, "
+               f"{w} x {h} px")
+    groups: dict[float, list[TargetView]] = {}
+    for v in views:
+        groups.setdefault(by[v.name], []).append(v)
+    settings_used = _check_enough(list(groups), degree)
+    least = 3 if points is None else 1
+    cals = []
+    for z in settings_used:
+        g = groups[z]
+        if len(g) < least:
+            raise CalibrationError(f"focal setting {z:g}: the chessboard was found in only {len(g)} images; "
+                                   f"at least {least} needed")
+        try:
+            cals.append(Calibration.from_views(g, w, h, **model))
+        except (CalibrationError, InvalidInputError) as err:
+            raise type(err)(f"focal setting {z:g}: {err}") from None
+    zm = ZoomModel.from_calibrations(settings_used, cals, degree=degree)
+    held = held_out_checks(settings_used, cals, degree=degree)
+    per = [{"setting": z, "views": len(groups[z]), "points": c.n_points, "sigma0_px": c.sigma0_px,
+            "values": {n: c.value(n) for n in c.names}, "std_errors": dict(c.std_errors)}
+           for z, c in zip(settings_used, cals, strict=True)]
+    doc = zm.to_dict(unit, calibrations=per)
+    with ws.transaction():
+        ws.write_text(output, json.dumps(doc, indent=2) + "\n")
+    return ZoomRun(zm, tuple(cals), tuple(len(groups[z]) for z in settings_used), tuple(held), Path(output), unit,
+                   src, missing)

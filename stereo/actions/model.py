@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
+from rectify.atomic import read_json
 from rectify.errors import InvalidInputError
 from rectify.geometry.camera import Camera
 from stereo.actions.common import PathArg, control_mm, given
+from stereo.actions.model_transform import TransformModelResult, model_transformed
 from stereo.actions.workspace import PairWorkspace, model_outputs
+from stereo.formats.projective import is_projective_pair
 from stereo.pair.model import ModelOptions, StereoModel, build_model
+from stereo.pair.projective_model import TRANSFORMS
 from stereo.relative import RelativeGeometry
 from stereo.report.pair import write_pair_report
 
@@ -47,10 +51,14 @@ def _camera_for(ws: PairWorkspace, geometry: RelativeGeometry, camera: PathArg |
 
 def model(ro_json: PathArg, *, matches: PathArg, output: PathArg, camera: PathArg | None = None,
           control: PathArg | None = None, report_dir: PathArg | None = None, overwrite: bool = False,
-          options: ModelOptions | None = None) -> ModelResult:
+          options: ModelOptions | None = None, transform: str = "similarity") -> ModelResult | TransformModelResult:
     """``stereo model``: matches + relative orientation -> model points, oriented to control when given.
 
     Writes ``output`` (PLY) with ``<output>.csv`` and ``<output>.orientation.json`` beside it.
+    ``transform`` ``"affine"`` or ``"projective"`` (seed 003, 3.3): the model oriented by the 12- or
+    15-parameter transformation instead of the similarity
+    (:func:`stereo.actions.model_transform.model_transformed`); a projective pair JSON (``stereo orient
+    --system projective`` without a camera) needs ``"projective"``.
 
     Raises
     ------
@@ -59,6 +67,19 @@ def model(ro_json: PathArg, *, matches: PathArg, output: PathArg, camera: PathAr
         :func:`stereo.pair.model.build_model`.
     """
     opts = options or ModelOptions()
+    if transform not in TRANSFORMS:
+        raise InvalidInputError(f"unknown transformation {transform!r}; expected one of {list(TRANSFORMS)}")
+    projective_pair = is_projective_pair(read_json(ro_json, what="orientation JSON"))
+    if transform != "similarity" or projective_pair:
+        if transform == "similarity":
+            raise InvalidInputError(f"{str(ro_json)!r} is a projective pair (no camera): its model is projective, "
+                                    "not similar; use --transform projective with --control")
+        if replace(opts, check_ids=()) != ModelOptions():
+            raise InvalidInputError(f"--frame, --method, --robust, --deformation and --control-sigma-px apply to the "
+                                    f"similarity only, not to --transform {transform}")
+        return model_transformed(ro_json, matches=matches, output=output, transform=transform, camera=camera,
+                                 control=control, check_ids=opts.check_ids, report_dir=report_dir,
+                                 overwrite=overwrite)
     outputs = model_outputs(output)
     ws = PairWorkspace(overwrite=overwrite, inputs=given(ro_json, matches, camera, control),
                        report_dir=report_dir)

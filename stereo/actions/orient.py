@@ -8,9 +8,10 @@ from pathlib import Path
 
 from rectify.errors import InvalidInputError
 from rectify.features import MatcherConfig
-from rectify.formats.detect import read_one_camera
+from rectify.formats.detect import is_zoom_camera, read_one_camera
 from rectify.geometry.camera import Camera
 from stereo.actions.common import ORIENT_MATCHER, PathArg, given, match_photos, sigma0_text
+from stereo.actions.orient_projective import ProjectiveOrientResult, orient_projective
 from stereo.actions.workspace import PairWorkspace
 from stereo.relative import RelativeOrientation
 from stereo.relative.degenerate import check_base
@@ -65,6 +66,11 @@ class OrientResult:
         for i, name in enumerate(ro.names):
             se = "" if std is None else f" +- {math.degrees(std[i]):.5f}"
             out.append(f"  {name:>7} = {math.degrees(ro.elements[i]):11.5f}{se} deg")
+        if ro.method_figures:  # system projective: the fundamental-matrix stage (seed 003, 3.2.2)
+            mf = ro.method_figures
+            s0 = "n/a" if mf.get("sampson_sigma0_px") is None else f"{mf['sampson_sigma0_px']:.3f} px"
+            out.append(f"fundamental matrix: Sampson RMSE {mf['sampson_rms_px']:.3f} px, sigma0 {s0} "
+                       f"(redundancy {mf['redundancy']}); elements from it, then the coplanarity adjustment")
         wf = ro.western()
         out.append(f"  relative omega, phi, kappa = {math.degrees(wf.omega):.5f}, {math.degrees(wf.phi):.5f}, "
                    f"{math.degrees(wf.kappa):.5f} deg; base (1, {wf.by:.5f}, {wf.bz:.5f})")
@@ -74,16 +80,40 @@ class OrientResult:
         return out
 
 
-def orient(*, camera: PathArg, output: PathArg, matches: PathArg | None = None,
+def parse_focal_settings(text: str | None) -> tuple[float | None, float | None]:
+    """``--focal-setting``: ``"Z"`` (both images) or ``"ZLEFT,ZRIGHT"`` -> (left, right); None -> (None, None).
+
+    Raises
+    ------
+    InvalidInputError
+        Not one or two finite numbers (the text named).
+    """
+    if text is None:
+        return None, None
+    parts = [p.strip() for p in str(text).split(",")]
+    try:
+        vals = [float(p) for p in parts]
+    except ValueError:
+        vals = []
+    if len(vals) not in (1, 2) or not all(math.isfinite(v) for v in vals):
+        raise InvalidInputError(f"--focal-setting must be Z or ZLEFT,ZRIGHT (numbers); got {text!r}")
+    return (vals[0], vals[-1])
+
+
+def orient(*, camera: PathArg | None, output: PathArg, matches: PathArg | None = None,
            images: tuple[PathArg, PathArg] | None = None, camera_right: PathArg | None = None,
            matches_out: PathArg | None = None, report_dir: PathArg | None = None, overwrite: bool = False,
-           options: OrientOptions | None = None, matcher: MatcherConfig | None = None) -> OrientResult:
+           options: OrientOptions | None = None, matcher: MatcherConfig | None = None,
+           focal_settings: tuple[float | None, float | None] = (None, None)
+           ) -> OrientResult | ProjectiveOrientResult:
     """``stereo orient``: relative orientation from a matches CSV or from matching two images.
 
     Parameters
     ----------
     camera, camera_right : path
-        Camera JSON of both images (or the left one) and of the right image when it differs.
+        Camera JSON of both images (or the left one) and of the right image when it differs. ``camera``
+        None: only system ``projective`` (:func:`stereo.actions.orient_projective.orient_projective`,
+        the fundamental matrix and a projective pair JSON; no metric elements).
     output : path
         Relative orientation JSON to write (the cameras are stored in it).
     matches : path, optional
@@ -94,6 +124,9 @@ def orient(*, camera: PathArg, output: PathArg, matches: PathArg | None = None,
         QA report folder.
     matcher : MatcherConfig, optional
         Matcher options with ``images`` (default :data:`ORIENT_MATCHER`, fundamental-matrix verification).
+    focal_settings : (left, right)
+        Focal settings of the images for a zoom camera (``--focal-setting``); None: the image's EXIF
+        FocalLength (:func:`rectify.formats.detect.read_one_camera`). Ignored by other cameras.
 
     Raises
     ------
@@ -102,14 +135,22 @@ def orient(*, camera: PathArg, output: PathArg, matches: PathArg | None = None,
         ``overwrite`` or equals an input; and as :meth:`RelativeOrientation.from_pixels`.
     """
     opts = options or OrientOptions()
+    if camera is None:
+        if camera_right is not None:
+            raise InvalidInputError("--camera-right needs --camera")
+        return orient_projective(output=output, system=opts.system, matches=matches, images=images,
+                                 matches_out=matches_out, report_dir=report_dir, overwrite=overwrite, matcher=matcher)
     if (matches is None) == (images is None):
         raise InvalidInputError("give either a matches CSV or the two images LEFT RIGHT")
     ws = PairWorkspace(overwrite=overwrite, inputs=given(camera, camera_right, matches, *(images or ())),
                        report_dir=report_dir)
     ws.plan(output, matches_out)
     ws.check_report_dir()
-    cam = read_one_camera(camera)  # any camera file (camera JSON, orthority, OpenCV, COLMAP, Metashape)
-    cam_r = read_one_camera(camera_right) if camera_right else None
+    # any camera file (camera JSON, orthority, OpenCV, COLMAP, Metashape); a zoom camera at each image's setting
+    img_l, img_r = images if images is not None else (None, None)
+    cam = read_one_camera(camera, focal_setting=focal_settings[0], image=img_l)
+    cam_r = read_one_camera(camera_right or camera, focal_setting=focal_settings[1], image=img_r) \
+        if camera_right or is_zoom_camera(camera) else None
     n_matched = rmse = None
     if images is not None:  # check the cameras against the photos before matching
         ws.check_camera_image(cam, images[0], "left")

@@ -11,10 +11,11 @@ import numpy as np
 
 from rectify.errors import InvalidInputError
 from rectify.features import MatcherConfig
-from rectify.formats.detect import read_one_camera
+from rectify.formats.detect import is_zoom_camera, read_one_camera
 from rectify.geometry.camera import Camera
 from rectify.geometry.points import ControlTable
 from rectify.raster.distributed import check_scheduler
+from rectify.raster.exif import exif_focal_length
 from stereo.actions.common import PathArg, Progress, match_photos, parallax_sigma0_mm, sigma0_text
 from stereo.actions.dense import DenseOptions, DenseResult, run_dense
 from stereo.actions.workspace import PairWorkspace
@@ -85,7 +86,14 @@ def run(left: PathArg, right: PathArg, *, camera: PathArg | Camera, out_dir: Pat
         raise InvalidInputError(f"output {str(dense_dir)!r} exists; pass --overwrite to replace it")
     if dense is not None:  # the dense step's scheduler (or $RECTIFY_SCHEDULER) is checked before any work
         check_scheduler(dense.scheduler)  # a cluster: reachable, a Dask scheduler, with a worker
-    cam = camera if isinstance(camera, Camera) else read_one_camera(camera)  # any camera file
+    # any camera file; a zoom camera at the photos' EXIF focal length (one camera for both photos)
+    cam = camera if isinstance(camera, Camera) else read_one_camera(camera, image=left)
+    if not isinstance(camera, Camera) and is_zoom_camera(camera):
+        zl, zr = exif_focal_length(left), exif_focal_length(right)
+        if zl != zr:
+            raise InvalidInputError(f"stereo run uses one camera for both photos, but their EXIF focal lengths "
+                                    f"differ ({zl} and {zr} mm): orient the pair with stereo orient (a camera per "
+                                    "photo from the zoom camera), then stereo model")
     ctrl = ws.load_control(control) if isinstance(control, (str, Path)) else control
     # the camera against both photos and the control image points, before matching
     ws.check_camera_image(cam, left, "left")

@@ -71,14 +71,15 @@ from rectify.errors import (
 from rectify.geometry.camera import Camera
 from rectify.geometry.residuals import ResidualTable, rms
 from rectify.geometry.robust import ROBUST_METHODS, robust_scale
+from stereo.block.model_dependent import dependent_model, join_dependent
 from stereo.block.models import (
     IndependentOptions,
+    Model,
     ModelAdjustment,
     ModelJoin,
     _adjust_models,
     _BlockPoints,
     _join,
-    _Model,
     _model,
     _orthonormal,
 )
@@ -117,6 +118,9 @@ class ModelBlock:
         One per model, in ``tree`` order (the sequential join).
     adjustment : ModelAdjustment or None
         The simultaneous adjustment of all models (``options.adjust``; None with one model).
+    models : tuple of Model
+        The models themselves, in ``tree`` order (their points in their own frames): the input of
+        :func:`stereo.block.model_adjust.adjust_models` and of the strip polynomials.
     """
 
     poses: tuple[Pose, ...]
@@ -128,8 +132,10 @@ class ModelBlock:
     tree: tuple[tuple[int, int], ...]
     joins: tuple[ModelJoin, ...]
     adjustment: ModelAdjustment | None = None
+    models: tuple[Model, ...] = ()
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "models", tuple(self.models))
         for name in ("points", "n_rays", "residual_px", "obs_used"):
             a = np.array(getattr(self, name), copy=True)
             a.flags.writeable = False
@@ -283,10 +289,13 @@ def independent_models(
     positions: dict[int, NDArray[np.float64]] = {}
     rotations: dict[int, NDArray[np.float64]] = {}
     joins: list[ModelJoin] = []
-    models: list[_Model] = []
+    models: list[Model] = []
     sims: list[tuple[float, NDArray[np.float64], NDArray[np.float64]]] = []
     for k, (a, b) in enumerate(tree):
-        model = _model(a, b, cams, tracks, obs_mm, per_image, opts)
+        if k > 0 and opts.dependent:  # seed 002, 3.2: the left image keeps its block rotation
+            model = dependent_model(a, b, rotations[a], cams, tracks, obs_mm, per_image, opts)
+        else:
+            model = _model(a, b, cams, tracks, obs_mm, per_image, opts)
         if k == 0:
             s, R, T = 1.0, np.eye(3), np.zeros(3)
             positions[a] = np.zeros(3)
@@ -294,6 +303,8 @@ def independent_models(
             join = ModelJoin(names[a], names[b], model.n_relative, model.n_relative_outliers, model.sigma0_mm,
                              model.condition_number, 0, 0, 1.0, 0.0, 0.0, 0.0)
             keep = np.ones(len(model.tracks), dtype=bool)
+        elif opts.dependent:
+            s, R, T, keep, join = join_dependent(model, names[a], names[b], positions[a], block, opts)
         else:
             s, R, T, keep, join = _join(model, names[a], names[b], positions[a], block, opts)
         positions[b] = s * R @ model.base + T
@@ -319,7 +330,8 @@ def independent_models(
     if progress is not None:
         progress(total, total)
     return ModelBlock(poses=poses, point_ids=tracks.point_ids, points=points, n_rays=n_rays, residual_px=res_px,
-                      obs_used=used, tree=tuple(tree), joins=tuple(joins), adjustment=adjustment)
+                      obs_used=used, tree=tuple(tree), joins=tuple(joins), adjustment=adjustment,
+                      models=tuple(models))
 
 
 def to_ground(

@@ -37,7 +37,7 @@ from stereo.relative.systems import get_system
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["IndependentOptions", "ModelAdjustment", "ModelJoin"]
+__all__ = ["IndependentOptions", "Model", "ModelAdjustment", "ModelJoin"]
 
 
 @dataclass(frozen=True)
@@ -80,6 +80,10 @@ class IndependentOptions:
         coordinates (see :func:`_adjust_models`).
     adjust_iterations : int
         Most Gauss-Newton iterations of that adjustment.
+    dependent : bool
+        Partially dependent models (seed 002, 3.2; :mod:`stereo.block.model_dependent`): each model
+        after the first keeps the block rotation its left image already has, solves only the right
+        image (the "left-image" system) and joins by scale and the shared centre.
     """
 
     min_common: int = 12
@@ -95,6 +99,7 @@ class IndependentOptions:
     min_angle_rad: float = math.radians(1.0)
     adjust: bool = True
     adjust_iterations: int = 8
+    dependent: bool = False
 
     def __post_init__(self) -> None:
         if int(self.min_common) < 5:
@@ -203,13 +208,31 @@ class ModelAdjustment:
 
 # --------------------------------------------------------------------------- models
 @dataclass(frozen=True, eq=False)
-class _Model:
-    tracks: NDArray[np.int64]            # (K,) track indices of the model points
-    points: NDArray[np.float64]          # (K, 3) model frame
+class Model:
+    """One independent model (seed 002, 3.1.1): a pair's intersected points in its own frame.
+
+    Attributes
+    ----------
+    tracks : (K,) int64
+        Track indices (into the block's ``Tracks``) of the model points.
+    points : (K, 3) float64
+        Model frame: origin at the left projection centre, base of length 1 (model units).
+    rotation_left, rotation_right : (3, 3) float64
+        Photo vector -> model frame of the left and right image.
+    base : (3,) float64
+        The right projection centre in the model frame (unit length).
+    covariance : (K, 3, 3) float64
+        Of the points for one pixel of image noise, model units squared.
+    n_relative, n_relative_outliers, sigma0_mm, condition_number
+        Of the relative orientation (as in :class:`ModelJoin`).
+    """
+
+    tracks: NDArray[np.int64]
+    points: NDArray[np.float64]
     rotation_left: NDArray[np.float64]
     rotation_right: NDArray[np.float64]
-    base: NDArray[np.float64]            # (3,) unit, model frame
-    covariance: NDArray[np.float64]      # (K, 3, 3) of the points for one pixel of image noise, model frame
+    base: NDArray[np.float64]
+    covariance: NDArray[np.float64]
     n_relative: int
     n_relative_outliers: int
     sigma0_mm: float | None
@@ -227,7 +250,7 @@ class _Relative:
 
 
 def _model(a: int, b: int, cams: list[Camera], tracks: Tracks, obs_mm: NDArray[np.float64],
-           per_image: list[tuple[NDArray[np.int64], NDArray[np.int64]]], opts: IndependentOptions) -> _Model:
+           per_image: list[tuple[NDArray[np.int64], NDArray[np.int64]]], opts: IndependentOptions) -> Model:
     names = tracks.images
     pa, ra = per_image[a]
     pb, rb = per_image[b]
@@ -252,7 +275,7 @@ def _model(a: int, b: int, cams: list[Camera], tracks: Tracks, obs_mm: NDArray[n
         raise StereoError(f"intersection of the model of pair {label} failed: {err}") from err
     good = (inter.scale_left > 0) & (inter.scale_right > 0) & np.isfinite(inter.points).all(axis=1)
     cov = inter.covariance if inter.covariance is not None else np.zeros((len(inter), 3, 3))
-    return _Model(common[ok][good], inter.points[good], R1, R2, B, cov[good], len(common), int((~ok).sum()),
+    return Model(common[ok][good], inter.points[good], R1, R2, B, cov[good], len(common), int((~ok).sum()),
                   ro.sigma0_mm, ro.condition_number)
 
 
@@ -349,7 +372,7 @@ class _BlockPoints:
         return self.sums[tracks] / n[:, None], self.cov_sums[tracks] / (n * n)[:, None, None]
 
 
-def _join(model: _Model, left: str, right: str, centre: NDArray[np.float64], block: _BlockPoints,
+def _join(model: Model, left: str, right: str, centre: NDArray[np.float64], block: _BlockPoints,
           opts: IndependentOptions
           ) -> tuple[float, NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_], ModelJoin]:
     """Similarity model -> block on the shared tie points and projection centre (robust).
@@ -412,7 +435,7 @@ def _skew(v: NDArray[np.float64]) -> NDArray[np.float64]:
     return out
 
 
-def _adjust_models(tree: Sequence[tuple[int, int]], models: Sequence[_Model],
+def _adjust_models(tree: Sequence[tuple[int, int]], models: Sequence[Model],
                    sims: Sequence[tuple[float, NDArray[np.float64], NDArray[np.float64]]], block: _BlockPoints,
                    positions: dict[int, NDArray[np.float64]], opts: IndependentOptions
                    ) -> tuple[ModelAdjustment, dict[int, NDArray[np.float64]], dict[int, NDArray[np.float64]]]:

@@ -316,6 +316,15 @@ class GnssObservations:
         INS omega, phi, kappa, rad.
     sigma_rad : (n, 3) float64, optional
         Their standard deviations, rad (required with ``angles``).
+    covariance : (n, 3, 3) or (n, 6, 6) float64, optional
+        Full covariance of each image's observation: of the position (m^2), or of the position and
+        the angles (x, y, z, omega, phi, kappa; m and rad; needs ``angles``). Symmetric positive
+        definite; it supersedes ``sigma_m``/``sigma_rad`` in the adjustment
+        (:mod:`stereo.block.bundle.systematic`).
+    time : (n,) float64, optional
+        Exposure times, s (for a GNSS drift per strip).
+    strip : tuple of str, optional
+        The strip (or flight) of each image (for systematic unknowns per strip).
     """
 
     images: tuple[str, ...]
@@ -324,6 +333,9 @@ class GnssObservations:
     lever_arm_m: F64 | None = None
     angles: F64 | None = None
     sigma_rad: F64 | None = None
+    covariance: F64 | None = None
+    time: F64 | None = None
+    strip: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         images = tuple(str(i) for i in self.images)
@@ -359,12 +371,46 @@ class GnssObservations:
                                         f"{np.asarray(self.sigma_rad).tolist()!r}"[:200])
         elif self.sigma_rad is not None:
             raise InvalidInputError("gnss: `sigma_rad` given without `angles`")
-        for a in (pos, sig, lever, ang, sang):
+        cov, tim, strip = _gnss_extras(n, self.covariance, self.time, self.strip, ang is not None)
+        for a in (pos, sig, lever, ang, sang, cov, tim):
             if a is not None:
                 a.flags.writeable = False
+        object.__setattr__(self, "covariance", cov)
+        object.__setattr__(self, "time", tim)
+        object.__setattr__(self, "strip", strip)
         object.__setattr__(self, "images", images)
         object.__setattr__(self, "position", pos)
         object.__setattr__(self, "sigma_m", sig)
         object.__setattr__(self, "lever_arm_m", lever)
         object.__setattr__(self, "angles", ang)
         object.__setattr__(self, "sigma_rad", sang)
+
+
+def _gnss_extras(n: int, covariance: ArrayLike | None, time: ArrayLike | None, strip: Sequence[str] | None,
+                 has_angles: bool) -> tuple[F64 | None, F64 | None, tuple[str, ...] | None]:
+    """Validated ``covariance`` (n, 3, 3) / (n, 6, 6), ``time`` (n,) and ``strip`` of :class:`GnssObservations`."""
+    cov = tim = None
+    if covariance is not None:
+        cov = np.array(covariance, dtype=np.float64, copy=True)
+        k = cov.shape[-1] if cov.ndim == 3 else -1
+        if cov.shape not in ((n, 3, 3), (n, 6, 6)):
+            raise ShapeError(f"gnss: `covariance` must have shape ({n}, 3, 3) or ({n}, 6, 6); got {cov.shape}")
+        if k == 6 and not has_angles:
+            raise InvalidInputError("gnss: a (n, 6, 6) `covariance` needs `angles`")
+        for i in range(n):
+            c = cov[i]
+            if not np.isfinite(c).all() or not np.allclose(c, c.T, rtol=1e-9, atol=0.0):
+                raise InvalidInputError(f"gnss: the covariance of image {i} is not finite and symmetric: {c.tolist()}")
+            if np.linalg.eigvalsh(c)[0] <= 1e-12 * max(float(np.max(np.abs(np.diag(c)))), 1e-300):
+                raise InvalidInputError(f"gnss: the covariance of image {i} is not positive definite (eigenvalues "
+                                        f"{np.linalg.eigvalsh(c).round(15).tolist()})")
+    if time is not None:
+        tim = np.array(time, dtype=np.float64, copy=True).reshape(-1)
+        if tim.shape != (n,) or not np.isfinite(tim).all():
+            raise InvalidInputError(f"gnss: `time` must be {n} finite numbers; got {np.asarray(time).tolist()!r}"[:200])
+    out_strip = None
+    if strip is not None:
+        out_strip = tuple(str(s) for s in strip)
+        if len(out_strip) != n or any(not s for s in out_strip):
+            raise InvalidInputError(f"gnss: `strip` must be {n} non-empty labels; got {list(out_strip)[:5]}")
+    return cov, tim, out_strip

@@ -13,6 +13,12 @@ propagates to a standard error of the prediction at any setting. The fit's
 ``chi2 / dof`` per element says whether the polynomial explains the
 calibrations within their standard errors (about 1) or not (much larger: raise
 the degree or add settings).
+
+:meth:`ZoomModel.zoom_camera` hands the fit to :class:`rectify.geometry.zoom.ZoomCamera`, the object
+the commands evaluate at an image's focal setting (``stereo calibrate --zoom`` writes it as the zoom
+camera JSON). Both refuse a setting outside the calibrated range (plus a margin of
+:data:`rectify.geometry.zoom.ZOOM_MARGIN` of the span). :func:`held_out_checks` predicts each inner
+setting from the others (leave one out) and compares with its own calibration.
 """
 
 from __future__ import annotations
@@ -27,12 +33,14 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from rectify.errors import CalibrationError, InvalidInputError
+from rectify.formats.camera import zoom_camera_document
+from rectify.geometry.zoom import ZoomCamera
 from stereo.calibration.model import Intrinsics
 from stereo.calibration.result import Calibration
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ZoomModel"]
+__all__ = ["HeldOut", "ZoomModel", "held_out_checks", "min_settings"]
 
 F64 = NDArray[np.float64]
 
@@ -121,21 +129,22 @@ class ZoomModel:
         logger.info("zoom model: degree %d over %d settings; chi2/dof %s", degree, len(z), chi)
         return cls(z, use, degree, centre, half, coefs, covs, chi, sw, sh)
 
+    def zoom_camera(self, unit: str = "") -> ZoomCamera:
+        """The fit as a :class:`ZoomCamera` (``unit``: what the setting is, e.g. ``"mm"``)."""
+        return ZoomCamera(self.settings, self.degree, self.centre, self.half_range, dict(self.coefficients),
+                          dict(self.covariances), self.width, self.height, unit)
+
     def predict(self, setting: float) -> tuple[dict[str, float], dict[str, float]]:
         """Predicted elements and their standard errors at ``setting``.
 
-        Extrapolation beyond the calibrated settings is logged as a warning.
+        Raises
+        ------
+        InvalidInputError
+            A setting that is not a finite number.
+        CalibrationError
+            A setting outside the calibrated range (:meth:`ZoomCamera.check_setting`).
         """
-        z = float(setting)
-        if not math.isfinite(z):
-            raise InvalidInputError(f"setting must be finite; got {setting!r}")
-        if z < self.settings.min() or z > self.settings.max():
-            logger.warning("zoom model extrapolated to setting %g (calibrated %g..%g)", z, self.settings.min(),
-                           self.settings.max())
-        a = np.vander([(z - self.centre) / self.half_range], self.degree + 1, increasing=True)[0]
-        val = {n: float(a @ self.coefficients[n]) for n in self.names}
-        se = {n: float(math.sqrt(max(a @ self.covariances[n] @ a, 0.0))) for n in self.names}
-        return val, se
+        return self.zoom_camera().predict(setting)
 
     def intrinsics(self, setting: float) -> Intrinsics:
         """The predicted interior orientation at ``setting`` (elements not modelled are 0)."""
@@ -148,10 +157,49 @@ class ZoomModel:
         return Intrinsics(fx=fx, fy=fy, cx=v["cx"], cy=v["cy"], width=self.width, height=self.height,
                           **{k: v.get(k, 0.0) for k in ("k1", "k2", "k3", "p1", "p2")})
 
-    def to_dict(self) -> dict[str, Any]:
-        return {"format": "rectify-stereo/zoom-model", "version": 1, "degree": self.degree,
-                "settings": self.settings.tolist(), "centre": self.centre, "half_range": self.half_range,
-                "width": self.width, "height": self.height,
-                "elements": {n: {"coefficients": self.coefficients[n].tolist(),
-                                 "covariance": self.covariances[n].tolist(), "chi2_dof": self.chi2_dof[n]}
-                             for n in self.names}}
+    def to_dict(self, unit: str = "", **extra: Any) -> dict[str, Any]:
+        """The zoom camera JSON (``rectify-stereo/zoom-camera``, ``docs/formats.md``), with each element's
+        chi2/dof and ``extra`` keys (informative, not read back)."""
+        return zoom_camera_document(self.zoom_camera(unit), chi2_dof=dict(self.chi2_dof), **extra)
+
+
+def min_settings(degree: int) -> int:
+    """Fewest focal settings a zoom model of ``degree`` needs (``degree + 1``)."""
+    return degree + 1
+
+
+@dataclass(frozen=True)
+class HeldOut:
+    """One setting predicted by the model of the others: the normalised differences per element,
+    ``(predicted - calibrated) / sqrt(se_pred^2 + se_cal^2)``."""
+
+    setting: float
+    z: dict[str, float]
+
+    @property
+    def rms(self) -> float:
+        return float(np.sqrt(np.mean(np.square(list(self.z.values())))))
+
+    @property
+    def worst(self) -> tuple[str, float]:
+        n = max(self.z, key=lambda k: abs(self.z[k]))
+        return n, self.z[n]
+
+
+def held_out_checks(settings: ArrayLike, calibrations: Sequence[Calibration], *, degree: int = 2,
+                    names: Sequence[str] | None = None) -> list[HeldOut]:
+    """Leave one out: each inner setting (never the ends: that would extrapolate) predicted by the model
+    fitted to the other settings. Empty when fewer than ``degree + 2`` settings."""
+    z = np.asarray(settings, dtype=np.float64).reshape(-1)
+    if len(z) < degree + 2:
+        return []
+    order = np.argsort(z)
+    out = []
+    for k in order[1:-1]:
+        keep = [i for i in range(len(z)) if i != k]
+        zm = ZoomModel.from_calibrations(z[keep], [calibrations[i] for i in keep], degree=degree, names=names)
+        val, se = zm.predict(float(z[k]))
+        cal = calibrations[k]
+        out.append(HeldOut(float(z[k]), {n: (val[n] - cal.value(n)) / math.hypot(se[n], cal.std_errors[n])
+                                         for n in zm.names}))
+    return out

@@ -3,14 +3,23 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import click
 
 from rectify.cli.options import echo, handle_errors, matcher_opts, overwrite_opt, progress
+from rectify.geometry.mestimate import M_ALGORITHMS, NEWTON_METHODS
 from rectify.geometry.robust import ROBUST_METHODS
 from stereo.actions.block import BlockExports, BlockOptions, run_block
+from stereo.actions.block_models import ModelMethodOptions
+from stereo.actions.block_projective import ProjectiveBlockOptions, run_block_projective
 from stereo.actions.common import matcher_config
 from stereo.block.bundle.adjust import INTERIOR_NAMES, BundleOptions
+from stereo.block.bundle.robust import ROBUST_SCALES
+from stereo.block.bundle.systematic import BORESIGHT_MODES, DRIFT_MODES
+from stereo.block.frames import FRAME_KINDS
+from stereo.block.projective import BLOCK_METHODS
+from stereo.block.projective_bundle import DEFAULT_CALIBRATE
 from stereo.features.tracks import BLOCK_MATCHER, PAIR_STRATEGIES, BlockMatchOptions
 
 _B = BundleOptions()
@@ -65,7 +74,7 @@ def _ids(text: str) -> tuple[str, ...]:
 
 
 @click.command(short_help="Block triangulation: tie points, independent models, bundle adjustment with GNSS/INS.")
-@click.argument("images", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False))
+@click.argument("images", nargs=-1, required=False, type=click.Path(exists=True, dir_okay=False))
 @click.option("--camera", "camera_path", type=click.Path(), default=None,
               help="Camera file: camera JSON, orthority int_param (cameras by id), OpenCV calibration, COLMAP model "
                    "or Metashape cameras XML, found by content (KIND:PATH: camera, orthority, opencv, colmap, "
@@ -80,6 +89,33 @@ def _ids(text: str) -> tuple[str, ...]:
 @click.option("--control", "control_path", type=click.Path(dir_okay=False), default=None,
               help="Control: block control CSV (id,image,col,row,x,y,z[,sx,sy,sz]), ODM gcp_list.txt or Metashape "
                    "markers XML, found by content (KIND:PATH: control, odm, metashape).")
+@click.option("--observations", "observations_path", type=click.Path(dir_okay=False), default=None,
+              help="Image measurements made elsewhere: an observations CSV (image,id,col,row[,sigma_px], as "
+                   "stereo block writes it). The block is adjusted without images (give no IMAGES; --poses names "
+                   "the images, --camera gives their size).")
+@click.option("--method", "method", type=click.Choice(["bundle", "independent-models", "affine", "projective"]),
+              default="bundle",
+              show_default=True,
+              help="bundle: a known camera (--camera). independent-models: the models of the pairs adjusted together "
+                   "with the control instead of the bundle (seed 002, 3.1-3.2; see --strip-polynomial, "
+                   "--dependent-models). affine, projective: images without a known camera (no "
+                   "--camera; seed 003, 3.4): models joined by a joint affine (with virtual control) or projective "
+                   "orientation, a projective bundle, the metric upgrade by --control (at least 5 full control "
+                   "points) and the bundle with self-calibration of fx, fy, skew and the principal point "
+                   "(docs/projective_block.md).")
+@click.option("--strip-polynomial", "strip_polynomial", type=click.IntRange(1, 3), default=None,
+              help="--method independent-models: join the models into strips, orient each by its control and remove "
+                   "its deformation by polynomials of this degree (seed 002, 3.8-3.15; degree 2 needs 6 control points "
+                   "per strip, 3 needs 8). Default: the models adjusted together with the control (seed 002, 3.1.2).")
+@click.option("--dependent-models", "dependent_models", is_flag=True, default=False,
+              help="--method independent-models: partially dependent models (seed 002, 3.2): each pair keeps the "
+                   "rotation its left image got from the previous pair.")
+@click.option("--focal-guess", "focal_guess", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="--method affine: the nominal focal length of its models, px (default max(width, height)).")
+@click.option("--frame", "frame", type=click.Choice(list(FRAME_KINDS)), default=None,
+              help="Adjustment frame: topocentric (local east-north-up about the block's centre; the default with a "
+                   "CRS), geocentric (ECEF) or map (the CRS as given; the default without a CRS). Results are "
+                   "written in the CRS of the inputs.")
 @click.option("--check", "check_ids", default="", help="Comma-separated control ids used only as check points.")
 @click.option("--gnss-sigma", type=Floats(), default=None,
               help="A-priori std of the GNSS projection centres, m (one value or sx,sy,sz): the pose file's "
@@ -100,6 +136,13 @@ def _ids(text: str) -> tuple[str, ...]:
                    "--self-calibrate.")
 @click.option("--robust", type=click.Choice(list(ROBUST_METHODS)), default=_O.bundle.robust, show_default=True,
               help="Robust M-estimation of the image observations.")
+@click.option("--robust-algorithm", type=click.Choice(list(M_ALGORITHMS)), default=_B.robust_algorithm,
+              show_default=True, help="Reweighting (seed 002 eq. 2.24) or modified residuals (eqs. 2.25-2.27).")
+@click.option("--robust-scale", type=click.Choice(list(ROBUST_SCALES)), default=_B.robust_scale, show_default=True,
+              help="Robust scale: of the least-squares residuals, held; or the weighted median of every "
+                   "reweighting (eq. 2.29).")
+@click.option("--newton", type=click.Choice(list(NEWTON_METHODS)), default=_B.newton, show_default=True,
+              help="Newton-Raphson: normal matrix factorised every iteration, or once (modified; docs/robust.md).")
 @click.option("--variance-components/--no-variance-components", default=_O.bundle.variance_components,
               show_default=True, help="Estimate a variance factor per observation group.")
 @click.option("--blunder-threshold", type=click.FloatRange(min=0, min_open=True), default=_B.blunder_threshold,
@@ -112,6 +155,15 @@ def _ids(text: str) -> tuple[str, ...]:
 @click.option("--lever-arm", type=Triple(), default=None, help="GNSS antenna offset in the camera frame, m: lx,ly,lz.")
 @click.option("--boresight", type=Triple(), default=None,
               help="Boresight angles of the camera in the INS body frame, degrees (navigation pose files).")
+@click.option("--trajectory", "trajectory_path", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="GNSS/INS trajectory CSV (time,x,y,z,heading,pitch,roll[,sx,...]): --poses is then an image-times "
+                   "CSV (image,time[,strip]) and each image's pose is the trajectory at its time (cubic positions, "
+                   "SLERP attitude; docs/block.md).")
+@click.option("--gnss-drift", type=click.Choice(list(DRIFT_MODES)), default=_B.gnss_drift, show_default=True,
+              help="GNSS unknowns per strip (the pose file's strip column): a shift, or a shift and a drift linear "
+                   "in time (its time column); seed 002 3.64.")
+@click.option("--boresight-unknown", type=click.Choice(list(BORESIGHT_MODES)), default=_B.boresight_unknown,
+              show_default=True, help="Boresight correction unknowns: for the block, or per strip (needs INS angles).")
 @click.option("--ground-z", type=float, default=None, help="Mean terrain height for the footprints (default: "
                                                            "from control).")
 @click.option("--pairs", "pair_strategy", type=click.Choice(list(PAIR_STRATEGIES)),
@@ -132,12 +184,17 @@ def _ids(text: str) -> tuple[str, ...]:
 @matcher_opts(BLOCK_MATCHER)
 @overwrite_opt
 @handle_errors
-def block(images, camera_path, out_dir, poses_path, control_path, check_ids, gnss_sigma, ins_sigma, control_sigma,
-          control_sigma_px, self_calibrate, calibrate_names, robust, variance_components, blunder_threshold,
-          max_iterations, free_network, lever_arm, boresight, ground_z, pair_strategy, report, rematch, stac,
+def block(images, camera_path, out_dir, poses_path, control_path, observations_path, method, strip_polynomial,
+          dependent_models, focal_guess, frame,
+          check_ids, gnss_sigma,
+          ins_sigma, control_sigma,
+          control_sigma_px, self_calibrate, calibrate_names, robust, robust_algorithm, robust_scale, newton,
+          variance_components, blunder_threshold,
+          max_iterations, free_network, lever_arm, boresight, trajectory_path, gnss_drift, boresight_unknown,
+          ground_z, pair_strategy, report, rematch, stac,
           colmap_dir, opensfm_dir, orthority_dir, detector, verify, refine, max_matches, max_keypoints, overwrite):
-    """Orient the block IMAGES... into OUTDIR: orientation.json, poses.csv, points (PLY, CSV, LAS),
-    observations.csv and the report."""
+    """Orient the block IMAGES... (or the measurements of --observations) into OUTDIR: orientation.json,
+    poses.csv, points (PLY, CSV, LAS), observations.csv and the report."""
     calib: tuple[str, ...] = ()
     if calibrate_names:
         calib = _ids(calibrate_names)
@@ -153,13 +210,31 @@ def block(images, camera_path, out_dir, poses_path, control_path, check_ids, gns
         boresight_rad=None if boresight is None else _radians(boresight),
         ground_z=ground_z,
         match=BlockMatchOptions(matcher=matcher, pair_strategy=pair_strategy),
-        bundle=BundleOptions(robust=robust, self_calibrate=calib, variance_components=variance_components,
+        bundle=BundleOptions(robust=robust, robust_algorithm=robust_algorithm, robust_scale=robust_scale,
+                             newton=newton, self_calibrate=calib, variance_components=variance_components,
                              blunder_threshold=blunder_threshold, free_network=free_network,
-                             max_iterations=max_iterations),
+                             max_iterations=max_iterations, gnss_drift=gnss_drift,
+                             boresight_unknown=boresight_unknown),
         report=report, reuse_tracks=not rematch, stac=stac,
-        exports=BlockExports(colmap=colmap_dir, opensfm=opensfm_dir, orthority=orthority_dir))
+        exports=BlockExports(colmap=colmap_dir, opensfm=opensfm_dir, orthority=orthority_dir), frame=frame,
+        trajectory=trajectory_path, method="bundle" if method in BLOCK_METHODS else method,
+        models=ModelMethodOptions(strip_polynomial=strip_polynomial, dependent=dependent_models,
+                                  robust=robust != "none"))
+    if method in BLOCK_METHODS:  # images without a known camera: stereo.actions.block_projective
+        popts = ProjectiveBlockOptions(method=method, check_ids=opts.check_ids, control_sigma_m=control_sigma,
+                                       control_sigma_px=control_sigma_px, calibrate=calib or DEFAULT_CALIBRATE,
+                                       focal_guess_px=focal_guess, match=opts.match,
+                                       bundle=replace(opts.bundle, self_calibrate=()))
+        with progress("block") as cb:
+            presult = run_block_projective(list(images), out_dir=out_dir, control=control_path, options=popts,
+                                           overwrite=overwrite, progress=cb, observations=observations_path,
+                                           camera=camera_path, poses=poses_path)
+        for line in presult.summary_lines():
+            echo(line)
+        return
     with progress("block") as cb:
         result = run_block(list(images), out_dir=out_dir, camera=camera_path, poses=poses_path,
-                           control=control_path, options=opts, overwrite=overwrite, progress=cb)
+                           control=control_path, options=opts, overwrite=overwrite, progress=cb,
+                           observations=observations_path)
     for line in result.summary_lines():
         echo(line)

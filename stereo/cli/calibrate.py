@@ -15,6 +15,7 @@ from stereo.actions.calibrate import (
     calibrate_images,
     calibrate_points,
     calibrate_rig_images,
+    calibrate_zoom,
 )
 
 
@@ -29,6 +30,14 @@ from stereo.actions.calibrate import (
 @click.option("--right", "right_glob", default=None,
               help="Rig: right-camera images as a quoted glob pattern ('right*.jpg'); IMAGES are the left images, "
                    "paired in sorted order. Writes the rig JSON (both cameras, relative orientation).")
+@click.option("--zoom", is_flag=True, default=False,
+              help="Zoom lens: calibrate each focal setting on its views, fit the interior orientation as polynomials "
+                   "of the setting and write a zoom camera JSON (other commands evaluate it at an image's focal "
+                   "setting). Settings: --settings, else a `setting` column of --points, else EXIF FocalLength.")
+@click.option("--zoom-degree", type=click.IntRange(min=0), default=2, show_default=True,
+              help="Degree of the zoom polynomials (needs views at degree + 1 focal settings at least).")
+@click.option("--settings", "settings_path", type=click.Path(exists=True, dir_okay=False), default=None,
+              help="With --zoom: CSV view,setting giving the focal setting of each view or image (name or stem).")
 @click.option("--corners", "corners", type=click.Choice(list(CORNER_METHODS)), default="symmetry", show_default=True,
               help="Chessboard corner refinement: 'symmetry' (the centre of point symmetry of each corner's "
                    "neighbourhood) or 'opencv' (cornerSubPix). Corners whose refinement fails are left out, by name.")
@@ -48,13 +57,26 @@ from stereo.actions.calibrate import (
 @report_opt
 @overwrite_opt
 @handle_errors
-def calibrate(images, pattern, square, points_path, field_path, right_glob, corners, size, output, pixel_size_mm,
-              equal_focal, distortion, symmetry, robust, report_dir, overwrite):
+def calibrate(images, pattern, square, points_path, field_path, right_glob, zoom, zoom_degree, settings_path, corners,
+              size, output, pixel_size_mm, equal_focal, distortion, symmetry, robust, report_dir, overwrite):
     """Calibrate a camera: interior orientation (f or fx/fy, principal point, Brown k1..k3, p1, p2) with standard
     errors, by a least-squares adjustment of all views. IMAGES with --chessboard, or --points [--field] --size."""
     dist = () if distortion.strip().lower() == "none" else tuple(d.strip() for d in distortion.split(",") if d.strip())
     model = {"equal_focal": equal_focal, "distortion": dist, "symmetry": symmetry,
              "robust": None if robust == "none" else robust}
+    if settings_path and not zoom:
+        raise InvalidInputError("--settings gives the focal settings of a zoom calibration: add --zoom")
+    if zoom:
+        for flag, given in (("--right", right_glob), ("--report", report_dir), ("--pixel-size", pixel_size_mm)):
+            if given:
+                raise InvalidInputError(f"{flag} is not available with --zoom (a zoom camera is written in pixels)"
+                                        if flag == "--pixel-size" else f"{flag} is not available with --zoom")
+        zoom_run = calibrate_zoom(output=output, degree=zoom_degree, images=images, pattern=pattern, square=square,
+                                  corners=corners, points=points_path, field=field_path, size=size,
+                                  settings=settings_path, overwrite=overwrite, **model)
+        for line in zoom_run.summary_lines():
+            echo(line)
+        return
     if Path(output).suffix.lower() in OPENCV_OUTPUT_SUFFIXES:  # refused before any detection
         if symmetry:
             raise InvalidInputError(f"-o {output!r}: an OpenCV calibration file has no separate point of symmetry "

@@ -25,5 +25,6 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
 # --- registered subcommands (one module each, imported when run) ---
 for _name, _module in (("orient", "orient"), ("model", "model"), ("resect", "resect"), ("run", "run"),
                        ("demo", "demo"), ("calibrate", "calibrate"), ("dense", "dense"),
-                       ("dense-rpc", "dense_rpc"), ("disparity", "disparity"), ("block", "block")):
+                       ("dense-rpc", "dense_rpc"), ("disparity", "disparity"), ("block", "block"),
+                       ("view", "view"), ("sat-intersect", "sat_intersect")):
     cli.add_lazy(_name, f"stereo.cli.{_module}:{_module}")

@@ -6,6 +6,7 @@ import click
 
 from rectify.cli.options import echo, handle_errors, overwrite_opt, report_opt
 from rectify.geometry.robust import ROBUST_METHODS
+from stereo.actions.model import TRANSFORMS
 from stereo.actions.model import model as model_action
 from stereo.pair.absolute import DEFORMATION_ORDERS
 from stereo.pair.intersection import METHODS
@@ -36,18 +37,24 @@ _D = ModelOptions()
 @click.option("--control-sigma-px", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Image precision of the control/check points, pixels (default: estimated from the absolute "
                    "orientation).")
+@click.option("--transform", type=click.Choice(list(TRANSFORMS)), default="similarity", show_default=True,
+              help="Model-to-ground transformation: the 7-parameter similarity, or (seed 003, 3.3) the 12-parameter "
+                   "affine (>= 4 non-coplanar control points) or the 15-parameter projective (>= 5 not all on one "
+                   "plane; the only one for a projective pair written without a camera).")
 @report_opt
 @overwrite_opt
 @handle_errors
 def model(ro_json, matches_path, camera_path, output, control_path, check_ids, frame, method, robust, deformation,
-          control_sigma_px, report_dir, overwrite):
+          control_sigma_px, transform, report_dir, overwrite):
     """Intersect the matches of RO_JSON's pair into model points and, with
-    --control, orient the model to the ground (7-parameter similarity)."""
+    --control, orient the model to the ground (7-parameter similarity, or the affine or projective
+    transformation of --transform; RO_JSON may then also be the projective pair JSON of
+    `stereo orient --system projective` without a camera)."""
     checks = tuple(s.strip() for s in check_ids.split(",") if s.strip())
     opts = ModelOptions(intersection=method, frame=frame, robust=robust,
                         deformation_order=None if deformation == "none" else int(deformation), check_ids=checks,
                         control_sigma_px=control_sigma_px)
     result = model_action(ro_json, matches=matches_path, output=output, camera=camera_path, control=control_path,
-                          report_dir=report_dir, overwrite=overwrite, options=opts)
+                          report_dir=report_dir, overwrite=overwrite, options=opts, transform=transform)
     for line in result.summary_lines():
         echo(line)

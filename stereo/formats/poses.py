@@ -180,9 +180,11 @@ def read_pose_csv(path: StrPath, *, camera: str | None = None, boresight_rad: Ar
         angle_sigma_cols = _NAV_SIGMA if nav else _OPK_SIGMA
         need_columns(fields, ("image", *_POS, *angle_cols), p)
         allowed = {"image", "camera", *_POS, *angle_cols, *_POS_SIGMA, *angle_sigma_cols}
-        unknown = [f for f in fields if f not in allowed]
+        # time, strip and corr_* columns: read by stereo.formats.trajectory.read_pose_extras
+        unknown = [f for f in fields if f not in allowed and f not in ("time", "strip") and not f.startswith("corr_")]
         if unknown:
-            raise InvalidInputError(f"{str(p)!r}: unknown column(s) {unknown}; allowed are {sorted(allowed)}")
+            raise InvalidInputError(f"{str(p)!r}: unknown column(s) {unknown}; allowed are {sorted(allowed)} "
+                                    "(and time, strip, corr_*)")
         if boresight_rad is not None and not nav:
             raise InvalidInputError(f"{str(p)!r}: boresight_rad applies to heading,pitch,roll files only; this "
                                     "file has omega,phi,kappa (the camera's own angles)")

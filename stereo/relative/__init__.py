@@ -61,15 +61,27 @@ Modules
 - :mod:`stereo.relative.solver`: the estimation in stages (validate, start values
   and Gauss-Newton/IRLS solution, precision), the essential-matrix start;
 - :mod:`stereo.relative.result`: :class:`RelativeOrientation` (the result and its
-  dict form) and :class:`RelativeGeometry` (what intersection needs of it).
+  dict form) and :class:`RelativeGeometry` (what intersection needs of it);
+- :mod:`stereo.relative.universal`, :mod:`stereo.relative.projective`: the method systems of
+  :data:`METHOD_SYSTEMS` (seed 003, 3.2.1 and 3.2.2; ``docs/universal.md``): ``universal`` (linear
+  iterations with the p, q, r matrices and Gram-Schmidt, reported in the ``basis`` elements) and
+  ``projective`` (the fundamental matrix, reported in the ``left-image`` elements).
 """
 
 from stereo.relative.result import RelativeGeometry, RelativeOrientation, WesternForm
 from stereo.relative.solver import INITIAL_METHODS, RelativeOptions, relative_from_essential
-from stereo.relative.systems import SYSTEMS, PrecisionStructure, System, coplanarity, precision_structure
+from stereo.relative.systems import (
+    METHOD_SYSTEMS,
+    SYSTEMS,
+    PrecisionStructure,
+    System,
+    coplanarity,
+    precision_structure,
+)
 
 __all__ = [
     "INITIAL_METHODS",
+    "METHOD_SYSTEMS",
     "SYSTEMS",
     "PrecisionStructure",
     "RelativeGeometry",

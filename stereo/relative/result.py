@@ -98,6 +98,9 @@ class RelativeOrientation:
     initial_method : str
         ``"zero"``, ``"essential"`` or ``"given"``.
     elapsed_s : float
+    method_figures : dict or None
+        System ``projective``: the fundamental matrix of the photo coordinates (in pixels) and its
+        Sampson fit (written as ``"fundamental"`` in the dict form).
     """
 
     system: str
@@ -124,6 +127,7 @@ class RelativeOrientation:
     initial_method: str = "zero"
     elapsed_s: float = 0.0
     left_px: NDArray[np.float64] | None = None
+    method_figures: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
         for name in ("elements", "covariance", "left_mm", "right_mm", "parallax_mm", "residual_mm", "weights",
@@ -209,7 +213,7 @@ class RelativeOrientation:
             focal_length_mm=prob.focal_length_mm, ids=prob.ids, left_mm=prob.left_mm, right_mm=prob.right_mm,
             parallax_mm=pr.parallax_mm, residual_mm=pr.residual_mm, weights=sol.weights, outlier=pr.outlier,
             pixel_size_mm=pixel_size_mm, robust=prob.robust, scale_mm=sol.scale, initial_method=sol.initial,
-            elapsed_s=time.perf_counter() - t0,
+            elapsed_s=time.perf_counter() - t0, method_figures=sol.extra,
         )
         logger.info("relative orientation (%s): %d iterations, sigma0 %s mm", sys_.name, sol.iterations,
                     pr.sigma0_mm)
@@ -412,6 +416,7 @@ class RelativeOrientation:
             "n_points": self.n_points,
             "n_used": self.n_used,
             "points": pts,
+            **({"fundamental": self.method_figures} if self.method_figures else {}),
         }
 
 

@@ -27,7 +27,9 @@ from rectify.errors import ConvergenceError, EstimationError, InvalidInputError,
 from rectify.geometry import lsq
 from rectify.geometry.points import as_ids, as_pair, as_weights
 from rectify.geometry.robust import ROBUST_METHODS, get_psi, irls
+from stereo.relative.projective import relative_from_fundamental
 from stereo.relative.systems import System, _evaluate, _focals, _rays, _unit, dobrynin_pimshina_for_base, get_system
+from stereo.relative.universal import solve_universal
 
 logger = logging.getLogger(__name__)
 
@@ -235,6 +237,8 @@ def _initial_vector(sys_: System, initial) -> NDArray[np.float64]:
 
 def _solve(sys_: System, p0, u1, u2, prior, robust: str, opts: RelativeOptions):
     """Plain or robust adjustment; returns (p, weights, gn_iterations, irls_iterations, scale, converged)."""
+    if sys_.name == "universal" and robust == "none":  # the linear iterations found p; no Gauss-Newton
+        return p0, prior.copy(), 0, 0, None, True
     if robust == "none":
         p, it = _gauss_newton(sys_, p0, u1, u2, prior, opts)
         return p, prior.copy(), it, 0, None, True
@@ -323,6 +327,16 @@ def validate(left_mm: ArrayLike, right_mm: ArrayLike, *, focal_length_mm: float 
     else:
         init = "given"
         given = _initial_vector(sys_, initial)
+    if sys_.name in ("universal", "projective") and init != "auto":
+        raise InvalidInputError(f"system {sys_.name!r} needs no initial values (it starts from the "
+                                f"{'identity' if sys_.name == 'universal' else 'fundamental matrix'}); got "
+                                f"initial {initial!r}")
+    if sys_.name == "projective" and robust != "none":
+        raise InvalidInputError(f"robust estimation ({robust!r}) is not available with system 'projective' "
+                                "(the fundamental matrix is fitted by least squares); use --robust none")
+    if sys_.name == "projective" and n < 8:
+        raise EstimationError(f"too few tie points for relative orientation by the fundamental matrix: {n} given, "
+                              "at least 8 needed (the eight-point method; 7 is the algebraic minimum)")
     return Problem(sys_, robust, lm, r, (f1, f2), pixel_size_mm, w0, id_list, init, given)
 
 
@@ -340,7 +354,11 @@ class Solution:
     scale : float or None
         Final robust scale of the normalised residuals, mm.
     initial : str
-        The start that succeeded: ``"zero"``, ``"essential"`` or ``"given"``.
+        The start that succeeded: ``"zero"``, ``"essential"`` or ``"given"`` (``"universal"``,
+        ``"fundamental"`` for the method systems).
+    extra : dict or None
+        Figures of the method's own stage (system ``projective``: the fundamental matrix and its
+        Sampson fit).
     """
 
     elements: NDArray[np.float64]
@@ -349,6 +367,7 @@ class Solution:
     irls_iterations: int
     scale: float | None
     initial: str
+    extra: dict[str, Any] | None = None
 
 
 def choose_frame(prob: Problem, opts: RelativeOptions) -> Problem:
@@ -388,12 +407,25 @@ def solve(prob: Problem, opts: RelativeOptions) -> Solution:
 
     init = prob.initial
     prior = prob.weights.copy()
+    extra: dict[str, Any] | None = None
+    universal_iterations = 0
     if robust != "none":
         _, inl = essential()
         prior = np.where(inl, prob.weights, 0.0)
         logger.info("RANSAC (essential matrix): %d of %d tie points kept", int(inl.sum()), n)
     starts: list[tuple[str, NDArray | None]] = []
-    if init == "given":
+    if sys_.name == "universal":  # seed 003, 3.2.1: linear iterations from the identity
+        p_universal, universal_iterations = solve_universal(u1, u2, prior)
+        starts.append(("universal", p_universal))
+    elif sys_.name == "projective":  # seed 003, 3.2.2: the elements from the fundamental matrix
+        used = prior > 0
+        R_rel, bl, F, fit = relative_from_fundamental(lm[used], r[used], prob.focal_length_mm, pix)
+        logger.info("fundamental matrix: Sampson rms %.3g px, %d LM iterations", fit.rms_px, fit.iterations)
+        extra = {"fundamental_matrix_photo_px": F.tolist(), "sampson_rms_px": fit.rms_px,
+                 "sampson_sigma0_px": fit.sigma0_px, "redundancy": fit.redundancy, "iterations": fit.iterations,
+                 "condition": fit.condition}
+        starts.append(("fundamental", sys_.elements_from_relative(R_rel, bl)))
+    elif init == "given":
         starts.append(("given", prob.given))
     elif init == "zero":
         starts.append(("zero", np.zeros(5)))
@@ -410,11 +442,13 @@ def solve(prob: Problem, opts: RelativeOptions) -> Solution:
             if p0 is None:
                 p0 = essential()[0]
             p, w, it, irls_it, scale, _irls_converged = _solve(sys_, p0, u1, u2, prior, robust, opts)
+            if label == "universal":
+                it += universal_iterations
             frac = _cheirality(sys_, p, u1, u2, w > 0)
             if frac < 0.5:
                 raise EstimationError(
                     f"solution from the {label} start puts {100 * (1 - frac):.0f}% of the points behind a camera")
-            return Solution(_wrap(p), w, it, irls_it, scale, label)
+            return Solution(_wrap(p), w, it, irls_it, scale, label, extra)
         except EstimationError as err:
             logger.info("start %r failed: %s", label, err)
             last_err = err

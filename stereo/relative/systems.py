@@ -20,7 +20,8 @@ from rectify.geometry import lsq
 from rectify.geometry.points import as_pair
 from rectify.geometry.rotation import angles_from_matrix, check_rotation
 
-__all__ = ["SYSTEMS", "PrecisionStructure", "System", "coplanarity", "get_system", "precision_structure"]
+__all__ = ["METHOD_SYSTEMS", "SYSTEMS", "PrecisionStructure", "System", "coplanarity", "get_system",
+           "precision_structure"]
 
 
 # rotation generators: d/da R_axis(a) = R_axis(a) @ G_axis
@@ -104,13 +105,13 @@ class System:
         dR1 = np.zeros((5, 3, 3))
         dR2 = np.zeros((5, 3, 3))
         db = np.zeros((5, 3))
-        if self.name == "basis":  # alpha1, kappa1, alpha2, omega2, kappa2
+        if self.name in ("basis", "universal"):  # alpha1, kappa1, alpha2, omega2, kappa2
             R1, d1 = _chain("yxz", [p[0], 0.0, p[1]])
             R2, d2 = _chain("yxz", [p[2], p[3], p[4]])
             b = np.array([1.0, 0.0, 0.0])
             dR1[0], dR1[1] = d1[0], d1[2]
             dR2[2], dR2[3], dR2[4] = d2
-        elif self.name == "left-image":  # tau, nu, alpha2, omega2, kappa2
+        elif self.name in ("left-image", "projective"):  # tau, nu, alpha2, omega2, kappa2
             R1 = np.eye(3)
             R2, d2 = _chain("yxz", [p[2], p[3], p[4]])
             b, db[0], db[1] = _base(p[0], p[1])
@@ -148,12 +149,12 @@ class System:
         if not np.isfinite(bc).all() or np.linalg.norm(bc) == 0:
             raise EstimationError(f"base vector must be finite and non-zero; got {bc.tolist()}")
         bc = _unit(bc)
-        if self.name == "left-image":
+        if self.name in ("left-image", "projective"):
             tau = math.atan2(bc[1], bc[0])
             nu = math.atan2(bc[2], math.hypot(bc[0], bc[1]))
             a2, w2, k2 = angles_from_matrix(Rr, "phi-omega-kappa")
             return np.array([tau, nu, a2, w2, k2])
-        if self.name == "basis":
+        if self.name in ("basis", "universal"):
             a1 = math.asin(max(-1.0, min(1.0, bc[2])))
             k1 = math.atan2(-bc[1], bc[0])
             M = _rot("y", a1) @ _rot("z", k1)
@@ -234,6 +235,18 @@ TURNED_SYSTEMS: dict[str, System] = {
     for t in (90, 180, 270)}
 
 
+#: Systems named by the method that finds them (seed 003, 3.2.1-3.2.2; docs/universal.md), not by new
+#: elements: ``universal`` (linear iterations with the p, q, r matrices and Gram-Schmidt,
+#: :mod:`stereo.relative.universal`) reports the elements of the ``basis`` system (the seed's first
+#: scheme, fixed base), ``projective`` (the fundamental matrix, :mod:`stereo.relative.projective`) those
+#: of the ``left-image`` system. Kept apart from :data:`SYSTEMS` (the three systems of elements).
+METHOD_SYSTEMS: dict[str, System] = {
+    "universal": System("universal", SYSTEMS["basis"].names, "alpha-omega-kappa", ("tau", "nu", "omega1")),
+    "projective": System("projective", SYSTEMS["left-image"].names, "alpha-omega-kappa",
+                         ("alpha1", "omega1", "kappa1")),
+}
+
+
 def dobrynin_pimshina_for_base(base_left: ArrayLike) -> System:
     """The dobrynin-pimshina system whose turned photo frames put ``base_left`` (left photo frame) nearest
     to +x: unturned when the base runs along +x, turned by 270 degrees for +y, 90 for -y, 180 for -x."""
@@ -250,10 +263,13 @@ def get_system(system: str | System) -> System:
         return system
     if str(system) in TURNED_SYSTEMS:
         return TURNED_SYSTEMS[str(system)]
+    if str(system) in METHOD_SYSTEMS:
+        return METHOD_SYSTEMS[str(system)]
     try:
         return SYSTEMS[str(system)]
     except KeyError:
-        raise InvalidInputError(f"unknown system {system!r}; expected one of {list(SYSTEMS)}") from None
+        raise InvalidInputError(f"unknown system {system!r}; expected one of "
+                                f"{[*SYSTEMS, *METHOD_SYSTEMS]}") from None
 
 
 # -------------------------------------------------------------- coplanarity

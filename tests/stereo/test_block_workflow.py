@@ -42,7 +42,8 @@ def block():
 def run(block, tmp_path_factory):
     tmp = tmp_path_factory.mktemp("blk")
     images, cam, poses, ctrl, ties, checks = _files(tmp, block)
-    opts = BlockOptions(check_ids=checks, bundle=BundleOptions(robust="tukey", image_sigma_px=0.5))
+    # frame="map": the synthetic block is Cartesian in its (UTM-labelled) coordinates
+    opts = BlockOptions(check_ids=checks, bundle=BundleOptions(robust="tukey", image_sigma_px=0.5), frame="map")
     out = tmp / "out"
     res = run_block(images, out_dir=out, camera=cam, poses=poses, control=ctrl, options=opts, tracks=ties)
     return res, out, block, (images, cam, poses, ctrl, ties, checks)
@@ -113,7 +114,8 @@ def test_without_poses_independent_models_and_control(block, tmp_path):
     images, cam, _poses, ctrl, ties, checks = _files(tmp_path, blk, gnss=False)
     res = run_block(images, out_dir=tmp_path / "o", camera=cam, control=ctrl, tracks=ties,
                     options=BlockOptions(check_ids=checks, bundle=BundleOptions(robust="tukey", image_sigma_px=0.5,
-                                                                                max_iterations=100)))
+                                                                                max_iterations=100),
+                                         frame="map"))  # the synthetic block is Cartesian in its coordinates
     assert res.initial.startswith("independent models")
     b = res.bundle
     truth = {p.image: p for p in blk.true_poses}

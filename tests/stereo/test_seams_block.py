@@ -55,7 +55,8 @@ def run(tmp_path_factory):
     images, cam, poses, ctrl, ties, checks = write_block_files(tmp, blk, pixels={cid: px})
     out = tmp / "out"
     opts = BlockOptions(check_ids=checks, bundle=BundleOptions(robust="tukey", image_sigma_px=0.5,
-                                                               variance_components=True, max_iterations=100))
+                                                               variance_components=True, max_iterations=100),
+                        frame="map")  # the synthetic block is Cartesian in its (UTM-labelled) coordinates
     res = run_block(images, out_dir=out, camera=cam, poses=poses, control=ctrl, tracks=ties, options=opts)
     return res, out, blk, cid, len(rows)
 

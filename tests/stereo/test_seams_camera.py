@@ -225,7 +225,8 @@ def test_block_recovers_poses_and_points(tmp_path, skew):
                               "0.05", "0.05", "0.05"]))
     (d / "poses.csv").write_text("\n".join(rows) + "\n")
     res = run_block(images, out_dir=tmp_path / "out", camera=d / "camera.json", poses=d / "poses.csv",
-                    tracks=blk.tracks, options=BlockOptions(report=False, bundle=BundleOptions(max_iterations=50)))
+                    tracks=blk.tracks, options=BlockOptions(report=False, bundle=BundleOptions(max_iterations=50),
+                                                            frame="map"))  # a Cartesian synthetic block
     b = res.bundle
     assert b.converged
     truth = {p.image: p for p in blk.true_poses}

@@ -52,11 +52,19 @@ from numpy.typing import ArrayLike, NDArray
 from rectify.errors import ConvergenceError, EstimationError, InvalidInputError, ShapeError
 from rectify.geometry.camera import Camera
 from rectify.geometry.robust import ROBUST_METHODS, get_psi
+from stereo.block.bundle import newton as bn
 from stereo.block.bundle import solve as bs
 from stereo.block.bundle.datum import datum_analysis
 from stereo.block.bundle.model import INTERIOR_NAMES, camera_from_interior, interior_from_camera
 from stereo.block.bundle.result import BundleResult
-from stereo.block.bundle.robust import local_redundancy, robust_scales, robust_update
+from stereo.block.bundle.robust import (
+    check_robust_options,
+    local_redundancy,
+    m_covariance_factor,
+    robust_scales,
+    robust_update,
+)
+from stereo.block.bundle.systematic import check_modes, configure, pose_hat, systematic_estimates
 from stereo.block.bundle.variance import VCE_FACTOR_BOUNDS, VCE_MAX_ROUNDS, VCE_MIN_REDUNDANCY, weak_components
 from stereo.block.types import BlockControl, GnssObservations, Pose, Tracks, cameras_for
 
@@ -130,6 +138,13 @@ class BundleOptions:
         Solve the reduced camera system with a dense Cholesky factorisation up to this size,
         with a sparse LU beyond (either replaced by a banded Cholesky, the images in reverse
         Cuthill-McKee order, when that needs at least 4 times fewer operations).
+    gnss_drift : {"none", "shift", "shift-drift"}
+        GNSS systematic unknowns per strip (:mod:`stereo.block.bundle.systematic`): none, a shift,
+        a shift and a drift linear in time (needs the images' strips, and times for the drift).
+    boresight_unknown : {"none", "block", "strip"}
+        Boresight correction unknowns: none, one for the block, one per strip (needs INS angles).
+    robust_algorithm, robust_scale, newton : str
+        Seed 002's variants (:func:`stereo.block.bundle.robust.check_robust_options`, docs/robust.md).
     threads : int or None
         Threads of the model evaluation and the assembly of the normal equations (None: one; the
         work is many numpy operations on cache-sized pieces, and with two threads the 500-image
@@ -152,8 +167,14 @@ class BundleOptions:
     free_network: bool = False
     dense_limit: int = 4000
     threads: int | None = None
+    robust_algorithm: str = "reweighting"
+    robust_scale: str = "first"
+    newton: str = "full"
+    gnss_drift: str = "none"
+    boresight_unknown: str = "none"
 
     def __post_init__(self) -> None:
+        check_modes(self.gnss_drift, self.boresight_unknown)
         def pos(name: str) -> None:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
@@ -180,6 +201,7 @@ class BundleOptions:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise InvalidInputError(f"BundleOptions.{name} must be an integer >= 1; got {v!r}")
+        check_robust_options(self.robust_algorithm, self.robust_scale, self.newton)
         if self.covariance not in COVARIANCE_MODES:
             raise InvalidInputError(f"BundleOptions.covariance must be one of {list(COVARIANCE_MODES)}; "
                                     f"got {self.covariance!r}")
@@ -257,6 +279,7 @@ def _adjust(prob: bs.Problem, st0: bs.State, info: _Info, options: BundleOptions
     red = None
     notes: list[str] = []
     estimated_at: dict[str, float] = {}  # group -> redundancy of its latest variance-factor estimate
+    scales_used: dict[str, float] = {}
     for rnd in range(rounds):
         budget = limit - total_it
         if budget <= 0:
@@ -266,7 +289,7 @@ def _adjust(prob: bs.Problem, st0: bs.State, info: _Info, options: BundleOptions
         kept = (st, robust_w, dict(factors))
         st, robust_w, it, converged = _iterate(prob, st, factors, psi, robust_w, options, progress, info,
                                                robust_from_start=rnd > 0, limit=budget, done=total_it,
-                                               total=limit, must_converge=rnd == 0)
+                                               total=limit, must_converge=rnd == 0, scales_out=scales_used)
         total_it += it
         if not converged:
             # a later variance round ran out of the iteration budget: the solution of the previous round
@@ -312,8 +335,14 @@ def _adjust(prob: bs.Problem, st0: bs.State, info: _Info, options: BundleOptions
         red = _redundancy(prob, st, factors, robust_w, options, points_needed=want_points)
     if options.variance_components:
         notes.extend(weak_components(red.r, factors, estimated_at))
+    mcov = None
+    if psi is not None and red.Qcc is not None:
+        # seed 002 eq. 2.28: the M-estimate's covariance, factor * the cofactors of the a-priori weights
+        red_m = _redundancy(prob, st, factors, _ones_weights(prob), options, points_needed=want_points)
+        mcov = (red_m, m_covariance_factor(psi, prob, red.res, _base_weights(prob, factors), robust_w,
+                                           scales_used, red.n_unknowns))
     return _result(prob, st, info, factors, robust_w, red, options, total_it, converged, limit, notes,
-                   estimated_at if options.variance_components else None)
+                   estimated_at if options.variance_components else None, mcov=mcov)
 
 
 def iteration_limit(options: BundleOptions, free_network: bool) -> int:
@@ -432,7 +461,16 @@ def _setup(cameras: Mapping[str, Camera], poses: Sequence[Pose], tracks: Tracks,
     free = False
     has_plan = int(np.sum(np.isfinite(prob.c_sigma[:, 0]))) if len(prob.c_pt) else 0
     has_height = int(np.sum(np.isfinite(prob.c_sigma[:, 2]))) if len(prob.c_pt) else 0
+    if gnss is not None:  # full covariances, systematic unknowns (nothing when neither is asked for)
+        configure(prob, st, gnss, gnss_drift=options.gnss_drift, boresight=options.boresight_unknown,
+                  n_plan=has_plan, n_height=has_height)
+    elif options.gnss_drift != "none" or options.boresight_unknown != "none":
+        raise InvalidInputError("GNSS drift or boresight unknowns need GNSS/INS observations; got none")
     if len(prob.g_img) < 3 and (has_plan < 2 or has_height < 3):
+        if prob.pose_model is not None:
+            raise EstimationError(f"datum defect: {len(prob.g_img)} GNSS positions, {has_plan} plan and {has_height} "
+                                  "height control points; a free network takes no GNSS covariance or systematic "
+                                  "unknowns")
         if not options.free_network:
             raise EstimationError(
                 f"datum defect: {len(prob.g_img)} GNSS positions, {has_plan} plan and {has_height} height control "
@@ -509,7 +547,8 @@ def _combine(a: bs.Weights, b: bs.Weights) -> bs.Weights:
 def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: object | None,
              robust_w: bs.Weights, options: BundleOptions, progress: Callable[[int, int], None] | None,
              info: _Info, *, robust_from_start: bool, limit: int, done: int = 0, total: int | None = None,
-             must_converge: bool = True) -> tuple[bs.State, bs.Weights, int, bool]:
+             must_converge: bool = True, scales_out: dict[str, float] | None = None
+             ) -> tuple[bs.State, bs.Weights, int, bool]:
     """One adjustment with fixed variance factors: at most ``limit`` iterations (``done`` of ``total`` used
     before, for the progress callback). Not converged within the limit: :class:`ConvergenceError` when
     ``must_converge``, else the last state with ``converged`` False."""
@@ -536,13 +575,17 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
     total = total if total is not None else limit
     lin: bs.Linear | None = None
     refine = False
+    kept: bn.Frozen | None = None
+    modres = psi is not None and options.robust_algorithm == "modified-residuals"
+    stage_len = bn.MODIFIED_RESIDUALS_STAGE_ITERATIONS if modres else IRLS_STAGE_ITERATIONS
     for it in range(1, limit + 1):
         if lin is None:
             lin = bs.evaluate(prob, st, jacobian=True)
         dw = 0.0
         if robust_on:
-            if scales is None:
-                scales = robust_scales(lin.res, base, options.robust_groups, rloc, rbar)
+            if scales is None or options.robust_scale == "weighted-median":  # eq. 2.29 from the 2nd reweighting
+                scales = robust_scales(lin.res, base, options.robust_groups, rloc, rbar,
+                                       weights=None if scales is None else robust_w, psi=cur_psi)
             new_rw = robust_update(cur_psi, lin.res, base, scales, rloc, rbar, robust_w)
             dw = max(float(np.max(np.abs(new_rw.image - robust_w.image), initial=0.0)),
                      float(np.max(np.abs(new_rw.gnss - robust_w.gnss), initial=0.0)),
@@ -552,11 +595,9 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
         cost = lin.res.cost(w)
         accepted = False
         for _ in range(12):
-            ne = bs.normal(prob, lin, w, mu, dense=dense, banded=banded)
-            xc, xp = bs.solve_reduced(ne, blas_threads=prob.blas_threads)
-            nstep = max(float(np.max(np.abs(xc) * np.sqrt(ne.diag_c), initial=0.0)),
-                        float(np.max(np.abs(xp) * np.sqrt(ne.diag_p), initial=0.0)))
-            del ne  # its per-observation blocks are the largest arrays: free them before the next ones
+            xc, xp, nstep, kept = bn.step(prob, lin, w, base, robust_w, mu, dense=dense, banded=banded, frozen=kept,
+                                          modified_residuals_=modres and robust_on,
+                                          modified_newton=options.newton == "modified")
             trial = bs.apply_step(prob, st, xc, xp)
             if refine:
                 trial = bs.refine_points(prob, trial, w)
@@ -570,6 +611,7 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
                 accepted = True
                 break
             mu *= 10.0
+            kept = None  # the modified Newton-Raphson refactorises at the current point
             # a rejected step: from now on the points are intersected again after every camera step
             refine = True
         if progress is not None:
@@ -592,9 +634,10 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
             continue
         if robust_on:
             phase_it += 1
-            settled = (nstep < 1e-2 and dw < 1e-2) or (abs(prev_cost - cost) <= 1e-5 * cost and dw < 0.05)
+            settled = (nstep < 1e-2 and dw < 1e-2) or (not modres and abs(prev_cost - cost) <= 1e-5 * cost
+                                                          and dw < 0.05)
             prev_cost = cost
-        if robust_on and (settled or phase_it >= IRLS_STAGE_ITERATIONS):
+        if robust_on and (settled or phase_it >= stage_len):
             phase_it = 0
             if cur_psi is not psi:
                 cur_psi = psi  # Huber has settled: switch to the redescending psi
@@ -614,6 +657,8 @@ def _iterate(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], psi: 
         raise ConvergenceError(f"bundle adjustment did not converge in {done + it} iterations, the limit{why}; "
                                f"last correction {nstep:.3g} standard deviations; largest residuals: {names}",
                                iterations=done + it)
+    if scales_out is not None and scales:
+        scales_out.update(scales)
     return st, robust_w, it, converged
 
 
@@ -675,9 +720,7 @@ def _redundancy(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], ro
             qc = np.array([np.diag(Qsel[int(p)]) for p in prob.c_pt])
             r_ctrl = np.where(w.control > 0, np.clip(1.0 - w.control * qc, 0.0, 1.0), np.nan)
         if len(prob.g_img):
-            pidx = 6 * prob.g_img[:, None] + np.arange(6)
-            Qg = Qcc[pidx[:, :, None], pidx[:, None, :]]
-            hg = np.einsum("gri,gij,grj->gr", lin.Jg, Qg, lin.Jg)
+            hg = pose_hat(prob, Qcc, prob.g_img, lin.Jg, lin.Jgs)
             r_gnss = np.clip(1.0 - w.gnss * hg, 0.0, 1.0)
     mk = prob.obs_mark[:, None] if len(prob.obs_mark) == M else np.zeros((M, 1), bool)
     vi = w.image * res.image ** 2
@@ -704,7 +747,7 @@ def _redundancy(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], ro
             r["gnss"] = float(np.sum(r_gnss[(w.gnss > 0) & (robust_w.gnss >= 0.1)]))
         if len(prob.i_img):
             pidx = 6 * prob.i_img[:, None] + np.arange(3)
-            qi = Qcc[pidx, pidx]
+            qi = Qcc[pidx, pidx] if lin.Ji is None else pose_hat(prob, Qcc, prob.i_img, lin.Ji, lin.Jis)
             r["ins"] = float(np.sum(np.clip(1.0 - w.ins * qi, 0.0, 1.0)))
         if points_needed != "all":
             r["image"] = r_tot - r["control"] - r["gnss"] - r["ins"] - r["marks"]
@@ -713,13 +756,15 @@ def _redundancy(prob: bs.Problem, st: bs.State, factors: Mapping[str, float], ro
 
 def _result(prob: bs.Problem, st: bs.State, info: _Info, factors: Mapping[str, float], robust_w: bs.Weights,
             red: _Red, options: BundleOptions, iterations: int, converged: bool, limit: int,
-            notes: Sequence[str], estimated: dict[str, float] | None = None) -> BundleResult:
+            notes: Sequence[str], estimated: dict[str, float] | None = None, *,
+            mcov: tuple[_Red, float] | None = None) -> BundleResult:
     n, P = prob.n_images, prob.n_points
     res, w = red.res, red.w
     r_tot = sum(red.n.values()) - red.n_unknowns
     vtpv = sum(red.vtpv.values())
     s0 = math.sqrt(vtpv / r_tot) if r_tot > 0 else float("nan")
     s0v = s0 ** 2 if math.isfinite(s0) else 1.0
+    qsrc, s0q = (red, s0v) if mcov is None else mcov  # robust: eq. 2.28's factor on the a-priori cofactors
     present = {"image": True, "marks": bool(len(prob.obs_mark) and prob.obs_mark.any()),
                "gnss": len(prob.g_img) > 0 and not info.free_network,
                "ins": len(prob.i_img) > (1 if info.free_network else 0),
@@ -733,11 +778,13 @@ def _result(prob: bs.Problem, st: bs.State, info: _Info, factors: Mapping[str, f
         poses.append(Pose(p.image, p.camera, st.centres[i], Rm[i]))
     names = [f"{p.image}.{e}" for p in info.poses for e in POSE_ELEMENTS]
     names += [f"{c}.{q}" for c in info.cam_ids for q in options.self_calibrate]
+    sys_names, sys_val, sys_std = systematic_estimates(prob, st, red.Qcc, s0v)
+    names += list(sys_names)
     pose_cov = np.full((n, 6, 6), np.nan)
     corr = np.zeros((0, 0))
     interior_std: dict[str, dict[str, float]] = {c: {} for c in info.cam_ids}
-    if red.Qcc is not None:
-        C = s0v * red.Qcc
+    if qsrc.Qcc is not None:
+        C = s0q * qsrc.Qcc
         blk = np.arange(6 * n).reshape(n, 6)
         pose_cov = C[blk[:, :, None], blk[:, None, :]]
         sd = np.sqrt(np.clip(np.diag(C), 0, None))
@@ -750,13 +797,13 @@ def _result(prob: bs.Problem, st: bs.State, info: _Info, factors: Mapping[str, f
     pose_std[~np.isfinite(pose_std)] = np.nan
     cams = {cid: camera_from_interior(c, st.interior[q], interior_std[cid])
             for q, (cid, c) in enumerate(zip(info.cam_ids, info.cams, strict=True))}
-    point_cov = None if red.Qpp is None else s0v * red.Qpp
+    point_cov = None if qsrc.Qpp is None else s0q * qsrc.Qpp
     point_std = np.full((P, 3), np.nan)
     if point_cov is not None:
         point_std = np.sqrt(np.clip(np.diagonal(point_cov, axis1=1, axis2=2), 0, None))
     else:
-        for j, qj in red.Qpp_sel.items():
-            point_std[j] = np.sqrt(np.clip(np.diag(s0v * qj), 0, None))
+        for j, qj in qsrc.Qpp_sel.items():
+            point_std[j] = np.sqrt(np.clip(np.diag(s0q * qj), 0, None))
     # image observations: standardised residuals, flags
     sig = (prob.obs_sigma * _image_factor(prob, factors))[:, None]
     s0g = np.where(prob.obs_mark, sigma0_groups.get("marks", s0), sigma0_groups.get("image", s0))[:, None]
@@ -830,12 +877,14 @@ def _result(prob: bs.Problem, st: bs.State, info: _Info, factors: Mapping[str, f
         residuals_px=_ro(res.image), weights=_ro(robust_w.image), standardized=_ro(stdz),
         redundancy_numbers=_ro(red.r_img), flagged=_ro(flagged), control_ids=ctrl_ids,
         control_residuals=_ro(ctrl_res), flagged_control=tuple(flagged_control), check_ids=check_ids,
-        check_errors=_ro(check_err), check_std=_ro(check_std), gnss_residuals=_ro(res.gnss[:gn]),
+        check_errors=_ro(check_err), check_std=_ro(check_std),
+        gnss_residuals=_ro(res.gnss[:gn] if prob.pose_model is None else prob.pose_model.raw_gnss(res.gnss)[:gn]),
         iterations=iterations, converged=converged, datum=tuple(datum_lines), datum_groups=tuple(groups),
         condition_number=cond, warnings=tuple(warns), rejected_control=rejected_control,
         rejected_check=rejected_check, points_determined=_ro(determined), iteration_limit=limit,
         variance_estimated=None if estimated is None else {g: estimated[g] for g in GROUPS
-                                                           if present[g] and g in estimated})
+                                                           if present[g] and g in estimated},
+        systematic_names=sys_names, systematic=_ro(sys_val), systematic_std=_ro(sys_std))
 
 
 def _ro(a: NDArray) -> NDArray:

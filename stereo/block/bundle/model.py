@@ -10,9 +10,10 @@ Model (identical to :func:`stereo.block.types.project_pixel`)::
 
 with ``R = Rx(omega) Ry(phi) Rz(kappa)``. The interior parameters are held as one vector per camera:
 the :data:`INTERIOR_NAMES` f (mm), x0, y0 (mm, offset of the principal point from the image centre,
-photo axes), k1, k2, k3, p1, p2, which a bundle can self-calibrate, then the camera's aspect fy/fx
-and shear s/fx (:class:`rectify.geometry.camera.Camera`), which it holds: a self-calibrated f scales
-fx, fy and s together.
+photo axes), k1, k2, k3, p1, p2, aspect fy/fx and shear s/fx (:class:`rectify.geometry.camera.Camera`),
+any of which a bundle can self-calibrate (a self-calibrated f alone scales fx, fy and s together;
+with ``aspect`` and ``shear`` the block recovers the projective interior orientation fx, fy, skew of
+seed 003, 1.2).
 
 The derivative of ``R`` by an angle is ``[a]x R`` with the rotation axis ``a`` in the ground frame
 (``e_x``, ``Rx e_y``, ``Rx Ry e_z`` for omega, phi, kappa), so ``d p / d angle = R^T (d x a)`` with
@@ -31,7 +32,7 @@ __all__ = ["INTERIOR_NAMES", "camera_from_interior", "interior_from_camera", "pr
            "rotations"]
 
 #: the interior parameters a bundle can self-calibrate, in vector order
-INTERIOR_NAMES: tuple[str, ...] = ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2")
+INTERIOR_NAMES: tuple[str, ...] = ("f", "x0", "y0", "k1", "k2", "k3", "p1", "p2", "aspect", "shear")
 
 
 def interior_from_camera(camera: Camera) -> NDArray[np.float64]:
@@ -48,7 +49,7 @@ def camera_from_interior(camera: Camera, vec: NDArray[np.float64], std: dict[str
         se.update(std)
     return Camera(focal_length_mm=float(vec[0]), pixel_size_mm=camera.pixel_size_mm, width=camera.width,
                   height=camera.height, principal_point_mm=(float(vec[1]), float(vec[2])),
-                  distortion={k: float(v) for k, v in zip(INTERIOR_NAMES[3:], vec[3:8], strict=True)},
+                  distortion={k: float(v) for k, v in zip(INTERIOR_NAMES[3:8], vec[3:8], strict=True)},
                   pixel_camera=camera.pixel_camera, std_errors=se, sigma0_px=camera.sigma0_px,
                   aspect=float(vec[8]), shear=float(vec[9]))
 
@@ -88,7 +89,7 @@ def project(R: NDArray[np.float64], C: NDArray[np.float64], axes: NDArray[np.flo
         Rotation axes of the three angles (:func:`rotation_axes`), ground frame.
     interior : (M, 10)
         Interior vector of each observation's camera (:func:`interior_from_camera`: the
-        :data:`INTERIOR_NAMES`, then aspect and shear, held).
+        :data:`INTERIOR_NAMES`).
     pixel_size : (M,)
         Pixel size, mm.
     centre : (M, 2)
@@ -99,7 +100,7 @@ def project(R: NDArray[np.float64], C: NDArray[np.float64], axes: NDArray[np.flo
         Compute the derivatives.
     pose, intrinsic : bool
         With ``jacobian``: also the derivatives by the pose and by the interior vector (else those
-        two are returned empty, (0, 2, 6) and (0, 2, 8); the point derivatives alone are what the
+        two are returned empty, (0, 2, 6) and (0, 2, 10); the point derivatives alone are what the
         intersection of the points with the cameras held needs).
 
     Returns
@@ -112,8 +113,8 @@ def project(R: NDArray[np.float64], C: NDArray[np.float64], axes: NDArray[np.flo
         d pixel / d (omega, phi, kappa, Cx, Cy, Cz).
     J_point : (M, 2, 3)
         d pixel / d X.
-    J_int : (M, 2, 8)
-        d pixel / d the :data:`INTERIOR_NAMES` (the first 8 entries of the interior vector).
+    J_int : (M, 2, 10)
+        d pixel / d the :data:`INTERIOR_NAMES` (the interior vector).
     """
     m = len(X)
     # columns as contiguous rows: the elementwise work below is several times faster on them
@@ -141,7 +142,7 @@ def project(R: NDArray[np.float64], C: NDArray[np.float64], axes: NDArray[np.flo
     pix = np.empty((m, 2))
     pix[:, 0] = (F * xd if Fs is None else F * xd + Fs * yd) + centre[:, 0] + x0 / pixel_size
     pix[:, 1] = Fy * yd + centre[:, 1] - y0 / pixel_size
-    z6, z8 = np.zeros((0, 2, 6)), np.zeros((0, 2, 8))
+    z6, z8 = np.zeros((0, 2, 6)), np.zeros((0, 2, 10))
     if not jacobian:
         return pix, -p2, z6, np.zeros((0, 2, 3)), z8
     # d n_d / d n  (2 x 2), times F
@@ -185,7 +186,7 @@ def project(R: NDArray[np.float64], C: NDArray[np.float64], axes: NDArray[np.flo
     J_pose = JcT.transpose(2, 0, 1)
     if not intrinsic:
         return pix, -p2, J_pose, J_point, z8
-    J_int = np.empty((m, 2, 8))
+    J_int = np.empty((m, 2, 10))
     J_int[:, 0, 0] = (xd if square else xd + shear * yd) / pixel_size
     J_int[:, 1, 0] = (yd if square else aspect * yd) / pixel_size
     J_int[:, 0, 1] = 1.0 / pixel_size
@@ -201,6 +202,10 @@ def project(R: NDArray[np.float64], C: NDArray[np.float64], axes: NDArray[np.flo
     J_int[:, 0, 7] = F * (r2 + 2 * nx * nx)
     J_int[:, 1, 7] = F * 2 * nxy
     if not square:  # the distortion terms go through [[1, shear], [0, aspect]] too
-        J_int[:, 0, 3:] += shear[:, None] * J_int[:, 1, 3:]
-        J_int[:, 1, 3:] *= aspect[:, None]
+        J_int[:, 0, 3:8] += shear[:, None] * J_int[:, 1, 3:8]
+        J_int[:, 1, 3:8] *= aspect[:, None]
+    J_int[:, 0, 8] = 0.0  # pixel x = F (xd + shear yd) + ..., pixel y = F aspect yd + ...
+    J_int[:, 1, 8] = F * yd
+    J_int[:, 0, 9] = F * yd
+    J_int[:, 1, 9] = 0.0
     return pix, -p2, J_pose, J_point, J_int

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 
 from rectify.geometry.camera import Camera
+from stereo.block.bundle.systematic import summary_lines as systematic_lines
 from stereo.block.bundle.variance import VCE_MIN_REDUNDANCY, VCE_WARN_REDUNDANCY
 from stereo.block.types import Pose
 
@@ -100,6 +101,10 @@ class BundleResult:
     variance_estimated : dict str -> float or None
         With variance components: the groups whose factor was estimated, with the redundancy of
         the latest estimate (a group with less than 2 keeps its factor); None without.
+    systematic_names : tuple of str
+        The systematic unknowns (GNSS shift/drift, boresight; :mod:`stereo.block.bundle.systematic`).
+    systematic, systematic_std : (s,) float64
+        Their estimates and standard deviations (m, m/s, rad).
     """
 
     cameras: dict[str, Camera]
@@ -140,6 +145,9 @@ class BundleResult:
     points_determined: NDArray[np.bool_] | None = None
     iteration_limit: int = 0
     variance_estimated: dict[str, float] | None = None
+    systematic_names: tuple[str, ...] = ()
+    systematic: F64 = field(default_factory=lambda: np.zeros(0))
+    systematic_std: F64 = field(default_factory=lambda: np.zeros(0))
 
     @property
     def determined(self) -> NDArray[np.bool_]:
@@ -197,6 +205,7 @@ class BundleResult:
             e = self.check_errors
             out.append(f"check: {len(self.check_ids)} points, RMS error x {np.sqrt(np.mean(e[:, 0] ** 2)):.3f} "
                        f"y {np.sqrt(np.mean(e[:, 1] ** 2)):.3f} z {np.sqrt(np.mean(e[:, 2] ** 2)):.3f} m")
+        out.extend(systematic_lines(self.systematic_names, self.systematic, self.systematic_std))
         out.extend(self.datum)
         out.extend(f"WARNING: {w}" for w in self.warnings)
         return out

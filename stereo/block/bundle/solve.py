@@ -36,6 +36,7 @@ from threadpoolctl import ThreadpoolController
 
 from rectify.errors import EstimationError
 from stereo.block.bundle.model import project, rotation_axes, rotations
+from stereo.block.bundle.systematic import PoseModel, add_reduced, pose_normal, pose_rows
 
 __all__: list[str] = []
 
@@ -111,7 +112,7 @@ class Problem:
     cam_of_image: I64            # (n,)
     pixel_size: F64              # (ncam,)
     centre: F64                  # (ncam, 2)
-    sel: I64                     # (c,) indices into the 8 interior parameters
+    sel: I64                     # (c,) indices into the 10 interior parameters
     obs_img: I64                 # (M,)
     obs_pt: I64                  # (M,) sorted
     obs_px: F64                  # (M, 2)
@@ -136,6 +137,10 @@ class Problem:
     blas_threads: int = 1
     #: index structures of the reduced camera system (built once, :func:`_structure`)
     cache: dict[str, object] = field(default_factory=dict, repr=False, compare=False)
+    #: full GNSS/INS covariances and systematic unknowns (:mod:`stereo.block.bundle.systematic`), or None
+    pose_model: PoseModel | None = None
+    #: systematic unknowns, the last ones of the camera side
+    n_sys: int = 0
 
     @property
     def n_cams(self) -> int:
@@ -147,7 +152,7 @@ class Problem:
 
     @property
     def n_c(self) -> int:
-        return 6 * self.n_images + self.c * self.n_cams
+        return 6 * self.n_images + self.c * self.n_cams + self.n_sys
 
     @property
     def n_points(self) -> int:
@@ -168,9 +173,11 @@ class State:
     centres: F64    # (n, 3)
     interior: F64   # (ncam, 8)
     points: F64     # (P, 3)
+    systematic: F64 = field(default_factory=lambda: np.zeros(0))   # (n_sys,)
 
     def copy(self) -> State:
-        return State(self.angles.copy(), self.centres.copy(), self.interior.copy(), self.points.copy())
+        return State(self.angles.copy(), self.centres.copy(), self.interior.copy(), self.points.copy(),
+                     self.systematic.copy())
 
 
 @dataclass
@@ -207,6 +214,9 @@ class Linear:
     Jp: F64         # (M, 2, 3)
     Jg: F64         # (g, 3, 6)
     R: F64          # (n, 3, 3)
+    Ji: F64 | None = None     # (i, 3, 6) INS pose Jacobian (None: the identity on the angles)
+    Jgs: F64 | None = None    # (g, 3, n_sys) GNSS Jacobian by the systematic unknowns
+    Jis: F64 | None = None    # (i, 3, n_sys) INS Jacobian by the systematic unknowns
 
 
 def wrap(a: F64) -> F64:
@@ -266,6 +276,9 @@ def evaluate(prob: Problem, st: State, *, jacobian: bool, points_only: bool = Fa
     vi = wrap(prob.i_ang - st.angles[prob.i_img]) if len(prob.i_img) else np.zeros((0, 3))
     vc = prob.c_xyz - st.points[prob.c_pt] if len(prob.c_pt) else np.zeros((0, 3))
     vc = np.where(np.isfinite(prob.c_sigma), vc, 0.0)
+    if prob.pose_model is not None:  # full covariances, systematic unknowns
+        vg, Jg, vi, Ji, Jgs, Jis = pose_rows(prob, st, R, axes, vg, Jg, vi)
+        return Linear(Residuals(v, vg, vi, vc, depth), Jc, Jpt, Jg, R, Ji, Jgs, Jis)
     return Linear(Residuals(v, vg, vi, vc, depth), Jc, Jpt, Jg, R)
 
 
@@ -451,7 +464,7 @@ def use_banded(prob: Problem) -> bool:
     interior unknowns couple every image of a camera), at least :data:`BANDED_MIN_GAIN` times fewer flops
     than a dense Cholesky, and at most :data:`BANDED_MAX_FLOPS`."""
     sx = _structure(prob)
-    if sx.band is None:
+    if sx.band is None or prob.n_sys:
         return False
     b = sx.band[2]
     return sx.band_gain >= BANDED_MIN_GAIN and prob.n_c * (b + 1) ** 2 <= BANDED_MAX_FLOPS
@@ -496,10 +509,11 @@ def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool, ba
         WJg = lin.Jg * w.gnss[:, :, None]
         np.add.at(pose_blocks, prob.g_img, np.einsum("gri,grj->gij", WJg, lin.Jg))
         np.add.at(pose_rhs, prob.g_img, np.einsum("gri,gr->gi", lin.Jg, w.gnss * lin.res.gnss))
-    if len(prob.i_img):
+    if len(prob.i_img) and lin.Ji is None:
         idx = np.arange(3)
         np.add.at(pose_blocks, (prob.i_img[:, None], idx, idx), w.ins)
         np.add.at(pose_rhs, (prob.i_img[:, None], idx), w.ins * lin.res.ins)
+    sysn = pose_normal(prob, lin, w, pose_blocks, pose_rhs)  # general INS rows; systematic unknowns
     if len(prob.c_pt):
         idx = np.arange(3)
         np.add.at(Cp, (prob.c_pt[:, None], idx, idx), w.control)
@@ -529,6 +543,8 @@ def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool, ba
     for rc_k in _pmap(prob.threads, g_part, sx.pieces):
         rhs -= rc_k
     rhs[: 6 * n] += pose_rhs.ravel()
+    if sysn is not None:
+        rhs[nc - prob.n_sys:] += sysn.rhs
     # image blocks: sum over the image's observations of Jc^T W Jc - G E^T
     dd = d * d
 
@@ -542,6 +558,8 @@ def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool, ba
     # undamped diagonal of N_cc
     diag_c: F64 = np.bincount(sx.img_first.ravel(), weights=img_n[:, ::d + 1].ravel(), minlength=nc).astype(np.float64)
     diag_c[: 6 * n] += np.diagonal(pose_blocks, axis1=1, axis2=2).ravel()
+    if sysn is not None:
+        diag_c[nc - prob.n_sys:] += np.diag(sysn.nss)
     img_blk = img_n - img_r
     img_blk = img_blk.reshape(n, d, d)
     img_blk[:, :6, :6] += pose_blocks
@@ -573,6 +591,8 @@ def normal(prob: Problem, lin: Linear, w: Weights, mu: float, *, dense: bool, ba
             S[np.diag_indices(nc)] += mu * diag_c
     else:
         S = (sp.csr_matrix((vals, (sx.rows, sx.cols)), shape=(nc, nc)) + sp.diags(mu * diag_c)).tocsc()
+    if sysn is not None and not isinstance(S, Banded):
+        S = add_reduced(S, sysn, nc - prob.n_sys)
     return Normal(S, rhs, Cinv, bp, Et, G, cidx, diag_c, diag_p, prob.pt_start, _point_sum(prob))
 
 
@@ -703,7 +723,9 @@ def apply_step(prob: Problem, st: State, xc: F64, xp: F64) -> State:
     out.angles = st.angles + pose[:, :3]
     out.centres = st.centres + pose[:, 3:]
     if prob.c:
-        out.interior[:, prob.sel] += xc[6 * n:].reshape(prob.n_cams, prob.c)
+        out.interior[:, prob.sel] += xc[6 * n:6 * n + prob.c * prob.n_cams].reshape(prob.n_cams, prob.c)
+    if prob.n_sys:
+        out.systematic = st.systematic + xc[prob.n_c - prob.n_sys:]
     out.points = st.points + xp
     return out
 

@@ -1,0 +1,186 @@
+"""``stereo block --observations`` on a 140-image block built on a curved Earth (issue 25's "Must show").
+
+The block (tests/support/block_curved.py): 10 strips x 14 images, about 25 x 29 km, 25 km east of
+the central meridian of UTM 33N, ground points on the ellipsoid plus terrain, images projected
+through the true geocentric geometry, 0.5 px, GNSS 5 cm, INS 0.005 deg in the navigation frame,
+28 control and 24 check points. It is adjusted from its observations CSV alone (no images).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from rectify.geometry.geodesy import geodetic_from_map
+from stereo.cli.main import cli
+from tests.support.block_curved import CRS, CurvedBlock, make_curved_block, write_curved_block
+
+
+@pytest.fixture(scope="module")
+def curved(tmp_path_factory) -> tuple[CurvedBlock, dict[str, Path]]:
+    blk = make_curved_block(0)
+    return blk, write_curved_block(tmp_path_factory.mktemp("curved") / "in", blk)
+
+
+def _args(files: dict[str, Path], blk: CurvedBlock, out: Path, *extra: str) -> list[str]:
+    return ["block", "--observations", str(files["observations"]), "--camera", str(files["camera"]), "--poses",
+            str(files["poses"]), "--control", str(files["control"]), "--check", ",".join(blk.check_ids), "-o",
+            str(out), "--no-report", "--no-stac", *extra]
+
+
+def _check_errors(blk: CurvedBlock, out: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Check-point errors (adjusted - true) and std from OUT/points.csv, with the true points (map)."""
+    text = [ln for ln in (out / "points.csv").read_text().splitlines() if not ln.startswith("#")]
+    rows = {r["id"]: r for r in csv.DictReader(text)}
+    where = {p: k for k, p in enumerate(blk.point_ids)}
+    truth = blk.points[[where[c] for c in blk.check_ids]]
+    got = np.array([[float(rows[c][k]) for k in "xyz"] for c in blk.check_ids])
+    std = np.array([[float(rows[c][f"std_{k}"]) for k in "xyz"] for c in blk.check_ids])
+    return got - truth, std, truth
+
+
+def test_the_block_has_the_issue_size(curved) -> None:
+    blk, _ = curved
+    assert len(blk.images) >= 140
+    assert (blk.extent_m >= 25_000).all()
+    assert len(blk.control_ids) >= 25 and len(blk.check_ids) >= 20
+
+
+def test_curved_block_from_its_observations_in_the_default_frame(curved, tmp_path) -> None:
+    """Must show: check-point RMS(error / std) within 0.67-1.5 per axis, none beyond 4 std; plan within 1.5 std
+    25 km from the central meridian (INS in the navigation frame, with the meridian convergence)."""
+    blk, files = curved
+    out = tmp_path / "out"
+    r = CliRunner().invoke(cli, _args(files, blk, out))
+    assert r.exit_code == 0, r.output
+    assert "adjustment frame: topocentric" in r.output
+    assert "observations: " in r.output and "no matching" in r.output
+    err, std, _ = _check_errors(blk, out)
+    ratio = np.sqrt(np.mean((err / std) ** 2, axis=0))
+    assert ((ratio > 0.67) & (ratio < 1.5)).all(), ratio
+    assert np.abs(err / std).max() < 4.0
+    assert (ratio[:2] < 1.5).all()
+    assert abs(err[:, 2].mean()) < 0.15  # no height bias: the frame is Cartesian and true to scale
+
+
+def test_curved_block_in_the_map_frame_shows_the_predicted_error(curved, tmp_path) -> None:
+    """``--frame map`` warns with the curvature figure and its heights carry the scale error of the projection
+    that docs/curvature.md predicts for a GNSS-supported block: dz = (1 - k) (h_camera - h_point), k the UTM
+    point scale (about 1.0 m here); tolerance 0.25 m on the mean over the check points (their std is ~0.2 m)."""
+    blk, files = curved
+    out = tmp_path / "out"
+    r = CliRunner().invoke(cli, _args(files, blk, out, "--frame", "map"))
+    assert r.exit_code == 0, r.output
+    assert "warning: adjusting in the map CRS over" in r.output and "use --frame topocentric" in r.output
+    err, std, truth = _check_errors(blk, out)
+    llh = geodetic_from_map(truth, CRS)
+    lam = np.radians(llh[:, 0] - 15.0)
+    # UTM point scale factor (ellipsoidal series, enough to 1e-7 here)
+    k = 0.9996 * (1 + (lam * np.cos(np.radians(llh[:, 1]))) ** 2 / 2)
+    pred = (1 - k) * (blk.centres[:, 2].mean() - truth[:, 2])
+    assert 0.8 < pred.mean() < 1.3
+    assert abs(err[:, 2].mean() - pred.mean()) < 0.25
+    assert np.sqrt(np.mean((err[:, 2] / std[:, 2]) ** 2)) > 3.0  # the map frame's heights fail their std
+    assert np.sqrt(np.mean(((err[:, 2] - pred) / std[:, 2]) ** 2)) < 1.5  # ... and the prediction explains it
+
+
+# --------------------------------------------------------------------------- bad input
+def _rewrite(src: Path, dst: Path, edit) -> Path:
+    lines = src.read_text().splitlines()
+    dst.write_text("\n".join(edit(lines)) + "\n")
+    return dst
+
+
+def _fails(files: dict[str, Path], blk: CurvedBlock, tmp_path: Path, *extra: str, **replace: Path) -> str:
+    f = {**files, **replace}
+    out = tmp_path / "out"
+    r = CliRunner().invoke(cli, _args(f, blk, out, *extra))
+    assert r.exit_code != 0
+    assert "Traceback" not in r.output
+    assert not out.exists()
+    msg = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert len(msg) == 1, r.output
+    return msg[0]
+
+
+def test_unknown_image_is_refused(curved, tmp_path) -> None:
+    blk, files = curved
+    bad = _rewrite(files["observations"], tmp_path / "o.csv",
+                   lambda ls: ls[:5] + [ls[5].replace(blk.images[blk.obs_image[4]], "nowhere.tif")] + ls[6:])
+    m = _fails(files, blk, tmp_path, observations=bad)
+    assert "'nowhere.tif' is not in the pose file" in m and "line 6" in m
+
+
+def test_duplicate_rows_are_refused(curved, tmp_path) -> None:
+    blk, files = curved
+    bad = _rewrite(files["observations"], tmp_path / "o.csv", lambda ls: ls + [ls[3]])
+    m = _fails(files, blk, tmp_path, observations=bad)
+    assert "measured twice in image" in m and "lines 4 and " in m
+
+
+def test_measurement_outside_the_image_is_refused(curved, tmp_path) -> None:
+    blk, files = curved
+
+    def edit(ls):
+        f = ls[2].split(",")
+        f[2] = "10012.5"
+        return ls[:2] + [",".join(f)] + ls[3:]
+
+    m = _fails(files, blk, tmp_path, observations=_rewrite(files["observations"], tmp_path / "o.csv", edit))
+    assert "lies outside image" in m and "10000 x 10000" in m and "line 3" in m
+
+
+def test_non_numeric_value_is_refused(curved, tmp_path) -> None:
+    blk, files = curved
+
+    def edit(ls):
+        f = ls[7].split(",")
+        f[3] = "12.5x"
+        return ls[:7] + [",".join(f)] + ls[8:]
+
+    m = _fails(files, blk, tmp_path, observations=_rewrite(files["observations"], tmp_path / "o.csv", edit))
+    assert "line 8" in m and "row" in m
+
+
+def test_check_point_measured_nowhere_is_refused(curved, tmp_path) -> None:
+    blk, files = curved
+    gone = blk.check_ids[0]
+    bad = _rewrite(files["observations"], tmp_path / "o.csv",
+                   lambda ls: [ln for ln in ls if f",{gone}," not in ln])
+    m = _fails(files, blk, tmp_path, observations=bad)
+    assert gone in m and "fewer than two images" in m
+
+
+def test_frame_that_conflicts_with_the_crs_is_refused(curved, tmp_path) -> None:
+    blk, files = curved
+    poses = _rewrite(files["poses"], tmp_path / "p.csv", lambda ls: [ln for ln in ls if not ln.startswith("# crs")])
+    ctrl = _rewrite(files["control"], tmp_path / "c.csv", lambda ls: [ln for ln in ls if not ln.startswith("# crs")])
+    m = _fails(files, blk, tmp_path, "--frame", "topocentric", poses=poses, control=ctrl)
+    assert "--frame topocentric needs a CRS" in m
+
+
+def test_images_and_observations_together_are_refused(curved, tmp_path) -> None:
+    blk, files = curved
+    img = tmp_path / blk.images[0]
+    img.write_bytes(b"x")
+    r = CliRunner().invoke(cli, [*_args(files, blk, tmp_path / "out")[:1], str(img),
+                                 *_args(files, blk, tmp_path / "out")[1:]])
+    assert r.exit_code != 0 and "give either IMAGES or --observations" in r.output
+    assert not (tmp_path / "out").exists()
+
+
+def test_points_seen_once_are_dropped_and_counted(curved, tmp_path) -> None:
+    blk, files = curved
+    obs = _rewrite(files["observations"], tmp_path / "o.csv",
+                   lambda ls: ls + [f"{blk.images[0]},lonely,100.0,200.0,0.5"])
+    from stereo.formats.observations import read_observations  # local: the reader alone, after the CLI tests
+
+    t = read_observations(obs, blk.images, {n: (10_000, 10_000) for n in blk.images})
+    assert t.n_single == 1 and "lonely" not in t.tracks.point_ids
+    assert "1 rows of points seen in one image only dropped" in t.summary_line()
+    assert math.isclose(float(t.tracks.obs_sigma_px[0]), 0.5)
