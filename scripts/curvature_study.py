@@ -117,7 +117,8 @@ def adjust(frames: tuple[str, ...], seed: int = 0) -> None:
 
     blk = make_curved_block(seed)
     print(f"\n5. the curved block (seed {seed}): {len(blk.images)} images, {len(blk.points)} points, "
-          f"{len(blk.obs_point)} observations, {blk.extent_m[0] / 1000:.1f} x {blk.extent_m[1] / 1000:.1f} km, 25 km east of 15 E")
+          f"{len(blk.obs_point)} observations, {blk.extent_m[0] / 1000:.1f} x {blk.extent_m[1] / 1000:.1f} km, "
+          "25 km east of 15 E")
     where = {p: k for k, p in enumerate(blk.point_ids)}
     truth = blk.points[[where[c] for c in blk.check_ids]]
     R = 6_381_000.0

@@ -75,7 +75,8 @@ class Observations:
 
     ``image`` (N,) int: index into ``names``; ``ids`` (N,) int: index into ``id_names``; ``col, row, vx,
     vy, sigma, weight`` (N,) float64 px; ``flag`` (N,) bool; ``starts`` (n_images + 1,) the slice of each
-    image.
+    image; ``redundancy`` (N,) the observations' redundancy numbers when the file has a ``redundancy``
+    column (no step writes one yet), else None.
     """
 
     names: tuple[str, ...]
@@ -90,14 +91,15 @@ class Observations:
     weight: NDArray[np.float64]
     flag: NDArray[np.bool_]
     starts: NDArray[np.int64]
+    redundancy: NDArray[np.float64] | None = None
 
     @classmethod
     def read(cls, path: Path, order: tuple[str, ...] = ()) -> Observations:
         """Read ``observations.csv``; ``order`` lists image names first (the orientation's order)."""
         with TableReader(path) as t:
             c = t.read("observation rows", numbers=("col", "row", "sigma_px", "residual_x_px", "residual_y_px",
-                                                    "weight", "flagged"),
-                       texts=("image", "id"), empty=("weight", "flagged", "sigma_px"),
+                                                    "weight", "flagged", "redundancy"),
+                       texts=("image", "id"), empty=("weight", "flagged", "sigma_px", "redundancy"),
                        max_rows=MAX_OBSERVATIONS)
         missing = [k for k in ("image", "id", "col", "row", "residual_x_px", "residual_y_px") if k not in c.fields]
         if missing:
@@ -118,7 +120,8 @@ class Observations:
         return cls(tuple(names), tuple(str(s) for s in id_names), img[o], ids.astype(np.int64)[o],
                    num["col"][o], num["row"][o], num["residual_x_px"][o], num["residual_y_px"][o],
                    np.where(np.isfinite(sig), sig, np.nan)[o], np.nan_to_num(num["weight"], nan=1.0)[o],
-                   (np.nan_to_num(num["flagged"]) > 0)[o], starts.astype(np.int64))
+                   (np.nan_to_num(num["flagged"]) > 0)[o], starts.astype(np.int64),
+                   num["redundancy"][o] if "redundancy" in c.fields else None)
 
     @property
     def standardised(self) -> NDArray[np.float64]:
@@ -441,7 +444,8 @@ class ViewData:
                 "col": _list(obs.col[s0:s1]), "row": _list(obs.row[s0:s1]),
                 "vx": _list(obs.vx[s0:s1]), "vy": _list(obs.vy[s0:s1]), "sigma": _list(obs.sigma[s0:s1]),
                 "weight": _list(obs.weight[s0:s1]), "flag": [int(f) for f in obs.flag[s0:s1]],
-                "z": _list(z), "kind": [kinds.get(s, "tie") for s in ids]}
+                "z": _list(z), "kind": [kinds.get(s, "tie") for s in ids],
+                **({"redundancy": _list(obs.redundancy[s0:s1])} if obs.redundancy is not None else {})}
 
     def track_bucket(self, b: int, n_buckets: int) -> dict[str, Any]:
         """The tracks of bucket ``b``: id -> its observations in every image, its ground point and kind."""

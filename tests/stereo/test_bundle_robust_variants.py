@@ -43,7 +43,7 @@ def test_variants_reach_the_reweighting_solution(blunders, kw):
     assert np.nanmax(np.abs(r.points - ref.points)[ok] / ref.point_std[ok]) < tol
 
 
-def test_modified_newton_takes_more_iterations_for_least_squares(blunders):
+def test_modified_newton_takes_more_iterations_for_least_squares():
     b = make_block(2)
     full = _adjust(b, robust="none")
     mod = _adjust(b, robust="none", newton="modified")

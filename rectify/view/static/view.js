@@ -465,7 +465,8 @@ async function loadPoints(v) {
       id, x: o.col[k], y: o.row[k], vx: o.vx[k], vy: o.vy[k], z: o.z[k], flag: !!o.flag[k], kind: o.kind[k], i: v.n,
       row: [["image", o.image], ["id", id], ["kind", o.kind[k]], ["col", o.col[k]], ["row", o.row[k]],
         ["vx", o.vx[k]], ["vy", o.vy[k]], ["|v|", Math.hypot(o.vx[k], o.vy[k])], ["sigma", o.sigma[k]],
-        ["standardised", o.z[k]], ["weight", o.weight[k]], ["flag", o.flag[k]]],
+        ["standardised", o.z[k]], ["weight", o.weight[k]], ["flag", o.flag[k]],
+        ...(o.redundancy ? [["redundancy", o.redundancy[k]]] : [])],
     }));
   }
   if (v.kind === "table") {
@@ -708,5 +709,16 @@ async function main() {
     }
   }
 }
+
+// for scripts driving the page (the browser test): where a point is on the screen, in CSS pixels of the page
+window.rectifyView = {
+  screenOf(id) {
+    const p = S.points.find((q) => q.id === id);
+    if (!p || !placeable(p)) return null;
+    const [sx, sy] = toScreen(p.x, p.y), rect = canvas().getBoundingClientRect();
+    return [rect.left + sx, rect.top + sy];
+  },
+  centreOn(id) { const p = S.points.find((q) => q.id === id); if (p) { centreOn(p); draw(); } return !!p; },
+};
 
 main().catch((err) => { document.body.dataset.state = "failed"; document.body.dataset.error = String(err); setStatus(String(err)); console.error(err); });
