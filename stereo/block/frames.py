@@ -52,7 +52,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from rectify.errors import InvalidInputError
+from rectify.errors import CRSError, InvalidInputError
 from rectify.geometry.crs import crs_to_string, geoid_height, horizontal_crs, parse_crs, vertical_datum
 from rectify.geometry.curvature import EARTH_RADIUS_M, height_drop
 from rectify.geometry.geodesy import (
@@ -76,11 +76,21 @@ CURVATURE_WARN_M = 0.1
 _STEP_DEG = 1e-4
 
 
+def _is_cartesian_topocentric(crs) -> bool:
+    """True for a CRS that is already a local topocentric frame (EPSG method 9837, OpenSfM's frame)."""
+    op = getattr(parse_crs(crs), "coordinate_operation", None)
+    return op is not None and str(op.method_code) == "9837"
+
+
 def default_frame_kind(crs) -> str:
-    """``"topocentric"`` for a CRS with a geodetic datum (projected, geographic, geocentric), else ``"map"``."""
+    """``"topocentric"`` for a CRS with a geodetic datum (projected, geographic, geocentric), else ``"map"``.
+
+    A CRS that is itself a topocentric frame (EPSG method 9837, OpenSfM's) is Cartesian already: ``"map"``.
+    """
     if crs is None:
         return "map"
-    return "topocentric" if parse_crs(crs).geodetic_crs is not None else "map"
+    c = parse_crs(crs)
+    return "topocentric" if c.geodetic_crs is not None and not _is_cartesian_topocentric(c) else "map"
 
 
 def curvature_warning(xyh: ArrayLike, crs) -> str | None:
@@ -162,6 +172,9 @@ class AdjustmentFrame:
                 raise InvalidInputError(f"--frame {self.kind} needs a CRS with a geodetic datum; {c.name!r} has none "
                                         "(a local engineering frame: use --frame map)")
             return
+        if self.kind != "map" and _is_cartesian_topocentric(c):
+            raise InvalidInputError(f"--frame {self.kind}: {c.name!r} is a topocentric frame already (Cartesian, "
+                                    "its z is not a height): use --frame map")
         hcrs = horizontal_crs(crs)
         h = parse_crs(hcrs)
         if self.kind == "map" and h.is_geographic:
@@ -204,7 +217,7 @@ class AdjustmentFrame:
         """
         if kind not in FRAME_KINDS:
             raise InvalidInputError(f"unknown adjustment frame {kind!r}; expected one of {list(FRAME_KINDS)}")
-        if kind == "map" or crs is None or parse_crs(crs).geodetic_crs is None:
+        if kind == "map" or crs is None or parse_crs(crs).geodetic_crs is None or _is_cartesian_topocentric(crs):
             return cls(kind, crs)
         p = as_points(xyh, "xyh", 3)
         p = p[np.isfinite(p).all(axis=1)]
@@ -251,8 +264,16 @@ class AdjustmentFrame:
             return geodetic_from_ecef(xyh, crs=self._hcrs)
         llh = geodetic_from_map(xyh, self._hcrs)
         if self._geoid is not None and len(llh):
-            llh[:, 2] = llh[:, 2] + geoid_height(self._geoid, llh[:, :2])
+            llh[:, 2] = llh[:, 2] + self._undulation(llh[:, :2])
         return llh
+
+    def _undulation(self, lonlat: F64) -> F64:
+        """The geoid undulation N (m) of the CRS's vertical datum; refused by name when PROJ lacks its grid."""
+        try:
+            return geoid_height(self._geoid, lonlat)
+        except CRSError as err:
+            text = str(err).split(" or pass a constant undulation")[0]
+            raise CRSError(f"{text}, or give ellipsoidal heights (a CRS without a vertical datum)") from err
 
     def _map(self, llh: F64) -> F64:
         """(lon, lat, h ellipsoidal) -> map points."""
@@ -261,7 +282,7 @@ class AdjustmentFrame:
             return ecef_from_geodetic(llh, crs=self._hcrs)
         out = map_from_geodetic(llh, self._hcrs)
         if self._geoid is not None and len(out):
-            out[:, 2] = out[:, 2] - geoid_height(self._geoid, llh[:, :2])
+            out[:, 2] = out[:, 2] - self._undulation(llh[:, :2])
         return out
 
     def frame_from_map(self, xyh: ArrayLike) -> F64:

@@ -26,8 +26,10 @@ axis) towards east; ``pitch`` is the elevation of the forward axis above the hor
 (nose up positive); ``roll`` is the depression of the right-wing axis below the horizontal plane
 (right wing down positive), the sign of Applanix POS and of most aerial GNSS/INS exports.
 An INS measures heading from true north and tilts from the local vertical (seed 004); in a map
-projection, grid north differs from true north by the meridian convergence, which must be
-subtracted from the heading before it is given here (this module does not do it).
+projection, grid north differs from true north by the meridian convergence. This module does not
+apply it: the rotation it returns is in the local east-north-up frame of the camera when the angles
+are an INS's, and ``stereo block`` turns it into its adjustment frame at each camera's position (the
+meridian convergence and the deflection of the vertical, :mod:`stereo.block.frames`).
 
 Two definitions of the roll angle are offered (``convention``):
 

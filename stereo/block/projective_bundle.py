@@ -37,6 +37,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.linalg
 import scipy.optimize
 import scipy.sparse
 from numpy.typing import NDArray
@@ -80,8 +81,11 @@ CAMERA_ID = "camera"
 #: the upgrade is refused when the images' principal distances (fx) differ by more than this ratio: one camera
 #: took them, so a larger spread means the control did not determine the transformation
 MAX_FOCAL_SPREAD = 1.5
-#: the projective bundle solves its steps densely up to this many unknowns, iteratively (LSMR) beyond
-DENSE_LIMIT = 3000
+#: the projective bundle solves its steps densely up to this many unknowns, iteratively (LSMR) beyond (0: always
+#: LSMR; the dense trust-region steps were slower already at 1000 unknowns)
+DENSE_LIMIT = 0
+#: the a-priori spread of the images' interior orientation in the refinement of the upgrade, relative to fx
+K_SIGMA_RELATIVE = 0.01
 
 
 @dataclass(frozen=True, eq=False)
@@ -303,6 +307,8 @@ def upgrade_to_metric(pb: ProjectiveBundle, tracks: Tracks, sizes: Sequence[tupl
     except EstimationError as err:
         raise EstimationError(f"metric upgrade: {err}") from err
     H = np.asarray(tr.H) if isinstance(tr, Projective3D) else np.asarray(tr.matrix)
+    if method == "projective":
+        H = _refine_upgrade(H, pb.cameras, src, control.xyz[rows], control.sigma_m[rows])
     Hi = np.linalg.inv(H)
     Y = np.column_stack([pb.points, np.ones(len(pb.points))]) @ H.T
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -342,6 +348,53 @@ def upgrade_to_metric(pb: ProjectiveBundle, tracks: Tracks, sizes: Sequence[tupl
                  principal_point_mm=((cx - (w - 1) / 2.0) * ps, -(cy - (h - 1) / 2.0) * ps), pixel_camera=True,
                  aspect=float(fy / fx), shear=float(sk / fx))
     return MetricStart(tr, per, cam, poses, Xg, ids)
+
+
+def _interiors(cams_px: F64, Gi: F64) -> F64:
+    """(n, 5) fx, fy, skew, cx, cy of the cameras ``P_i Gi`` (RQ of their left 3 x 3 blocks, positive diagonal)."""
+    out = np.empty((len(cams_px), 5))
+    for i, P in enumerate(cams_px):
+        K = scipy.linalg.rq((P @ Gi)[:, :3])[0]
+        K = K @ np.diag(np.sign(np.diag(K)))
+        K = K / K[2, 2]
+        out[i] = (K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2])
+    return out
+
+
+def _refine_upgrade(H0: F64, cams_px: F64, src: F64, xyz: F64, sigma: F64) -> F64:
+    """The 3D projective transformation of the upgrade refined by the self-calibration condition of one camera.
+
+    Least squares over the 15 elements of H (h44 = 1, in a frame centred and scaled on the control):
+    the control residuals ``H(x_block) - X`` weighted by their sigmas, and for every image the departure
+    of its interior orientation ``K_i`` (RQ of ``P_i H^-1``) from the block's mean, weighted by
+    :data:`K_SIGMA_RELATIVE` times the mean fx. Minimal control (5 points, no redundancy) nearly on one
+    plane leaves H weakly determined; the images, all taken with one camera, fix what the control does not.
+    """
+    c = xyz.mean(axis=0)
+    sc = float(np.sqrt(np.mean(np.sum((xyz - c) ** 2, axis=1)))) or 1.0
+    S = np.diag([1.0 / sc, 1.0 / sc, 1.0 / sc, 1.0])
+    S[:3, 3] = -c / sc
+    G0 = S @ H0
+    G0 = G0 / G0[3, 3]
+    xn = (xyz - c) / sc
+    sn = np.where(np.isfinite(sigma) & (sigma > 0), sigma, 0.01 * sc) / sc
+    sh = np.column_stack([src, np.ones(len(src))])
+
+    def fun(p: F64) -> F64:
+        G = np.append(p, 1.0).reshape(4, 4)
+        Y = sh @ G.T
+        rc = (Y[:, :3] / Y[:, 3:4] - xn) / sn
+        k = _interiors(cams_px, np.linalg.inv(G))
+        rk = (k - k.mean(axis=0)) / (K_SIGMA_RELATIVE * abs(float(k[:, 0].mean())))
+        return np.concatenate([rc.reshape(-1), rk.reshape(-1)])
+
+    try:
+        sol = scipy.optimize.least_squares(fun, G0.reshape(-1)[:15], method="trf", x_scale="jac", max_nfev=200)
+    except (np.linalg.LinAlgError, ValueError) as err:
+        raise EstimationError(f"metric upgrade: the refinement of the projective transformation failed: {err}") from err
+    if not np.isfinite(sol.x).all():
+        return H0
+    return np.asarray(np.linalg.inv(S) @ np.append(sol.x, 1.0).reshape(4, 4), dtype=np.float64)
 
 
 def pixel_interior(res: BundleResult, camera_id: str = CAMERA_ID) -> dict[str, tuple[float, float]]:

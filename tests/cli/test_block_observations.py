@@ -18,6 +18,7 @@ from click.testing import CliRunner
 
 from rectify.geometry.geodesy import geodetic_from_map
 from stereo.cli.main import cli
+from stereo.formats.observations import read_observations
 from tests.support.block_curved import CRS, CurvedBlock, make_curved_block, write_curved_block
 
 
@@ -66,6 +67,11 @@ def test_curved_block_from_its_observations_in_the_default_frame(curved, tmp_pat
     assert np.abs(err / std).max() < 4.0
     assert (ratio[:2] < 1.5).all()
     assert abs(err[:, 2].mean()) < 0.15  # no height bias: the frame is Cartesian and true to scale
+    # the observations CSV the run wrote (with residuals, weights, flags) reads back as its input
+    back = read_observations(out / "observations.csv", blk.images, {n: (10_000, 10_000) for n in blk.images})
+    n_rows = len((out / "observations.csv").read_text().splitlines()) - 1
+    assert back.n_rows == n_rows and back.tracks.n_obs + back.n_single == n_rows
+    assert back.n_flagged == int(r.output.split("image residuals: RMS ")[1].split("(")[1].split(" flagged")[0])
 
 
 def test_curved_block_in_the_map_frame_shows_the_predicted_error(curved, tmp_path) -> None:
@@ -178,9 +184,18 @@ def test_points_seen_once_are_dropped_and_counted(curved, tmp_path) -> None:
     blk, files = curved
     obs = _rewrite(files["observations"], tmp_path / "o.csv",
                    lambda ls: ls + [f"{blk.images[0]},lonely,100.0,200.0,0.5"])
-    from stereo.formats.observations import read_observations  # local: the reader alone, after the CLI tests
-
     t = read_observations(obs, blk.images, {n: (10_000, 10_000) for n in blk.images})
     assert t.n_single == 1 and "lonely" not in t.tracks.point_ids
     assert "1 rows of points seen in one image only dropped" in t.summary_line()
     assert math.isclose(float(t.tracks.obs_sigma_px[0]), 0.5)
+
+
+def test_unknown_check_point_is_refused(curved, tmp_path) -> None:
+    """Every id of the CSV that the control file does not name is a tie point; a check id must be a control id."""
+    blk, files = curved
+    args = _args(files, blk, tmp_path / "out")
+    args[args.index("--check") + 1] = "chk00,nowhere"
+    r = CliRunner().invoke(cli, args)
+    assert r.exit_code != 0 and "nowhere" in r.output and "Traceback" not in r.output
+    assert len([ln for ln in r.output.splitlines() if ln.strip()]) == 1
+    assert not (tmp_path / "out").exists()

@@ -11,13 +11,17 @@ The click is a real ``click`` event dispatched by the page at the point's place 
 
 from __future__ import annotations
 
+import base64
 import json
 import os
 import re
 import shutil
 import signal
+import socket
+import struct
 import subprocess
 import threading
+import time
 import urllib.request
 from pathlib import Path
 
@@ -195,16 +199,148 @@ def test_click_on_a_known_point_shows_its_residual(chromium, block_server, tmp_p
     assert_screenshot_layout(shot)
 
 
-def test_zoom_reaches_full_resolution(chromium, raster_server, block_server, tmp_path):
+class DevTools:
+    """A minimal client of Chromium's DevTools protocol over a WebSocket (standard library only): commands,
+    their results, and the console and exception events seen meanwhile."""
+
+    def __init__(self, ws_url: str) -> None:
+        m = re.match(r"ws://([^:/]+):(\d+)(/.*)", ws_url)
+        assert m, ws_url
+        self.sock = socket.create_connection((m.group(1), int(m.group(2))), timeout=30)
+        key = base64.b64encode(os.urandom(16)).decode()
+        self.sock.sendall((f"GET {m.group(3)} HTTP/1.1\r\nHost: {m.group(1)}:{m.group(2)}\r\nUpgrade: websocket\r\n"
+                           f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n"
+                           ).encode())
+        head = b""
+        while b"\r\n\r\n" not in head:
+            head += self.sock.recv(1)
+        assert b" 101 " in head.split(b"\r\n")[0], head
+        self.n = 0
+        self.console: list[str] = []
+
+    def close(self) -> None:
+        self.sock.close()
+
+    def _exact(self, n: int) -> bytes:
+        buf = b""
+        while len(buf) < n:
+            chunk = self.sock.recv(n - len(buf))
+            if not chunk:
+                raise ConnectionError("DevTools closed the connection")
+            buf += chunk
+        return buf
+
+    def _recv(self) -> dict:
+        _, b1 = self._exact(2)
+        n = b1 & 0x7F
+        if n == 126:
+            n = struct.unpack(">H", self._exact(2))[0]
+        elif n == 127:
+            n = struct.unpack(">Q", self._exact(8))[0]
+        return json.loads(self._exact(n))
+
+    def call(self, method: str, **params: object) -> dict:
+        self.n += 1
+        data = json.dumps({"id": self.n, "method": method, "params": params}).encode()
+        mask = os.urandom(4)
+        n = len(data)
+        hdr = bytes([0x81]) + (bytes([0x80 | n]) if n < 126 else bytes([0x80 | 126]) + struct.pack(">H", n))
+        self.sock.sendall(hdr + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(data)))
+        while True:
+            msg = self._recv()
+            if msg.get("method") == "Runtime.consoleAPICalled":
+                args = msg["params"].get("args", [])
+                self.console.append(" ".join(str(a.get("value", a.get("description", ""))) for a in args))
+            elif msg.get("method") == "Runtime.exceptionThrown":
+                self.console.append(str(msg["params"]["exceptionDetails"].get("exception", {}).get("description")))
+            if msg.get("id") == self.n:
+                assert "error" not in msg, msg
+                return msg["result"]
+
+    def js(self, expr: str) -> object:
+        return self.call("Runtime.evaluate", expression=expr, returnByValue=True)["result"].get("value")
+
+    def wait(self, expr: str, timeout: float = 30.0) -> object:
+        t0 = time.perf_counter()
+        while time.perf_counter() - t0 < timeout:
+            v = self.js(expr)
+            if v:
+                return v
+            time.sleep(0.05)
+        pytest.fail(f"the page never met {expr!r}")
+
+
+@pytest.fixture
+def devtools(chromium, tmp_path):
+    """Chromium with the DevTools protocol on a free port (written by Chromium into its profile)."""
+    profile = tmp_path / "cdp-profile"
+    proc = subprocess.Popen([chromium, *FLAGS, f"--user-data-dir={profile}", "--remote-debugging-port=0",
+                             "about:blank"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+    try:
+        port_file = profile / "DevToolsActivePort"
+        t0 = time.perf_counter()
+        while not (port_file.is_file() and port_file.read_text().strip()):
+            assert time.perf_counter() - t0 < RUN_TIMEOUT_S, "chromium did not open its DevTools port"
+            time.sleep(0.05)
+        port = int(port_file.read_text().split()[0])
+        pages: list = []
+        while not pages:
+            assert time.perf_counter() - t0 < RUN_TIMEOUT_S, "chromium opened no page"
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10) as r:
+                pages = [p for p in json.loads(r.read()) if p.get("type") == "page"]
+        dt = DevTools(pages[0]["webSocketDebuggerUrl"])
+        try:
+            dt.call("Runtime.enable")
+            dt.call("Page.enable")
+            yield dt
+        finally:
+            dt.close()
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)  # the browser we started and its children
+        proc.wait(10)
+
+
+def _open(dt: DevTools, url: str) -> None:
+    dt.call("Page.navigate", url=url)
+    dt.wait("document.body && document.body.dataset.state === 'ready'")
+
+
+def test_native_click_and_wheel_zoom_through_devtools(devtools, block_server, raster_server):
+    """A mouse click dispatched by the browser's input pipeline (DevTools ``Input.dispatchMouseEvent``) on a known
+    point shows its residual; mouse-wheel zoom reaches full resolution on the orthophoto."""
+    dt = devtools
+    session, out = block_server
+    man = _manifest(session)
+    rows = read_csv_rows(out / "observations.csv")
+    known = max((r for r in rows if r["flagged"] == "0"), key=lambda r: float(r["residual_x_px"]) ** 2
+                + float(r["residual_y_px"]) ** 2)  # the largest residual not flagged
+    i = [im["name"] for im in man["images"]].index(known["image"])
+    _open(dt, f"{session.url}?view=image:{i}&worst=0")
+    pid = json.dumps(known["id"])
+    assert dt.js(f"rectifyView.centreOn({pid})")
+    x, y = dt.js(f"rectifyView.screenOf({pid})")
+    for kind in ("mouseMoved", "mousePressed", "mouseReleased"):
+        dt.call("Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left", clickCount=1)
+    dt.wait(f"document.getElementById('detail').dataset.selected === {pid} "
+            "&& document.getElementById('detail').dataset.ready === 'yes'")
+    row = dt.js("Object.fromEntries([...document.querySelectorAll('#row tr')].map("
+                "(tr) => [tr.dataset.key, tr.querySelector('td').dataset.value]))")
+    assert row["id"] == known["id"] and row["image"] == known["image"]
+    assert float(row["vx"]) == float(known["residual_x_px"]) and float(row["vy"]) == float(known["residual_y_px"])
+    assert row["flag"] == "0"
+    assert dt.js("document.querySelectorAll('#track .thumb').length") == sum(1 for r in rows if r["id"] == known["id"])
+    # the orthophoto: zoom in with the mouse wheel about the canvas centre until full resolution
     rs, _ = raster_server
-    rman = _manifest(rs)
-    ortho = next(r for r in rman["rasters"] if r["label"] == "ortho.tif")
-    shot = tmp_path / "ortho.png"
-    _, attrs, console = load(chromium, f"{rs.url}?view=raster:{ortho['id']}&zoom=full&at=1500,1500",
-                             tmp_path / "z", screenshot=shot)
-    assert console == []
-    assert attrs["data-full-resolution"] == "yes" and attrs["data-level"] == attrs["data-max-level"] == "3"
-    assert_screenshot_layout(shot, legend=False)
-    bs, _ = block_server
-    _, attrs, console = load(chromium, f"{bs.url}?view=image:0&zoom=full&at=200,150", tmp_path / "p")
-    assert console == [] and attrs["data-full-resolution"] == "yes"
+    ortho = next(r for r in _manifest(rs)["rasters"] if r["label"] == "ortho.tif")
+    _open(dt, f"{rs.url}?view=raster:{ortho['id']}")
+    cx, cy = dt.js("(() => { const r = document.getElementById('map').getBoundingClientRect(); "
+                   "return [r.left + r.width / 2, r.top + r.height / 2]; })()")
+    assert dt.js("document.body.dataset.fullResolution") == "no"
+    for _ in range(40):
+        dt.call("Input.dispatchMouseEvent", type="mouseWheel", x=cx, y=cy, deltaX=0, deltaY=-400)
+        if dt.js("document.body.dataset.level === document.body.dataset.maxLevel"):
+            break
+    dt.wait("document.body.dataset.fullResolution === 'yes'")
+    assert dt.js("document.body.dataset.level") == dt.js("document.body.dataset.maxLevel") == "3"
+    assert dt.console == [], dt.console

@@ -9,7 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rectify.errors import InvalidInputError
+import stereo.block.frames as frames
+from rectify.errors import CRSError, InvalidInputError
 from rectify.geometry.curvature import (
     EARTH_RADIUS_M,
     arc_minus_chord,
@@ -27,6 +28,7 @@ from rectify.geometry.geodesy import ellipsoid_of, map_from_geodetic
 from rectify.geometry.mapframe import true_north_azimuth
 from stereo.block.frames import AdjustmentFrame, curvature_warning, default_frame_kind
 from stereo.block.navigation import body_rotation
+from stereo.formats.opensfm import topocentric_crs_wkt
 
 UTM = "EPSG:32633"  # central meridian 15 E
 
@@ -171,3 +173,28 @@ def test_bad_curvature_input():
         height_drop(float("nan"))
     with pytest.raises(InvalidInputError):
         model_errors("flat", 1.0, 0.0)
+
+
+def test_an_opensfm_topocentric_crs_is_adjusted_as_given():
+    wkt = topocentric_crs_wkt((15.0, 48.0, 100.0))
+    assert default_frame_kind(wkt) == "map"
+    with pytest.raises(InvalidInputError, match="topocentric frame already"):
+        AdjustmentFrame.from_points("topocentric", wkt, np.zeros((1, 3)))
+
+
+def test_heights_above_a_geoid(monkeypatch):
+    """A compound CRS's heights are converted with the geoid undulation N (h = H + N) and back."""
+    crs = "EPSG:32633+3855"  # UTM 33N + EGM2008 height
+    pts = _block()
+    try:
+        AdjustmentFrame.from_points("topocentric", crs, pts)
+    except CRSError as err:  # without the grid (as here): refused by name, in one line
+        assert "grid" in str(err) and "\n" not in str(err)
+    monkeypatch.setattr(frames, "geoid_height", lambda v, ll: np.full(len(ll), 47.0))
+    fr = AdjustmentFrame.from_points("topocentric", crs, pts)
+    o = fr.origin_lonlat_h
+    assert o is not None
+    on = map_from_geodetic([[o[0], o[1], 0.0]], UTM)  # orthometric H = 0 at the origin: 47 m above the ellipsoid
+    assert np.allclose(fr.frame_from_map(on), [[0.0, 0.0, 47.0]], atol=1e-6)
+    assert np.abs(fr.map_from_frame(fr.frame_from_map(pts)) - pts).max() < 1e-6
+    assert "heights above" in fr.description()

@@ -5,7 +5,7 @@ The synthetic blocks come from :func:`tests.support.block_synthetic.make_block` 
 with a 20 mm frame gives a base / height of 0.08, too narrow for two-image models): 3 strips x 6
 images, 0.5 px image noise, 5 full control points (corners and centre), 30 check points. Seed 3 is
 the least favourable of the six seeds measured for docs/block.md (ratio of the check-point RMSE
-1.32; seeds 1-6: 0.70, 1.00, 1.32, 0.91, 1.18, 0.89).
+1.32; seeds 1-6: 0.70, 1.00, 1.32, 0.92, 1.18, 0.89; scripts/independent_models_study.py).
 
 - the simultaneous adjustment of the models with control (``adjust_models``) reaches check-point
   RMSE within 1.5 times the bundle's on the same block (both run by ``run_block``), and its

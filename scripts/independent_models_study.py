@@ -1,0 +1,118 @@
+#!/usr/bin/env python
+"""Study: independent models as a finished method (seed 002, 3.1-3.2) against the bundle adjustment.
+
+The blocks of ``tests/stereo/test_block_models_adjust.py`` (``tests.support.block_synthetic.make_block``
+with a 40 mm camera of 2000 x 1500 px of 20 um, base / height 0.4):
+
+1. 3 strips x 6 images, 0.5 px, 5 full control points, 30 check points, seeds 1-6: check-point RMSE
+   of ``stereo block`` (``run_block``) with the bundle and with ``--method independent-models`` on the
+   same files; then ``adjust_models`` on the generator's tracks: sigma0 and RMS(error / std);
+2. one strip of 10 images (9 models), 0.3 px, the camera's radial distortion k1 = -0.01 not given to
+   the models, 15 control points (5 stations x 3 rows) and 40 check points: check-point RMSE after the
+   similarity alone and after the strip polynomial of degree 2 and 3, for independent and partially
+   dependent models, and for the same strip without the distortion.
+
+The figures of docs/block.md ("Independent models") are this script's output.
+
+Usage::
+
+    PYTHONPATH=. python scripts/independent_models_study.py [--seeds 1,2,3,4,5,6]
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from rectify.geometry.camera import Camera
+from stereo.actions.block import BlockOptions, run_block
+from stereo.block.bundle.adjust import BundleOptions
+from stereo.block.independent import independent_models
+from stereo.block.model_adjust import ModelAdjustOptions, adjust_models
+from stereo.block.models import IndependentOptions
+from stereo.block.strip_adjust import correct_strips
+from stereo.block.types import BlockControl
+from tests.support.block_files import write_block_files
+from tests.support.block_synthetic import SyntheticBlock, make_block
+
+
+def camera(k1: float = 0.0) -> Camera:
+    """The study's 40 mm camera (optionally with radial distortion k1)."""
+    return Camera(focal_length_mm=40.0, pixel_size_mm=0.02, width=2000, height=1500, principal_point_mm=(0.0, 0.0),
+                  distortion={"k1": k1} if k1 else {})
+
+
+def rmse3d(e: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum(np.asarray(e) ** 2, axis=1))))
+
+
+def compare(seed: int, tmp: Path) -> tuple[float, float]:
+    """Check-point RMSE 3D of the bundle and of the independent models through ``run_block``."""
+    blk = make_block(seed, control_layout="corners+centre", n_check=30, n_points=1500, camera=camera())
+    (tmp / f"s{seed}").mkdir()
+    images, cam, _poses, ctrl, ties, checks = write_block_files(tmp / f"s{seed}", blk, gnss=False)
+    out = []
+    for method in ("bundle", "independent-models"):
+        opts = BlockOptions(check_ids=checks, method=method, report=False, stac=False,
+                            bundle=BundleOptions(robust="tukey", image_sigma_px=0.5, max_iterations=100))
+        res = run_block(images, out_dir=tmp / f"s{seed}" / method, camera=cam, control=ctrl, tracks=ties, options=opts)
+        out.append(rmse3d(res.bundle.check_errors))
+    return out[0], out[1]
+
+
+def precision(seed: int) -> str:
+    """sigma0 and RMS(error / std) of ``adjust_models`` on the generator's tracks."""
+    blk = make_block(seed, control_layout="corners+centre", n_check=30, n_points=1500, camera=camera())
+    mb = independent_models(blk.cameras, ["cam"] * len(blk.tracks.images), blk.tracks)
+    r = adjust_models(mb, control=blk.control, options=ModelAdjustOptions(image_sigma_px=0.5))
+    q = np.asarray(r.check_errors) / np.asarray(r.check_std)
+    return (f"sigma0 {r.sigma0:.3f}, RMS(error/std) x y z {np.sqrt(np.mean(q ** 2, axis=0)).round(2).tolist()}, "
+            f"max {np.abs(q).max():.2f}")
+
+
+def strip(k1: float) -> tuple[SyntheticBlock, BlockControl]:
+    """The 10-image strip and its control (15 points in 5 stations x 3 rows) and 40 check points."""
+    blk = make_block(3, strips=1, images_per_strip=10, camera=camera(k1), n_points=1500, control_layout="none",
+                     n_check=0, image_noise_px=0.3)
+    t, X = blk.tracks, blk.true_points
+    cnt = np.bincount(t.obs_point, minlength=t.n_points)
+    ctrl: list[int] = []
+    for x in np.linspace(X[:, 0].min(), X[:, 0].max(), 5):
+        for y in np.linspace(X[:, 1].min(), X[:, 1].max(), 3):
+            d = np.where(cnt >= 3, np.hypot(X[:, 0] - x, X[:, 1] - y), np.inf)
+            ctrl.append(next(int(j) for j in np.argsort(d) if int(j) not in ctrl))
+    rest = np.setdiff1d(np.flatnonzero(cnt >= 3), ctrl)
+    chk = [int(j) for j in np.random.default_rng(0).choice(rest, 40, replace=False)]
+    rows = ctrl + chk
+    return blk, BlockControl(tuple(t.point_ids[j] for j in rows), X[rows], ("full",) * len(rows),
+                             np.full((len(rows), 3), 0.01), np.array([False] * len(ctrl) + [True] * len(chk)))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", default="1,2,3,4,5,6")
+    args = ap.parse_args()
+    seeds = [int(s) for s in args.seeds.split(",")]
+    print("1. check-point RMSE 3D, bundle vs independent models (run_block, same files)")
+    with tempfile.TemporaryDirectory() as d:
+        for seed in seeds:
+            b, m = compare(seed, Path(d))
+            print(f"  seed {seed}: bundle {b:.3f} m, independent models {m:.3f} m, ratio {m / b:.2f}; "
+                  f"adjust_models: {precision(seed)}")
+    print("2. a bent strip: check-point RMSE x, y, z (similarity only -> degree 2 -> degree 3)")
+    for k1, dependent, label in ((-0.01, False, "independent"), (-0.01, True, "partially dependent"),
+                                 (0.0, False, "independent, no distortion")):
+        blk, control = strip(k1)
+        mb = independent_models({"cam": camera()}, ["cam"] * len(blk.tracks.images), blk.tracks,
+                                options=IndependentOptions(dependent=dependent))
+        r2, r3 = (correct_strips(mb, control, degree=d) for d in (2, 3))
+        f = [np.sqrt(np.mean(np.asarray(e) ** 2, axis=0)).round(2).tolist()
+             for e in (r2.check_before, r2.check_errors, r3.check_errors)]
+        print(f"  {label}: {f[0]} -> {f[1]} -> {f[2]} m")
+
+
+if __name__ == "__main__":
+    main()
