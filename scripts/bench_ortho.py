@@ -1,10 +1,23 @@
-"""Benchmark ``rectify ortho`` (RPC + DEM) against GDAL's warper with RPC_DEM, on the same inputs, in one run.
+"""Benchmark ``rectify ortho`` against GDAL's warper (RPC + DEM) or orthority (frame cameras), in one run.
 
-Builds a synthetic RPC scene (an N x N uint8 tiled GeoTIFF with RPC tags, a DEM in EPSG:4326), then runs
-each side in its own subprocess onto the same output grid (UTM, tiled 512, ZSTD level 1, predictor 2,
-2 threads) and prints wall time, peak RSS and the agreement of the two outputs.
+RPC mode (default): builds a synthetic RPC scene (an N x N uint8 tiled GeoTIFF with RPC tags, a DEM in
+EPSG:4326), then runs each side in its own subprocess onto the same output grid (UTM, tiled 512, ZSTD
+level 1, predictor 2, 2 threads) and prints wall time, peak RSS and the agreement of the two outputs.
 
     nice python scripts/bench_ortho.py --size 20000 --workdir /tmp/bench_ortho
+
+Frame mode (``--frames DIR``): the frames of a folder holding orthority's own ``orthority_int_param.yaml``,
+``orthority_ext_param.geojson`` and ``dem.tif`` (the NGI pair ``ngi_strip05`` of the shared data), every
+frame orthorectified by ``rectify ortho`` (the action, reading orthority's files) and by orthority
+(``pip install .[bench]``) in one process, alternating, ``--repeat`` times each; the fastest run of
+each side counts. Both at the same resolution, bilinear image and DEM interpolation, 2 threads for
+ours; orthority with its defaults otherwise (JPEG with internal overviews and mask). Prints the time
+ratio (target ours/orthority <= 0.7), the output size ratio for each of our output options, the
+pixel agreement (sub-pixel shift between the two orthophotos by phase correlation, and the mean
+|difference| in DN where both hold data), ``--true-ortho`` against the plain orthophoto, and the load
+average beside the figures (the machine may be shared).
+
+    nice python scripts/bench_ortho.py --frames ../shared/data/ngi_strip05 --workdir /tmp/bench_oty --repeat 5
 """
 
 from __future__ import annotations
@@ -155,13 +168,153 @@ def compare(a: str, b: str, n_windows: int = 16) -> dict:
             else float("nan"), "n": int(d.size)}
 
 
+# --------------------------------------------------------------------------- frame mode: orthority
+OUR_OPTIONS = {  # label -> (compress, cog)
+    "zstd (default)": ("zstd", False),
+    "deflate": ("deflate", False),
+    "zstd --cog": ("zstd", True),
+    "jpeg --cog": ("jpeg", True),
+    "jpeg": ("jpeg", False),
+}
+
+
+def _ours(frames: Path, image: Path, out: Path, res: float, compress: str = "zstd", cog: bool = False,
+          true_ortho: bool = False) -> float:
+    sys.path.insert(0, str(ROOT))
+    from rectify.actions.ortho import OrthoOptions, ortho_from_files
+
+    t0 = time.perf_counter()
+    ortho_from_files(image, out, frames / "dem.tif", camera=frames / "orthority_int_param.yaml",
+                     exterior=frames / "orthority_ext_param.geojson", resolution=res, overwrite=True,
+                     options=OrthoOptions(threads=2, compress=compress, cog=cog, true_ortho=true_ortho,
+                                          resampling="bilinear"), stac=False)
+    return time.perf_counter() - t0
+
+
+def _orthority(frames: Path, image: Path, out: Path, res: float, compress: str | None = None) -> float:
+    import orthority as oty
+
+    t0 = time.perf_counter()
+    cams = oty.FrameCameras(frames / "orthority_int_param.yaml", frames / "orthority_ext_param.geojson")
+    ortho = oty.Ortho(image, frames / "dem.tif", camera=cams.get(image), crs=cams.crs)
+    ortho.process(out, resolution=(res, res), interp="bilinear", dem_interp="bilinear", compress=compress,
+                  overwrite=True, aligned_pixels=True)
+    return time.perf_counter() - t0
+
+
+def agreement(a: Path, b: Path) -> dict:
+    """Shift (px, phase correlation of the common area) and mean |difference| (DN) of two orthophotos."""
+    import cv2
+    import rasterio
+    from rasterio.windows import from_bounds
+
+    with rasterio.open(a) as A, rasterio.open(b) as B:
+        bounds = (max(A.bounds.left, B.bounds.left), max(A.bounds.bottom, B.bounds.bottom),
+                  min(A.bounds.right, B.bounds.right), min(A.bounds.top, B.bounds.top))
+        wa = from_bounds(*bounds, transform=A.transform).round_offsets().round_lengths()
+        wb = from_bounds(*bounds, transform=B.transform).round_offsets().round_lengths()
+        h, w = min(wa.height, wb.height), min(wa.width, wb.width)
+        wa, wb = wa.__class__(wa.col_off, wa.row_off, w, h), wb.__class__(wb.col_off, wb.row_off, w, h)
+        x = A.read(window=wa).astype(np.float64).mean(axis=0)
+        y = B.read(window=wb).astype(np.float64).mean(axis=0)
+        ok = (A.dataset_mask(window=wa) > 0) & (B.dataset_mask(window=wb) > 0)
+    # the largest block of rows and columns where both hold data (phase correlation needs no holes)
+    rows, cols = np.flatnonzero(ok.mean(axis=1) > 0.99), np.flatnonzero(ok.mean(axis=0) > 0.99)
+    if len(rows) < 32 or len(cols) < 32:
+        return {"shift_px": float("nan"), "mean_abs_dn": float("nan"), "n": int(ok.sum())}
+    sub = np.ix_(np.arange(rows[0], rows[-1] + 1), np.arange(cols[0], cols[-1] + 1))
+    xs, ys = x[sub], y[sub]
+    (dx, dy), _ = cv2.phaseCorrelate(xs, ys, cv2.createHanningWindow(xs.shape[::-1], cv2.CV_64F))
+    return {"shift_px": float(np.hypot(dx, dy)), "dx": float(dx), "dy": float(dy),
+            "mean_abs_dn": float(np.abs(x - y)[ok].mean()), "n": int(ok.sum())}
+
+
+def bench_frames(frames: Path, work: Path, repeat: int, res: float) -> None:
+    import os
+
+    images = sorted(frames.glob("*_RGB.tif")) or sorted(p for p in frames.glob("*.tif") if p.name != "dem.tif")
+    print(f"frames: {', '.join(p.name for p in images)}; DEM {frames / 'dem.tif'}; {res:g} m; "
+          f"load average before: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
+    t_ours: dict[str, float] = {}
+    t_peer: dict[str, float] = {}
+    sizes_ours: dict[str, int] = {}
+    sizes_peer: dict[str, int] = {}
+
+    def keep(d: dict, k: str, v: float) -> None:
+        d[k] = min(d.get(k, float("inf")), v)
+
+    def run_all(label: str, fn) -> float:
+        return sum(fn(img) for img in images)
+
+    # warm both (imports, caches), then alternate
+    run_all("", lambda img: _ours(frames, img, work / f"ours_{img.stem}.tif", res))
+    run_all("", lambda img: _orthority(frames, img, work / f"oty_{img.stem}.tif", res))
+    for i in range(repeat):
+        first_ours = i % 2 == 0
+        for side in ("ours", "peer") if first_ours else ("peer", "ours"):
+            if side == "ours":
+                keep(t_ours, "zstd (default)", run_all("", lambda img: _ours(frames, img, work / f"ours_{img.stem}.tif",
+                                                                            res)))
+            else:
+                keep(t_peer, "orthority (default: jpeg + overviews)",
+                     run_all("", lambda img: _orthority(frames, img, work / f"oty_{img.stem}.tif", res)))
+    for label, (comp, cog) in OUR_OPTIONS.items():
+        for _ in range(max(1, repeat // 2)):
+            keep(t_ours, label, run_all("", lambda img, c=comp, g=cog, lb=label: _ours(
+                frames, img, work / f"ours_{lb.split()[0]}{'_cog' if g else ''}_{img.stem}.tif", res, c, g)))
+        sizes_ours[label] = sum((work / f"ours_{label.split()[0]}{'_cog' if cog else ''}_{img.stem}.tif").stat().st_size
+                                for img in images)
+    for _ in range(max(1, repeat // 2)):
+        keep(t_peer, "orthority --compress deflate",
+             run_all("", lambda img: _orthority(frames, img, work / f"oty_deflate_{img.stem}.tif", res, "deflate")))
+    sizes_peer["orthority (default: jpeg + overviews)"] = sum((work / f"oty_{img.stem}.tif").stat().st_size
+                                                              for img in images)
+    sizes_peer["orthority --compress deflate"] = sum((work / f"oty_deflate_{img.stem}.tif").stat().st_size
+                                                     for img in images)
+    for _ in range(max(1, repeat // 2)):
+        keep(t_ours, "--true-ortho (zstd)", run_all("", lambda img: _ours(
+            frames, img, work / f"ours_true_{img.stem}.tif", res, true_ortho=True)))
+    load = " ".join(f"{v:.2f}" for v in os.getloadavg())
+    peer = t_peer["orthority (default: jpeg + overviews)"]
+    print(f"\n| {len(images)} frames, fastest of {repeat} (alternating) | seconds | / orthority | bytes |")
+    print("|---|---|---|---|")
+    for k, v in t_peer.items():
+        print(f"| {k} | {v:.3f} | {v / peer:.2f} | {sizes_peer[k]} |")
+    for k, v in t_ours.items():
+        size = sizes_ours.get(k)
+        print(f"| rectify ortho {k} | {v:.3f} | {v / peer:.2f} | {size if size is not None else ''} |")
+    print(f"load average after: {load}")
+    ours = t_ours["zstd (default)"]
+    print(f"time ratio ours (zstd) / orthority = {ours / peer:.3f} (target <= 0.7); "
+          f"jpeg --cog / orthority = {t_ours['jpeg --cog'] / peer:.3f}")
+    print(f"--true-ortho / plain = {t_ours['--true-ortho (zstd)'] / ours:.2f} (target <= 3)")
+    for k, v in sizes_ours.items():
+        print(f"size ratio ours {k} / orthority default = "
+              f"{v / sizes_peer['orthority (default: jpeg + overviews)']:.2f}; / orthority deflate = "
+              f"{v / sizes_peer['orthority --compress deflate']:.2f}")
+    for img in images:
+        for label, ours_file in (("zstd", f"ours_{img.stem}.tif"), ("jpeg --cog", f"ours_jpeg_cog_{img.stem}.tif")):
+            c = agreement(work / ours_file, work / f"oty_deflate_{img.stem}.tif")
+            print(f"{img.stem}: ours ({label}) vs orthority (deflate): shift {c['shift_px']:.3f} px "
+                  f"(dx {c.get('dx', float('nan')):+.3f}, dy {c.get('dy', float('nan')):+.3f}), mean |diff| "
+                  f"{c['mean_abs_dn']:.2f} DN over {c['n']} px")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=20000, help="source (and about the output) side in pixels")
     ap.add_argument("--workdir", type=Path, default=Path("bench_ortho_work"))
     ap.add_argument("--skip-gdal", action="store_true")
+    ap.add_argument("--frames", type=Path, default=None,
+                    help="folder of frames with orthority_int_param.yaml, orthority_ext_param.geojson, dem.tif: "
+                         "compare with orthority instead of GDAL")
+    ap.add_argument("--repeat", type=int, default=5, help="frame mode: runs of each side (fastest counts)")
+    ap.add_argument("--resolution", type=float, default=5.6, help="frame mode: output pixel size, m")
     args = ap.parse_args()
     args.workdir.mkdir(parents=True, exist_ok=True)
+    if args.frames is not None:
+        bench_frames(args.frames, args.workdir, args.repeat, args.resolution)
+        return
     t0 = time.perf_counter()
     cfg = build(args.workdir, args.size)
     print(f"inputs: {args.size} x {args.size} uint8 RPC image, 1000 x 1000 DEM (EPSG:4326); output "

@@ -59,7 +59,8 @@ def write_ortho(path: Path, n: int = 10_000, *, overviews: bool = False) -> None
         for r in range(0, n, 1024):
             h = min(1024, n - r)
             yy, xx = np.mgrid[r:r + h, 0:n]
-            a = np.stack([(xx // 7 + yy // 5) % 200 + 20, (xx // 13) % 200 + 30, (yy // 11) % 200 + 25]).astype(np.uint8)
+            a = np.stack([(xx // 7 + yy // 5) % 200 + 20, (xx // 13) % 200 + 30,
+                          (yy // 11) % 200 + 25]).astype(np.uint8)
             a += rng.integers(0, 20, a.shape, dtype=np.uint8)
             ds.write(a, window=Window(0, r, n, h))
         if overviews:
@@ -128,8 +129,9 @@ class DevTools:
         assert m, ws_url
         self.sock = socket.create_connection((m.group(1), int(m.group(2))), timeout=30)
         key = base64.b64encode(os.urandom(16)).decode()
-        self.sock.sendall((f"GET {m.group(3)} HTTP/1.1\r\nHost: {m.group(1)}:{m.group(2)}\r\nUpgrade: websocket\r\n"
-                           f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n").encode())
+        self.sock.sendall((f"GET {m.group(3)} HTTP/1.1\r\nHost: {m.group(1)}:{m.group(2)}\r\n"
+                           f"Upgrade: websocket\r\nConnection: Upgrade\r\nSec-WebSocket-Key: {key}\r\n"
+                           "Sec-WebSocket-Version: 13\r\n\r\n").encode())
         head = b""
         while b"\r\n\r\n" not in head:
             head += self.sock.recv(1)
@@ -234,8 +236,8 @@ def measure(folder: Path, label: str, chromium: str, work: Path, *, sweep_raster
         dt.call("Page.navigate", url=f"http://127.0.0.1:{port}/")
         ready = tile = None
         while time.perf_counter() - t_nav < 60:
-            st = dt.evaluate("[document.body && document.body.dataset.state, document.body && document.body.dataset.readyMs,"
-                             " document.body && document.body.dataset.firstTileMs, document.body && document.body.dataset.view]")
+            st = dt.evaluate("(() => { const b = document.body; if (!b) return null; const d = b.dataset;"
+                             " return [d.state, d.readyMs, d.firstTileMs, d.view]; })()")
             if st and st[0] == "ready" and (st[3] != "raster:0" or st[2]):
                 ready, tile = st[1], st[2]
                 break

@@ -10,7 +10,10 @@ with a 40 mm camera of 2000 x 1500 px of 20 um, base / height 0.4):
 2. one strip of 10 images (9 models), 0.3 px, the camera's radial distortion k1 = -0.01 not given to
    the models, 15 control points (5 stations x 3 rows) and 40 check points: check-point RMSE after the
    similarity alone and after the strip polynomial of degree 2 and 3, for independent and partially
-   dependent models, and for the same strip without the distortion.
+   dependent models, and for the same strip without the distortion;
+3. the 140-image block on a curved Earth of ``tests/cli/test_block_observations.py``
+   (``tests.support.block_curved``: 10 strips x 14 images, 152 mm, GNSS 5 cm, INS, 28 control and 24
+   check points) through ``stereo block --observations`` with either method: check-point RMSE.
 
 The figures of docs/block.md ("Independent models") are this script's output.
 
@@ -26,6 +29,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from click.testing import CliRunner
 
 from rectify.geometry.camera import Camera
 from stereo.actions.block import BlockOptions, run_block
@@ -35,6 +39,8 @@ from stereo.block.model_adjust import ModelAdjustOptions, adjust_models
 from stereo.block.models import IndependentOptions
 from stereo.block.strip_adjust import correct_strips
 from stereo.block.types import BlockControl
+from stereo.cli.main import cli
+from tests.support.block_curved import make_curved_block, write_curved_block
 from tests.support.block_files import write_block_files
 from tests.support.block_synthetic import SyntheticBlock, make_block
 
@@ -112,6 +118,16 @@ def main() -> None:
         f = [np.sqrt(np.mean(np.asarray(e) ** 2, axis=0)).round(2).tolist()
              for e in (r2.check_before, r2.check_errors, r3.check_errors)]
         print(f"  {label}: {f[0]} -> {f[1]} -> {f[2]} m")
+    print("3. the curved 140-image block from its observations CSV (default frame)")
+    blk = make_curved_block(0)
+    with tempfile.TemporaryDirectory() as d:
+        files = write_curved_block(Path(d) / "in", blk)
+        for method in ("bundle", "independent-models"):
+            r = CliRunner().invoke(cli, ["block", "--observations", str(files["observations"]), "--camera",
+                                         str(files["camera"]), "--poses", str(files["poses"]), "--control",
+                                         str(files["control"]), "--check", ",".join(blk.check_ids), "-o",
+                                         str(Path(d) / method), "--no-report", "--no-stac", "--method", method])
+            print(f"  {method}: " + " ".join(ln for ln in r.output.splitlines() if ln.startswith("check:")))
 
 
 if __name__ == "__main__":

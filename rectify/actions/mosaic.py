@@ -1,4 +1,5 @@
-"""``rectify mosaic``: one GeoTIFF/COG from several orthophotos (nearest-nadir seams, feathering).
+"""``rectify mosaic``: one GeoTIFF/COG from several orthophotos (nearest-nadir or least-transformed seams,
+averaging, radiometric balancing, feathering, a provenance raster).
 
 The file step of :func:`rectify.raster.mosaic.mosaic`: the orthophotos are the job's inputs, the
 output is written through the workspace (checked against every input before any work, renamed into place
@@ -7,6 +8,7 @@ at the end, nothing left on an error or SIGTERM), with its overwrite policy.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 from collections.abc import Sequence
@@ -34,6 +36,7 @@ class MosaicRunOptions:
     engine: MosaicOptions = field(default_factory=MosaicOptions)
     max_pixels: float = MAX_PIXELS
     stac: bool = True  # write the STAC Item <output stem>.stac.json beside the mosaic, in the same transaction
+    provenance: bool = False  # write <output stem>.source.tif: the 1-based input number per pixel
 
     def __post_init__(self) -> None:
         v = self.max_pixels
@@ -62,15 +65,29 @@ def mosaic(ws: Workspace, orthos: Sequence[str | Path], dst: str | Path,
     InvalidInputError, CRSError
         As :func:`rectify.raster.mosaic.mosaic`.
     """
-    ws.add_inputs(*orthos)
+    dsm = options.engine.dsm
+    ws.add_inputs(*orthos, *([dsm] if dsm is not None else []))
     item = stac_path(dst) if options.stac else None
-    ws.plan(dst, item)  # the output against every input (resolved, hard links and symlinks included), before any work
+    src = provenance_path(dst) if options.provenance else None
+    ws.plan(dst, item, src)  # the outputs against every input (resolved, hard links and symlinks), before any work
     # the grid is checked (size, inputs far apart) before any tile; the mosaic is renamed into place at the end
-    with ws.transaction(), ws.output(dst, suffix=Path(dst).suffix or ".tif") as tmp:
+    with ws.transaction(), ws.output(dst, suffix=Path(dst).suffix or ".tif") as tmp, \
+            contextlib.ExitStack() as stack:
+        tmp_src = stack.enter_context(ws.output(src, suffix=".tif")) if src is not None else None
         res = mosaic_orthos(list(orthos), tmp, resolution=options.resolution, options=options.engine,
-                            overwrite=True, progress=progress, max_pixels=options.max_pixels)
+                            overwrite=True, progress=progress, max_pixels=options.max_pixels, provenance=tmp_src)
         if item is not None:
+            assets = {"mosaic": StacAsset(dst, raster_roles(tmp), "orthophoto mosaic", source=tmp)}
+            if src is not None and tmp_src is not None:
+                assets["provenance"] = StacAsset(src, ("metadata",), "source orthophoto per pixel (1-based, 0 none)",
+                                                 source=tmp_src)
             write_stac(ws, item, item_id=Path(dst).stem, grid=raster_grid(tmp), command="rectify mosaic",
-                       assets={"mosaic": StacAsset(dst, raster_roles(tmp), "orthophoto mosaic", source=tmp)},
-                       options=options_of(options, orthos=[str(p) for p in orthos]), inputs=list(orthos))
-    return MosaicRun(dataclasses.replace(res, path=Path(dst)), item)
+                       assets=assets, options=options_of(options, orthos=[str(p) for p in orthos]),
+                       inputs=list(orthos))
+    return MosaicRun(dataclasses.replace(res, path=Path(dst), provenance=src), item)
+
+
+def provenance_path(dst: str | Path) -> Path:
+    """The provenance raster beside the mosaic ``dst``: ``<stem>.source.tif``."""
+    p = Path(dst)
+    return p.with_name(p.stem + ".source.tif")

@@ -58,10 +58,12 @@ from rectify.geometry.residuals import ResidualTable
 from rectify.geometry.rpc import RPCRefinement
 from rectify.geometry.sensors import RPCModel, SensorModel
 from rectify.raster.dem import Dem, ground_on_dem
+from rectify.raster.engine import COMPRESSIONS, JPEG_QUALITY
 from rectify.raster.io import bound_gdal_cache, raster_info
 from rectify.raster.ortho import OrthoOptions, OrthoResult, orthorectify
 
-__all__ = ["OrthoOptions", "OrthoRunOptions", "OrthoRun", "GCP_HEIGHTS", "GCP_PIXEL", "ModelHeights", "ortho",
+__all__ = ["COMPRESSIONS", "JPEG_QUALITY",
+           "OrthoOptions", "OrthoRunOptions", "OrthoRun", "GCP_HEIGHTS", "GCP_PIXEL", "ModelHeights", "ortho",
            "ortho_from_files", "gcp_heights", "ground_errors"]
 
 #: the named datums of ``--gcp-heights`` (any vertical CRS, ``EPSG:5773``, is accepted too)
@@ -104,6 +106,10 @@ class OrthoRunOptions:
         (orthority's).
     stac : bool
         Write the STAC Item ``<output stem>.stac.json`` beside the orthophoto.
+    dem_height : float, optional
+        A constant ground height (m) instead of a DEM file (``--dem-height``; exclusive with the DEM): in
+        the model's heights, WGS 84 ellipsoidal for an RPC, the exterior orientation's heights for a frame
+        camera; no datum conversion (``undulation``/``geoid`` refused with it).
     engine : OrthoOptions
         Resampling, tiles, threads, compression, COG, true ortho, scheduler.
     """
@@ -119,6 +125,7 @@ class OrthoRunOptions:
     camera_id: str | None = None
     gcp_pixel: str | None = None
     stac: bool = True
+    dem_height: float | None = None
     engine: OrthoOptions = field(default_factory=OrthoOptions)
 
 
@@ -195,6 +202,13 @@ def model_heights(use_rpc: bool, eo_vertical: VerticalDatum | None, dem: Dem) ->
     """
     if use_rpc:
         return ModelHeights("ellipsoidal", "WGS 84 ellipsoidal heights (what an RPC takes)")
+    if dem.constant is not None:
+        if eo_vertical is not None and eo_vertical.ellipsoidal:
+            return ModelHeights("ellipsoidal", "ellipsoidal heights (declared by the exterior orientation's CRS)")
+        if eo_vertical is not None:
+            return ModelHeights("vertical", f"{eo_vertical.label} (declared by the exterior orientation's CRS)",
+                                eo_vertical)
+        return ModelHeights("undeclared", "the exterior orientation's heights (--dem-height is taken in them)")
     converted = dem.undulation != 0.0 or dem.geoid is not None
     if eo_vertical is not None and eo_vertical.ellipsoidal:
         return ModelHeights("ellipsoidal", "ellipsoidal heights (declared by the exterior orientation's CRS)")
@@ -395,7 +409,25 @@ def _height_check(ground: NDArray[np.float64], crs: str, dem: Dem, has_z: bool) 
             f"{int(ok.sum())} GCPs on the DEM")
 
 
-def ortho(ws: Workspace, src: str | Path, dst: str | Path, dem_path: str | Path, *, rpc: str | Path | bool = False,
+def _dem_of(dem_path: str | Path | None, o: OrthoRunOptions, convert: bool, crs: str) -> Dem:
+    """The DEM file, or the constant height of ``o.dem_height`` (exactly one of them; one-line errors)."""
+    if dem_path is not None and o.dem_height is not None:
+        raise InvalidInputError(f"give a DEM (--dem {str(dem_path)!r}) or a constant height (--dem-height "
+                                f"{o.dem_height!r}), not both")
+    if dem_path is None and o.dem_height is None:
+        raise InvalidInputError("give a DEM (--dem DEM.tif) or a constant ground height (--dem-height H, metres "
+                                "in the model's heights)")
+    if dem_path is None:
+        if o.undulation is not None or o.geoid is not None:
+            given = f"--undulation {o.undulation!r}" if o.undulation is not None else f"--geoid {o.geoid}"
+            raise InvalidInputError(f"{given} converts a DEM file's heights; --dem-height {o.dem_height!r} is "
+                                    f"already in the model's heights (leave {given.split()[0]} out)")
+        return Dem.constant_height(o.dem_height, crs)  # type: ignore[arg-type]
+    return Dem.from_path(dem_path, undulation=o.undulation, geoid=o.geoid, convert_declared=convert)
+
+
+def ortho(ws: Workspace, src: str | Path, dst: str | Path, dem_path: str | Path | None, *,
+          rpc: str | Path | bool = False,
           camera: str | Path | None = None, exterior: str | Path | None = None, gcps: str | Path | None = None,
           options: OrthoRunOptions = OrthoRunOptions(), progress: Progress = None) -> OrthoRun:
     """Orthorectify ``src`` with its RPC (``rpc=True``: from the image; a path: an RPC file) or a frame camera.
@@ -407,13 +439,20 @@ def ortho(ws: Workspace, src: str | Path, dst: str | Path, dem_path: str | Path,
     orthophoto in metres (:func:`ground_errors`). The overwrite policy and the report folder are the
     workspace's.
 
+    ``dem_path`` None: the constant height ``options.dem_height`` instead (exactly one of them).
+
     Raises
     ------
     InvalidInputError
-        Neither or both of ``rpc`` and ``camera``/``exterior``, bad files, GCP heights of no stated
-        datum with a converted DEM.
+        Neither or both of ``rpc`` and ``camera``/``exterior``, neither or both of ``dem_path`` and
+        ``options.dem_height`` (or a non-finite height), bad files, GCP heights of no stated datum with
+        a converted DEM.
     """
     bound_gdal_cache()  # before any pixel IO
+    if (dem_path is None) == (options.dem_height is None):  # before any file is read
+        _dem_of(dem_path, options, False, "EPSG:4326")
+    if options.dem_height is not None:
+        Dem.constant_height(options.dem_height, "EPSG:4326")  # a bad height fails here, before any work
     report_dir = ws.report_dir
     use_rpc = bool(rpc)
     if use_rpc == (camera is not None or exterior is not None):
@@ -455,7 +494,7 @@ def ortho(ws: Workspace, src: str | Path, dst: str | Path, dem_path: str | Path,
         raise InvalidInputError(f"--gcp-pixel {o.gcp_pixel} given without --gcps")
     # a frame orientation in the DEM's declared heights keeps them; an RPC (or an ellipsoidal EO) converts them
     convert = use_rpc or (eo_vertical is not None and eo_vertical.ellipsoidal)
-    dem = Dem.from_path(dem_path, undulation=o.undulation, geoid=o.geoid, convert_declared=convert)
+    dem = _dem_of(dem_path, o, convert, "EPSG:4326" if use_rpc else model.crs)
     target = model_heights(use_rpc, eo_vertical, dem)
     heights = {"heights": f"{dem.datum}; the model takes {target.label}"}
     ground_check = None
@@ -513,16 +552,18 @@ def ortho(ws: Workspace, src: str | Path, dst: str | Path, dem_path: str | Path,
     return run
 
 
-def ortho_from_files(src: str | Path, dst: str | Path, dem_path: str | Path, *, rpc: str | Path | bool = False,
+def ortho_from_files(src: str | Path, dst: str | Path, dem_path: str | Path | None, *,
+                     rpc: str | Path | bool = False,
                      camera: str | Path | None = None, exterior: str | Path | None = None,
                      eo_crs: str | None = None, gcps: str | Path | None = None, refinement: str = "shift",
                      dst_crs: str | None = None, resolution: float | None = None, undulation: float | None = None,
                      geoid: str | None = None, gcp_heights: str | None = None, image_id: str | None = None,
                      options: OrthoOptions | None = None, overwrite: bool = False,
-                     progress: Progress = None, report_dir: str | Path | None = None) -> OrthoRun:
+                     progress: Progress = None, report_dir: str | Path | None = None,
+                     dem_height: float | None = None, stac: bool = True) -> OrthoRun:
     """:func:`ortho` in one call with keyword options (a workspace of ``overwrite`` and ``report_dir``)."""
     opts = OrthoRunOptions(eo_crs=eo_crs, refinement=refinement, dst_crs=dst_crs, resolution=resolution,
                            undulation=undulation, geoid=geoid, gcp_heights=gcp_heights, image_id=image_id,
-                           engine=options or OrthoOptions())
+                           engine=options or OrthoOptions(), dem_height=dem_height, stac=stac)
     return ortho(Workspace(overwrite=overwrite, report_dir=report_dir), src, dst, dem_path, rpc=rpc, camera=camera,
                  exterior=exterior, gcps=gcps, options=opts, progress=progress)

@@ -26,3 +26,4 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
 # --- registered subcommands (one module each, imported when run) ---
 for _name in ("warp", "fit", "match", "demo", "compare", "ortho", "mosaic", "view"):
     cli.add_lazy(_name, f"rectify.cli.{_name}:{_name}")
+cli.add_lazy("rpc-adjust", "rectify.cli.rpc_adjust:rpc_adjust")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from rectify.actions.ortho import GCP_PIXEL, OrthoOptions, OrthoRunOptions
+from rectify.actions.ortho import COMPRESSIONS, GCP_PIXEL, JPEG_QUALITY, OrthoOptions, OrthoRunOptions
 from rectify.actions.ortho import ortho as run_ortho
 from rectify.actions.workspace import Workspace
 from rectify.cli.options import echo, handle_errors, overwrite_opt, progress, scheduler_opt
@@ -17,8 +17,12 @@ report_opt = click.option("--report", "report_dir", type=click.Path(file_okay=Fa
 @click.command(short_help="Orthorectify an image with a DEM (RPC or frame camera), optionally a true ortho.")
 @click.argument("src", type=click.Path(dir_okay=False))
 @click.option("-o", "--output", "dst", type=click.Path(dir_okay=False), required=True, help="Output GeoTIFF.")
-@click.option("--dem", "dem_path", type=click.Path(dir_okay=False), required=True,
-              help="DEM GeoTIFF (any CRS and resolution; a compound CRS, e.g. EPSG:4326+3855, declares its heights).")
+@click.option("--dem", "dem_path", type=click.Path(dir_okay=False), default=None,
+              help="DEM GeoTIFF (any CRS and resolution; a compound CRS, e.g. EPSG:4326+3855, declares its heights). "
+                   "Give --dem or --dem-height.")
+@click.option("--dem-height", type=float, default=None,
+              help="A constant ground height (m) when no DEM exists, in the model's heights (WGS 84 ellipsoidal for "
+                   "an RPC, the exterior orientation's for a frame camera). Exclusive with --dem.")
 @click.option("--rpc", "rpc", is_flag=False, flag_value="__image__", default=None,
               help="Use the image's RPC (bare --rpc) or an RPC file (_RPC.TXT, .RPB, DIMAP/DigitalGlobe XML).")
 @click.option("--camera", type=click.Path(), default=None,
@@ -60,7 +64,12 @@ report_opt = click.option("--report", "report_dir", type=click.Path(file_okay=Fa
               show_default=True)
 @click.option("--true-ortho", is_flag=True, default=False,
               help="Occluded ground gets nodata; adds a visibility band (0 outside, 1 occluded, 2 visible).")
-@click.option("--cog", is_flag=True, default=False, help="Write a Cloud Optimized GeoTIFF.")
+@click.option("--cog", is_flag=True, default=False, help="Write a Cloud Optimized GeoTIFF (internal overviews).")
+@click.option("--compress", type=click.Choice(list(COMPRESSIONS)), default="zstd", show_default=True,
+              help="Output compression: lossless zstd/deflate/lzw (predictor, nodata kept) or none; jpeg: "
+                   "JPEG-in-TIFF (YCbCr for RGB) with an internal mask band, 8-bit images only, not with --true-ortho.")
+@click.option("--jpeg-quality", type=int, default=JPEG_QUALITY, show_default=True,
+              help="JPEG quality 1..100 (--compress jpeg).")
 @click.option("--stac/--no-stac", default=True, show_default=True,
               help="Write the STAC Item <output stem>.stac.json beside the orthophoto.")
 @click.option("--threads", type=click.IntRange(1, 256), default=None, help="Worker threads (default: all cores).")
@@ -68,15 +77,16 @@ report_opt = click.option("--report", "report_dir", type=click.Path(file_okay=Fa
 @report_opt
 @overwrite_opt
 @handle_errors
-def ortho(src, dst, dem_path, rpc, camera, camera_id, exterior, image_id, eo_crs, gcps, gcp_pixel, refinement,
-          dst_crs, resolution, undulation, geoid, gcp_heights, resampling, true_ortho, cog, stac, threads, scheduler,
-          report_dir, overwrite):
-    """Orthorectify SRC over a DEM into the GeoTIFF given by -o."""
+def ortho(src, dst, dem_path, dem_height, rpc, camera, camera_id, exterior, image_id, eo_crs, gcps, gcp_pixel,
+          refinement, dst_crs, resolution, undulation, geoid, gcp_heights, resampling, true_ortho, cog, compress,
+          jpeg_quality, stac, threads, scheduler, report_dir, overwrite):
+    """Orthorectify SRC over a DEM (or a constant height) into the GeoTIFF given by -o."""
 
-    engine = OrthoOptions(resampling=resampling, cog=cog, threads=threads, true_ortho=true_ortho, scheduler=scheduler)
+    engine = OrthoOptions(resampling=resampling, cog=cog, threads=threads, true_ortho=true_ortho, scheduler=scheduler,
+                          compress=compress, quality=jpeg_quality)
     opts = OrthoRunOptions(eo_crs=eo_crs, refinement=refinement, dst_crs=dst_crs, resolution=resolution,
                            undulation=undulation, geoid=geoid, gcp_heights=gcp_heights, image_id=image_id,
-                           camera_id=camera_id, gcp_pixel=gcp_pixel, stac=stac, engine=engine)
+                           camera_id=camera_id, gcp_pixel=gcp_pixel, stac=stac, engine=engine, dem_height=dem_height)
     rpc_arg = True if rpc == "__image__" else (rpc or False)
     ws = Workspace(overwrite=overwrite, report_dir=report_dir)
     with progress("orthorectifying", enabled=True) as cb:

@@ -1,4 +1,6 @@
-"""Readers of RPC models (``docs/ortho.md``): ``_RPC.TXT``, ``.RPB``, DIMAP v2 and DigitalGlobe XML, GeoTIFF tags.
+"""Readers of RPC models (``docs/ortho.md``): ``_RPC.TXT``, ``.RPB``, DIMAP v2 and DigitalGlobe XML, GeoTIFF tags;
+writers of ``_RPC.TXT`` and ``.RPB`` (:func:`rpc_txt_text`, :func:`rpb_text`); the tie-point and GCP CSVs of
+``rectify rpc-adjust`` (:func:`read_rpc_ties`, :func:`read_rpc_gcps`; ``docs/rpc_adjust.md``).
 
 :func:`read_rpc` reads any of them by suffix and content; :func:`rpc_from_raster` reads the RPC tags of a
 raster (or the sidecar file GDAL finds beside it) through :func:`rectify.raster.io.raster_rpc_tags`. The
@@ -8,16 +10,24 @@ model they build is :class:`rectify.geometry.rpc.RPC` (its pixel convention: ``c
 
 from __future__ import annotations
 
+import math
 import re
 import xml.etree.ElementTree as ET
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+from numpy.typing import NDArray
+
 from rectify.errors import InvalidInputError, RasterIOError
+from rectify.formats.common import load_table, need_columns
 from rectify.geometry.rpc import RPC, RPC_COEFFICIENTS
 from rectify.raster.io import raster_rpc_tags
 
-__all__ = ["read_rpc", "rpc_from_raster"]
+__all__ = ["RpcMeasurements", "read_rpc", "read_rpc_gcps", "read_rpc_ties", "rpb_text", "rpc_from_raster",
+           "rpc_txt_text"]
 
 
 def _num(text: str, what: str, source: str) -> float:
@@ -179,3 +189,151 @@ def read_rpc(path: str | Path) -> RPC:
     if re.search(r"LINE_NUM_COEFF_1\s*:", text, re.IGNORECASE):
         return _from_txt(text, str(p))
     raise InvalidInputError(f"{str(p)!r} is not an RPC file (_RPC.TXT, .RPB, DIMAP or DigitalGlobe XML)")
+
+
+# =========================================================================== writers
+def rpc_txt_text(rpc: RPC) -> str:
+    """The model as an ``_RPC.TXT`` text (``KEY: value``; the keys GDAL's ``GDALLoadRPCFile`` reads), in the
+    RPC00B pixel frame (``col = sample``, ``row = line``)."""
+    return rpc.to_rpc_txt()
+
+
+def rpb_text(rpc: RPC, *, sat_id: str = "rectify", band_id: str = "P") -> str:
+    """The model as a DigitalGlobe ``.RPB`` text (the ``BEGIN_GROUP = IMAGE`` block GDAL's ``GDALLoadRPBFile``
+    reads), every number written with 17 significant digits."""
+    def num(v: float) -> str:
+        return f"{float(v):+.16E}"
+
+    def coef(c: Any) -> str:
+        return "(\n" + ",\n".join(f"\t\t\t{num(v)}" for v in c) + ")"
+    fields = [("errBias", rpc.err_bias if rpc.err_bias is not None else -1.0),
+              ("errRand", rpc.err_rand if rpc.err_rand is not None else -1.0),
+              ("lineOffset", rpc.line_off), ("sampOffset", rpc.samp_off), ("latOffset", rpc.lat_off),
+              ("longOffset", rpc.long_off), ("heightOffset", rpc.height_off), ("lineScale", rpc.line_scale),
+              ("sampScale", rpc.samp_scale), ("latScale", rpc.lat_scale), ("longScale", rpc.long_scale),
+              ("heightScale", rpc.height_scale)]
+    lines = [f'satId = "{sat_id}";', f'bandId = "{band_id}";', 'SpecId = "RPC00B";', "BEGIN_GROUP = IMAGE"]
+    lines += [f"\t{k} = {num(v)};" for k, v in fields]
+    for key, k in (("lineNumCoef", "line_num_coeff"), ("lineDenCoef", "line_den_coeff"),
+                   ("sampNumCoef", "samp_num_coeff"), ("sampDenCoef", "samp_den_coeff")):
+        lines.append(f"\t{key} = {coef(getattr(rpc, k))};")
+    lines += ["END_GROUP = IMAGE", "END;"]
+    return "\n".join(lines) + "\n"
+
+
+# =========================================================================== rpc-adjust tables
+@dataclass(frozen=True, eq=False)
+class RpcMeasurements:
+    """Image measurements read from a CSV: image index (into the image list), point id, (col, row), sigma.
+
+    Attributes
+    ----------
+    image : (M,) int64
+    ids : tuple of str (M,)
+    pixels : (M, 2) float64
+        (col, row), px, pixel centres at integers.
+    sigma : (M,) float64
+        px; NaN where the file has none.
+    """
+
+    image: NDArray[np.int64]
+    ids: tuple[str, ...]
+    pixels: NDArray[np.float64]
+    sigma: NDArray[np.float64]
+
+
+def _image_index(name: str, images: Sequence[str | Path], path: str | Path, line: int) -> int:
+    """The image a CSV cell names: the path as given, its file name or its stem."""
+    hits = [j for j, im in enumerate(images) if name in (str(im), Path(im).name, Path(im).stem)]
+    if len(set(hits)) == 1:
+        return hits[0]
+    if not hits:
+        raise InvalidInputError(f"{str(path)!r} line {line}: image {name!r} is not one of the images "
+                                f"{[Path(i).name for i in images]}")
+    raise InvalidInputError(f"{str(path)!r} line {line}: image {name!r} names more than one image")
+
+
+def _number(row: dict[str, str], key: str, line: int, path: str | Path) -> float:
+    try:
+        v = float(row[key])
+    except ValueError:
+        raise InvalidInputError(f"{str(path)!r} line {line}: {key} is not a number: {row[key]!r}") from None
+    if not math.isfinite(v):
+        raise InvalidInputError(f"{str(path)!r} line {line}: {key} is not finite: {row[key]!r}")
+    return v
+
+
+def _measurements(rows: list[dict[str, str]], lines: list[int], images: Sequence[str | Path],
+                  path: str | Path) -> RpcMeasurements:
+    im, ids, px, sg = [], [], [], []
+    seen: set[tuple[int, str]] = set()
+    for row, no in zip(rows, lines, strict=True):
+        j = _image_index(row["image"], images, path, no)
+        pid = row["id"]
+        if not pid:
+            raise InvalidInputError(f"{str(path)!r} line {no}: empty id")
+        if (j, pid) in seen:
+            raise InvalidInputError(f"{str(path)!r} line {no}: point {pid!r} is measured twice in image "
+                                    f"{row['image']!r}")
+        seen.add((j, pid))
+        im.append(j)
+        ids.append(pid)
+        px.append((_number(row, "col", no, path), _number(row, "row", no, path)))
+        s = row.get("sigma", "")
+        sv = _number(row, "sigma", no, path) if s else float("nan")
+        if s and not sv > 0:
+            raise InvalidInputError(f"{str(path)!r} line {no}: sigma must be > 0 px; got {s!r}")
+        sg.append(sv)
+    return RpcMeasurements(np.array(im, np.int64), tuple(ids), np.array(px, np.float64).reshape(-1, 2),
+                           np.array(sg, np.float64))
+
+
+def read_rpc_ties(path: str | Path, images: Sequence[str | Path]) -> RpcMeasurements:
+    """A tie-point CSV ``image,id,col,row[,sigma]``: one row per measurement; rows of one id in several images
+    are one ground point. ``image`` is an image's path as given, its file name or its stem.
+
+    Raises
+    ------
+    RasterIOError
+        Missing or unreadable file.
+    InvalidInputError
+        Missing columns, an unknown image, a bad number, a point measured twice in one image.
+    """
+    rows, lines, _crs, fields = load_table(path, "tie-point rows")
+    need_columns(fields, ("image", "id", "col", "row"), path)
+    return _measurements(rows, lines, images, path)
+
+
+def read_rpc_gcps(path: str | Path, images: Sequence[str | Path], *, sigma_xy: float = 0.5, sigma_h: float = 1.0
+                  ) -> tuple[RpcMeasurements, dict[str, tuple[tuple[float, float, float], tuple[float, float]]]]:
+    """A GCP CSV ``id,image,col,row,lon,lat,h[,sigma_xy,sigma_h,sigma]``: one row per image measurement of a
+    GCP (lon, lat in WGS 84 degrees, h metres above the ellipsoid; sigma_xy / sigma_h its ground standard
+    deviations in metres, default ``sigma_xy`` / ``sigma_h``; sigma the measurement's px). The rows of one
+    id must give the same ground coordinates.
+
+    Returns
+    -------
+    (RpcMeasurements, {id: ((lon, lat, h), (sigma_xy, sigma_h))})
+
+    Raises
+    ------
+    InvalidInputError
+        Missing columns, a bad number or sigma, a latitude outside [-90, 90], one id with two ground positions.
+    """
+    rows, lines, _crs, fields = load_table(path, "GCP rows")
+    need_columns(fields, ("id", "image", "col", "row", "lon", "lat", "h"), path)
+    ground: dict[str, tuple[tuple[float, float, float], tuple[float, float]]] = {}
+    for row, no in zip(rows, lines, strict=True):
+        g = (_number(row, "lon", no, path), _number(row, "lat", no, path), _number(row, "h", no, path))
+        if not -90 <= g[1] <= 90:
+            raise InvalidInputError(f"{str(path)!r} line {no}: lat {g[1]!r} is outside [-90, 90] degrees")
+        sx = _number(row, "sigma_xy", no, path) if row.get("sigma_xy") else sigma_xy
+        sh = _number(row, "sigma_h", no, path) if row.get("sigma_h") else sigma_h
+        if not (sx > 0 and sh > 0):
+            raise InvalidInputError(f"{str(path)!r} line {no}: GCP sigmas must be > 0 m; got {sx!r}, {sh!r}")
+        pid = row["id"]
+        if pid in ground and not np.allclose(ground[pid][0], g, rtol=0, atol=1e-9):
+            raise InvalidInputError(f"{str(path)!r} line {no}: GCP {pid!r} has two ground positions "
+                                    f"{list(ground[pid][0])} and {list(g)}")
+        ground[pid] = (g, (sx, sh))
+    return _measurements(rows, lines, images, path), ground

@@ -82,7 +82,14 @@ def parse_crs(crs) -> pyproj.CRS:
 
 def crs_to_string(crs) -> str:
     """``"EPSG:nnnn"`` when the CRS matches a code exactly, WKT2 otherwise."""
-    c = parse_crs(crs)
+    if isinstance(crs, str):  # the EPSG lookup searches PROJ's database (~0.1 s for a custom CRS): once per text
+        return _crs_to_string_text(crs)
+    return _crs_to_string_text(parse_crs(crs).to_wkt())
+
+
+@functools.lru_cache(maxsize=128)
+def _crs_to_string_text(text: str) -> str:
+    c = parse_crs(text)
     epsg = c.to_epsg(min_confidence=100)
     return f"EPSG:{epsg}" if epsg else c.to_wkt()
 

@@ -50,15 +50,18 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
 from rectify.errors import EstimationError, InvalidInputError, ShapeError
 from rectify.geometry.accuracy import AccuracyStatement
 from rectify.geometry.geodesy import ecef_from_geodetic, enu_from_ecef
-from rectify.geometry.robust import ROBUST_METHODS, get_psi, robust_scale
+from rectify.geometry.robust import ROBUST_METHODS, get_psi
 from rectify.geometry.rpc import RPC, RPCRefinement, _monomials
 
 __all__ = ["BIAS_MODELS", "RPCBlockAdjustment", "RefitResult", "TieTracks", "footprint", "check_overlap",
-           "refit_rpc"]
+           "chain_matches", "refit_rpc"]
 
 logger = logging.getLogger(__name__)
 
@@ -197,6 +200,60 @@ def _check_connected(n: int, pairs: Sequence[tuple[int, int]], names: Sequence[s
         cut = [names[i] for i in range(n) if find(i) != find(0)]
         raise InvalidInputError(f"the images do not form one block by their {what}: {cut} are not connected "
                                 f"to {names[0]!r}")
+
+
+def chain_matches(pairs: Sequence[tuple[int, int, NDArray, NDArray]], *, radius_px: float = 0.5, prefix: str = "t"
+                  ) -> tuple[tuple[str, ...], NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
+    """Multi-image tracks from pairwise matches.
+
+    ``pairs``: (i, j, left (K, 2), right (K, 2)) with the matches of image ``i`` (left) and image ``j``
+    (right). Measurements of one image closer than ``radius_px`` are one point; a track is a connected
+    set of points and matches. A track that holds two points of one image farther apart than
+    ``2 radius_px`` is dropped (an ambiguous chain); the points of one image within it are averaged.
+
+    Returns
+    -------
+    ids (T,), image (M,), track (M,), pixels (M, 2): the measurements of the tracks of 2 or more images.
+    """
+    pos, img, edges = [], [], []
+    k = 0
+    for i, j, pl, pr in pairs:
+        pl = np.asarray(pl, np.float64).reshape(-1, 2)
+        pr = np.asarray(pr, np.float64).reshape(-1, 2)
+        m = len(pl)
+        pos += [pl, pr]
+        img += [np.full(m, i), np.full(m, j)]
+        edges.append(np.column_stack([k + np.arange(m), k + m + np.arange(m)]))
+        k += 2 * m
+    if k == 0:
+        return (), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2))
+    P = np.vstack(pos)
+    im_all = np.concatenate(img).astype(np.int64)
+    E = [np.vstack(edges)]
+    for j in np.unique(im_all):
+        idx = np.flatnonzero(im_all == j)
+        near = cKDTree(P[idx]).query_pairs(radius_px, output_type="ndarray")
+        if len(near):
+            E.append(idx[near])
+    e = np.vstack(E)
+    graph = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(k, k))
+    _n, comp = connected_components(graph, directed=False)
+    n_img = int(im_all.max()) + 1
+    key = comp.astype(np.int64) * n_img + im_all
+    uk, inv = np.unique(key, return_inverse=True)
+    cnt = np.bincount(inv)
+    mean = np.column_stack([np.bincount(inv, P[:, 0]) / cnt, np.bincount(inv, P[:, 1]) / cnt])
+    spread = np.zeros(len(uk))
+    np.maximum.at(spread, inv, np.hypot(*(P - mean[inv]).T))
+    tr_of = uk // n_img
+    bad_tracks = np.unique(tr_of[spread > 2 * radius_px])
+    ok = ~np.isin(tr_of, bad_tracks)
+    n_images = np.bincount(tr_of[ok], minlength=int(comp.max()) + 1)
+    ok &= n_images[tr_of] >= 2
+    tr_ok, im_ok, px_ok = tr_of[ok], (uk % n_img)[ok], mean[ok]
+    used, track = np.unique(tr_ok, return_inverse=True)
+    ids = tuple(f"{prefix}{t + 1}" for t in range(len(used)))
+    return ids, im_ok.astype(np.int64), track.astype(np.int64), px_ok
 
 
 # ============================================================================= the adjustment
@@ -361,7 +418,7 @@ class RPCBlockAdjustment:
     def from_observations(cls, rpcs: Sequence[RPC], sizes: Sequence[tuple[int, int]], tracks: TieTracks, *,
                           control: dict[str, tuple[Sequence[float], Sequence[float]]] | None = None,
                           check: Sequence[str] = (), model: str = "shift", prior_px: float = 10.0,
-                          robust: str = "huber", max_iter: int = 30, names: Sequence[str] | None = None
+                          robust: str = "huber", max_iter: int = 60, names: Sequence[str] | None = None
                           ) -> RPCBlockAdjustment:
         """Adjust the block.
 
@@ -422,6 +479,9 @@ class RPCBlockAdjustment:
         if len(ctrl_s) and not ((ctrl_s > 0) & np.isfinite(ctrl_s)).all():
             raise InvalidInputError("GCP sigmas must be finite numbers > 0")
         psi = None if robust == "none" else get_psi(robust)
+        n_t = np.bincount(adj_obs.track, minlength=T)
+        q = np.clip((2 * n_t - 3 + 3 * np.isin(np.arange(T), ctrl_idx)) / (2 * n_t), 0.1, 1.0)[adj_obs.track]
+        scale = 1.0
         w = np.ones(len(adj_obs))
         theta = np.zeros((n, 2 * k))
         g = _start(block, adj_obs, T)
@@ -433,10 +493,15 @@ class RPCBlockAdjustment:
         for it in range(1, max_iter + 1):  # noqa: B007 (the count is reported)
             pc, D = block.corrected(theta, g[adj_obs.track], adj_obs.image)
             r = adj_obs.pixels - pc
+            w_prev = w
             if psi is not None and it > 2:
-                u = r / adj_obs.sigma[:, None]
-                s = robust_scale(u[w > 0].ravel()) or 1.0
-                w = np.minimum(*psi.weight(u / s).T)
+                # squared residual norm over the measurement's share of its track's redundancy: about
+                # sigma0^2 chi2(2); its scale from the median (chi2(2)'s median is 2 ln 2), frozen after 6 rounds
+                z = np.sum((r / adj_obs.sigma[:, None]) ** 2, axis=1) / q
+                if it <= 6:
+                    # floored at 1 % of the given sigmas: an exact fit is not a reason to reject measurements
+                    scale = max(math.sqrt(float(np.median(z[w > 0])) / (2 * math.log(2))), 0.01)
+                w = psi.weight(np.sqrt(z / 2) / scale)
             J = block.jacobian(theta, g[adj_obs.track], adj_obs.image, pc)
             wt = (w / adj_obs.sigma ** 2)[:, None]
             # per-track blocks
@@ -464,6 +529,7 @@ class RPCBlockAdjustment:
             Wm = np.einsum("mia,mib->mab", D, wt[:, :, None] * J)  # (M, 2k, 3)
             Wt = np.zeros((T, P, 3))
             np.add.at(Wt, (adj_obs.track[:, None], cols), Wm)
+            V += 1e-9 * np.eye(3)  # a track whose measurements all lost their weight (redescending psi) stays put
             try:
                 Vi = np.linalg.inv(V)
             except np.linalg.LinAlgError:
@@ -482,8 +548,12 @@ class RPCBlockAdjustment:
             dX = np.einsum("tab,tb->ta", Vi, gv - np.einsum("tpa,p->ta", Wt, dth))
             theta = theta + dth.reshape(n, 2 * k)
             g = _apply_metres(g, dX)
-            small = np.abs(dth).max() < 1e-7 and np.abs(dX).max() < 1e-5
-            if small and (psi is None or it > 3):
+            logger.debug("iteration %d: bias step %.3g px, ground step %.3g m, weight change %.3g", it,
+                         np.abs(dth).max(), np.abs(dX).max(), np.abs(w - w_prev).max())
+            # the biases to 1e-5 px; ground points (which move little against a pixel of ~0.5 m) to 1 cm, weights
+            # to 0.01 (the tail of a few down-weighted tracks converges linearly and changes no bias)
+            small = np.abs(dth).max() < 1e-5 and np.abs(dX).max() < 1e-2
+            if small and (psi is None or (it > 6 and np.abs(w - w_prev).max() < 1e-2)):
                 break
         else:
             logger.warning("RPC block adjustment stopped after %d iterations without converging", max_iter)

@@ -1,6 +1,7 @@
 """How much of an orthophoto's output grid would hold data: checked before a tile is computed.
 
-An orthophoto cell gets a value when the DEM has a height there and the ground point at that
+An orthophoto cell gets a value when the DEM has a height there (a constant height,
+:meth:`rectify.raster.dem.Dem.constant_height`, has one everywhere) and the ground point at that
 height projects into the image. :func:`ortho_coverage` estimates that share on a lattice of at most
 64 x 64 cell centres of the output grid, with the heights of a decimated read of the DEM (its
 longer side at most 512 cells), and gives the DEM's extent and the image footprint in the output
@@ -22,7 +23,6 @@ from rectify.geometry.crs import same_crs, transform_xy, unit_label
 from rectify.geometry.sensors import SensorModel
 from rectify.raster.dem import Dem
 from rectify.raster.georef import Grid, boundary_pixels, crs_label, pixel_from_world
-from rectify.raster.io import read_overview
 
 __all__ = ["Coverage", "ortho_coverage", "check_coverage", "LATTICE", "DEM_OVERVIEW"]
 
@@ -128,8 +128,11 @@ def ortho_coverage(model: SensorModel, dem: Dem, grid: Grid, *, lattice: int = L
     t = grid.transform
     px = np.column_stack([cc.ravel(), rr.ravel()]) + 0.5  # cell centres on rasterio's corner grid
     world = np.column_stack([t.c + t.a * px[:, 0] + t.b * px[:, 1], t.f + t.d * px[:, 0] + t.e * px[:, 1]])
-    # heights from a decimated read of the DEM
-    data, valid, scale = read_overview(dem.path, DEM_OVERVIEW, bands=[dem.band])
+    # heights from a decimated read of the DEM (read once per DEM file: Dem.overview); a constant height: 1 x 1
+    if dem.constant is not None:
+        data, valid, scale = np.full((1, 1, 1), dem.constant), np.ones((1, 1), bool), 1.0
+    else:
+        data, valid, scale = dem.overview(DEM_OVERVIEW)
     z_file = np.asarray(data, dtype=np.float64)[..., 0]
     ok_dem = valid & np.isfinite(z_file)
     if dem.nodata is not None:
@@ -142,6 +145,8 @@ def ortho_coverage(model: SensorModel, dem: Dem, grid: Grid, *, lattice: int = L
     oc = np.rint((dpx[:, 0] + 0.5) / scale - 0.5)
     orr = np.rint((dpx[:, 1] + 0.5) / scale - 0.5)
     h, w = z_file.shape
+    if dem.constant is not None:  # everywhere
+        oc, orr = np.where(fin, 0.0, np.nan), np.where(fin, 0.0, np.nan)
     inside_dem = fin & (oc >= 0) & (orr >= 0) & (oc < w) & (orr < h)
     z = np.full(len(world), np.nan)
     ii, jj = orr[inside_dem].astype(np.intp), oc[inside_dem].astype(np.intp)
@@ -163,8 +168,8 @@ def ortho_coverage(model: SensorModel, dem: Dem, grid: Grid, *, lattice: int = L
     if fin_g.any():
         in_fp[fin_g] = _in_image(model, model.project(np.column_stack([g[fin_g], np.full(int(fin_g.sum()),
                                                                                          h_mean)])))
-    # the DEM's extent and the footprint, output CRS
-    dem_edge = _dem_edge(dem)
+    # the DEM's extent (a constant height: none, it is everywhere) and the footprint, output CRS
+    dem_edge = _dem_edge(dem) if dem.constant is None else np.full((1, 2), np.nan)
     lo_h, hi_h = (float(zs.min()) + lo_off, float(zs.max()) + hi_off) if zs.size else (h_mean, h_mean)
     edge = boundary_pixels(model.width, model.height, 17)
     fp = [model.ground_at_height(edge, hh)[:, :2] for hh in (lo_h, hi_h)]

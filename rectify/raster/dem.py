@@ -17,10 +17,22 @@ the undulation once, from one source, stated in :attr:`Dem.datum`:
   nothing are used as they are.
 
 :func:`ground_on_dem` finds where image pixels' lines of sight meet the DEM (any sensor model).
+
+A constant height instead of a DEM file (``rectify ortho --dem-height H``): :meth:`Dem.constant_height`
+makes a :class:`Dem` that is ``H`` everywhere, in the model's heights (ellipsoidal for an RPC, the
+exterior orientation's for a frame camera; no datum conversion), with no file behind it
+(:attr:`Dem.constant` is set; ``path`` is a label).
+
+Speed: the decimated read of a DEM (:meth:`Dem.overview`, used for its height range and the coverage
+estimate) is made once per file version and kept (a small cache keyed by path, modification time,
+size and band); :meth:`Dem.heights_on_lattice` samples a north-up DEM on the rows and columns of a
+north-up output grid separably (one interpolation along x per DEM row, then one along y), with the
+same arithmetic, in the same order, as :func:`bilinear`, so the heights are bit-identical.
 """
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import os
@@ -31,6 +43,7 @@ from typing import Any
 
 import numpy as np
 import rasterio
+from affine import Affine
 from numpy.typing import ArrayLike, NDArray
 from rasterio.errors import RasterioError
 from rasterio.windows import Window
@@ -117,6 +130,9 @@ class Dem:
         The heights the DEM's CRS declares (None: a 2D CRS).
     datum : str
         One line saying which heights the file holds and how they were converted.
+    constant : float or None
+        A constant height (m, the model's heights) instead of a file (:meth:`constant_height`); then
+        ``path`` is a label, not a file.
     """
 
     path: str
@@ -130,6 +146,28 @@ class Dem:
     band: int = 1
     declared: VerticalDatum | None = None
     datum: str = "DEM heights used as they are"
+    constant: float | None = None
+
+    @classmethod
+    def constant_height(cls, height: float, crs: str) -> Dem:
+        """A DEM that is ``height`` (m) everywhere, in the model's heights; ``crs`` its horizontal CRS.
+
+        Raises
+        ------
+        InvalidInputError
+            A height that is not a finite number.
+        """
+        if isinstance(height, bool) or not isinstance(height, (int, float, np.floating, np.integer)) \
+                or not math.isfinite(float(height)):
+            raise InvalidInputError(f"--dem-height must be a finite number of metres; got {height!r}")
+        h = float(height)
+        return cls(f"constant height {h:g} m", horizontal_crs(crs), Affine.identity(), 1, 1, None,
+                   datum=f"constant height {h:g} m (--dem-height), in the model's heights", constant=h)
+
+    @property
+    def is_constant(self) -> bool:
+        """True for a constant height (no file)."""
+        return self.constant is not None
 
     @classmethod
     def from_path(cls, path: str | Path, *, undulation: float | None = None, geoid: str | None = None,
@@ -243,11 +281,13 @@ class Dem:
     def heights_at_dem_pixels(self, x: NDArray, y: NDArray) -> NDArray[np.float64]:
         """File heights (before any datum conversion) at DEM pixel positions (any shape), NaN outside/nodata.
 
-        Reads only the window covering the points.
+        Reads only the window covering the points. A constant height: that height at every finite point.
         """
 
         x = np.asarray(x, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64)
+        if self.constant is not None:
+            return np.where(np.isfinite(x) & np.isfinite(y), self.constant, np.nan)
         out = np.full(x.shape, np.nan)
         fin = np.isfinite(x) & np.isfinite(y)
         if not fin.any():
@@ -269,10 +309,69 @@ class Dem:
         out[fin] = bilinear(data, None if valid.all() else valid, x[fin] - c0, y[fin] - r0)
         return out
 
+    def heights_on_lattice(self, x: NDArray, y: NDArray) -> NDArray[np.float64] | None:
+        """File heights on the lattice of DEM pixel columns ``x`` (w,) and rows ``y`` (h,): (h, w).
+
+        The separable form of :meth:`heights_at_dem_pixels` for a north-up output grid over a north-up
+        DEM (module docstring): bit-identical values. None when the DEM window holds invalid cells
+        (the caller then samples point by point) or nothing is inside.
+        """
+        x = np.asarray(x, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        if self.constant is not None:
+            return np.where(np.isfinite(y)[:, None] & np.isfinite(x)[None, :], self.constant, np.nan)
+        if not (np.isfinite(x).all() and np.isfinite(y).all()) or not len(x) or not len(y):
+            return None
+        c0 = max(int(math.floor(x.min())), 0)
+        r0 = max(int(math.floor(y.min())), 0)
+        c1 = min(int(math.floor(x.max())) + 2, self.width)
+        r1 = min(int(math.floor(y.max())) + 2, self.height)
+        if c1 <= c0 or r1 <= r0:
+            return None
+        try:
+            ds = self._ds()
+            win = Window(c0, r0, c1 - c0, r1 - r0)
+            data = ds.read(self.band, window=win, masked=False).astype(np.float64)
+            valid = ds.read_masks(self.band, window=win) > 0
+        except RasterioError as err:
+            raise RasterIOError(f"cannot read DEM {self.path!r}: {err}") from err
+        if not (valid.all() and np.isfinite(data).all()):
+            return None
+        h, w = data.shape
+        xs, ys = x - c0, y - r0
+        x0, y0 = np.floor(xs), np.floor(ys)
+        fx, fy = xs - x0, ys - y0
+        okx = (x0 >= 0) & (x0 <= w - 1)
+        oky = (y0 >= 0) & (y0 <= h - 1)
+        xi = np.where(okx, x0, 0).astype(np.intp)
+        yi = np.where(oky, y0, 0).astype(np.intp)
+        xi1 = np.minimum(xi + 1, w - 1)
+        yi1 = np.minimum(yi + 1, h - 1)
+        # the rows bilinear() combines, interpolated along x once per DEM row: (v0 (1 - fx) + v1 fx)
+        ax = data[:, xi] * (1 - fx) + data[:, xi1] * fx
+        out = ax[yi] * (1 - fy)[:, None] + ax[yi1] * fy[:, None]
+        out[~(oky[:, None] & okx[None, :])] = np.nan
+        return out
+
+    def overview(self, max_size: int = 512) -> tuple[NDArray, NDArray[np.bool_], float]:
+        """:func:`rectify.raster.io.read_overview` of the DEM's band, read once per file version (cached).
+
+        The arrays are shared: read-only.
+        """
+        if self.constant is not None:
+            raise InvalidInputError("a constant height has no overview")
+        try:
+            st = os.stat(self.path)
+        except OSError as err:
+            raise RasterIOError(f"cannot read DEM {self.path!r}: {err}") from err
+        return _overview(os.path.abspath(self.path), st.st_mtime_ns, st.st_size, self.band, int(max_size))
+
     def sample(self, xy: ArrayLike, crs: str | None = None) -> NDArray[np.float64]:
         """Converted heights (file height + :meth:`offset`) at (N, 2) points in ``crs`` (default the DEM's)."""
 
         p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        if self.constant is not None:
+            return np.where(np.isfinite(p).all(axis=1), self.constant, np.nan)
         if crs is not None and not same_crs(crs, self.crs):
             q = transform_xy(crs, self.crs, p)
         else:
@@ -291,7 +390,9 @@ class Dem:
     def range(self) -> tuple[float, float]:
         """(min, max) converted heights, from a decimated read (overviews when present)."""
 
-        data, valid, _ = read_overview(self.path, 512, bands=[self.band])
+        if self.constant is not None:
+            return self.constant, self.constant
+        data, valid, _ = self.overview(512)
         d = np.asarray(data, dtype=np.float64)[..., 0]
         ok = valid & np.isfinite(d)
         if self.nodata is not None:
@@ -356,6 +457,16 @@ def ground_on_dem(model: Any, dem: Dem, pixels: ArrayLike, *, h_range: tuple[flo
     _, g = gap(h)
     out[found] = g[found]
     return out
+
+
+@functools.lru_cache(maxsize=8)
+def _overview(path: str, mtime_ns: int, size: int, band: int, max_size: int
+              ) -> tuple[NDArray, NDArray[np.bool_], float]:
+    """The decimated read of one version of a DEM file (``mtime_ns`` and ``size`` name the version)."""
+    data, valid, scale = read_overview(path, max_size, bands=[band])
+    data.setflags(write=False)
+    valid.setflags(write=False)
+    return data, valid, scale
 
 
 _LOCAL = threading.local()

@@ -10,6 +10,7 @@ and alpha are respected through rasterio's dataset mask).
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import math
 import os
@@ -99,6 +100,13 @@ def open_raster(path: str | Path) -> Iterator[rasterio.io.DatasetReader]:
 def _crs_string(crs) -> str | None:
     if crs is None:
         return None
+    return _crs_string_of_wkt(crs.to_wkt())
+
+
+@functools.lru_cache(maxsize=128)
+def _crs_string_of_wkt(wkt: str) -> str:
+    """EPSG code or WKT of a rasterio CRS given as WKT (the EPSG lookup searches PROJ's database: once per CRS)."""
+    crs = rasterio.crs.CRS.from_wkt(wkt)
     epsg = crs.to_epsg()
     return f"EPSG:{epsg}" if epsg else crs.to_wkt()
 

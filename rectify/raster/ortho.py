@@ -54,9 +54,18 @@ from rectify.geometry.sensors import SensorModel
 from rectify.raster.coverage import check_coverage
 from rectify.raster.dem import Dem, bilinear
 from rectify.raster.distributed import Scheduler, resolve_scheduler
-from rectify.raster.engine import TileEngine, tile_windows, worker_count, write_tiled
+from rectify.raster.engine import (
+    COMPRESSIONS,
+    JPEG_QUALITY,
+    TileEngine,
+    check_output_format,
+    tile_windows,
+    worker_count,
+    write_tiled,
+)
 from rectify.raster.georef import Grid, boundary_pixels, crs_label, pixel_from_world_matrix
 from rectify.raster.io import MaskPolicy, raster_info
+from rectify.raster.relief import ReliefShift, relief_shift, relief_stride
 
 __all__ = ["OrthoOptions", "OrthoResult", "ReliefShift", "orthorectify", "ortho_grid", "relief_shift",
            "relief_stride", "MIN_VALID_SHARE", "VISIBILITY_OUTSIDE",
@@ -79,8 +88,12 @@ class OrthoOptions:
     resampling : ``nearest``, ``bilinear`` or ``cubic``
     tile_px : output tile and block size (multiple of 16)
     threads : worker threads (None: all cores)
-    compress : GeoTIFF compression
-    cog : write a Cloud Optimized GeoTIFF
+    compress : GeoTIFF compression, one of :data:`rectify.raster.engine.COMPRESSIONS`: lossless ``zstd``
+        (default), ``deflate``, ``lzw``, ``none``; or ``jpeg`` (8-bit images only; JPEG-in-TIFF, YCbCr for
+        RGB, invalid pixels in an internal mask band instead of a nodata value; not with ``true_ortho``,
+        whose visibility band must stay exact)
+    quality : JPEG quality 1..100 (``compress="jpeg"``)
+    cog : write a Cloud Optimized GeoTIFF (internal overviews)
     true_ortho : z-buffer (line-of-sight) visibility and the visibility band
     map_step_px : spacing of the exactly transformed points for CRS changes
     max_window_px : largest source window read for one tile (bigger tiles are split)
@@ -96,6 +109,7 @@ class OrthoOptions:
     threads: int | None = None
     compress: str = "zstd"
     cog: bool = False
+    quality: int = JPEG_QUALITY
     true_ortho: bool = False
     map_step_px: int = 16
     max_window_px: int = 8192
@@ -105,6 +119,14 @@ class OrthoOptions:
     def __post_init__(self) -> None:
         if self.scheduler is not None:
             resolve_scheduler(self.scheduler)  # a bad value fails here, before any work
+        if str(self.compress).lower() not in COMPRESSIONS:
+            raise InvalidInputError(f"unknown compression {self.compress!r}; expected one of {', '.join(COMPRESSIONS)}")
+        q = self.quality
+        if isinstance(q, bool) or not isinstance(q, (int, np.integer)) or not 1 <= int(q) <= 100:
+            raise InvalidInputError(f"JPEG quality must be an integer in 1..100; got {q!r}")
+        if str(self.compress).lower() == "jpeg" and self.true_ortho:
+            raise InvalidInputError("--compress jpeg cannot keep the visibility band of --true-ortho exact; use a "
+                                    "lossless compression (zstd, deflate, lzw)")
         if self.resampling not in ("nearest", "bilinear", "cubic"):
             raise InvalidInputError(f"unknown resampling {self.resampling!r}; expected nearest, bilinear or cubic")
         if self.tile_px < 16 or self.tile_px % 16 or self.tile_px > 4096:
@@ -317,7 +339,8 @@ class _Engine(TileEngine):
 
         eng = copy.copy(self)
         eng.src = os.path.abspath(self.src)
-        eng.dem = dataclasses.replace(self.dem, path=os.path.abspath(self.dem.path))
+        if self.dem.constant is None:
+            eng.dem = dataclasses.replace(self.dem, path=os.path.abspath(self.dem.path))
         eng.hmin, eng.hmax, eng.n_occluded = math.inf, -math.inf, 0
         eng.samples = []
         return eng
@@ -363,8 +386,21 @@ class _Engine(TileEngine):
         return _densify(vals, kc, kr, w, h)
 
     def _heights(self, c0: int, r0: int, w: int, h: int) -> NDArray[np.float64]:
+        if self.dem.constant is not None:
+            return np.full((h, w), self.dem.constant)
         M = pixel_from_world_matrix(self.dem.transform)
-        if self.same_dem:
+        z = None
+        if self.same_dem and M[0, 1] == 0 and M[1, 0] == 0:
+            # north-up over north-up: the DEM columns depend on the output column only, the rows on the row
+            # (separable sampling, bit-identical to the point-by-point one; None when the window has holes)
+            t = _gt(self.grid.transform)
+            if t[1] == 0 and t[3] == 0:
+                xs = t[2] + t[0] * (np.arange(c0, c0 + w) + 0.5)
+                ys = t[5] + t[4] * (np.arange(r0, r0 + h) + 0.5)
+                z = self.dem.heights_on_lattice(M[0, 0] * xs + M[0, 2], M[1, 1] * ys + M[1, 2])
+        if z is not None:
+            pass
+        elif self.same_dem:
             X, Y = self._world(c0, r0, w, h)
             dx = M[0, 0] * X + M[0, 1] * Y + M[0, 2]
             dy = M[1, 0] * X + M[1, 1] * Y + M[1, 2]
@@ -374,7 +410,8 @@ class _Engine(TileEngine):
                 return q @ M[:2, :2].T + M[:2, 2]
             d = self._sparse(c0, r0, w, h, to_dem_px, 2)
             dx, dy = d[..., 0], d[..., 1]
-        z = self.dem.heights_at_dem_pixels(dx, dy)
+        if z is None:
+            z = self.dem.heights_at_dem_pixels(dx, dy)
         if self.dem.geoid is None:
             return z + self.dem.undulation
         # the geoid undulation varies slowly: exact on the sparse grid, interpolated
@@ -516,8 +553,7 @@ class _Engine(TileEngine):
             if data is not None:
                 img, valid = data
                 sel = use & valid
-                band = out[..., :self.count]
-                band[sel] = img[sel]
+                np.copyto(out[..., :self.count], img, where=sel[..., None])
                 self._stats(c0, r0, z, sel)
         return out, False
 
@@ -627,18 +663,19 @@ class _Engine(TileEngine):
             if r.ndim == 2:
                 r = r[..., None]
             chans.append(r)
-        img = np.concatenate(chans, axis=2)
+        img = chans[0] if len(chans) == 1 else np.concatenate(chans, axis=2)
         valid = np.ones((h, w), bool)
         if vmask is not None:
             v = cv2.remap(vmask.astype(np.uint8), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
                           borderValue=0)
             valid = v > 0
         if self.dtype.kind in "ui":
-            ii = np.iinfo(self.dtype)
-            img = np.clip(np.rint(img), ii.min, ii.max)
+            if img.dtype != self.dtype:  # OpenCV keeps an 8/16-bit source's type, rounded and saturated
+                ii = np.iinfo(self.dtype)
+                img = np.clip(np.rint(img), ii.min, ii.max).astype(self.dtype)
             if self.nodata == 0:
-                img = np.where(img == 0, 1, img)
-        return img.astype(self.dtype), valid
+                img[img == 0] = 1
+        return img.astype(self.dtype, copy=False), valid
 
 
 def _margin_px(model: SensorModel, dem: Dem, grid: Grid, h_range: tuple[float, float]) -> int:
@@ -694,7 +731,7 @@ def orthorectify(src: str | Path, dst: str | Path, model: SensorModel, dem: Dem,
     sched = resolve_scheduler(opts.scheduler)
     t0 = time.perf_counter()
     src = str(src)
-    for p in (src, dem.path):
+    for p in (src,) if dem.constant is not None else (src, dem.path):
         if Path(dst).resolve() == Path(p).resolve():
             raise InvalidInputError(f"output {str(dst)!r} is an input; inputs are never modified")
     check_output(dst, overwrite=overwrite)
@@ -713,6 +750,7 @@ def orthorectify(src: str | Path, dst: str | Path, model: SensorModel, dem: Dem,
         nodata = float(info.nodata)
     else:
         nodata = float("nan") if dtype.kind == "f" else 0.0
+    check_output_format(opts.compress, dtype, info.count + (1 if opts.true_ortho else 0), opts.quality)
     # an orthophoto that would be empty or mostly nodata is refused before any tile (with the numbers)
     coverage = check_coverage(model, dem, grid, opts.min_valid_share) if opts.min_valid_share > 0 else None
     hr = dem.range()
@@ -722,8 +760,10 @@ def orthorectify(src: str | Path, dst: str | Path, model: SensorModel, dem: Dem,
     windows = tile_windows(grid.width, grid.height, opts.tile_px)
     count = info.count + (1 if opts.true_ortho else 0)
     nad = _nadir_in(model, str(grid.crs))
-    tags = {"ORTHO_MODEL": type(model).__name__, "ORTHO_DEM": Path(dem.path).name,
+    dem_name = dem.path if dem.constant is not None else Path(dem.path).name
+    tags = {"ORTHO_MODEL": type(model).__name__, "ORTHO_DEM": dem_name,
             "ORTHO_NADIR_X": repr(float(nad[0])), "ORTHO_NADIR_Y": repr(float(nad[1]))}
+    tags.update(_centre_tags(model, str(grid.crs)))  # issue 27: the mosaic's least-transformed seamlines
     if opts.true_ortho:
         tags["ORTHO_VISIBILITY_BAND"] = str(count)
     try:
@@ -731,7 +771,7 @@ def orthorectify(src: str | Path, dst: str | Path, model: SensorModel, dem: Dem,
                               policy=MaskPolicy("nodata", nodata), tile=opts.tile_px, compress=opts.compress,
                               cog=opts.cog, threads=opts.n_threads, scheduler=sched, overwrite=overwrite,
                               progress=progress, name="ortho", cache_bytes=64 * 1024 * 1024,
-                              cog_resampling="nearest", tags=tags,
+                              cog_resampling="nearest", tags=tags, quality=opts.quality,
                               band_descriptions={count: "visibility: 0 outside, 1 occluded, 2 visible"}
                               if opts.true_ortho else None)
     except OSError as err:
@@ -758,122 +798,14 @@ def _nadir_in(model: SensorModel, crs: str) -> NDArray[np.float64]:
         return np.array([np.nan, np.nan])
 
 
-def relief_stride(grid: Grid, max_size: int = 256) -> int:
-    """Output pixels between the cells of the relief lattice (at most ``max_size`` cells a side); odd, so each
-    lattice cell is centred on an output pixel."""
-    s = max(1, math.ceil(max(grid.width, grid.height) / max_size))
-    return s if s % 2 else s + 1
-
-
-@dataclass(frozen=True, eq=False)
-class ReliefShift:
-    """The relief displacement the DEM removed, over the written (valid) cells of the relief lattice.
-
-    For each sampled valid output cell, ground point X at its DEM height h: the horizontal distance
-    between X and the point where a planar rectification at the mean height ``h_ref`` of the sampled
-    cells would have put the same image pixel, ``|G(project(X, h), h_ref) - X|`` (exact, no
-    linearisation), in metres. The lattice takes one output pixel every ``stride`` pixels in both
-    directions (at most 256 a side), so the console, the report and the map hold the same numbers.
-
-    Attributes
-    ----------
-    h_ref : float
-        Mean height of the sampled cells (the plane), m.
-    n_cells : int
-        Sampled valid cells.
-    n_unreached : int
-        Cells whose line of sight does not reach the plane (left out of the figures).
-    median, p95, max, mean : float
-        Of the displacement, m (NaN without cells).
-    map : (rows, cols) float32
-        The displacement per lattice cell (NaN where the output has no data).
-    transform : Affine
-        Of ``map`` (cells of ``stride`` output pixels, in the output CRS).
-    """
-
-    h_ref: float
-    n_cells: int
-    n_unreached: int
-    median: float
-    p95: float
-    max: float
-    mean: float
-    map: NDArray[np.float32]
-    transform: Any
-    stride: int
-
-    def summary_line(self) -> str:
-        if not self.n_cells:
-            return "relief displacement removed: no valid output cell"
-        left = (f"; {self.n_unreached} cells whose line of sight misses that plane left out"
-                if self.n_unreached else "")
-        return (f"relief displacement removed (DEM vs a plane at the mean height {self.h_ref:.2f} m, "
-                f"{self.n_cells} valid cells sampled every {self.stride} px): median {self.median:.2f} m, "
-                f"95th percentile {self.p95:.2f} m, max {self.max:.2f} m{left}")
-
-    def to_dict(self) -> dict[str, Any]:
-        """The figures (no map), for the report JSON."""
-        def num(v: float) -> float | None:
-            return float(v) if math.isfinite(v) else None
-        return {"definition": "horizontal distance between each valid output cell and where a planar "
-                              "rectification at the mean height would have put it, m",
-                "plane_height_m": num(self.h_ref), "cells": self.n_cells, "cells_missing_the_plane": self.n_unreached,
-                "stride_px": self.stride, "median_m": num(self.median), "p95_m": num(self.p95),
-                "max_m": num(self.max), "mean_m": num(self.mean)}
-
-
-def _xy_or_nan(src: str, dst: str, xy: NDArray[np.float64]) -> NDArray[np.float64]:
-    """:func:`transform_xy`, with NaN rows for the points PROJ cannot transform (a plane point far out)."""
+def _centre_tags(model: SensorModel, crs: str) -> dict[str, str]:
+    """``ORTHO_CENTER_X/Y/Z``: a frame model's projection centre in the output CRS (metres up); none for an RPC."""
+    pos = getattr(model, "position", None)
+    if pos is None:
+        return {}
     try:
-        return transform_xy(src, dst, xy)
-    except CRSError:
-        out = np.full(xy.shape, np.nan)
-        for i, q in enumerate(xy):
-            if np.isfinite(q).all():
-                try:
-                    out[i] = transform_xy(src, dst, q[None])[0]
-                except CRSError:
-                    pass
-        return out
-
-
-def relief_shift(model: SensorModel, grid: Grid, samples: NDArray[np.float64], stride: int) -> ReliefShift:
-    """:class:`ReliefShift` of the lattice ``samples`` (M, 3) (row, col, h) of an output ``grid``."""
-    t = _gt(grid.transform)
-    ny, nx = -(-grid.height // stride), -(-grid.width // stride)
-    shift_map = np.full((ny, nx), np.nan, np.float32)
-    tr = Affine(t[0] * stride, 0.0, t[2], 0.0, t[4] * stride, t[5])
-    a = np.asarray(samples, dtype=np.float64).reshape(-1, 3)
-    a = a[np.isfinite(a).all(axis=1)]
-    gcrs = str(grid.crs)
-    if not len(a):
-        nan = float("nan")
-        return ReliefShift(nan, 0, 0, nan, nan, nan, nan, shift_map, tr, stride)
-    rows, cols, z = a[:, 0], a[:, 1], a[:, 2]
-    h_ref = float(z.mean())
-    world = np.column_stack([t[2] + t[0] * (cols + 0.5), t[5] + t[4] * (rows + 0.5)])
-    same = same_crs(gcrs, model.crs)
-    ground = world if same else _xy_or_nan(gcrs, model.crs, world)
-    pix = model.project(np.column_stack([ground, z]))
-    dist = np.full(len(a), np.nan)
-    ok = np.isfinite(pix).all(axis=1)
-    if ok.any():
-        g = model.ground_at_height(pix[ok], h_ref)
-        ok2 = np.isfinite(g).all(axis=1)
-        idx = np.flatnonzero(ok)[ok2]
-        if len(idx):
-            plane = g[ok2, :2] if same else _xy_or_nan(model.crs, gcrs, g[ok2, :2])
-            here = world[idx]
-            if unit_label(gcrs) != "m":  # measure in metres: the UTM zone of the cells
-                c = transform_xy(gcrs, "EPSG:4326", here[:1])[0]
-                utm = _utm_for(float(c[0]), float(c[1]))
-                plane, here = _xy_or_nan(gcrs, utm, plane), _xy_or_nan(gcrs, utm, here)
-            dist[idx] = np.hypot(*(plane - here).T)
-    fin = np.isfinite(dist)
-    shift_map[(rows[fin] // stride).astype(np.intp), (cols[fin] // stride).astype(np.intp)] = dist[fin]
-    d = dist[fin]
-    if not len(d):
-        nan = float("nan")
-        return ReliefShift(h_ref, len(a), len(a), nan, nan, nan, nan, shift_map, tr, stride)
-    return ReliefShift(h_ref, len(a), int((~fin).sum()), float(np.median(d)), float(np.percentile(d, 95)),
-                       float(d.max()), float(d.mean()), shift_map, tr, stride)
+        c = transform_xy(model.crs, crs, np.asarray(pos, dtype=np.float64)[:2].reshape(1, 2))[0]
+    except Exception:  # noqa: BLE001 - the centre is metadata only
+        return {}
+    return {"ORTHO_CENTER_X": repr(float(c[0])), "ORTHO_CENTER_Y": repr(float(c[1])),
+            "ORTHO_CENTER_Z": repr(float(pos[2]))}

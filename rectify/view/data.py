@@ -64,7 +64,7 @@ def bucket_of(ident: str, n_buckets: int) -> int:
     """The track bucket of a point id: ``crc32(utf-8 id) % n_buckets`` (the page computes the same).
 
     >>> bucket_of("t1", 1), bucket_of("t1", 7)
-    (0, 5)
+    (0, 2)
     """
     return zlib.crc32(ident.encode("utf-8")) % max(1, int(n_buckets))
 
@@ -491,13 +491,13 @@ class ViewData:
                 c = r.read("residual rows", texts=fields, max_rows=MAX_TABLE_ROWS)
             cols = [c.texts[f] for f in fields]
             rows = [[cells[0], *(_cell(v) for v in cells[1:])] for cells in zip(*cols, strict=True)]
-            fields = list(fields)
-            pos = self.match_positions() if "observed_1" not in fields else None
+            names = list(fields)
+            pos = self.match_positions() if "observed_1" not in names else None
             if pos:  # a one-component table (a pair's y-parallax): placed at the tie points of the left image
-                fields += ["col_left", "row_left"]
+                names += ["col_left", "row_left"]
                 rows = [[*r, *pos.get(str(r[0]), (None, None))] for r in rows]
             return {**{k: tabs[t][k] for k in ("t", "step", "units", "components", "csv")},
-                    "columns": fields, "rows": rows}
+                    "columns": names, "rows": rows}
 
         return self._once(f"table{t}", make)
 

@@ -59,6 +59,7 @@ from stereo.actions.workspace import PairWorkspace
 from stereo.block.bundle.adjust import BundleOptions, adjust_bundle
 from stereo.block.bundle.result import BundleResult
 from stereo.block.bundle.systematic import summary_dict as systematic_summary
+from stereo.block.frames import FRAME_KINDS
 from stereo.block.independent import independent_models, to_ground, triangulate_tracks
 from stereo.block.models import IndependentOptions
 from stereo.block.types import BlockControl, GnssObservations, Pose, Tracks
@@ -72,7 +73,7 @@ from stereo.formats.poses import pose_csv_text
 from stereo.formats.trajectory import PoseExtras, block_gnss, image_times_names, read_poses_with_extras
 from stereo.report.block import write_block_report
 
-__all__ = ["BLOCK_LAYOUT", "BlockExports", "BlockOptions", "BlockResult", "run_block"]
+__all__ = ["BLOCK_LAYOUT", "FRAME_KINDS", "BlockExports", "BlockOptions", "BlockResult", "run_block"]
 
 Progress = Callable[[int, int], None]
 
@@ -169,7 +170,7 @@ class BlockOptions:
     models: ModelMethodOptions = field(default_factory=ModelMethodOptions)
 
     def __post_init__(self) -> None:
-        check_block_method(self.method, self.models)
+        check_block_method(self.method, self.models, self.bundle)
         for name in ("gnss_sigma_m", "ins_sigma_rad", "control_sigma_m"):
             v = getattr(self, name)
             if v is None:
@@ -413,11 +414,12 @@ def _project_gcps(reconstruction: Path) -> Path | None:
 
 
 def _with_control(tracks: Tracks, ctrl: BlockControlTable | None, names: tuple[str, ...],
-                  sigma_px: float) -> Tracks:
-    """Add the control points' image measurements to the tie tracks (as tracks of their own)."""
+                  sigma_px: float, measured: bool = False) -> Tracks:
+    """Add the control points' image measurements to the tie tracks (as tracks of their own); ``measured``:
+    the tracks may measure control ids the control file gives coordinates of only (``--observations``)."""
     if ctrl is None or not len(ctrl.meas_id):
         return tracks
-    clash = sorted(set(ctrl.meas_id) & set(tracks.point_ids))  # ids with coordinates only are measured by tracks
+    clash = sorted(set(ctrl.meas_id if measured else ctrl.ids) & set(tracks.point_ids))
     if clash:
         raise InvalidInputError(f"control id(s) {clash[:5]} clash with tie-point ids; rename them in the control file")
     stem = {Path(n).stem: k for k, n in enumerate(names)}
@@ -659,7 +661,7 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
         tie_lines = (f"tie points: {tie.n_points} tracks of {inp.pose_name} ({tie.n_obs} rays) on the block's images "
                      "(matching skipped; --rematch matches)",)
     n_tie = tie.n_points
-    all_tracks = _with_control(tie, inp.control, names, opts.control_sigma_px)
+    all_tracks = _with_control(tie, inp.control, names, opts.control_sigma_px, observations is not None)
     timings["tie_points_s"] = time.perf_counter() - t0
     # into the adjustment frame (stereo.actions.block_frame); the files are written in the inputs' CRS
     inp_map, gnss_map = inp, gnss
@@ -671,7 +673,7 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
         res, initial, mlines = run_models(inp.cameras, inp.camera_of, all_tracks, bc, gnss, opts.models,
                                           opts.tie_sigma_px, progress)
         timings["models_s"] = time.perf_counter() - t1
-        res = bf.result_to_map(frame, res)
+        res = bf.result_to_map(frame, res, gnss)
         files, report_path = _write(ws, res, all_tracks, inp_map, names, n_tie, initial, timings, gnss_map, opts,
                                     [*images, cam_input, poses, control, observations])
         return BlockResult(res, all_tracks, n_tie, len(res.control_ids), len(res.check_ids), initial, Path(out_dir),
@@ -725,7 +727,7 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
     res = adjust_bundle(inp.cameras, poses0, all_tracks, points0, control=bcontrol, gnss=gnss, options=bopts,
                         progress=progress)
     timings["bundle_s"] = time.perf_counter() - t2
-    res = bf.result_to_map(frame, res)
+    res = bf.result_to_map(frame, res, gnss)
     files, report_path = _write(ws, res, all_tracks, inp_map, names, n_tie, initial, timings, gnss_map, opts,
                                 [*images, camera if isinstance(camera, (str, Path)) else None, poses, control,
                                  observations])

@@ -163,14 +163,15 @@ def _rotate_nan(G: F64, v: F64) -> F64:
     return np.where(np.isfinite(v), out, np.nan)
 
 
-def result_to_map(frame: AdjustmentFrame, res: BundleResult) -> BundleResult:
+def result_to_map(frame: AdjustmentFrame, res: BundleResult, gnss: GnssObservations | None = None) -> BundleResult:
     """The bundle's result in the frame -> in the CRS of the inputs.
 
     Positions and points exactly (through PROJ); rotations into the local grid at each camera
     (:mod:`stereo.block.frames`); standard errors, covariances, residuals and check-point errors
     rotated into the local grid at their point (grid east, grid north, up; metres). The pose
     covariance's angle block is rotated like a vector of small rotations (exact for the small
-    angles of a near-vertical camera); the correlation matrix is left in the frame.
+    angles of a near-vertical camera); the correlation matrix is left in the frame. GNSS residuals are
+    rotated at the positions of ``gnss`` (frame coordinates, the adjustment's; else at the poses, in order).
     """
     if frame.is_identity:
         return res
@@ -230,7 +231,9 @@ def result_to_map(frame: AdjustmentFrame, res: BundleResult) -> BundleResult:
             chk_std = _sigma_rotated(G[krows], chk_std)
     gres = np.asarray(res.gnss_residuals, dtype=np.float64).reshape(-1, 3)
     if len(gres):
-        gres = np.einsum("nij,nj->ni", Gc[: len(gres)], gres)
+        Gg = (frame.grid_from_frame(np.asarray(gnss.position, dtype=np.float64)[: len(gres)]) if gnss is not None
+              and len(gnss.position) >= len(gres) else Gc[: len(gres)])
+        gres = np.einsum("nij,nj->ni", Gg, gres)
     return replace(res, poses=new_poses, points=X_map, pose_std=pose_std, pose_covariance=pose_cov,
                    point_std=point_std, point_covariance=point_cov, control_residuals=ctrl_res,
                    check_errors=chk_err, check_std=chk_std, gnss_residuals=gres)

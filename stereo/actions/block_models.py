@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 
 from rectify.errors import EstimationError, InvalidInputError
 from rectify.geometry.camera import Camera
+from stereo.block.bundle.adjust import BundleOptions
 from stereo.block.bundle.result import BundleResult
 from stereo.block.independent import independent_models, triangulate_tracks
 from stereo.block.model_adjust import ModelAdjustOptions, adjust_models
@@ -71,13 +72,17 @@ class ModelMethodOptions:
                                     f"{self.strip_polynomial!r}")
 
 
-def check_block_method(method: str, models: ModelMethodOptions) -> None:
-    """Raise unless ``method`` is run by ``run_block`` and the model options go with it."""
+def check_block_method(method: str, models: ModelMethodOptions, bundle: BundleOptions | None = None) -> None:
+    """Raise unless ``method`` is run by ``run_block`` and the model (and bundle) options go with it."""
     if method not in CAMERA_METHODS:
         raise InvalidInputError(f"unknown block method {method!r}; expected one of {list(CAMERA_METHODS)}")
     if method != MODEL_METHOD and (models.strip_polynomial is not None or models.dependent):
         raise InvalidInputError(f"--strip-polynomial and --dependent-models need --method {MODEL_METHOD}; got "
                                 f"--method {method}")
+    if method == MODEL_METHOD and bundle is not None and (bundle.self_calibrate or bundle.free_network):
+        what = "--self-calibrate/--calibrate" if bundle.self_calibrate else "--free-network"
+        raise InvalidInputError(f"{what} needs the bundle adjustment; --method {MODEL_METHOD} keeps the camera as "
+                                "given and needs control or GNSS for its datum")
 
 
 def run_models(cameras: Mapping[str, Camera], camera_of: Sequence[str], tracks: Tracks,

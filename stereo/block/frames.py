@@ -275,6 +275,13 @@ class AdjustmentFrame:
             text = str(err).split(" or pass a constant undulation")[0]
             raise CRSError(f"{text}, or give ellipsoidal heights (a CRS without a vertical datum)") from err
 
+    def _lonlat(self, xyh: F64) -> F64:
+        """(N, 3) map points -> (N, 2) lon, lat (degrees); no height conversion (no geoid needed)."""
+        assert self._hcrs is not None  # noqa: S101
+        if parse_crs(self._hcrs).is_geocentric:
+            return geodetic_from_ecef(xyh, crs=self._hcrs)[:, :2]
+        return geodetic_from_map(xyh, self._hcrs)[:, :2]
+
     def _map(self, llh: F64) -> F64:
         """(lon, lat, h ellipsoidal) -> map points."""
         assert self._hcrs is not None  # noqa: S101
@@ -309,7 +316,7 @@ class AdjustmentFrame:
 
     def _lonlat_of_frame(self, xyz: F64) -> F64:
         if self.kind == "map":
-            return self._geodetic(xyz)[:, :2] if self._hcrs is not None else np.zeros((len(xyz), 2))
+            return self._lonlat(xyz) if self._hcrs is not None else np.zeros((len(xyz), 2))
         return geodetic_from_ecef(self._ecef(xyz), crs=self._hcrs)[:, :2]
 
     # ------------------------------------------------------------------ rotations
@@ -358,7 +365,7 @@ class AdjustmentFrame:
         m, p = self._rot_args(R, xyh)
         if self._hcrs is None:
             return m.copy()
-        ll = self._geodetic(p)[:, :2]
+        ll = self._lonlat(p)
         T = self._frame_from_enu(ll) if navigation else self._frame_from_grid(ll)
         return np.asarray(T @ m, dtype=np.float64)
 
@@ -382,7 +389,7 @@ class AdjustmentFrame:
         p = as_points(xyh, "xyh", 3)
         if self._hcrs is None:
             return np.broadcast_to(np.eye(3), (len(p), 3, 3)).copy()
-        return self._frame_from_grid(self._geodetic(p)[:, :2])
+        return self._frame_from_grid(self._lonlat(p))
 
     def vectors_out(self, v: ArrayLike, xyz: ArrayLike) -> F64:
         """Frame vectors (N, 3) at frame points ``xyz`` (N, 3) -> local grid vectors (rotation only), m."""

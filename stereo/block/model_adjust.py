@@ -38,6 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg import cho_factor, cho_solve
 
 from rectify.errors import EstimationError, InvalidInputError, StereoError
 from rectify.geometry.residuals import rms
@@ -53,6 +54,9 @@ logger = logging.getLogger(__name__)
 __all__ = ["ModelAdjustOptions", "ModelsAdjusted", "adjust_models", "check_model_datum"]
 
 F64 = NDArray[np.float64]
+
+#: above this sigma0 the summary warns that the models do not fit each other
+SIGMA0_WARN = 3.0
 
 
 @dataclass(frozen=True)
@@ -198,6 +202,10 @@ class ModelsAdjusted:
                  f"model points: {int(used.sum())} used, {int((~used).sum())} rejected; RMS residual "
                  f"{rms(np.linalg.norm(self.residuals[used], axis=1)):.4g}; sigma0 {self.sigma0:.3f} "
                  f"(redundancy {self.redundancy})"]
+        if self.sigma0 > SIGMA0_WARN:
+            lines.append(f"warning: sigma0 {self.sigma0:.3g}: the models disagree far beyond their image noise (weak "
+                         "models, e.g. a narrow base / height, or wrong relative orientations); the bundle "
+                         "adjustment (--method bundle) models the rays themselves")
         if len(self.control_ids):
             r = self.control_residuals[np.isfinite(self.control_residuals)]
             lines.append(f"control: {len(self.control_ids)} points, RMS residual per component {rms(r):.4g}")
@@ -245,7 +253,7 @@ def check_model_datum(n_plan: int, n_height: int, height_xy: F64, what: str) -> 
     one line (``height_xy``: their plan positions, (n, 2)); ``what`` names the control counted.
     """
     ok = n_plan >= 2 and n_height >= 3
-    if ok:
+    if ok and len(height_xy) >= 3:
         c = height_xy - height_xy.mean(axis=0)
         sv = np.linalg.svd(c, compute_uv=False)
         ok = bool(sv[0] > 0 and sv[1] > 1e-3 * sv[0])
@@ -332,7 +340,9 @@ def adjust_models(block: ModelBlock, *, control: BlockControl | None = None, gns
     gb = to_ground(block, control=ctrl_init, gnss=(list(g_img), g_pos) if len(g_img) else None, robust="none")
     ground_pts = np.asarray(gb.points)
     ground_pos = np.array([p.position for p in gb.poses]).reshape(-1, 3)
-    hxy = np.vstack([ground_pts[c_rows[c_w[:, 2] > 0], :2], g_pos[:, :2]])
+    hxy = np.vstack([np.where(np.isfinite(c_xyz[:, :2]) & (c_w[:, :2] > 0), c_xyz[:, :2], ground_pts[c_rows, :2])
+                     [c_w[:, 2] > 0], g_pos[:, :2]])
+    hxy = hxy[np.isfinite(hxy).all(axis=1)]
     check_model_datum(n_plan, n_height, hxy, what)
     # observations: model j, unknown u (tracks 0..P-1, centres P + image), model coordinates, covariance
     oj_l, ou_l, om_l, oc_l = [], [], [], []
@@ -385,7 +395,8 @@ def adjust_models(block: ModelBlock, *, control: BlockControl | None = None, gns
     pa, pb = _pairs(ou, nu)
     converged = False
     it = 0
-    Sinv = np.zeros((7 * m, 7 * m))
+    cf: tuple[F64, bool] = (np.eye(7 * m), False)
+    d = np.ones(7 * m)
     Q = np.zeros((nu, 3, 3))
     for it in range(1, int(opts.max_iterations) + 1):
         sRm = s[oj, None] * np.einsum("nij,nj->ni", R[oj], om)
@@ -414,11 +425,12 @@ def adjust_models(block: ModelBlock, *, control: BlockControl | None = None, gns
         np.add.at(rhs, oj, -np.einsum("nij,nj->ni", Y, r) + np.einsum("nij,nj->ni", Z, gu_[ou]))
         S = S4.transpose(0, 2, 1, 3).reshape(7 * m, 7 * m)
         d = np.sqrt(np.maximum(np.diag(S), 1e-300))
-        try:
-            Sinv = np.linalg.inv(S / d[:, None] / d[None, :]) / d[:, None] / d[None, :]
+        try:  # Cholesky of the Jacobi-scaled reduced matrix: fails on a datum defect or a loose model
+            cf = cho_factor(S / d[:, None] / d[None, :])
         except np.linalg.LinAlgError as err:
-            raise EstimationError(f"the independent-model adjustment of {m} models is singular: {err}") from err
-        dp = (Sinv @ rhs.reshape(-1)).reshape(m, 7)
+            raise EstimationError(f"the independent-model adjustment of {m} models is singular (a model or the "
+                                  f"datum is not determined): {err}") from err
+        dp = (cho_solve(cf, rhs.reshape(-1) / d) / d).reshape(m, 7)
         back = gu_.copy()
         np.add.at(back, ou, np.einsum("nji,nj->ni", Y, dp[oj]))
         dX = np.einsum("nij,nj->ni", Q, back)
@@ -452,6 +464,7 @@ def adjust_models(block: ModelBlock, *, control: BlockControl | None = None, gns
     sigma0 = math.sqrt(vpv / dof) if dof > 0 else float("nan")
     s02 = sigma0 ** 2 if dof > 0 else 1.0
     # covariances: parameters (S^-1) and unknowns (Q + Z^T S^-1 Z)
+    Sinv = cho_solve(cf, np.eye(7 * m)) / d[:, None] / d[None, :]
     Y = np.einsum("nki,nkl->nil", _design(s, R, oj, om), W * w[:, None, None])
     Z = np.einsum("nij,njk->nik", Y, Q[ou])
     S4inv = Sinv.reshape(m, 7, m, 7).transpose(0, 2, 1, 3)

@@ -40,6 +40,11 @@ logger = logging.getLogger(__name__)
 __all__ = ["IndependentOptions", "Model", "ModelAdjustment", "ModelJoin"]
 
 
+#: a robust relative orientation that keeps fewer than this share of the points is taken as failed
+#: (the least-squares fallback of :func:`_relative` runs instead)
+MIN_INLIER_SHARE = 0.5
+
+
 @dataclass(frozen=True)
 class IndependentOptions:
     """Options of :func:`stereo.block.independent.independent_models`.
@@ -307,7 +312,11 @@ def _relative(left: NDArray[np.float64], right: NDArray[np.float64], f: tuple[fl
     try:
         ro = fit(left, right, every, opts.robust, "auto", opts.system)
         ok = (ro.weights > 0) & ~(ro.outlier & (np.abs(ro.residual_mm) > floor))
-        return _Relative(ro.rotation_left, ro.rotation_right, ro.base, ok, ro.sigma0_mm, ro.condition_number)
+        if opts.robust == "none" or ok.mean() >= MIN_INLIER_SHARE:
+            return _Relative(ro.rotation_left, ro.rotation_right, ro.base, ok, ro.sigma0_mm, ro.condition_number)
+        # most points called outliers: a wrong solution (a narrow base over flat ground), not bad matches
+        first: RectifyError = StereoError(f"the robust relative orientation kept {int(ok.sum())} of {len(ok)} "
+                                          "points")
     except RectifyError as err:
         if opts.robust == "none":
             raise

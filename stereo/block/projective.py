@@ -405,6 +405,11 @@ def join_models(models: Sequence[ProjectiveModel], n_points: int, n_images: int,
         cand = [(int(np.isfinite(block[ms[m].points, 0]).sum()), m) for m in left]
         k, m = max(cand)
         if k < need:
+            joined = {im for q in order for im in ms[q].images}
+            weak = [q for q in left if set(ms[q].images) <= joined]
+            if weak:  # models whose images are all in the block already: left out (they add no image)
+                left.difference_update(weak)
+                continue
             bad = ms[m]
             raise EstimationError(f"the models cannot be joined: the best remaining one (images {bad.images}) shares "
                                   f"{k} points with the joined models; the joint {method} orientation needs at least "
@@ -417,12 +422,18 @@ def join_models(models: Sequence[ProjectiveModel], n_points: int, n_images: int,
         order.append(m)
         left.discard(m)
     in_model = np.zeros(n_images, dtype=bool)
-    for mo in ms:
-        in_model[list(mo.images)] = True
+    for q in order:
+        in_model[list(ms[q].images)] = True
     if not in_model.all():
-        raise EstimationError(f"image(s) {np.flatnonzero(~in_model).tolist()} are in no model (fewer than "
+        raise EstimationError(f"image(s) {np.flatnonzero(~in_model).tolist()} are in no joined model (fewer than "
                               f"{MIN_POINTS_F} tracks shared with any other image)")
-    Ts, X, rms, s0, red, nv = _adjust_joint(ms, order, T, block, method, use_virtual, max_iterations)
+    ms = [ms[q] for q in order]  # the joined models, in the order of joining (the datum first)
+    T = {j: T[q] for j, q in enumerate(order)}
+    block = np.full((n_points, 3), np.nan)
+    for j, mo in enumerate(ms):
+        miss = ~np.isfinite(block[mo.points, 0])
+        block[mo.points[miss]] = _apply(T[j], mo.xyz[miss])
+    Ts, X, rms, s0, red, nv = _adjust_joint(ms, list(range(len(ms))), T, block, method, use_virtual, max_iterations)
     cams = np.full((n_images, 3, 4), np.nan)
     best = np.zeros(n_images)
     for mo, Tm in zip(ms, Ts, strict=True):
@@ -619,9 +630,9 @@ def resect_cameras(tracks: Tracks, sizes: Sequence[tuple[int, int]], points: F64
             good = new
             P = _dlt_linear(X[good], u[good])
 
-        def fun(p: F64, X_: F64 = X[good], u_: F64 = u[good]) -> F64:
+        def fun(p: F64, X_: F64 = X[good], u_: F64 = u[good], s_: float = s) -> F64:
             q = np.column_stack([X_, np.ones(len(X_))]) @ p.reshape(3, 4).T
-            return np.asarray((q[:, :2] / q[:, 2:3] - u_).reshape(-1) * s, dtype=np.float64)
+            return np.asarray((q[:, :2] / q[:, 2:3] - u_).reshape(-1) * s_, dtype=np.float64)
 
         sol = scipy.optimize.least_squares(fun, P.reshape(-1), loss="soft_l1", f_scale=outlier_px / 2, method="trf",
                                            max_nfev=30)

@@ -273,6 +273,27 @@ class MetricStart:
     control_ids: tuple[str, ...]
 
 
+def _control_rows(tracks: Tracks, control: BlockControl | None) -> list[int]:
+    """Rows of the full control points (check points excluded) that are tracks of two rays or more."""
+    if control is None:
+        return []
+    rays = tracks.rays_per_point()
+    pid = {p: k for k, p in enumerate(tracks.point_ids)}
+    return [k for k, (i, kind, chk) in enumerate(zip(control.ids, control.kind, control.check, strict=True))
+            if kind == "full" and not chk and i in pid and rays[pid[i]] >= 2]
+
+
+def _enough_control(tracks: Tracks, control: BlockControl | None, method: str) -> None:
+    """Refuse, before any work, fewer control points than the upgrade's transformation needs."""
+    need, n_par, kind_t = ((MIN_CONTROL_PROJECTIVE, 15, "projective") if method == "projective"
+                           else (MIN_CONTROL_AFFINE, 12, "affine"))
+    k = len(_control_rows(tracks, control))
+    if k < need:
+        raise EstimationError(f"too few control points for the metric upgrade of the {method} block: {k} full "
+                              f"control points measured in two images or more; at least {need} not on one plane "
+                              f"are needed ({n_par} parameters of the 3D {kind_t} transformation)")
+
+
 def upgrade_to_metric(pb: ProjectiveBundle, tracks: Tracks, sizes: Sequence[tuple[int, int]],
                       control: BlockControl | None, *, method: str = "projective") -> MetricStart:
     """Orient the block to control and reduce its bundles to one camera.
@@ -289,15 +310,8 @@ def upgrade_to_metric(pb: ProjectiveBundle, tracks: Tracks, sizes: Sequence[tupl
         differ by more than :data:`MAX_FOCAL_SPREAD` (the control does not determine the upgrade).
     """
     pid = {p: k for k, p in enumerate(tracks.point_ids)}
-    need, n_par, kind_t = ((MIN_CONTROL_PROJECTIVE, 15, "projective") if method == "projective"
-                           else (MIN_CONTROL_AFFINE, 12, "affine"))
-    rows = [] if control is None else [k for k, (i, kind, chk) in enumerate(zip(control.ids, control.kind,
-                                                                                   control.check, strict=True))
-                                         if kind == "full" and not chk and i in pid]
-    if len(rows) < need:
-        raise EstimationError(f"too few control points for the metric upgrade of the {method} block: {len(rows)} "
-                              f"full control points measured in the images; at least {need} not on one plane are "
-                              f"needed ({n_par} parameters of the 3D {kind_t} transformation)")
+    _enough_control(tracks, control, method)
+    rows = _control_rows(tracks, control)
     assert control is not None
     ids = tuple(control.ids[k] for k in rows)
     src = pb.points[[pid[i] for i in ids]]
@@ -560,6 +574,7 @@ def uncalibrated_block(tracks: Tracks, sizes: Sequence[tuple[int, int]], control
     if len(few):
         raise InvalidInputError(f"image(s) with fewer than {MIN_IMAGE_POINTS} tracks (a projective camera has 11 "
                                 f"parameters): {[(tracks.images[i], int(ppi[i])) for i in few[:5]]}")
+    _enough_control(tracks, control, method)
     models = form_models(tracks, sizes, method=method, focal_guess_px=focal_guess_px)
     mb = join_models(models, tracks.n_points, n, method=method, virtual=virtual)
     cams, inl = resect_cameras(tracks, sizes, mb.points)
@@ -569,7 +584,7 @@ def uncalibrated_block(tracks: Tracks, sizes: Sequence[tuple[int, int]], control
     inl = np.where(have[tracks.obs_point], inl, inl_new)
     if control is not None:  # the control points' rays are kept (the bundles judge them)
         cidx = np.isin(np.asarray(tracks.point_ids, dtype=object)[tracks.obs_point], list(control.ids))
-        inl |= cidx & np.isfinite(X1).all(axis=1)[tracks.obs_point]
+        inl |= cidx & np.asarray(np.isfinite(X1).all(axis=1), dtype=bool)[tracks.obs_point]
     counts = np.bincount(tracks.obs_point[inl], minlength=tracks.n_points)
     sub = tracks.subset(inl & (counts >= 2)[tracks.obs_point])
     where = {q: k for k, q in enumerate(tracks.point_ids)}

@@ -10,14 +10,13 @@ import click
 from rectify.cli.options import echo, handle_errors, matcher_opts, overwrite_opt, progress
 from rectify.geometry.mestimate import M_ALGORITHMS, NEWTON_METHODS
 from rectify.geometry.robust import ROBUST_METHODS
-from stereo.actions.block import BlockExports, BlockOptions, run_block
+from stereo.actions.block import FRAME_KINDS, BlockExports, BlockOptions, run_block
 from stereo.actions.block_models import ModelMethodOptions
 from stereo.actions.block_projective import ProjectiveBlockOptions, run_block_projective
 from stereo.actions.common import matcher_config
 from stereo.block.bundle.adjust import INTERIOR_NAMES, BundleOptions
 from stereo.block.bundle.robust import ROBUST_SCALES
 from stereo.block.bundle.systematic import BORESIGHT_MODES, DRIFT_MODES
-from stereo.block.frames import FRAME_KINDS
 from stereo.block.projective import BLOCK_METHODS
 from stereo.block.projective_bundle import DEFAULT_CALIBRATE
 from stereo.features.tracks import BLOCK_MATCHER, PAIR_STRATEGIES, BlockMatchOptions

@@ -26,5 +26,5 @@ def cli(ctx: click.Context, verbose: int, quiet: int) -> None:
 for _name, _module in (("orient", "orient"), ("model", "model"), ("resect", "resect"), ("run", "run"),
                        ("demo", "demo"), ("calibrate", "calibrate"), ("dense", "dense"),
                        ("dense-rpc", "dense_rpc"), ("disparity", "disparity"), ("block", "block"),
-                       ("view", "view"), ("sat-intersect", "sat_intersect")):
+                       ("view", "view"), ("sat-intersect", "sat_intersect"), ("surface", "surface")):
     cli.add_lazy(_name, f"stereo.cli.{_module}:{_module}")

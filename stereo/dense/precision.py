@@ -137,7 +137,7 @@ def height_sigma_orientation(depth: ArrayLike, base: float, std_left: ArrayLike 
 
 
 def disparity_sigma(left: ArrayLike, right: ArrayLike, disparity: ArrayLike, *, radius: int = 3,
-                    floor_px: float = DISPARITY_SIGMA_FLOOR_PX) -> NDArray[np.float32]:
+                    floor_px: float = DISPARITY_SIGMA_FLOOR_PX, right_offset: float = 0.0) -> NDArray[np.float32]:
     """Standard error of each disparity from its least-squares sub-pixel fit (module docstring).
 
     Parameters
@@ -145,15 +145,17 @@ def disparity_sigma(left: ArrayLike, right: ArrayLike, disparity: ArrayLike, *, 
     left : (H, W) array_like
         Left normal-case photo (grey), the window of the disparities.
     right : (H, W2) array_like
-        Right normal-case photo rows of the same window, columns shifted by ``shift`` so that left
-        column ``x`` matches right column ``x - d`` (the caller passes the right window whose column
-        0 is the left window's column 0; columns outside it are clamped).
+        Right normal-case photo rows of the same window: left column ``x`` of the window matches
+        right column ``x + right_offset - d`` (columns outside it are clamped).
     disparity : (H, W) array_like
         ``col_left - col_right``; NaN where none.
     radius : int
         Half side of the fit window (Gaussian sigma ``radius / 2``), pixels.
     floor_px : float
         Added in quadrature.
+    right_offset : float
+        Column of ``right`` that left window column 0 faces at disparity 0 (e.g. the left window's
+        column offset when ``right`` holds whole rows).
 
     Returns
     -------
@@ -172,7 +174,7 @@ def disparity_sigma(left: ArrayLike, right: ArrayLike, disparity: ArrayLike, *, 
         raise InvalidInputError(f"`floor_px` must be a finite number >= 0; got {floor_px!r}")
     H, W = L.shape
     v = np.isfinite(d)
-    xs = np.arange(W, dtype=np.float32)[None, :] - np.where(v, d, 0)
+    xs = np.arange(W, dtype=np.float32)[None, :] + np.float32(right_offset) - np.where(v, d, 0)
     ys = np.repeat(np.arange(H, dtype=np.float32)[:, None], W, axis=1)
     rw = cv2.remap(R, xs.astype(np.float32), ys, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
     g = np.asarray(cv2.Sobel(L, cv2.CV_32F, 1, 0, ksize=3, scale=0.125), dtype=np.float32)

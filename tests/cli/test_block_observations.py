@@ -28,6 +28,16 @@ def curved(tmp_path_factory) -> tuple[CurvedBlock, dict[str, Path]]:
     return blk, write_curved_block(tmp_path_factory.mktemp("curved") / "in", blk)
 
 
+@pytest.fixture(scope="module")
+def default_run(curved, tmp_path_factory) -> tuple[str, Path]:
+    """The block adjusted from its observations CSV in the default frame: (console output, OUTDIR)."""
+    blk, files = curved
+    out = tmp_path_factory.mktemp("default") / "out"
+    r = CliRunner().invoke(cli, _args(files, blk, out))
+    assert r.exit_code == 0, r.output
+    return r.output, out
+
+
 def _args(files: dict[str, Path], blk: CurvedBlock, out: Path, *extra: str) -> list[str]:
     return ["block", "--observations", str(files["observations"]), "--camera", str(files["camera"]), "--poses",
             str(files["poses"]), "--control", str(files["control"]), "--check", ",".join(blk.check_ids), "-o",
@@ -52,15 +62,13 @@ def test_the_block_has_the_issue_size(curved) -> None:
     assert len(blk.control_ids) >= 25 and len(blk.check_ids) >= 20
 
 
-def test_curved_block_from_its_observations_in_the_default_frame(curved, tmp_path) -> None:
+def test_curved_block_from_its_observations_in_the_default_frame(curved, default_run) -> None:
     """Must show: check-point RMS(error / std) within 0.67-1.5 per axis, none beyond 4 std; plan within 1.5 std
     25 km from the central meridian (INS in the navigation frame, with the meridian convergence)."""
-    blk, files = curved
-    out = tmp_path / "out"
-    r = CliRunner().invoke(cli, _args(files, blk, out))
-    assert r.exit_code == 0, r.output
-    assert "adjustment frame: topocentric" in r.output
-    assert "observations: " in r.output and "no matching" in r.output
+    blk, _ = curved
+    output, out = default_run
+    assert "adjustment frame: topocentric" in output
+    assert "observations: " in output and "no matching" in output
     err, std, _ = _check_errors(blk, out)
     ratio = np.sqrt(np.mean((err / std) ** 2, axis=0))
     assert ((ratio > 0.67) & (ratio < 1.5)).all(), ratio
@@ -71,7 +79,7 @@ def test_curved_block_from_its_observations_in_the_default_frame(curved, tmp_pat
     back = read_observations(out / "observations.csv", blk.images, {n: (10_000, 10_000) for n in blk.images})
     n_rows = len((out / "observations.csv").read_text().splitlines()) - 1
     assert back.n_rows == n_rows and back.tracks.n_obs + back.n_single == n_rows
-    assert back.n_flagged == int(r.output.split("image residuals: RMS ")[1].split("(")[1].split(" flagged")[0])
+    assert back.n_flagged == int(output.split("image residuals: RMS ")[1].split("(")[1].split(" flagged")[0])
 
 
 def test_curved_block_in_the_map_frame_shows_the_predicted_error(curved, tmp_path) -> None:
@@ -199,3 +207,22 @@ def test_unknown_check_point_is_refused(curved, tmp_path) -> None:
     assert r.exit_code != 0 and "nowhere" in r.output and "Traceback" not in r.output
     assert len([ln for ln in r.output.splitlines() if ln.strip()]) == 1
     assert not (tmp_path / "out").exists()
+
+
+def test_rerun_from_the_written_observations_with_measured_control(curved, default_run, tmp_path) -> None:
+    """An earlier run's observations.csv is an input; the control file's own measurements replace the CSV's."""
+    blk, files = curved
+    first = default_run[1]
+    rows = [ln.split(",") for ln in (first / "observations.csv").read_text().splitlines()[1:]]
+    meas = [f"{r[1]},{r[0]},{r[2]},{r[3]},,,,,," for r in rows if r[1] in ("gcp00", "gcp01")]
+    ctrl = tmp_path / "control.csv"
+    ctrl.write_text(files["control"].read_text() + "\n".join(meas) + "\n")
+    second = tmp_path / "second"
+    r = CliRunner().invoke(cli, _args({**files, "observations": first / "observations.csv", "control": ctrl}, blk,
+                                      second))
+    assert r.exit_code == 0, r.output
+    assert f"{len(meas)} measurements of 2 control point(s) taken from the control file instead" in r.output
+    assert "rows flagged by the earlier run kept" in r.output
+    e1, _, _ = _check_errors(blk, first)
+    e2, _, _ = _check_errors(blk, second)
+    assert np.abs(e1 - e2).max() < 0.01

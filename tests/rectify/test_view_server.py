@@ -345,3 +345,18 @@ def test_bad_options():
         ViewOptions(max_static_tiles=0)
     with pytest.raises(InvalidInputError):
         start_view(os.devnull)
+
+
+def test_a_broken_result_file_is_one_line_before_serving(tmp_path):
+    d = tmp_path / "broken"
+    d.mkdir()
+    (d / "observations.csv").write_text("image,id,col,row,sigma_px,residual_x_px,residual_y_px,weight,flagged\n"
+                                        "a.tif,p1,10,20,0.5,0.1,x,1,0\n")
+    r = CliRunner().invoke(rectify_cli, ["view", str(d), "--static", str(tmp_path / "site")])
+    assert r.exit_code == 1 and "Traceback" not in r.output and len(r.output.strip().splitlines()) == 1
+    assert "observations.csv" in r.output and "line 2" in r.output and "'x'" in r.output
+    assert not (tmp_path / "site").exists()
+    (d / "observations.csv").unlink()
+    (d / "orientation.json").write_text('{"format": "rectify-stereo/block-orientation", "images": [')
+    r = CliRunner().invoke(stereo_cli, ["view", str(d), "--no-browser", "--port", "0"])
+    assert r.exit_code == 1 and "orientation.json" in r.output and "Traceback" not in r.output

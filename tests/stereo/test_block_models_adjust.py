@@ -19,6 +19,8 @@ the least favourable of the six seeds measured for docs/block.md (ratio of the c
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -122,6 +124,17 @@ def test_height_and_plan_control(block, models) -> None:
     assert _rms(e) < 1.0
 
 
+def test_control_the_first_intersection_left_out(block, models) -> None:
+    """A control point that the block's multi-ray intersection left out (NaN) is still a model point: used."""
+    index = {p: k for k, p in enumerate(models.point_ids)}
+    pts = np.array(models.points)
+    pts[[index[i] for i in block.control.ids[:2]]] = np.nan
+    res = adjust_models(replace(models, points=pts), control=block.control,
+                        options=ModelAdjustOptions(image_sigma_px=0.5))
+    assert res.control_ids[:2] == block.control.ids[:2]
+    assert _rms(res.check_errors) < 1.0
+
+
 def test_gnss_centres_alone_define_the_datum(block, models) -> None:
     g = block.gnss
     res = adjust_models(models, gnss=GnssObservations(g.images, g.position, g.sigma_m),
@@ -139,6 +152,15 @@ def test_partially_dependent_models_adjusted_with_control(block) -> None:
                             options=IndependentOptions(dependent=True))
     res = adjust_models(mb, control=block.control, options=ModelAdjustOptions(image_sigma_px=0.5))
     assert _rms(res.check_errors) < 1.0
+
+
+def test_weak_models_are_warned_about() -> None:
+    """The generator's own 100 mm camera with a 20 mm frame: base / height 0.08, models too weak to fit each other."""
+    blk = make_block(1, control_layout="corners+centre", n_check=6, n_points=1500)
+    mb = independent_models(blk.cameras, ["cam"] * len(blk.tracks.images), blk.tracks)
+    res = adjust_models(mb, control=blk.control, options=ModelAdjustOptions(image_sigma_px=0.5))
+    assert res.sigma0 > 3.0
+    assert any(ln.startswith("warning: sigma0") and "--method bundle" in ln for ln in res.summary_lines())
 
 
 # --------------------------------------------------------------------------- strips and their polynomials
@@ -287,5 +309,9 @@ def test_bad_method_options() -> None:
         BlockOptions(models=ModelMethodOptions(strip_polynomial=2))
     with pytest.raises(InvalidInputError, match="unknown block method"):
         BlockOptions(method="triangles")
+    with pytest.raises(InvalidInputError, match="--self-calibrate/--calibrate needs the bundle adjustment"):
+        BlockOptions(method="independent-models", bundle=BundleOptions(self_calibrate=("f",)))
+    with pytest.raises(InvalidInputError, match="--free-network needs the bundle adjustment"):
+        BlockOptions(method="independent-models", bundle=BundleOptions(free_network=True))
     with pytest.raises(InvalidInputError, match="degree must be one of"):
         strip_terms(np.zeros((1, 2)), 5)

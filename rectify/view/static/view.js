@@ -618,6 +618,14 @@ function setupInput() {
         const [sx, sy] = toScreen(im.position[0], im.position[1]);
         if ((sx - e.offsetX) ** 2 + (sy - e.offsetY) ** 2 < 49) { openView({ kind: "image", n: im.i }); return; }
       }
+      const P = S.layout.points;  // a tie point of the plan: its track and rays
+      let best = -1, bd = 16;
+      for (let k = 0; P && k < P.x.length; k++) {
+        const [sx, sy] = toScreen(P.x[k], P.y[k]);
+        const d = (sx - e.offsetX) ** 2 + (sy - e.offsetY) ** 2;
+        if (d < bd) { bd = d; best = k; }
+      }
+      if (best >= 0) select(P.id[best]);
     }
   });
   c.addEventListener("wheel", (e) => {
@@ -718,6 +726,7 @@ window.rectifyView = {
     const [sx, sy] = toScreen(p.x, p.y), rect = canvas().getBoundingClientRect();
     return [rect.left + sx, rect.top + sy];
   },
+  scale() { return S.cam.scale; },  // screen pixels per image pixel (or per ground unit)
   centreOn(id) { const p = S.points.find((q) => q.id === id); if (p) { centreOn(p); draw(); } return !!p; },
 };
 

@@ -1,0 +1,620 @@
+"""``run_surface``: a block's orientation -> stereo pairs -> dense matching per pair -> one fused DSM.
+
+Steps (``docs/surface.md``):
+
+1. the block orientation (``orientation.json`` of ``stereo block``, or any block orientation JSON)
+   and its images, found by the names it records in ``images`` (default: the orientation's folder);
+   every image is checked before any work;
+2. pairs (:func:`select_pairs`): every two images whose footprints on the mean terrain height
+   overlap enough, with a base-to-height ratio and an intersection angle in the documented ranges;
+   per area (a coarse grid over the block) the ``pairs_per_area`` best pairs (score: overlap times
+   the base-to-height ratio, capped at :data:`BH_TARGET`) are kept;
+3. per pair: the normal case from the two exterior orientations
+   (:func:`stereo.dense.epipolar.rectify_exterior`), resampling, SGBM matching
+   (:func:`stereo.dense.matching.match_rasters`) in a scratch folder, triangulation
+   (:func:`stereo.dense.triangulate.triangulate_disparity`) and per point the height standard
+   error (:mod:`stereo.dense.precision`); gridded with its sigma on the common grid
+   (:class:`stereo.dense.fusion.SigmaGrid`);
+4. the fusion (:func:`stereo.dense.fusion.fuse_heights`) by row blocks into ``dsm.tif``.
+
+Outputs in ``out_dir`` (all written together at the end, or none on an error):
+
+=================  ==========================================================================
+``dsm.tif``        band 1 height, 2 sigma_Z, 3 count of agreeing pairs, 4 provenance (pair
+                   index, -1 none); float32, nodata -9999, cells on whole multiples of the cell
+``pairs.json``     the pairs (images, overlap, B/H, angle, points, coverage, median sigma_Z), the
+                   thresholds, the grid and the summary
+=================  ==========================================================================
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from rectify.actions.workspace import Workspace
+from rectify.errors import InvalidInputError, StereoError
+from rectify.geometry.camera import Camera
+from rectify.raster.io import (
+    MaskPolicy,
+    TiledWriter,
+    WindowReader,
+    gdal_cache_limit,
+    ignore_not_georeferenced,
+    iter_windows,
+    raster_info,
+)
+from rectify.report.builder import json_safe
+from stereo.block.tracks_pairs import footprints
+from stereo.block.types import Pose
+from stereo.dense.dsm import DSM_NODATA, default_cell
+from stereo.dense.epipolar import EpipolarRectification, rectify_exterior, resample_view
+from stereo.dense.fusion import (
+    FUSED_BANDS,
+    FusedHeights,
+    SigmaGrid,
+    fuse_heights,
+    fused_band_descriptions,
+    nodata_of,
+    variance_factor,
+)
+from stereo.dense.matching import NODATA, MatchOptions, match_rasters
+from stereo.dense.precision import (
+    DISPARITY_SIGMA_FLOOR_PX,
+    disparity_sigma,
+    height_sigma_disparity,
+    height_sigma_orientation,
+)
+from stereo.dense.triangulate import triangulate_disparity
+from stereo.formats.block import BlockOrientation, read_block_orientation
+from stereo.formats.points import read_points_csv
+from stereo.pair.model import ground_unit
+
+__all__ = ["BH_TARGET", "SURFACE_FORMAT", "StereoPair", "SurfaceOptions", "SurfaceResult", "run_surface",
+           "select_pairs"]
+
+StrPath = str | Path
+Progress = Callable[[str, int, int], None]
+
+SURFACE_FORMAT = "rectify-stereo/surface-pairs"
+#: the base-to-height ratio above which a pair scores no better (wider bases match less well)
+BH_TARGET = 0.6
+#: rows of the fused grid per fusion block
+FUSION_ROWS = 256
+#: side of a triangulation window, pixels
+WINDOW = 256
+#: image suffixes tried when an image name is found without its extension
+IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg", ".TIF", ".PNG", ".JPG")
+
+
+@dataclass(frozen=True)
+class SurfaceOptions:
+    """Options of :func:`run_surface`.
+
+    Attributes
+    ----------
+    images : path or None
+        Folder of the images (default: the orientation's folder).
+    cell : float or None
+        DSM cell (ground units); default the median ground sampling distance to 2 significant
+        digits. At least a tenth of it.
+    ground_z : float or None
+        Mean terrain height for the footprints and the disparity search; default the median height
+        of the block's ``points.csv``.
+    relief : float or None
+        Expected height range about ``ground_z`` (ground units) for the disparity search; default
+        the block points' 1-99 % range plus a tenth of the flying height.
+    min_overlap : float
+        Smallest footprint overlap of a pair, as a share of the smaller footprint.
+    min_base_height, max_base_height : float
+        Range of the base-to-height ratio B / H.
+    min_angle_deg, max_angle_deg : float
+        Range of the intersection angle at the centre of the overlap, degrees.
+    pairs_per_area : int
+        Pairs kept per area (cell of an 8 x 8 grid over the block), best score first.
+    k_sigma : float
+        Fusion rejection threshold (:func:`stereo.dense.fusion.fuse_heights`).
+    sigma_floor_px : float
+        Disparity standard error floor (:func:`stereo.dense.precision.disparity_sigma`).
+    min_confidence : float
+        Points of lower matching confidence are left out.
+    matching : MatchOptions
+    """
+
+    images: str | None = None
+    cell: float | None = None
+    ground_z: float | None = None
+    relief: float | None = None
+    min_overlap: float = 0.25
+    min_base_height: float = 0.1
+    max_base_height: float = 1.2
+    min_angle_deg: float = 5.0
+    max_angle_deg: float = 60.0
+    pairs_per_area: int = 3
+    k_sigma: float = 3.0
+    sigma_floor_px: float = DISPARITY_SIGMA_FLOOR_PX
+    min_confidence: float = 0.0
+    matching: MatchOptions = MatchOptions()
+
+    def __post_init__(self) -> None:
+        def num(name: str, lo: float, hi: float = math.inf) -> None:
+            v = getattr(self, name)
+            if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and lo <= v <= hi):
+                raise InvalidInputError(f"`{name}` must be a number in [{lo:g}, {hi:g}]; got {v!r}")
+
+        for name in ("cell", "relief"):
+            if getattr(self, name) is not None:
+                num(name, 1e-12)
+        if self.ground_z is not None:
+            num("ground_z", -1e7, 1e7)
+        num("min_overlap", 0.01, 1.0)
+        num("min_base_height", 0.0, 10.0)
+        num("max_base_height", 0.0, 10.0)
+        num("min_angle_deg", 0.0, 180.0)
+        num("max_angle_deg", 0.0, 180.0)
+        num("k_sigma", 0.5, 100.0)
+        num("sigma_floor_px", 0.0, 10.0)
+        num("min_confidence", 0.0, 1.0)
+        if self.min_base_height >= self.max_base_height:
+            raise InvalidInputError(f"`min_base_height` must be below `max_base_height`; got {self.min_base_height} "
+                                    f"and {self.max_base_height}")
+        if self.min_angle_deg >= self.max_angle_deg:
+            raise InvalidInputError(f"`min_angle_deg` must be below `max_angle_deg`; got {self.min_angle_deg} and "
+                                    f"{self.max_angle_deg}")
+        if isinstance(self.pairs_per_area, bool) or not isinstance(self.pairs_per_area, int) \
+                or not 1 <= self.pairs_per_area <= 50:
+            raise InvalidInputError(f"`pairs_per_area` must be an integer in 1..50; got {self.pairs_per_area!r}")
+        if not isinstance(self.matching, MatchOptions):
+            raise InvalidInputError(f"`matching` must be a MatchOptions; got {type(self.matching).__name__}")
+
+
+@dataclass(frozen=True)
+class StereoPair:
+    """A candidate pair of a block: images ``i`` < ``j`` and its figures."""
+
+    i: int
+    j: int
+    left: str
+    right: str
+    overlap: float
+    base_height: float
+    angle_deg: float
+    score: float
+    passes: bool
+
+    def figures(self) -> str:
+        return (f"{self.left} + {self.right}: overlap {100 * self.overlap:.0f}%, B/H {self.base_height:.3f}, "
+                f"intersection angle {self.angle_deg:.1f} deg")
+
+
+@dataclass(frozen=True, eq=False)
+class SurfaceResult:
+    """What :func:`run_surface` did and wrote."""
+
+    out_dir: Path
+    files: tuple[Path, ...]
+    pairs: tuple[StereoPair, ...]
+    pair_stats: tuple[dict[str, Any], ...]
+    cell: float
+    gsd: float
+    shape: tuple[int, int]
+    coverage: float
+    median_sigma: float
+    n_rejected: int
+    crs: str | None
+    seconds: float
+    n_candidates: int = 0
+    variance_factor: float = 1.0
+    overlap_coverage: float = math.nan
+    comparison: HeightComparison | None = None
+
+    def summary_lines(self) -> list[str]:
+        unit = ground_unit(self.crs, "map")
+        lines = [f"pairs: {len(self.pairs)} of {self.n_candidates} candidates"]
+        for k, (p, s) in enumerate(zip(self.pairs, self.pair_stats, strict=True)):
+            lines.append(f"  pair {k}: {p.figures()}; {s['points']} points, median sigma_Z "
+                         f"{s['median_sigma_z']:.3g} {unit}")
+        lines += [f"DSM: {self.shape[1]} x {self.shape[0]} cells of {self.cell:g} {unit} (ground pixel {self.gsd:.4g} "
+                  f"{unit}), coverage {100 * self.coverage:.1f}%, median sigma_Z {self.median_sigma:.3g} {unit}, "
+                  f"{self.n_rejected} pair heights rejected as inconsistent; the pairs' sigmas scaled by the "
+                  f"variance factor {self.variance_factor:.3f} of their agreement",
+                  f"coverage of the chosen pairs' overlap (footprints on the mean height): "
+                  f"{100 * self.overlap_coverage:.1f}%"]
+        if self.comparison is not None:
+            lines.append(self.comparison.summary_line(unit, cell=self.cell))
+        lines += [f"outputs in {self.out_dir}: " + ", ".join(p.name for p in self.files),
+                  f"time {self.seconds:.1f} s"]
+        return lines
+
+
+# --------------------------------------------------------------------------- inputs
+def _orientation_file(path: StrPath) -> Path:
+    p = Path(path)
+    if p.is_dir():
+        p = p / "orientation.json"
+        if not p.is_file():
+            raise InvalidInputError(f"no orientation.json in the orientation folder {str(path)!r}")
+    elif not p.is_file():
+        raise InvalidInputError(f"orientation not found: {str(path)!r}")
+    return p
+
+
+def find_images(bo: BlockOrientation, folder: Path) -> list[Path]:
+    """The file of each image of the block: ``folder / name``, else a file of the name's stem with an
+    image suffix. Raises naming the first image not found."""
+    if not folder.is_dir():
+        raise InvalidInputError(f"image folder not found: {str(folder)!r}")
+    out = []
+    for pose in bo.poses:
+        p = folder / pose.image
+        if not p.is_file():
+            hits = [folder / (Path(pose.image).stem + s) for s in IMAGE_SUFFIXES]
+            hits = [h for h in hits if h.is_file()]
+            if not hits:
+                raise InvalidInputError(f"image {pose.image!r} of the block orientation is not in {str(folder)!r} "
+                                        "(pass --images DIR)")
+            p = hits[0]
+        out.append(p)
+    return out
+
+
+def _camera(bo: BlockOrientation, pose: Pose) -> Camera:
+    cam = bo.cameras.get(pose.camera) or bo.cameras.get(pose.image)
+    if cam is None:
+        if len(bo.cameras) == 1:
+            return next(iter(bo.cameras.values()))
+        raise InvalidInputError(f"image {pose.image!r} names camera {pose.camera!r}, which the orientation does not "
+                                f"hold ({sorted(bo.cameras)})")
+    return cam
+
+
+def _ground_z(folder: Path, opts: SurfaceOptions) -> tuple[float, float | None]:
+    """Mean terrain height and the block points' height range (None: no points file)."""
+    pts = folder / "points.csv"
+    z = None
+    if pts.is_file():
+        t = read_points_csv(pts)
+        zz = np.asarray(t.xyz, dtype=np.float64)[:, 2]
+        zz = zz[np.isfinite(zz)]
+        if zz.size:
+            z = zz
+    if opts.ground_z is not None:
+        g = float(opts.ground_z)
+    elif z is not None:
+        g = float(np.median(z))
+    else:
+        raise InvalidInputError(f"no points.csv beside the orientation in {str(folder)!r} to take the terrain height "
+                                "from: pass --ground-z")
+    rng = None if z is None else float(np.percentile(z, 99) - np.percentile(z, 1))
+    return g, rng
+
+
+# --------------------------------------------------------------------------- pairs
+def _pair_figures(polys: list[NDArray[np.float64]], poses: list[Pose], i: int, j: int, ground_z: float
+                  ) -> tuple[float, float, float, NDArray[np.float64] | None]:
+    """Overlap (share of the smaller footprint), B/H, intersection angle (deg) and the overlap polygon."""
+    o = np.mean(polys[i], axis=0)
+    a = np.ascontiguousarray(cv2.convexHull(np.asarray(polys[i] - o, np.float32)))
+    b = np.ascontiguousarray(cv2.convexHull(np.asarray(polys[j] - o, np.float32)))
+    area, inter = cv2.intersectConvexConvex(a, b)
+    small = min(cv2.contourArea(a), cv2.contourArea(b))
+    ov = float(area / small) if small > 0 else 0.0
+    ci, cj = poses[i].position, poses[j].position
+    h = 0.5 * (abs(ci[2] - ground_z) + abs(cj[2] - ground_z))
+    bh = float(np.linalg.norm(cj - ci) / h) if h > 0 else math.inf
+    if inter is None or area <= 0:
+        centre = 0.5 * (ci[:2] + cj[:2])
+        poly = None
+    else:
+        poly = inter.reshape(-1, 2).astype(np.float64) + o
+        centre = poly.mean(axis=0)
+    x = np.array([centre[0], centre[1], ground_z])
+    ri, rj = ci - x, cj - x
+    cosang = float(ri @ rj / (np.linalg.norm(ri) * np.linalg.norm(rj)))
+    return ov, bh, math.degrees(math.acos(max(-1.0, min(1.0, cosang)))), poly
+
+
+def select_pairs(bo: BlockOrientation, ground_z: float, opts: SurfaceOptions
+                 ) -> tuple[list[StereoPair], list[StereoPair], list[NDArray[np.float64]]]:
+    """The pairs to match, all candidates (best score first) and the footprints (module docstring, step 2).
+
+    Raises
+    ------
+    StereoError
+        No pair passes the thresholds (the best candidate's figures are named).
+    """
+    poses = list(bo.poses)
+    if len(poses) < 2:
+        raise InvalidInputError(f"a surface needs at least 2 images; the orientation has {len(poses)}")
+    cams = {p.image: _camera(bo, p) for p in poses}
+    polys = footprints(poses, cams, ground_z)
+    cands: list[StereoPair] = []
+    shapes: dict[tuple[int, int], NDArray[np.float64]] = {}
+    for i in range(len(poses)):
+        for j in range(i + 1, len(poses)):
+            ov, bh, ang, poly = _pair_figures(polys, poses, i, j, ground_z)
+            ok = (ov >= opts.min_overlap and opts.min_base_height <= bh <= opts.max_base_height
+                  and opts.min_angle_deg <= ang <= opts.max_angle_deg)
+            score = ov * min(bh, BH_TARGET) / BH_TARGET
+            cands.append(StereoPair(i, j, poses[i].image, poses[j].image, ov, bh, ang, score, ok))
+            if poly is not None:
+                shapes[(i, j)] = poly
+    cands.sort(key=lambda p: (not p.passes, -p.score))
+    good = [p for p in cands if p.passes]
+    if not good:
+        best = max(cands, key=lambda p: p.overlap)
+        raise StereoError(
+            f"no stereo pair passes the thresholds (overlap >= {100 * opts.min_overlap:g}%, B/H "
+            f"{opts.min_base_height:g}..{opts.max_base_height:g}, angle {opts.min_angle_deg:g}..{opts.max_angle_deg:g}"
+            f" deg); the best pair: {best.figures()}")
+    # per area: an 8 x 8 grid over the footprints; the best pairs_per_area pairs that cover each area centre
+    allp = np.vstack(polys)
+    lo, hi = allp.min(axis=0), allp.max(axis=0)
+    gx, gy = np.meshgrid(np.linspace(lo[0], hi[0], 17)[1::2], np.linspace(lo[1], hi[1], 17)[1::2])
+    centres = np.column_stack([gx.ravel(), gy.ravel()]).astype(np.float32)
+    chosen: set[tuple[int, int]] = set()
+    inside = {}
+    for p in good:
+        poly = shapes.get((p.i, p.j))
+        if poly is None:
+            continue
+        cnt = np.asarray(poly, np.float32).reshape(-1, 1, 2)
+        inside[(p.i, p.j)] = np.array([cv2.pointPolygonTest(cnt, (float(x), float(y)), False) >= 0
+                                       for x, y in centres])
+    for a in range(len(centres)):
+        k = 0
+        for p in good:  # best score first
+            m = inside.get((p.i, p.j))
+            if m is not None and m[a]:
+                chosen.add((p.i, p.j))
+                k += 1
+                if k >= opts.pairs_per_area:
+                    break
+    sel = [p for p in good if (p.i, p.j) in chosen] or good[:1]
+    return sel, cands, polys
+
+
+# --------------------------------------------------------------------------- one pair
+def _disparity_range(rect: EpipolarRectification, depth_lo: float, depth_hi: float) -> tuple[float, float]:
+    b = float(np.linalg.norm(rect.base))
+    p_hi, p_lo = b * rect.focal_px / depth_lo, b * rect.focal_px / depth_hi
+    off = rect.disparity_offset
+    return p_lo - off, p_hi - off
+
+
+def _pair_points(rect: EpipolarRectification, paths: dict[str, Path], grid: SigmaGrid, std_l: NDArray[np.float64],
+                 std_r: NDArray[np.float64], opts: SurfaceOptions) -> dict[str, Any]:
+    """Triangulate one pair's disparities window by window, with each point's sigma_Z, into ``grid``."""
+    base = float(np.linalg.norm(rect.base))
+    axis = rect.normal_rotation[:, 2]
+    n = 0
+    sig_d: list[float] = []
+    sig_z: list[float] = []
+    m = 6  # margin of the sigma window (the fit's radius 3 and the gradient)
+    with WindowReader(paths["disparity"]) as rd, WindowReader(paths["confidence"]) as rc, \
+            WindowReader(paths["left"]) as rl, WindowReader(paths["right"]) as rr, ignore_not_georeferenced():
+        for c0, r0, w, h in iter_windows(rd.width, rd.height, WINDOW):
+            d, _ = rd.read(c0, r0, w, h)
+            disp = d[:, :, 0].astype(np.float64)
+            disp[disp == NODATA] = np.nan
+            if not np.isfinite(disp).any():
+                continue
+            cf, _ = rc.read(c0, r0, w, h)
+            mask = np.isfinite(disp) & (cf[:, :, 1] == 0)
+            if opts.min_confidence > 0:
+                mask &= cf[:, :, 0] >= opts.min_confidence
+            # the sigma of each disparity, on the window with a margin (right: full rows)
+            a0, b0 = max(c0 - m, 0), max(r0 - m, 0)
+            a1, b1 = min(c0 + w + m, rd.width), min(r0 + h + m, rd.height)
+            dm, _ = rd.read(a0, b0, a1 - a0, b1 - b0)
+            dmm = dm[:, :, 0].astype(np.float32)
+            dmm[dmm == NODATA] = np.nan
+            L, _ = rl.read(a0, b0, a1 - a0, b1 - b0)
+            R, _ = rr.read(0, b0, rr.width, b1 - b0)
+            sd = disparity_sigma(L.astype(np.float32).mean(axis=2), R.astype(np.float32).mean(axis=2), dmm,
+                                 floor_px=opts.sigma_floor_px, right_offset=float(a0))
+            sd = sd[r0 - b0:r0 - b0 + h, c0 - a0:c0 - a0 + w]
+            mask &= np.isfinite(sd)
+            pts = triangulate_disparity(rect, disp, col_off=c0, row_off=r0, mask=mask)
+            if not len(pts):
+                continue
+            rows = np.rint(pts.pixel[:, 1] - r0).astype(np.int64)
+            cols = np.rint(pts.pixel[:, 0] - c0).astype(np.int64)
+            s_px = sd[rows, cols].astype(np.float64)
+            depth = np.abs((pts.xyz - rect.centre_left) @ (axis / np.linalg.norm(axis)))
+            s_disp = height_sigma_disparity(pts.xyz, rect.centre_left, axis, base, rect.focal_px, s_px)
+            s_or = height_sigma_orientation(depth, base, std_l, std_r)
+            s = np.sqrt(s_disp ** 2 + s_or ** 2)
+            grid.add(pts.xyz, s)
+            n += len(pts)
+            step = max(1, len(s) // 2000)
+            sig_d += s_px[::step].tolist()
+            sig_z += s[::step].tolist()
+    return {"points": n, "median_sigma_disparity_px": float(np.median(sig_d)) if sig_d else math.nan,
+            "median_sigma_z": float(np.median(sig_z)) if sig_z else math.nan}
+
+
+def _fuse_rows(hs: list[Any], ss: list[Any], r0: int, r1: int, factor: float, k: float) -> FusedHeights:
+    """Fuse rows ``r0:r1`` of the pairs' height and sigma grids (sigmas scaled by ``factor``)."""
+    return fuse_heights(np.stack([np.asarray(a[r0:r1], np.float64) for a in hs]),
+                        np.stack([factor * np.asarray(a[r0:r1], np.float64) for a in ss]), k=k)
+
+
+# --------------------------------------------------------------------------- the action
+def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptions | None = None,
+                overwrite: bool = False, progress: Progress | None = None) -> SurfaceResult:
+    """A block's orientation -> one fused DSM with sigma_Z, count and provenance bands (module docstring).
+
+    Parameters
+    ----------
+    orientation : path
+        The output folder of ``stereo block`` (its ``orientation.json``) or a block orientation JSON.
+    out_dir : path
+        Output folder (``dsm.tif``, ``pairs.json``).
+    options : SurfaceOptions, optional
+    overwrite : bool
+    progress : callable(stage, done, total), optional
+
+    Raises
+    ------
+    InvalidInputError
+        A missing orientation or image (named), bad options, a cell smaller than a tenth of the ground
+        pixel, outputs that exist (without ``overwrite``) or are inputs.
+    StereoError
+        No pair passes the thresholds (the best pair's figures named), or no pair gives points.
+    """
+    t0 = time.perf_counter()
+    opts = options or SurfaceOptions()
+    if not isinstance(opts, SurfaceOptions):
+        raise InvalidInputError(f"`options` must be a SurfaceOptions; got {type(opts).__name__}")
+    ofile = _orientation_file(orientation)
+    bo = read_block_orientation(ofile)
+    folder = ofile.parent
+    images = find_images(bo, Path(opts.images) if opts.images is not None else folder)
+    for pose, img in zip(bo.poses, images, strict=True):
+        cam = _camera(bo, pose)
+        with ignore_not_georeferenced():
+            info = raster_info(img)
+        if (info.width, info.height) != (cam.width, cam.height):
+            raise InvalidInputError(f"image {str(img)!r} is {info.width} x {info.height} px; its camera says "
+                                    f"{cam.width} x {cam.height}")
+    ground_z, zrange = _ground_z(folder, opts)
+    pairs, cands, _polys = select_pairs(bo, ground_z, opts)
+    poses = list(bo.poses)
+    gsds = [abs(p.position[2] - ground_z) * _camera(bo, p).pixel_size_mm / _camera(bo, p).focal_length_mm
+            for p in poses]
+    gsd = float(np.median(gsds))
+    cell = float(opts.cell) if opts.cell is not None else default_cell(gsd)
+    if cell < gsd / 10:
+        raise InvalidInputError(f"DSM cell {cell:g} is smaller than a tenth of the ground pixel ({gsd:.4g}): choose "
+                                f"at least {gsd / 10:.3g}")
+    flying = float(np.median([abs(p.position[2] - ground_z) for p in poses]))
+    relief = opts.relief if opts.relief is not None else (zrange or 0.0) + 0.1 * flying
+    out = Path(out_dir)
+    ws = Workspace(out, overwrite=overwrite, inputs=[ofile, *images])
+    if out.exists() and not out.is_dir():
+        raise InvalidInputError(f"output {str(out)!r} exists and is not a folder")
+    names = {"dsm": out / "dsm.tif", "pairs": out / "pairs.json"}
+    ws.plan(*names.values())
+    # the common grid: the union of the chosen pairs' overlaps on the mean height, with a margin
+    boxes = []
+    for p in pairs:
+        _ov, _bh, _a, poly = _pair_figures(_polys, poses, p.i, p.j, ground_z)
+        if poly is not None:
+            boxes.append(poly)
+    allp = np.vstack(boxes)
+    lo, hi = allp.min(axis=0), allp.max(axis=0)
+    pad = 0.1 * (hi - lo) + 2 * cell
+    bounds = (lo[0] - pad[0], lo[1] - pad[1], hi[0] + pad[0], hi[1] + pad[1])
+    std = {p.image: bo.std_errors[k] for k, p in enumerate(poses)}
+    files: list[Path] = []
+    stats: list[dict[str, Any]] = []
+    try:
+        ws.prepare()
+        with gdal_cache_limit(64), ws.transaction(), ignore_not_georeferenced(), contextlib.ExitStack() as stack:
+            scratch = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix=".surface-", dir=out)))
+            pair_files: list[tuple[Path, Path] | None] = []
+            for k, p in enumerate(pairs):
+                if progress is not None:
+                    progress("pairs", k, len(pairs))
+                pl, pr = poses[p.i], poses[p.j]
+                cl, cr = _camera(bo, pl), _camera(bo, pr)
+                dz_hi = abs(0.5 * (pl.position[2] + pr.position[2]) - ground_z)
+                rect = rectify_exterior(pl, pr, cl, cr)
+                rng = _disparity_range(rect, max(dz_hi - relief, 1e-3 * dz_hi), dz_hi + relief)
+                paths = {n: scratch / f"pair{k}_{n}.tif" for n in ("left", "right", "disparity", "confidence")}
+                resample_view(rect, "left", images[p.i], paths["left"])
+                resample_view(rect, "right", images[p.j], paths["right"])
+                try:
+                    match_rasters(paths["left"], paths["right"], paths["disparity"], paths["confidence"],
+                                  disparity_range=(math.floor(rng[0]), math.ceil(rng[1])), options=opts.matching,
+                                  scheduler="threads")
+                except StereoError:
+                    stats.append({"points": 0, "median_sigma_disparity_px": math.nan, "median_sigma_z": math.nan,
+                                  "coverage": 0.0})
+                    pair_files.append(None)
+                    continue
+                grid = SigmaGrid(bounds, cell, crs=bo.crs)
+                st = _pair_points(rect, paths, grid, std[pl.image], std[pr.image], opts)
+                h, s = grid.result()
+                st["coverage"] = float(np.isfinite(h).mean())
+                hp, sp = scratch / f"pair{k}_h.npy", scratch / f"pair{k}_s.npy"
+                np.save(hp, h.astype(np.float32))
+                np.save(sp, s.astype(np.float32))
+                del h, s, grid
+                for n in ("left", "right", "disparity", "confidence"):
+                    paths[n].unlink()
+                stats.append(st)
+                pair_files.append((hp, sp))
+            used = [q for q in pair_files if q is not None]
+            if not used:
+                raise StereoError(f"no pair gave points ({len(pairs)} pairs matched)")
+            index = [k for k, q in enumerate(pair_files) if q is not None]
+            hs = [np.load(q[0], mmap_mode="r") for q in used]
+            ss = [np.load(q[1], mmap_mode="r") for q in used]
+            H, W = hs[0].shape
+            transform = SigmaGrid(bounds, cell).transform
+            heights = (f"{ground_unit(bo.crs, 'map')}, the heights of the block orientation")
+            # first pass: the a-posteriori variance factor of the pairs' sigmas from the cells of several pairs
+            chi2_sum, dof_sum = 0.0, 0
+            for r0 in range(0, H, FUSION_ROWS):
+                f = _fuse_rows(hs, ss, r0, min(r0 + FUSION_ROWS, H), 1.0, opts.k_sigma)
+                chi2_sum += float(f.chi2.sum())
+                dof_sum += int(f.dof.sum())
+            factor = variance_factor(chi2_sum, dof_sum)
+            n_valid = n_rej = 0
+            sig_sample: list[NDArray[np.float64]] = []
+            with ws.output(names["dsm"]) as tmp, TiledWriter(
+                    tmp, W, H, len(FUSED_BANDS), "float32", transform, bo.crs, MaskPolicy("nodata", DSM_NODATA),
+                    tile=256, descriptions=fused_band_descriptions(heights, opts.k_sigma)) as wr:
+                for r0 in range(0, H, FUSION_ROWS):
+                    f = _fuse_rows(hs, ss, r0, min(r0 + FUSION_ROWS, H), factor, opts.k_sigma)
+                    prov = np.where(f.provenance >= 0, np.asarray(index)[np.maximum(f.provenance, 0)], -1)
+                    wr.write(np.dstack([nodata_of(f.height), nodata_of(f.sigma), f.count.astype(np.float32),
+                                        prov.astype(np.float32)]), 0, r0)
+                    ok = np.isfinite(f.height)
+                    n_valid += int(ok.sum())
+                    n_rej += int(f.rejected.sum())
+                    sig_sample.append(f.sigma[ok][::7])
+            files.append(names["dsm"])
+            del hs, ss
+            coverage = n_valid / float(H * W)
+            sg = np.concatenate(sig_sample) if sig_sample else np.zeros(0)
+            med_sigma = float(np.median(sg)) if sg.size else math.nan
+            doc = {
+                "format": SURFACE_FORMAT, "version": 1, "orientation": str(ofile), "crs": bo.crs,
+                "dsm": "dsm.tif", "bands": list(FUSED_BANDS),
+                "grid": {"cell": cell, "width": W, "height": H, "transform": list(transform)[:6],
+                         "ground_sampling_distance": gsd},
+                "thresholds": {"min_overlap": opts.min_overlap, "base_height": [opts.min_base_height,
+                                                                                opts.max_base_height],
+                               "angle_deg": [opts.min_angle_deg, opts.max_angle_deg],
+                               "pairs_per_area": opts.pairs_per_area, "k_sigma": opts.k_sigma,
+                               "sigma_floor_px": opts.sigma_floor_px},
+                "ground_z": ground_z, "relief": relief,
+                "pairs": [{"index": k, "left": p.left, "right": p.right, "left_file": str(images[p.i]),
+                           "right_file": str(images[p.j]), "overlap": p.overlap, "base_height": p.base_height,
+                           "angle_deg": p.angle_deg, "score": p.score, **stats[k]} for k, p in enumerate(pairs)],
+                "summary": {"coverage": coverage, "median_sigma_z": med_sigma, "rejected_heights": n_rej,
+                            "variance_factor": factor, "variance_factor_dof": dof_sum,
+                            "candidates": len(cands), "candidates_passing": sum(p.passes for p in cands)},
+            }
+            with ws.output(names["pairs"]) as tmp:
+                tmp.write_text(json.dumps(json_safe(doc), indent=2) + "\n", encoding="utf-8")
+            files.append(names["pairs"])
+    except BaseException:
+        ws.discard_root()
+        raise
+    return SurfaceResult(out, tuple(files), tuple(pairs), tuple(stats), cell, gsd, (H, W), coverage, med_sigma,
+                         n_rej, bo.crs, time.perf_counter() - t0, len(cands), factor)
