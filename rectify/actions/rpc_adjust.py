@@ -99,7 +99,11 @@ class RpcAdjustRun:
             p, s = a.params[j], a.std[j]
             bias = (f"bias col {p[0, 0]:+.3f} +- {s[0, 0]:.3f}, row {p[1, 0]:+.3f} +- {s[1, 0]:.3f} px"
                     + (" (at the image centre)" if k > 1 else ""))
-            lines.append(f"  {name}: {bias}; residual RMS col {rms[j, 0]:.3f}, row {rms[j, 1]:.3f} px")
+            rel = ""
+            if j and not len(a.control_ids):
+                r = a.relative_std(j)
+                rel = f" (+- {r[0, 0]:.3f}, {r[1, 0]:.3f} relative to {self.names[0]})"
+            lines.append(f"  {name}: {bias}{rel}; residual RMS col {rms[j, 0]:.3f}, row {rms[j, 1]:.3f} px")
         if len(a.control_ids):
             cr = np.sqrt(np.mean(a.control_residuals ** 2, axis=0))
             lines.append(f"GCPs: {len(a.control_ids)}, residual RMS east {cr[0]:.3f}, north {cr[1]:.3f}, "
@@ -179,6 +183,7 @@ def _document(run: RpcAdjustRun, opts: RpcAdjustOptions, images: Sequence[Path])
     for j, name in enumerate(run.names):
         imgs.append({"image": str(images[j]), "name": name, "size": list(a.sizes[j]),
                      "params": a.params[j].tolist(), "std": a.std[j].tolist(),
+                     "std_relative_to_first": a.relative_std(j).tolist(),
                      "params_plain": a.plain_params(j).tolist(),
                      "n_measurements": int((a.tracks.image == j).sum()),
                      "residual_rms_px": rms[j].tolist(),

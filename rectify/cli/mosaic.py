@@ -24,7 +24,7 @@ from rectify.cli.options import echo, handle_errors, overwrite_opt, progress, sc
               help="Weight of the angle to the surface normal against the nadir angle (--seams normal).")
 @click.option("--zone", "zone_px", type=click.IntRange(1, 4096), default=8, show_default=True,
               help="Zone size of the seam choice, output pixels.")
-@click.option("--smooth", type=click.IntRange(0, 64), default=1, show_default=True,
+@click.option("--smooth", type=click.IntRange(0, 64), default=2, show_default=True,
               help="Majority filter radius of the zone choice, zones (0: none).")
 @click.option("--blend", type=click.Choice(["seams", "average"]), default="seams", show_default=True,
               help="seams: one image per pixel, feathered; average: the mean of every valid image.")

@@ -393,6 +393,8 @@ class RPCBlockAdjustment:
         Of the check points (None without).
     iterations : int
     robust : str
+    cov : (N 2k, N 2k) float64
+        Covariance of the bias parameters (image-major, then the column's then the row's), px^2.
     """
 
     rpcs: tuple[RPC, ...]
@@ -413,6 +415,7 @@ class RPCBlockAdjustment:
     accuracy: AccuracyStatement | None
     iterations: int
     robust: str
+    cov: NDArray[np.float64]
 
     @classmethod
     def from_observations(cls, rpcs: Sequence[RPC], sizes: Sequence[tuple[int, int]], tracks: TieTracks, *,
@@ -593,7 +596,7 @@ class RPCBlockAdjustment:
                     sigma0, it)
         return cls(tuple(rpcs), tuple((int(a), int(b)) for a, b in sizes), model,
                    theta.reshape(n, 2, k), std.reshape(n, 2, k), sigma0, redundancy, adj_obs, g, res, w,
-                   tuple(adj_obs.ids[t] for t in ctrl_idx), cres, cids, cerr, acc, it, robust)
+                   tuple(adj_obs.ids[t] for t in ctrl_idx), cres, cids, cerr, acc, it, robust, cov * sigma0 ** 2)
 
     # ------------------------------------------------------------------ derived
     def plain_params(self, j: int) -> NDArray[np.float64]:
@@ -609,6 +612,14 @@ class RPCBlockAdjustment:
     def refinement(self, j: int) -> RPCRefinement:
         """Image ``j``'s adjusted projection (RPC + bias) as an :class:`RPCRefinement`."""
         return RPCRefinement(self.rpcs[j], self.model, self.plain_params(j))
+
+    def relative_std(self, j: int, ref: int = 0) -> NDArray[np.float64]:
+        """Standard errors (2, k) of image ``j``'s parameters minus image ``ref``'s, px: free of the datum
+        (without GCPs the absolute standard errors are mostly the prior's)."""
+        m = 2 * BIAS_MODELS[self.model]
+        a, b = slice(j * m, (j + 1) * m), slice(ref * m, (ref + 1) * m)
+        c = self.cov[a, a] + self.cov[b, b] - self.cov[a, b] - self.cov[b, a]
+        return np.sqrt(np.clip(np.diag(c), 0, None)).reshape(2, -1)
 
     def image_rms(self) -> NDArray[np.float64]:
         """RMS of the residuals per image (N, 2), px (measurements with weight > 0)."""

@@ -60,8 +60,8 @@ __all__ = ["COMPRESSIONS", "LOSSLESS", "JPEG_QUALITY", "ProcessLocal", "TileEngi
 COMPRESSIONS = ("zstd", "deflate", "lzw", "jpeg", "none")
 #: the lossless ones (the engine's nodata value is kept)
 LOSSLESS = ("zstd", "deflate", "lzw", "none")
-#: default JPEG quality (1..100)
-JPEG_QUALITY = 90
+#: default JPEG quality (1..100): GDAL's default, which orthority writes too
+JPEG_QUALITY = 75
 
 
 def worker_count(threads: int | None) -> int:

@@ -98,7 +98,7 @@ class MosaicOptions:
     dsm: str | None = None
     normal_weight: float = 0.5
     zone_px: int = 8
-    smooth: int = 1
+    smooth: int = 2
     blend: str = "seams"
     balance: str = "none"
 
@@ -159,8 +159,9 @@ class MosaicResult:
             "seams of the least-transformed image (nadir and normal angles)" if self.seams == "normal"
             else "seams of the nearest nadir")
         out.append(f"  {how}" + (f": {self.plan.labels.shape[1]} x {self.plan.labels.shape[0]} zones of "
-                                 f"{self.plan.zone} px, {self.plan.seam_edges()} seam zone edges, "
-                                 f"{self.plan.changed} zones changed by smoothing" if self.plan is not None else ""))
+                                 f"{self.plan.zone} px, {self.plan.regions()} regions, seams "
+                                 f"{self.plan.seam_edges() * self.plan.zone} px long, {self.plan.changed} zones "
+                                 f"changed by smoothing" if self.plan is not None else ""))
         out += [f"  {Path(p).name}: {100 * s:.1f}% of the mosaic" for p, s in zip(self.inputs, self.share,
                                                                                   strict=True)]
         if self.balance is not None and self.balance.mode != "none":

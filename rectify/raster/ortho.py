@@ -46,13 +46,14 @@ import cv2
 import numpy as np
 from affine import Affine
 from numpy.typing import NDArray
+from threadpoolctl import ThreadpoolController
 
 from rectify.atomic import check_output
 from rectify.errors import CRSError, InvalidInputError, RasterIOError, SchedulerError
 from rectify.geometry.crs import crs_to_string, same_crs, transform_xy, unit_label
 from rectify.geometry.sensors import SensorModel
 from rectify.raster.coverage import check_coverage
-from rectify.raster.dem import Dem, bilinear
+from rectify.raster.dem import Dem
 from rectify.raster.distributed import Scheduler, resolve_scheduler
 from rectify.raster.engine import (
     COMPRESSIONS,
@@ -66,6 +67,7 @@ from rectify.raster.engine import (
 from rectify.raster.georef import Grid, boundary_pixels, crs_label, pixel_from_world_matrix
 from rectify.raster.io import MaskPolicy, raster_info
 from rectify.raster.relief import ReliefShift, relief_shift, relief_stride
+from rectify.raster.visibility import line_of_sight
 
 __all__ = ["OrthoOptions", "OrthoResult", "ReliefShift", "orthorectify", "ortho_grid", "relief_shift",
            "relief_stride", "MIN_VALID_SHARE", "VISIBILITY_OUTSIDE",
@@ -305,6 +307,30 @@ def _lagrange4(t: NDArray[np.float64]) -> NDArray[np.float64]:
     return out
 
 
+_BLAS: dict[str, ThreadpoolController] = {}
+_BLAS_LOCK = threading.Lock()
+
+
+def _blas_one_thread() -> Any:
+    """A context holding BLAS to one thread while the tile threads run (the tiles' small matrix products
+    would otherwise each start BLAS threads: 3x slower on 2 cores)."""
+    with _BLAS_LOCK:
+        ctl = _BLAS.get("c")
+        if ctl is None:
+            ctl = _BLAS["c"] = ThreadpoolController()
+    return ctl.limit(limits=1, user_api="blas")
+
+
+def _interp_matrix(n: int, knots: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(n, len(knots)) weights of linear interpolation between ``knots`` at 0..n-1 (:func:`_interp_index`)."""
+    i, t = _interp_index(n, knots)
+    m = np.zeros((n, len(knots)))
+    r = np.arange(n)
+    m[r, i] = 1 - t
+    m[r, np.minimum(i + 1, len(knots) - 1)] += t
+    return m
+
+
 def _knots(n: int, step: int) -> NDArray[np.float64]:
     k = np.arange(0, n, step, dtype=np.float64)
     if k[-1] != n - 1:
@@ -457,11 +483,10 @@ class _Engine(TileEngine):
         more than ``PROJECTION_TOLERANCE_PX`` the tile is projected exactly, pixel by pixel.
         """
         fin = np.isfinite(z)
-        col = np.full((h, w), np.nan)
-        row = np.full((h, w), np.nan)
-        if not fin.any():
-            return col, row
-        zlo, zhi = float(z[fin].min()), float(z[fin].max())
+        all_fin = bool(fin.all())
+        if not all_fin and not fin.any():
+            return np.full((h, w), np.nan), np.full((h, w), np.nan)
+        zlo, zhi = (float(z.min()), float(z.max())) if all_fin else (float(z[fin].min()), float(z[fin].max()))
         step = self.opts.map_step_px
         kc, kr = _knots(w, step), _knots(h, step)
         t = _gt(self.grid.transform)
@@ -497,30 +522,32 @@ class _Engine(TileEngine):
             pix = np.full((len(g), 2), np.nan)
             pix[okz] = self.model.project(g[okz])
             return pix[:, 0].reshape(h, w), pix[:, 1].reshape(h, w)
-        ir, tr = _interp_index(h, kr)
-        ic, tc = _interp_index(w, kc)
-
-        def plane(v: NDArray[np.float64]) -> NDArray[np.float64]:
-            """One (nr, nc) plane bilinearly to (h, w)."""
-            r = v[ir] * (1 - tr)[:, None] + v[np.minimum(ir + 1, len(kr) - 1)] * tr[:, None]
-            return r[:, ic] * (1 - tc) + r[:, np.minimum(ic + 1, len(kc) - 1)] * tc
-
-        res = np.empty((h, w, 2))
+        # bilinear interpolation of the sparse planes as two small matrix products, A (h, nr) @ V @ B (nc, w)
+        # (two non-zero weights a row: the same sums as the gather form, to rounding, ~1e-16 relative)
+        A = _interp_matrix(h, kr)
+        B = _interp_matrix(w, kc).T
+        col = np.empty((h, w))
+        row = np.empty((h, w))
         if K == 1:
-            for c in range(2):
-                res[..., c] = plane(vals[:, :, 0, c])
+            planes = np.einsum("hr,rsc->hsc", A, vals[:, :, 0])
+            np.matmul(planes[:, :, 0], B, out=col)
+            np.matmul(planes[:, :, 1], B, out=row)
         else:
             # cubic in t = (z - zlo) / span through the 4 nodes: coefficients per sparse point, Horner per pixel
             coef = np.einsum("jk,rskc->rsjc", _VANDER_INV, vals)
-            tz = np.where(fin, (z - zlo) / span, 0.0)
-            for c in range(2):
-                acc = plane(coef[:, :, 3, c])
+            left = np.einsum("hr,rsjc->hsjc", A, coef)
+            tz = (z - zlo) / span
+            if not all_fin:
+                tz[~fin] = 0.0
+            for c, acc in ((0, col), (1, row)):
+                np.matmul(left[:, :, 3, c], B, out=acc)
                 for j in (2, 1, 0):
                     acc *= tz
-                    acc += plane(coef[:, :, j, c])
-                res[..., c] = acc
-        res[~fin] = np.nan
-        return res[..., 0], res[..., 1]
+                    acc += left[:, :, j, c] @ B
+        if not all_fin:
+            col[~fin] = np.nan
+            row[~fin] = np.nan
+        return col, row
 
     # ---------------------------------------------------------------- one tile
     def tile(self, c0: int, r0: int, w: int, h: int) -> tuple[NDArray, bool]:
@@ -579,43 +606,10 @@ class _Engine(TileEngine):
                  inside: NDArray[np.bool_]) -> NDArray[np.bool_]:
         """Line-of-sight test over the DEM block ``Z`` (with margin ``m``): True where nothing hides the point.
 
-        ``d`` (h, w, 2): output pixels per metre of height towards the sensor.
+        ``d`` (h, w, 2): output pixels per metre of height towards the sensor
+        (:func:`rectify.raster.visibility.line_of_sight`).
         """
-        zmax = float(np.nanmax(Z))
-        ddist = np.hypot(d[..., 0], d[..., 1])
-        vis = np.ones((h, w), bool)
-        cand = inside & (ddist > 1e-12) & np.isfinite(z)
-        step = 0.5  # px
-        rows, cols = np.nonzero(cand)
-        if not len(rows):
-            return vis
-        dx, dy, dd = d[rows, cols, 0], d[rows, cols, 1], ddist[rows, cols]
-        z0 = z[rows, cols]
-        ux, uy = dx / dd, dy / dd
-        px0, py0 = cols + m + 0.0, rows + m + 0.0
-        occl = np.zeros(len(rows), bool)
-        active = np.ones(len(rows), bool)
-        Zf = np.where(np.isfinite(Z), Z, -np.inf)
-        k = 1
-        while active.any():
-            a = np.flatnonzero(active)
-            s = k * step
-            ray_h = z0[a] + s / dd[a]
-            x = px0[a] + s * ux[a]
-            y = py0[a] + s * uy[a]
-            inb = (x >= 0) & (y >= 0) & (x <= Z.shape[1] - 1) & (y <= Z.shape[0] - 1)
-            ter = np.full(len(a), -np.inf)
-            if inb.any():
-                ter[inb] = bilinear(Zf, None, x[inb], y[inb])
-            hit = ter > ray_h + 1e-3
-            occl[a[hit]] = True
-            stop = hit | ~inb | (ray_h > zmax)
-            active[a[stop]] = False
-            k += 1
-            if k > 100000:
-                break
-        vis[rows, cols] = ~occl
-        return vis
+        return line_of_sight(Z, m, d, z, inside)
 
     def _resample(self, col: NDArray, row: NDArray, use: NDArray[np.bool_], h: int, w: int):
         W, H = self.model.width, self.model.height
@@ -647,8 +641,12 @@ class _Engine(TileEngine):
                         valid[rs:re_, cs:ce] = sub[1]
             return img, valid
         data, vmask = self.reader().read(c_lo, r_lo, c_hi - c_lo, r_hi - r_lo)
-        mx = np.where(use, col - c_lo, -10.0).astype(np.float32)
-        my = np.where(use, row - r_lo, -10.0).astype(np.float32)
+        mx = np.subtract(col, c_lo, out=np.empty(col.shape, np.float32), casting="unsafe")
+        my = np.subtract(row, r_lo, out=np.empty(row.shape, np.float32), casting="unsafe")
+        if not use.all():
+            off = ~use
+            mx[off] = -10.0
+            my[off] = -10.0
         src = data if data.dtype in (np.uint8, np.uint16, np.int16, np.float32) else data.astype(np.float32)
         chans = []
         for k0 in range(0, src.shape[2], 4):
@@ -767,13 +765,8 @@ def orthorectify(src: str | Path, dst: str | Path, model: SensorModel, dem: Dem,
     if opts.true_ortho:
         tags["ORTHO_VISIBILITY_BAND"] = str(count)
     try:
-        n_empty = write_tiled(engine, dst, grid, windows, count=count, dtype=dtype,
-                              policy=MaskPolicy("nodata", nodata), tile=opts.tile_px, compress=opts.compress,
-                              cog=opts.cog, threads=opts.n_threads, scheduler=sched, overwrite=overwrite,
-                              progress=progress, name="ortho", cache_bytes=64 * 1024 * 1024,
-                              cog_resampling="nearest", tags=tags, quality=opts.quality,
-                              band_descriptions={count: "visibility: 0 outside, 1 occluded, 2 visible"}
-                              if opts.true_ortho else None)
+        with _blas_one_thread():
+            n_empty = _write(engine, dst, grid, windows, count, dtype, nodata, opts, sched, overwrite, progress, tags)
     except OSError as err:
         if isinstance(err, (RasterIOError, SchedulerError)):  # a Dask scheduler's failure is not a write failure
             raise
@@ -791,6 +784,18 @@ def orthorectify(src: str | Path, dst: str | Path, model: SensorModel, dem: Dem,
                         "valid_share": None if coverage is None else coverage.valid_share}, relief)
 
 
+def _write(engine: _Engine, dst: str | Path, grid: Grid, windows: list, count: int, dtype: np.dtype, nodata: float,
+           opts: OrthoOptions, sched: Scheduler, overwrite: bool, progress: Callable[[int, int], None] | None,
+           tags: dict[str, str]) -> int:
+    """The engine's tiles into ``dst`` through the shared output tail; the empty tiles."""
+    return write_tiled(engine, dst, grid, windows, count=count, dtype=dtype, policy=MaskPolicy("nodata", nodata),
+                       tile=opts.tile_px, compress=opts.compress, cog=opts.cog, threads=opts.n_threads,
+                       scheduler=sched, overwrite=overwrite, progress=progress, name="ortho",
+                       cache_bytes=64 * 1024 * 1024, cog_resampling="nearest", tags=tags, quality=opts.quality,
+                       band_descriptions={count: "visibility: 0 outside, 1 occluded, 2 visible"}
+                       if opts.true_ortho else None)
+
+
 def _nadir_in(model: SensorModel, crs: str) -> NDArray[np.float64]:
     try:
         return transform_xy(model.crs, crs, np.asarray(model.nadir).reshape(1, 2))[0]
@@ -799,13 +804,23 @@ def _nadir_in(model: SensorModel, crs: str) -> NDArray[np.float64]:
 
 
 def _centre_tags(model: SensorModel, crs: str) -> dict[str, str]:
-    """``ORTHO_CENTER_X/Y/Z``: a frame model's projection centre in the output CRS (metres up); none for an RPC."""
+    """``ORTHO_CENTER_X/Y/Z`` (output CRS, metres up): a frame model's projection centre; for an RPC a point
+    1000 km up along the line of sight of the image centre (``ORTHO_CENTER_KIND`` ``direction``)."""
     pos = getattr(model, "position", None)
-    if pos is None:
-        return {}
     try:
-        c = transform_xy(model.crs, crs, np.asarray(pos, dtype=np.float64)[:2].reshape(1, 2))[0]
+        if pos is not None:
+            c = transform_xy(model.crs, crs, np.asarray(pos, dtype=np.float64)[:2].reshape(1, 2))[0]
+            xyz, kind = (float(c[0]), float(c[1]), float(pos[2])), "centre"
+        else:
+            vb = model.rpc.validity_box[2]  # type: ignore[attr-defined]
+            h0, up = 0.5 * (vb[0] + vb[1]), 1.0e6
+            mid = np.array([[(model.width - 1) / 2.0, (model.height - 1) / 2.0]])
+            g = [transform_xy(model.crs, crs, model.ground_at_height(mid, h)[:, :2])[0] for h in (h0, h0 + 100.0)]
+            d = (g[1] - g[0]) / 100.0  # horizontal move towards the sensor per metre up
+            xyz, kind = (float(g[0][0] + up * d[0]), float(g[0][1] + up * d[1]), h0 + up), "direction"
+        if not all(math.isfinite(v) for v in xyz):
+            return {}
     except Exception:  # noqa: BLE001 - the centre is metadata only
         return {}
-    return {"ORTHO_CENTER_X": repr(float(c[0])), "ORTHO_CENTER_Y": repr(float(c[1])),
-            "ORTHO_CENTER_Z": repr(float(pos[2]))}
+    return {"ORTHO_CENTER_X": repr(xyz[0]), "ORTHO_CENTER_Y": repr(xyz[1]), "ORTHO_CENTER_Z": repr(xyz[2]),
+            "ORTHO_CENTER_KIND": kind}

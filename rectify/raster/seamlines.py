@@ -56,8 +56,8 @@ def surface_normals(Z: NDArray[np.float64], spacing: float) -> NDArray[np.float6
         gx = np.zeros_like(z)
         gy = np.zeros_like(z)
     else:
-        drow, dcol = np.gradient(z, spacing)
-        gx, gy = dcol, -drow
+        grads = np.gradient(z, spacing)
+        gx, gy = np.asarray(grads[1]), -np.asarray(grads[0])
     n = np.stack([-gx, -gy, np.ones_like(z)], axis=-1)
     bad = ~np.isfinite(n).all(axis=-1)
     n[bad] = (0.0, 0.0, 1.0)
@@ -179,6 +179,11 @@ class SeamPlan:
         """Zones the majority filter changed."""
         return int((self.labels != self.raw).sum())
 
+    def regions(self) -> int:
+        """Connected regions (4-connected) of one chosen image: 1 per image means one zone per image."""
+        return sum(int(cv2.connectedComponents((self.labels == i).astype(np.uint8), connectivity=4)[0]) - 1
+                   for i in range(self.cost.shape[0]))
+
     def seam_edges(self) -> int:
         """Zone edges between two different chosen images (a measure of the seams' length, in zones)."""
         lab = self.labels
@@ -205,5 +210,9 @@ def plan_seams(centres: NDArray[np.float64], X: NDArray, Y: NDArray, Z: NDArray,
     cost = criterion(centres, X, Y, zf, normals, weight)
     cand = candidates(share)
     raw = choose(cost, cand)
-    lab = majority(raw, cand, radius, iterations)
+    smooth = cost
+    if radius > 0:  # the criterion smoothed over the zones first (a Gaussian of sigma ``radius`` zones)
+        smooth = np.stack([cv2.GaussianBlur(c, (0, 0), sigmaX=float(radius), borderType=cv2.BORDER_REFLECT)
+                           for c in cost])
+    lab = majority(choose(smooth, cand), cand, radius, iterations)
     return SeamPlan(zone, lab, raw, cost, signed_distance(lab, cost.shape[0]))

@@ -178,10 +178,28 @@ class ViewData:
             return self._cache[key]
 
     def orientation(self) -> dict[str, Any] | None:
-        """The block's ``orientation.json`` (or None)."""
+        """The block's ``orientation.json`` (or None).
+
+        Raises
+        ------
+        InvalidInputError
+            ``images`` is not a list of objects with an ``image`` name, or ``cameras`` not an object.
+        """
         rel = self.contents.block_orientation
-        return self._once("orientation", lambda: read_json(self.contents.root / rel, "block orientation")
-                          if rel else None)
+
+        def make() -> dict[str, Any] | None:
+            if rel is None:
+                return None
+            doc = read_json(self.contents.root / rel, "block orientation")
+            ims = doc.get("images") if isinstance(doc, dict) else None
+            if not isinstance(ims, list) or not all(isinstance(im, dict) and "image" in im for im in ims):
+                raise InvalidInputError(f"{str(self.contents.root / rel)!r}: 'images' must be a list of objects "
+                                        "with an 'image' name")
+            if not isinstance(doc.get("cameras", {}), dict):
+                raise InvalidInputError(f"{str(self.contents.root / rel)!r}: 'cameras' must be an object")
+            return doc
+
+        return self._once("orientation", make)
 
     def observations(self) -> Observations | None:
         """The block's ``observations.csv`` (or None)."""

@@ -114,6 +114,10 @@ class ViewApp:
         except RectifyError as err:
             log.warning("view: %s: %s", rel, err)
             return Response.error(500, f"{type(err).__name__}: {err}")
+        except (ValueError, TypeError, KeyError, IndexError, OSError) as err:  # a malformed result file
+            log.warning("view: %s: %s: %s", rel, type(err).__name__, err)
+            log.debug("view: %s", rel, exc_info=True)
+            return Response.error(500, f"cannot answer {rel!r}: {type(err).__name__}: {err}")
 
     def _route(self, rel: str) -> Response:
         if rel in ("", "index.html"):

@@ -62,13 +62,13 @@ def frame_for(inp: Any, kind: str | None) -> AdjustmentFrame:
 
 
 def frame_lines(frame: AdjustmentFrame, inp: Any) -> tuple[str, ...]:
-    """The summary line of the frame, and the curvature warning of a map frame over a wide block (logged too)."""
+    """The summary line of the frame, and the curvature warning of a map frame over a wide block (logged at info)."""
     warn = None
     if frame.kind == "map":
         p = _positions(inp)
         warn = curvature_warning(p[np.isfinite(p).all(axis=1)], frame.crs)
-        if warn is not None:
-            logger.warning(warn)
+        if warn is not None:  # printed with the summary lines; logged now for a long run (-v)
+            logger.info(warn)
     return (f"adjustment frame: {frame.description()}",) + ((f"warning: {warn}",) if warn else ())
 
 

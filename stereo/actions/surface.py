@@ -58,7 +58,7 @@ from rectify.raster.io import (
 from rectify.report.builder import json_safe
 from stereo.block.tracks_pairs import footprints
 from stereo.block.types import Pose
-from stereo.dense.dsm import DSM_NODATA, default_cell
+from stereo.dense.dsm import DSM_NODATA, DsmResult, default_cell
 from stereo.dense.epipolar import EpipolarRectification, rectify_exterior, resample_view
 from stereo.dense.fusion import (
     FUSED_BANDS,
@@ -80,6 +80,7 @@ from stereo.dense.triangulate import triangulate_disparity
 from stereo.formats.block import BlockOrientation, read_block_orientation
 from stereo.formats.points import read_points_csv
 from stereo.pair.model import ground_unit
+from stereo.report.dense import HeightComparison, compare_with_dem
 
 __all__ = ["BH_TARGET", "SURFACE_FORMAT", "StereoPair", "SurfaceOptions", "SurfaceResult", "run_surface",
            "select_pairs"]
@@ -129,6 +130,8 @@ class SurfaceOptions:
         Disparity standard error floor (:func:`stereo.dense.precision.disparity_sigma`).
     min_confidence : float
         Points of lower matching confidence are left out.
+    reference_dem : path or None
+        Compare the DSM with it (resampled bilinearly onto the DSM grid; RMSE, NMAD, coverage).
     matching : MatchOptions
     """
 
@@ -145,6 +148,7 @@ class SurfaceOptions:
     k_sigma: float = 3.0
     sigma_floor_px: float = DISPARITY_SIGMA_FLOOR_PX
     min_confidence: float = 0.0
+    reference_dem: str | None = None
     matching: MatchOptions = MatchOptions()
 
     def __post_init__(self) -> None:
@@ -223,6 +227,9 @@ class SurfaceResult:
         unit = ground_unit(self.crs, "map")
         lines = [f"pairs: {len(self.pairs)} of {self.n_candidates} candidates"]
         for k, (p, s) in enumerate(zip(self.pairs, self.pair_stats, strict=True)):
+            if s.get("skipped"):
+                lines.append(f"  pair {k}: {p.figures()}; skipped: {s['skipped']}")
+                continue
             lines.append(f"  pair {k}: {p.figures()}; {s['points']} points, median sigma_Z "
                          f"{s['median_sigma_z']:.3g} {unit}")
         lines += [f"DSM: {self.shape[1]} x {self.shape[0]} cells of {self.cell:g} {unit} (ground pixel {self.gsd:.4g} "
@@ -445,6 +452,16 @@ def _pair_points(rect: EpipolarRectification, paths: dict[str, Path], grid: Sigm
             "median_sigma_z": float(np.median(sig_z)) if sig_z else math.nan}
 
 
+def _overlap_mask(polys: list[NDArray[np.float64]], transform: Any, shape: tuple[int, int]) -> NDArray[np.bool_]:
+    """Cells of the grid inside any of the polygons (ground x, y)."""
+    m = np.zeros(shape, np.uint8)
+    inv = ~transform
+    for poly in polys:
+        cr = np.array([inv * (float(x), float(y)) for x, y in poly]) - 0.5   # cell centres at integers
+        cv2.fillPoly(m, [np.round(cr * 16).astype(np.int32)], 1, shift=4)
+    return m > 0
+
+
 def _fuse_rows(hs: list[Any], ss: list[Any], r0: int, r1: int, factor: float, k: float) -> FusedHeights:
     """Fuse rows ``r0:r1`` of the pairs' height and sigma grids (sigmas scaled by ``factor``)."""
     return fuse_heights(np.stack([np.asarray(a[r0:r1], np.float64) for a in hs]),
@@ -502,7 +519,10 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
     flying = float(np.median([abs(p.position[2] - ground_z) for p in poses]))
     relief = opts.relief if opts.relief is not None else (zrange or 0.0) + 0.1 * flying
     out = Path(out_dir)
-    ws = Workspace(out, overwrite=overwrite, inputs=[ofile, *images])
+    if opts.reference_dem is not None and not Path(opts.reference_dem).is_file():
+        raise InvalidInputError(f"reference DEM not found: {str(opts.reference_dem)!r}")
+    ws = Workspace(out, overwrite=overwrite,
+                   inputs=[ofile, *images, *([opts.reference_dem] if opts.reference_dem else [])])
     if out.exists() and not out.is_dir():
         raise InvalidInputError(f"output {str(out)!r} exists and is not a folder")
     names = {"dsm": out / "dsm.tif", "pairs": out / "pairs.json"}
@@ -531,18 +551,18 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
                 pl, pr = poses[p.i], poses[p.j]
                 cl, cr = _camera(bo, pl), _camera(bo, pr)
                 dz_hi = abs(0.5 * (pl.position[2] + pr.position[2]) - ground_z)
-                rect = rectify_exterior(pl, pr, cl, cr)
-                rng = _disparity_range(rect, max(dz_hi - relief, 1e-3 * dz_hi), dz_hi + relief)
                 paths = {n: scratch / f"pair{k}_{n}.tif" for n in ("left", "right", "disparity", "confidence")}
-                resample_view(rect, "left", images[p.i], paths["left"])
-                resample_view(rect, "right", images[p.j], paths["right"])
-                try:
+                try:  # a pair without a normal case or without matches is skipped, with its reason
+                    rect = rectify_exterior(pl, pr, cl, cr)
+                    rng = _disparity_range(rect, max(dz_hi - relief, 1e-3 * dz_hi), dz_hi + relief)
+                    resample_view(rect, "left", images[p.i], paths["left"])
+                    resample_view(rect, "right", images[p.j], paths["right"])
                     match_rasters(paths["left"], paths["right"], paths["disparity"], paths["confidence"],
                                   disparity_range=(math.floor(rng[0]), math.ceil(rng[1])), options=opts.matching,
                                   scheduler="threads")
-                except StereoError:
+                except StereoError as err:
                     stats.append({"points": 0, "median_sigma_disparity_px": math.nan, "median_sigma_z": math.nan,
-                                  "coverage": 0.0})
+                                  "coverage": 0.0, "skipped": str(err)})
                     pair_files.append(None)
                     continue
                 grid = SigmaGrid(bounds, cell, crs=bo.crs)
@@ -559,7 +579,8 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
                 pair_files.append((hp, sp))
             used = [q for q in pair_files if q is not None]
             if not used:
-                raise StereoError(f"no pair gave points ({len(pairs)} pairs matched)")
+                raise StereoError(f"no pair gave points ({len(pairs)} pairs tried; the first: "
+                                  f"{stats[0].get('skipped')})")
             index = [k for k, q in enumerate(pair_files) if q is not None]
             hs = [np.load(q[0], mmap_mode="r") for q in used]
             ss = [np.load(q[1], mmap_mode="r") for q in used]
@@ -575,6 +596,8 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
             factor = variance_factor(chi2_sum, dof_sum)
             n_valid = n_rej = 0
             sig_sample: list[NDArray[np.float64]] = []
+            full_h = np.full((H, W), DSM_NODATA, np.float32)   # for the overlap coverage and the reference DEM
+            full_n = np.zeros((H, W), np.uint16)
             with ws.output(names["dsm"]) as tmp, TiledWriter(
                     tmp, W, H, len(FUSED_BANDS), "float32", transform, bo.crs, MaskPolicy("nodata", DSM_NODATA),
                     tile=256, descriptions=fused_band_descriptions(heights, opts.k_sigma)) as wr:
@@ -587,11 +610,20 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
                     n_valid += int(ok.sum())
                     n_rej += int(f.rejected.sum())
                     sig_sample.append(f.sigma[ok][::7])
+                    full_h[r0:r0 + len(ok)] = nodata_of(f.height)
+                    full_n[r0:r0 + len(ok)] = np.minimum(f.count, 65535)
             files.append(names["dsm"])
             del hs, ss
             coverage = n_valid / float(H * W)
             sg = np.concatenate(sig_sample) if sig_sample else np.zeros(0)
             med_sigma = float(np.median(sg)) if sg.size else math.nan
+            in_overlap = _overlap_mask(boxes, transform, (H, W))
+            ov_cov = float((full_n[in_overlap] > 0).mean()) if in_overlap.any() else math.nan
+            comparison = None
+            if opts.reference_dem is not None:
+                comparison, _dz = compare_with_dem(
+                    DsmResult(full_h, full_n, np.zeros((H, W), bool), transform, bo.crs), opts.reference_dem)
+            del full_h, full_n
             doc = {
                 "format": SURFACE_FORMAT, "version": 1, "orientation": str(ofile), "crs": bo.crs,
                 "dsm": "dsm.tif", "bands": list(FUSED_BANDS),
@@ -606,9 +638,13 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
                 "pairs": [{"index": k, "left": p.left, "right": p.right, "left_file": str(images[p.i]),
                            "right_file": str(images[p.j]), "overlap": p.overlap, "base_height": p.base_height,
                            "angle_deg": p.angle_deg, "score": p.score, **stats[k]} for k, p in enumerate(pairs)],
-                "summary": {"coverage": coverage, "median_sigma_z": med_sigma, "rejected_heights": n_rej,
+                "summary": {"coverage": coverage, "overlap_coverage": ov_cov, "median_sigma_z": med_sigma,
+                            "rejected_heights": n_rej,
                             "variance_factor": factor, "variance_factor_dof": dof_sum,
                             "candidates": len(cands), "candidates_passing": sum(p.passes for p in cands)},
+                "comparison": None if comparison is None else {
+                    "reference_dem": str(opts.reference_dem),
+                    **{k: v for k, v in comparison.__dict__.items() if k != "histogram"}},
             }
             with ws.output(names["pairs"]) as tmp:
                 tmp.write_text(json.dumps(json_safe(doc), indent=2) + "\n", encoding="utf-8")
@@ -617,4 +653,4 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
         ws.discard_root()
         raise
     return SurfaceResult(out, tuple(files), tuple(pairs), tuple(stats), cell, gsd, (H, W), coverage, med_sigma,
-                         n_rej, bo.crs, time.perf_counter() - t0, len(cands), factor)
+                         n_rej, bo.crs, time.perf_counter() - t0, len(cands), factor, ov_cov, comparison)

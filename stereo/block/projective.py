@@ -46,7 +46,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.optimize
@@ -169,8 +169,13 @@ def _quasi_affine(X: F64, P1: F64) -> F64:
     of the plane at infinity (signs by the depth in camera P1), then centred and scaled."""
     s = np.sign(X @ P1[2])
     s[s == 0] = 1.0
-    Xs = X * s[:, None]
-    Xs /= np.linalg.norm(Xs, axis=1, keepdims=True)
+    return _frame(X * s[:, None])
+
+
+def _frame(X: F64) -> F64:
+    """(4, 4) G = S Hq: Hq sends to infinity a plane that leaves every signed homogeneous point X (K, 4) on
+    its positive side (a linear programme: maximise t with pi . x_k >= t), S centres and scales."""
+    Xs = X / np.linalg.norm(X, axis=1, keepdims=True)
     # maximise t: pi . X_k >= t, |pi_i| <= 1
     k = len(Xs)
     res = scipy.optimize.linprog(c=[0, 0, 0, 0, -1.0], A_ub=np.column_stack([-Xs, np.ones(k)]), b_ub=np.zeros(k),
@@ -396,12 +401,15 @@ def join_models(models: Sequence[ProjectiveModel], n_points: int, n_images: int,
     ms = list(models)
     if not ms:
         raise EstimationError("no models to join")
-    block = np.full((n_points, 3), np.nan)
-    block[ms[0].points] = ms[0].xyz
+    # the block points as signed homogeneous vectors: a projective join may carry a new model's points
+    # across the plane at infinity of the block frame, which is then chosen again (quasi-affine)
+    block_h = np.full((n_points, 4), np.nan)
+    block_h[ms[0].points] = np.column_stack([ms[0].xyz, np.ones(len(ms[0].xyz))])
     T = {0: np.eye(4)}
     order = [0]
     left = set(range(1, len(ms)))
     while left:
+        block = block_h[:, :3] / block_h[:, 3:4]
         cand = [(int(np.isfinite(block[ms[m].points, 0]).sum()), m) for m in left]
         k, m = max(cand)
         if k < need:
@@ -416,11 +424,19 @@ def join_models(models: Sequence[ProjectiveModel], n_points: int, n_images: int,
                                   f"{need} common points ({n_par} parameters)")
         sel = np.isfinite(block[ms[m].points, 0])
         Tm = _fit(method, ms[m].xyz[sel], block[ms[m].points[sel]], use_virtual)
+        Y = np.column_stack([ms[m].xyz, np.ones(len(ms[m].xyz))]) @ Tm.T
+        Tm = Tm * np.sign(np.median(Y[sel, 3]))  # its common points keep the side of the block's points
         T[m] = Tm
         new = ~sel
-        block[ms[m].points[new]] = _apply(Tm, ms[m].xyz[new])
+        block_h[ms[m].points[new]] = np.column_stack([ms[m].xyz[new], np.ones(int(new.sum()))]) @ Tm.T
         order.append(m)
         left.discard(m)
+        fin = np.isfinite(block_h[:, 0])
+        if method == "projective" and np.min(block_h[fin, 3] / np.linalg.norm(block_h[fin], axis=1)) < 0.05:
+            G = _frame(block_h[fin])
+            block_h[fin] = block_h[fin] @ G.T
+            block_h[fin] /= block_h[fin, 3:4]
+            T = {q: G @ Tq for q, Tq in T.items()}
     in_model = np.zeros(n_images, dtype=bool)
     for q in order:
         in_model[list(ms[q].images)] = True
@@ -429,6 +445,13 @@ def join_models(models: Sequence[ProjectiveModel], n_points: int, n_images: int,
                               f"{MIN_POINTS_F} tracks shared with any other image)")
     ms = [ms[q] for q in order]  # the joined models, in the order of joining (the datum first)
     T = {j: T[q] for j, q in enumerate(order)}
+    if not np.allclose(T[0], np.eye(4)):  # the block frame was chosen again: the datum model takes it
+        G = T[0] / T[0][3, 3]
+        Y = np.column_stack([ms[0].xyz, np.ones(len(ms[0].xyz))]) @ G.T
+        cams0 = ms[0].cameras @ np.linalg.inv(G)
+        ms[0] = replace(ms[0], xyz=Y[:, :3] / Y[:, 3:4], cameras=cams0 / np.linalg.norm(cams0.reshape(2, -1),
+                                                                                          axis=1)[:, None, None])
+        T[0] = np.eye(4)  # the other models' transformations already end in the block frame
     block = np.full((n_points, 3), np.nan)
     for j, mo in enumerate(ms):
         miss = ~np.isfinite(block[mo.points, 0])
@@ -570,8 +593,8 @@ def _reprojection(P: F64, X: F64, u: F64) -> F64:
         return np.asarray(np.linalg.norm(q[:, :2] / q[:, 2:3] - u, axis=1), dtype=np.float64)
 
 
-def resect_cameras(tracks: Tracks, sizes: Sequence[tuple[int, int]], points: F64, *, outlier_px: float = 5.0
-                   ) -> tuple[F64, NDArray[np.bool_]]:
+def resect_cameras(tracks: Tracks, sizes: Sequence[tuple[int, int]], points: F64, *, outlier_px: float = 5.0,
+                   initial: F64 | None = None) -> tuple[F64, NDArray[np.bool_]]:
     """Projective resection (11-parameter DLT) of every image on the block points, with rejection.
 
     The cameras of the joined models carry the weakly determined part of each model's transformation
@@ -585,8 +608,11 @@ def resect_cameras(tracks: Tracks, sizes: Sequence[tuple[int, int]], points: F64
     points : (P, 3) float64
         Block points (NaN: not in the block).
     outlier_px : float
-        Observations farther than this from the resected camera (and than 5 times the median) are
-        rejected, px.
+        Observations farther than this from the resected camera (and than 5 robust standard
+        deviations) are rejected, px.
+    initial : (n, 3, 4) float64, optional
+        The cameras of the joined models: an image keeps its model camera when that reprojects its
+        points with a smaller median error than the resected one.
 
     Returns
     -------
@@ -637,5 +663,12 @@ def resect_cameras(tracks: Tracks, sizes: Sequence[tuple[int, int]], points: F64
         sol = scipy.optimize.least_squares(fun, P.reshape(-1), loss="soft_l1", f_scale=outlier_px / 2, method="trf",
                                            max_nfev=30)
         cams[i] = sol.x.reshape(3, 4) / np.linalg.norm(sol.x)
+        if initial is not None and np.isfinite(initial[i]).all():
+            e_new = float(np.median(_reprojection(cams[i], X, u)))
+            e_old = float(np.median(_reprojection(initial[i], X, u)))
+            if not e_new <= e_old:
+                cams[i] = initial[i] / np.linalg.norm(initial[i])
+                e = _reprojection(cams[i], X, u) * s
+                good = e <= max(outlier_px, OUTLIER_FACTOR * 1.4826 * float(np.median(e)))
         keep[obs[~good]] = False
     return cams, keep

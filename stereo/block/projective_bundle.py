@@ -8,9 +8,9 @@ matrices -- every image has its own 11-parameter projective camera):
 
 with ``u`` the image's normalised coordinates (:func:`stereo.block.projective.pixel_normaliser`,
 scale ``s_i`` back to pixels). The datum (gauge) is the first camera, held; each other camera is
-held to unit norm by a constraint; the remaining four gauge freedoms (the projective maps that fix
-the first camera) are left to the minimum-norm steps of the sparse solver (they change no
-residual). Redundancy ``2M - (11 n + 3 P - 15)``.
+held to unit norm by a constraint; the remaining four gauge freedoms (the projective maps
+``I + C0 w^T`` that fix the first camera, C0 its centre) are fixed by four inner constraints on the
+point corrections. Redundancy ``2M - (11 n + 3 P - 15)``.
 
 :func:`upgrade_to_metric` takes the projective block to the object frame with control points: a
 3D projective transformation (15 parameters, at least
@@ -84,6 +84,8 @@ MAX_FOCAL_SPREAD = 1.5
 #: the projective bundle solves its steps densely up to this many unknowns, iteratively (LSMR) beyond (0: always
 #: LSMR; the dense trust-region steps were slower already at 1000 unknowns)
 DENSE_LIMIT = 0
+#: weight of the four inner constraints that fix the projective bundle's gauge (residual units: sigmas)
+GAUGE_WEIGHT = 1e3
 #: the a-priori spread of the images' interior orientation in the refinement of the upgrade, relative to fx
 K_SIGMA_RELATIVE = 0.01
 
@@ -172,8 +174,15 @@ def adjust_projective(tracks: Tracks, sizes: Sequence[tuple[int, int]], cameras:
         q = np.einsum("mij,mj->mi", Ps[oi], Xh)
         r = (q[:, :2] / q[:, 2:3] - u) * wobs[:, None]
         norm = np.sum(Ps[1:].reshape(n - 1, -1) ** 2, axis=1) - 1.0
-        return np.concatenate([r.reshape(-1), norm])
+        gauge = GAUGE_WEIGHT * np.einsum("pkc,pc->k", V, X - X0)
+        return np.concatenate([r.reshape(-1), norm, gauge])
 
+    # the gauge left with the first camera held: H = I + C0 w^T (C0 its centre) moves each point along its ray
+    # from C0, d X_j / d w_k = Xh_jk (c - X_j c4); four inner constraints sum_j V_jk . (X_j - X0_j) = 0 fix it
+    C0 = np.linalg.svd(held)[2][-1]
+    Xh0 = np.column_stack([X0, np.ones(P)])
+    V = Xh0[:, :, None] * (C0[None, None, :3] - X0[:, None, :] * C0[3])  # (P, 4, 3)
+    V = V / (np.linalg.norm(V.reshape(P, -1), axis=1).max() or 1.0)
     dense = len(x0) <= DENSE_LIMIT
 
     def jac(x: F64) -> scipy.sparse.csr_matrix | F64:
@@ -204,8 +213,11 @@ def adjust_projective(tracks: Tracks, sizes: Sequence[tuple[int, int]], cameras:
         rr.append(np.repeat(2 * M + np.arange(n - 1), 12))
         cc.append(np.arange(nc))
         vv.append(2.0 * Ps[1:].reshape(-1))
+        rr.append(np.repeat(2 * M + n - 1 + np.arange(4), 3 * P))
+        cc.append(np.tile(nc + np.arange(3 * P), 4))
+        vv.append(GAUGE_WEIGHT * V.transpose(1, 0, 2).reshape(-1))
         J = scipy.sparse.csr_matrix((np.concatenate(vv), (np.concatenate(rr), np.concatenate(cc))),
-                                    shape=(2 * M + n - 1, len(x0)))
+                                    shape=(2 * M + n - 1 + 4, len(x0)))
         return J.toarray() if dense else J
 
     # robust first (soft L1 beyond 3 sigma), then the observations beyond OUTLIER_FACTOR robust sigmas are
@@ -577,7 +589,7 @@ def uncalibrated_block(tracks: Tracks, sizes: Sequence[tuple[int, int]], control
     _enough_control(tracks, control, method)
     models = form_models(tracks, sizes, method=method, focal_guess_px=focal_guess_px)
     mb = join_models(models, tracks.n_points, n, method=method, virtual=virtual)
-    cams, inl = resect_cameras(tracks, sizes, mb.points)
+    cams, inl = resect_cameras(tracks, sizes, mb.points, initial=mb.cameras)
     X1, inl_new = _intersect_all(tracks, sizes, cams)
     have = np.asarray(np.isfinite(mb.points).all(axis=1), dtype=bool)
     X1[have] = mb.points[have]  # the joined models' points; the others intersected through the resected cameras

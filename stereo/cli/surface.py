@@ -33,16 +33,19 @@ _D = SurfaceOptions()
               help="Pairs kept per area (an 8 x 8 grid over the block), best first.")
 @click.option("--k-sigma", type=float, default=_D.k_sigma, show_default=True,
               help="Pair heights farther than this many sigma from the others are rejected.")
+@click.option("--reference-dem", type=click.Path(dir_okay=False), default=None,
+              help="Compare the DSM with this DEM (RMSE, NMAD, coverage; in pairs.json and the summary).")
 @overwrite_opt
 @handle_errors
 def surface(orientation, out_dir, images, cell, ground_z, relief, min_overlap, base_height, angle, pairs_per_area,
-            k_sigma, overwrite):
+            k_sigma, reference_dem, overwrite):
     """Fuse the dense surfaces of a block's stereo pairs into one DSM. ORIENTATION is the output folder of
     `stereo block` (its orientation.json) or a block orientation JSON; the images are found by the names
     it records, in --images."""
     opts = SurfaceOptions(images=images, cell=cell, ground_z=ground_z, relief=relief, min_overlap=min_overlap,
                           min_base_height=base_height[0], max_base_height=base_height[1], min_angle_deg=angle[0],
-                          max_angle_deg=angle[1], pairs_per_area=pairs_per_area, k_sigma=k_sigma)
+                          max_angle_deg=angle[1], pairs_per_area=pairs_per_area, k_sigma=k_sigma,
+                          reference_dem=reference_dem)
     result = run_surface(orientation, out_dir, options=opts, overwrite=overwrite)
     for line in result.summary_lines():
         echo(line)

@@ -22,12 +22,13 @@ def _run(code: str) -> str:
 
 
 def test_group_lists_every_command_sorted_and_help_names_them():
-    names = ["compare", "demo", "fit", "match", "mosaic", "ortho", "view", "warp"]
+    names = ["compare", "demo", "fit", "match", "mosaic", "ortho", "rpc-adjust", "view", "warp"]
     assert sorted(cli.all_commands) == names
     r = CliRunner().invoke(cli, ["--help"])
     assert r.exit_code == 0
     assert all(f"  {n} " in r.output for n in names)
-    snames = ["block", "calibrate", "demo", "dense", "dense-rpc", "disparity", "model", "orient", "resect", "run", "view"]
+    snames = ["block", "calibrate", "demo", "dense", "dense-rpc", "disparity", "model", "orient", "resect", "run",
+              "sat-intersect", "surface", "view"]
     assert sorted(stereo_cli.all_commands) == snames
     r = CliRunner().invoke(stereo_cli, ["--help"])
     assert r.exit_code == 0 and "dense-rpc" in r.output

@@ -11,17 +11,30 @@ import cv2
 import numpy as np
 import pytest
 import rasterio
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from rectify.actions.ortho import ortho_from_files
 from rectify.errors import InvalidInputError
 from rectify.geometry.rotation import matrix_from_angles
-from rectify.raster.ortho import OrthoOptions
 from rectify.raster.balance import estimate_balance
 from rectify.raster.mosaic import MosaicOptions, mosaic
+from rectify.raster.ortho import OrthoOptions
 from rectify.raster.seamlines import majority, signed_distance, surface_normals
 from tests.rectify.test_ortho import LO25, NGI, NGI_EO
-from tests.support.mosaic_scene import (CENTRE_A, CENTRE_B, NODATA, RIDGE_X, X0, Y0, ridge_height, ridge_pair,
-                                        texture, write_dsm, write_ortho)
+from tests.support.mosaic_scene import (
+    CENTRE_A,
+    CENTRE_B,
+    NODATA,
+    RIDGE_X,
+    X0,
+    Y0,
+    ridge_height,
+    ridge_pair,
+    texture,
+    write_dsm,
+    write_ortho,
+)
 
 
 def _read(path, band=1):
@@ -75,7 +88,8 @@ def test_an_occluded_pixel_is_never_taken(tmp_path):
     hid = (X0 + 113, X0 + 141, Y0 - 81, Y0 - 39)
     a, b, dsm = ridge_pair(tmp_path, true_ortho=True, occluded=hid)
     out = tmp_path / "m.tif"
-    mosaic([a, b], out, options=MosaicOptions(dsm=str(dsm), feather_px=6), provenance=tmp_path / "src.tif")
+    # no smoothing: the slope's zones are the criterion's (the occlusion, not the filter, moves the seam)
+    mosaic([a, b], out, options=MosaicOptions(dsm=str(dsm), feather_px=6, smooth=0), provenance=tmp_path / "src.tif")
     m, t = _read(out)
     s, _ = _read(tmp_path / "src.tif")
     cols = np.arange(m.shape[1]) + 0.5
@@ -258,5 +272,41 @@ def test_ngi_orthomosaic_has_no_shift_against_the_single_orthophotos(tmp_path):
                         and po.std() > 2:
                     (dx, dy), _ = cv2.phaseCorrelate(po, m[r0 + dr:r0 + dr + 64, c0 + dc:c0 + dc + 64], han)
                     shifts.append(math.hypot(dx, dy))
+    print('NGISHIFT', np.median(shifts), max(shifts), len(shifts))
     assert len(shifts) > 20
     assert max(shifts) <= 0.1, (np.median(shifts), max(shifts), len(shifts))
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.lists(st.tuples(st.floats(0.5, 2.0), st.floats(-50, 50)), min_size=2, max_size=5),
+       st.integers(0, 2**31 - 1))
+def test_balance_recovers_any_gain_and_offset(gain_offsets, seed):
+    """Property: images k = g_k T + o_k of a common scene T at shared points, chained overlaps (k with k + 1):
+    with image 0 as reference the corrections are g_0 / g_k and o_0 - g_0 o_k / g_k (1e-6 relative)."""
+    rng = np.random.default_rng(seed)
+    n, m = len(gain_offsets), 400
+    t = rng.uniform(0, 255, m)
+    g = np.array([go[0] for go in gain_offsets])
+    o = np.array([go[1] for go in gain_offsets])
+    values = (g[:, None] * t[None] + o[:, None])[..., None]
+    valid = np.zeros((n, m), bool)
+    for k in range(n):  # image k sees a band of points overlapping k - 1 and k + 1
+        valid[k, max(0, k * m // (n + 1)): (k + 2) * m // (n + 1)] = True
+    bal = estimate_balance(values, valid, mode="reference", reference=0)
+    assert np.allclose(bal.gains[:, 0], g[0] / g, rtol=1e-6)
+    assert np.allclose(bal.offsets[:, 0], o[0] - g[0] * o / g, atol=1e-6 * (1 + np.abs(o).max()) * 100)
+    assert all(p.rms_after[0] < 1e-6 * (1 + p.rms_before[0]) for p in bal.pairs)
+
+
+def test_smoothing_makes_few_seams_on_a_noisy_dsm(tmp_path):
+    """The ridge DSM with +-6 m of uniform noise per 2 m cell: the raw choice breaks into many regions; the
+    smoothed criterion and majority filter (default 2 zones) leave one region per image, far shorter seams
+    (measured: 14 regions, 920 px of seams raw; 2 regions, 120 px with --smooth 2)."""
+    a, b, _ = ridge_pair(tmp_path)
+    dsm = write_dsm(tmp_path / "noisy.tif", noise=6.0)
+    raw = mosaic([a, b], tmp_path / "m0.tif", options=MosaicOptions(dsm=str(dsm), smooth=0)).plan
+    smooth = mosaic([a, b], tmp_path / "m2.tif", options=MosaicOptions(dsm=str(dsm))).plan
+    assert raw is not None and smooth is not None
+    assert raw.regions() >= 8
+    assert smooth.regions() <= 3
+    assert smooth.seam_edges() * 3 < raw.seam_edges()

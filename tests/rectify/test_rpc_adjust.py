@@ -17,8 +17,7 @@ from hypothesis import strategies as st
 from rectify.errors import EstimationError, InvalidInputError
 from rectify.formats.rpc import read_rpc, rpb_text, rpc_txt_text
 from rectify.geometry.rpc import RPC, RPCRefinement
-from rectify.geometry.rpc_adjust import (RPCBlockAdjustment, TieTracks, chain_matches, check_overlap,
-                                         refit_rpc)
+from rectify.geometry.rpc_adjust import RPCBlockAdjustment, TieTracks, chain_matches, check_overlap, refit_rpc
 from rectify.raster.rpcfiles import gdal_rpc_project, rpc_vrt_text
 from tests.support.rpc_synthetic import SIZE, VIEWS, camera, ground_points, measure, triplet
 

@@ -141,7 +141,7 @@ def assert_screenshot_layout(path: Path, *, legend: bool = True) -> None:
     rgb = imread(path)[..., :3]
     assert rgb.shape[:2] == (900, 1280)
     assert np.median(rgb[2:28, :]) < 0.3, "header band missing"
-    side, main = rgb[40:, :330], rgb[40:, 345:]
+    side, main = rgb[40:, :350], rgb[40:, 370:]  # view.css: the side panel is 360 px wide
     assert side.mean() > 0.8, "side panel missing"
     drawn = np.abs(main - MAP_BACKGROUND).max(axis=-1) > 0.1
     assert drawn.mean() > 0.01, f"the map area is blank ({drawn.mean():.4f} of it drawn)"

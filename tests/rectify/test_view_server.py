@@ -357,6 +357,7 @@ def test_a_broken_result_file_is_one_line_before_serving(tmp_path):
     assert "observations.csv" in r.output and "line 2" in r.output and "'x'" in r.output
     assert not (tmp_path / "site").exists()
     (d / "observations.csv").unlink()
-    (d / "orientation.json").write_text('{"format": "rectify-stereo/block-orientation", "images": [')
-    r = CliRunner().invoke(stereo_cli, ["view", str(d), "--no-browser", "--port", "0"])
-    assert r.exit_code == 1 and "orientation.json" in r.output and "Traceback" not in r.output
+    (d / "orientation.json").write_text('{"format": "rectify-stereo/block-orientation", "version": 1, "images": 3}')
+    r = CliRunner().invoke(stereo_cli, ["view", str(d), "--static", str(tmp_path / "site")])
+    assert r.exit_code == 1 and "orientation.json" in r.output and "'images' must be a list" in r.output
+    assert "Traceback" not in r.output and not (tmp_path / "site").exists()

@@ -8,6 +8,8 @@ import math
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
 from rectify.errors import InvalidInputError, ShapeError, StereoError
@@ -75,6 +77,32 @@ def test_count_and_provenance_bands_on_a_grid():
     assert np.isnan(f.height[1, 0]) and np.isnan(f.sigma[1, 0])
     assert f.rejected.tolist() == [[0, 0, 0], [0, 0, 1]]
     assert_allclose(f.height[1, 1], 4.0) and assert_allclose(f.sigma[1, 1], 0.2)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.tuples(st.floats(-100, 100), st.floats(0.01, 5.0)), min_size=1, max_size=6),
+       st.randoms(use_true_random=False), st.floats(-1e3, 1e3), st.floats(0.1, 10.0))
+def test_fusion_properties(pairs, rnd, shift, scale):
+    """Order of the pairs does not matter; shifting heights shifts the result; scaling heights and
+    sigmas together scales it; the fused height lies within the kept heights; sigma never below
+    the weighted mean's."""
+    h = _cells(*[p[0] for p in pairs])
+    s = _cells(*[p[1] for p in pairs])
+    f = fuse_heights(h, s)
+    order = list(range(len(pairs)))
+    rnd.shuffle(order)
+    g = fuse_heights(h[order], s[order])
+    assert_allclose(g.height, f.height, rtol=1e-9, atol=1e-9)
+    assert_allclose(g.sigma, f.sigma, rtol=1e-9)
+    assert g.count[0, 0] == f.count[0, 0] and 1 <= f.count[0, 0] <= len(pairs)
+    assert s[order[g.provenance[0, 0]], 0, 0] == s[f.provenance[0, 0], 0, 0]   # the same sigma picked
+    assert_allclose(fuse_heights(h + shift, s).height, f.height + shift, atol=1e-7)
+    k = fuse_heights(h * scale, s * scale)
+    assert_allclose(k.height, f.height * scale, rtol=1e-9, atol=1e-9)
+    assert_allclose(k.sigma, f.sigma * scale, rtol=1e-9)
+    kept = np.abs(h[:, 0, 0] - f.height[0, 0]) <= 3 * np.sqrt(s[:, 0, 0] ** 2 + f.sigma[0, 0] ** 2) + 1e-9
+    assert h[kept, 0, 0].min() - 1e-9 <= f.height[0, 0] <= h[kept, 0, 0].max() + 1e-9
+    assert f.sigma[0, 0] >= 1 / np.sqrt(np.sum(1 / s[:, 0, 0] ** 2)) * (1 - 1e-12)
 
 
 def test_fusion_bad_input():

@@ -182,9 +182,12 @@ def make_curved_block(seed: int = 0, *, strips: int = 10, images_per_strip: int 
                        ctrl_given, hi - lo)
 
 
-def write_curved_block(folder: Path, blk: CurvedBlock, *, gnss_sigma_m: float = 0.05, ins_sigma_deg: float = 0.005,
-                       control_sigma_m: float = 0.03) -> dict[str, Path]:
-    """Write ``observations.csv``, ``camera.json``, ``poses.csv`` and ``control.csv`` into ``folder``; their paths."""
+def write_curved_block(folder: Path, blk: CurvedBlock, *, gnss_sigma_m: float = 0.05,
+                       ins_sigma_deg: float | None = 0.005, control_sigma_m: float = 0.03) -> dict[str, Path]:
+    """Write ``observations.csv``, ``camera.json``, ``poses.csv`` and ``control.csv`` into ``folder``; their paths.
+
+    ``ins_sigma_deg`` None writes no angle sigmas: the angles are initial values only (no INS observations).
+    """
     folder.mkdir(parents=True, exist_ok=True)
     out = {k: folder / n for k, n in (("observations", "observations.csv"), ("camera", "camera.json"),
                                       ("poses", "poses.csv"), ("control", "control.csv"))}
@@ -193,10 +196,12 @@ def write_curved_block(folder: Path, blk: CurvedBlock, *, gnss_sigma_m: float = 
               for p, i, (c, r) in zip(blk.obs_point, blk.obs_image, blk.obs_pixel, strict=True)]
     out["observations"].write_text("\n".join(lines) + "\n")
     out["camera"].write_text(json.dumps(blk.camera.to_dict()))
-    rows = [f"# crs={CRS}", "# angles=deg", "image,x,y,z,heading,pitch,roll,sx,sy,sz,sheading,spitch,sroll"]
+    ins = ",sheading,spitch,sroll" if ins_sigma_deg is not None else ""
+    rows = [f"# crs={CRS}", "# angles=deg", "image,x,y,z,heading,pitch,roll,sx,sy,sz" + ins]
     for i, name in enumerate(blk.images):
         rows.append(",".join([name, *(f"{v:.4f}" for v in blk.gnss[i]), *(f"{v:.6f}" for v in blk.nav_obs_deg[i]),
-                              *([f"{gnss_sigma_m:g}"] * 3), *([f"{ins_sigma_deg:g}"] * 3)]))
+                              *([f"{gnss_sigma_m:g}"] * 3),
+                              *([f"{ins_sigma_deg:g}"] * 3 if ins_sigma_deg is not None else [])]))
     out["poses"].write_text("\n".join(rows) + "\n")
     where = {p: k for k, p in enumerate(blk.point_ids)}
     crow = [f"# crs={CRS}", "id,image,col,row,x,y,z,sx,sy,sz"]

@@ -31,11 +31,13 @@ def ridge_height(x: np.ndarray) -> np.ndarray:
     return 100.0 + 20.0 * np.maximum(0.0, 1.0 - np.abs(x - (X0 + RIDGE_X)) / 50.0)
 
 
-def write_dsm(path: Path, res: float = 2.0) -> Path:
-    """The ridge DSM over x X0-20 .. X0+260, y Y0-140 .. Y0+20 (float32)."""
+def write_dsm(path: Path, res: float = 2.0, noise: float = 0.0) -> Path:
+    """The ridge DSM over x X0-20 .. X0+260, y Y0-140 .. Y0+20 (float32); ``noise``: m of uniform noise
+    (seeded)."""
     w, h = int(280 / res), int(160 / res)
     xs = X0 - 20 + (np.arange(w) + 0.5) * res
     z = np.repeat(ridge_height(xs)[None], h, axis=0)
+    z = z + noise * np.random.default_rng(7).uniform(-1, 1, z.shape)
     with rasterio.open(path, "w", driver="GTiff", width=w, height=h, count=1, dtype="float32", crs=CRS,
                        transform=Affine(res, 0, X0 - 20, 0, -res, Y0 + 20)) as ds:
         ds.write(z.astype("float32"), 1)

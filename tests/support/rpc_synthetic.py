@@ -10,6 +10,7 @@ per image and optional Gaussian noise.
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage
 
 from rectify.geometry.rpc import RPC, fit_rpc
 
@@ -23,23 +24,53 @@ VIEWS = ((0.6, 0.05), (0.0, -0.02), (-0.55, 0.08))
 BOX = ((LON0 - 0.008, LON0 + 0.008), (LAT0 - 0.006, LAT0 + 0.006), (0.0, 400.0))
 
 
-def camera(view: tuple[float, float], rot: float = 0.0):
-    """A pushbroom-like physical model ground (N, 3) -> (col, row)."""
-    ky, kx = view
+def camera(view: tuple[float, float], rot: float = 0.0, gsd: float = GSD, size: int = SIZE[0]):
+    """A pushbroom-like physical model ground (N, 3) -> (col, row) of a ``size`` x ``size`` image of ``gsd``
+    metre pixels (``view`` in px/m at 0.5 m pixels)."""
+    ky, kx = view[0] * GSD / gsd, view[1] * GSD / gsd
+    c0 = (size - 1) / 2
 
     def project(g: np.ndarray) -> np.ndarray:
         e = (g[:, 0] - LON0) * M_LON
         n = (g[:, 1] - LAT0) * M_LAT
         h = g[:, 2] - 200.0
-        c = 999.5 + (np.cos(rot) * e + np.sin(rot) * n) / GSD + kx * h + 2e-6 * e * e
-        r = 999.5 + (np.sin(rot) * e - np.cos(rot) * n) / GSD - ky * h + 1e-6 * e * n
+        c = c0 + (np.cos(rot) * e + np.sin(rot) * n) / gsd + kx * h + 2e-6 * e * e
+        r = c0 + (np.sin(rot) * e - np.cos(rot) * n) / gsd - ky * h + 1e-6 * e * n
         return np.column_stack([c, r])
     return project
 
 
-def triplet() -> list[RPC]:
+def triplet(gsd: float = GSD, size: int = SIZE[0]) -> list[RPC]:
     """The three RPCs (forward, nadir, backward)."""
-    return [fit_rpc(camera(v, rot=0.01 * i), BOX, source=f"synthetic {i + 1}") for i, v in enumerate(VIEWS)]
+    return [fit_rpc(camera(v, rot=0.01 * i, gsd=gsd, size=size), BOX, source=f"synthetic {i + 1}")
+            for i, v in enumerate(VIEWS)]
+
+
+def render(view_index: int, size: int, gsd: float, bias: np.ndarray, seed: int = 0) -> np.ndarray:
+    """A uint8 image (size, size) of a textured ground on :func:`dem` seen by the physical model of
+    ``triplet(gsd, size)[view_index]`` with the image-space ``bias`` (dc, dr) px: the pixel (c, r) shows the
+    ground whose projection is (c, r) - bias. The model is inverted analytically (its linear part is a
+    rotation over ``gsd``), the line of sight met with the DEM by fixed-point iteration on the height."""
+    rng = np.random.default_rng(seed)
+    tex = ndimage.gaussian_filter(rng.normal(size=(1400, 1400)), 3.0)  # 1 m cells, ~3 m blobs
+    tex = (tex - tex.min()) / (tex.max() - tex.min())
+    ky, kx = VIEWS[view_index][0] * GSD / gsd, VIEWS[view_index][1] * GSD / gsd
+    rot = 0.01 * view_index
+    c0 = (size - 1) / 2
+    cc, rr = np.meshgrid(np.arange(size, dtype=float), np.arange(size, dtype=float))
+    c = cc.ravel() - bias[0]
+    r = rr.ravel() - bias[1]
+    e = np.zeros_like(c)
+    n = np.zeros_like(c)
+    h = np.zeros_like(c)
+    for _ in range(30):
+        u = (c - c0 - kx * h - 2e-6 * e * e) * gsd  # cos e + sin n
+        v = (r - c0 + ky * h - 1e-6 * e * n) * gsd  # sin e - cos n
+        e = np.cos(rot) * u + np.sin(rot) * v
+        n = np.sin(rot) * u - np.cos(rot) * v
+        h = dem(np.column_stack([LON0 + e / M_LON, LAT0 + n / M_LAT])) - 200.0
+    val = ndimage.map_coordinates(tex, [700.0 - n, e + 700.0], order=1, mode="reflect")
+    return np.clip(20 + 215 * val, 0, 255).astype(np.uint8).reshape(size, size)
 
 
 def dem(lonlat: np.ndarray) -> np.ndarray:

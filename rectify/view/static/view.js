@@ -4,7 +4,8 @@
 //
 // URL parameters: view=layout | image:<i> | raster:<r> | table:<t>; select=<id> (select a point, as a click
 // would); click=<id> (a real click event at the point's place on the canvas, through the hit test);
-// zoom=full with at=<x>,<y> (full resolution at that pixel); exag=<factor>.
+// zoom=full with at=<x>,<y> (full resolution at that pixel); exag=<factor>; worst=<N>; flag=<all|flagged|ok|
+// control|check|tie>.
 // The DOM records what rendered (body data-state, data-view, data-level, data-tiles-loaded, data-points;
 // #detail data-selected; rows tr[data-key]) so a headless browser can read it back.
 "use strict";
@@ -102,7 +103,9 @@ function requestTile(r, z, x, y) {
   S.tileOrder.push(key);
   S.pending += 1;
   img.onload = () => {
-    t.ok = true; S.pending -= 1; S.loaded += 1; scheduleDraw();
+    t.ok = true; S.pending -= 1; S.loaded += 1;
+    document.body.dataset.tilesLoaded = String(S.loaded);
+    draw();  // at once, not on the next frame: what is on the screen follows what has arrived
     if (!document.body.dataset.firstTileMs) document.body.dataset.firstTileMs = String(Math.round(performance.now()));
   };
   img.onerror = () => { t.failed = true; S.pending -= 1; scheduleDraw(); };
@@ -680,7 +683,10 @@ function parseView(text) {
     return n >= 0 ? { kind, n } : null;
   }
   const n = Number(rest);
-  return ["image", "raster", "table"].includes(kind) && Number.isInteger(n) ? { kind, n } : null;
+  const size = { image: S.manifest.images.length, raster: S.manifest.rasters.length, table: S.manifest.tables.length }[kind];
+  const ok = size !== undefined && Number.isInteger(n) && n >= 0 && n < size;
+  if (ok && kind === "raster" && S.manifest.rasters[n].role === "photo") return { kind: "image", n: S.manifest.images.findIndex((im) => im.raster === n) };
+  return ok ? { kind, n } : null;
 }
 
 async function main() {
@@ -701,9 +707,12 @@ async function main() {
   const p = S.params;
   if (p.get("exag")) { S.exag = Number(p.get("exag")) || S.exag; $("exag").value = String(Math.log10(S.exag)); }
   $("exag-val").textContent = `x${fmt(S.exag, 1)}`;
+  if (p.get("worst")) { S.worst = Math.max(0, Number(p.get("worst")) || 0); $("worst").value = String(S.worst); }
+  if (p.get("flag") && [...$("flag").options].some((o) => o.value === p.get("flag"))) { S.flag = p.get("flag"); $("flag").value = S.flag; }
   const all = views();
   if (!all.length) { setStatus("nothing to show in this folder"); document.body.dataset.state = "ready"; document.body.dataset.view = "none"; return; }
-  const v = parseView(p.get("view")) || all[0];
+  const asked = parseView(p.get("view"));
+  const v = asked && all.some((w) => viewKey(w) === viewKey(asked)) ? asked : all[0];
   const opts = {};
   if (p.get("at")) { opts.at = p.get("at").split(",").map(Number); opts.full = p.get("zoom") === "full"; }
   if (p.get("select")) opts.select = p.get("select");

@@ -1,0 +1,158 @@
+"""Line-of-sight visibility over a DEM block: the occlusion test of the true orthophoto.
+
+Each ground point (an output cell at its DEM height) is visible when nothing of the DEM rises above
+its line of sight towards the sensor. :func:`line_of_sight_reference` marches every line in half-pixel
+steps, sampling the DEM bilinearly at each step, until the line is higher than the highest DEM point,
+leaves the block, or passes under the terrain (occluded: the terrain is more than 1 mm above it).
+
+:func:`line_of_sight` gives the same answer, cell for cell, faster: the block's heights are reduced to
+the maximum over blocks of ``block`` x ``block`` cells and then over each 3 x 3 neighbourhood of blocks;
+every point closer than ``block`` pixels to a line's position lies in that neighbourhood, and a bilinear
+sample never exceeds the largest of its four cells, so when the line is already above that maximum the
+next ``2 * block`` half-pixel steps cannot meet the terrain and are skipped at once. The steps that are
+taken are the reference's steps (the same positions and heights, the same arithmetic), so the result
+is identical, not merely close (tests/rectify/test_ortho_speedpaths.py checks it).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from rectify.raster.dem import bilinear
+
+__all__ = ["STEP_PX", "HIT_MARGIN_M", "line_of_sight", "line_of_sight_reference"]
+
+#: step along a line of sight, output pixels
+STEP_PX = 0.5
+#: the terrain must rise this far above a line of sight to hide its point, m
+HIT_MARGIN_M = 1e-3
+_MAX_STEPS = 100000
+
+
+def _rays(Z: NDArray, m: int, d: NDArray, z: NDArray, inside: NDArray[np.bool_]):
+    ddist = np.hypot(d[..., 0], d[..., 1])
+    cand = inside & (ddist > 1e-12) & np.isfinite(z)
+    rows, cols = np.nonzero(cand)
+    dx, dy, dd = d[rows, cols, 0], d[rows, cols, 1], ddist[rows, cols]
+    return rows, cols, z[rows, cols], dd, dx / dd, dy / dd, cols + m + 0.0, rows + m + 0.0
+
+
+def line_of_sight_reference(Z: NDArray, m: int, d: NDArray, z: NDArray,
+                            inside: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """Visibility (h, w) bool of a tile's cells: True where nothing hides the ground point.
+
+    Parameters
+    ----------
+    Z : (h + 2m, w + 2m) float
+        Heights of the tile with a margin of ``m`` cells (NaN: no height), m.
+    m : int
+        The margin, cells.
+    d : (h, w, 2) float
+        Horizontal displacement towards the sensor per metre of height, output pixels (col, row).
+    z : (h, w) float
+        Heights of the tile's cells, m.
+    inside : (h, w) bool
+        Cells whose ground point projects into the image (the others stay True).
+    """
+    h, w = z.shape
+    vis = np.ones((h, w), bool)
+    rows, cols, z0, dd, ux, uy, px0, py0 = _rays(Z, m, d, z, inside)
+    if not len(rows):
+        return vis
+    zmax = float(np.nanmax(Z))
+    occl = np.zeros(len(rows), bool)
+    active = np.ones(len(rows), bool)
+    Zf = np.where(np.isfinite(Z), Z, -np.inf)
+    k = 1
+    while active.any():
+        a = np.flatnonzero(active)
+        s = k * STEP_PX
+        ray_h = z0[a] + s / dd[a]
+        x = px0[a] + s * ux[a]
+        y = py0[a] + s * uy[a]
+        inb = (x >= 0) & (y >= 0) & (x <= Z.shape[1] - 1) & (y <= Z.shape[0] - 1)
+        ter = np.full(len(a), -np.inf)
+        if inb.any():
+            ter[inb] = bilinear(Zf, None, x[inb], y[inb])
+        hit = ter > ray_h + HIT_MARGIN_M
+        occl[a[hit]] = True
+        stop = hit | ~inb | (ray_h > zmax)
+        active[a[stop]] = False
+        k += 1
+        if k > _MAX_STEPS:
+            break
+    vis[rows, cols] = ~occl
+    return vis
+
+
+def _block_max(Zf: NDArray[np.float64], block: int) -> NDArray[np.float64]:
+    """Maximum of ``Zf`` over each ``block`` x ``block`` cell block, then over each 3 x 3 block neighbourhood."""
+    H, W = Zf.shape
+    nby, nbx = -(-H // block), -(-W // block)
+    pad = np.full((nby * block, nbx * block), -np.inf)
+    pad[:H, :W] = Zf
+    M = pad.reshape(nby, block, nbx, block).max(axis=(1, 3))
+    P = np.full((nby + 2, nbx + 2), -np.inf)
+    P[1:-1, 1:-1] = M
+    out = M.copy()
+    for i in range(3):
+        for j in range(3):
+            np.maximum(out, P[i:i + nby, j:j + nbx], out=out)
+    return out
+
+
+def line_of_sight(Z: NDArray, m: int, d: NDArray, z: NDArray, inside: NDArray[np.bool_], *,
+                  block: int = 8) -> NDArray[np.bool_]:
+    """:func:`line_of_sight_reference`'s result, skipping the steps that cannot meet the terrain (module docstring).
+
+    ``block`` (cells, >= 1) sets the skip: ``2 * block`` steps when the line is above the highest DEM
+    cell within ``block`` pixels.
+    """
+    h, w = z.shape
+    vis = np.ones((h, w), bool)
+    rows, cols, z0, dd, ux, uy, px0, py0 = _rays(Z, m, d, z, inside)
+    if not len(rows):
+        return vis
+    zmax = float(np.nanmax(Z))
+    H, W = Z.shape
+    Zf = np.where(np.isfinite(Z), Z, -np.inf)
+    # bilinear() of the reference on an edge-padded copy: the clamped neighbour of the last row/column is the
+    # padded copy of that row/column, so the four samples (and the sums) are the reference's
+    Zp = np.pad(Zf, ((0, 1), (0, 1)), mode="edge").ravel()
+    Wp = W + 1
+    M3 = _block_max(Zf, block)
+    jump = 2 * block
+    occl = np.zeros(len(rows), bool)
+    idx = np.arange(len(rows))
+    k = np.ones(len(rows), np.int64)
+    while len(idx):
+        s = k * STEP_PX
+        ray_h = z0 + s / dd
+        x = px0 + s * ux
+        y = py0 + s * uy
+        inb = (x >= 0) & (y >= 0) & (x <= W - 1) & (y <= H - 1)
+        done = ~inb | (ray_h > zmax)
+        xi = np.where(inb, x, 0.0).astype(np.intp)  # floor: x >= 0 inside
+        yi = np.where(inb, y, 0.0).astype(np.intp)
+        skip = inb & (ray_h > M3[yi // block, xi // block])
+        fine = np.flatnonzero(inb & ~skip)
+        if len(fine):
+            xf, yf = x[fine], y[fine]
+            x0, y0 = xi[fine], yi[fine]
+            fx, fy = xf - x0, yf - y0
+            p = y0 * Wp + x0
+            v00, v01, v10, v11 = Zp[p], Zp[p + 1], Zp[p + Wp], Zp[p + Wp + 1]
+            with np.errstate(invalid="ignore"):
+                ter = (v00 * (1 - fx) + v01 * fx) * (1 - fy) + (v10 * (1 - fx) + v11 * fx) * fy
+                hit = ter > ray_h[fine] + HIT_MARGIN_M
+            if hit.any():
+                occl[idx[fine[hit]]] = True
+                done[fine[hit]] = True
+        k = np.where(skip, k + jump, k + 1)
+        done |= k > _MAX_STEPS
+        if done.any():
+            keep = ~done
+            idx, k, z0, dd, ux, uy, px0, py0 = (a[keep] for a in (idx, k, z0, dd, ux, uy, px0, py0))
+    vis[rows, cols] = ~occl
+    return vis
