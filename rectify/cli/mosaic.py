@@ -25,7 +25,8 @@ from rectify.cli.options import echo, handle_errors, overwrite_opt, progress, sc
 @click.option("--zone", "zone_px", type=click.IntRange(1, 4096), default=8, show_default=True,
               help="Zone size of the seam choice, output pixels.")
 @click.option("--smooth", type=click.IntRange(0, 64), default=2, show_default=True,
-              help="Majority filter radius of the zone choice, zones (0: none).")
+              help="Smoothing of the zone choice, zones: Gaussian sigma of the criterion and majority filter "
+                   "radius (0: the raw choice).")
 @click.option("--blend", type=click.Choice(["seams", "average"]), default="seams", show_default=True,
               help="seams: one image per pixel, feathered; average: the mean of every valid image.")
 @click.option("--balance", type=click.Choice(["none", "mean", "reference"]), default="none", show_default=True,

@@ -84,7 +84,8 @@ class MosaicOptions:
     Seams and radiometry (module docstring): ``seams`` ``nadir`` or ``normal`` (None: ``normal`` when a
     ``dsm`` is given, else ``nadir``); ``dsm`` the surface (heights in the orthophotos' vertical datum) for
     the rays and normals; ``normal_weight`` w of the criterion (1 - w) nadir angle + w normal angle;
-    ``zone_px`` the zone size (output pixels); ``smooth`` the majority filter's radius (zones, 0: none);
+    ``zone_px`` the zone size (output pixels); ``smooth`` the smoothing of the choice (zones: the criterion's
+    Gaussian sigma and the majority filter's radius; 0: none);
     ``blend`` ``seams`` or ``average``; ``balance`` ``none``, ``mean`` or ``reference`` (the first input kept).
     """
 

@@ -15,9 +15,10 @@ and per orthophoto i with projection centre C_i, at the zone's ground point P = 
 
 An image is a candidate in a zone when at least half of the zone's samples are valid in it (inside its
 footprint and, for a true orthophoto, not occluded: visibility band 2); when no image reaches half, those
-with the largest share are. The zone takes the candidate with the smallest criterion. A majority filter
-(``radius`` zones, ``iterations`` passes, restricted to candidates) removes isolated zones, so seams are few
-and follow the choice. Each image's region is turned into a signed distance (zones, positive inside),
+with the largest share are. The zone takes the candidate with the smallest criterion, smoothed over the
+zones by a Gaussian of sigma ``radius`` zones (DSM noise flips single zones otherwise); a majority filter
+((2 ``radius`` + 1)^2 zones, ``iterations`` passes, restricted to candidates) then removes isolated zones,
+so seams are few and follow the choice. Each image's region is turned into a signed distance (zones, positive inside),
 which the mosaic engine interpolates bilinearly at every output pixel: the seam is where two signed
 distances are equal, a smooth line through the zone grid, and the feathering weights follow from the
 distances (:mod:`rectify.raster.mosaic`).

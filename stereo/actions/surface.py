@@ -72,13 +72,14 @@ from stereo.dense.fusion import (
 from stereo.dense.matching import NODATA, MatchOptions, match_rasters
 from stereo.dense.precision import (
     DISPARITY_SIGMA_FLOOR_PX,
+    PointSigmaField,
     disparity_sigma,
     height_sigma_disparity,
     height_sigma_orientation,
 )
 from stereo.dense.triangulate import triangulate_disparity
 from stereo.formats.block import BlockOrientation, read_block_orientation
-from stereo.formats.points import read_points_csv
+from stereo.formats.points import PointsTable, read_points_csv
 from stereo.pair.model import ground_unit
 from stereo.report.dense import HeightComparison, compare_with_dem
 
@@ -91,6 +92,10 @@ Progress = Callable[[str, int, int], None]
 SURFACE_FORMAT = "rectify-stereo/surface-pairs"
 #: the base-to-height ratio above which a pair scores no better (wider bases match less well)
 BH_TARGET = 0.6
+#: sources of the orientation's share of sigma_Z (:attr:`SurfaceOptions.orientation_sigma`)
+ORIENTATION_SIGMA = ("auto", "points", "poses", "none")
+ORIENTATION_NOTE = {"points": "the block points' height standard errors", "poses": "the pose standard errors "
+                    "taken as independent (an upper bound)", "none": "none (no standard errors in the block)"}
 #: rows of the fused grid per fusion block
 FUSION_ROWS = 256
 #: side of a triangulation window, pixels
@@ -132,6 +137,12 @@ class SurfaceOptions:
         Points of lower matching confidence are left out.
     reference_dem : path or None
         Compare the DSM with it (resampled bilinearly onto the DSM grid; RMSE, NMAD, coverage).
+    orientation_sigma : {"auto", "points", "poses", "none"}
+        The orientation's share of sigma_Z (``docs/surface.md``): ``points``: the height standard
+        errors of the block's ``points.csv`` (the bundle's propagation of its full covariance) near
+        each point; ``poses``: the pose standard errors of ``orientation.json`` taken as independent
+        (an upper bound); ``none``; ``auto``: ``points`` when the points file has standard errors,
+        else ``poses`` when the orientation has some, else none.
     matching : MatchOptions
     """
 
@@ -149,6 +160,7 @@ class SurfaceOptions:
     sigma_floor_px: float = DISPARITY_SIGMA_FLOOR_PX
     min_confidence: float = 0.0
     reference_dem: str | None = None
+    orientation_sigma: str = "auto"
     matching: MatchOptions = MatchOptions()
 
     def __post_init__(self) -> None:
@@ -181,6 +193,9 @@ class SurfaceOptions:
             raise InvalidInputError(f"`pairs_per_area` must be an integer in 1..50; got {self.pairs_per_area!r}")
         if not isinstance(self.matching, MatchOptions):
             raise InvalidInputError(f"`matching` must be a MatchOptions; got {type(self.matching).__name__}")
+        if self.orientation_sigma not in ORIENTATION_SIGMA:
+            raise InvalidInputError(f"`orientation_sigma` must be one of {list(ORIENTATION_SIGMA)}; got "
+                                    f"{self.orientation_sigma!r}")
 
 
 @dataclass(frozen=True)
@@ -221,6 +236,7 @@ class SurfaceResult:
     n_candidates: int = 0
     variance_factor: float = 1.0
     overlap_coverage: float = math.nan
+    orientation_sigma: str = "none"
     comparison: HeightComparison | None = None
 
     def summary_lines(self) -> list[str]:
@@ -235,7 +251,8 @@ class SurfaceResult:
         lines += [f"DSM: {self.shape[1]} x {self.shape[0]} cells of {self.cell:g} {unit} (ground pixel {self.gsd:.4g} "
                   f"{unit}), coverage {100 * self.coverage:.1f}%, median sigma_Z {self.median_sigma:.3g} {unit}, "
                   f"{self.n_rejected} pair heights rejected as inconsistent; the pairs' sigmas scaled by the "
-                  f"variance factor {self.variance_factor:.3f} of their agreement",
+                  f"variance factor {self.variance_factor:.3f} of their agreement; orientation share of sigma_Z: "
+                  f"{ORIENTATION_NOTE[self.orientation_sigma]}",
                   f"coverage of the chosen pairs' overlap (footprints on the mean height): "
                   f"{100 * self.overlap_coverage:.1f}%"]
         if self.comparison is not None:
@@ -286,10 +303,11 @@ def _camera(bo: BlockOrientation, pose: Pose) -> Camera:
     return cam
 
 
-def _ground_z(folder: Path, opts: SurfaceOptions) -> tuple[float, float | None]:
-    """Mean terrain height and the block points' height range (None: no points file)."""
+def _ground_z(folder: Path, opts: SurfaceOptions) -> tuple[float, float | None, PointsTable | None]:
+    """Mean terrain height, the block points' height range (None: no points file) and the points."""
     pts = folder / "points.csv"
     z = None
+    t = None
     if pts.is_file():
         t = read_points_csv(pts)
         zz = np.asarray(t.xyz, dtype=np.float64)[:, 2]
@@ -304,7 +322,22 @@ def _ground_z(folder: Path, opts: SurfaceOptions) -> tuple[float, float | None]:
         raise InvalidInputError(f"no points.csv beside the orientation in {str(folder)!r} to take the terrain height "
                                 "from: pass --ground-z")
     rng = None if z is None else float(np.percentile(z, 99) - np.percentile(z, 1))
-    return g, rng
+    return g, rng, t
+
+
+def _orientation_term(bo: BlockOrientation, points: PointsTable | None, mode: str
+                      ) -> tuple[str, PointSigmaField | None]:
+    """The source of the orientation's share of sigma_Z and, for ``points``, the field of the points' sigmas."""
+    has_std = points is not None and points.std is not None and bool(np.isfinite(points.std[:, 2]).any())
+    if mode == "points" and not has_std:
+        raise InvalidInputError("orientation sigma from the points: the block has no points.csv with standard "
+                                "errors (std_z) beside its orientation")
+    if mode == "auto":
+        mode = "points" if has_std else "poses" if np.isfinite(bo.std_errors).any() else "none"
+    if mode == "points":
+        assert points is not None and points.std is not None
+        return mode, PointSigmaField.from_points(points.xyz[:, :2], points.std[:, 2])
+    return mode, None
 
 
 # --------------------------------------------------------------------------- pairs
@@ -401,7 +434,8 @@ def _disparity_range(rect: EpipolarRectification, depth_lo: float, depth_hi: flo
 
 
 def _pair_points(rect: EpipolarRectification, paths: dict[str, Path], grid: SigmaGrid, std_l: NDArray[np.float64],
-                 std_r: NDArray[np.float64], opts: SurfaceOptions) -> dict[str, Any]:
+                 std_r: NDArray[np.float64], opts: SurfaceOptions, orient: tuple[str, PointSigmaField | None]
+                 ) -> dict[str, Any]:
     """Triangulate one pair's disparities window by window, with each point's sigma_Z, into ``grid``."""
     base = float(np.linalg.norm(rect.base))
     axis = rect.normal_rotation[:, 2]
@@ -441,7 +475,12 @@ def _pair_points(rect: EpipolarRectification, paths: dict[str, Path], grid: Sigm
             s_px = sd[rows, cols].astype(np.float64)
             depth = np.abs((pts.xyz - rect.centre_left) @ (axis / np.linalg.norm(axis)))
             s_disp = height_sigma_disparity(pts.xyz, rect.centre_left, axis, base, rect.focal_px, s_px)
-            s_or = height_sigma_orientation(depth, base, std_l, std_r)
+            if orient[1] is not None:
+                s_or = orient[1](pts.xyz[:, :2])
+            elif orient[0] == "poses":
+                s_or = height_sigma_orientation(depth, base, std_l, std_r)
+            else:
+                s_or = np.zeros(len(depth))
             s = np.sqrt(s_disp ** 2 + s_or ** 2)
             grid.add(pts.xyz, s)
             n += len(pts)
@@ -506,7 +545,8 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
         if (info.width, info.height) != (cam.width, cam.height):
             raise InvalidInputError(f"image {str(img)!r} is {info.width} x {info.height} px; its camera says "
                                     f"{cam.width} x {cam.height}")
-    ground_z, zrange = _ground_z(folder, opts)
+    ground_z, zrange, block_points = _ground_z(folder, opts)
+    orient_mode, orient_field = _orientation_term(bo, block_points, opts.orientation_sigma)
     pairs, cands, _polys = select_pairs(bo, ground_z, opts)
     poses = list(bo.poses)
     gsds = [abs(p.position[2] - ground_z) * _camera(bo, p).pixel_size_mm / _camera(bo, p).focal_length_mm
@@ -566,7 +606,7 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
                     pair_files.append(None)
                     continue
                 grid = SigmaGrid(bounds, cell, crs=bo.crs)
-                st = _pair_points(rect, paths, grid, std[pl.image], std[pr.image], opts)
+                st = _pair_points(rect, paths, grid, std[pl.image], std[pr.image], opts, (orient_mode, orient_field))
                 h, s = grid.result()
                 st["coverage"] = float(np.isfinite(h).mean())
                 hp, sp = scratch / f"pair{k}_h.npy", scratch / f"pair{k}_s.npy"
@@ -634,7 +674,7 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
                                "angle_deg": [opts.min_angle_deg, opts.max_angle_deg],
                                "pairs_per_area": opts.pairs_per_area, "k_sigma": opts.k_sigma,
                                "sigma_floor_px": opts.sigma_floor_px},
-                "ground_z": ground_z, "relief": relief,
+                "ground_z": ground_z, "relief": relief, "orientation_sigma": orient_mode,
                 "pairs": [{"index": k, "left": p.left, "right": p.right, "left_file": str(images[p.i]),
                            "right_file": str(images[p.j]), "overlap": p.overlap, "base_height": p.base_height,
                            "angle_deg": p.angle_deg, "score": p.score, **stats[k]} for k, p in enumerate(pairs)],
@@ -653,4 +693,5 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
         ws.discard_root()
         raise
     return SurfaceResult(out, tuple(files), tuple(pairs), tuple(stats), cell, gsd, (H, W), coverage, med_sigma,
-                         n_rej, bo.crs, time.perf_counter() - t0, len(cands), factor, ov_cov, comparison)
+                         n_rej, bo.crs, time.perf_counter() - t0, len(cands), factor, ov_cov, orient_mode,
+                         comparison)

@@ -19,13 +19,20 @@ Normal case
     principal distance in pixels, ``p`` the x-parallax in pixels), hence
     ``sigma_Z = Z^2 / (B f) * sigma_p``; a point moves along the left ray when ``p`` changes, so its
     height (ground z) changes by ``|z - z_C| / Z`` times that (:func:`height_sigma_disparity`).
-Orientation
+Orientation, from the bundle's points
+    :class:`PointSigmaField`: the height standard errors of the block's own points (tie points),
+    which the bundle propagated from its full covariance (the correlations of the poses included),
+    taken near each dense point (the median of the ``k`` nearest in plan). They include the tie
+    points' own measurement error, so the term is on the safe side.
+Orientation, from the pose standard errors alone
     :func:`height_sigma_orientation`: the pose standard errors of the two photos (omega, phi,
     kappa in rad; x, y, z in ground units) as independent errors: a tilt error ``da`` of either
     photo changes the parallax by ``f da``, so the depth by ``Z^2 / B da``; an error ``db`` of
     a projection centre along the base changes the depth by ``Z db / B``; the projection centres'
     height errors move the point by half their mean. Tilt: the root mean square of omega and phi;
-    along the base: of x and y.
+    along the base: of x and y. Without the poses' correlations this is an upper bound: in a block
+    the relative orientation of neighbours is far better known than each pose (the datum part of
+    the errors is common to both photos and moves the surface as a whole).
 """
 
 from __future__ import annotations
@@ -35,11 +42,13 @@ import math
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
 
 from rectify.errors import InvalidInputError, ShapeError
+from rectify.geometry.points import as_points
 
-__all__ = ["DISPARITY_SIGMA_FLOOR_PX", "disparity_sigma", "height_sigma_disparity", "height_sigma_orientation",
-           "normal_case_sigma_z"]
+__all__ = ["DISPARITY_SIGMA_FLOOR_PX", "PointSigmaField", "disparity_sigma", "height_sigma_disparity",
+           "height_sigma_orientation", "normal_case_sigma_z"]
 
 #: the smallest disparity standard error (px): resampling errors the sub-pixel fit cannot see
 DISPARITY_SIGMA_FLOOR_PX = 0.05
@@ -196,3 +205,47 @@ def disparity_sigma(left: ArrayLike, right: ArrayLike, disparity: ArrayLike, *, 
         out = np.sqrt(var_e / (n_eff * var_g) + floor_px ** 2)
     out[~v | ~(var_g > 1e-6)] = np.nan
     return out.astype(np.float32)
+
+
+class PointSigmaField:
+    """Height standard errors known at scattered points (a bundle's tie points), looked up near others.
+
+    Build with :meth:`from_points`; calling it with plan positions (N, 2) gives, per position, the
+    median of the ``k`` nearest points' sigmas (ground units).
+    """
+
+    def __init__(self, xy: NDArray[np.float64], sigma: NDArray[np.float64], k: int):
+        self._tree = cKDTree(xy)
+        self._sigma = sigma
+        self.k = min(k, len(sigma))
+        self.median = float(np.median(sigma))
+
+    @classmethod
+    def from_points(cls, xy: ArrayLike, sigma_z: ArrayLike, *, k: int = 8) -> PointSigmaField:
+        """Parameters: ``xy`` (N, 2) plan positions, ``sigma_z`` (N,) their height standard errors
+        (ground units; rows with a non-finite or negative value are left out), ``k`` neighbours.
+
+        Raises
+        ------
+        InvalidInputError
+            No usable point, or ``k`` < 1.
+        """
+        p = as_points(xy, "xy", 2)
+        s = np.asarray(sigma_z, dtype=np.float64).reshape(-1)
+        if s.shape != (len(p),):
+            raise ShapeError(f"`sigma_z` must have one value per point ({len(p)}); got {s.shape}",
+                             actual_shape=s.shape, expected_shape=(len(p),))
+        if isinstance(k, bool) or not isinstance(k, int) or k < 1:
+            raise InvalidInputError(f"`k` must be an integer >= 1; got {k!r}")
+        ok = np.isfinite(p).all(axis=1) & np.isfinite(s) & (s >= 0)
+        if not ok.any():
+            raise InvalidInputError("no point with a finite height standard error")
+        return cls(p[ok].copy(), s[ok].copy(), k)
+
+    def __call__(self, xy: ArrayLike) -> NDArray[np.float64]:
+        q = as_points(xy, "xy", 2)
+        if len(q) == 0:
+            return np.zeros(0)
+        _d, idx = self._tree.query(q, k=self.k)
+        idx = np.asarray(idx).reshape(len(q), -1)
+        return np.asarray(np.median(self._sigma[idx], axis=1), dtype=np.float64)

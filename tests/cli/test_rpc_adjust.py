@@ -19,7 +19,7 @@ from rectify.cli.main import cli
 from rectify.formats.rpc import read_rpc
 from rectify.geometry.rpc import RPC, RPCRefinement
 from rectify.raster.rpcfiles import gdal_rpc_project
-from tests.support.rpc_synthetic import SIZE, ground_points, measure, triplet
+from tests.support.rpc_synthetic import SIZE, ground_points, measure, render, triplet
 from tests.support.shared_data import SHARED_DATA
 
 BIAS = np.array([[0.0, 0.0], [0.0, 2.0], [0.0, 0.0]])
@@ -101,6 +101,33 @@ def test_rpc_adjust_affine_and_no_gcps(block, tmp_path):
     doc = json.loads((tmp_path / "o" / "adjustment.json").read_text())
     assert max(im["refit"]["max_px"] for im in doc["images"]) <= 0.01
     assert max(im["gdal_check_max_px"] for im in doc["images"]) <= 0.01
+
+
+def test_rpc_adjust_matched_ties_recover_the_bias(tmp_path):
+    """The default path: rendered images (a textured DEM seen through the triplet, 400 x 400 px of 2.5 m, the
+    2 px along-track bias in image 2), pairs matched and chained; GCPs measured at their true positions."""
+    rpcs = triplet(gsd=2.5, size=400)
+    imgs = []
+    for j, rpc in enumerate(rpcs):
+        with rasterio.open(tmp_path / f"s{j + 1}.tif", "w", driver="GTiff", width=400, height=400, count=1,
+                           dtype="uint8", rpcs=rpc.to_rasterio()) as ds:
+            ds.write(render(j, 400, 2.5, BIAS[j])[None])
+        imgs.append(tmp_path / f"s{j + 1}.tif")
+    gcp = ground_points(8, seed=102)
+    gi, gt, gp = measure(rpcs, gcp, BIAS)
+    rows = ["id,image,col,row,lon,lat,h,sigma_xy,sigma_h"]
+    rows += [f"G{gt[m]},s{gi[m] + 1},{gp[m, 0]!r},{gp[m, 1]!r},{gcp[gt[m], 0]!r},{gcp[gt[m], 1]!r},"
+             f"{gcp[gt[m], 2]!r},0.02,0.02" for m in range(len(gi))]
+    (tmp_path / "gcps.csv").write_text("\n".join(rows) + "\n")
+    res = _run(*imgs, "-o", tmp_path / "out", "--gcps", tmp_path / "gcps.csv", "--check", "G0,G1",
+               "--max-matches", "400")
+    assert res.exit_code == 0, res.output
+    assert "matched 3 overlapping pairs, chained" in res.output
+    doc = json.loads((tmp_path / "out" / "adjustment.json").read_text())
+    assert doc["n_tracks"] > 200
+    got = np.array([im["params"] for im in doc["images"]])[:, :, 0]
+    assert np.abs(got - BIAS).max() < 0.05
+    assert doc["accuracy"]["rmse_3d"] < 0.1  # m, 2.5 m pixels
 
 
 def _nothing_written(res, out: Path, word: str):
