@@ -297,7 +297,7 @@ class _Block:
         D = _design(self.normalise(p, image), self.k)
         return p + np.einsum("mij,mj->mi", D, theta[image]), D
 
-    def jacobian(self, theta: NDArray, ground: NDArray, image: NDArray, p0: NDArray) -> NDArray[np.float64]:
+    def jacobian(self, theta: NDArray, ground: NDArray, image: NDArray) -> NDArray[np.float64]:
         """d(corrected pixel)/d(east, north, up metres) (M, 2, 3), central differences of 0.5 m."""
         mx, my = _metres_per_degree(ground[:, 1])
         J = np.empty((len(ground), 2, 3))
@@ -323,7 +323,7 @@ def _intersect(block: _Block, theta: NDArray, obs: TieTracks, ground0: NDArray, 
     for _ in range(iterations):
         pc, _ = block.corrected(theta, g[obs.track], obs.image)
         r = obs.pixels - pc
-        J = block.jacobian(theta, g[obs.track], obs.image, pc)
+        J = block.jacobian(theta, g[obs.track], obs.image)
         wt = (w / obs.sigma ** 2)[:, None, None]
         V = np.zeros((T, 3, 3))
         gv = np.zeros((T, 3))
@@ -505,7 +505,7 @@ class RPCBlockAdjustment:
                     # floored at 1 % of the given sigmas: an exact fit is not a reason to reject measurements
                     scale = max(math.sqrt(float(np.median(z[w > 0])) / (2 * math.log(2))), 0.01)
                 w = psi.weight(np.sqrt(z / 2) / scale)
-            J = block.jacobian(theta, g[adj_obs.track], adj_obs.image, pc)
+            J = block.jacobian(theta, g[adj_obs.track], adj_obs.image)
             wt = (w / adj_obs.sigma ** 2)[:, None]
             # per-track blocks
             V = np.zeros((T, 3, 3))

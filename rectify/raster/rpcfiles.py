@@ -14,7 +14,6 @@ from xml.sax.saxutils import escape, quoteattr
 import numpy as np
 import rasterio
 from numpy.typing import ArrayLike, NDArray
-from rasterio.dtypes import _gdal_typename
 from rasterio.errors import RasterioIOError, TransformWarning
 from rasterio.transform import RPCTransformer, TransformDirection
 
@@ -23,6 +22,18 @@ from rectify.geometry.rpc import GDAL_PIXEL_OFFSET
 from rectify.raster.io import open_raster
 
 __all__ = ["gdal_rpc_project", "rpc_vrt_text"]
+
+#: numpy dtype name -> GDAL data type name of a VRT band
+_GDAL_TYPES = {"uint8": "Byte", "int8": "Int8", "uint16": "UInt16", "int16": "Int16", "uint32": "UInt32",
+               "int32": "Int32", "uint64": "UInt64", "int64": "Int64", "float32": "Float32", "float64": "Float64",
+               "complex64": "CFloat32", "complex128": "CFloat64"}
+
+
+def _gdal_typename(dtype: str) -> str:
+    try:
+        return _GDAL_TYPES[str(dtype)]
+    except KeyError:
+        raise InvalidInputError(f"a VRT cannot reference bands of data type {dtype!r}") from None
 
 
 def rpc_vrt_text(image: str | Path, rpc_metadata: dict[str, str]) -> str:

@@ -862,7 +862,8 @@ def _write(ws: Workspace, res: BundleResult, tracks: Tracks, inp: _Inputs, names
         p = root / BLOCK_LAYOUT["observations"]
         w = np.min(np.asarray(res.weights, dtype=np.float64).reshape(-1, 2), axis=1)
         # the CSV's residuals are adjusted - observed; the bundle's observed - computed
-        ws.write_text(p, observations_text(tracks, -np.asarray(res.residuals_px), w, np.asarray(res.flagged)))
+        ws.write_text(p, observations_text(tracks, -np.asarray(res.residuals_px), w, np.asarray(res.flagged),
+                                           redundancy=np.asarray(res.redundancy_numbers, dtype=np.float64)))
         written.append(p)
         if ws.report_dir is not None:  # staged: committed with the other outputs, or removed with them
             with ws.report_folder() as stage:

@@ -11,9 +11,9 @@ Block control CSV
     empty ``z`` with ``x,y`` a plan-only point; an id with no ground coordinates at all is a tie
     point measured by hand.
 Observations CSV (written)
-    ``image,id,col,row,sigma_px,residual_x_px,residual_y_px,weight,flagged``: every image
-    measurement of the adjustment with its residual (adjusted - observed), final weight and
-    blunder flag.
+    ``image,id,col,row,sigma_px,residual_x_px,residual_y_px,weight,flagged[,redundancy]``: every
+    image measurement of the adjustment with its residual (adjusted - observed), final weight,
+    blunder flag and redundancy number (mean of x and y; written by ``stereo block`` when computed).
 Block orientation JSON (written and read)
     ``format: rectify-stereo/block-orientation``, ``version``, ``crs``, ``frame`` (a sentence: what
     the coordinates are), ``reference_lla`` (OpenSfM's topocentric origin, when the poses came from
@@ -213,18 +213,30 @@ def _last_given(v: NDArray[np.float64], group: NDArray[np.int64], k: int) -> NDA
 
 
 def observations_text(tracks: Tracks, residual_px: NDArray[np.float64] | None = None,
-                      weight: NDArray[np.float64] | None = None, flagged: NDArray[np.bool_] | None = None) -> str:
-    """The observations CSV of a block (see the module docstring); residuals in pixels."""
+                      weight: NDArray[np.float64] | None = None, flagged: NDArray[np.bool_] | None = None,
+                      redundancy: NDArray[np.float64] | None = None) -> str:
+    """The observations CSV of a block (see the module docstring); residuals in pixels.
+
+    ``redundancy`` (M, 2) or (M,): the observations' redundancy numbers (x and y; written as their mean in
+    a ``redundancy`` column, 0..1: the share of an error that shows in the residual).
+    """
     m = tracks.n_obs
     res = np.full((m, 2), np.nan) if residual_px is None else np.asarray(residual_px, dtype=np.float64)
     w = np.ones(m) if weight is None else np.asarray(weight, dtype=np.float64)
     fl = np.zeros(m, dtype=bool) if flagged is None else np.asarray(flagged, dtype=bool)
+    red = None
+    if redundancy is not None:
+        r = np.asarray(redundancy, dtype=np.float64)
+        red = r.reshape(m, -1).mean(axis=1) if r.size else np.full(m, np.nan)
     buf = io.StringIO()
-    buf.write("image,id,col,row,sigma_px,residual_x_px,residual_y_px,weight,flagged\n")
+    buf.write("image,id,col,row,sigma_px,residual_x_px,residual_y_px,weight,flagged"
+              + (",redundancy" if red is not None else "") + "\n")
     for k in range(m):
         vals = [tracks.images[tracks.obs_image[k]], tracks.point_ids[tracks.obs_point[k]],
                 f"{tracks.obs_pixel[k, 0]:.4f}", f"{tracks.obs_pixel[k, 1]:.4f}", f"{tracks.obs_sigma_px[k]:.4g}",
                 _fmt(res[k, 0], 5), _fmt(res[k, 1], 5), _fmt(w[k], 4), "1" if fl[k] else "0"]
+        if red is not None:
+            vals.append(_fmt(red[k], 4))
         buf.write(",".join(vals) + "\n")
     return buf.getvalue()
 

@@ -6,6 +6,7 @@ with the truth: the adjusted projection centres, and the check points' ground co
 
 from __future__ import annotations
 
+import csv
 import hashlib
 import json
 
@@ -69,6 +70,14 @@ def test_block_with_poses_gnss_and_control(scene, tmp_path):
                  "report/report.html"):
         assert (out / name).is_file()
     assert _hashes(inputs) == before
+    # the redundancy numbers of the image measurements (issue 31): each in 0..1, summing to the redundancy of
+    # the image observations (less than their count: the unknowns take the rest)
+    with (out / "observations.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    red = np.array([float(r["redundancy"]) for r in rows if r["redundancy"]])
+    assert len(red) == len(rows) > 100
+    assert red.min() >= -1e-9 and red.max() <= 1 + 1e-9
+    assert 0.3 * len(rows) < red.sum() < len(rows)
 
 
 def test_block_without_poses_by_independent_models(scene, tmp_path):

@@ -116,8 +116,8 @@ def test_rpc_adjust_matched_ties_recover_the_bias(tmp_path):
     gcp = ground_points(8, seed=102)
     gi, gt, gp = measure(rpcs, gcp, BIAS)
     rows = ["id,image,col,row,lon,lat,h,sigma_xy,sigma_h"]
-    rows += [f"G{gt[m]},s{gi[m] + 1},{gp[m, 0]!r},{gp[m, 1]!r},{gcp[gt[m], 0]!r},{gcp[gt[m], 1]!r},"
-             f"{gcp[gt[m], 2]!r},0.02,0.02" for m in range(len(gi))]
+    rows += [f"G{gt[m]},s{gi[m] + 1},{gp[m, 0]:.6f},{gp[m, 1]:.6f},{gcp[gt[m], 0]:.10f},{gcp[gt[m], 1]:.10f},"
+             f"{gcp[gt[m], 2]:.5f},0.02,0.02" for m in range(len(gi))]
     (tmp_path / "gcps.csv").write_text("\n".join(rows) + "\n")
     res = _run(*imgs, "-o", tmp_path / "out", "--gcps", tmp_path / "gcps.csv", "--check", "G0,G1",
                "--max-matches", "400")
