@@ -20,10 +20,11 @@ from rectify.actions.products import options_of, raster_grid, raster_roles, stac
 from rectify.actions.workspace import Workspace
 from rectify.errors import InvalidInputError
 from rectify.formats.stac import StacAsset
+from rectify.raster.engine import COMPRESSIONS, JPEG_QUALITY
 from rectify.raster.mosaic import MAX_PIXELS, MosaicOptions, MosaicResult
 from rectify.raster.mosaic import mosaic as mosaic_orthos
 
-__all__ = ["MosaicOptions", "MosaicRunOptions", "MosaicRun", "mosaic"]
+__all__ = ["COMPRESSIONS", "JPEG_QUALITY", "MosaicOptions", "MosaicRunOptions", "MosaicRun", "mosaic"]
 
 
 @dataclass(frozen=True)

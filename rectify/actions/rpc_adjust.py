@@ -16,7 +16,7 @@ from __future__ import annotations
 import csv
 import io
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +27,7 @@ from rectify.errors import EstimationError, InvalidInputError
 from rectify.features import MatcherConfig, match_images
 from rectify.formats.common import stamp
 from rectify.formats.rpc import read_rpc_gcps, read_rpc_ties, rpb_text, rpc_from_raster, rpc_txt_text
+from rectify.geometry.residuals import ResidualTable
 from rectify.geometry.robust import ROBUST_METHODS
 from rectify.geometry.rpc import RPC
 from rectify.geometry.rpc_adjust import (
@@ -86,6 +87,7 @@ class RpcAdjustRun:
     outputs: tuple[Path, ...]
     n_pairs: int = 0
     notes: tuple[str, ...] = field(default=())
+    report: Path | None = None
 
     def summary_lines(self) -> list[str]:
         a = self.adjustment
@@ -119,6 +121,8 @@ class RpcAdjustRun:
                      "adjusted projection")
         lines.extend(self.notes)
         lines.append(f"wrote {len(self.outputs)} files to {self.outputs[0].parent}")
+        if self.report is not None:
+            lines.append(f"report: {self.report}")
         return lines
 
 
@@ -167,13 +171,33 @@ def _match_pairs(images: Sequence[Path], pairs: Sequence[tuple[int, int]], opts:
 def _residuals_csv(a: RPCBlockAdjustment, names: Sequence[str]) -> str:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["image", "id", "col", "row", "res_col", "res_row", "sigma_px", "weight"])
+    w.writerow(["image", "id", "col", "row", "res_col", "res_row", "sigma_px", "weight"])  # res = adjusted - measured
     t = a.tracks
     for m in range(len(t)):
         w.writerow([names[t.image[m]], t.ids[t.track[m]], f"{t.pixels[m, 0]:.4f}", f"{t.pixels[m, 1]:.4f}",
                     f"{a.residuals[m, 0]:.4f}", f"{a.residuals[m, 1]:.4f}", f"{t.sigma[m]:.4g}",
                     f"{a.weights[m]:.4f}"])
     return buf.getvalue()
+
+
+def residual_tables(a: RPCBlockAdjustment, names: Sequence[str]) -> list[ResidualTable]:
+    """The adjustment's residuals as report tables: one per image (px, adjusted minus measured) and the check
+    points (m east/north/up, intersected minus surveyed)."""
+    t = a.tracks
+    out = []
+    for j, name in enumerate(names):
+        s = t.image == j
+        out.append(ResidualTable(step=f"image residuals: {name}", ids=[t.ids[i] for i in t.track[s]],
+                                 observed=t.pixels[s], adjusted=t.pixels[s] + a.residuals[s], units="px",
+                                 components=("dcol", "drow"), weights=a.weights[s], std=t.sigma[s],
+                                 position_px=t.pixels[s], n_params=0,
+                                 extra={"model": a.model, "sigma0_block": a.sigma0}))
+    if len(a.check_ids):
+        n = len(a.check_ids)
+        out.append(ResidualTable(step="check points", ids=list(a.check_ids), observed=np.zeros((n, 3)),
+                                 adjusted=a.check_errors, units="m", components=("de", "dn", "du"),
+                                 check=np.ones(n, bool)))
+    return out
 
 
 def _document(run: RpcAdjustRun, opts: RpcAdjustOptions, images: Sequence[Path]) -> dict:
@@ -235,6 +259,7 @@ def rpc_adjust(ws: Workspace, images: Sequence[str | Path], options: RpcAdjustOp
     planned = [out / n for s in stems for n in (f"{s}.vrt", f"{s}_RPC.TXT", f"{s}.RPB")]
     planned += [out / "adjustment.json", out / "residuals.csv"]
     ws.plan(*planned)
+    ws.check_report_dir()
     rpcs = [rpc_from_raster(p) for p in paths]
     sizes = [(raster_info(p).width, raster_info(p).height) for p in paths]
     pairs = check_overlap(rpcs, sizes, names)
@@ -299,6 +324,16 @@ def rpc_adjust(ws: Workspace, images: Sequence[str | Path], options: RpcAdjustOp
                                tuple(written) + (out / "adjustment.json", out / "residuals.csv"), len(pairs))
             ws.write_json(out / "adjustment.json", _document(run, o, paths))
             ws.write_text(out / "residuals.csv", _residuals_csv(adj, names))
+            if ws.report_dir is not None:
+                # local: the report (matplotlib) loads only when --report asks for it
+                from rectify.report.builder import write_report
+
+                with ws.report_folder() as stage:
+                    write_report(stage, title=f"rectify rpc-adjust: {', '.join(names)}",
+                                 tables=residual_tables(adj, names), summary=_document(run, o, paths),
+                                 image_shapes={f"image residuals: {n}": (sz[1], sz[0])
+                                               for n, sz in zip(names, sizes, strict=True)}, overwrite=True)
+                run = replace(run, report=ws.report_dir / "report.html")
     except BaseException:
         ws.discard_root()
         raise

@@ -9,7 +9,7 @@ import click
 from rectify.actions.rpc_adjust import BIAS_MODELS, ROBUST_METHODS, RpcAdjustOptions
 from rectify.actions.rpc_adjust import rpc_adjust as rpc_adjust_action
 from rectify.actions.workspace import Workspace
-from rectify.cli.options import echo, handle_errors, overwrite_opt, progress
+from rectify.cli.options import echo, handle_errors, overwrite_opt, progress, report_opt
 
 _D = RpcAdjustOptions()
 _POS = click.FloatRange(min=0, min_open=True)
@@ -35,10 +35,11 @@ _POS = click.FloatRange(min=0, min_open=True)
               show_default=True, help="Largest refit error of a written RPC, px.")
 @click.option("--max-matches", type=click.IntRange(20), default=_D.max_matches, show_default=True,
               help="Matches kept per image pair.")
+@report_opt
 @overwrite_opt
 @handle_errors
 def rpc_adjust(images, outdir, model, gcps, check, ties, sigma_px, prior_px, robust, refit_tolerance_px,
-               max_matches, overwrite):
+               max_matches, report_dir, overwrite):
     """Adjust the RPCs of IMAGES (GeoTIFF RPC tags, or an _RPC.TXT/.RPB beside each) together: an
     image-space bias per image (Grodecki and Dial), tie points from matching the overlapping pairs (or
     --ties), optional GCPs and check points. Writes each image's refined RPC as a VRT of the image
@@ -50,7 +51,7 @@ def rpc_adjust(images, outdir, model, gcps, check, ties, sigma_px, prior_px, rob
                             check=tuple(c.strip() for c in check.split(",") if c.strip()),
                             ties=Path(ties) if ties else None, sigma_px=sigma_px, prior_px=prior_px, robust=robust,
                             refit_tolerance_px=refit_tolerance_px, max_matches=max_matches)
-    ws = Workspace(outdir, overwrite=overwrite)
+    ws = Workspace(outdir, overwrite=overwrite, report_dir=report_dir)
     with progress("matching pairs") as cb:
         run = rpc_adjust_action(ws, images, opts, progress=cb)
     for line in run.summary_lines():

@@ -380,12 +380,12 @@ class RPCBlockAdjustment:
     ground : (T, 3) float64
         Adjusted ground points of the tracks (lon, lat, h).
     residuals : (M, 2) float64
-        Measured minus adjusted pixels, px.
+        Adjusted minus measured pixels, px (the project's residual sign).
     weights : (M,) float64
         Final robust weights (1 without robust weighting).
     control_ids : tuple of str
     control_residuals : (G, 3) float64
-        Surveyed minus adjusted ground of the GCPs, metres east, north, up.
+        Adjusted minus surveyed ground of the GCPs, metres east, north, up.
     check_ids : tuple of str
     check_errors : (C, 3) float64
         Intersected (with the adjusted models) minus surveyed check points, metres east, north, up.
@@ -561,7 +561,7 @@ class RPCBlockAdjustment:
         else:
             logger.warning("RPC block adjustment stopped after %d iterations without converging", max_iter)
         pc, _ = block.corrected(theta, g[adj_obs.track], adj_obs.image)
-        res = adj_obs.pixels - pc
+        res = pc - adj_obs.pixels
         vtpv = float(np.sum(w[:, None] * (res / adj_obs.sigma[:, None]) ** 2)) + prior_w * float(np.sum(theta ** 2))
         cres = np.zeros((len(ctrl_idx), 3))
         if len(ctrl_idx):
@@ -569,6 +569,7 @@ class RPCBlockAdjustment:
             cres = np.column_stack([(ctrl_g[:, 0] - g[ctrl_idx, 0]) * mx, (ctrl_g[:, 1] - g[ctrl_idx, 1]) * my,
                                     ctrl_g[:, 2] - g[ctrl_idx, 2]])
             vtpv += float(np.sum((cres / ctrl_s) ** 2))
+            cres = -cres  # adjusted minus surveyed
         n_obs = 2 * int((w > 0).sum()) + 3 * len(ctrl_idx) + P
         redundancy = n_obs - P - 3 * T
         if redundancy <= 0:

@@ -55,10 +55,18 @@ from rectify.geometry.crs import crs_to_string, same_crs, unit_label
 from rectify.raster.balance import Balance, estimate_balance
 from rectify.raster.dem import Dem
 from rectify.raster.distributed import Scheduler, resolve_scheduler
-from rectify.raster.engine import TileEngine, tile_windows, worker_count, write_tiled
+from rectify.raster.engine import (
+    COMPRESSIONS,
+    JPEG_QUALITY,
+    TileEngine,
+    check_output_format,
+    tile_windows,
+    worker_count,
+    write_tiled,
+)
 from rectify.raster.georef import Grid, crs_label, pixel_from_world_matrix
 from rectify.raster.io import MaskPolicy, bound_gdal_cache, open_raster
-from rectify.raster.seamlines import SeamPlan, plan_seams
+from rectify.raster.seamlines import SeamPlan, mask_distance, plan_seams
 
 __all__ = ["MAX_PIXELS", "SEAMS", "BLENDS", "BALANCES", "MosaicOptions", "MosaicResult", "mosaic"]
 
@@ -102,10 +110,13 @@ class MosaicOptions:
     smooth: int = 2
     blend: str = "seams"
     balance: str = "none"
+    quality: int = JPEG_QUALITY
 
     def __post_init__(self) -> None:
         if self.scheduler is not None:
             resolve_scheduler(self.scheduler)  # a bad value fails here, before any work
+        if str(self.compress).lower() not in COMPRESSIONS:
+            raise InvalidInputError(f"unknown compression {self.compress!r}; expected one of {', '.join(COMPRESSIONS)}")
         if self.seams is not None and self.seams not in SEAMS:
             raise InvalidInputError(f"seams must be one of {', '.join(SEAMS)}; got {self.seams!r}")
         if self.seam_mode == "normal" and self.dsm is None:
@@ -237,9 +248,10 @@ class _Engine(TileEngine):
 
     def __init__(self, inputs: list[_Input], grid: Grid, dtype: np.dtype, nodata: float, feather: float, *,
                  plan: SeamPlan | None = None, blend: str = "seams", balance: Balance | None = None,
-                 sources: bool = False):
+                 sources: bool = False, edges: NDArray[np.float32] | None = None, zone: int = 8):
         self.inputs, self.grid, self.dtype, self.nodata, self.feather = inputs, grid, dtype, nodata, feather
         self.plan, self.blend, self.balance, self.sources = plan, blend, balance, sources
+        self.edges, self.zone = edges, zone  # average blend: signed distances (zones) to each footprint's edge
         self._init_readers()
         self.counts = np.zeros(len(inputs), np.int64)
 
@@ -319,14 +331,18 @@ class _Engine(TileEngine):
         if plan is None:
             inp = self.inputs[i]
             return np.hypot(X - inp.nadir[0], Y - inp.nadir[1])
-        h, w = X.shape
-        z = plan.zone
+        return -self._zone_interp(plan.sdist[i], plan.zone, c0, r0, X.shape)
+
+    def _zone_interp(self, a: NDArray[np.float32], z: int, c0: int, r0: int, shape: tuple[int, ...]
+                     ) -> NDArray[np.float64]:
+        """A zone grid's values (zones) interpolated bilinearly at the output pixels of a window, world units."""
+        h, w = shape
         # zone (r, c) is centred on output pixel c * z + (z - 1) / 2; float32 maps from absolute pixel numbers
         mx = ((np.arange(c0, c0 + w, dtype=np.float64) - 0.5 * (z - 1)) / z).astype(np.float32)
         my = ((np.arange(r0, r0 + h, dtype=np.float64) - 0.5 * (z - 1)) / z).astype(np.float32)
         MX, MY = np.meshgrid(mx, my)
-        sd = cv2.remap(plan.sdist[i], MX, MY, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        return -sd.astype(np.float64) * z * abs(_gt(self.grid.transform)[0])
+        sd = cv2.remap(a, MX, MY, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return sd.astype(np.float64) * z * abs(_gt(self.grid.transform)[0])
 
     def tile(self, c0: int, r0: int, w: int, h: int) -> tuple[NDArray, bool]:
         t = _gt(self.grid.transform)
@@ -355,7 +371,11 @@ class _Engine(TileEngine):
         wsum = np.zeros((h, w))
         best = np.full((h, w), -1)
         for i, img, v, d in reads:
-            if self.blend == "average":
+            if self.blend == "average" and self.edges is not None and self.feather > 0:
+                # feathered at the footprint's edge; never 0, so a pixel only this input fills keeps it
+                inner = self._zone_interp(self.edges[i], self.zone, c0, r0, (h, w))
+                wt = np.clip(0.5 + inner / self.feather, 1e-3, 1.0)
+            elif self.blend == "average":
                 wt = np.ones((h, w))
             elif self.feather > 0:
                 wt = np.clip(1.0 - (d - dmin) / self.feather, 0.0, 1.0)
@@ -508,6 +528,7 @@ def mosaic(orthos: Sequence[str | Path], dst: str | Path, *, resolution: float |
             raise InvalidInputError(f"orthophoto {inp.path!r} has {inp.count} bands, {inputs[0].path!r} "
                                     f"{inputs[0].count}")
     dtype = np.dtype(dtype_name)
+    check_output_format(opts.compress, dtype, inputs[0].count, opts.quality)  # before any work
     res = float(resolution) if resolution is not None else min(abs(_gt(i.transform)[0]) for i in inputs)
     if not math.isfinite(res) or res <= 0:
         raise InvalidInputError(f"resolution must be a positive number; got {resolution!r}")
@@ -549,7 +570,9 @@ def mosaic(orthos: Sequence[str | Path], dst: str | Path, *, resolution: float |
     seams = opts.seam_mode
     plan: SeamPlan | None = None
     balance: Balance | None = None
-    if seams == "normal" or opts.balance != "none":
+    feather_average = opts.blend == "average" and opts.feather_px > 0 and len(inputs) > 1
+    edges = None
+    if seams == "normal" or opts.balance != "none" or feather_average:
         probe = _Engine(inputs, grid, dtype, nodata, 0.0)
         try:
             samples = _sample_zones(probe, opts.zone_px, with_values=opts.balance != "none")
@@ -557,16 +580,19 @@ def mosaic(orthos: Sequence[str | Path], dst: str | Path, *, resolution: float |
             probe.close()
         if seams == "normal":
             plan = _plan(inputs, grid, samples, opts)
+        if feather_average:
+            edges = np.stack([mask_distance(s >= 0.5) for s in samples.share])
         if opts.balance != "none":
             balance = estimate_balance(samples.values, samples.valid, mode=opts.balance, reference=0,
                                        names=[Path(p).name for p in paths])
     engine = _Engine(inputs, grid, dtype, nodata, opts.feather_px * res, plan=plan, blend=opts.blend,
-                     balance=balance)
+                     balance=balance, edges=edges, zone=opts.zone_px)
     windows = tile_windows(grid.width, grid.height, opts.tile_px)
     tags = {"MOSAIC_SEAMS": seams, "MOSAIC_BLEND": opts.blend, "MOSAIC_BALANCE": opts.balance}
     write_tiled(engine, dst, grid, windows, count=inputs[0].count, dtype=dtype, policy=MaskPolicy("nodata", nodata),
                 tile=opts.tile_px, compress=opts.compress, cog=opts.cog, threads=opts.n_threads, scheduler=sched,
-                overwrite=overwrite, progress=progress, name="mosaic", cache_bytes=64 * 1024 * 1024, tags=tags)
+                overwrite=overwrite, progress=progress, name="mosaic", cache_bytes=64 * 1024 * 1024, tags=tags,
+                quality=opts.quality)
     if provenance is not None:
         try:
             src_dtype = np.dtype(np.uint8 if len(inputs) < 255 else np.uint16)

@@ -37,8 +37,8 @@ from numpy.typing import NDArray
 
 from rectify.errors import InvalidInputError
 
-__all__ = ["SeamPlan", "surface_normals", "view_angles", "criterion", "choose", "majority", "signed_distance",
-           "plan_seams"]
+__all__ = ["SeamPlan", "surface_normals", "view_angles", "criterion", "choose", "majority", "mask_distance",
+           "signed_distance", "plan_seams"]
 
 #: signed distance (zones) of an image chosen nowhere: far outside everywhere
 FAR = 1.0e6
@@ -130,25 +130,24 @@ def majority(labels: NDArray[np.int64], cand: NDArray[np.bool_], radius: int, it
     return lab
 
 
-def signed_distance(labels: NDArray[np.int64], n: int) -> NDArray[np.float32]:
-    """Signed distance (n, rows, cols) of each zone centre to the edge of image i's region, in zones.
+def mask_distance(inside: NDArray[np.bool_]) -> NDArray[np.float32]:
+    """Signed distance (rows, cols) of each zone centre to the edge of the region ``inside``, in zones:
+    positive inside, negative outside, 0 half-way between an inside and an outside zone centre;
+    -:data:`FAR` everywhere for an empty region, +:data:`FAR` for a full one."""
+    if not inside.any():
+        return np.full(inside.shape, -FAR, np.float32)
+    if inside.all():
+        return np.full(inside.shape, FAR, np.float32)
+    # distanceTransform: distance from each non-zero pixel to the nearest zero pixel
+    d_in = cv2.distanceTransform(inside.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    d_out = cv2.distanceTransform((~inside).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    return np.where(inside, d_in - 0.5, -(d_out - 0.5)).astype(np.float32)
 
-    Positive inside the region, negative outside; 0 half-way between the centres of two zones of different
-    labels (the seam). An image chosen nowhere gets -:data:`FAR`.
-    """
-    out = np.full((n,) + labels.shape, -FAR, np.float32)
-    for i in range(n):
-        inside = labels == i
-        if not inside.any():
-            continue
-        if inside.all():
-            out[i] = FAR
-            continue
-        # distanceTransform: distance from each non-zero pixel to the nearest zero pixel
-        d_in = cv2.distanceTransform(inside.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-        d_out = cv2.distanceTransform((~inside).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-        out[i] = np.where(inside, d_in - 0.5, -(d_out - 0.5))
-    return out
+
+def signed_distance(labels: NDArray[np.int64], n: int) -> NDArray[np.float32]:
+    """Signed distance (n, rows, cols) of each zone centre to the edge of image i's region, in zones
+    (:func:`mask_distance` of ``labels == i``): 0 on the seam; an image chosen nowhere gets -:data:`FAR`."""
+    return np.stack([mask_distance(labels == i) for i in range(n)])
 
 
 @dataclass(frozen=True, eq=False)

@@ -9,13 +9,15 @@ leaves the block, or passes under the terrain (occluded: the terrain is more tha
 the maximum over blocks of ``block`` x ``block`` cells and then over each 3 x 3 neighbourhood of blocks;
 every point closer than ``block`` pixels to a line's position lies in that neighbourhood, and a bilinear
 sample never exceeds the largest of its four cells, so when the line is already above that maximum the
-next ``2 * block`` half-pixel steps cannot meet the terrain and are skipped at once. The steps that are
-taken are the reference's steps (the same positions and heights, the same arithmetic), so the result
+next ``2 * block`` half-pixel steps cannot meet the terrain and are skipped at once (the line only rises
+along its way). Several block sizes are tried, the largest cleared one sets the skip. The steps that
+are taken are the reference's steps (the same positions and heights, the same arithmetic), so the result
 is identical, not merely close (tests/rectify/test_ortho_speedpaths.py checks it).
 """
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -89,25 +91,26 @@ def line_of_sight_reference(Z: NDArray, m: int, d: NDArray, z: NDArray,
 def _block_max(Zf: NDArray[np.float64], block: int) -> NDArray[np.float64]:
     """Maximum of ``Zf`` over each ``block`` x ``block`` cell block, then over each 3 x 3 block neighbourhood."""
     H, W = Zf.shape
-    nby, nbx = -(-H // block), -(-W // block)
-    pad = np.full((nby * block, nbx * block), -np.inf)
-    pad[:H, :W] = Zf
-    M = pad.reshape(nby, block, nbx, block).max(axis=(1, 3))
-    P = np.full((nby + 2, nbx + 2), -np.inf)
-    P[1:-1, 1:-1] = M
-    out = M.copy()
-    for i in range(3):
-        for j in range(3):
-            np.maximum(out, P[i:i + nby, j:j + nbx], out=out)
-    return out
+    if block == 1:
+        M = Zf
+    else:
+        nby, nbx = -(-H // block), -(-W // block)
+        pad = np.full((nby * block, nbx * block), -np.inf)
+        pad[:H, :W] = Zf
+        M = pad.reshape(nby, block, nbx, block).max(axis=(1, 3))
+    # 3 x 3 maximum; a replicated border repeats values already in the neighbourhood (the same maximum)
+    return cv2.dilate(np.ascontiguousarray(M, dtype=np.float64), np.ones((3, 3), np.uint8),
+                      borderType=cv2.BORDER_REPLICATE)
 
 
 def line_of_sight(Z: NDArray, m: int, d: NDArray, z: NDArray, inside: NDArray[np.bool_], *,
-                  block: int = 8) -> NDArray[np.bool_]:
+                  block: int = 1, levels: int = 3, chunk: int = 1) -> NDArray[np.bool_]:
     """:func:`line_of_sight_reference`'s result, skipping the steps that cannot meet the terrain (module docstring).
 
-    ``block`` (cells, >= 1) sets the skip: ``2 * block`` steps when the line is above the highest DEM
-    cell within ``block`` pixels.
+    ``block`` (cells, >= 1) sets the smallest skip: ``2 * block`` steps when the line is above the highest
+    DEM cell within ``block`` pixels; ``levels`` block sizes ``block * 4**i`` are tried, the largest
+    whose maximum the line clears sets the skip. The lines that cannot skip take their next ``chunk``
+    steps at once (the first event decides, as in the reference's step by step march).
     """
     h, w = z.shape
     vis = np.ones((h, w), bool)
@@ -121,8 +124,8 @@ def line_of_sight(Z: NDArray, m: int, d: NDArray, z: NDArray, inside: NDArray[np
     # padded copy of that row/column, so the four samples (and the sums) are the reference's
     Zp = np.pad(Zf, ((0, 1), (0, 1)), mode="edge").ravel()
     Wp = W + 1
-    M3 = _block_max(Zf, block)
-    jump = 2 * block
+    sizes = [block * 4 ** i for i in range(max(1, levels)) if i == 0 or block * 4 ** i <= max(H, W)]
+    maxima = [(b, _block_max(Zf, b)) for b in sizes]
     occl = np.zeros(len(rows), bool)
     idx = np.arange(len(rows))
     k = np.ones(len(rows), np.int64)
@@ -135,24 +138,46 @@ def line_of_sight(Z: NDArray, m: int, d: NDArray, z: NDArray, inside: NDArray[np
         done = ~inb | (ray_h > zmax)
         xi = np.where(inb, x, 0.0).astype(np.intp)  # floor: x >= 0 inside
         yi = np.where(inb, y, 0.0).astype(np.intp)
-        skip = inb & (ray_h > M3[yi // block, xi // block])
+        jump = np.zeros(len(idx), np.int64)
+        for b, M3 in maxima:  # ascending sizes: a larger block's maximum is never lower
+            clear = inb & (ray_h > M3[yi // b, xi // b])
+            if not clear.any():
+                break
+            jump[clear] = 2 * b
+        skip = jump > 0
         fine = np.flatnonzero(inb & ~skip)
+        step = np.where(skip, jump, 1)
         if len(fine):
-            xf, yf = x[fine], y[fine]
-            x0, y0 = xi[fine], yi[fine]
-            fx, fy = xf - x0, yf - y0
+            # the next `chunk` steps of these lines at once; the first event (hit, out, above all) decides
+            kk = k[fine][:, None] + np.arange(chunk)
+            s2 = kk * STEP_PX
+            rh = z0[fine][:, None] + s2 / dd[fine][:, None]
+            x2 = px0[fine][:, None] + s2 * ux[fine][:, None]
+            y2 = py0[fine][:, None] + s2 * uy[fine][:, None]
+            in2 = (x2 >= 0) & (y2 >= 0) & (x2 <= W - 1) & (y2 <= H - 1)
+            x0 = np.where(in2, x2, 0.0).astype(np.intp)
+            y0 = np.where(in2, y2, 0.0).astype(np.intp)
+            fx, fy = x2 - x0, y2 - y0
             p = y0 * Wp + x0
             v00, v01, v10, v11 = Zp[p], Zp[p + 1], Zp[p + Wp], Zp[p + Wp + 1]
             with np.errstate(invalid="ignore"):
                 ter = (v00 * (1 - fx) + v01 * fx) * (1 - fy) + (v10 * (1 - fx) + v11 * fx) * fy
-                hit = ter > ray_h[fine] + HIT_MARGIN_M
-            if hit.any():
-                occl[idx[fine[hit]]] = True
-                done[fine[hit]] = True
-        k = np.where(skip, k + jump, k + 1)
+                hit = in2 & (ter > rh + HIT_MARGIN_M)
+                event = hit | ~in2 | (rh > zmax) | (kk > _MAX_STEPS)
+            any_ev = event.any(axis=1)
+            first = event.argmax(axis=1)
+            hit_first = any_ev & hit[np.arange(len(fine)), first]
+            occl[idx[fine[hit_first]]] = True
+            done[fine[any_ev]] = True
+            step[fine] = chunk
+        k += step
         done |= k > _MAX_STEPS
         if done.any():
-            keep = ~done
-            idx, k, z0, dd, ux, uy, px0, py0 = (a[keep] for a in (idx, k, z0, dd, ux, uy, px0, py0))
+            n_done = int(done.sum())
+            if 4 * n_done >= len(idx):
+                keep = ~done
+                idx, k, z0, dd, ux, uy, px0, py0 = (a[keep] for a in (idx, k, z0, dd, ux, uy, px0, py0))
+            else:  # few: park them outside the block (never inside again: no further sample, no hit)
+                px0[done] = -np.inf
     vis[rows, cols] = ~occl
     return vis

@@ -66,7 +66,9 @@ from rectify.geometry.rpc import RPC
 from rectify.raster.io import gdal_cache_limit, gdal_wkt, raster_info, read_window
 from rectify.report.builder import json_safe
 from stereo.dense.dsm import DSM_NODATA, STATISTICS, DsmGrid, DsmResult, default_cell
+from stereo.dense.fusion import SigmaGrid
 from stereo.dense.matching import MatchOptions, match_pair
+from stereo.dense.precision import disparity_sigma
 from stereo.dense.rpc_epipolar import (
     AffineCamera,
     AffineRectification,
@@ -137,6 +139,14 @@ class RpcDenseOptions:
         ``report/``.
     stac : bool
         Write the STAC Item of the DSM and the point cloud, ``OUTDIR/item.stac.json``.
+    pair_sigma : bool
+        Also grid every point with its height standard error (the disparity's, from its sub-pixel fit,
+        :func:`stereo.dense.precision.disparity_sigma`, over the tile's disparity per metre of height) on
+        the DSM grid (:class:`stereo.dense.fusion.SigmaGrid`): :attr:`RpcDenseResult.sigma`, what the
+        multi-view fusion of ``stereo dense-rpc IMG1 IMG2 IMG3 ...`` takes from each pair.
+    sigma_edge_cells : int
+        With ``pair_sigma``: cells within this many cells of the pair's coverage edge are left out of the
+        sigma grids (:class:`stereo.dense.fusion.SigmaGrid`'s ``edge_cells``).
     """
 
     tile: int = 300
@@ -157,11 +167,13 @@ class RpcDenseOptions:
     interpolation: str = "cubic"
     reference_dem: str | None = None
     stac: bool = True
+    pair_sigma: bool = False
+    sigma_edge_cells: int = 1
 
     def __post_init__(self) -> None:
         if isinstance(self.tile, bool) or not isinstance(self.tile, int) or not 64 <= self.tile <= 4096:
             raise InvalidInputError(f"`tile` must be an integer in 64..4096; got {self.tile!r}")
-        for name, lo in (("margin_px", 0), ("min_ties", 3), ("fill_holes", 0)):
+        for name, lo in (("margin_px", 0), ("min_ties", 3), ("fill_holes", 0), ("sigma_edge_cells", 0)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < lo:
                 raise InvalidInputError(f"`{name}` must be an integer >= {lo}; got {v!r}")
@@ -229,7 +241,9 @@ class RpcDenseResult:
     ``parallax_rms_px``: RMS vertical parallax of the tie points of every tile after local epipolar
     resampling and pointing correction; ``parallax_max_tile_rms_px``: the worst tile's RMS;
     ``parallax_before_rms_px``: the same before the correction (RPCs alone). ``roi``: statistics of
-    the DSM cells that fall in the region of interest (:func:`roi_statistics`).
+    the DSM cells that fall in the region of interest (:func:`roi_statistics`). ``sigma`` (with
+    ``RpcDenseOptions.pair_sigma``): the pair's heights and their standard errors, (H, W) float64 each
+    (metres, NaN where none), on the grid of the affine geotransform (the third item; the DSM's cells).
     """
 
     out_dir: Path
@@ -248,6 +262,7 @@ class RpcDenseResult:
     comparison: HeightComparison | None = None
     tile_option: int | None = None
     gsd: float | None = None
+    sigma: tuple[NDArray[np.float64], NDArray[np.float64], Any] | None = None
 
     def summary_lines(self) -> list[str]:
         ok = [t for t in self.tiles if t.error is None]
@@ -570,6 +585,8 @@ def _run(left: StrPath, right: StrPath, out: Path, ws: Workspace, names: list[st
                   float(fxy[:, 0].max()) + 2 * cell, float(fxy[:, 1].max()) + 2 * cell)
         grid = DsmGrid(bounds, cell, statistic=opts.dsm_statistic, crs=crs, radius=opts.dsm_radius,
                        max_spread=opts.dsm_max_spread, heights="m above the WGS 84 ellipsoid")
+        sgrid = (SigmaGrid(bounds, cell, crs=crs, radius=opts.dsm_radius, max_spread=opts.dsm_max_spread,
+                           edge_cells=opts.sigma_edge_cells) if opts.pair_sigma else None)
 
         files: list[Path] = []
         results: list[RpcTile] = []
@@ -590,7 +607,7 @@ def _run(left: StrPath, right: StrPath, out: Path, ws: Workspace, names: list[st
                                           comment=f"UTM {crs}, ellipsoidal heights")
                 for i, sel, borrowed in plan:
                     tile = _dense_tile(left, right, rl, rr, tiles[i], TL[sel], TR[sel], TG[sel], borrowed, opts,
-                                       grid, writer, crs)
+                                       grid, writer, crs, sgrid)
                     results.append(tile)
                     n_total += tile.n_points
                     prog("tiles", i + 1, len(tiles))
@@ -665,15 +682,21 @@ def _run(left: StrPath, right: StrPath, out: Path, ws: Workspace, names: list[st
                 with contextlib.suppress(OSError):
                     rep.rmdir()
             raise
+    sig = None
+    if sgrid is not None:
+        sh, ss = sgrid.result()
+        sig = (sh, ss, sgrid.transform)
     return RpcDenseResult(out, tuple(files), tuple(results), n_total, dsm, cell, crs, box, stats, rms(after), worst,
                           rms(before), time.perf_counter() - t0, comparison, opts.tile,
-                          gsd if opts.dsm_cell is None else None)
+                          gsd if opts.dsm_cell is None else None, sig)
 
 
 def _dense_tile(left: StrPath, right: StrPath, rl: Any, rr: Any, win: tuple[int, int, int, int],
                 tl: NDArray[np.float64], tr: NDArray[np.float64], tg: NDArray[np.float64], borrowed: bool,
-                opts: RpcDenseOptions, grid: DsmGrid, writer: Any, crs: str) -> RpcTile:
-    """Rectify, match and triangulate one tile; add its points to the grid and the cloud."""
+                opts: RpcDenseOptions, grid: DsmGrid, writer: Any, crs: str, sgrid: SigmaGrid | None = None
+                ) -> RpcTile:
+    """Rectify, match and triangulate one tile; add its points to the grid and the cloud (and, with
+    ``sgrid``, with their height standard errors to that grid)."""
     hz = tg[:, 2]
     hr = (float(np.percentile(hz, 1)) - opts.height_margin_m, float(np.percentile(hz, 99)) + opts.height_margin_m)
     try:
@@ -722,6 +745,10 @@ def _dense_tile(left: StrPath, right: StrPath, rl: Any, rr: Any, win: tuple[int,
         xy = transform_xy("EPSG:4326", crs, g[:, :2])
         xyz = np.column_stack([xy, g[:, 2]])
         grid.add(xyz)
+        if sgrid is not None:
+            # the disparity's standard error (px) over the disparity per metre of height: sigma_Z (m)
+            sd = disparity_sigma(L, R, np.where(ok, disp, np.nan))[yy, xx].astype(np.float64)
+            sgrid.add(xyz, sd / max(abs(float(rect.disparity_per_m)), 1e-9))
         if writer is not None:
             v = L[yy, xx].astype(np.float64)
             lo, hi = np.percentile(L[lv], [1, 99]) if lv.any() else (0.0, 1.0)

@@ -475,9 +475,7 @@ def _pair_points(rect: EpipolarRectification, paths: dict[str, Path], grid: Sigm
             s_px = sd[rows, cols].astype(np.float64)
             depth = np.abs((pts.xyz - rect.centre_left) @ (axis / np.linalg.norm(axis)))
             s_disp = height_sigma_disparity(pts.xyz, rect.centre_left, axis, base, rect.focal_px, s_px)
-            if orient[1] is not None:
-                s_or = orient[1](pts.xyz[:, :2])
-            elif orient[0] == "poses":
+            if orient[0] == "poses":
                 s_or = height_sigma_orientation(depth, base, std_l, std_r)
             else:
                 s_or = np.zeros(len(depth))
@@ -501,10 +499,19 @@ def _overlap_mask(polys: list[NDArray[np.float64]], transform: Any, shape: tuple
     return m > 0
 
 
-def _fuse_rows(hs: list[Any], ss: list[Any], r0: int, r1: int, factor: float, k: float) -> FusedHeights:
-    """Fuse rows ``r0:r1`` of the pairs' height and sigma grids (sigmas scaled by ``factor``)."""
+def _fuse_rows(hs: list[Any], ss: list[Any], r0: int, r1: int, factor: float, k: float,
+               common: PointSigmaField | None = None, transform: Any = None) -> FusedHeights:
+    """Fuse rows ``r0:r1`` of the pairs' height and sigma grids (sigmas scaled by ``factor``); ``common``:
+    the orientation's share of sigma_Z at the cell centres (the block points' field)."""
+    c = None
+    if common is not None:
+        w = hs[0].shape[1]
+        cc, rr = np.meshgrid(np.arange(w) + 0.5, np.arange(r0, r1) + 0.5)
+        x = transform.c + transform.a * cc
+        y = transform.f + transform.e * rr
+        c = common(np.column_stack([x.ravel(), y.ravel()])).reshape(r1 - r0, w)
     return fuse_heights(np.stack([np.asarray(a[r0:r1], np.float64) for a in hs]),
-                        np.stack([factor * np.asarray(a[r0:r1], np.float64) for a in ss]), k=k)
+                        np.stack([factor * np.asarray(a[r0:r1], np.float64) for a in ss]), k=k, common=c)
 
 
 # --------------------------------------------------------------------------- the action
@@ -642,7 +649,7 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
                     tmp, W, H, len(FUSED_BANDS), "float32", transform, bo.crs, MaskPolicy("nodata", DSM_NODATA),
                     tile=256, descriptions=fused_band_descriptions(heights, opts.k_sigma)) as wr:
                 for r0 in range(0, H, FUSION_ROWS):
-                    f = _fuse_rows(hs, ss, r0, min(r0 + FUSION_ROWS, H), factor, opts.k_sigma)
+                    f = _fuse_rows(hs, ss, r0, min(r0 + FUSION_ROWS, H), factor, opts.k_sigma, orient_field, transform)
                     prov = np.where(f.provenance >= 0, np.asarray(index)[np.maximum(f.provenance, 0)], -1)
                     wr.write(np.dstack([nodata_of(f.height), nodata_of(f.sigma), f.count.astype(np.float32),
                                         prov.astype(np.float32)]), 0, r0)

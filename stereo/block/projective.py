@@ -433,7 +433,10 @@ def join_models(models: Sequence[ProjectiveModel], n_points: int, n_images: int,
         left.discard(m)
         fin = np.isfinite(block_h[:, 0])
         if method == "projective" and np.min(block_h[fin, 3] / np.linalg.norm(block_h[fin], axis=1)) < 0.05:
-            G = _frame(block_h[fin])
+            try:
+                G = _frame(block_h[fin])
+            except EstimationError:  # no plane leaves every point on one side (outliers): keep the frame
+                G = np.eye(4)
             block_h[fin] = block_h[fin] @ G.T
             block_h[fin] /= block_h[fin, 3:4]
             T = {q: G @ Tq for q, Tq in T.items()}

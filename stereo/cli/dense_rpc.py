@@ -1,4 +1,5 @@
-"""``stereo dense-rpc``: DSM and point cloud of an RPC (pushbroom satellite) pair by local epipolar tiles."""
+"""``stereo dense-rpc``: DSM and point cloud of an RPC (pushbroom satellite) pair by local epipolar tiles; with
+three or more images, the RPC block adjustment, the pairs of the first image and one fused DSM."""
 
 from __future__ import annotations
 
@@ -6,8 +7,10 @@ import click
 
 from rectify.cli.options import echo, handle_errors, overwrite_opt
 from stereo.actions.dense_rpc import RpcDenseOptions, run_dense_rpc
+from stereo.actions.dense_rpc_multi import MultiRpcOptions, run_dense_rpc_multi
 
 _D = RpcDenseOptions()
+_M = MultiRpcOptions()
 
 
 def _roi(ctx, param, value):
@@ -22,12 +25,12 @@ def _roi(ctx, param, value):
     return tuple(parts)
 
 
-@click.command("dense-rpc", short_help="Dense matching of an RPC satellite pair: local epipolar tiles, DSM.")
-@click.argument("left", type=click.Path(dir_okay=False))
-@click.argument("right", type=click.Path(dir_okay=False))
+@click.command("dense-rpc", short_help="Dense matching of RPC satellite images: local epipolar tiles, (fused) DSM.")
+@click.argument("images", nargs=-1, required=True, type=click.Path(dir_okay=False))
 @click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False),
               help="Output folder (dsm.tif, points, dense_rpc.json, item.stac.json; report/ with --reference-dem).")
-@click.option("--roi", callback=_roi, default=None, help="Region of interest of LEFT: x,y,width,height (pixels).")
+@click.option("--roi", callback=_roi, default=None,
+              help="Region of interest of the first image: x,y,width,height (pixels).")
 @click.option("--tile", type=int, default=_D.tile, show_default=True,
               help="Nominal tile side, left pixels: the ROI is cut into round(width / tile) x round(height / tile) "
                    "equal tiles (a 700 px ROI gives two tiles of 350 px with 300).")
@@ -40,14 +43,40 @@ def _roi(ctx, param, value):
               help="Compare the DSM with this DEM (RMSE, NMAD, blunders; report/ pictures). Its heights are taken "
                    "as they are: the DSM's are above the WGS 84 ellipsoid.")
 @click.option("--stac/--no-stac", default=True, show_default=True,
-              help="Write the STAC Item of the DSM and the point cloud, OUTDIR/item.stac.json.")
+              help="Write the STAC Item of the DSM and the point cloud, OUTDIR/item.stac.json (two images).")
+@click.option("--adjust/--no-adjust", default=_M.adjust, show_default=True,
+              help="Three or more images: adjust the RPCs (image-space biases, tie points of every overlapping "
+                   "pair) before matching.")
+@click.option("--bias-model", type=click.Choice(["shift", "affine"]), default=_M.bias_model, show_default=True,
+              help="Three or more images: the adjustment's bias model per image.")
+@click.option("--min-angle", type=float, default=_M.min_angle_deg, show_default=True,
+              help="Three or more images: the least intersection angle of a pair at the scene centre, degrees.")
+@click.option("--max-angle", type=float, default=_M.max_angle_deg, show_default=True,
+              help="Three or more images: the largest intersection angle of a pair, degrees.")
+@click.option("--min-overlap", type=float, default=_M.min_overlap, show_default=True,
+              help="Three or more images: the least share of the ROI the other image of a pair must see.")
 @overwrite_opt
 @handle_errors
-def dense_rpc(left, right, out_dir, roi, tile, dsm_cell, fill_holes, cloud, reference_dem, stac, overwrite):
-    """Match LEFT and RIGHT (images with RPCs) tile by tile after local epipolar resampling by affine
-    camera approximation, and write the DSM (UTM, ellipsoidal heights) and the point cloud."""
+def dense_rpc(images, out_dir, roi, tile, dsm_cell, fill_holes, cloud, reference_dem, stac, adjust, bias_model,
+              min_angle, max_angle, min_overlap, overwrite):
+    """Match IMAGES (two or more images with RPCs) tile by tile after local epipolar resampling by affine
+    camera approximation, and write the DSM (UTM, ellipsoidal heights).
+
+    Two images: their DSM and point cloud. Three or more: the RPCs are adjusted (unless --no-adjust),
+    the first image is paired with every other image whose intersection angle lies in
+    --min-angle..--max-angle, and the pairs' DSMs are fused into one (bands: height, sigma_Z, count,
+    provenance)."""
+    if len(images) < 2:
+        raise click.UsageError(f"dense-rpc needs at least two images; got {len(images)}")
     opts = RpcDenseOptions(tile=tile, dsm_cell=dsm_cell, fill_holes=fill_holes, cloud_format=cloud,
                            reference_dem=reference_dem, stac=stac)
-    result = run_dense_rpc(left, right, out_dir, roi=roi, options=opts, overwrite=overwrite)
+    if len(images) == 2:
+        result = run_dense_rpc(images[0], images[1], out_dir, roi=roi, options=opts, overwrite=overwrite)
+    else:
+        mopts = MultiRpcOptions(pair=RpcDenseOptions(tile=tile, dsm_cell=dsm_cell, fill_holes=fill_holes,
+                                                     cloud_format="none", stac=False),
+                                adjust=adjust, bias_model=bias_model, min_angle_deg=min_angle,
+                                max_angle_deg=max_angle, min_overlap=min_overlap, reference_dem=reference_dem)
+        result = run_dense_rpc_multi(images, out_dir, roi=roi, options=mopts, overwrite=overwrite)
     for line in result.summary_lines():
         echo(line)

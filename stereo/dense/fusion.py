@@ -13,7 +13,8 @@ Per cell, with the pairs' heights ``h_i`` and standard errors ``s_i`` (weights `
 3. the weighted mean of the consistent heights, ``z = sum(w_i h_i) / sum(w_i)``, and the test of
    step 2 once more against ``z`` (with ``s_z`` in place of ``s_m``); the final ``z`` from those kept;
 4. its standard error ``s_z = 1 / sqrt(sum w_i)``, inflated by the scatter when that is larger:
-   ``s_z * max(1, sqrt(chi2 / (n - 1)))`` with ``chi2 = sum w_i (h_i - z)^2`` (``n >= 2``);
+   ``s_z * max(1, sqrt(chi2 / (n - 1)))`` with ``chi2 = sum w_i (h_i - z)^2`` (``n >= 2``), and a
+   standard error common to all pairs at the cell, when given, added in quadrature;
 5. the count of consistent pairs and the provenance: the index of the consistent pair with the
    smallest ``s_i`` (-1 where no height).
 
@@ -108,7 +109,8 @@ def _weighted_median(h: NDArray[np.float64], w: NDArray[np.float64]) -> NDArray[
     return np.take_along_axis(hs, idx[None], axis=0)[0]
 
 
-def fuse_heights(heights: ArrayLike, sigmas: ArrayLike, *, k: float = 3.0) -> FusedHeights:
+def fuse_heights(heights: ArrayLike, sigmas: ArrayLike, *, k: float = 3.0, common: ArrayLike | None = None
+                 ) -> FusedHeights:
     """Fuse the heights of P pairs on a common grid (module docstring).
 
     Parameters
@@ -119,6 +121,10 @@ def fuse_heights(heights: ArrayLike, sigmas: ArrayLike, *, k: float = 3.0) -> Fu
         Their standard errors (> 0; a cell without a finite positive sigma is not used).
     k : float
         Rejection threshold, standard errors.
+    common : (H, W) array_like, optional
+        A standard error shared by all pairs at each cell (e.g. the orientation's, as the bundle
+        propagated it to its points): it neither weights nor rejects, and is added in quadrature to
+        the fused standard error (NaN: 0).
 
     Returns
     -------
@@ -159,6 +165,12 @@ def fuse_heights(heights: ArrayLike, sigmas: ArrayLike, *, k: float = 3.0) -> Fu
         chi2 = (np.where(keep, w, 0.0) * (h - z[None]) ** 2).sum(axis=0)
         infl = np.where(n >= 2, np.sqrt(chi2 / np.maximum(n - 1, 1)), 1.0)
     sigma = sz * np.maximum(1.0, infl)
+    if common is not None:
+        c = np.asarray(common, dtype=np.float64)
+        if c.shape != h.shape[1:]:
+            raise ShapeError(f"`common` must have the grid's shape {h.shape[1:]}; got {c.shape}",
+                             actual_shape=c.shape, expected_shape=h.shape[1:])
+        sigma = np.sqrt(sigma * sigma + np.where(np.isfinite(c), c, 0.0) ** 2)
     has = any_ok & (n > 0)
     z = np.where(has, z, np.nan)
     sigma = np.where(has, sigma, np.nan)

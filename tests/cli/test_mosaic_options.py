@@ -78,6 +78,7 @@ def test_bad_input_one_line_nothing_written(tmp_path):
         ([a, other], "must share one CRS", "utm33.tif"),
         ([a, b, "--dsm", tmp_path / "missing.tif"], "missing.tif", ""),
         ([a, b, "--dsm", tmp_path / "far_dsm.tif"], "has no height under the mosaic", "far_dsm.tif"),
+        ([a, b, "--compress", "jpeg"], "needs an 8-bit (uint8) output", "float32"),
     ]
     for args, what, more in cases:
         r = _run([*args, "-o", tmp_path / "m.tif"])
@@ -143,6 +144,13 @@ def test_rectify_ortho_tags_the_centre_and_the_chain_runs(tmp_path):
     with rasterio.open(tmp_path / "m.source.tif") as ds:
         s = ds.read(1)
     assert (s == 1).sum() > 100 and (s == 2).sum() > 100
+    # the lossy output of the shared tail: JPEG-in-TIFF COG, the invalid pixels in an internal mask
+    r = _run([*orthos, "-o", tmp_path / "j.tif", "--dsm", tmp_path / "dem.tif", "--compress", "jpeg", "--cog",
+              "--no-stac"])
+    assert r.exit_code == 0, r.output
+    with rasterio.open(tmp_path / "j.tif") as ds, rasterio.open(tmp_path / "m.tif") as lossless:
+        assert ds.compression.name.lower() == "jpeg"  # (no overviews: smaller than one 512 px block)
+        assert (ds.read_masks(1) > 0).sum() == (lossless.read_masks(1) > 0).sum()
 
 
 def test_rpc_orthophotos_carry_a_view_direction(tmp_path):

@@ -95,9 +95,13 @@ def test_rpc_adjust_end_to_end(block, tmp_path):
 
 def test_rpc_adjust_affine_and_no_gcps(block, tmp_path):
     d, _rpcs, imgs = block
-    res = _run(*imgs, "-o", tmp_path / "o", "--ties", d / "ties.csv", "--model", "affine", "--sigma", "0.05")
+    res = _run(*imgs, "-o", tmp_path / "o", "--ties", d / "ties.csv", "--model", "affine", "--sigma", "0.05",
+               "--report", tmp_path / "rep")
     assert res.exit_code == 0, res.output
     assert "no GCPs: the datum is the bias prior" in res.output and "numerators" in res.output
+    assert "relative to img1.tif" in res.output
+    rep = json.loads((tmp_path / "rep" / "report.json").read_text())
+    assert len(rep["tables"]) == 3 and (tmp_path / "rep" / "report.html").is_file()
     doc = json.loads((tmp_path / "o" / "adjustment.json").read_text())
     assert max(im["refit"]["max_px"] for im in doc["images"]) <= 0.01
     assert max(im["gdal_check_max_px"] for im in doc["images"]) <= 0.01
@@ -156,6 +160,14 @@ def test_bad_input_one_line_nothing_written(block, tmp_path):
                           "1e-15"), out, "cannot reach the tolerance")
     _nothing_written(_run(*imgs, "-o", out, "--ties", d / "ties.csv", "--check", "G9"), out, "G9")
     _nothing_written(_run(imgs[0], "-o", out, "--ties", d / "ties.csv"), out, "at least 2 images")
+    # tie-point CSV errors name the line
+    ties = tmp_path / "ties_bad.csv"
+    ties.write_text("image,id,col,row\nimg1.tif,a,1,2\nnope.tif,a,1,2\n")
+    _nothing_written(_run(*imgs, "-o", out, "--ties", ties), out, "image 'nope.tif' is not one of the images")
+    ties.write_text("image,id,col,row\nimg1.tif,a,1,2\nimg1,a,3,4\n")
+    _nothing_written(_run(*imgs, "-o", out, "--ties", ties), out, "measured twice")
+    ties.write_text("image,id,col\nimg1.tif,a,1\n")
+    _nothing_written(_run(*imgs, "-o", out, "--ties", ties), out, "missing column(s) ['row']")
     # an existing output is kept without --overwrite
     out.mkdir()
     (out / "adjustment.json").write_text("{}")

@@ -27,7 +27,9 @@ def block(tmp_path_factory):
     x0, y0, x1, y1 = blk.terrain.extent
     xy = np.column_stack([rng.uniform(x0 + 40, x1 - 40, 200), rng.uniform(y0 + 40, y1 - 40, 200)])
     xyz = np.column_stack([xy, blk.terrain.height(xy)])
-    (root / "orient" / "points.csv").write_text(points_csv_text([str(i) for i in range(200)], xyz, np.zeros(200)))
+    std = np.tile([0.02, 0.02, 0.03], (200, 1))     # the bundle's height std errors of its points: 3 cm
+    (root / "orient" / "points.csv").write_text(points_csv_text([str(i) for i in range(200)], xyz, np.zeros(200),
+                                                                std=std))
     return root, blk, float(np.median(xyz[:, 2]))
 
 
@@ -50,6 +52,8 @@ def test_surface_end_to_end(block, tmp_path):
     doc = json.loads((out / "pairs.json").read_text())
     assert doc["format"] == "rectify-stereo/surface-pairs" and len(doc["pairs"]) >= 2
     assert doc["ground_z"] == pytest.approx(zmed, abs=1e-3)      # from the block's points.csv
+    assert doc["orientation_sigma"] == "points"                  # its std_z: the orientation's share
+    assert np.nanmin(bands[1]) >= 0.03 * (1 - 1e-6)
     # an existing output is kept without --overwrite
     before = (out / "dsm.tif").read_bytes()
     r = _run(root / "orient", "-o", out, "--images", root / "images")

@@ -89,9 +89,9 @@ def _block(rng: np.random.Generator, n: int, walls: int, holes: bool) -> np.ndar
 
 
 @settings(max_examples=25, deadline=None)
-@given(seed=st.integers(0, 2**31 - 1), block=st.sampled_from([1, 2, 4, 8, 16]), walls=st.integers(0, 12),
-       holes=st.booleans())
-def test_line_of_sight_equals_reference(seed, block, walls, holes):
+@given(seed=st.integers(0, 2**31 - 1), block=st.sampled_from([1, 2, 4, 8]), levels=st.integers(1, 3),
+       chunk=st.sampled_from([1, 3, 8]), walls=st.integers(0, 12), holes=st.booleans())
+def test_line_of_sight_equals_reference(seed, block, levels, chunk, walls, holes):
     rng = np.random.default_rng(seed)
     m, h, w = 20, 24, 28
     Z = _block(rng, 2 * m + max(h, w), walls, holes)[:h + 2 * m, :w + 2 * m]
@@ -101,7 +101,7 @@ def test_line_of_sight_equals_reference(seed, block, walls, holes):
     d = np.dstack([mag * np.cos(ang), mag * np.sin(ang)])
     inside = rng.random((h, w)) > 0.1
     ref = line_of_sight_reference(Z, m, d, z, inside)
-    fast = line_of_sight(Z, m, d, z, inside, block=block)
+    fast = line_of_sight(Z, m, d, z, inside, block=block, levels=levels, chunk=chunk)
     np.testing.assert_array_equal(fast, ref)
 
 

@@ -21,6 +21,7 @@ from stereo.dense.epipolar import rectify_exterior
 from stereo.dense.fusion import SigmaGrid, fuse_heights, variance_factor
 from stereo.dense.matching import refine_subpixel
 from stereo.dense.precision import (
+    PointSigmaField,
     disparity_sigma,
     height_sigma_disparity,
     height_sigma_orientation,
@@ -47,6 +48,15 @@ def test_two_consistent_pairs_give_the_weighted_mean_and_its_std():
     assert f.count[0, 0] == 2 and f.provenance[0, 0] == 0 and f.rejected[0, 0] == 0
     assert_allclose(f.chi2[0, 0], 0.2, rtol=1e-9)
     assert f.dof[0, 0] == 1
+
+
+def test_a_common_sigma_adds_in_quadrature_and_does_not_weight():
+    f = fuse_heights(_cells(10.0, 10.1), _cells(0.1, 0.2), common=np.array([[0.05]]))
+    assert_allclose(f.height[0, 0], 10.02, atol=1e-12)
+    assert_allclose(f.sigma[0, 0], math.sqrt(1 / 125 + 0.05 ** 2), rtol=1e-12)
+    assert_allclose(fuse_heights(_cells(1.0), _cells(0.3), common=np.array([[np.nan]])).sigma, [[0.3]])
+    with pytest.raises(ShapeError, match="grid's shape"):
+        fuse_heights(_cells(1.0), _cells(0.3), common=np.zeros((2, 2)))
 
 
 def test_scatter_inflates_the_std_when_larger():
@@ -206,6 +216,18 @@ def test_disparity_sigma_predicts_the_lsm_scatter():
         disparity_sigma(np.zeros((4, 4)), np.zeros((5, 4)), np.zeros((4, 4)))
     with pytest.raises(InvalidInputError, match="radius"):
         disparity_sigma(np.zeros((4, 4)), np.zeros((4, 4)), np.zeros((4, 4)), radius=0)
+
+
+def test_point_sigma_field_takes_the_median_of_the_nearest():
+    xy = np.array([[0, 0], [1, 0], [0, 1], [10, 10], [11, 10], [10, 11]], float)
+    s = np.array([0.1, 0.2, 0.3, 1.0, 2.0, np.nan])
+    f = PointSigmaField.from_points(xy, s, k=3)
+    assert_allclose(f([[0.2, 0.2], [10.4, 10.3], [2, 3]]), [0.2, 1.0, 0.2])   # the NaN row left out
+    assert f.median == 0.3
+    with pytest.raises(InvalidInputError, match="no point with a finite"):
+        PointSigmaField.from_points(xy[:1], [np.nan])
+    with pytest.raises(ShapeError, match="one value per point"):
+        PointSigmaField.from_points(xy, s[:2])
 
 
 # --------------------------------------------------------------------------- the rendered block
