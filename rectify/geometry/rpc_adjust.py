@@ -57,7 +57,7 @@ from scipy.spatial import cKDTree
 from rectify.errors import EstimationError, InvalidInputError, ShapeError
 from rectify.geometry.accuracy import AccuracyStatement
 from rectify.geometry.geodesy import ecef_from_geodetic, enu_from_ecef
-from rectify.geometry.robust import ROBUST_METHODS, get_psi
+from rectify.geometry.robust import PSI_FUNCTIONS, ROBUST_METHODS, get_psi
 from rectify.geometry.rpc import RPC, RPCRefinement, _monomials
 
 __all__ = ["BIAS_MODELS", "RPCBlockAdjustment", "RefitResult", "TieTracks", "footprint", "check_overlap",
@@ -504,7 +504,9 @@ class RPCBlockAdjustment:
                 if it <= 6:
                     # floored at 1 % of the given sigmas: an exact fit is not a reason to reject measurements
                     scale = max(math.sqrt(float(np.median(z[w > 0])) / (2 * math.log(2))), 0.01)
-                w = psi.weight(np.sqrt(z / 2) / scale)
+                # a redescending psi starts from Huber's weights (it may reject good points from a poor start)
+                first = PSI_FUNCTIONS["huber"] if it <= 6 and math.isfinite(psi.rejection_point) else psi
+                w = first.weight(np.sqrt(z / 2) / scale)
             J = block.jacobian(theta, g[adj_obs.track], adj_obs.image)
             wt = (w / adj_obs.sigma ** 2)[:, None]
             # per-track blocks

@@ -16,7 +16,8 @@ Across a seam the images are blended over ``feather_px`` output pixels:
 ``w_i = clip(1 - (D_i - D_min) / feather, 0, 1)`` with ``D_i`` the distance to nadir i (or to region i)
 and ``D_min`` the smallest among valid images, normalised to sum 1. ``blend="average"`` averages every
 valid image instead (seed 003, 4.2.1: "the final colours of the pixels may be the mean of the homologous
-pixels of all overlapping orthophotos, defects excepted"). True orthophotos (a visibility band)
+pixels of all overlapping orthophotos, defects excepted"), each weight ramping up from 0 at its footprint's
+edge to 1 at ``feather_px`` inside. True orthophotos (a visibility band)
 contribute only their visible pixels, so ground hidden in one image is filled by the next.
 ``balance`` corrects each image by a gain and offset per band estimated from the overlaps
 (:mod:`rectify.raster.balance`) before blending.
@@ -372,9 +373,10 @@ class _Engine(TileEngine):
         best = np.full((h, w), -1)
         for i, img, v, d in reads:
             if self.blend == "average" and self.edges is not None and self.feather > 0:
-                # feathered at the footprint's edge; never 0, so a pixel only this input fills keeps it
+                # ramps from 0 at the footprint's edge to 1 a feather inside; never 0, so a pixel only this input
+                # fills keeps it
                 inner = self._zone_interp(self.edges[i], self.zone, c0, r0, (h, w))
-                wt = np.clip(0.5 + inner / self.feather, 1e-3, 1.0)
+                wt = np.clip(inner / self.feather, 1e-3, 1.0)
             elif self.blend == "average":
                 wt = np.ones((h, w))
             elif self.feather > 0:

@@ -46,6 +46,7 @@ from numpy.typing import NDArray
 from rectify.actions.workspace import Workspace
 from rectify.errors import InvalidInputError, StereoError
 from rectify.geometry.camera import Camera
+from rectify.raster.distributed import Scheduler, resolve_scheduler
 from rectify.raster.io import (
     MaskPolicy,
     TiledWriter,
@@ -143,6 +144,10 @@ class SurfaceOptions:
         each point; ``poses``: the pose standard errors of ``orientation.json`` taken as independent
         (an upper bound); ``none``; ``auto``: ``points`` when the points file has standard errors,
         else ``poses`` when the orientation has some, else none.
+    scheduler : str, Scheduler or None
+        Where each pair's matching tiles run (:func:`stereo.dense.matching.match_rasters`; ``threads``,
+        ``processes[:N]``, ``tcp://HOST:PORT``; None: ``$RECTIFY_SCHEDULER``, else threads). The
+        scratch folder lies in the output folder, which Dask workers must see under the same path.
     matching : MatchOptions
     """
 
@@ -161,6 +166,7 @@ class SurfaceOptions:
     min_confidence: float = 0.0
     reference_dem: str | None = None
     orientation_sigma: str = "auto"
+    scheduler: str | Scheduler | None = None
     matching: MatchOptions = MatchOptions()
 
     def __post_init__(self) -> None:
@@ -193,6 +199,10 @@ class SurfaceOptions:
             raise InvalidInputError(f"`pairs_per_area` must be an integer in 1..50; got {self.pairs_per_area!r}")
         if not isinstance(self.matching, MatchOptions):
             raise InvalidInputError(f"`matching` must be a MatchOptions; got {type(self.matching).__name__}")
+        if isinstance(self.scheduler, str) and self.scheduler.strip():
+            Scheduler.parse(self.scheduler)
+        elif self.scheduler is not None and not isinstance(self.scheduler, (str, Scheduler)):
+            raise InvalidInputError(f"`scheduler` must be a string or a Scheduler; got {self.scheduler!r}")
         if self.orientation_sigma not in ORIENTATION_SIGMA:
             raise InvalidInputError(f"`orientation_sigma` must be one of {list(ORIENTATION_SIGMA)}; got "
                                     f"{self.orientation_sigma!r}")
@@ -554,6 +564,7 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
                                     f"{cam.width} x {cam.height}")
     ground_z, zrange, block_points = _ground_z(folder, opts)
     orient_mode, orient_field = _orientation_term(bo, block_points, opts.orientation_sigma)
+    scheduler = resolve_scheduler(opts.scheduler)  # a bad value fails before any work
     pairs, cands, _polys = select_pairs(bo, ground_z, opts)
     poses = list(bo.poses)
     gsds = [abs(p.position[2] - ground_z) * _camera(bo, p).pixel_size_mm / _camera(bo, p).focal_length_mm
@@ -606,7 +617,7 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
                     resample_view(rect, "right", images[p.j], paths["right"])
                     match_rasters(paths["left"], paths["right"], paths["disparity"], paths["confidence"],
                                   disparity_range=(math.floor(rng[0]), math.ceil(rng[1])), options=opts.matching,
-                                  scheduler="threads")
+                                  scheduler=scheduler)
                 except StereoError as err:
                     stats.append({"points": 0, "median_sigma_disparity_px": math.nan, "median_sigma_z": math.nan,
                                   "coverage": 0.0, "skipped": str(err)})

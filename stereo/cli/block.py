@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import click
 
@@ -223,7 +222,7 @@ def block(images, camera_path, out_dir, poses_path, control_path, observations_p
         popts = ProjectiveBlockOptions(method=method, check_ids=opts.check_ids, control_sigma_m=control_sigma,
                                        control_sigma_px=control_sigma_px, calibrate=calib or DEFAULT_CALIBRATE,
                                        focal_guess_px=focal_guess, match=opts.match,
-                                       bundle=replace(opts.bundle, self_calibrate=()))
+                                       bundle=opts.bundle)  # its self_calibrate is --calibrate's
         with progress("block") as cb:
             presult = run_block_projective(list(images), out_dir=out_dir, control=control_path, options=popts,
                                            overwrite=overwrite, progress=cb, observations=observations_path,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from rectify.cli.options import echo, handle_errors, overwrite_opt
+from rectify.cli.options import echo, handle_errors, overwrite_opt, scheduler_opt
 from stereo.actions.surface import ORIENTATION_SIGMA, SurfaceOptions, run_surface
 
 _D = SurfaceOptions()
@@ -39,17 +39,19 @@ _D = SurfaceOptions()
               show_default=True,
               help="The orientation's share of sigma_Z: the block points' height standard errors (points.csv), the "
                    "pose standard errors taken as independent (poses), none; auto: points, else poses, else none.")
+@scheduler_opt
 @overwrite_opt
 @handle_errors
 def surface(orientation, out_dir, images, cell, ground_z, relief, min_overlap, base_height, angle, pairs_per_area,
-            k_sigma, reference_dem, orientation_sigma, overwrite):
+            k_sigma, reference_dem, orientation_sigma, scheduler, overwrite):
     """Fuse the dense surfaces of a block's stereo pairs into one DSM. ORIENTATION is the output folder of
     `stereo block` (its orientation.json) or a block orientation JSON; the images are found by the names
     it records, in --images."""
     opts = SurfaceOptions(images=images, cell=cell, ground_z=ground_z, relief=relief, min_overlap=min_overlap,
                           min_base_height=base_height[0], max_base_height=base_height[1], min_angle_deg=angle[0],
                           max_angle_deg=angle[1], pairs_per_area=pairs_per_area, k_sigma=k_sigma,
-                          reference_dem=reference_dem, orientation_sigma=orientation_sigma)
+                          reference_dem=reference_dem, orientation_sigma=orientation_sigma,
+                          scheduler=scheduler)
     result = run_surface(orientation, out_dir, options=opts, overwrite=overwrite)
     for line in result.summary_lines():
         echo(line)

@@ -315,7 +315,8 @@ def _erode(valid: NDArray[np.bool_], px: int) -> NDArray[np.bool_]:
     if px <= 0 or valid.all():
         return valid
     k = np.ones((2 * px + 1, 2 * px + 1), np.uint8)
-    return cv2.erode(valid.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+    # the window edge is not nodata (pixels outside the photo are marked invalid by the caller)
+    return cv2.erode(valid.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=1) > 0
 
 
 def _collisions(d: NDArray[np.float32], tol: float) -> NDArray[np.bool_]:
@@ -359,6 +360,7 @@ def _match_window(L: NDArray[np.uint8], R: NDArray[np.uint8], lv: NDArray[np.boo
         R = np.asarray(cv2.cvtColor(np.ascontiguousarray(R), cv2.COLOR_RGB2GRAY), dtype=np.uint8)
     H, W = L.shape[:2]
     num = int(math.ceil((dmax - dmin + 1) / 16.0)) * 16
+    rve = _erode(rv, opts.border_px)
     L = _noise_fill(L, lv, 1)
     R = _noise_fill(R, rv, 2)
     pad = num + 1
@@ -372,7 +374,7 @@ def _match_window(L: NDArray[np.uint8], R: NDArray[np.uint8], lv: NDArray[np.boo
     raw = sgbm.compute(Lp, Rp)[:, pad:pad + W]
     d = raw.astype(np.float32) / 16.0
     d[raw < 0] = np.nan
-    lve, rve = _erode(lv, opts.border_px), _erode(rv, opts.border_px)
+    lve = _erode(lv, opts.border_px)
     d[~lve] = np.nan
     rows = np.arange(H)[:, None]
     xr = np.arange(W, dtype=np.float32)[None, :] - d

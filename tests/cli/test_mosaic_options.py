@@ -48,16 +48,23 @@ def test_mosaic_least_transformed_with_provenance_and_balance(tmp_path):
 
 
 def test_mosaic_average_blend(tmp_path):
+    """B = T + 10 over A = T: the overlap is their mean (T + 5); with --feather 16 each footprint's weight ramps
+    up from its edge over about 16 px, so the 5-unit steps at the footprint edges become steps of at most
+    1.5 (measured 0.55); with --feather 0 they stay 5."""
     a, b, _ = ridge_pair(tmp_path, offset=10.0)
-    out = tmp_path / "m.tif"
-    r = _run([a, b, "-o", out, "--blend", "average", "--no-stac"])
-    assert r.exit_code == 0, r.output
-    with rasterio.open(out) as ds:
-        m, t = ds.read(1), ds.transform
-    X, Y = np.meshgrid(t.c + t.a * (np.arange(m.shape[1]) + 0.5), t.f + t.e * (np.arange(m.shape[0]) + 0.5))
-    d = m - texture(X, Y)
-    assert np.allclose(d[:, 50:190], 5.0, atol=1e-3)  # the overlap: the mean of T and T + 10
-    assert np.allclose(d[:, :30], 0.0, atol=1e-3) and np.allclose(d[:, 210:], 10.0, atol=1e-3)
+    steps = {}
+    for f in ("16", "0"):
+        out = tmp_path / f"m{f}.tif"
+        r = _run([a, b, "-o", out, "--blend", "average", "--no-stac", "--feather", f])
+        assert r.exit_code == 0, r.output
+        with rasterio.open(out) as ds:
+            m, t = ds.read(1), ds.transform
+        X, Y = np.meshgrid(t.c + t.a * (np.arange(m.shape[1]) + 0.5), t.f + t.e * (np.arange(m.shape[0]) + 0.5))
+        d = m - texture(X, Y)
+        assert np.allclose(d[:, 60:180], 5.0, atol=1e-3)  # the overlap (20 px in): the mean of T and T + 10
+        assert np.allclose(d[:, :30], 0.0, atol=1e-3) and np.allclose(d[:, 210:], 10.0, atol=1e-3)
+        steps[f] = np.abs(np.diff(d, axis=1)).max()
+    assert steps["16"] <= 1.5 and steps["0"] > 4.99, steps
 
 
 def test_bad_input_one_line_nothing_written(tmp_path):

@@ -167,8 +167,11 @@ def test_command_modules_are_thin():
     """Every ``stereo`` command module parses options and calls one action: it imports click, the shared
     options, the actions and the modules holding the choice lists, nothing that reads files or draws."""
     actions = {f"stereo.actions.{m}" for m in ("common", "orient", "model", "resect", "run", "demo", "dense", "block",
-                                                 "dense_rpc")}
-    allowed = {"__future__", "click", "rectify.cli.options", "rectify.geometry.robust", *actions, "stereo.relative",
+                                                 "dense_rpc", "dense_rpc_multi", "block_models", "block_projective")}
+    # the modules holding choice lists and their defaults (robust estimators, frames, systematic unknowns, methods)
+    choices = {"rectify.geometry.robust", "rectify.geometry.mestimate", "stereo.block.bundle.robust",
+               "stereo.block.bundle.systematic", "stereo.block.projective", "stereo.block.projective_bundle"}
+    allowed = {"__future__", "click", "rectify.cli.options", *choices, *actions, "stereo.relative",
                "stereo.pair.model", "stereo.pair.intersection", "stereo.pair.absolute", "stereo.pair.resection",
                "stereo.block.bundle.adjust", "stereo.features.tracks", "math"}
     cli_dir = Path(stereo.cli.__file__).parent

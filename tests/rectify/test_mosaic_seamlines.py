@@ -309,3 +309,17 @@ def test_smoothing_makes_few_seams_on_a_noisy_dsm(tmp_path):
     assert raw.regions() >= 8
     assert smooth.regions() <= 3
     assert smooth.seam_edges() * 3 < raw.seam_edges()
+
+
+@pytest.mark.parametrize("kw", [dict(balance="mean"), dict(blend="average", feather_px=12)])
+def test_the_new_modes_do_not_depend_on_the_tile_size(tmp_path, kw):
+    """Least-transformed seams with balancing, and the feathered average: the same bytes with 32 px and
+    512 px tiles (the zone grid is global; every pixel's weights depend on its absolute position only)."""
+    a, b, dsm = ridge_pair(tmp_path, true_ortho=True, gain=1.1, occluded=(X0 + 113, X0 + 141, Y0 - 81, Y0 - 39))
+    outs = []
+    for tile in (32, 512):
+        out = tmp_path / f"m{tile}.tif"
+        mosaic([a, b], out, options=MosaicOptions(dsm=str(dsm), tile_px=tile, **kw),
+               provenance=tmp_path / f"s{tile}.tif")
+        outs.append((_read(out)[0], _read(tmp_path / f"s{tile}.tif")[0]))
+    assert np.array_equal(outs[0][0], outs[1][0]) and np.array_equal(outs[0][1], outs[1][1])

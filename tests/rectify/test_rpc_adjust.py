@@ -91,12 +91,13 @@ def test_without_gcps_the_relative_biases_are_recovered(rpcs):
     assert np.abs(diff).max() > 0.3  # the truth is not reachable without control: the test can fail
 
 
-def test_robust_weights_down_weight_a_blunder(rpcs):
+@pytest.mark.parametrize("robust", ["huber", "tukey"])
+def test_robust_weights_down_weight_a_blunder(rpcs, robust):
     tracks, control = _block(rpcs)
     px = tracks.pixels.copy()
     px[5] += (6.0, -4.0)  # one wrong measurement
     t2 = TieTracks.from_arrays(tracks.ids, tracks.image, tracks.track, px, 0.05)
-    a = RPCBlockAdjustment.from_observations(rpcs, [SIZE] * 3, t2, control=control, robust="huber")
+    a = RPCBlockAdjustment.from_observations(rpcs, [SIZE] * 3, t2, control=control, robust=robust)
     assert a.weights[5] < 0.1
     assert np.abs(a.params[:, :, 0] - BIAS).max() < TOL_BIAS
 
@@ -220,3 +221,39 @@ def test_camera_helper_is_the_rpc_truth(rpcs):
     g = ground_points(100, seed=4)
     for i, rpc in enumerate(rpcs):
         assert np.abs(rpc.project(g) - camera(VIEWS[i], rot=0.01 * i)(g)).max() < 1e-6
+
+
+def test_plain_params_are_the_normalised_correction(rpcs):
+    """params (normalised frame, a0 at the image centre) and params_plain (RPCRefinement's frame) are one
+    correction: evaluated at the corners and the centre they agree."""
+    tracks, control = _block(rpcs, n_ties=60)
+    a = RPCBlockAdjustment.from_observations(rpcs, [SIZE] * 3, tracks, control=control, model="affine",
+                                             prior_px=0.5)
+    w, h = SIZE
+    c0, r0, s = (w - 1) / 2, (h - 1) / 2, max(w, h) / 2
+    px = np.array([[0.0, 0.0], [w - 1.0, 0.0], [c0, r0], [w - 1.0, h - 1.0]])
+    for j in range(3):
+        design = np.column_stack([np.ones(4), (px[:, 0] - c0) / s, (px[:, 1] - r0) / s])
+        assert np.allclose(a.refinement(j).correction(px), design @ a.params[j].T, atol=1e-9)
+    assert np.allclose(a.refinement(1).correction(px[2:3])[0], a.params[1][:, 0], atol=1e-9)
+
+
+@settings(max_examples=15, deadline=None)
+@given(st.permutations([0, 1, 2]), st.booleans())
+def test_chain_matches_does_not_depend_on_the_pair_order(order, swap):
+    rng = np.random.default_rng(1)
+    p0 = rng.uniform(0, 300, (20, 2))
+    pts = [p0, p0 + (4.0, 1.0), p0 + (-3.0, 6.0)]
+    pairs = [(0, 1), (0, 2), (1, 2)]
+    given_pairs = []
+    for k in order:
+        i, j = pairs[k]
+        given_pairs.append((j, i, pts[j], pts[i]) if swap else (i, j, pts[i], pts[j]))
+    ids, image, track, px = chain_matches(given_pairs)
+    assert len(ids) == 20 and len(image) == 60
+    # every track holds one point of each image, all of the same ground point
+    for t in range(20):
+        s = track == t
+        k = int(np.argmin(np.hypot(*(p0 - px[s & (image == 0)][0]).T)))
+        for j in range(3):
+            assert np.allclose(px[s & (image == j)][0], pts[j][k])

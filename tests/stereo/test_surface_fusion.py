@@ -300,3 +300,8 @@ def test_bad_input_names_the_problem_and_leaves_nothing(surface_run, tmp_path):
         run_surface(tmp_path / "none.json", out)
     with pytest.raises(InvalidInputError, match="`min_overlap` must be"):
         SurfaceOptions(min_overlap=0)
+    with pytest.raises(InvalidInputError, match="`orientation_sigma` must be one of"):
+        SurfaceOptions(orientation_sigma="bundle")
+    with pytest.raises(InvalidInputError, match="the block has no points.csv with standard errors"):
+        run_surface(blk.folder, out, options=SurfaceOptions(ground_z=Z0, orientation_sigma="points"))
+    assert not out.exists()
