@@ -44,7 +44,7 @@ from rectify.geometry.residuals import rms
 from stereo.actions import block_frame as bf
 from stereo.actions.block_checks import check_block_inputs, check_datum
 from stereo.actions.block_models import MODEL_METHOD, ModelMethodOptions, check_block_method, run_models
-from stereo.actions.block_report import block_report, rms_labels
+from stereo.actions.block_report import block_report, check_accuracy, rms_labels
 from stereo.actions.block_users import (
     FOLDER_ITEM,
     BlockExports,
@@ -210,6 +210,9 @@ class BlockResult:
         out.extend(self.tie_lines)
         out.append(f"initial orientation: {self.initial}")
         out.extend(self.method_lines or self.bundle.summary_lines())
+        acc = check_accuracy(self.bundle)
+        if acc is not None:
+            out.extend(acc.lines())
         left = len(self.bundle.points) - self.n_points_written
         out.append(f"points written: {self.n_points_written}" + (f" ({left} left out: fewer than two rays not "
                                                                   "flagged as blunders)" if left else ""))
@@ -779,6 +782,9 @@ def _write(ws: Workspace, res: BundleResult, tracks: Tracks, inp: _Inputs, names
         with np.errstate(divide="ignore", invalid="ignore"):
             summary["check_rmse_xyz_m"] = [rms(ck_err[:, k]) for k in range(3)]
             summary["check_normalised_rms"] = rms((ck_err / ck_std)[np.isfinite(ck_err / ck_std)])
+        stated = check_accuracy(res)
+        if stated is not None:
+            summary["accuracy_statement"] = stated.to_dict()
     ws.prepare()
     written: list[Path] = []
     report_path = None

@@ -9,12 +9,22 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from rectify.geometry.accuracy import AccuracyStatement
 from rectify.geometry.residuals import ResidualTable, rms
 from stereo.block.bundle.result import BundleResult
 from stereo.block.types import GnssObservations, Tracks
 from stereo.report.block import write_block_report
 
-__all__ = ["block_report", "block_tables", "rms_labels"]
+__all__ = ["block_report", "block_tables", "check_accuracy", "rms_labels"]
+
+
+def check_accuracy(res: BundleResult) -> AccuracyStatement | None:
+    """The accuracy statement of the block's check points (adjusted - given, ground units, in the local grid
+    of the output CRS), from those with all three errors (plan-only or height-only check points are left
+    out of it); None without check points."""
+    e = np.asarray(res.check_errors, dtype=np.float64).reshape(-1, 3)
+    full = np.isfinite(e).all(axis=1)
+    return AccuracyStatement.from_errors(e[full]) if full.any() else None
 
 
 def block_tables(res: BundleResult, tracks: Tracks, units: str, gnss: GnssObservations | None) -> list[ResidualTable]:

@@ -118,6 +118,7 @@ class MatchOptions:
     colour: bool = False
     border_px: int = 4
     right_check: str = "collision"
+    hole_p2: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.block_size, int) or self.block_size < 1 or self.block_size > 11 \
@@ -436,6 +437,42 @@ def refine_subpixel(left: NDArray[np.float32], right: NDArray[np.float32], disp:
     return np.where(v, d, np.nan).astype(np.float32)
 
 
+def _fill_holes_half(d: NDArray[np.float32], L: NDArray[np.uint8], R: NDArray[np.uint8], lv: NDArray[np.bool_],
+                     rv: NDArray[np.bool_], lo: int, hi: int, opts: MatchOptions) -> NDArray[np.float32]:
+    """Holes of ``d`` matched again at half resolution with a stronger smoothness penalty.
+
+    ``R`` is the right window moved by ``lo`` (as for :func:`_match_window`). The half-resolution
+    pair is matched over ``[0, (hi - lo) / 2 + 1]`` with ``P2 = opts.hole_p2`` and the same tests
+    (at half resolution); its disparities, doubled and moved back by ``lo``, are taken where ``d``
+    has none. The sub-pixel step that follows refines them at full resolution.
+    """
+    if opts.hole_p2 <= 0 or np.isfinite(d).all():
+        return d
+    H, W = d.shape
+    size = (max(8, W // 2), max(8, H // 2))
+    if min(size) < 16:
+        return d
+    Lh = np.asarray(cv2.resize(L[: 2 * size[1], : 2 * size[0]], size, interpolation=cv2.INTER_AREA), dtype=np.uint8)
+    Rh = np.asarray(cv2.resize(R[: 2 * size[1], : 2 * size[0]], size, interpolation=cv2.INTER_AREA), dtype=np.uint8)
+
+    def half_mask(m: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        m = m[: 2 * size[1], : 2 * size[0]]
+        return np.asarray(m[0::2, 0::2] & m[1::2, 0::2] & m[0::2, 1::2] & m[1::2, 1::2])
+
+    ho = MatchOptions(block_size=opts.block_size, p1=opts.p1, p2=opts.hole_p2, uniqueness=opts.uniqueness,
+                      lr_max_diff=opts.lr_max_diff, speckle_window=max(1, opts.speckle_window // 4),
+                      speckle_range=opts.speckle_range, colour=opts.colour,
+                      border_px=max(1, opts.border_px // 2), right_check=opts.right_check)
+    dh = _match_window(Lh, Rh, half_mask(lv), half_mask(rv), 0, int(math.ceil((hi - lo) / 2.0)) + 1, ho)
+    up = np.full((H, W), np.nan, np.float32)
+    up[: 2 * size[1], : 2 * size[0]] = cv2.resize(2.0 * dh + float(lo), (2 * size[0], 2 * size[1]),
+                                                  interpolation=cv2.INTER_NEAREST)
+    take = ~np.isfinite(d) & np.isfinite(up)
+    out = d.copy()
+    out[take] = up[take]
+    return out
+
+
 def _post(d: NDArray[np.float32], grey: NDArray[np.float32], opts: MatchOptions, right_grey: NDArray | None = None,
           shift: int = 0) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.bool_]]:
     """Median, sub-pixel refinement (``right_grey``: the right window moved by ``shift``), fill, confidence."""
@@ -611,7 +648,7 @@ def _tile(L8, R8, lv, rv, c0, r0, w, h, coarse, k, rng, opts: MatchOptions, col_
     lo, hi = _clip_range(tr, opts)
     L, lvw = L8[r0:r0 + h, c0:c0 + w], lv[r0:r0 + h, c0:c0 + w]
     Rs, rvs = _shifted_window(R8, rv, r0, r0 + h, c0 - lo - col_shift, c0 + w - lo - col_shift)
-    d = _match_window(L, Rs, lvw, rvs, lo, hi, opts)
+    d = _fill_holes_half(_match_window(L, Rs, lvw, rvs, lo, hi, opts), L, Rs, lvw, rvs, lo, hi, opts)
     return _post(d, _grey(L), opts, _grey(Rs), lo)
 
 
@@ -710,7 +747,7 @@ class _DenseTiles:
             L, lv = _read(self._rl, c0, r0, w, h)
             R, rv = _read(self._rr, c0 - lo, r0, w, h)
         if lv.any() and rv.any():
-            d = _match_window(L, R, lv, rv, lo, hi, opts)
+            d = _fill_holes_half(_match_window(L, R, lv, rv, lo, hi, opts), L, R, lv, rv, lo, hi, opts)
             d, cf, fl = _post(d, _grey(L), opts, _grey(R), lo)
         else:
             d = np.full((h, w), np.nan, np.float32)

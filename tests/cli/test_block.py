@@ -59,6 +59,12 @@ def test_block_with_poses_gnss_and_control(scene, tmp_path):
     rep = json.loads((out / "report" / "report.json").read_text())
     chk = [t for t in rep["tables"] if t["step"].startswith("bundle: check")][0]
     assert chk["summary"]["n_points"] == 3
+    # the accuracy statement of the check points (issue 27): the same RMSE per axis as the block's summary
+    summ = json.loads((out / "orientation.json").read_text())["summary"]
+    acc = summ["accuracy_statement"]
+    assert acc["n"] == 3 and np.allclose(acc["rmse"], summ["check_rmse_xyz_m"], rtol=1e-12)
+    assert acc["rmse_r"] == pytest.approx(np.hypot(*summ["check_rmse_xyz_m"][:2]))
+    assert "accuracy statement from 3 check points (m;" in text and f"RMSE_z {acc['rmse_z']:.3f} m" in text
     pts = read_points_csv(out / "points.csv")
     ids = list(pts.ids)
     for k in (1, 6, 10):
