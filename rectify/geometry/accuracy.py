@@ -269,6 +269,7 @@ class AccuracyStatement:
                            "survey_rmse_h": self.survey_rmse_h, "survey_rmse_v": self.survey_rmse_v,
                            "enough_checkpoints": self.n >= ASPRS_MIN_CHECKPOINTS,
                            "statement": " ".join(self.asprs_sentences())},
+            "lines": self.lines(),
         }
         return d
 

@@ -661,7 +661,7 @@ class _Engine(TileEngine):
             if r.ndim == 2:
                 r = r[..., None]
             chans.append(r)
-        img = chans[0] if len(chans) == 1 else np.concatenate(chans, axis=2)
+        img = chans[0] if len(chans) == 1 else np.concatenate(chans, axis=2)  # type: ignore[assignment]
         valid = np.ones((h, w), bool)
         if vmask is not None:
             v = cv2.remap(vmask.astype(np.uint8), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,

@@ -99,8 +99,9 @@ def _block_max(Zf: NDArray[np.float64], block: int) -> NDArray[np.float64]:
         pad[:H, :W] = Zf
         M = pad.reshape(nby, block, nbx, block).max(axis=(1, 3))
     # 3 x 3 maximum; a replicated border repeats values already in the neighbourhood (the same maximum)
-    return cv2.dilate(np.ascontiguousarray(M, dtype=np.float64), np.ones((3, 3), np.uint8),
-                      borderType=cv2.BORDER_REPLICATE)
+    out = cv2.dilate(np.ascontiguousarray(M, dtype=np.float64), np.ones((3, 3), np.uint8),
+                     borderType=cv2.BORDER_REPLICATE)
+    return np.asarray(out, dtype=np.float64)
 
 
 def line_of_sight(Z: NDArray, m: int, d: NDArray, z: NDArray, inside: NDArray[np.bool_], *,

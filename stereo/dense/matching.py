@@ -119,6 +119,7 @@ class MatchOptions:
     border_px: int = 4
     right_check: str = "collision"
     hole_p2: float = 0.0
+    hole_zncc: float = 0.8
 
     def __post_init__(self) -> None:
         if not isinstance(self.block_size, int) or self.block_size < 1 or self.block_size > 11 \
@@ -437,6 +438,16 @@ def refine_subpixel(left: NDArray[np.float32], right: NDArray[np.float32], disp:
     return np.where(v, d, np.nan).astype(np.float32)
 
 
+def _zncc(a: NDArray[np.float32], b: NDArray[np.float32], radius: int) -> NDArray[np.float32]:
+    """Zero-mean normalised cross-correlation of the (2 radius + 1)^2 windows of two aligned images."""
+    k = (2 * radius + 1, 2 * radius + 1)
+    ma, mb = cv2.blur(a, k), cv2.blur(b, k)
+    cov = cv2.blur(a * b, k) - ma * mb
+    va = np.maximum(cv2.blur(a * a, k) - ma * ma, 0)
+    vb = np.maximum(cv2.blur(b * b, k) - mb * mb, 0)
+    return np.asarray(cov / np.sqrt(np.maximum(va * vb, 1e-6)), dtype=np.float32)
+
+
 def _fill_holes_half(d: NDArray[np.float32], L: NDArray[np.uint8], R: NDArray[np.uint8], lv: NDArray[np.bool_],
                      rv: NDArray[np.bool_], lo: int, hi: int, opts: MatchOptions) -> NDArray[np.float32]:
     """Holes of ``d`` matched again at half resolution with a stronger smoothness penalty.
@@ -468,6 +479,17 @@ def _fill_holes_half(d: NDArray[np.float32], L: NDArray[np.uint8], R: NDArray[np
     up[: 2 * size[1], : 2 * size[0]] = cv2.resize(2.0 * dh + float(lo), (2 * size[0], 2 * size[1]),
                                                   interpolation=cv2.INTER_NEAREST)
     take = ~np.isfinite(d) & np.isfinite(up)
+    if not take.any():
+        return d
+    # a hole's new disparity must make the two photos alike: ZNCC of 7 x 7 windows, the right photo
+    # warped by each pixel's own disparity
+    gl, gr = _grey(L), _grey(R)
+    xs = np.arange(W, dtype=np.float32)[None, :] - (np.where(take, up, 0) - float(lo))
+    ys = np.repeat(np.arange(H, dtype=np.float32)[:, None], W, axis=1)
+    rw = cv2.remap(gr, np.ascontiguousarray(xs, dtype=np.float32), ys, cv2.INTER_LINEAR,
+                   borderMode=cv2.BORDER_REPLICATE)
+    zn = _zncc(gl, rw, 3)
+    take &= zn >= opts.hole_zncc
     out = d.copy()
     out[take] = up[take]
     return out

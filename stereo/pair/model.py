@@ -33,6 +33,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from rectify.errors import CRSError, EstimationError, InvalidInputError
+from rectify.geometry.accuracy import AccuracyStatement
 from rectify.geometry.camera import Camera
 from rectify.geometry.crs import unit_label
 from rectify.geometry.geodesy import enu_from_map, geodetic_from_map, map_from_enu
@@ -201,6 +202,7 @@ class StereoModel:
                 out.append(f"check points: RMSE X {x:.3f} {u}, Y {y:.3f} {u}, Z {z:.3f} {u}")
             if "rms_normalised_check_error" in s:
                 out.append(f"check points: RMS of error / predicted std {s['rms_normalised_check_error']:.3f}")
+            out.extend(s.get("accuracy_statement", {}).get("lines", ()))
         return out
 
 
@@ -540,6 +542,9 @@ def _absolute(pts: _Points, inter: Intersection, model_cov: NDArray | None, crs:
         summary["rmse_check_xyz_m"] = [rms(e[:, k]) for k in range(3)]
         if std is not None:
             summary["rms_normalised_check_error"] = rms(e / std[is_check])
+        full = np.isfinite(e).all(axis=1)
+        if summary["ground_unit"] in ("m", "metre", "meter") and full.any():   # ground lengths only
+            summary["accuracy_statement"] = AccuracyStatement.from_errors(e[full]).to_dict()
     if diff is not None:
         summary["frame_difference"] = diff
     return ao, ground, std, frame_info, diff
