@@ -1,9 +1,17 @@
-"""Dense matching benchmarks (issue 14).
+"""Dense matching benchmarks (issues 14, 30).
 
-Default: ours vs OpenCV StereoSGBM (OpenCV sample settings) on Motorcycle (scikit-image, true
-disparity), same run. The two are timed alternately, ``--repeat`` times each, and the fastest run of
-each is compared (the machine may be shared: alternating spreads the load over both). Non-occluded
-pixels come from the true disparity's own z-buffer. Cones (../shared/data/dense_cones) too when present.
+Default: on Motorcycle (scikit-image, true disparity) and Cones (shared data, ``dense_cones``), OpenCV
+StereoSGBM (OpenCV sample settings) and three settings of ours (``match_pair`` default, the exact
+left-right check ``right_check='sgbm'``, and the half-resolution hole pass ``hole_p2=128`` that
+``stereo dense`` uses), all in the same run: timed alternately, ``--repeat`` times each, the fastest
+run of each compared (the machine may be shared: alternating spreads the load over all; the load
+average is printed beside the times). For every case: density and bad-2.0 (Motorcycle) / bad-1.0
+(Cones) on the non-occluded pixels, the same at the previous round's density (the most confident
+pixels by the product's confidence band), the roughness (second-difference NMAD of the disparity,
+px) and the time as a multiple of SGBM's. Non-occluded pixels of Motorcycle come from the true
+disparity's own z-buffer. Then the NGI strip DSM (shared data, aero-triangulated EOs, ``run_dense``)
+against ``dem.tif``: coverage of the overlap, RMSE in cells, NMAD, roughness (second-difference NMAD
+of the DSM, m), with and without the hole pass (``--no-ngi``: skipped).
 
 ``--size N``: a synthetic N x N normal-case pair (procedural texture, smooth known disparity 8..40 px)
 is written to ``--work`` as tiled GeoTIFFs, strip by strip, then matched tile by tile by
@@ -15,7 +23,7 @@ nadir frame photos (normal case, matching, points to LAS, DSM with a cell of ``-
 pixels), in a child process that prints its peak resident memory.
 
 Usage:
-    nice python scripts/bench_dense.py [--repeat 7]
+    nice python scripts/bench_dense.py [--repeat 7] [--no-ngi] [--work DIR]
     nice python scripts/bench_dense.py --size 10000 [--work /tmp/bench_dense] [--chain [--dsm-cell 2]]
 """
 
@@ -23,10 +31,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import shutil
 import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -34,10 +45,29 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from stereo.dense.matching import match_pair, sgbm_baseline  # noqa: E402  (after the sys.path set-up)
+from stereo.dense.matching import MatchOptions, match_pair, sgbm_baseline  # noqa: E402  (after the sys.path set-up)
 from tests.support.stereo_support import occlusion_from_truth  # noqa: E402
 
-CONES = ROOT / ".." / "shared" / "data" / "dense_cones"
+SHARED = Path(os.environ.get("RECTIFY_SHARED_DATA", ROOT / ".." / "shared" / "data"))
+CONES = SHARED / "dense_cones"
+NGI = SHARED / "ngi_strip05"
+
+
+def _rgb(path: Path) -> np.ndarray:
+    """An RGB PNG as (H, W, 3) uint8."""
+    import cv2
+
+    img = cv2.imread(str(path))
+    assert img is not None, path
+    return np.asarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB))
+
+
+def _grey_png(path: Path) -> np.ndarray:
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    assert img is not None, path
+    return np.asarray(img)
 
 
 def alternate(fns: dict, repeat: int) -> dict[str, tuple[object, float]]:
@@ -52,38 +82,121 @@ def alternate(fns: dict, repeat: int) -> dict[str, tuple[object, float]]:
     return {k: (out[k], best[k]) for k in fns}
 
 
+def roughness(z: np.ndarray) -> float:
+    """Second-difference NMAD of a surface (disparity or DSM) along its rows and columns, NaN-aware."""
+    s = []
+    for a in (z, z.T):
+        d2 = a[:, 2:] - 2 * a[:, 1:-1] + a[:, :-2]
+        s.append(d2[np.isfinite(d2)])
+    v = np.concatenate(s)
+    return float(1.4826 * np.median(np.abs(v - np.median(v)))) if v.size else float("nan")
+
+
+def load() -> str:
+    return "load average " + " ".join(f"{v:.2f}" for v in os.getloadavg())
+
+
+#: the compared matchers: OpenCV's sample SGBM and three settings of ours
+CASES = {
+    "OpenCV StereoSGBM (sample settings)": None,
+    "match_pair (default)": MatchOptions(),
+    "match_pair right_check='sgbm'": MatchOptions(right_check="sgbm"),
+    "match_pair hole_p2=128 (stereo dense default)": MatchOptions(hole_p2=128.0),
+}
+
+#: the densities of the previous round (docs/dense.md, issue 14/24): precision compared at these
+PREVIOUS = {"Motorcycle": (0.959, 0.0264), "Cones": (0.932, 0.0276)}
+
+
+def compare(name: str, left: np.ndarray, right: np.ndarray, gt: np.ndarray, nocc: np.ndarray, thr: float,
+            repeat: int) -> None:
+    """Every case on one pair: density, bad-thr, bad-thr at the previous density, roughness, time, ratio."""
+    fns = {k: ((lambda: sgbm_baseline(left, right)) if o is None else (lambda o=o: match_pair(left, right, options=o)))
+           for k, o in CASES.items()}
+    res = alternate(fns, repeat)
+    t_sgbm = res["OpenCV StereoSGBM (sample settings)"][1]
+    dens0, bad0 = PREVIOUS[name]
+    for k, (out, t) in res.items():
+        d = out if isinstance(out, np.ndarray) else out.disparity  # type: ignore[attr-defined]
+        v = np.isfinite(d) & nocc
+        err = (np.abs(d - gt) > thr)[v]
+        at = "n/a"
+        n = int(round(dens0 * nocc.sum()))
+        if not isinstance(out, np.ndarray) and n <= v.sum():
+            # the n most confident pixels (the product's own confidence band): precision at equal density
+            idx = np.argsort(-out.confidence[v], kind="stable")[:n]  # type: ignore[attr-defined]
+            at = f"{100 * err[idx].mean():.2f} %"
+        print(f"{name} {k}: density {100 * v.sum() / nocc.sum():.1f} %, bad-{thr:.1f} {100 * err.mean():.2f} % "
+              f"(at the previous density {100 * dens0:.1f} %: {at}; previous {100 * bad0:.2f} %), roughness "
+              f"{roughness(np.where(nocc, d, np.nan)):.3f} px, time {t:.3f} s = {t / t_sgbm:.2f} x SGBM")
+    print(f"{name}: fastest of {repeat} alternating runs each; {load()}")
+
+
 def motorcycle(repeat: int) -> None:
     from skimage import data
 
     left, right, gt = data.stereo_motorcycle()
-    m = ~occlusion_from_truth(gt)
-    res = alternate({"sgbm": lambda: sgbm_baseline(left, right),
-                     "ours": lambda: match_pair(left, right).disparity}, repeat)
-    for name, key in (("OpenCV StereoSGBM (sample settings)", "sgbm"), ("stereo.dense.matching.match_pair", "ours")):
-        d, t = res[key]
-        v = np.isfinite(d) & m
-        print(f"Motorcycle {name}: density {v.sum() / m.sum():.3f}, bad-2.0 {(np.abs(d - gt) > 2)[v].mean():.4f}, "
-              f"time {t:.3f} s")
-    print(f"Motorcycle time ratio ours / SGBM: {res['ours'][1] / res['sgbm'][1]:.2f} (fastest of {repeat} each, "
-          "alternating)")
+    compare("Motorcycle", left, right, gt, ~occlusion_from_truth(gt), 2.0, repeat)
 
 
-def cones() -> None:
+def cones(repeat: int) -> None:
     if not CONES.is_dir():
         print(f"Cones: skipped ({CONES} absent)")
         return
-    import cv2
     import rasterio
 
-    L = cv2.cvtColor(cv2.imread(str(CONES / "left.png")), cv2.COLOR_BGR2RGB)
-    R = cv2.cvtColor(cv2.imread(str(CONES / "right.png")), cv2.COLOR_BGR2RGB)
+    L = _rgb(CONES / "left.png")
+    R = _rgb(CONES / "right.png")
     with rasterio.open(CONES / "disp_left.tif") as ds:
         gt = ds.read(1)
-    nocc = (cv2.imread(str(CONES / "occlusion.png"), 0) > 0) & (gt > 0)
-    for name, d in (("OpenCV StereoSGBM (sample settings)", sgbm_baseline(L, R)),
-                    ("stereo.dense.matching.match_pair", match_pair(L, R).disparity)):
-        v = np.isfinite(d) & nocc
-        print(f"Cones {name}: density {v.sum() / nocc.sum():.3f}, bad-1.0 {(np.abs(d - gt) > 1)[v].mean():.4f}")
+    nocc = (_grey_png(CONES / "occlusion.png") > 0) & (gt > 0)
+    compare("Cones", L, R, gt, nocc, 1.0, repeat)
+
+
+def ngi(work: Path) -> None:
+    """The NGI strip DSM (aero-triangulated EOs) against dem.tif: coverage, RMSE, roughness, time."""
+    import rasterio
+
+    from rectify.geometry.camera import Camera
+    from rectify.geometry.rotation import matrix_from_angles
+    from stereo.actions.dense import DenseOptions, run_dense
+    from stereo.formats.orientation import write_exterior
+    from stereo.pair.resection import ExteriorOrientation
+
+    d = NGI
+    if not d.is_dir():
+        print(f"NGI strip: skipped ({d} absent)")
+        return
+    lo25 = "+proj=tmerc +lat_0=0 +lon_0=25 +k=1 +x_0=0 +y_0=0 +datum=WGS84 +units=m"
+    eos = {"0182": (-55094.504480, -3727407.037480, 5258.307930, -0.349216, 0.298484, -179.086702),
+           "0184": (-57710.435280, -3727433.893020, 5256.764790, 0.269761, -0.281937, -179.027883)}
+    cam = Camera.from_dict({"focal_length_mm": 120.0, "pixel_size_mm": 0.144, "width": 640, "height": 1152})
+    work.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for k, v in eos.items():
+        eo = ExteriorOrientation(position=np.array(v[:3]), rotation=matrix_from_angles(*np.radians(v[3:])),
+                                 focal_length_mm=120.0, crs=lo25)
+        p = work / f"eo_{k}.json"
+        p.unlink(missing_ok=True)
+        paths.append(write_exterior(p, eo, camera=cam.to_dict()))
+    for label, mo in (("stereo dense default (hole_p2=128)", DenseOptions().matching),
+                      ("without the hole pass (hole_p2=0)", replace(DenseOptions().matching, hole_p2=0.0))):
+        out = work / "dense"
+        if out.exists():
+            shutil.rmtree(out)
+        t = time.perf_counter()
+        r = run_dense(paths[0], d / "3324c_2015_1004_05_0182_RGB.tif", d / "3324c_2015_1004_05_0184_RGB.tif", out,
+                      right_orientation=paths[1], options=DenseOptions(
+                          cloud_format="none", reference_dem=str(d / "dem.tif"), measure_parallax=False, matching=mo))
+        dt = time.perf_counter() - t
+        with rasterio.open(out / "dsm.tif") as ds:
+            z = ds.read(1).astype(np.float64)
+            z[z == ds.nodata] = np.nan
+        c = r.comparison
+        assert c is not None
+        print(f"NGI strip DSM, {label}: coverage {100 * c.coverage:.1f} % of the overlap, RMSE {c.rmse:.2f} m "
+              f"({c.rmse / r.dsm_cell:.2f} cells), NMAD {c.nmad:.2f} m, blunders {100 * c.blunder_share:.1f} %, "
+              f"roughness {roughness(z):.3f} m, time {dt:.1f} s ({load()})")
 
 
 # ------------------------------------------------------------------ large synthetic pair
@@ -239,8 +352,6 @@ def chain(size: int, work: Path, cell_gsd: float) -> None:
         f"{i},{a},{b},{a - dd},{b}\n" for i, (a, b, dd) in enumerate(zip(xs, ys, d, strict=True))))
     out = work / "dense"
     if out.exists():
-        import shutil
-
         shutil.rmtree(out)
     cell = cell_gsd * H / f_px
     code = CHILD_CHAIN.format(root=str(ROOT), eo_l=str(paths["l"]), eo_r=str(paths["r"]), left=str(lp),
@@ -264,6 +375,7 @@ def main() -> None:
     ap.add_argument("--chain", action="store_true",
                     help="with --size: the whole run_dense chain (normal case, matching, points, LAS, DSM)")
     ap.add_argument("--dsm-cell", type=float, default=2.0, help="with --chain: DSM cell in ground pixels")
+    ap.add_argument("--no-ngi", action="store_true", help="skip the NGI strip DSM (shared data)")
     a = ap.parse_args()
     if a.size:
         def go(work: Path) -> None:
@@ -277,8 +389,15 @@ def main() -> None:
             with tempfile.TemporaryDirectory() as tmp:
                 go(Path(tmp))
         return
+    print(load())
     motorcycle(a.repeat)
-    cones()
+    cones(a.repeat)
+    if not a.no_ngi:
+        if a.work is not None:
+            ngi(a.work)
+        else:
+            with tempfile.TemporaryDirectory() as tmp:
+                ngi(Path(tmp))
 
 
 if __name__ == "__main__":

@@ -26,6 +26,13 @@ share, and the relative orientation (``stereo.relative``, plain least squares) a
 
 Every case prints its precision beside its time: the synthetic pairs the error against the known homography (all
 matches, and the refined ones alone), ``--orient`` that of the tie points ``stereo orient`` used.
+
+``--baseline PATH`` (issue 30) also runs every case of ours with the packages of another checkout (e.g. the version
+before a change: ``git worktree add /tmp/base <commit>``; its commands run with ``PYTHONPATH=PATH``), alternating
+with this checkout in the same run (the order flips from one ``--repeat`` run to the next); the summary gives each
+version's fastest CPU and wall time of the runs, the ratio this / baseline, and both versions' precision:
+
+    python scripts/bench_match.py --size 2000 --orient --ngi --ngi-variants plain rot180 --baseline /tmp/base --repeat 3
 """
 
 from __future__ import annotations
@@ -47,6 +54,17 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "scripts"))
 # the subprocesses (`rectify match`, ...) import this checkout's packages, whatever the editable install points at
 ENV = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)}
+
+
+def env_for(root: Path) -> dict:
+    """The environment of a subprocess that imports the packages of the checkout ``root``."""
+    return {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (str(root), os.environ.get("PYTHONPATH", "")) if p)}
+
+
+#: the versions of our commands each case runs: (label, environment); "ours" is this checkout, ``--baseline`` adds
+#: ("baseline", env_for(PATH)); ``main`` flips the order from one run to the next
+Versions = list[tuple[str, dict]]
+OURS: Versions = [("ours", ENV)]
 
 BASELINE = r'''
 import sys, time, numpy as np, cv2
@@ -81,20 +99,20 @@ json.dump({"n_matched": len(good), "n_inliers": int(n), "R": R.tolist(), "t": t.
 '''
 
 
-def timed(cmd: list[str], log: Path) -> dict:
+def timed(cmd: list[str], log: Path, env: dict | None = None) -> dict:
     """Run a command under /usr/bin/time; return wall time (s), CPU time (user + system, s: less sensitive
     to the other jobs on a shared machine), peak RSS (GB), exit code and the 1-minute load average before."""
     load = os.getloadavg()[0]
     t0 = time.perf_counter()
     with open(log, "w") as f:
         p = subprocess.run(["/usr/bin/time", "-f", "TIME %e %M %U %S", *cmd], stdout=f, stderr=subprocess.STDOUT,
-                           env=ENV)
+                           env=ENV if env is None else env)
     wall = time.perf_counter() - t0
     txt = log.read_text()
     line = next((ln.split() for ln in txt.splitlines() if ln.startswith("TIME ")), None)
     rss = int(line[2]) if line else -1
     cpu = float(line[3]) + float(line[4]) if line and len(line) >= 5 else float("nan")
-    return {"wall_s": round(wall, 1), "cpu_s": round(cpu, 1), "peak_rss_gb": round(rss / 1024 ** 2, 3),
+    return {"wall_s": round(wall, 2), "cpu_s": round(cpu, 2), "peak_rss_gb": round(rss / 1024 ** 2, 3),
             "exit": p.returncode, "load_before": round(load, 2)}
 
 
@@ -126,7 +144,7 @@ def score(left: np.ndarray, right: np.ndarray, H: np.ndarray, size: int, cell: i
     return out
 
 
-def run_pair(work: Path, size: int, skip_peer: bool) -> dict:
+def run_pair(work: Path, size: int, skip_peer: bool, versions: Versions = OURS) -> dict:
     from make_large_scene import generate
 
     from rectify.formats.tables import read_matches
@@ -138,13 +156,14 @@ def run_pair(work: Path, size: int, skip_peer: bool) -> dict:
     truth = json.loads((d / "truth.json").read_text())
     H = np.array(truth["H_right_from_left"])
     res: dict = {"size": size}
-    ours_csv = d / "ours.csv"
-    m = timed(["rectify", "match", str(d / "left.tif"), str(d / "right.tif"), "-o", str(ours_csv), "--overwrite"],
-              d / "ours.log")
-    print((d / "ours.log").read_text(), flush=True)
-    mt = read_matches(ours_csv)
-    res["ours"] = {**m, **score(mt.left, mt.right, H, size, refined=_refined(mt))}
-    print("ours", json.dumps(res["ours"]), flush=True)
+    for label, env in versions:
+        csv = d / f"{label}.csv"
+        m = timed(["rectify", "match", str(d / "left.tif"), str(d / "right.tif"), "-o", str(csv), "--overwrite"],
+                  d / f"{label}.log", env)
+        print((d / f"{label}.log").read_text(), flush=True)
+        mt = read_matches(csv)
+        res[label] = {**m, **score(mt.left, mt.right, H, size, refined=_refined(mt))}
+        print(label, json.dumps(res[label]), flush=True)
     if not skip_peer:
         script = d / "baseline.py"
         script.write_text(BASELINE)
@@ -165,7 +184,7 @@ def _refined(m) -> np.ndarray | None:
     return None if m.score is None else np.isfinite(m.score)
 
 
-def run_orient(work: Path, size: int) -> dict:
+def run_orient(work: Path, size: int, versions: Versions = OURS) -> dict:
     """``stereo orient LEFT RIGHT`` (match with fundamental verification, then relative orientation) against
     OpenCV SIFT + FLANN + findEssentialMat (USAC MAGSAC) + recoverPose on the pair of :func:`run_pair`."""
     d = work / f"pair{size}"
@@ -177,13 +196,16 @@ def run_orient(work: Path, size: int) -> dict:
     from rectify.formats.tables import read_matches
 
     H = np.array(json.loads((d / "truth.json").read_text())["H_right_from_left"])
-    m = timed(["stereo", "orient", str(d / "left.tif"), str(d / "right.tif"), "--camera", str(cam), "-o",
-               str(d / "ro.json"), "--matches-out", str(d / "orient_matches.csv"), "--overwrite"],
-              d / "orient_ours.log")
-    print((d / "orient_ours.log").read_text(), flush=True)
-    mt = read_matches(d / "orient_matches.csv")
-    res["ours"] = {**m, **{f"tie_{k}": v for k, v in score(mt.left, mt.right, H, size, refined=_refined(mt)).items()
-                           if not k.startswith("cells")}}
+    for label, env in versions:
+        csv = d / f"orient_matches_{label}.csv"
+        m = timed(["stereo", "orient", str(d / "left.tif"), str(d / "right.tif"), "--camera", str(cam), "-o",
+                   str(d / f"ro_{label}.json"), "--matches-out", str(csv), "--overwrite"],
+                  d / f"orient_{label}.log", env)
+        print((d / f"orient_{label}.log").read_text(), flush=True)
+        mt = read_matches(csv)
+        res[label] = {**m, **{f"tie_{k}": v for k, v in score(mt.left, mt.right, H, size,
+                                                                refined=_refined(mt)).items()
+                              if not k.startswith("cells")}}
     script = d / "orient_baseline.py"
     script.write_text(ORIENT_BASELINE)
     m = timed([sys.executable, str(script), str(d / "left.tif"), str(d / "right.tif"), str(f_px),
@@ -290,7 +312,8 @@ def ngi_score(left: np.ndarray, right: np.ndarray, refined: np.ndarray | None = 
                  "sampson_median_px": round(float(np.median(s)), 4),
                  "sampson_rms_refined_px": round(float(np.sqrt(np.mean(s[ref] ** 2))), 4),
                  "sampson_median_refined_px": round(float(np.median(s[ref])), 4)}
-    cases = [("all", np.ones(len(left), bool), None), ("refined", ref, None)]
+    cases: list[tuple[str, np.ndarray, np.ndarray | None]] = [("all", np.ones(len(left), bool), None),
+                                                             ("refined", ref, None)]
     if weights is not None:   # all matches, each by its own precision (what `stereo orient` does)
         cases.append(("weighted", np.ones(len(left), bool), np.asarray(weights, dtype=np.float64)))
     for key, sel, w in cases:
@@ -308,7 +331,7 @@ def _write_png(path: Path, img: np.ndarray) -> None:
     cv2.imwrite(str(path), img[..., ::-1] if img.ndim == 3 else img)   # lossless; RGB -> OpenCV's BGR
 
 
-def run_ngi(work: Path, shared: Path, variants: list[str], skip_peer: bool) -> dict:
+def run_ngi(work: Path, shared: Path, variants: list[str], skip_peer: bool, versions: Versions = OURS) -> dict:
     """``rectify match --verify fundamental`` and the peer on NGI variants: time and precision (see the module
     docstring)."""
     from rectify.formats.tables import read_matches
@@ -326,14 +349,18 @@ def run_ngi(work: Path, shared: Path, variants: list[str], skip_peer: bool) -> d
         img, back = ngi_variant(R, **NGI_VARIANTS[name])
         right = d / f"right_{name}.png"
         _write_png(right, img)
-        csv = d / f"ours_{name}.csv"
-        t = timed(["rectify", "match", str(left), str(right), "-o", str(csv), "--verify", "fundamental",
-                   "--overwrite"], d / f"ours_{name}.log")
-        log = (d / f"ours_{name}.log").read_text()
-        rmse = next((float(ln.split()[2]) for ln in log.splitlines() if ln.startswith("verification RMSE:")), None)
-        m = read_matches(csv)
-        refined = np.isfinite(m.score) if m.score is not None else None
-        res = {"ours": {**t, "verification_rmse_px": rmse, **ngi_score(m.left, back(m.right), refined, m.weights())}}
+        res: dict = {}
+        for label, env in versions:
+            csv = d / f"{label}_{name}.csv"
+            t = timed(["rectify", "match", str(left), str(right), "-o", str(csv), "--verify", "fundamental",
+                       "--overwrite"], d / f"{label}_{name}.log", env)
+            log = (d / f"{label}_{name}.log").read_text()
+            rmse = next((float(ln.split()[2]) for ln in log.splitlines() if ln.startswith("verification RMSE:")),
+                        None)
+            m = read_matches(csv)
+            refined = np.isfinite(m.score) if m.score is not None else None
+            res[label] = {**t, "verification_rmse_px": rmse,
+                          **ngi_score(m.left, back(m.right), refined, m.weights())}
         if not skip_peer:
             script = d / "ngi_peer.py"
             script.write_text(NGI_PEER)
@@ -412,6 +439,61 @@ def _precision_cells(r: dict) -> list[str]:
     return cells
 
 
+#: precision figures of each case compared between the versions (larger is better for the counts and the share)
+PRECISION_KEYS = {
+    "pair": ("verified", "correct", "rms_error_px", "rms_error_refined_px", "median_error_refined_px",
+             "cells_covered"),
+    "orient": ("tie_verified", "tie_correct", "tie_rms_error_px", "tie_rms_error_refined_px"),
+    "ngi": ("n", "refined_share", "verification_rmse_px", "sampson_rms_refined_px", "sampson_rms_px",
+            "ro_refined_rotation_deg", "ro_refined_base_deg", "ro_weighted_rotation_deg"),
+}
+
+
+def _cases(run: dict):
+    """(case name, kind, its result with one entry per version) of one run."""
+    for k in ("pair", "orient"):
+        if k in run:
+            yield k, k, run[k]
+    for name, v in run.get("ngi", {}).items():
+        yield f"ngi {name}", "ngi", v
+
+
+def against_baseline(runs: list[dict]) -> dict:
+    """Per case: each version's fastest CPU and wall time over the runs (and the load before each), the ratios this
+    checkout / baseline, and both versions' precision (of the last run: the matcher is deterministic)."""
+    out: dict = {}
+    for i, run in enumerate(runs):
+        for case, kind, v in _cases(run):
+            c = out.setdefault(case, {"ours": {"cpu_s": [], "wall_s": [], "load": []},
+                                      "baseline": {"cpu_s": [], "wall_s": [], "load": []}})
+            for label in ("ours", "baseline"):
+                c[label]["cpu_s"].append(v[label]["cpu_s"])
+                c[label]["wall_s"].append(v[label]["wall_s"])
+                c[label]["load"].append(v[label]["load_before"])
+                if i == len(runs) - 1:
+                    c[label]["precision"] = {k: v[label].get(k) for k in PRECISION_KEYS[kind]}
+    for c in out.values():
+        for label in ("ours", "baseline"):
+            c[label]["cpu_min_s"] = min(c[label]["cpu_s"])
+            c[label]["wall_min_s"] = min(c[label]["wall_s"])
+        c["ratio_cpu"] = round(c["ours"]["cpu_min_s"] / c["baseline"]["cpu_min_s"], 3)
+        c["ratio_wall"] = round(c["ours"]["wall_min_s"] / c["baseline"]["wall_min_s"], 3)
+    return out
+
+
+def baseline_lines(res: dict) -> list[str]:
+    """One line per case: fastest CPU (wall) of each version, the ratios, the precision of both."""
+    lines = []
+    for case, c in res.items():
+        o, b = c["ours"], c["baseline"]
+        prec = ", ".join(f"{k} {b['precision'][k]} -> {o['precision'][k]}" for k in o["precision"])
+        lines.append(f"{case}: baseline {b['cpu_min_s']} s CPU ({b['wall_min_s']} s wall), this {o['cpu_min_s']} s "
+                     f"CPU ({o['wall_min_s']} s wall): ratio {c['ratio_cpu']} CPU, {c['ratio_wall']} wall (fastest of "
+                     f"{len(o['cpu_s'])}; load {min(o['load'] + b['load']):.1f}-{max(o['load'] + b['load']):.1f}); "
+                     f"precision baseline -> this: {prec}")
+    return lines
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description="rectify match vs OpenCV whole-image baseline")
     ap.add_argument("--size", type=int, default=8000)
@@ -427,17 +509,24 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=1,
                     help="run the pair (and orient) comparison this many times (shared machines are noisy) and "
                          "print one line per run")
+    ap.add_argument("--baseline", type=Path, default=None,
+                    help="also run each case of ours with the packages of this checkout (an earlier version, e.g. a "
+                         "git worktree), alternating with this one in the same run; the summary compares them")
     a = ap.parse_args()
+    if a.baseline is not None and not (a.baseline / "rectify" / "__init__.py").is_file():
+        ap.error(f"--baseline {str(a.baseline)!r} is not a checkout of this project (no rectify/__init__.py)")
     a.work.mkdir(parents=True, exist_ok=True)
     out: dict = {"machine": {"cpus": os.cpu_count(), "load_avg_at_start": os.getloadavg()}}
+    versions: Versions = OURS + ([("baseline", env_for(a.baseline.resolve()))] if a.baseline is not None else [])
     runs = []
-    for _ in range(max(1, a.repeat)):
+    for i in range(max(1, a.repeat)):
+        order = versions if i % 2 == 0 else versions[::-1]      # alternate which version runs first
         if not a.skip_pair:
-            out["pair"] = run_pair(a.work, a.size, a.skip_peer)
+            out["pair"] = run_pair(a.work, a.size, a.skip_peer, order)
         if a.orient:
-            out["orient"] = run_orient(a.work, a.size)
+            out["orient"] = run_orient(a.work, a.size, order)
         if a.ngi:
-            out["ngi"] = run_ngi(a.work, a.shared, a.ngi_variants, a.skip_peer)
+            out["ngi"] = run_ngi(a.work, a.shared, a.ngi_variants, a.skip_peer, order)
         runs.append({k: out[k] for k in ("pair", "orient", "ngi") if k in out})
     if len(runs) > 1:
         out["runs"] = runs
@@ -451,6 +540,10 @@ def main() -> None:
                              f"ratio {r[k]['ratio_time_ours_over_peer']} (cpu {r[k]['ratio_cpu_ours_over_peer']})")
         cells += _precision_cells(r)
         print(f"run {i + 1}: " + "; ".join(cells), flush=True)
+    if a.baseline is not None:
+        out["against_baseline"] = against_baseline(runs)
+        for line in baseline_lines(out["against_baseline"]):
+            print(line, flush=True)
     if a.large:
         out["large"] = run_large(a.work, a.large)
     print(json.dumps(out, indent=1))

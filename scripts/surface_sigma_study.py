@@ -21,6 +21,7 @@ Usage:
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import tempfile
@@ -66,7 +67,9 @@ def one(seed: int, work: Path, args: argparse.Namespace) -> tuple[np.ndarray, np
     pose_sigma = tuple(args.pose_sigma) if args.pose_sigma else ((0.0005, 0.05) if args.via_block else (0.0, 0.0))
     blk = make_surface_block(work / f"block{seed}", strips=args.strips, per_strip=args.per_strip, seed=seed,
                              supersample=args.supersample, pose_sigma=pose_sigma)
-    folder, opts = blk.folder, SurfaceOptions(ground_z=Z0, orientation_sigma=args.orientation_sigma)
+    match = dataclasses.replace(SurfaceOptions().matching, **({} if args.refine_radius is None else
+                                                              {"refine_radius": args.refine_radius}))
+    folder, opts = blk.folder, SurfaceOptions(ground_z=Z0, orientation_sigma=args.orientation_sigma, matching=match)
     if args.via_block:
         bo = read_block_orientation(blk.folder / "orientation.json")
         (work / f"poses{seed}.csv").write_text(pose_csv_text(bo.poses, crs=None))
@@ -79,7 +82,7 @@ def one(seed: int, work: Path, args: argparse.Namespace) -> tuple[np.ndarray, np
         if r.exit_code != 0:
             raise SystemExit(r.output)
         print(f"seed {seed}: stereo block {time.perf_counter() - t0:.1f} s")
-        opts = SurfaceOptions(images=str(blk.images), orientation_sigma=args.orientation_sigma)
+        opts = SurfaceOptions(images=str(blk.images), orientation_sigma=args.orientation_sigma, matching=match)
     t0 = time.perf_counter()
     res = run_surface(folder, work / f"out{seed}", options=opts)
     dt = time.perf_counter() - t0
@@ -105,6 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--via-block", action="store_true")
     ap.add_argument("--gnss-sigma", type=float, default=0.05)
     ap.add_argument("--orientation-sigma", choices=ORIENTATION_SIGMA, default="auto")
+    ap.add_argument("--refine-radius", type=int, default=None, help="the matcher's sub-pixel window radius")
     ap.add_argument("--work", type=Path, default=None)
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:

@@ -101,6 +101,9 @@ class OrthoRunOptions:
     camera_id : str, optional
         The camera of a camera file of several (orthority, COLMAP, Metashape; default the one the
         exterior orientation names, else the only one).
+    focal_setting : float, optional
+        The image's focal setting for a zoom camera (``stereo calibrate --zoom``; default the image's EXIF
+        FocalLength); refused with another camera or an RPC.
     gcp_pixel : str, optional
         Pixel convention of GCPs embedded in a GeoTIFF: ``corner`` (GDAL's, the default) or ``centre``
         (orthority's).
@@ -123,6 +126,7 @@ class OrthoRunOptions:
     gcp_heights: str | None = None
     image_id: str | None = None
     camera_id: str | None = None
+    focal_setting: float | None = None
     gcp_pixel: str | None = None
     stac: bool = True
     dem_height: float | None = None
@@ -482,10 +486,13 @@ def ortho(ws: Workspace, src: str | Path, dst: str | Path, dem_path: str | Path 
     eo_vertical = None
     if not use_rpc:
         fs = read_frame_source_any(camera, exterior, crs=o.eo_crs, image_id=o.image_id,  # type: ignore[arg-type]
-                                   image_path=src, camera_id=o.camera_id)
+                                   image_path=src, camera_id=o.camera_id, focal_setting=o.focal_setting)
         model, source, eo_vertical = fs.model, fs.description, fs.vertical
     elif o.camera_id is not None:
         raise InvalidInputError(f"--camera-id {o.camera_id!r} names a camera of a camera file; an RPC image needs none")
+    elif o.focal_setting is not None:
+        raise InvalidInputError(f"--focal-setting {o.focal_setting:g} goes with a zoom camera (--camera); an RPC "
+                                "image needs none")
     gs = None
     if gcps is not None:  # any GCP file; one of several images: the source's (or --image-id's)
         gs = read_gcp_file(gcps, image=o.image_id or src, pixel=o.gcp_pixel, option="--image-id")

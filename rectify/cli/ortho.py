@@ -33,6 +33,9 @@ report_opt = click.option("--report", "report_dir", type=click.Path(file_okay=Fa
 @click.option("--camera-id", default=None,
               help="The camera of a file of several (default: the one the exterior orientation names, else the "
                    "only one).")
+@click.option("--focal-setting", "focal_setting", type=float, default=None,
+              help="The image's focal setting for a zoom camera (stereo calibrate --zoom), in the unit of its "
+                   "calibration (EXIF focal length mm). Default: the image's EXIF FocalLength.")
 @click.option("--exterior", type=click.Path(), default=None,
               help="Exterior orientation: EO JSON ('stereo resect'), a block's orientation.json or poses.csv "
                    "('stereo block'), orthority ext_param.geojson or xyz_opk/lla_rpy CSV (+ .prj), COLMAP model "
@@ -77,16 +80,17 @@ report_opt = click.option("--report", "report_dir", type=click.Path(file_okay=Fa
 @report_opt
 @overwrite_opt
 @handle_errors
-def ortho(src, dst, dem_path, dem_height, rpc, camera, camera_id, exterior, image_id, eo_crs, gcps, gcp_pixel,
-          refinement, dst_crs, resolution, undulation, geoid, gcp_heights, resampling, true_ortho, cog, compress,
-          jpeg_quality, stac, threads, scheduler, report_dir, overwrite):
+def ortho(src, dst, dem_path, dem_height, rpc, camera, camera_id, focal_setting, exterior, image_id, eo_crs, gcps,
+          gcp_pixel, refinement, dst_crs, resolution, undulation, geoid, gcp_heights, resampling, true_ortho, cog,
+          compress, jpeg_quality, stac, threads, scheduler, report_dir, overwrite):
     """Orthorectify SRC over a DEM (or a constant height) into the GeoTIFF given by -o."""
 
     engine = OrthoOptions(resampling=resampling, cog=cog, threads=threads, true_ortho=true_ortho, scheduler=scheduler,
                           compress=compress, quality=jpeg_quality)
     opts = OrthoRunOptions(eo_crs=eo_crs, refinement=refinement, dst_crs=dst_crs, resolution=resolution,
                            undulation=undulation, geoid=geoid, gcp_heights=gcp_heights, image_id=image_id,
-                           camera_id=camera_id, gcp_pixel=gcp_pixel, stac=stac, engine=engine, dem_height=dem_height)
+                           camera_id=camera_id, focal_setting=focal_setting, gcp_pixel=gcp_pixel, stac=stac,
+                           engine=engine, dem_height=dem_height)
     rpc_arg = True if rpc == "__image__" else (rpc or False)
     ws = Workspace(overwrite=overwrite, report_dir=report_dir)
     with progress("orthorectifying", enabled=True) as cb:

@@ -38,6 +38,7 @@ from rectify.features.verify import (
 )
 from rectify.geometry.points import Matches
 from rectify.geometry.residuals import rms
+from rectify.raster import io as rio
 
 __all__ = ["VERIFY_METHODS", "MatcherConfig", "MatchResult", "ProgressFn", "Verification", "Verify", "match_arrays",
            "match_descriptors", "verify_matches"]
@@ -118,11 +119,13 @@ class MatcherConfig:
         an empty (NaN) score, instead of dropping them (issue 12: on wide-baseline pairs the square LSM
         window fails where the affine distortion is strong, and those matches are good). Whole-image mode.
     derotate : bool
-        Whole-image mode (issue 30): when the verified matches show the right image turned by about k quarter
-        turns (their keypoints' orientations differ by more than 45 degrees; neighbouring aerial strips
-        flown in opposite directions differ by 180), the right image is turned back by ``np.rot90`` (exact,
-        no resampling) and matched again, so the pair is matched as an unturned one; the positions are
-        returned in the given images' pixels (``MatchResult.n_turns``).
+        Whole-image mode (issue 30): when the right image is turned by about k quarter turns against the left
+        one (their keypoints' orientations differ by more than 45 degrees; neighbouring aerial strips flown in
+        opposite directions differ by 180), it is turned back by ``np.rot90`` (exact, no resampling) before
+        its detection, so the pair is matched as an unturned one; the positions are returned in the given
+        images' pixels (``MatchResult.n_turns``). The turn is guessed from a small copy of the right image
+        (a few percent of the time) and checked by the verified matches, which match once more when the
+        guess was wrong.
     lsm : LsmConfig
         Refinement options.
     percentiles : (float, float)
@@ -593,16 +596,110 @@ def match_arrays(left: ArrayLike, right: ArrayLike, *, left_valid: ArrayLike | N
     return _match_whole(L, lv, R, rv, cfg, progress, ("left", "right"))
 
 
-def _match_whole(L, lv, R, rv, cfg: MatcherConfig, progress, names, fl: Features | None = None) -> MatchResult:
-    """Whole-image matching; ``fl``: the left image's features when already detected (the second, turned pass)."""
+def _match_whole(L, lv, R, rv, cfg: MatcherConfig, progress, names) -> MatchResult:
+    """Whole-image matching (see :func:`match_arrays`).
+
+    With ``cfg.derotate`` the quarter turn of the right image is first guessed by :func:`_coarse_turns` (a small
+    copy of the right image against the left keypoints), and the right image is detected and matched turned back
+    by it; the full matches' own orientations check the guess, and a wrong guess is matched once more (turned by
+    what they say), so the result is the same as with the right guess."""
     t0 = time.perf_counter()
+    fl = detect(L, valid=lv, detector=cfg.detector, max_keypoints=cfg.max_keypoints, cell_cap=cfg.cell_cap,
+                percentiles=cfg.percentiles)
+    _check_blank(fl, "left", names[0])
+    k = _coarse_turns(fl, L.shape[:2], R, rv, cfg) if cfg.derotate else 0
+    t_coarse = time.perf_counter()
+    try:
+        out = _match_pass(L, lv, R, rv, cfg, progress, names, fl, k, cfg.derotate, t0)
+    except EstimationError as err:
+        if not k:
+            raise
+        logger.info("matching with the right image turned by %d quarter turns failed (%s); matching as given", k, err)
+        k = 0
+        out = _match_pass(L, lv, R, rv, cfg, progress, names, fl, 0, False, t0)
+    if isinstance(out, int):   # the full matches say the right image is turned by ``out`` more quarter turns
+        t_first = time.perf_counter() - t0
+        k2 = (k + out) % 4
+        again = None if progress is None else (lambda d, t: progress(max(d, 2), t))   # no step back
+        try:
+            res = _match_pass(L, lv, R, rv, cfg, again, names, fl, k2, False, time.perf_counter())
+        except EstimationError as err:
+            logger.info("matching with the right image turned by %d quarter turns failed (%s); matching as turned "
+                        "by %d", k2, err, k)
+            res = _match_pass(L, lv, R, rv, cfg, again, names, fl, k, False, time.perf_counter())
+        assert isinstance(res, MatchResult)
+        return replace(res, timings_s={**res.timings_s, "first_pass": t_first,
+                                       "total": res.timings_s.get("total", 0.0) + t_first})
+    if not cfg.derotate:
+        return out
+    # the left detection and the guess (included in "detect" and "total")
+    return replace(out, timings_s={**out.timings_s, "coarse_turns": t_coarse - t0})
+
+
+#: the quarter-turn guess of :func:`_coarse_turns`: the right image reduced to at most this long side (px) and
+#: this many left keypoints (the largest of each grid cell) matched against its keypoints
+COARSE_TURN_PX = 256
+COARSE_TURN_KEYPOINTS = 800
+
+
+def _coarse_turns(fl: Features, shape_left: tuple[int, int], R: NDArray, rv: NDArray[np.bool_],
+                  cfg: MatcherConfig) -> int:
+    """Quarter turns (0-3, ``np.rot90``) that turn the right image back to the left one, guessed cheaply (2-4 % of
+    the matching's time): the right image reduced by an integer factor to at most :data:`COARSE_TURN_PX` px (area
+    average), its keypoints matched by brute force (ratio test, mutual) with the :data:`COARSE_TURN_KEYPOINTS`
+    largest left keypoints spread over the image; the median orientation difference of the matches, when at least
+    12 matches and half of them agree within 30 degrees; 0 otherwise, and for images already that small (the full
+    matches then decide, see :func:`_match_whole`)."""
+    f = int(math.ceil(max(R.shape[:2]) / COARSE_TURN_PX))
+    if f < 2 or len(fl) < 12:
+        return 0
+    h, w = R.shape[0] // f, R.shape[1] // f
+    if min(h, w) < 16:
+        return 0
+    a = np.asarray(R)[:h * f, :w * f]
+    if a.dtype not in (np.uint8, np.uint16, np.float32) or (a.ndim == 3 and a.shape[2] > 4):
+        a = rio.to_uint8(a, rv[:h * f, :w * f], percentiles=cfg.percentiles)     # OpenCV's resize takes these only
+    small = cv2.resize(a, (w, h), interpolation=cv2.INTER_AREA)              # NaN spreads over its cell: invalid
+    valid = rv[:h * f, :w * f].reshape(h, f, w, f).all(axis=(1, 3))
+    fs = detect(small, valid=valid, detector=cfg.detector, max_keypoints=4 * COARSE_TURN_KEYPOINTS,
+                cell_cap=cfg.cell_cap, percentiles=cfg.percentiles)
+    if len(fs) < 12:
+        return 0
+    sub = fl.subset(grid_select(fl.xy, fl.size, shape_left, COARSE_TURN_KEYPOINTS, cell_cap=cfg.cell_cap))
+    li, ri = _brute_pairs(sub.descriptors, fs.descriptors, cfg.ratio)
+    d = fs.angle[ri] - sub.angle[li]
+    d = d[np.isfinite(d)]
+    if len(d) < 12:
+        return 0
+    k = int(round(float(np.angle(np.median(np.cos(d)) + 1j * np.median(np.sin(d)))) / (math.pi / 2))) % 4
+    off = np.abs(np.angle(np.exp(1j * (d - k * math.pi / 2))))
+    return k if (off < math.radians(30.0)).mean() >= 0.5 else 0
+
+
+def _brute_pairs(a: NDArray, b: NDArray, ratio: float) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Mutual nearest descriptors of two small sets (brute force: L2 for float descriptors, Hamming for binary ones)
+    passing the ratio test: indices into ``a`` and ``b``."""
+    bf = cv2.BFMatcher(cv2.NORM_L2 if a.dtype == np.float32 else cv2.NORM_HAMMING)
+    fwd = [m for m in bf.knnMatch(a, b, k=2) if len(m) == 2 and m[0].distance < ratio * m[1].distance]
+    back = np.full(len(b), -1, dtype=np.int64)
+    for m in bf.match(b, a):
+        back[m.queryIdx] = m.trainIdx
+    li = np.array([m[0].queryIdx for m in fwd], dtype=np.int64)
+    ri = np.array([m[0].trainIdx for m in fwd], dtype=np.int64)
+    ok = back[ri] == li
+    return li[ok], ri[ok]
+
+
+def _match_pass(L, lv, R, rv, cfg: MatcherConfig, progress, names, fl: Features, k: int, check: bool,
+                t0: float) -> MatchResult | int:
+    """One whole-image matching of the left features ``fl`` with ``np.rot90(R, k)``, returned in the given right
+    image's pixels; with ``check``, the number of further quarter turns instead when the verified matches'
+    orientations say the turned right image is still turned (:func:`_quarter_turns`)."""
     tick = progress or (lambda d, t: None)
     tick(0, 4)
-    first = fl is None
-    if fl is None:
-        fl = detect(L, valid=lv, detector=cfg.detector, max_keypoints=cfg.max_keypoints, cell_cap=cfg.cell_cap,
-                    percentiles=cfg.percentiles)
-        _check_blank(fl, "left", names[0])
+    shape_right = R.shape[:2]
+    if k:
+        R, rv = np.rot90(R, k), np.rot90(rv, k)
     fr = detect(R, valid=rv, detector=cfg.detector, max_keypoints=cfg.max_keypoints, cell_cap=cfg.cell_cap,
                 percentiles=cfg.percentiles)
     _check_blank(fr, "right", names[1])
@@ -621,17 +718,10 @@ def _match_whole(L, lv, R, rv, cfg: MatcherConfig, progress, names, fl: Features
     else:
         ver0 = _verify_checked(pl, pr, cfg, cfg.verify)
         inl = ver0.inliers
-    k = _quarter_turns(fl, fr, pairs, inl) if first and cfg.derotate else 0
-    if k:   # the right image turned by about k quarter turns: match again with it turned back (exact, lossless)
-        t_first = time.perf_counter() - t0
-        try:
-            again = None if progress is None else (lambda d, t: progress(max(d, 2), t))   # no step back
-            res = _match_whole(L, lv, np.rot90(R, k), np.rot90(rv, k), cfg, again, names, fl=fl)
-        except EstimationError as err:
-            logger.info("matching with the right image turned by %d quarter turns failed (%s); matching as given",
-                        k, err)
-        else:
-            return _turned_back(res, k, R.shape[:2], cfg, t_first)
+    if check:
+        j = _quarter_turns(fl, fr, pairs, inl)
+        if j:
+            return j
     cand_l, cand_r, cand_inl = pl, pr, inl
     vl, vr, vratio = pl[inl], pr[inl], ratio[inl]
     vli, vri = pairs.left[inl], pairs.right[inl]          # keypoint indices (their sizes and orientations)
@@ -665,9 +755,10 @@ def _match_whole(L, lv, R, rv, cfg: MatcherConfig, progress, names, fl: Features
     t4 = time.perf_counter()
     tick(4, 4)
     timings = {"detect": t1 - t0, "match": t2 - t1, "verify": t3 - t2, "refine": t4 - t3, "total": t4 - t0}
-    return _result(out_l, out_r, sc, ver, cfg, (len(fl), len(fr)), len(pairs.left), int(inl.sum()) + n_guided,
-                   n_ref, n_fail, raw, cand_l, cand_r, cand_inl, False, (L.shape[:2], R.shape[:2]), timings,
-                   n_dup0 + n_dup, n_guided, n_scr)
+    res = _result(out_l, out_r, sc, ver, cfg, (len(fl), len(fr)), len(pairs.left), int(inl.sum()) + n_guided,
+                  n_ref, n_fail, raw, cand_l, cand_r, cand_inl, False, (L.shape[:2], R.shape[:2]), timings,
+                  n_dup0 + n_dup, n_guided, n_scr)
+    return _turned_back(res, k, shape_right, cfg) if k else res
 
 
 def _quarter_turns(fl: Features, fr: Features, pairs: _Pairs, inl: NDArray[np.bool_]) -> int:
@@ -694,8 +785,7 @@ def _turn_matrix(k: int, shape: tuple[int, int]) -> NDArray[np.float64]:
     return T
 
 
-def _turned_back(res: MatchResult, k: int, shape_right: tuple[int, int], cfg: MatcherConfig,
-                 t_first: float) -> MatchResult:
+def _turned_back(res: MatchResult, k: int, shape_right: tuple[int, int], cfg: MatcherConfig) -> MatchResult:
     """``res`` (matched with the right image turned by ``np.rot90(right, k)``) in the given right image's pixels."""
     T = _turn_matrix(k, shape_right)
 
@@ -710,10 +800,9 @@ def _turned_back(res: MatchResult, k: int, shape_right: tuple[int, int], cfg: Ma
         M = T @ M if ver.method == "homography" else np.linalg.inv(T).T @ M
         ver = table_for(Verification(ver.method, M, ver.inliers, ver.errors_px, None), m.left, matches.right,
                         threshold_px=cfg.threshold_px, refined=res.refined)
-    timings = {**res.timings_s, "first_pass": t_first, "total": res.timings_s.get("total", 0.0) + t_first}
     logger.info("the right image is turned by %d quarter turns against the left one: matched turned back", k)
     return replace(res, matches=matches, verification=ver, candidates_right=back(res.candidates_right),
-                   image_shapes=(res.image_shapes[0], shape_right), timings_s=timings, n_turns=k)
+                   image_shapes=(res.image_shapes[0], shape_right), n_turns=k)
 
 
 def _one_to_one(pl, pr, score, tol_px: float = 0.1):

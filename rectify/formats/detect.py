@@ -47,7 +47,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from rectify.errors import CRSError, InvalidInputError
+from rectify.errors import CalibrationError, CRSError, InvalidInputError
 from rectify.formats.camera import read_camera
 from rectify.formats.colmap import detect_colmap, read_colmap_cameras, read_colmap_images
 from rectify.formats.common import FORMAT_PREFIX, StrPath
@@ -321,25 +321,31 @@ def is_zoom_camera(value: StrPath) -> bool:
 
 
 def read_camera_file(value: StrPath, *, focal_setting: float | None = None,
-                     image: StrPath | None = None) -> CameraFile:
+                     image: StrPath | None = None, setting_option: str = "--focal-setting") -> CameraFile:
     """Read a ``--camera`` file of any kind of :data:`CAMERA_KINDS` (``KIND:PATH`` picks one).
 
     A zoom camera (``stereo calibrate --zoom``) gives the camera at the image's focal setting:
     ``focal_setting`` when given, else the EXIF FocalLength of ``image`` (read only for a zoom camera).
+    ``setting_option`` is the option that gives the setting, for the message when there is none.
 
     Raises
     ------
     RasterIOError, InvalidInputError, CalibrationError, CRSError
         The reader's one-line errors (file, key and value named); an ambiguous file (choices named); a
-        zoom camera without a focal setting, or one outside its calibrated range.
+        zoom camera without a focal setting, or one outside its calibrated range (the image named).
     """
     kind, path = resolve_kind(value, CAMERA_KINDS, "camera file")
     if kind is OUR_CAMERA and head_has_format(path, "zoom-camera"):
         setting = image_focal_setting(focal_setting, image)
         if setting is None and image is not None:
             raise InvalidInputError(f"camera file {str(path)!r} is a zoom camera, but image {str(image)!r} has no "
-                                    "EXIF FocalLength: give its focal setting (stereo orient --focal-setting)")
-        return CameraFile(path, kind, {"camera": read_camera(path, focal_setting=setting)})
+                                    f"EXIF FocalLength: give its focal setting ({setting_option})")
+        try:
+            return CameraFile(path, kind, {"camera": read_camera(path, focal_setting=setting)})
+        except CalibrationError as err:
+            if image is None or setting is None:
+                raise
+            raise CalibrationError(f"image {str(image)!r}: {err}") from None
     cams: dict[str, Camera]
     if kind.name == "orthority":
         cams = read_int_param(path)
@@ -424,7 +430,7 @@ def read_exterior_file(path: Path, kind: FileKind, *, crs: str | None = None) ->
 
 def read_frame_source_any(camera: StrPath | None, exterior: StrPath, *, crs: str | None = None,
                           image_id: str | None = None, image_path: StrPath | None = None,
-                          camera_id: str | None = None) -> FrameSource:
+                          camera_id: str | None = None, focal_setting: float | None = None) -> FrameSource:
     """The frame model of one image from a camera file and an exterior orientation file of any kind.
 
     Parameters
@@ -443,6 +449,9 @@ def read_frame_source_any(camera: StrPath | None, exterior: StrPath, *, crs: str
         The image being processed.
     camera_id : str, optional
         The camera of a camera file of several (default: the one the orientation names, else the only one).
+    focal_setting : float, optional
+        A zoom camera's focal setting of the image (``--focal-setting``); default the EXIF FocalLength of
+        ``image_path``. Ignored by other cameras.
 
     Raises
     ------
@@ -452,16 +461,24 @@ def read_frame_source_any(camera: StrPath | None, exterior: StrPath, *, crs: str
     CRSError
         No CRS for the orientation.
     """
-    cam_file = read_camera_file(camera) if camera is not None else None
+    zoom = camera is not None and is_zoom_camera(camera)  # evaluated at the image's focal setting
+    if focal_setting is not None and not zoom:
+        raise InvalidInputError(f"--focal-setting {focal_setting:g} goes with a zoom camera (stereo calibrate --zoom);"
+                                f" {'no --camera is' if camera is None else repr(str(camera)) + ' is not one'}")
+    cam_file = (read_camera_file(camera, focal_setting=focal_setting, image=image_path if zoom else None)
+                if camera is not None else None)
     kind, path = resolve_kind(exterior, EXTERIOR_KINDS, "exterior orientation file")
     if kind is OUR_EXTERIOR:
-        if cam_file is None or cam_file.kind is OUR_CAMERA:
+        if cam_file is None or (cam_file.kind is OUR_CAMERA and not zoom):
             if camera_id is not None and cam_file is not None:
                 cam_file.choose(camera_id)  # refuses an id the camera JSON (one camera) does not carry
             return read_frame_source(None if cam_file is None else cam_file.path, path, crs=crs, image_id=image_id,
                                      image_path=image_path)
+        note = (f"zoom camera {str(cam_file.path)!r} at focal setting "
+                f"{image_focal_setting(focal_setting, image_path):g}" if zoom else
+                f"{cam_file.kind.label} {str(cam_file.path)!r}")
         return read_frame_source(cam_file.chooser(camera_id), path, crs=crs, image_id=image_id, image_path=image_path,
-                                 camera_note=f"{cam_file.kind.label} {str(cam_file.path)!r}")
+                                 camera_note=note)
     ef = read_exterior_file(path, kind, crs=crs)
     target = image_id if image_id is not None else image_path
     name = pick_image(list(ef.exteriors), target, path, kind.label, "--image-id")

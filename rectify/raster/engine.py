@@ -58,8 +58,8 @@ __all__ = ["COMPRESSIONS", "LOSSLESS", "JPEG_QUALITY", "ProcessLocal", "TileEngi
 
 #: the ``compress`` values of :func:`write_tiled` (``--compress`` of ortho, warp and mosaic)
 COMPRESSIONS = ("zstd", "deflate", "lzw", "jpeg", "none")
-#: the lossless ones (the engine's nodata value is kept)
-LOSSLESS = ("zstd", "deflate", "lzw", "none")
+#: the lossless ones (the engine's nodata value is kept); ``packbits`` and ``lzma`` are accepted too (warp's)
+LOSSLESS = ("zstd", "deflate", "lzw", "none", "packbits", "lzma")
 #: default JPEG quality (1..100): GDAL's default, which orthority writes too
 JPEG_QUALITY = 75
 
@@ -157,7 +157,7 @@ def check_output_format(compress: str, dtype: Any, count: int, quality: int = JP
         a JPEG quality outside 1..100.
     """
     c = str(compress).lower()
-    if c not in COMPRESSIONS:
+    if c not in COMPRESSIONS and c not in LOSSLESS:
         raise InvalidInputError(f"unknown compression {compress!r}; expected one of {', '.join(COMPRESSIONS)}")
     if c == "jpeg":
         dt = np.dtype(dtype)

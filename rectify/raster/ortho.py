@@ -539,11 +539,12 @@ class _Engine(TileEngine):
             tz = (z - zlo) / span
             if not all_fin:
                 tz[~fin] = 0.0
+            tmp = np.empty((h, w))
             for c, acc in ((0, col), (1, row)):
                 np.matmul(left[:, :, 3, c], B, out=acc)
                 for j in (2, 1, 0):
                     acc *= tz
-                    acc += left[:, :, j, c] @ B
+                    acc += np.matmul(left[:, :, j, c], B, out=tmp)
         if not all_fin:
             col[~fin] = np.nan
             row[~fin] = np.nan
@@ -558,8 +559,8 @@ class _Engine(TileEngine):
         z = Z[m:m + h, m:m + w]
         col, row = self._project(c0, r0, w, h, z)
         W, H = self.model.width, self.model.height
-        inside = np.isfinite(col) & np.isfinite(row) & (col >= -0.5) & (col <= W - 0.5) & (row >= -0.5) \
-            & (row <= H - 0.5)
+        with np.errstate(invalid="ignore"):  # NaN compares False: outside
+            inside = (col >= -0.5) & (col <= W - 0.5) & (row >= -0.5) & (row <= H - 0.5)
         vis = None
         if self.opts.true_ortho and inside.any():
             d = self._direction(c0, r0, w, h, float(np.nanmean(z[inside])))
@@ -589,7 +590,7 @@ class _Engine(TileEngine):
         ok = written & np.isfinite(z)
         if not ok.any():
             return
-        lo, hi = float(z[ok].min()), float(z[ok].max())
+        lo, hi = float(np.min(z, where=ok, initial=np.inf)), float(np.max(z, where=ok, initial=-np.inf))
         s = self.stride
         h, w = z.shape
         rr = np.arange((s // 2 - r0) % s, h, s)
@@ -614,10 +615,10 @@ class _Engine(TileEngine):
     def _resample(self, col: NDArray, row: NDArray, use: NDArray[np.bool_], h: int, w: int):
         W, H = self.model.width, self.model.height
         pad = 3
-        c_lo = max(int(math.floor(np.min(col[use]))) - pad, 0)
-        r_lo = max(int(math.floor(np.min(row[use]))) - pad, 0)
-        c_hi = min(int(math.ceil(np.max(col[use]))) + pad + 1, W)
-        r_hi = min(int(math.ceil(np.max(row[use]))) + pad + 1, H)
+        c_lo = max(int(math.floor(np.min(col, where=use, initial=np.inf))) - pad, 0)
+        r_lo = max(int(math.floor(np.min(row, where=use, initial=np.inf))) - pad, 0)
+        c_hi = min(int(math.ceil(np.max(col, where=use, initial=-np.inf))) + pad + 1, W)
+        r_hi = min(int(math.ceil(np.max(row, where=use, initial=-np.inf))) + pad + 1, H)
         if c_hi <= c_lo or r_hi <= r_lo:
             return None
         if c_hi - c_lo > self.opts.max_window_px or r_hi - r_lo > self.opts.max_window_px:

@@ -6,12 +6,16 @@ steps, sampling the DEM bilinearly at each step, until the line is higher than t
 leaves the block, or passes under the terrain (occluded: the terrain is more than 1 mm above it).
 
 :func:`line_of_sight` gives the same answer, cell for cell, faster: the block's heights are reduced to
-the maximum over blocks of ``block`` x ``block`` cells and then over each 3 x 3 neighbourhood of blocks;
-every point closer than ``block`` pixels to a line's position lies in that neighbourhood, and a bilinear
-sample never exceeds the largest of its four cells, so when the line is already above that maximum the
+the highest corner of each bilinear cell, then the maximum over blocks of ``block`` x ``block`` cells and
+over each 3 x 3 neighbourhood of blocks; every point closer than ``block`` pixels to a line's position
+lies in a cell of that neighbourhood, and a bilinear sample never exceeds the highest corner of its
+cell, so when the line is already above that maximum the
 next ``2 * block`` half-pixel steps cannot meet the terrain and are skipped at once (the line only rises
-along its way). Several block sizes are tried, the largest cleared one sets the skip. The steps that
-are taken are the reference's steps (the same positions and heights, the same arithmetic), so the result
+along its way). Several block sizes are tried, the largest cleared one sets the skip. Likewise from a
+sample where the line is not under the terrain: when the line rises faster (per pixel of its path)
+than the bilinear surface can within ``block`` pixels (the largest |dZ/dx| + |dZ/dy| of the cells
+there), the next ``2 * block - 1`` steps cannot meet it either. The steps that are taken are the
+reference's steps (the same positions and heights, the same arithmetic), so the result
 is identical, not merely close (tests/rectify/test_ortho_speedpaths.py checks it).
 """
 
@@ -126,7 +130,19 @@ def line_of_sight(Z: NDArray, m: int, d: NDArray, z: NDArray, inside: NDArray[np
     Zp = np.pad(Zf, ((0, 1), (0, 1)), mode="edge").ravel()
     Wp = W + 1
     sizes = [block * 4 ** i for i in range(max(1, levels)) if i == 0 or block * 4 ** i <= max(H, W)]
-    maxima = [(b, _block_max(Zf, b)) for b in sizes]
+    # the highest corner of each bilinear cell (cell (r, c) spans grid rows r, r + 1 and columns c, c + 1)
+    Zq = Zp.reshape(H + 1, Wp)
+    top = np.maximum(np.maximum(Zq[:-1, :-1], Zq[:-1, 1:]), np.maximum(Zq[1:, :-1], Zq[1:, 1:]))
+    maxima = [(b, _block_max(top, b)) for b in sizes]
+    # the steepest rise of the bilinear surface per pixel of path in each cell (|d/dx| + |d/dy| bounds), then
+    # its maximum over the same block neighbourhoods: a line rising faster than that from a point where it
+    # is not under the terrain cannot get under it within the neighbourhood
+    with np.errstate(invalid="ignore"):
+        ddx = np.abs(np.diff(Zq, axis=1))
+        ddy = np.abs(np.diff(Zq, axis=0))
+        g = np.maximum(ddx[:-1], ddx[1:]) + np.maximum(ddy[:, :-1], ddy[:, 1:])
+    g = np.where(np.isnan(g), np.inf, g)
+    slopes = [(b, _block_max(g, b)) for b in sizes]
     occl = np.zeros(len(rows), bool)
     idx = np.arange(len(rows))
     k = np.ones(len(rows), np.int64)
@@ -171,6 +187,19 @@ def line_of_sight(Z: NDArray, m: int, d: NDArray, z: NDArray, inside: NDArray[np
             occl[idx[fine[hit_first]]] = True
             done[fine[any_ev]] = True
             step[fine] = chunk
+            # from the chunk's last sample (no event): skip 2b - 1 further steps where the line rises faster
+            # than the terrain can within b pixels and is not under it there (margin kept: no tie decides)
+            go = ~any_ev & (ter[:, -1] <= rh[:, -1] + HIT_MARGIN_M - 1e-6)
+            if go.any():
+                xl, yl = x0[:, -1], y0[:, -1]
+                rise = 1.0 / dd[fine]
+                extra = np.zeros(len(fine), np.int64)
+                for b, G3 in slopes:
+                    ok = go & (rise >= G3[yl // b, xl // b])
+                    if not ok.any():
+                        break
+                    extra[ok] = 2 * b - 1
+                step[fine] += extra
         k += step
         done |= k > _MAX_STEPS
         if done.any():

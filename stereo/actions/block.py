@@ -56,6 +56,7 @@ from stereo.actions.block_users import (
     plan_exports,
     write_exports,
 )
+from stereo.actions.block_zoom import zoom_block
 from stereo.actions.workspace import PairWorkspace
 from stereo.block.bundle.adjust import BundleOptions, adjust_bundle
 from stereo.block.bundle.result import BundleResult
@@ -146,6 +147,9 @@ class BlockOptions:
         CSV (``image,time[,strip]``) and the poses are the trajectory's at the images' times.
     method : {"bundle", "independent-models"}
         The adjustment; ``models`` the options of independent models (:mod:`stereo.actions.block_models`).
+    focal_settings : path or None
+        With a zoom camera: a settings CSV ``image,setting`` (default each image's EXIF FocalLength;
+        :mod:`stereo.actions.block_zoom`).
     """
 
     gnss_sigma_m: tuple[float, float, float] | None = None
@@ -168,6 +172,7 @@ class BlockOptions:
     trajectory: str | None = None
     method: str = "bundle"
     models: ModelMethodOptions = field(default_factory=ModelMethodOptions)
+    focal_settings: str | None = None
 
     def __post_init__(self) -> None:
         check_block_method(self.method, self.models, self.bundle)
@@ -274,12 +279,18 @@ class _Inputs:
     tracks: Tracks | None = None  # a pose file's tracks (COLMAP) on the block's images
     block_names: tuple[str, ...] = ()  # the block's image names, in order
     extras: PoseExtras | None = None  # a pose CSV's time, strip and corr_* columns (stereo.formats.trajectory)
+    zoom_line: str = ""  # a zoom camera evaluated per image (stereo.actions.block_zoom)
 
 
 def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera | Mapping[str, Camera] | None,
-                 poses: StrPath | None, control: StrPath | None, opts: BlockOptions) -> _Inputs:
+                 poses: StrPath | None, control: StrPath | None, opts: BlockOptions,
+                 images: Sequence[StrPath] = ()) -> _Inputs:
     cameras: dict[str, Camera] = {}
-    if isinstance(camera, Camera):
+    ws.add_inputs(*input_paths(opts.focal_settings))  # a zoom camera: one camera per focal setting
+    zoom = zoom_block(camera, images, names, opts.focal_settings, self_calibrate=bool(opts.bundle.self_calibrate))
+    if zoom is not None:
+        cameras = dict(zoom.cameras)
+    elif isinstance(camera, Camera):
         cameras = {DEFAULT_CAMERA: camera}
     elif isinstance(camera, Mapping):
         cameras = dict(camera)
@@ -312,7 +323,7 @@ def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera
             ws.add_inputs(opts.trajectory)
         # a pose CSV's time, strip and corr_* columns; with --trajectory the poses at the images' times
         pf, extras = read_poses_with_extras(poses, opts.trajectory,
-                                            camera=DEFAULT_CAMERA if len(cameras) <= 1 else None,
+                                            camera=DEFAULT_CAMERA if len(cameras) <= 1 or zoom else None,
                                             boresight_rad=opts.boresight_rad, lever_arm_m=opts.lever_arm_m,
                                             crs=ctrl.crs if ctrl is not None else None)
         kind = pf.kind.name
@@ -360,7 +371,9 @@ def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera
         raise InvalidInputError("no camera: give --camera (a camera JSON, orthority int_param, OpenCV calibration, "
                                 "COLMAP or Metashape cameras), or --poses with a file that holds the cameras "
                                 "(OpenSfM reconstruction.json, COLMAP model, Metashape XML)")
-    if pose_list is not None:
+    if zoom is not None:
+        camera_of, pose_list = zoom.camera_of, zoom.assign(pose_list)
+    elif pose_list is not None:
         camera_of = tuple(p.camera for p in pose_list)
     elif len(cameras) == 1:
         camera_of = (next(iter(cameras)),) * len(names)
@@ -396,7 +409,7 @@ def _load_inputs(ws: Workspace, names: tuple[str, ...], camera: StrPath | Camera
                  else "the frame of the given coordinates (no CRS given: not georeferenced)")
     return _Inputs(cameras, camera_of, pose_list, sigma, angle_system, crs, ctrl, frame, reference, gps, dop, kind,
                    input_paths(poses)[0].name if poses is not None else "", control_note, geo, file_tracks, names,
-                   extras)
+                   extras, zoom.line if zoom is not None else "")
 
 
 #: where an OpenSfM dataset or an OpenDroneMap project keeps its GCPs, relative to its reconstruction.json
@@ -621,11 +634,11 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
     cam_input = camera if isinstance(camera, (str, Path)) else None
     ws = plan_block(out_dir, overwrite=overwrite, inputs=[*images, cam_input, poses, control, observations],
                     report=opts.report)
-    inp = _load_inputs(ws, names, camera, poses, control, opts)
-    obs_line: tuple[str, ...] = ()
+    inp = _load_inputs(ws, names, camera, poses, control, opts, images)
+    obs_line: tuple[str, ...] = (inp.zoom_line,) if inp.zoom_line else ()  # a zoom camera's settings
     if observations is not None:
         tracks, line = bf.observation_tracks(observations, inp, names, opts.check_ids, opts.tie_sigma_px)
-        obs_line = (line,)
+        obs_line += (line,)
     # a pose file's tracks (a COLMAP model's) are the tie points when they reach every image
     file_tracks = (inp.tracks if tracks is None and inp.tracks is not None and opts.reuse_tracks
                    and bool((inp.tracks.points_per_image() >= MIN_FILE_TRACKS_PER_IMAGE).all()) else None)

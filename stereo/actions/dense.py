@@ -9,7 +9,9 @@ Outputs in ``out_dir`` (all written together at the end, or none on an error):
                                   (nodata -9999)
 ``confidence.tif``                band 1 confidence in [0, 1] (nodata -9999), band 2: 1 filled
 ``points.las`` (or ``.laz``,      the dense point cloud (ground frame with control or exterior
-``.ply``)                         orientations, else the model frame), RGB from the left photo
+``.copc.laz``, ``.ply``)          orientations, else the model frame), RGB from the left photo;
+                                  LAS/LAZ/COPC: extra dimension ``sigma_z`` (the height standard
+                                  error from the disparity's sub-pixel fit, frame units)
 ``dsm.tif``                       DSM: band 1 height (nodata -9999), band 2 points per cell,
                                   band 3: 1 where a hole was filled
 ``dense.json``                    the summary (parallax, density, DSM, comparison) and the
@@ -40,7 +42,7 @@ from rectify.actions.workspace import Workspace
 from rectify.atomic import read_json
 from rectify.errors import InvalidInputError, StereoError
 from rectify.features import MatcherConfig, match_images
-from rectify.formats.detect import read_one_camera
+from rectify.formats.detect import is_zoom_camera, read_one_camera
 from rectify.formats.stac import StacAsset
 from rectify.formats.tables import read_control, read_matches
 from rectify.geometry.camera import Camera
@@ -68,8 +70,10 @@ from stereo.dense.epipolar import (
     tie_parallax,
 )
 from stereo.dense.matching import NODATA, MatchOptions, MatchStats, match_rasters
+from stereo.dense.precision import disparity_sigma
 from stereo.dense.triangulate import triangulate_disparity
 from stereo.formats.block import BLOCK_FORMAT, BlockOrientation, read_block_orientation
+from stereo.formats.cloud import CLOUD_FORMATS, LasWriter
 from stereo.formats.orientation import EXTERIOR_FORMAT, read_exterior, read_relative
 from stereo.formats.points import point_writer
 from stereo.pair.absolute import AbsoluteOrientation
@@ -99,8 +103,11 @@ class DenseOptions:
     ----------
     matching : MatchOptions
         Default: :class:`MatchOptions` with holes of up to 200 px filled in the disparity product
-        (flagged in band 2 of the confidence raster; filled disparities never become points).
-    cloud_format : {"las", "laz", "ply", "none"}
+        (flagged in band 2 of the confidence raster; filled disparities never become points) and
+        the half-resolution hole pass (``hole_p2=128``, issue 30: more complete surfaces on steep
+        or low-texture terrain).
+    cloud_format : {"las", "laz", "copc", "ply", "none"}
+        ``copc``: ``points.copc.laz`` (needs the ``copclib`` package).
     dsm_cell : float or None
         DSM cell side (ground units); default the median ground sampling distance.
     dsm_statistic : {"mean", "min", "max"}
@@ -142,7 +149,7 @@ class DenseOptions:
         Write the STAC Item of the DSM and the point cloud, ``OUTDIR/item.stac.json``.
     """
 
-    matching: MatchOptions = field(default_factory=lambda: MatchOptions(fill_max_px=200))
+    matching: MatchOptions = field(default_factory=lambda: MatchOptions(fill_max_px=200, hole_p2=128.0))
     cloud_format: str = "las"
     dsm_cell: float | None = None
     dsm_statistic: str = "mean"
@@ -168,9 +175,9 @@ class DenseOptions:
                 Scheduler.parse(self.scheduler)
         if not isinstance(self.matching, MatchOptions):
             raise InvalidInputError(f"`matching` must be a MatchOptions; got {type(self.matching).__name__}")
-        if self.cloud_format not in ("las", "laz", "ply", "none"):
-            raise InvalidInputError(f"unknown point cloud format {self.cloud_format!r}; expected las, laz, ply or "
-                                    "none")
+        if self.cloud_format not in ("las", "laz", "copc", "ply", "none"):
+            raise InvalidInputError(f"unknown point cloud format {self.cloud_format!r}; expected las, laz, copc, ply "
+                                    "or none")
         if self.dsm_cell is not None and not (isinstance(self.dsm_cell, (int, float)) and math.isfinite(self.dsm_cell)
                                               and self.dsm_cell > 0):
             raise InvalidInputError(f"`dsm_cell` must be a finite number > 0; got {self.dsm_cell!r}")
@@ -251,9 +258,10 @@ class DenseResult:
         return lines
 
 
-def _camera_from(doc: dict[str, Any], camera: StrPath | None, what: str) -> Camera:
-    if camera is not None:
-        return read_one_camera(camera)  # any camera file (camera JSON, orthority, OpenCV, COLMAP, Metashape)
+def _camera_from(doc: dict[str, Any], camera: StrPath | None, what: str, setting: float | None = None,
+                 image: StrPath | None = None) -> Camera:
+    if camera is not None:  # any camera file (camera JSON, orthority, OpenCV, COLMAP, Metashape); a zoom camera
+        return read_one_camera(camera, focal_setting=setting, image=image)  # at the image's focal setting
     if isinstance(doc.get("camera"), dict):
         return Camera.from_dict(doc["camera"])
     raise InvalidInputError(f"{what} stores no camera; pass --camera")
@@ -429,6 +437,7 @@ def run_dense(
     progress: Progress | None = None,
     left_id: str | None = None,
     right_id: str | None = None,
+    focal_settings: tuple[float | None, float | None] = (None, None),
 ) -> DenseResult:
     """The dense chain of an oriented frame pair.
 
@@ -460,6 +469,9 @@ def run_dense(
     left_id, right_id : str, optional
         With a block orientation: the image ids of the two photos in it (default: the block image
         whose name, or name without extension, is the photo's file name).
+    focal_settings : (left, right)
+        With a zoom camera (``--camera``, ``stereo calibrate --zoom``): the photos' focal settings
+        (``--focal-setting``); None: the photo's EXIF FocalLength. Refused with another camera.
 
     The products of a ground frame (exterior orientations, a block, control) are in the CRS the
     orientation or control file names; when it names none and both photos name the same CRS, that
@@ -485,6 +497,11 @@ def run_dense(
                     ("reference DEM", opts.reference_dem)):
         if p is not None and not Path(p).is_file():
             raise InvalidInputError(f"{name} file not found: {str(p)!r}")
+    zs = tuple(focal_settings)
+    if any(z is not None for z in zs) and not (camera is not None and is_zoom_camera(camera)):
+        given = ",".join(dict.fromkeys(f"{z:g}" for z in zs if z is not None))
+        raise InvalidInputError(f"--focal-setting {given} goes with a zoom camera (--camera of stereo calibrate "
+                                "--zoom)")
     scheduler = check_scheduler(scheduler)  # a cluster: reachable, a Dask scheduler, with a worker
     doc = read_json(orientation, "orientation file")
     if not isinstance(doc, dict):
@@ -511,17 +528,18 @@ def run_dense(
         if eo_l.image == eo_r.image:
             raise InvalidInputError(f"the left and right photos are the same block image {eo_l.image!r}: pass "
                                     "--left-id/--right-id")
-        cam_l = (read_one_camera(camera, eo_l.camera, named_by="the block") if camera is not None
-                 else bo.cameras[eo_l.camera])
-        cam_r = (read_one_camera(camera, eo_r.camera, named_by="the block") if camera is not None
-                 else bo.cameras[eo_r.camera])
+        cam_l = (read_one_camera(camera, eo_l.camera, named_by="the block", focal_setting=zs[0], image=left)
+                 if camera is not None else bo.cameras[eo_l.camera])
+        cam_r = (read_one_camera(camera, eo_r.camera, named_by="the block", focal_setting=zs[1], image=right)
+                 if camera is not None else bo.cameras[eo_r.camera])
         crs = bo.crs
         source = (f"orientation: block images {eo_l.image!r} (left) and {eo_r.image!r} (right) of {str(orientation)!r}"
                   f" (cameras {eo_l.camera!r}, {eo_r.camera!r})")
     elif exterior:
-        cam_l = _camera_from(doc, camera, repr(str(orientation)))
+        cam_l = _camera_from(doc, camera, repr(str(orientation)), zs[0], left)
         doc_r = read_json(right_orientation, "orientation file")  # type: ignore[arg-type]
-        cam_r = _camera_from(doc_r if isinstance(doc_r, dict) else {}, camera, repr(str(right_orientation)))
+        cam_r = _camera_from(doc_r if isinstance(doc_r, dict) else {}, camera, repr(str(right_orientation)), zs[1],
+                             right)
         eo_l, eo_r = read_exterior(orientation), read_exterior(right_orientation)  # type: ignore[arg-type]
         if eo_l.crs and eo_r.crs and not same_crs(eo_l.crs, eo_r.crs):
             raise InvalidInputError(f"the exterior orientations {str(orientation)!r} and {str(right_orientation)!r} "
@@ -529,9 +547,10 @@ def run_dense(
         crs = eo_l.crs or eo_r.crs
         crs_from = "the orientation files"
     else:
-        cam_l = _camera_from(doc, camera, repr(str(orientation)))
+        cam_l = _camera_from(doc, camera, repr(str(orientation)), zs[0], left)
         ro = read_relative(orientation)
-        cam_r = cam_l
+        cam_r = (_camera_from(doc, camera, repr(str(orientation)), zs[1], right)
+                 if camera is not None and is_zoom_camera(camera) else cam_l)
         crs = None
     photo_crs = []
     for path, cam in ((left, cam_l), (right, cam_r)):
@@ -540,7 +559,7 @@ def run_dense(
             raise InvalidInputError(f"photo {str(path)!r} is {ds.width} x {ds.height} px but the camera is "
                                     f"{cam.width} x {cam.height} px")
         photo_crs.append(ds.crs)
-    suffix = {"las": ".las", "laz": ".laz", "ply": ".ply"}.get(opts.cloud_format)
+    suffix = {"las": ".las", "laz": ".laz", "copc": ".copc.laz", "ply": ".ply"}.get(opts.cloud_format)
     names = ["left_normal.tif", "right_normal.tif", "disparity.tif", "confidence.tif", "dsm.tif", "dense.json"]
     if suffix:
         names.append("points" + suffix)
@@ -657,7 +676,9 @@ def run_dense(
                                                 source=paths["dense.json"])}
                 if suffix:
                     assets["points"] = StacAsset(out / ("points" + suffix), ("data",), "point cloud",
-                                                 source=paths["points" + suffix])
+                                                 source=paths["points" + suffix],
+                                                 media_type="application/vnd.laszip+copc" if suffix == ".copc.laz"
+                                                 else None)
                 Path(paths[FOLDER_ITEM]).write_text(stac_text(
                     out / FOLDER_ITEM, item_id=out.name or "dense", assets=assets, command="stereo dense",
                     grid=raster_grid(paths["dsm.tif"]) if crs is not None else None, accuracy=acc,
@@ -742,47 +763,111 @@ def _picture_from_raster(src: Path, dst: Path, title: str) -> None:
     save_picture(dst, g, title=title, cmap="viridis", label="px")
 
 
+def _disparity_sigma_window(rd: WindowReader, rl: WindowReader, rr: WindowReader, c0: int, r0: int, w: int,
+                            h: int) -> NDArray[np.float32]:
+    """Standard errors (px) of the disparities of a window (:func:`stereo.dense.precision.disparity_sigma`;
+    NaN where none): read with a margin for the fit's window, the right photo over the columns the
+    window's disparities reach."""
+    m = 6  # margin of the sigma window (the fit's radius 3 and the gradient)
+    a0, b0 = max(c0 - m, 0), max(r0 - m, 0)
+    a1, b1 = min(c0 + w + m, rd.width), min(r0 + h + m, rd.height)
+    dm, _ = rd.read(a0, b0, a1 - a0, b1 - b0)
+    dmm = dm[:, :, 0].astype(np.float32)
+    dmm[dmm == NODATA] = np.nan
+    if not np.isfinite(dmm).any():
+        return np.full((h, w), np.nan, np.float32)
+    q0 = int(max(0, math.floor(a0 - float(np.nanmax(dmm))) - m))
+    q1 = int(min(rr.width, math.ceil(a1 - float(np.nanmin(dmm))) + m))
+    if q1 <= q0:
+        return np.full((h, w), np.nan, np.float32)
+    L, _ = rl.read(a0, b0, a1 - a0, b1 - b0)
+    R, _ = rr.read(q0, b0, q1 - q0, b1 - b0)
+    sd = disparity_sigma(L.astype(np.float32).mean(axis=2), R.astype(np.float32).mean(axis=2), dmm,
+                         right_offset=float(a0 - q0))
+    return sd[r0 - b0:r0 - b0 + h, c0 - a0:c0 - a0 + w]
+
+
+def _height_sigma(rect: EpipolarRectification, model_xyz: NDArray[np.float64], xyz: NDArray[np.float64],
+                  sigma_px: NDArray[np.float64], transform) -> NDArray[np.float64]:
+    """Height standard errors (output frame units) of points from their disparity standard errors (px).
+
+    A disparity error ``dp`` moves a point along the left ray: ``dv = v Z dp / (B f)`` (``v`` from the
+    left centre to the point, ``Z`` its depth along the normal case's axis, ``B`` the base, ``f`` the
+    normal principal distance in px; ``docs/surface.md``); the height error is the z change of the
+    transformed point (the transform to the ground frame, when there is one, linearised).
+    """
+    v = model_xyz - rect.centre_left
+    a = rect.normal_rotation[:, 2] / np.linalg.norm(rect.normal_rotation[:, 2])
+    depth = np.abs(v @ a)
+    dv = v * (depth * sigma_px / (float(np.linalg.norm(rect.base)) * rect.focal_px))[:, None]
+    if transform is None:
+        return np.abs(dv[:, 2])
+    moved = np.asarray(transform(model_xyz + dv), dtype=np.float64).reshape(-1, 3)
+    return np.abs(moved[:, 2] - xyz[:, 2])
+
+
 def _triangulate_all(rect: EpipolarRectification, paths: dict[str, Path], grid: DsmGrid, transform,
                      opts: DenseOptions, suffix: str | None, crs: str | None, frame: str,
                      progress: Callable[[int, int], None] | None) -> int:
+    """Triangulate every disparity window into the DSM grid and the point cloud (LAS/LAZ/COPC: with the
+    ``sigma_z`` extra dimension from :func:`_disparity_sigma_window`; NaN where the fit gave none)."""
     writer = None
     n = 0
-    with WindowReader(paths["disparity.tif"]) as rd, WindowReader(paths["confidence.tif"]) as rc, \
-            WindowReader(paths["left_normal.tif"]) as rl, ignore_not_georeferenced():
-        windows = list(iter_windows(rd.width, rd.height, min(opts.tile, TRIANGULATION_TILE)))
-        for i, (c0, r0, w, h) in enumerate(windows):
-            d, _ = rd.read(c0, r0, w, h)
-            cf, _ = rc.read(c0, r0, w, h)
-            disp = d[:, :, 0].astype(np.float64)
-            disp[disp == NODATA] = np.nan
-            # filled disparities (band 2 of the confidence) are for the disparity product only
-            mask = np.isfinite(disp) & (cf[:, :, 1] == 0)
-            if opts.min_confidence > 0:
-                mask &= cf[:, :, 0] >= opts.min_confidence
-            pts = triangulate_disparity(rect, disp, col_off=c0, row_off=r0, mask=mask, method=opts.intersection,
-                                        transform=transform)
-            if len(pts):
-                grid.add(pts.xyz)
-                if suffix is not None:
-                    img, _ = rl.read(c0, r0, w, h)
-                    rr = (pts.pixel[:, 1] - r0).astype(np.int64)
-                    cc = (pts.pixel[:, 0] - c0).astype(np.int64)
-                    col = img[rr, cc]
-                    if col.shape[1] < 3:
-                        col = np.repeat(col[:, :1], 3, axis=1)
-                    col = col[:, :3]
-                    if col.dtype != np.uint8:
-                        col = np.clip(col.astype(np.float64) / max(1.0, float(np.percentile(col, 99))) * 255, 0, 255)
-                    if writer is None:
-                        writer = point_writer(paths["points" + suffix], suffix[1:], offset=np.round(pts.xyz[0], 0),
-                                              crs_wkt=crs, comment=f"{frame} frame")
-                    writer.write(pts.xyz, col)
-                n += len(pts)
-            if progress is not None:
-                progress(i + 1, len(windows))
-    if suffix is not None:
-        if writer is None:
-            writer = point_writer(paths["points" + suffix], suffix[1:], offset=(0, 0, 0), crs_wkt=crs,
-                                  comment=f"{frame} frame")
-        writer.close()
+    fmt = opts.cloud_format
+    with_sigma = fmt in CLOUD_FORMATS
+    dims = ["sigma_z"] if with_sigma else []
+    try:
+        with WindowReader(paths["disparity.tif"]) as rd, WindowReader(paths["confidence.tif"]) as rc, \
+                WindowReader(paths["left_normal.tif"]) as rl, WindowReader(paths["right_normal.tif"]) as rr_, \
+                ignore_not_georeferenced():
+            windows = list(iter_windows(rd.width, rd.height, min(opts.tile, TRIANGULATION_TILE)))
+            for i, (c0, r0, w, h) in enumerate(windows):
+                d, _ = rd.read(c0, r0, w, h)
+                cf, _ = rc.read(c0, r0, w, h)
+                disp = d[:, :, 0].astype(np.float64)
+                disp[disp == NODATA] = np.nan
+                # filled disparities (band 2 of the confidence) are for the disparity product only
+                mask = np.isfinite(disp) & (cf[:, :, 1] == 0)
+                if opts.min_confidence > 0:
+                    mask &= cf[:, :, 0] >= opts.min_confidence
+                pts = triangulate_disparity(rect, disp, col_off=c0, row_off=r0, mask=mask, method=opts.intersection)
+                if len(pts):
+                    xyz = pts.xyz if transform is None else \
+                        np.asarray(transform(pts.xyz), dtype=np.float64).reshape(-1, 3)
+                    grid.add(xyz)
+                    if suffix is not None:
+                        img, _ = rl.read(c0, r0, w, h)
+                        rr = (pts.pixel[:, 1] - r0).astype(np.int64)
+                        cc = (pts.pixel[:, 0] - c0).astype(np.int64)
+                        col = img[rr, cc]
+                        if col.shape[1] < 3:
+                            col = np.repeat(col[:, :1], 3, axis=1)
+                        col = col[:, :3]
+                        if col.dtype != np.uint8:
+                            col = np.clip(col.astype(np.float64) / max(1.0, float(np.percentile(col, 99))) * 255,
+                                          0, 255)
+                        extra = None
+                        if with_sigma:
+                            s_px = _disparity_sigma_window(rd, rl, rr_, c0, r0, w, h)[rr, cc].astype(np.float64)
+                            extra = {"sigma_z": _height_sigma(rect, pts.xyz, xyz, s_px, transform)}
+                        if writer is None:
+                            writer = point_writer(paths["points" + suffix], fmt, offset=np.round(xyz[0], 0),
+                                                  crs_wkt=crs, comment=f"{frame} frame", extra_dims=dims)
+                        if isinstance(writer, LasWriter):
+                            writer.write(xyz, col, extra)
+                        else:
+                            writer.write(xyz, col)
+                    n += len(pts)
+                if progress is not None:
+                    progress(i + 1, len(windows))
+        if suffix is not None:
+            if writer is None:
+                writer = point_writer(paths["points" + suffix], fmt, offset=(0, 0, 0), crs_wkt=crs,
+                                      comment=f"{frame} frame", extra_dims=dims)
+            writer.close()
+    except BaseException:
+        if writer is not None:  # the staging file of a COPC cloud, the body of a PLY: removed
+            with contextlib.suppress(Exception):
+                writer.abort() if isinstance(writer, LasWriter) else writer.close()
+        raise
     return n

@@ -146,7 +146,9 @@ class RpcDenseOptions:
         multi-view fusion of ``stereo dense-rpc IMG1 IMG2 IMG3 ...`` takes from each pair.
     sigma_edge_cells : int
         With ``pair_sigma``: cells within this many cells of the pair's coverage edge are left out of the
-        sigma grids (:class:`stereo.dense.fusion.SigmaGrid`'s ``edge_cells``).
+        sigma grids (:class:`stereo.dense.fusion.SigmaGrid`'s ``edge_cells``). Default 0: on the Pleiades
+        triplet 1 cell took the fused DSM's ROI coverage from 99.2 % to 94.4 % (the pairs' holes are many
+        and small) and changed the pairs' agreement by 0.04 m.
     """
 
     tile: int = 300
@@ -168,7 +170,7 @@ class RpcDenseOptions:
     reference_dem: str | None = None
     stac: bool = True
     pair_sigma: bool = False
-    sigma_edge_cells: int = 1
+    sigma_edge_cells: int = 0
 
     def __post_init__(self) -> None:
         if isinstance(self.tile, bool) or not isinstance(self.tile, int) or not 64 <= self.tile <= 4096:

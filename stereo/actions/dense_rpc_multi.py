@@ -148,6 +148,8 @@ class MultiRpcOptions:
                                     f"{self.min_angle_deg!r}..{self.max_angle_deg!r}")
         if not (isinstance(self.min_overlap, (int, float)) and 0 <= self.min_overlap <= 1):
             raise InvalidInputError(f"`min_overlap` must be in [0, 1]; got {self.min_overlap!r}")
+        if self.gcps is not None and not self.adjust:
+            raise InvalidInputError("GCPs are used by the RPC adjustment: drop --no-adjust or the GCPs")
         for name, lo in (("max_pairs", 0), ("max_matches", 20)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < lo:
@@ -254,6 +256,15 @@ def _adjust(paths: Sequence[Path], rpcs: Sequence[RPC], sizes: Sequence[tuple[in
             pairs: Sequence[tuple[int, int]], o: MultiRpcOptions, prog: Progress
             ) -> tuple[RPCBlockAdjustment, list[RPC], float]:
     """The RPC block adjustment of the images and their refitted RPCs (module docstring, step 2)."""
+    control: dict = {}
+    gm = None
+    if o.gcps is not None:  # checked before any matching
+        gm, control = read_rpc_gcps(o.gcps, [str(p) for p in paths], sigma_xy=o.gcp_sigma_xy, sigma_h=o.gcp_sigma_h)
+        for j, pid, px in zip(gm.image, gm.ids, gm.pixels, strict=True):
+            w, h = sizes[j]
+            if not (-0.5 <= px[0] <= w - 0.5 and -0.5 <= px[1] <= h - 0.5):
+                raise InvalidInputError(f"GCP {pid!r} is measured at ({px[0]:.1f}, {px[1]:.1f}) outside image "
+                                        f"{names[j]!r} ({w} x {h} px)")
     cfg = MatcherConfig(verify="fundamental", max_matches=o.max_matches)
     matched = []
     for n, (i, j) in enumerate(pairs):
@@ -266,14 +277,7 @@ def _adjust(paths: Sequence[Path], rpcs: Sequence[RPC], sizes: Sequence[tuple[in
     ids, image, track, pixels = chain_matches(matched, prefix="t")
     t_ids = [ids[t] for t in track]
     sig = np.full(len(image), o.sigma_px)
-    control: dict = {}
-    if o.gcps is not None:
-        gm, control = read_rpc_gcps(o.gcps, [str(p) for p in paths], sigma_xy=o.gcp_sigma_xy, sigma_h=o.gcp_sigma_h)
-        for j, pid, px in zip(gm.image, gm.ids, gm.pixels, strict=True):
-            w, h = sizes[j]
-            if not (-0.5 <= px[0] <= w - 0.5 and -0.5 <= px[1] <= h - 0.5):
-                raise InvalidInputError(f"GCP {pid!r} is measured at ({px[0]:.1f}, {px[1]:.1f}) outside image "
-                                        f"{names[j]!r} ({w} x {h} px)")
+    if gm is not None:
         t_ids += list(gm.ids)
         image = np.concatenate([image, gm.image])
         pixels = np.vstack([pixels, gm.pixels])

@@ -7,6 +7,7 @@ import math
 import click
 
 from rectify.cli.options import echo, handle_errors, matcher_opts, overwrite_opt, progress
+from rectify.errors import InvalidInputError
 from rectify.geometry.mestimate import M_ALGORITHMS, NEWTON_METHODS
 from rectify.geometry.robust import ROBUST_METHODS
 from stereo.actions.block import FRAME_KINDS, BlockExports, BlockOptions, run_block
@@ -77,6 +78,9 @@ def _ids(text: str) -> tuple[str, ...]:
               help="Camera file: camera JSON, orthority int_param (cameras by id), OpenCV calibration, COLMAP model "
                    "or Metashape cameras XML, found by content (KIND:PATH: camera, orthority, opencv, colmap, "
                    "metashape). Optional when --poses holds the cameras (OpenSfM, COLMAP, Metashape).")
+@click.option("--focal-settings", "focal_settings", type=click.Path(dir_okay=False), default=None,
+              help="With a zoom camera (--camera of `stereo calibrate --zoom`): CSV image,setting of the images' focal "
+                   "settings [default: each image's EXIF FocalLength]. The block gets one camera per setting.")
 @click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False), help="Output folder.")
 @click.option("--poses", "poses_path", type=click.Path(), default=None,
               help="Known poses: position/angle CSV, OpenSfM/ODM reconstruction.json (in its own frame: OpenSfM's "
@@ -182,8 +186,8 @@ def _ids(text: str) -> tuple[str, ...]:
 @matcher_opts(BLOCK_MATCHER)
 @overwrite_opt
 @handle_errors
-def block(images, camera_path, out_dir, poses_path, control_path, observations_path, method, strip_polynomial,
-          dependent_models, focal_guess, frame,
+def block(images, camera_path, focal_settings, out_dir, poses_path, control_path, observations_path, method,
+          strip_polynomial, dependent_models, focal_guess, frame,
           check_ids, gnss_sigma,
           ins_sigma, control_sigma,
           control_sigma_px, self_calibrate, calibrate_names, robust, robust_algorithm, robust_scale, newton,
@@ -216,9 +220,13 @@ def block(images, camera_path, out_dir, poses_path, control_path, observations_p
         report=report, reuse_tracks=not rematch, stac=stac,
         exports=BlockExports(colmap=colmap_dir, opensfm=opensfm_dir, orthority=orthority_dir), frame=frame,
         trajectory=trajectory_path, method="bundle" if method in BLOCK_METHODS else method,
+        focal_settings=focal_settings,
         models=ModelMethodOptions(strip_polynomial=strip_polynomial, dependent=dependent_models,
                                   robust=robust != "none"))
     if method in BLOCK_METHODS:  # images without a known camera: stereo.actions.block_projective
+        if focal_settings is not None:
+            raise InvalidInputError(f"--focal-settings goes with a zoom camera; --method {method} is for images "
+                                    "without a known camera")
         popts = ProjectiveBlockOptions(method=method, check_ids=opts.check_ids, control_sigma_m=control_sigma,
                                        control_sigma_px=control_sigma_px, calibrate=calib or DEFAULT_CALIBRATE,
                                        focal_guess_px=focal_guess, match=opts.match,

@@ -8,6 +8,7 @@ import click
 
 from rectify.cli.options import echo, handle_errors, overwrite_opt, scheduler_opt
 from stereo.actions.dense import DenseOptions, run_dense
+from stereo.actions.orient import parse_focal_settings
 from stereo.dense.dsm import STATISTICS
 
 _D = DenseOptions()
@@ -30,12 +31,16 @@ _D = DenseOptions()
               help="Camera (default: the camera stored in ORIENTATION): camera JSON, orthority int_param, OpenCV "
                    "calibration, COLMAP model or Metashape cameras XML, found by content (KIND:PATH: camera, "
                    "orthority, opencv, colmap, metashape).")
+@click.option("--focal-setting", "focal_setting", default=None,
+              help="With a zoom camera (--camera of `stereo calibrate --zoom`): the photos' focal setting, Z (both) "
+                   "or ZLEFT,ZRIGHT, in the unit of the zoom calibration [default: each photo's EXIF FocalLength].")
 @click.option("--matches", type=click.Path(dir_okay=False), default=None,
               help="Tie points CSV (default: match the photos).")
 @click.option("--control", type=click.Path(dir_okay=False), default=None,
               help="Stereo control CSV: products in the control's ground frame.")
-@click.option("--cloud", type=click.Choice(["las", "laz", "ply", "none"]), default=_D.cloud_format, show_default=True,
-              help="Point cloud format.")
+@click.option("--cloud", type=click.Choice(["las", "laz", "copc", "ply", "none"]), default=_D.cloud_format,
+              show_default=True, help="Point cloud format (copc: points.copc.laz, needs copclib). LAS/LAZ/COPC carry "
+              "sigma_z, the height standard error of each point.")
 @click.option("--dsm-cell", type=float, default=None, help="DSM cell (ground units; default the ground pixel).")
 @click.option("--dsm-stat", type=click.Choice(list(STATISTICS)), default=_D.dsm_statistic, show_default=True,
               help="Cell statistic.")
@@ -55,8 +60,9 @@ _D = DenseOptions()
 @scheduler_opt
 @overwrite_opt
 @handle_errors
-def dense(orientation, left, right, out_dir, right_orientation, left_id, right_id, camera, matches, control, cloud,
-          dsm_cell, dsm_stat, fill_holes, min_confidence, reference_dem, despike, tile, stac, scheduler, overwrite):
+def dense(orientation, left, right, out_dir, right_orientation, left_id, right_id, camera, focal_setting, matches,
+          control, cloud, dsm_cell, dsm_stat, fill_holes, min_confidence, reference_dem, despike, tile, stac, scheduler,
+          overwrite):
     """Resample LEFT and RIGHT into the normal case from ORIENTATION (ro.json of `stereo orient`, the
     left exterior orientation with --right-orientation, or the orientation.json of `stereo block`),
     match them densely and write the point cloud and the DSM."""
@@ -65,6 +71,6 @@ def dense(orientation, left, right, out_dir, right_orientation, left_id, right_i
                         reference_dem=reference_dem, despike_cells=despike, scheduler=scheduler, stac=stac)
     result = run_dense(orientation, left, right, out_dir, right_orientation=right_orientation, camera=camera,
                        matches=matches, control=control, options=opts, overwrite=overwrite, left_id=left_id,
-                       right_id=right_id)
+                       right_id=right_id, focal_settings=parse_focal_settings(focal_setting))
     for line in result.summary_lines():
         echo(line)

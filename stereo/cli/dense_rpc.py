@@ -6,8 +6,8 @@ from __future__ import annotations
 import click
 
 from rectify.cli.options import echo, handle_errors, overwrite_opt
-from stereo.actions.dense_rpc import RpcDenseOptions, run_dense_rpc
-from stereo.actions.dense_rpc_multi import MultiRpcOptions, run_dense_rpc_multi
+from stereo.actions.dense_rpc import RpcDenseOptions, RpcDenseResult, run_dense_rpc
+from stereo.actions.dense_rpc_multi import MultiRpcOptions, MultiRpcResult, run_dense_rpc_multi
 
 _D = RpcDenseOptions()
 _M = MultiRpcOptions()
@@ -70,6 +70,7 @@ def dense_rpc(images, out_dir, roi, tile, dsm_cell, fill_holes, cloud, reference
         raise click.UsageError(f"dense-rpc needs at least two images; got {len(images)}")
     opts = RpcDenseOptions(tile=tile, dsm_cell=dsm_cell, fill_holes=fill_holes, cloud_format=cloud,
                            reference_dem=reference_dem, stac=stac)
+    result: RpcDenseResult | MultiRpcResult
     if len(images) == 2:
         result = run_dense_rpc(images[0], images[1], out_dir, roi=roi, options=opts, overwrite=overwrite)
     else:

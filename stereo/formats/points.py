@@ -5,15 +5,16 @@ artefact (default names)                   layout                               
 =========================================  ==============================================  =======
 points PLY (``points.ply``,                binary little-endian PLY: float64 x, y, z         --
 ``model_points.ply``, dense ``points.ply``) (+ uchar red, green, blue), comment = frame
-dense point cloud (``points.las/.laz``)    LAS 1.4 point format 2 (x, y, z, RGB), CRS VLR    --
+dense point cloud (``points.las/.laz``)    LAS 1.4 point format 7 (x, y, z, RGB), extra      --
+                                           bytes, CRS (:mod:`stereo.formats.cloud`)
 points CSV (``points.csv``)                ``id,x,y,z,residual_mm[,std_x,std_y,std_z]``     --
 =========================================  ==============================================  =======
 
 A PLY is written whole (:func:`dump_ply`, :func:`write_ply`: the points in memory) or streamed by
 tiles (:class:`PlyWriter`: the body goes to a temporary file first, the header, which needs the
 count, is written at the end); both give the same bytes for the same points. :class:`LasWriter`
-streams through laspy; ``.laz`` needs a laspy LAZ backend (``lazrs`` or ``laszip``), else a
-one-line error. :func:`point_writer` picks the streaming writer from the format.
+(LAS, LAZ and COPC with extra dimensions) lives in :mod:`stereo.formats.cloud` and is re-exported
+here. :func:`point_writer` picks the streaming writer from the format.
 
 As in :mod:`stereo.formats.orientation`, ``dump_*`` writes to a path as given (a temporary path of a
 workspace transaction) and ``write_*`` writes atomically on its own, refusing to replace a file
@@ -31,13 +32,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import laspy
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from rectify.atomic import atomic_output, write_failure_reason
 from rectify.errors import InvalidInputError, RasterIOError, ShapeError
-from rectify.geometry.crs import parse_crs
+from stereo.formats.cloud import CLOUD_FORMATS, ExtraDim, LasWriter, cloud_format
 
 logger = logging.getLogger(__name__)
 
@@ -250,72 +250,22 @@ def read_ply_xyz(path: StrPath) -> NDArray[np.float64]:
     return read_ply(path).xyz
 
 
-# ---------------------------------------------------------------------- LAS
-class LasWriter:
-    """Stream points into a LAS/LAZ file (laspy): LAS 1.4, point format 2 (x, y, z, RGB).
-
-    Parameters
-    ----------
-    path : path
-        Written as given (the caller stages it).
-    offset : (3,) float
-        LAS offsets (a point near the data); scales are ``scale`` in every axis.
-    crs_wkt : str, optional
-        Stored as a CRS VLR when given (an OGC WKT VLR when laspy wants an EPSG code and the CRS
-        has none); a CRS that cannot be stored is logged, not fatal.
-    """
-
-    def __init__(self, path: StrPath, offset: ArrayLike, *, scale: float = 0.001, crs_wkt: str | None = None,
-                 compress: bool | None = None):
-        self.path = Path(path)
-        laz = self.path.suffix.lower() == ".laz" if compress is None else compress
-        if laz and not laspy.LazBackend.detect_available():
-            raise InvalidInputError(f"cannot write {str(self.path)!r}: no LAZ backend (install lazrs); write .las")
-        header = laspy.LasHeader(point_format=2, version="1.4")
-        header.offsets = np.asarray(offset, dtype=np.float64).reshape(3)
-        header.scales = np.array([scale, scale, scale])
-        if crs_wkt:
-            try:
-                crs = parse_crs(crs_wkt)
-                try:
-                    header.add_crs(crs)
-                except Exception:  # noqa: BLE001 - laspy wants an EPSG code: store the OGC WKT VLR directly
-                    header.vlrs.append(laspy.vlrs.known.WktCoordinateSystemVlr(crs.to_wkt()))
-                    header.global_encoding.wkt = True
-            except Exception as err:  # noqa: BLE001 - a CRS that cannot be stored is logged, not fatal
-                logger.warning("CRS not stored in the point cloud: %s", err)
-        self._header = header
-        try:
-            self._w = laspy.open(str(self.path), mode="w", header=header, do_compress=laz)
-        except OSError as err:
-            raise RasterIOError(f"cannot write {str(self.path)!r}: {err}") from err
-        self.count = 0
-
-    def write(self, xyz: ArrayLike, colors: ArrayLike | None = None) -> None:
-        p, c = _check_xyz(xyz, colors)
-        if len(p) == 0:
-            return
-        rec = laspy.ScaleAwarePointRecord.zeros(len(p), header=self._header)
-        rec.x, rec.y, rec.z = p[:, 0], p[:, 1], p[:, 2]
-        if c is not None:
-            rec.red, rec.green, rec.blue = (c[:, 0].astype(np.uint16) * 257, c[:, 1].astype(np.uint16) * 257,
-                                            c[:, 2].astype(np.uint16) * 257)
-        self._w.write_points(rec)
-        self.count += len(p)
-
-    def close(self) -> None:
-        self._w.close()
-
-
 def point_writer(path: StrPath, fmt: str | None = None, *, offset: ArrayLike, crs_wkt: str | None = None,
-                 comment: str | None = None) -> LasWriter | PlyWriter:
-    """A streaming writer: ``fmt`` ``las``, ``laz`` or ``ply`` (default: from the suffix of ``path``)."""
-    f = fmt if fmt is not None else Path(path).suffix.lower().lstrip(".")
-    if f in ("las", "laz"):
-        return LasWriter(path, offset, crs_wkt=crs_wkt, compress=f == "laz")
-    if f == "ply":
+                 comment: str | None = None, extra_dims: Sequence[str | ExtraDim] = ()) -> LasWriter | PlyWriter:
+    """A streaming writer: ``fmt`` ``las``, ``laz``, ``copc`` or ``ply`` (default: from the name of ``path``).
+
+    ``extra_dims``: the extra dimensions of a LAS/LAZ/COPC cloud (:mod:`stereo.formats.cloud`).
+    """
+    if fmt is None:
+        fmt = "ply" if Path(path).suffix.lower() == ".ply" else cloud_format(path)
+    if fmt in CLOUD_FORMATS:
+        return LasWriter(path, offset, crs_wkt=crs_wkt, fmt=fmt, extra_dims=extra_dims)
+    if fmt == "ply":
+        if extra_dims:
+            raise InvalidInputError(f"{str(path)!r}: a PLY carries no extra dimensions {list(extra_dims)}; "
+                                    "write .las, .laz or .copc.laz")
         return PlyWriter(path, comment=comment)
-    raise InvalidInputError(f"unknown point cloud format {f!r} of {str(path)!r}; expected las, laz or ply")
+    raise InvalidInputError(f"unknown point cloud format {fmt!r} of {str(path)!r}; expected las, laz, copc or ply")
 
 
 # ---------------------------------------------------------------- points CSV

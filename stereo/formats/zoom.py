@@ -8,7 +8,8 @@ The zoom camera JSON itself is read and written by :mod:`rectify.formats.camera`
       view,setting
       img01.jpg,18.0
 
-  ``view`` is the view name of the observation CSV, or an image's file name or stem;
+  ``view`` is the view name of the observation CSV, or an image's file name or stem (the column may
+  be named ``image`` instead: ``stereo block --focal-settings`` reads the same file, ``image,setting``);
 - a ``setting`` column of the observation CSV (``--points``): every row of a view holds the same value;
 - the EXIF FocalLength of a chessboard image (mm).
 """
@@ -29,7 +30,7 @@ SETTING_COLUMN = "setting"
 
 
 def read_settings_csv(path: str | Path) -> dict[str, float]:
-    """Read a settings CSV ``view,setting`` -> {view: setting}.
+    """Read a settings CSV ``view,setting`` (or ``image,setting``) -> {view or image: setting}.
 
     Raises
     ------
@@ -39,18 +40,19 @@ def read_settings_csv(path: str | Path) -> dict[str, float]:
     label = f"settings file {str(path)!r}"
     try:
         with TableReader(path, lower=True) as t:
-            miss = [c for c in ("view", SETTING_COLUMN) if c not in t.fields]
+            key = "image" if "image" in t.fields and "view" not in t.fields else "view"
+            miss = [c for c in (key, SETTING_COLUMN) if c not in t.fields]
             if miss:
-                raise InvalidInputError(f"{label} lacks column(s) {miss}; expected view,setting")
-            cols = t.read("rows", numbers=(SETTING_COLUMN,), texts=("view",), max_rows=MAX_MATCH_ROWS)
+                raise InvalidInputError(f"{label} lacks column(s) {miss}; expected view,setting (or image,setting)")
+            cols = t.read("rows", numbers=(SETTING_COLUMN,), texts=(key,), max_rows=MAX_MATCH_ROWS)
     except InvalidInputError as err:
         if "has no header and no rows" in str(err):
             raise InvalidInputError(f"{label} is empty") from None
         raise
     out: dict[str, float] = {}
-    for k, (v, z) in enumerate(zip(cols.texts["view"], cols.numbers[SETTING_COLUMN].tolist(), strict=True)):
+    for k, (v, z) in enumerate(zip(cols.texts[key], cols.numbers[SETTING_COLUMN].tolist(), strict=True)):
         if v in out:
-            raise InvalidInputError(f"{label} line {cols.lines[k]}: view {v!r} given twice")
+            raise InvalidInputError(f"{label} line {cols.lines[k]}: {key} {v!r} given twice")
         out[v] = float(z)
     return out
 

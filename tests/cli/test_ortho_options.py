@@ -16,7 +16,9 @@ from affine import Affine
 from click.testing import CliRunner
 
 from rectify.cli.main import cli
+from rectify.geometry.crs import transform_xy
 from rectify.geometry.rotation import matrix_from_angles
+from rectify.geometry.rpc import RPC
 
 CRS = "EPSG:32632"
 E0, N0 = 500_000.0, 5_000_000.0
@@ -96,6 +98,30 @@ def test_dem_height_equals_flat_dem(scene, tmp_path):
     with rasterio.open(tmp_path / "flat.tif") as a, rasterio.open(tmp_path / "const.tif") as b:
         assert a.transform == b.transform and a.shape == b.shape
         np.testing.assert_array_equal(a.read(), b.read())
+
+
+def test_dem_height_rpc_equals_flat_dem(scene, tmp_path):
+    lon0, lat0 = transform_xy(CRS, "EPSG:4326", [[E0, N0]])[0]
+    m_lon, m_lat = 1.0 / (111_320 * np.cos(np.radians(lat0))), 1.0 / 111_320
+    rpc = RPC.from_coefficients(offsets=(40.0, 40.0, lat0, lon0, 100.0),
+                                scales=(40.0, 40.0, 80 * m_lat, 80 * m_lon, 50.0),
+                                samp_num=[0.0, 1.0, 0.02, 0.1], line_num=[0.0, 0.02, -1.0, 0.03])
+    img = (100 + 50 * np.sin(np.arange(80)[None, :] / 3.0) * np.cos(np.arange(80)[:, None] / 4.0)).astype(np.uint8)
+    with rasterio.open(tmp_path / "sat.tif", "w", driver="GTiff", width=80, height=80, count=1, dtype="uint8",
+                       rpcs=rpc.to_rasterio()) as ds:
+        ds.write(img[None])
+    runs = []
+    for dem in (["--dem", str(scene / "flat.tif")], ["--dem-height", "104.25"]):
+        out = tmp_path / f"o{len(runs)}.tif"
+        r = CliRunner().invoke(cli, ["ortho", str(tmp_path / "sat.tif"), "--rpc", "-o", str(out), "--resolution", "1",
+                                     "--dst-crs", CRS, "--no-stac", *dem])
+        assert r.exit_code == 0, r.output
+        runs.append(out)
+    with rasterio.open(runs[0]) as a, rasterio.open(runs[1]) as b:
+        assert a.transform == b.transform and a.shape == b.shape
+        x, y = a.read().astype(int), b.read().astype(int)
+        assert (x > 0).sum() > 1000
+        assert np.abs(x - y).max() <= 1 and (x != y).mean() < 0.001  # the same heights to rounding (1e-13 m)
 
 
 @pytest.mark.parametrize("extra, dem, src, message", [

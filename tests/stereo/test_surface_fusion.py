@@ -176,6 +176,10 @@ def test_height_sigma_matches_the_triangulation_derivative():
     got = height_sigma_disparity(p0.xyz, rect.centre_left, rect.normal_rotation[:, 2],
                                  float(np.linalg.norm(rect.base)), rect.focal_px, np.ones(len(p0)))
     assert_allclose(got, dz, rtol=2e-3)
+    with pytest.raises(ShapeError, match=r"\(N, 3\)"):
+        height_sigma_disparity(np.zeros((3, 2)), rect.centre_left, [0, 0, 1], 1.0, 1.0, np.ones(3))
+    with pytest.raises(InvalidInputError, match="non-zero vector"):
+        height_sigma_disparity(p0.xyz, rect.centre_left, [0, 0, 0], 1.0, 1.0, np.ones(len(p0)))
 
 
 def test_height_sigma_orientation_closed_form():

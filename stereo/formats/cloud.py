@@ -1,0 +1,593 @@
+"""Point clouds: LAS, LAZ and COPC with per-point extra dimensions (issue 27).
+
+=========================================  ===============================================================
+file (suffix)                              layout
+=========================================  ===============================================================
+``*.las``                                  LAS 1.4, point format 7 (x, y, z, RGB), extra bytes, CRS (WKT)
+``*.laz``                                  the same, LAZ-compressed (laspy with the ``lazrs`` backend)
+``*.copc.laz``                             the same as a Cloud Optimized Point Cloud (COPC 1.0): an octree
+                                           of LAZ chunks (``copclib``, the optional ``copc`` extra)
+=========================================  ===============================================================
+
+Coordinates are stored as int32 counts of ``scale`` (default 0.001: one millimetre in a metric CRS)
+from ``offset`` (a point near the data), so a cloud may span +-2147 km around its offset at the
+default scale; a point outside that range is refused. The CRS is an OGC WKT VLR (EVLR in COPC) with
+the WKT bit of the global encoding set.
+
+Extra dimensions (LAS 1.4 "extra bytes", each with a name and a description in the file):
+
+=========  ========  ==================================================================================
+name       type      meaning
+=========  ========  ==================================================================================
+sigma_z    float32   standard error of the point's height, CRS vertical units (metres); NaN: unknown
+pair       uint16    index of the stereo pair the point comes from (the run's pair list, from 0)
+count      uint16    number of pairs that agree on the point's height (fused points)
+=========  ========  ==================================================================================
+
+Other dimensions may be declared with :class:`ExtraDim`. Every declared dimension must be given for
+every chunk of points; integer values must be integral and within the type's range.
+
+:class:`LasWriter` streams: ``write`` appends a chunk (LAS/LAZ go straight to the file through
+laspy). A COPC octree needs all points, so for ``.copc.laz`` the chunks go to a hidden uncompressed
+LAS beside the output first; ``close`` builds the octree from it (memory-mapped records, about
+30 bytes of indices per point in memory) and writes the COPC through ``copclib``. :func:`write_cloud`
+writes a whole cloud (an (N, 3) array or an iterable of :class:`CloudChunk`) atomically.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import os
+import re
+import struct
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import cast
+
+import laspy
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from rectify.atomic import atomic_output, make_temp, write_failure_reason
+from rectify.errors import InvalidInputError, RasterIOError, ShapeError
+from rectify.geometry.crs import parse_crs
+
+try:  # the optional ``copc`` extra: COPC output only
+    import copclib
+except ImportError:  # pragma: no cover - depends on the installation
+    copclib = None
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["CLOUD_FORMATS", "EXTRA_DIMS", "CloudChunk", "ExtraDim", "LasWriter", "cloud_format", "copc_available",
+           "laz_available", "write_cloud"]
+
+StrPath = str | os.PathLike[str]
+
+#: the output formats, by suffix
+CLOUD_FORMATS = ("las", "laz", "copc")
+#: LAS point format of every cloud: 7 (x, y, z, RGB; the LAS 1.4 formats, as COPC requires)
+POINT_FORMAT = 7
+#: COPC octree: grid cells per node side (one point per cell is kept at each level above the leaves)
+COPC_GRID = 128
+#: COPC octree: a node with at most this many points is a leaf
+COPC_MAX_NODE = 100_000
+#: COPC octree: the deepest level (a node of a 2000 km cloud is still 30 m wide)
+COPC_MAX_DEPTH = 16
+
+
+@dataclass(frozen=True)
+class ExtraDim:
+    """One extra dimension (LAS 1.4 extra bytes): a name (<= 32 characters), a numpy type, a description."""
+
+    name: str
+    dtype: str
+    description: str
+
+    def __post_init__(self) -> None:
+        if not self.name or len(self.name) > 32 or not self.name.isascii():
+            raise InvalidInputError(f"extra dimension name {self.name!r} must be 1 to 32 ASCII characters")
+        if np.dtype(self.dtype).kind not in "uif" or np.dtype(self.dtype).itemsize > 8:
+            raise InvalidInputError(f"extra dimension {self.name!r}: unsupported type {self.dtype!r}")
+        if len(self.description) > 32 or not self.description.isascii():
+            raise InvalidInputError(f"extra dimension {self.name!r}: the description must be <= 32 ASCII characters")
+
+
+#: the project's extra dimensions (module docstring)
+EXTRA_DIMS: dict[str, ExtraDim] = {
+    "sigma_z": ExtraDim("sigma_z", "float32", "height standard error (m)"),
+    "pair": ExtraDim("pair", "uint16", "source stereo pair index"),
+    "count": ExtraDim("count", "uint16", "pairs agreeing on the height"),
+}
+
+
+@dataclass(frozen=True, eq=False)
+class CloudChunk:
+    """A chunk of points for :func:`write_cloud`: ``xyz`` (N, 3), ``colors`` (N, 3) 0..255 or None,
+    ``extra`` name -> (N,) values of each declared extra dimension."""
+
+    xyz: ArrayLike
+    colors: ArrayLike | None = None
+    extra: Mapping[str, ArrayLike] | None = None
+
+
+def laz_available() -> bool:
+    """Whether laspy has a LAZ backend (``lazrs`` or ``laszip``)."""
+    return bool(laspy.LazBackend.detect_available())
+
+
+def copc_available() -> bool:
+    """Whether COPC can be written (``copclib`` installed; it compresses the chunks itself)."""
+    return copclib is not None
+
+
+#: the temporary name :func:`rectify.atomic.make_temp` gives a file: ``.<name>.<8 random><suffix>.part``
+_TEMP_NAME = re.compile(r"\.(?P<dest>.+)\.[a-z0-9_]{8}(?:\.[^.]+)?\.part")
+
+
+def cloud_format(path: StrPath) -> str:
+    """``las``, ``laz`` or ``copc`` from the name of ``path`` (``.copc.laz`` is COPC; the temporary name of
+    :func:`rectify.atomic.atomic_output` stands for its destination's); else a one-line error."""
+    name = Path(path).name.lower()
+    m = _TEMP_NAME.fullmatch(name)
+    if m:
+        name = m["dest"]
+    if name.endswith(".copc.laz"):
+        return "copc"
+    suffix = Path(name).suffix.lstrip(".")
+    if suffix in ("las", "laz"):
+        return suffix
+    raise InvalidInputError(f"unknown point cloud format of {str(path)!r}: expected a name ending in .las, .laz "
+                            "or .copc.laz")
+
+
+def _resolve_dims(extra_dims: Sequence[str | ExtraDim]) -> tuple[ExtraDim, ...]:
+    dims = []
+    for d in extra_dims:
+        if isinstance(d, ExtraDim):
+            dims.append(d)
+        elif d in EXTRA_DIMS:
+            dims.append(EXTRA_DIMS[d])
+        else:
+            raise InvalidInputError(f"unknown extra dimension {d!r}: expected one of {sorted(EXTRA_DIMS)} "
+                                    "or an ExtraDim")
+    names = [d.name for d in dims]
+    if len(set(names)) != len(names):
+        raise InvalidInputError(f"extra dimensions named twice: {names}")
+    return tuple(dims)
+
+
+def _check_backend(path: Path, fmt: str) -> None:
+    if fmt == "laz" and not laz_available():
+        raise InvalidInputError(f"cannot write {str(path)!r}: LAZ needs a laspy LAZ backend, none is installed "
+                                "(pip install lazrs); write .las")
+    if fmt == "copc" and not copc_available():
+        raise InvalidInputError(f"cannot write {str(path)!r}: COPC needs the copclib package, not installed "
+                                "(pip install copclib, or the rectify-stereo[copc] extra); write .laz")
+
+
+def _las_header(offset: ArrayLike, scale: float, crs_wkt: str | None, dims: tuple[ExtraDim, ...]) -> laspy.LasHeader:
+    off = np.asarray(offset, dtype=np.float64).reshape(-1)
+    if off.shape != (3,) or not np.isfinite(off).all():
+        raise InvalidInputError(f"the LAS offset must be 3 finite numbers; got {off.tolist()}")
+    if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
+        raise InvalidInputError(f"the LAS scale must be a positive number; got {scale!r}")
+    header = laspy.LasHeader(point_format=POINT_FORMAT, version="1.4")
+    header.offsets = off
+    header.scales = np.array([scale, scale, scale], dtype=np.float64)
+    if dims:
+        header.add_extra_dims([laspy.ExtraBytesParams(d.name, d.dtype, description=d.description) for d in dims])
+    if crs_wkt:
+        try:
+            crs = parse_crs(crs_wkt)
+            try:
+                header.add_crs(crs)
+            except Exception:  # noqa: BLE001 - laspy wants an EPSG code: store the OGC WKT VLR directly
+                header.vlrs.append(laspy.vlrs.known.WktCoordinateSystemVlr(crs.to_wkt()))
+                header.global_encoding.wkt = True
+        except Exception as err:  # noqa: BLE001 - a CRS that cannot be stored is logged, not fatal
+            logger.warning("CRS not stored in the point cloud: %s", err)
+    return header
+
+
+class LasWriter:
+    """Stream points into a LAS, LAZ or COPC file: LAS 1.4, point format 7 (x, y, z, RGB), extra bytes.
+
+    Parameters
+    ----------
+    path : path
+        Written as given (the caller stages it, e.g. with :func:`rectify.atomic.atomic_output`).
+    offset : (3,) float
+        LAS offsets (a point near the data, CRS units).
+    scale : float
+        LAS scale of x, y and z (default 0.001: millimetres in a metric CRS).
+    crs_wkt : str, optional
+        Stored as an OGC WKT (E)VLR when given; a CRS that cannot be stored is logged, not fatal.
+    compress : bool, optional
+        Legacy switch: True writes LAZ, False LAS, whatever the suffix (``fmt`` wins when given).
+    fmt : {"las", "laz", "copc"}, optional
+        Default: from the name of ``path`` (:func:`cloud_format`); give it when ``path`` is a temporary name.
+    extra_dims : sequence of str or ExtraDim
+        Extra dimensions (``"sigma_z"``, ``"pair"``, ``"count"`` or :class:`ExtraDim`), given to every
+        :meth:`write`.
+
+    Raises
+    ------
+    InvalidInputError
+        Unknown format or extra dimension, bad offset or scale, LAZ/COPC without its backend.
+    RasterIOError
+        The file cannot be written.
+    """
+
+    def __init__(self, path: StrPath, offset: ArrayLike, *, scale: float = 0.001, crs_wkt: str | None = None,
+                 compress: bool | None = None, fmt: str | None = None,
+                 extra_dims: Sequence[str | ExtraDim] = ()):
+        self.path = Path(path)
+        if fmt is None:
+            fmt = ("laz" if compress else "las") if compress is not None else cloud_format(self.path)
+        if fmt not in CLOUD_FORMATS:
+            raise InvalidInputError(f"unknown point cloud format {fmt!r}: expected one of {list(CLOUD_FORMATS)}")
+        self.fmt = fmt
+        self.dims = _resolve_dims(extra_dims)
+        _check_backend(self.path, fmt)
+        self._header = _las_header(offset, scale, crs_wkt, self.dims)
+        self._crs_wkt = crs_wkt
+        self._stage: Path | None = make_temp(self.path, ".stage.las") if fmt == "copc" else None
+        target = self._stage if self._stage is not None else self.path
+        try:
+            self._w = laspy.open(str(target), mode="w", header=self._header, do_compress=fmt == "laz")
+        except OSError as err:
+            self._drop_stage()
+            raise RasterIOError(f"cannot write {str(self.path)!r}: {write_failure_reason(err, self.path)}") from err
+        self.count = 0
+        self._closed = False
+
+    # ---------------------------------------------------------------- writing
+    def write(self, xyz: ArrayLike, colors: ArrayLike | None = None,
+              extra: Mapping[str, ArrayLike] | None = None) -> None:
+        """Append points: ``xyz`` (N, 3) finite, ``colors`` (N, 3) 0..255 (clipped), ``extra`` name -> (N,)."""
+        p = np.asarray(xyz, dtype=np.float64)
+        if p.ndim != 2 or p.shape[1] != 3:
+            raise ShapeError(f"points must have shape (N, 3); got {p.shape}", actual_shape=p.shape,
+                             expected_shape=(None, 3))
+        bad = ~np.isfinite(p).all(axis=1)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise InvalidInputError(f"points must be finite: point {self.count + i} is {p[i].tolist()}")
+        values = self._extra_values(len(p), extra)
+        c = None
+        if colors is not None:
+            c = np.asarray(colors)
+            if c.shape != (len(p), 3):
+                raise ShapeError(f"colors must have shape ({len(p)}, 3); got {c.shape}", actual_shape=c.shape,
+                                 expected_shape=(len(p), 3))
+            c = np.clip(c, 0, 255).astype(np.uint16) * 257
+        if len(p) == 0:
+            return
+        h = self._header
+        q = np.rint((p - h.offsets) / h.scales)
+        lim = float(np.iinfo(np.int32).max)
+        far = (np.abs(q) > lim).any(axis=1)
+        if far.any():
+            i = int(np.flatnonzero(far)[0])
+            raise InvalidInputError(f"point {self.count + i} {p[i].tolist()} is out of the LAS range: more than "
+                                    f"{lim * float(h.scales[0]):.0f} units from the offset {h.offsets.tolist()} "
+                                    f"at scale {float(h.scales[0])}")
+        rec = laspy.ScaleAwarePointRecord.zeros(len(p), header=h)
+        rec.X, rec.Y, rec.Z = q[:, 0].astype(np.int32), q[:, 1].astype(np.int32), q[:, 2].astype(np.int32)
+        if c is not None:
+            rec.red, rec.green, rec.blue = c[:, 0], c[:, 1], c[:, 2]
+        for name, v in values.items():
+            rec[name] = v
+        try:
+            self._w.write_points(rec)
+        except OSError as err:
+            raise RasterIOError(f"cannot write {str(self.path)!r}: {write_failure_reason(err, self.path)}") from err
+        self.count += len(p)
+
+    def _extra_values(self, n: int, extra: Mapping[str, ArrayLike] | None) -> dict[str, NDArray]:
+        given = dict(extra or {})
+        declared = {d.name: d for d in self.dims}
+        unknown = sorted(set(given) - set(declared))
+        if unknown:
+            raise InvalidInputError(f"extra dimension(s) {unknown} not declared: this cloud has "
+                                    f"{sorted(declared) or 'none'} (pass extra_dims=)")
+        out = {}
+        for name, d in declared.items():
+            if name not in given:
+                raise InvalidInputError(f"extra dimension {name!r} missing from the chunk (every chunk gives "
+                                        f"{sorted(declared)})")
+            v = np.asarray(given[name]).reshape(-1)
+            if v.shape != (n,):
+                raise ShapeError(f"extra dimension {name!r} has {v.shape[0]} values for {n} points",
+                                 actual_shape=v.shape, expected_shape=(n,))
+            t = np.dtype(d.dtype)
+            if t.kind in "ui":
+                vf = v.astype(np.float64)
+                info = np.iinfo(t)
+                bad = ~np.isfinite(vf) | (vf != np.round(vf)) | (vf < info.min) | (vf > info.max)
+                if bad.any():
+                    i = int(np.flatnonzero(bad)[0])
+                    raise InvalidInputError(f"extra dimension {name!r} ({t.name}): value {v[i].item()!r} of point "
+                                            f"{self.count + i} is not an integer in {info.min}..{info.max}")
+                out[name] = vf.astype(t)
+            else:
+                vf = v.astype(np.float64)
+                if np.isinf(vf).any() or (np.abs(vf[np.isfinite(vf)]) > np.finfo(t).max).any():
+                    raise InvalidInputError(f"extra dimension {name!r} ({t.name}): infinite or out-of-range value")
+                out[name] = vf.astype(t)
+        return out
+
+    # ---------------------------------------------------------------- closing
+    def close(self) -> None:
+        """Finish the file (COPC: build the octree and write it); the staging file is removed in any case."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._w.close()
+        except OSError as err:
+            self._drop_stage()
+            raise RasterIOError(f"cannot write {str(self.path)!r}: {write_failure_reason(err, self.path)}") from err
+        if self._stage is not None:
+            try:
+                _write_copc(self._stage, self.path, self._crs_wkt)
+            finally:
+                self._drop_stage()
+
+    def abort(self) -> None:
+        """Stop without finishing: the staging file is removed (the output path is the caller's to remove)."""
+        if not self._closed:
+            self._closed = True
+            with contextlib.suppress(Exception):
+                self._w.close()
+        self._drop_stage()
+
+    def _drop_stage(self) -> None:
+        if self._stage is not None:
+            self._stage.unlink(missing_ok=True)
+
+    def __enter__(self) -> LasWriter:
+        return self
+
+    def __exit__(self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None) -> None:
+        if et is None:
+            self.close()
+        else:
+            self.abort()
+
+
+# ---------------------------------------------------------------------- COPC
+def _octree(X: NDArray[np.int32], Y: NDArray[np.int32], Z: NDArray[np.int32]
+            ) -> tuple[NDArray[np.float64], float, list[tuple[tuple[int, int, int, int], NDArray[np.int64]]]]:
+    """The COPC octree of integer LAS coordinates: (cube centre in counts, half size in counts, nodes).
+
+    Each level keeps one point per cell of a ``COPC_GRID``-cell grid of each node (the first in file
+    order) and passes the rest down; a node of at most ``COPC_MAX_NODE`` points, or one at the
+    deepest level (:data:`COPC_MAX_DEPTH`, or where a cell would be smaller than a count), keeps all of
+    its points. Every node with points has a parent with points, and each point lies inside its node's cube.
+    """
+    lo = np.array([X.min(), Y.min(), Z.min()], dtype=np.float64)
+    hi = np.array([X.max(), Y.max(), Z.max()], dtype=np.float64)
+    centre = (lo + hi) / 2
+    half = float((hi - lo).max()) / 2 + 1.0
+    max_depth = max(0, min(COPC_MAX_DEPTH, math.ceil(math.log2(max(2 * half / COPC_GRID, 1.0)))))
+    corner = centre - half
+    rem = np.arange(len(X), dtype=np.int64)
+    keys: list[NDArray[np.int64]] = []
+    idx: list[NDArray[np.int64]] = []
+    for d in range(max_depth + 1):
+        if rem.size == 0:
+            break
+        u = np.column_stack([X[rem] - corner[0], Y[rem] - corner[1], Z[rem] - corner[2]]) / (2 * half)
+        n = 1 << d
+        node = np.clip(np.floor(u * n), 0, n - 1).astype(np.int64)
+        nkey = (node[:, 0] << 38) | (node[:, 1] << 19) | node[:, 2]
+        _, inv, counts = np.unique(nkey, return_inverse=True, return_counts=True)
+        inv = inv.reshape(-1)
+        take = (counts[inv] <= COPC_MAX_NODE) if d < max_depth else np.ones(len(rem), bool)
+        big = np.flatnonzero(~take)
+        if big.size:
+            g = np.clip(np.floor(u[big] * (n * COPC_GRID)) - node[big] * COPC_GRID, 0, COPC_GRID - 1).astype(np.int64)
+            cell = (inv[big] << 21) | (g[:, 0] << 14) | (g[:, 1] << 7) | g[:, 2]
+            _, first = np.unique(cell, return_index=True)
+            take[big[first]] = True
+        keys.append((np.int64(d) << 57) | nkey[take])
+        idx.append(rem[take])
+        rem = rem[~take]
+    allk = np.concatenate(keys)
+    alli = np.concatenate(idx)
+    order = np.argsort(allk, kind="stable")
+    allk, alli = allk[order], alli[order]
+    starts = np.flatnonzero(np.r_[True, allk[1:] != allk[:-1]])
+    ends = np.r_[starts[1:], len(allk)]
+    nodes = []
+    m19 = (1 << 19) - 1
+    for s, e in zip(starts, ends, strict=True):
+        k = int(allk[s])
+        nodes.append(((k >> 57, (k >> 38) & m19, (k >> 19) & m19, k & m19), alli[s:e]))
+    return centre, half, nodes
+
+
+_VLR_HEADER = struct.Struct("<H16sHH32s")
+
+
+def _fix_extra_bytes_vlr(path: Path, header: laspy.LasHeader) -> None:
+    """Replace copclib's untyped extra-bytes VLR (one ``FIELD_k`` byte per extra byte) in place by the typed,
+    named descriptors of ``header``; the spare bytes become a padding VLR so that no offset moves.
+
+    copclib's own statistics VLR (user ``copc``, record 10000, not part of COPC 1.0) counts one entry per
+    extra byte; it is renamed to a padding VLR too, so that no reader takes it for the new layout.
+    """
+    ebv = next((v for v in header.vlrs if isinstance(v, laspy.vlrs.known.ExtraBytesVlr)), None)
+    if ebv is None:
+        return
+    ours = ebv.record_data_bytes()
+    found = False
+    with open(path, "r+b") as fh:
+        head = fh.read(375)
+        header_size, = struct.unpack_from("<H", head, 94)
+        n_vlrs, = struct.unpack_from("<I", head, 100)
+        added = 0
+        pos = header_size
+        for _ in range(n_vlrs):
+            fh.seek(pos)
+            _, user, rid, length, _ = _VLR_HEADER.unpack(fh.read(54))
+            user = user.rstrip(b"\0")
+            if user == b"copc" and rid == 10000:
+                fh.seek(pos)
+                fh.write(_VLR_HEADER.pack(0, b"rectify-stereo", 2, length, b"padding (copclib statistics)"))
+            elif user == b"LASF_Spec" and rid == 4:
+                spare = length - len(ours)
+                if spare < 0 or 0 < spare < 54:
+                    raise RasterIOError(f"cannot write {str(path)!r}: unexpected extra-bytes layout from copclib")
+                fh.seek(pos)
+                fh.write(_VLR_HEADER.pack(0, b"LASF_Spec", 4, len(ours), b"extra bytes"))
+                fh.write(ours)
+                if spare:
+                    fh.write(_VLR_HEADER.pack(0, b"rectify-stereo", 1, spare - 54, b"padding"))
+                    fh.write(b"\0" * (spare - 54))
+                    added = 1
+                found = True
+            pos += 54 + length
+        if added:
+            fh.seek(100)
+            fh.write(struct.pack("<I", n_vlrs + added))
+    if not found:
+        raise RasterIOError(f"cannot write {str(path)!r}: copclib wrote no extra-bytes VLR")
+
+
+def _write_copc(stage: Path, path: Path, crs_wkt: str | None) -> None:
+    """Build the COPC octree of the staged LAS ``stage`` and write it to ``path`` (copclib)."""
+    assert copclib is not None
+    with laspy.open(str(stage)) as rd:
+        header = rd.header
+        n = int(header.point_count)
+        offset = int(header.offset_to_point_data)
+    rec_dtype = header.point_format.dtype()
+    scales, offsets = [float(s) for s in header.scales], [float(o) for o in header.offsets]
+    eb_size = int(header.point_format.num_extra_bytes)
+    wkt = ""
+    if crs_wkt:
+        with contextlib.suppress(Exception):  # as in the LAS: a CRS that cannot be stored is not fatal
+            wkt = parse_crs(crs_wkt).to_wkt()
+    try:
+        cfg = copclib.CopcConfigWriter(POINT_FORMAT, copclib.Vector3(*scales), copclib.Vector3(*offsets), wkt,
+                                       copclib.EbVlr(eb_size))
+        w = copclib.FileWriter(str(path), cfg)
+    except Exception as err:  # noqa: BLE001 - copclib raises RuntimeError with the reason
+        raise RasterIOError(f"cannot write {str(path)!r}: {err}") from err
+    try:
+        if n:
+            recs = np.memmap(stage, dtype=rec_dtype, mode="r", offset=offset, shape=(n,))
+            X, Y, Z = np.array(recs["X"]), np.array(recs["Y"]), np.array(recs["Z"])
+            centre, half, nodes = _octree(X, Y, Z)
+            lo = np.array([X.min(), Y.min(), Z.min()]) * scales + offsets
+            hi = np.array([X.max(), Y.max(), Z.max()]) * scales + offsets
+            del X, Y, Z
+            h = w.copc_config.las_header
+            h.min, h.max = copclib.Vector3(*lo.tolist()), copclib.Vector3(*hi.tolist())
+            info = w.copc_config.copc_info
+            c = centre * scales + offsets
+            info.center_x, info.center_y, info.center_z = (float(v) for v in c)
+            info.halfsize = half * scales[0]
+            info.spacing = 2 * half * scales[0] / COPC_GRID
+            for (d, x, y, z), sel in nodes:
+                data = np.ascontiguousarray(recs[np.sort(sel)]).view(np.int8)
+                w.AddNode(copclib.VoxelKey(d, x, y, z), copclib.VectorChar(data))
+            del recs
+        w.Close()
+    except Exception as err:  # noqa: BLE001 - copclib raises RuntimeError; disk errors arrive as OSError
+        reason = write_failure_reason(err, path) if isinstance(err, OSError) else str(err)
+        raise RasterIOError(f"cannot write {str(path)!r}: {reason}") from err
+    if eb_size:
+        _fix_extra_bytes_vlr(path, header)
+
+
+# ---------------------------------------------------------------------- whole clouds
+def write_cloud(path: StrPath, xyz: ArrayLike | Iterable[CloudChunk], *, colors: ArrayLike | None = None,
+                extra: Mapping[str, ArrayLike] | None = None, extra_dims: Sequence[str | ExtraDim] | None = None,
+                crs_wkt: str | None = None, offset: ArrayLike | None = None, scale: float = 0.001,
+                fmt: str | None = None, overwrite: bool = False) -> Path:
+    """Write a point cloud (LAS, LAZ or COPC by the name of ``path``) atomically; return ``path``.
+
+    Parameters
+    ----------
+    path : path
+        ``*.las``, ``*.laz`` or ``*.copc.laz`` (or give ``fmt``); replaced only with ``overwrite``.
+    xyz : (N, 3) array_like, or iterable of CloudChunk
+        The points (CRS units), whole or as chunks (streamed: only one chunk in memory at a time for
+        LAS and LAZ).
+    colors : (N, 3) array_like, optional
+        0..255 per channel (whole clouds only; chunks carry their own).
+    extra : mapping name -> (N,) array_like, optional
+        Extra dimension values (whole clouds only). Their names declare the dimensions unless
+        ``extra_dims`` does (required with chunks that carry extra values).
+    extra_dims : sequence of str or ExtraDim, optional
+        The declared extra dimensions (:data:`EXTRA_DIMS` names or :class:`ExtraDim`).
+    crs_wkt : str, optional
+        The CRS (any form :func:`rectify.geometry.crs.parse_crs` reads), stored as OGC WKT.
+    offset : (3,) array_like, optional
+        Default: the minimum of a whole cloud rounded down to whole units, else the first point of the
+        first chunk rounded.
+    scale : float
+        Default 0.001 (millimetres).
+
+    Raises
+    ------
+    InvalidInputError, ShapeError
+        Unknown format, non-finite points, extra values of the wrong length or type, a missing backend.
+    RasterIOError
+        The file cannot be written. Nothing is left at ``path`` on any error.
+    """
+    p = Path(path)
+    f = fmt if fmt is not None else cloud_format(p)
+    if f not in CLOUD_FORMATS:
+        raise InvalidInputError(f"unknown point cloud format {f!r}: expected one of {list(CLOUD_FORMATS)}")
+    _check_backend(p, f)
+    if isinstance(xyz, np.ndarray) or (isinstance(xyz, (list, tuple)) and not any(isinstance(c, CloudChunk)
+                                                                                  for c in xyz)):
+        chunks: Iterable[CloudChunk] = [CloudChunk(xyz, colors, extra)]
+        arr = np.asarray(xyz, dtype=np.float64)
+        if offset is None and arr.ndim == 2 and arr.shape[1] == 3 and len(arr) and np.isfinite(arr).all():
+            offset = np.floor(arr.min(axis=0))
+        dims = extra_dims if extra_dims is not None else list(_names_as_dims(extra or {}))
+    else:
+        if colors is not None or extra is not None:
+            raise InvalidInputError("with chunks, give colors and extra values in each CloudChunk")
+        chunks = cast(Iterable[CloudChunk], xyz)
+        dims = extra_dims if extra_dims is not None else ()
+    with atomic_output(p, overwrite=overwrite, suffix=".part") as tmp:
+        writer: LasWriter | None = None
+        try:
+            for ch in chunks:
+                if not isinstance(ch, CloudChunk):
+                    raise InvalidInputError(f"chunks must be CloudChunk objects; got {type(ch).__name__}")
+                if writer is None:
+                    if offset is None:
+                        first = np.asarray(ch.xyz, dtype=np.float64).reshape(-1)[:3]
+                        offset = np.round(first) if first.size == 3 and np.isfinite(first).all() else np.zeros(3)
+                    writer = LasWriter(tmp, offset, scale=scale, crs_wkt=crs_wkt, fmt=f, extra_dims=dims)
+                writer.write(ch.xyz, ch.colors, ch.extra)
+            if writer is None:
+                writer = LasWriter(tmp, np.zeros(3) if offset is None else offset, scale=scale, crs_wkt=crs_wkt, fmt=f,
+                                   extra_dims=dims)
+            writer.close()
+        except BaseException:
+            if writer is not None:
+                writer.abort()
+            raise
+    return p
+
+
+def _names_as_dims(extra: Mapping[str, ArrayLike]) -> Iterable[str | ExtraDim]:
+    for name, v in extra.items():
+        if name in EXTRA_DIMS:
+            yield name
+        else:
+            kind = np.asarray(v).dtype
+            yield ExtraDim(name, "float32" if kind.kind == "f" else kind.name, name[:32])
