@@ -604,6 +604,8 @@ def _match_whole(L, lv, R, rv, cfg: MatcherConfig, progress, names) -> MatchResu
     by it; the full matches' own orientations check the guess, and a wrong guess is matched once more (turned by
     what they say), so the result is the same as with the right guess."""
     t0 = time.perf_counter()
+    if progress is not None:
+        progress(0, 4)
     fl = detect(L, valid=lv, detector=cfg.detector, max_keypoints=cfg.max_keypoints, cell_cap=cfg.cell_cap,
                 percentiles=cfg.percentiles)
     _check_blank(fl, "left", names[0])

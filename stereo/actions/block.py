@@ -828,9 +828,11 @@ def _write(ws: Workspace, res: BundleResult, tracks: Tracks, inp: _Inputs, names
         p = root / BLOCK_LAYOUT["points_las"]
         with ws.output(p) as tmp:
             staged["points_las"] = (p, tmp)
-            las = LasWriter(tmp, X[ok].min(axis=0) if ok.any() else np.zeros(3), crs_wkt=wkt)
+            # sigma_z: the bundle's height standard error of each point (NaN where not computed)
+            las = LasWriter(tmp, X[ok].min(axis=0) if ok.any() else np.zeros(3), crs_wkt=wkt, fmt="las",
+                            extra_dims=["sigma_z"])
             try:
-                las.write(X[ok])
+                las.write(X[ok], extra={"sigma_z": pstd.reshape(-1, 3)[ok][:, 2]})
             finally:
                 las.close()
         written.append(p)

@@ -55,10 +55,13 @@ def _roi(ctx, param, value):
               help="Three or more images: the largest intersection angle of a pair, degrees.")
 @click.option("--min-overlap", type=float, default=_M.min_overlap, show_default=True,
               help="Three or more images: the least share of the ROI the other image of a pair must see.")
+@click.option("--gcps", type=click.Path(dir_okay=False), default=None,
+              help="Three or more images: GCP CSV of the adjustment (id,image,col,row,lon,lat,h[,sigma_xy,sigma_h,"
+                   "sigma]); without GCPs the adjustment fixes the relative pointing only.")
 @overwrite_opt
 @handle_errors
 def dense_rpc(images, out_dir, roi, tile, dsm_cell, fill_holes, cloud, reference_dem, stac, adjust, bias_model,
-              min_angle, max_angle, min_overlap, overwrite):
+              min_angle, max_angle, min_overlap, gcps, overwrite):
     """Match IMAGES (two or more images with RPCs) tile by tile after local epipolar resampling by affine
     camera approximation, and write the DSM (UTM, ellipsoidal heights).
 
@@ -72,12 +75,15 @@ def dense_rpc(images, out_dir, roi, tile, dsm_cell, fill_holes, cloud, reference
                            reference_dem=reference_dem, stac=stac)
     result: RpcDenseResult | MultiRpcResult
     if len(images) == 2:
+        if gcps is not None:
+            raise click.UsageError("--gcps needs three or more images (two images: rectify rpc-adjust first)")
         result = run_dense_rpc(images[0], images[1], out_dir, roi=roi, options=opts, overwrite=overwrite)
     else:
         mopts = MultiRpcOptions(pair=RpcDenseOptions(tile=tile, dsm_cell=dsm_cell, fill_holes=fill_holes,
                                                      cloud_format="none", stac=False),
                                 adjust=adjust, bias_model=bias_model, min_angle_deg=min_angle,
-                                max_angle_deg=max_angle, min_overlap=min_overlap, reference_dem=reference_dem)
+                                max_angle_deg=max_angle, min_overlap=min_overlap, reference_dem=reference_dem,
+                                gcps=gcps)
         result = run_dense_rpc_multi(images, out_dir, roi=roi, options=mopts, overwrite=overwrite)
     for line in result.summary_lines():
         echo(line)

@@ -97,4 +97,6 @@ def test_cli_bad_options(triplet_files, tmp_path):
     r = _run(*paths, "-o", tmp_path / "o", "--no-adjust", "--min-angle", "40", "--max-angle", "45", "--roi",
              "64,64,128,128")
     assert r.exit_code != 0 and "no pair" in r.output and len(r.output.strip().splitlines()) == 1, r.output
+    r = _run(*paths, "-o", tmp_path / "o", "--no-adjust", "--gcps", paths[0])
+    assert r.exit_code != 0 and "no-adjust" in r.output and len(r.output.strip().splitlines()) == 1, r.output
     assert not (tmp_path / "o").exists()

@@ -70,6 +70,9 @@ def test_outputs_are_written_and_read_back(run):
     las = laspy.read(out / "points.las")
     assert len(las.points) == len(pts.ids)
     np.testing.assert_allclose(np.column_stack([las.x, las.y, las.z]), pts.xyz, atol=2e-3)
+    # the LAS carries the bundle's height standard error of each point (issue 27), as the CSV's std_z
+    assert pts.std is not None
+    np.testing.assert_allclose(np.asarray(las["sigma_z"]), pts.std[:, 2], atol=1e-4)
     obs = (out / "observations.csv").read_text().splitlines()
     assert len(obs) == 1 + res.tracks.n_obs
 
