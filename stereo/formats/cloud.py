@@ -29,8 +29,8 @@ every chunk of points; integer values must be integral and within the type's ran
 
 :class:`LasWriter` streams: ``write`` appends a chunk (LAS/LAZ go straight to the file through
 laspy). A COPC octree needs all points, so for ``.copc.laz`` the chunks go to a hidden uncompressed
-LAS beside the output first; ``close`` builds the octree from it (memory-mapped records, about
-30 bytes of indices per point in memory) and writes the COPC through ``copclib``. :func:`write_cloud`
+LAS beside the output first; ``close`` builds the octree from it (memory-mapped records, but about
+110 bytes per point of coordinates and indices in memory) and writes the COPC through ``copclib``. :func:`write_cloud`
 writes a whole cloud (an (N, 3) array or an iterable of :class:`CloudChunk`) atomically.
 """
 
@@ -285,7 +285,7 @@ class LasWriter:
             rec[name] = v
         try:
             self._w.write_points(rec)
-        except OSError as err:
+        except (OSError, RuntimeError) as err:  # RuntimeError: lazrs.LazrsError (e.g. "Failed to call write")
             raise RasterIOError(f"cannot write {str(self.path)!r}: {write_failure_reason(err, self.path)}") from err
         self.count += len(p)
 
@@ -330,7 +330,7 @@ class LasWriter:
         self._closed = True
         try:
             self._w.close()
-        except OSError as err:
+        except (OSError, RuntimeError) as err:  # RuntimeError: lazrs.LazrsError
             self._drop_stage()
             raise RasterIOError(f"cannot write {str(self.path)!r}: {write_failure_reason(err, self.path)}") from err
         if self._stage is not None:
@@ -377,39 +377,47 @@ def _octree(X: NDArray[np.int32], Y: NDArray[np.int32], Z: NDArray[np.int32]
     half = float((hi - lo).max()) / 2 + 1.0
     max_depth = max(0, min(COPC_MAX_DEPTH, math.ceil(math.log2(max(2 * half / COPC_GRID, 1.0)))))
     corner = centre - half
+    side = 2 * half
+    axes = ((X, corner[0]), (Y, corner[1]), (Z, corner[2]))
     rem = np.arange(len(X), dtype=np.int64)
-    keys: list[NDArray[np.int64]] = []
-    idx: list[NDArray[np.int64]] = []
+    nodes: list[tuple[tuple[int, int, int, int], NDArray[np.int64]]] = []
+    m19 = (1 << 19) - 1
     for d in range(max_depth + 1):
         if rem.size == 0:
             break
-        u = np.column_stack([X[rem] - corner[0], Y[rem] - corner[1], Z[rem] - corner[2]]) / (2 * half)
         n = 1 << d
-        node = np.clip(np.floor(u * n), 0, n - 1).astype(np.int64)
-        nkey = (node[:, 0] << 38) | (node[:, 1] << 19) | node[:, 2]
-        _, inv, counts = np.unique(nkey, return_inverse=True, return_counts=True)
-        inv = inv.reshape(-1)
-        take = (counts[inv] <= COPC_MAX_NODE) if d < max_depth else np.ones(len(rem), bool)
+        # node of each remaining point, axis by axis (x << 38 | y << 19 | z), to keep the temporaries small
+        nkey = np.zeros(len(rem), np.int64)
+        for (A, c0), shift in zip(axes, (38, 19, 0), strict=True):
+            k = np.floor((A[rem] - c0) * (n / side)).astype(np.int64)
+            nkey |= np.clip(k, 0, n - 1) << shift
+        order = np.argsort(nkey, kind="stable")
+        sk = nkey[order]
+        new = np.r_[True, sk[1:] != sk[:-1]]
+        rank = np.empty(len(rem), np.int64)
+        rank[order] = np.cumsum(new) - 1               # node number of each point
+        del sk, order
+        counts = np.bincount(rank)
+        take = (counts[rank] <= COPC_MAX_NODE) if d < max_depth else np.ones(len(rem), bool)
         big = np.flatnonzero(~take)
         if big.size:
-            g = np.clip(np.floor(u[big] * (n * COPC_GRID)) - node[big] * COPC_GRID, 0, COPC_GRID - 1).astype(np.int64)
-            cell = (inv[big] << 21) | (g[:, 0] << 14) | (g[:, 1] << 7) | g[:, 2]
+            # one point per cell of the node's COPC_GRID^3 grid: the first in file order
+            cell = rank[big] << 21
+            for (A, c0), shift in zip(axes, (14, 7, 0), strict=True):
+                g = np.floor((A[rem[big]] - c0) * (n * COPC_GRID / side)).astype(np.int64)
+                cell |= np.clip(g - (np.clip(g // COPC_GRID, 0, n - 1)) * COPC_GRID, 0, COPC_GRID - 1) << shift
             _, first = np.unique(cell, return_index=True)
             take[big[first]] = True
-        keys.append((np.int64(d) << 57) | nkey[take])
-        idx.append(rem[take])
+            del cell, first
+        tk, ti = nkey[take], rem[take]
         rem = rem[~take]
-    allk = np.concatenate(keys)
-    alli = np.concatenate(idx)
-    order = np.argsort(allk, kind="stable")
-    allk, alli = allk[order], alli[order]
-    starts = np.flatnonzero(np.r_[True, allk[1:] != allk[:-1]])
-    ends = np.r_[starts[1:], len(allk)]
-    nodes = []
-    m19 = (1 << 19) - 1
-    for s, e in zip(starts, ends, strict=True):
-        k = int(allk[s])
-        nodes.append(((k >> 57, (k >> 38) & m19, (k >> 19) & m19, k & m19), alli[s:e]))
+        del nkey, rank, take
+        o = np.argsort(tk, kind="stable")
+        tk, ti = tk[o], ti[o]
+        starts = np.flatnonzero(np.r_[True, tk[1:] != tk[:-1]])
+        for s, e in zip(starts, np.r_[starts[1:], len(tk)], strict=True):
+            k = int(tk[s])
+            nodes.append(((d, (k >> 38) & m19, (k >> 19) & m19, k & m19), ti[s:e]))
     return centre, half, nodes
 
 

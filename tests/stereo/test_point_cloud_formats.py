@@ -303,3 +303,32 @@ def test_stereo_dense_cloud_carries_sigma_z(tmp_path):
     err = xyz[:, 2] - sc.height(xyz[:, :2])
     ratio = float(np.sqrt(np.mean((err / s) ** 2)))
     assert 0.67 <= ratio <= 1.5, ratio
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+@pytest.mark.parametrize("n", [0, 1])
+def test_empty_and_single_point_clouds(tmp_path, fmt, n):
+    _need(fmt)
+    xyz = np.array([[350123.4567, 5800765.4321, 55.5]])[:n]
+    p = write_cloud(tmp_path / f"c{SUFFIX[fmt]}", xyz, extra={"sigma_z": np.full(n, 0.25)}, crs_wkt="EPSG:32633")
+    las = laspy.read(p)
+    assert len(las.points) == n and list(las.point_format.extra_dimension_names) == ["sigma_z"]
+    np.testing.assert_allclose(np.column_stack([las.x, las.y, las.z]), xyz, atol=5e-4)
+    np.testing.assert_array_equal(np.asarray(las["sigma_z"]), np.full(n, 0.25, np.float32))
+    if fmt == "copc":
+        with laspy.CopcReader.open(p) as cr:
+            assert len(cr.query()) == n
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_disk_full_one_line_nothing_left(small_disk, fmt):
+    """A disk that fills up mid-write (a 200 KiB tmpfs): one line naming the file and the reason, no file."""
+    _need(fmt)
+    xyz, colors, extra = _scene(40000)
+    p = small_disk / f"c{SUFFIX[fmt]}"
+    chunks = (CloudChunk(xyz[i:i + 5000], colors[i:i + 5000], {k: v[i:i + 5000] for k, v in extra.items()})
+              for i in range(0, len(xyz), 5000))
+    with pytest.raises(RasterIOError, match="no space left on device") as info:
+        write_cloud(p, chunks, extra_dims=["sigma_z", "pair", "count", ID])
+    assert "\n" not in str(info.value) and str(p) in str(info.value)
+    assert _leftovers(small_disk) == []
