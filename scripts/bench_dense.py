@@ -11,7 +11,8 @@ pixels by the product's confidence band), the roughness (second-difference NMAD 
 px) and the time as a multiple of SGBM's. Non-occluded pixels of Motorcycle come from the true
 disparity's own z-buffer. Then the NGI strip DSM (shared data, aero-triangulated EOs, ``run_dense``)
 against ``dem.tif``: coverage of the overlap, RMSE in cells, NMAD, roughness (second-difference NMAD
-of the DSM, m), with and without the hole pass (``--no-ngi``: skipped).
+of the DSM, m), with and without the hole pass (``--no-ngi``: skipped). ``--pandora``: CNES pandora
+with its libSGM plugin as a further peer when it is installed (census cost, SGM, cross-check).
 
 ``--size N``: a synthetic N x N normal-case pair (procedural texture, smooth known disparity 8..40 px)
 is written to ``--work`` as tiled GeoTIFFs, strip by strip, then matched tile by tile by
@@ -23,7 +24,7 @@ nadir frame photos (normal case, matching, points to LAS, DSM with a cell of ``-
 pixels), in a child process that prints its peak resident memory.
 
 Usage:
-    nice python scripts/bench_dense.py [--repeat 7] [--no-ngi] [--work DIR]
+    nice python scripts/bench_dense.py [--repeat 7] [--no-ngi] [--work DIR] [--pandora]
     nice python scripts/bench_dense.py --size 10000 [--work /tmp/bench_dense] [--chain [--dsm-cell 2]]
 """
 
@@ -51,6 +52,7 @@ from tests.support.stereo_support import occlusion_from_truth  # noqa: E402
 SHARED = Path(os.environ.get("RECTIFY_SHARED_DATA", ROOT / ".." / "shared" / "data"))
 CONES = SHARED / "dense_cones"
 NGI = SHARED / "ngi_strip05"
+PANDORA = False  # --pandora
 
 
 def _rgb(path: Path) -> np.ndarray:
@@ -132,11 +134,68 @@ def compare(name: str, left: np.ndarray, right: np.ndarray, gt: np.ndarray, nocc
     print(f"{name}: fastest of {repeat} alternating runs each; {load()}")
 
 
+def pandora_case(name: str, left: np.ndarray, right: np.ndarray, gt: np.ndarray, nocc: np.ndarray, thr: float,
+                 disp_max: int) -> None:
+    """CNES pandora with its libSGM plugin (census 5 x 5, SGM P1/P2 8/32, WTA, V-fit, 3 x 3 median,
+    accurate cross-check) when installed (``pip install pandora pandora_plugin_libsgm``): precision on
+    its valid pixels (validity mask 0) and ours at its density (most confident pixels), one run each."""
+    try:
+        import pandora  # local: optional peer, not a dependency
+    except ImportError:
+        print(f"{name} pandora: skipped (not installed)")
+        return
+    import cv2
+    import rasterio
+    from affine import Affine
+
+    grey = [np.asarray(cv2.cvtColor(a, cv2.COLOR_RGB2GRAY)) if a.ndim == 3 else a for a in (left, right)]
+    pandora.import_plugin()
+    with tempfile.TemporaryDirectory() as tmp:
+        t = Path(tmp)
+        for nm, a in zip(("l", "r"), grey, strict=True):
+            with rasterio.open(t / f"{nm}.tif", "w", driver="GTiff", width=a.shape[1], height=a.shape[0], count=1,
+                               dtype="float32", transform=Affine.identity()) as ds:
+                ds.write(a.astype(np.float32), 1)
+        cfg = {"input": {"left": {"img": str(t / "l.tif"), "disp": [-disp_max, 0], "nodata": -9999},
+                         "right": {"img": str(t / "r.tif"), "nodata": -9999}},
+               "pipeline": {"matching_cost": {"matching_cost_method": "census", "window_size": 5, "subpix": 1},
+                            "optimization": {"optimization_method": "sgm", "overcounting": False,
+                                             "penalty": {"P1": 8, "P2": 32, "p2_method": "constant",
+                                                         "penalty_method": "sgm_penalty"}},
+                            "disparity": {"disparity_method": "wta", "invalid_disparity": "NaN"},
+                            "refinement": {"refinement_method": "vfit"},
+                            "filter": {"filter_method": "median", "filter_size": 3},
+                            "validation": {"validation_method": "cross_checking_accurate"}}}
+        (t / "cfg.json").write_text(json.dumps(cfg))
+        t0 = time.perf_counter()
+        pandora.main(str(t / "cfg.json"), str(t / "out"), False)
+        dt = time.perf_counter() - t0
+        with rasterio.open(t / "out" / "left_disparity.tif") as ds:
+            d = -ds.read(1)  # pandora: col_right - col_left
+        with rasterio.open(t / "out" / "left_validity_mask.tif") as ds:
+            ok = ds.read(1) == 0
+    v = np.isfinite(d) & ok & nocc
+    dens = v.sum() / nocc.sum()
+    ours = match_pair(left, right)
+    vo = ours.valid & nocc
+    err = (np.abs(ours.disparity - gt) > thr)[vo]
+    idx = np.argsort(-ours.confidence[vo], kind="stable")[:int(round(dens * nocc.sum()))]
+    t0 = time.perf_counter()
+    sgbm_baseline(left, right)
+    ts = time.perf_counter() - t0
+    print(f"{name} pandora + libSGM (census): density {100 * dens:.1f} %, bad-{thr:.1f} "
+          f"{100 * (np.abs(d - gt) > thr)[v].mean():.2f} %, time {dt:.2f} s = {dt / ts:.0f} x SGBM (one run); "
+          f"ours at its density: bad-{thr:.1f} {100 * err[idx].mean():.2f} %")
+
+
 def motorcycle(repeat: int) -> None:
     from skimage import data
 
     left, right, gt = data.stereo_motorcycle()
-    compare("Motorcycle", left, right, gt, ~occlusion_from_truth(gt), 2.0, repeat)
+    nocc = ~occlusion_from_truth(gt)
+    compare("Motorcycle", left, right, gt, nocc, 2.0, repeat)
+    if PANDORA:
+        pandora_case("Motorcycle", left, right, gt, nocc, 2.0, 72)
 
 
 def cones(repeat: int) -> None:
@@ -151,6 +210,8 @@ def cones(repeat: int) -> None:
         gt = ds.read(1)
     nocc = (_grey_png(CONES / "occlusion.png") > 0) & (gt > 0)
     compare("Cones", L, R, gt, nocc, 1.0, repeat)
+    if PANDORA:
+        pandora_case("Cones", L, R, gt, nocc, 1.0, 60)
 
 
 def ngi(work: Path) -> None:
@@ -376,6 +437,8 @@ def main() -> None:
                     help="with --size: the whole run_dense chain (normal case, matching, points, LAS, DSM)")
     ap.add_argument("--dsm-cell", type=float, default=2.0, help="with --chain: DSM cell in ground pixels")
     ap.add_argument("--no-ngi", action="store_true", help="skip the NGI strip DSM (shared data)")
+    ap.add_argument("--pandora", action="store_true",
+                    help="also CNES pandora + libSGM (census) when installed, one run each (slow)")
     a = ap.parse_args()
     if a.size:
         def go(work: Path) -> None:
@@ -389,6 +452,8 @@ def main() -> None:
             with tempfile.TemporaryDirectory() as tmp:
                 go(Path(tmp))
         return
+    global PANDORA
+    PANDORA = a.pandora
     print(load())
     motorcycle(a.repeat)
     cones(a.repeat)

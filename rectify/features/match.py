@@ -683,11 +683,14 @@ def _brute_pairs(a: NDArray, b: NDArray, ratio: float) -> tuple[NDArray[np.int64
     passing the ratio test: indices into ``a`` and ``b``."""
     bf = cv2.BFMatcher(cv2.NORM_L2 if a.dtype == np.float32 else cv2.NORM_HAMMING)
     fwd = [m for m in bf.knnMatch(a, b, k=2) if len(m) == 2 and m[0].distance < ratio * m[1].distance]
-    back = np.full(len(b), -1, dtype=np.int64)
-    for m in bf.match(b, a):
-        back[m.queryIdx] = m.trainIdx
     li = np.array([m[0].queryIdx for m in fwd], dtype=np.int64)
     ri = np.array([m[0].trainIdx for m in fwd], dtype=np.int64)
+    if not len(li):
+        return li, ri
+    cand = np.unique(ri)                  # back-match the candidates only
+    back = np.full(len(b), -1, dtype=np.int64)
+    for m in bf.match(np.ascontiguousarray(b[cand]), a):
+        back[cand[m.queryIdx]] = m.trainIdx
     ok = back[ri] == li
     return li[ok], ri[ok]
 

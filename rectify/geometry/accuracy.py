@@ -27,7 +27,7 @@ unit is metres.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -184,9 +184,31 @@ class AccuracyStatement:
                    survey_rmse_h=float(survey_rmse_h), survey_rmse_v=float(survey_rmse_v), confidence=confidence,
                    units=units)
 
+    @classmethod
+    def vertical(cls, errors_z: ArrayLike, *, survey_rmse_v: float = 0.0, confidence: float = 0.95,
+                 units: str = "m") -> AccuracyStatement:
+        """The vertical-only statement of a height product (a DSM at check points): ``errors_z`` (N,) heights
+        minus the surveyed heights; the horizontal figures are NaN and left out of :meth:`lines` and the ASPRS
+        sentences (RMSE_z, its interval, LE90, the RMSE_V class)."""
+        ez = np.asarray(errors_z, dtype=np.float64)
+        if ez.ndim != 1:
+            raise InvalidInputError(f"vertical check-point errors must be an (N,) array; got shape {ez.shape}")
+        s = cls.from_errors(np.column_stack([np.zeros_like(ez), np.zeros_like(ez), ez]), survey_rmse_v=survey_rmse_v,
+                            confidence=confidence, units=units)
+        nan2 = (float("nan"), float("nan"))
+        return replace(s, mean=np.array([np.nan, np.nan, s.mean[2]]), std=np.array([np.nan, np.nan, s.std[2]]),
+                       rmse=np.array([np.nan, np.nan, s.rmse[2]]), rmse_r=float("nan"), rmse_3d=float("nan"),
+                       interval_x=nan2, interval_y=nan2, interval_r=nan2, ce90=float("nan"),
+                       ce90_observed=float("nan"))
+
     @property
     def has_heights(self) -> bool:
         return len(self.rmse) == 3
+
+    @property
+    def has_plan(self) -> bool:
+        """False for a vertical-only statement (:meth:`vertical`)."""
+        return math.isfinite(self.rmse_r)
 
     @property
     def asprs_rmse_h(self) -> float:
@@ -214,7 +236,7 @@ class AccuracyStatement:
         h = self.asprs_rmse_h * scale
         out = [f"This data set {verb} the {std} for a {math.ceil(h * 10) / 10:g} ({unit}) RMSE_H horizontal "
                f"positional accuracy class. The tested horizontal positional accuracy was found to be RMSE_H = "
-               f"{h:.1f} ({unit})."]
+               f"{h:.1f} ({unit})."] if self.has_plan else []
         if self.has_heights:
             v = self.asprs_rmse_v * scale
             out.append(f"This data set {verb} the {std} for a {math.ceil(v * 10) / 10:g} ({unit}) RMSE_V vertical "
@@ -232,13 +254,19 @@ class AccuracyStatement:
         """The statement as report/console lines: per-axis figures, RMSE_r/RMSE_z with confidence
         intervals, CE90/LE90, the ASPRS form."""
         c = f"{self.confidence * 100:g} %"
-        axes = "xyz" if self.has_heights else "xy"
+        axes = ("xyz" if self.has_heights else "xy") if self.has_plan else "z"
         out = [f"accuracy statement from {self.n} check points ({self.units}; RMSE {c} confidence intervals "
                "in brackets):"]
         ivs = (self.interval_x, self.interval_y, self.interval_z)
-        for i, a in enumerate(axes):
+        for a in axes:
+            i = "xyz".index(a)
             out.append(f"  {a}: mean {self.mean[i]:+.3f}, std {self.std[i]:.3f}, RMSE {self.rmse[i]:.3f} "
                        f"{self._ci(ivs[i])}")
+        if not self.has_plan:  # vertical only (a DSM)
+            out += [f"  RMSE_z {self._fmt(self.rmse_z)} {self._ci(self.interval_z)}; LE90 {self._fmt(self.le90)} "
+                    f"(observed {self.le90_observed:.3f})"]
+            out.extend("  " + s for s in self.asprs_sentences())
+            return out
         line = f"  RMSE_r {self._fmt(self.rmse_r)} {self._ci(self.interval_r)}"
         if self.has_heights:
             line += (f"; RMSE_z {self._fmt(self.rmse_z)} {self._ci(self.interval_z)}; "

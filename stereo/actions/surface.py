@@ -23,7 +23,13 @@ Outputs in ``out_dir`` (all written together at the end, or none on an error):
 ``dsm.tif``        band 1 height, 2 sigma_Z, 3 count of agreeing pairs, 4 provenance (pair
                    index, -1 none); float32, nodata -9999, cells on whole multiples of the cell
 ``pairs.json``     the pairs (images, overlap, B/H, angle, points, coverage, median sigma_Z), the
-                   thresholds, the grid and the summary
+                   thresholds, the grid, the summary, the orthomosaic, the cloud, the check points
+``ortho.tif``      (``ortho``, default) the true orthomosaic over the fused DSM: seams of the
+                   least-transformed image, COG with overviews (:mod:`stereo.actions.surface_outputs`)
+``ortho.source.tif`` its provenance: the 1-based number of the image per pixel (order of ``images``)
+``points.laz``     (``cloud``, default; ``.las`` without a LAZ backend) one point per DSM cell with
+                   the extra dimensions ``sigma_z``, ``pair``, ``count``
+``ortho_*.tif``    (``keep_orthophotos``) the true orthophoto of every image
 =================  ==========================================================================
 """
 
@@ -45,8 +51,10 @@ from numpy.typing import NDArray
 
 from rectify.actions.workspace import Workspace
 from rectify.errors import InvalidInputError, StereoError
+from rectify.geometry.accuracy import LE90_FACTOR
 from rectify.geometry.camera import Camera
 from rectify.raster.distributed import Scheduler, resolve_scheduler
+from rectify.raster.engine import COMPRESSIONS
 from rectify.raster.io import (
     MaskPolicy,
     TiledWriter,
@@ -56,7 +64,16 @@ from rectify.raster.io import (
     iter_windows,
     raster_info,
 )
+from rectify.raster.mosaic import BALANCES, MosaicResult
 from rectify.report.builder import json_safe
+from stereo.actions.surface_outputs import (
+    CheckPoints,
+    check_points_accuracy,
+    read_check_points,
+    write_cloud,
+    write_orthomosaic,
+    write_orthophotos,
+)
 from stereo.block.tracks_pairs import footprints
 from stereo.block.types import Pose
 from stereo.dense.dsm import DSM_NODATA, DsmResult, default_cell
@@ -80,6 +97,7 @@ from stereo.dense.precision import (
 )
 from stereo.dense.triangulate import triangulate_disparity
 from stereo.formats.block import BlockOrientation, read_block_orientation
+from stereo.formats.cloud import laz_available
 from stereo.formats.points import PointsTable, read_points_csv
 from stereo.pair.model import ground_unit
 from stereo.report.dense import HeightComparison, compare_with_dem
@@ -155,6 +173,23 @@ class SurfaceOptions:
         The matcher's options; default :class:`MatchOptions` with the sub-pixel window radius
         :data:`SURFACE_REFINE_RADIUS` (3), for which the disparity sigma is validated
         (``docs/surface.md``).
+    ortho : bool
+        Write the true orthomosaic ``ortho.tif`` over the fused DSM (needs a block CRS; without one it is
+        left out with a note).
+    keep_orthophotos : bool
+        Keep every image's true orthophoto as ``ortho_<image stem>.tif`` (else they are removed).
+    ortho_compress : str
+        The orthomosaic's compression (:data:`rectify.raster.engine.COMPRESSIONS`; ``jpeg``: JPEG-in-TIFF
+        with a mask); the orthophotos are lossless.
+    balance : {"none", "mean", "reference"}
+        Radiometric balancing of the mosaic (``rectify mosaic --balance``; default as there).
+    feather_px : float
+        Feathering width of the mosaic's seams, output pixels (``rectify mosaic --feather``).
+    cloud : bool
+        Write the point cloud ``points.laz`` (``points.las`` when no LAZ backend is installed).
+    check : path or None
+        Check points (CSV with ``id, x, y, z``; the block control CSV does): the DSM's vertical accuracy
+        statement at them.
     """
 
     images: str | None = None
@@ -174,6 +209,13 @@ class SurfaceOptions:
     orientation_sigma: str = "auto"
     scheduler: str | Scheduler | None = None
     matching: MatchOptions = field(default_factory=lambda: MatchOptions(refine_radius=SURFACE_REFINE_RADIUS))
+    ortho: bool = True
+    keep_orthophotos: bool = False
+    ortho_compress: str = "zstd"
+    balance: str = "none"
+    feather_px: float = 16.0
+    cloud: bool = True
+    check: str | None = None
 
     def __post_init__(self) -> None:
         def num(name: str, lo: float, hi: float = math.inf) -> None:
@@ -209,6 +251,12 @@ class SurfaceOptions:
             Scheduler.parse(self.scheduler)
         elif self.scheduler is not None and not isinstance(self.scheduler, (str, Scheduler)):
             raise InvalidInputError(f"`scheduler` must be a string or a Scheduler; got {self.scheduler!r}")
+        num("feather_px", 0.0, 4096.0)
+        if str(self.ortho_compress).lower() not in COMPRESSIONS:
+            raise InvalidInputError(f"`ortho_compress` must be one of {list(COMPRESSIONS)}; got "
+                                    f"{self.ortho_compress!r}")
+        if self.balance not in BALANCES:
+            raise InvalidInputError(f"`balance` must be one of {list(BALANCES)}; got {self.balance!r}")
         if self.orientation_sigma not in ORIENTATION_SIGMA:
             raise InvalidInputError(f"`orientation_sigma` must be one of {list(ORIENTATION_SIGMA)}; got "
                                     f"{self.orientation_sigma!r}")
@@ -254,6 +302,11 @@ class SurfaceResult:
     overlap_coverage: float = math.nan
     orientation_sigma: str = "none"
     comparison: HeightComparison | None = None
+    le90: tuple[float, float] = (math.nan, math.nan)   # against the reference DEM: from the RMSE, observed
+    mosaic: MosaicResult | None = None
+    ortho_note: str = ""
+    cloud_points: int = 0
+    check: CheckPoints | None = None
 
     def summary_lines(self) -> list[str]:
         unit = ground_unit(self.crs, "map")
@@ -272,7 +325,21 @@ class SurfaceResult:
                   f"coverage of the chosen pairs' overlap (footprints on the mean height): "
                   f"{100 * self.overlap_coverage:.1f}%"]
         if self.comparison is not None:
-            lines.append(self.comparison.summary_line(unit, cell=self.cell))
+            lines.append(self.comparison.summary_line(unit, cell=self.cell) +
+                         f"; LE90 {self.le90[0]:.3g} {unit} (1.6449 RMSE; observed 90th percentile of |dz| "
+                         f"{self.le90[1]:.3g})")
+        if self.check is not None:
+            lines += self.check.summary_lines()
+        if self.mosaic is not None:
+            m = self.mosaic
+            regions = m.plan.regions() if m.plan is not None else 0
+            lines.append(f"orthomosaic: {m.grid.width} x {m.grid.height} px of {m.grid.resolution[0]:.4g} {unit}, "
+                         f"{len(m.inputs)} true orthophotos, seams of the least-transformed image ({regions} "
+                         f"regions), balance {m.balance.mode if m.balance else 'none'}")
+        if self.ortho_note:
+            lines.append(self.ortho_note)
+        if self.cloud_points:
+            lines.append(f"point cloud: {self.cloud_points} points (one per DSM cell) with sigma_z, pair, count")
         lines += [f"outputs in {self.out_dir}: " + ", ".join(p.name for p in self.files),
                   f"time {self.seconds:.1f} s"]
         return lines
@@ -586,12 +653,26 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
     out = Path(out_dir)
     if opts.reference_dem is not None and not Path(opts.reference_dem).is_file():
         raise InvalidInputError(f"reference DEM not found: {str(opts.reference_dem)!r}")
+    if opts.check is not None:
+        read_check_points(opts.check)   # a bad file fails before any work
     ws = Workspace(out, overwrite=overwrite,
-                   inputs=[ofile, *images, *([opts.reference_dem] if opts.reference_dem else [])])
+                   inputs=[ofile, *images, *[q for q in (opts.reference_dem, opts.check) if q is not None]])
     if out.exists() and not out.is_dir():
         raise InvalidInputError(f"output {str(out)!r} exists and is not a folder")
     names = {"dsm": out / "dsm.tif", "pairs": out / "pairs.json"}
-    ws.plan(*names.values())
+    ortho_note = ""
+    do_ortho = opts.ortho and bo.crs is not None
+    if opts.ortho and not do_ortho:
+        ortho_note = "no orthomosaic: the block orientation has no CRS (a mosaic needs one)"
+    if do_ortho:
+        names["ortho"], names["ortho_source"] = out / "ortho.tif", out / "ortho.source.tif"
+    kept = {}
+    if do_ortho and opts.keep_orthophotos:
+        kept = {k: out / f"ortho_{Path(pose.image).stem}.tif" for k, pose in enumerate(bo.poses)}
+    cloud_fmt = "laz" if laz_available() else "las"
+    if opts.cloud:
+        names["cloud"] = out / f"points.{cloud_fmt}"
+    ws.plan(*names.values(), *kept.values())
     # the common grid: the union of the chosen pairs' overlaps on the mean height, with a margin
     boxes = []
     for p in pairs:
@@ -663,7 +744,7 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
             sig_sample: list[NDArray[np.float64]] = []
             full_h = np.full((H, W), DSM_NODATA, np.float32)   # for the overlap coverage and the reference DEM
             full_n = np.zeros((H, W), np.uint16)
-            with ws.output(names["dsm"]) as tmp, TiledWriter(
+            with ws.output(names["dsm"], suffix=".tif") as tmp, TiledWriter(
                     tmp, W, H, len(FUSED_BANDS), "float32", transform, bo.crs, MaskPolicy("nodata", DSM_NODATA),
                     tile=256, descriptions=fused_band_descriptions(heights, opts.k_sigma)) as wr:
                 for r0 in range(0, H, FUSION_ROWS):
@@ -678,6 +759,7 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
                     full_h[r0:r0 + len(ok)] = nodata_of(f.height)
                     full_n[r0:r0 + len(ok)] = np.minimum(f.count, 65535)
             files.append(names["dsm"])
+            dsm_tmp = tmp
             del hs, ss
             coverage = n_valid / float(H * W)
             sg = np.concatenate(sig_sample) if sig_sample else np.zeros(0)
@@ -685,10 +767,43 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
             in_overlap = _overlap_mask(boxes, transform, (H, W))
             ov_cov = float((full_n[in_overlap] > 0).mean()) if in_overlap.any() else math.nan
             comparison = None
+            le90 = (math.nan, math.nan)
             if opts.reference_dem is not None:
-                comparison, _dz = compare_with_dem(
+                comparison, dz = compare_with_dem(
                     DsmResult(full_h, full_n, np.zeros((H, W), bool), transform, bo.crs), opts.reference_dem)
+                adz = np.abs(dz[np.isfinite(dz)])
+                le90 = (LE90_FACTOR * comparison.rmse, float(np.percentile(adz, 90)) if adz.size else math.nan)
+                del dz, adz
             del full_h, full_n
+            unit = ground_unit(bo.crs, "map")
+            check = check_points_accuracy(dsm_tmp, opts.check, unit) if opts.check is not None else None
+            n_cloud = 0
+            if opts.cloud:
+                if progress is not None:
+                    progress("cloud", 0, 1)
+                with ws.output(names["cloud"], suffix=f".{cloud_fmt}") as tmp:
+                    n_cloud = write_cloud(dsm_tmp, tmp, cloud_fmt, bo.crs)
+                files.append(names["cloud"])
+            mos = None
+            if do_ortho:
+                odir = scratch / "orthophotos"
+                odir.mkdir()
+                orthos = write_orthophotos(ofile, [q.image for q in poses], images, dsm_tmp, odir, cell,
+                                           progress=progress)
+                with ws.output(names["ortho"], suffix=".tif") as tmp, \
+                        ws.output(names["ortho_source"], suffix=".tif") as tmp_src:
+                    if progress is not None:
+                        progress("mosaic", 0, 1)
+                    mos = write_orthomosaic(orthos, dsm_tmp, tmp, tmp_src, balance=opts.balance,
+                                            feather_px=opts.feather_px, compress=opts.ortho_compress.lower())
+                files += [names["ortho"], names["ortho_source"]]
+                for k, q in enumerate(orthos):
+                    if k in kept:
+                        with ws.output(kept[k], suffix=".tif") as tmp:
+                            q.replace(tmp)
+                        files.append(kept[k])
+                    else:
+                        q.unlink()
             doc = {
                 "format": SURFACE_FORMAT, "version": 1, "orientation": str(ofile), "crs": bo.crs,
                 "dsm": "dsm.tif", "bands": list(FUSED_BANDS),
@@ -708,8 +823,17 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
                             "variance_factor": factor, "variance_factor_dof": dof_sum,
                             "candidates": len(cands), "candidates_passing": sum(p.passes for p in cands)},
                 "comparison": None if comparison is None else {
-                    "reference_dem": str(opts.reference_dem),
+                    "reference_dem": str(opts.reference_dem), "le90": le90[0], "le90_observed": le90[1],
                     **{k: v for k, v in comparison.__dict__.items() if k != "histogram"}},
+                "check_points": None if check is None else check.to_dict(),
+                "ortho": None if mos is None else {
+                    "file": "ortho.tif", "provenance": "ortho.source.tif", "seams": mos.seams,
+                    "balance": opts.balance, "feather_px": opts.feather_px, "compress": opts.ortho_compress,
+                    "resolution": cell, "images": [q.image for q in poses],
+                    "share": list(mos.share), "kept_orthophotos": [kept[k].name for k in sorted(kept)]},
+                "ortho_note": ortho_note or None,
+                "cloud": None if not opts.cloud else {"file": names["cloud"].name, "points": n_cloud,
+                                                      "extra_dims": ["sigma_z", "pair", "count"]},
             }
             with ws.output(names["pairs"]) as tmp:
                 tmp.write_text(json.dumps(json_safe(doc), indent=2) + "\n", encoding="utf-8")
@@ -719,4 +843,4 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
         raise
     return SurfaceResult(out, tuple(files), tuple(pairs), tuple(stats), cell, gsd, (H, W), coverage, med_sigma,
                          n_rej, bo.crs, time.perf_counter() - t0, len(cands), factor, ov_cov, orient_mode,
-                         comparison)
+                         comparison, le90, mos, ortho_note, n_cloud, check)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import click
 
@@ -14,6 +15,7 @@ from stereo.actions.block import FRAME_KINDS, BlockExports, BlockOptions, run_bl
 from stereo.actions.block_models import ModelMethodOptions
 from stereo.actions.block_projective import ProjectiveBlockOptions, run_block_projective
 from stereo.actions.common import matcher_config
+from stereo.actions.surface import SurfaceOptions, run_surface
 from stereo.block.bundle.adjust import INTERIOR_NAMES, BundleOptions
 from stereo.block.bundle.robust import ROBUST_SCALES
 from stereo.block.bundle.systematic import BORESIGHT_MODES, DRIFT_MODES
@@ -183,6 +185,9 @@ def _ids(text: str) -> tuple[str, ...]:
 @click.option("--orthority", "orthority_dir", type=click.Path(file_okay=False), default=None,
               help="Also write orthority's int_param.yaml and ext_param.geojson (xyz_opk.csv without a projected "
                    "CRS) into this folder.")
+@click.option("--surface", "surface", is_flag=True, default=False,
+              help="Then run `stereo surface` on OUTDIR into OUTDIR/surface (one DSM with sigma_Z, the true "
+                   "orthomosaic, the point cloud; its defaults).")
 @matcher_opts(BLOCK_MATCHER)
 @overwrite_opt
 @handle_errors
@@ -194,7 +199,8 @@ def block(images, camera_path, focal_settings, out_dir, poses_path, control_path
           variance_components, blunder_threshold,
           max_iterations, free_network, lever_arm, boresight, trajectory_path, gnss_drift, boresight_unknown,
           ground_z, pair_strategy, report, rematch, stac,
-          colmap_dir, opensfm_dir, orthority_dir, detector, verify, refine, max_matches, max_keypoints, overwrite):
+          colmap_dir, opensfm_dir, orthority_dir, surface, detector, verify, refine, max_matches, max_keypoints,
+          overwrite):
     """Orient the block IMAGES... (or the measurements of --observations) into OUTDIR: orientation.json,
     poses.csv, points (PLY, CSV, LAS), observations.csv and the report."""
     calib: tuple[str, ...] = ()
@@ -223,6 +229,12 @@ def block(images, camera_path, focal_settings, out_dir, poses_path, control_path
         focal_settings=focal_settings,
         models=ModelMethodOptions(strip_polynomial=strip_polynomial, dependent=dependent_models,
                                   robust=robust != "none"))
+    folders = {str(Path(p).resolve().parent) for p in images}
+    if surface and method in BLOCK_METHODS:
+        raise InvalidInputError(f"--surface needs a metric block (a camera); --method {method} has none")
+    if surface and len(folders) > 1:
+        raise InvalidInputError(f"--surface needs the images in one folder; they are in {len(folders)}: "
+                                f"{sorted(folders)[:2]}")
     if method in BLOCK_METHODS:  # images without a known camera: stereo.actions.block_projective
         if focal_settings is not None:
             raise InvalidInputError(f"--focal-settings goes with a zoom camera; --method {method} is for images "
@@ -244,3 +256,9 @@ def block(images, camera_path, focal_settings, out_dir, poses_path, control_path
                            observations=observations_path)
     for line in result.summary_lines():
         echo(line)
+    if surface:  # stereo surface on the block's output folder (docs/surface.md)
+        with progress("surface") as cb:
+            sres = run_surface(out_dir, Path(out_dir) / "surface", options=SurfaceOptions(images=folders.pop()),
+                               overwrite=overwrite, progress=lambda _stage, done, total: cb(done, total))
+        for line in sres.summary_lines():
+            echo(f"surface: {line}")

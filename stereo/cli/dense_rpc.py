@@ -36,7 +36,8 @@ def _roi(ctx, param, value):
                    "equal tiles (a 700 px ROI gives two tiles of 350 px with 300).")
 @click.option("--dsm-cell", type=float, default=None, help="DSM cell, metres (default: the ground pixel).")
 @click.option("--fill-holes", type=int, default=0, show_default=True,
-              help="Interpolate DSM holes of at most this many cells (flagged in band 3).")
+              help="Interpolate DSM holes of at most this many cells (flagged in band 3); with three or more "
+                   "images, in each pair's DSM file only (the fused DSM is not filled).")
 @click.option("--cloud", type=click.Choice(["las", "laz", "ply", "none"]), default=_D.cloud_format,
               show_default=True, help="Point cloud format.")
 @click.option("--reference-dem", type=click.Path(dir_okay=False), default=None,

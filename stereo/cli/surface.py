@@ -1,10 +1,12 @@
-"""``stereo surface``: a block's orientation -> one fused DSM with sigma_Z, count and provenance bands."""
+"""``stereo surface``: a block's orientation -> one fused DSM (sigma_Z, count, provenance), orthomosaic, point cloud."""
 
 from __future__ import annotations
 
 import click
 
 from rectify.cli.options import echo, handle_errors, overwrite_opt, scheduler_opt
+from rectify.raster.engine import COMPRESSIONS
+from rectify.raster.mosaic import BALANCES
 from stereo.actions.surface import ORIENTATION_SIGMA, SurfaceOptions, run_surface
 
 _D = SurfaceOptions()
@@ -13,7 +15,8 @@ _D = SurfaceOptions()
 @click.command(short_help="One DSM from a block's orientation: stereo pairs, dense matching, robust fusion, sigma_Z.")
 @click.argument("orientation", type=click.Path())
 @click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False),
-              help="Output folder (dsm.tif: height, sigma_Z, count, provenance; pairs.json).")
+              help="Output folder (dsm.tif: height, sigma_Z, count, provenance; pairs.json; ortho.tif and "
+                   "ortho.source.tif; points.laz).")
 @click.option("--images", type=click.Path(file_okay=False), default=None,
               help="Folder of the images named in the orientation [default: the orientation's folder].")
 @click.option("--cell", type=float, default=None,
@@ -39,19 +42,39 @@ _D = SurfaceOptions()
               show_default=True,
               help="The orientation's share of sigma_Z: the block points' height standard errors (points.csv), the "
                    "pose standard errors taken as independent (poses), none; auto: points, else poses, else none.")
+@click.option("--check", type=click.Path(dir_okay=False), default=None,
+              help="Check points (CSV with id,x,y,z; the block control CSV does): the DSM's vertical accuracy "
+                   "statement (RMSE_z with its interval, LE90, ASPRS 2023).")
+@click.option("--ortho/--no-ortho", default=_D.ortho, show_default=True,
+              help="Write the true orthomosaic ortho.tif over the fused DSM (COG; seams of the least-transformed "
+                   "image).")
+@click.option("--keep-orthophotos", is_flag=True, default=False,
+              help="Keep every image's true orthophoto as ortho_<image>.tif.")
+@click.option("--ortho-compress", type=click.Choice(list(COMPRESSIONS)), default=_D.ortho_compress,
+              show_default=True, help="Compression of ortho.tif (jpeg: JPEG-in-TIFF with a mask).")
+@click.option("--balance", type=click.Choice(list(BALANCES)), default=_D.balance, show_default=True,
+              help="Radiometric balancing of the orthomosaic (as rectify mosaic --balance).")
+@click.option("--feather", "feather_px", type=click.FloatRange(0, 4096), default=_D.feather_px, show_default=True,
+              help="Feathering width of the orthomosaic's seams, output pixels.")
+@click.option("--cloud/--no-cloud", default=_D.cloud, show_default=True,
+              help="Write points.laz (points.las without a LAZ backend): one point per DSM cell with sigma_z, "
+                   "pair and count.")
 @scheduler_opt
 @overwrite_opt
 @handle_errors
 def surface(orientation, out_dir, images, cell, ground_z, relief, min_overlap, base_height, angle, pairs_per_area,
-            k_sigma, reference_dem, orientation_sigma, scheduler, overwrite):
-    """Fuse the dense surfaces of a block's stereo pairs into one DSM. ORIENTATION is the output folder of
+            k_sigma, reference_dem, orientation_sigma, check, ortho, keep_orthophotos, ortho_compress, balance,
+            feather_px, cloud, scheduler, overwrite):
+    """Fuse the dense surfaces of a block's stereo pairs into one DSM, then the true orthomosaic over it
+    and the point cloud of it. ORIENTATION is the output folder of
     `stereo block` (its orientation.json) or a block orientation JSON; the images are found by the names
     it records, in --images."""
     opts = SurfaceOptions(images=images, cell=cell, ground_z=ground_z, relief=relief, min_overlap=min_overlap,
                           min_base_height=base_height[0], max_base_height=base_height[1], min_angle_deg=angle[0],
                           max_angle_deg=angle[1], pairs_per_area=pairs_per_area, k_sigma=k_sigma,
                           reference_dem=reference_dem, orientation_sigma=orientation_sigma,
-                          scheduler=scheduler)
+                          scheduler=scheduler, check=check, ortho=ortho, keep_orthophotos=keep_orthophotos,
+                          ortho_compress=ortho_compress, balance=balance, feather_px=feather_px, cloud=cloud)
     result = run_surface(orientation, out_dir, options=opts, overwrite=overwrite)
     for line in result.summary_lines():
         echo(line)

@@ -345,13 +345,19 @@ def _match_window(L: NDArray[np.uint8], R: NDArray[np.uint8], lv: NDArray[np.boo
     d = raw.astype(np.float32) / 16.0
     d[raw < 0] = np.nan
     lve = _erode(lv, opts.border_px)
-    d[~lve] = np.nan
+    if not lve.all():
+        d[~lve] = np.nan
     rows = np.arange(H)[:, None]
     xr = np.arange(W, dtype=np.float32)[None, :] - d
-    ci = np.rint(np.nan_to_num(xr, nan=-1.0)).astype(np.int64)
-    inside = (ci >= 0) & (ci < W)
-    ci = np.clip(ci, 0, W - 1)
-    d[~inside | ~rve[rows, ci]] = np.nan
+    if rve.all() and not two_pass:  # the right pixel's column alone decides (no nodata to look up)
+        rx = np.rint(xr)
+        d[~((rx >= 0) & (rx <= W - 1))] = np.nan
+        ci = None
+    else:
+        ci = np.rint(np.nan_to_num(xr, nan=-1.0)).astype(np.int64)
+        inside = (ci >= 0) & (ci < W)
+        ci = np.clip(ci, 0, W - 1)
+        d[~inside | ~rve[rows, ci]] = np.nan
     if lr_check and opts.lr_max_diff >= 0 and opts.right_check == "collision":
         d[_collisions(d, float(opts.lr_max_diff))] = np.nan
     elif two_pass and np.isfinite(d).any():
@@ -359,6 +365,7 @@ def _match_window(L: NDArray[np.uint8], R: NDArray[np.uint8], lv: NDArray[np.boo
         raw_r = raw_r[:, ::-1][:, pad:pad + W]
         dr = raw_r.astype(np.float32) / 16.0
         dr[raw_r < 0] = np.nan
+        assert ci is not None
         back = dr[rows, ci]
         d[~(np.abs(back - d) <= opts.lr_max_diff)] = np.nan
     d += float(dmin)
@@ -395,7 +402,7 @@ def _fill_holes_half(d: NDArray[np.float32], L: NDArray[np.uint8], R: NDArray[np
     up = np.full((H, W), np.nan, np.float32)
     up[: 2 * size[1], : 2 * size[0]] = cv2.resize(2.0 * dh + float(lo), (2 * size[0], 2 * size[1]),
                                                   interpolation=cv2.INTER_NEAREST)
-    lve = _erode(lv, opts.border_px)
+    lve = _erode(lv, opts.border_px).copy()  # _erode may return ``lv`` itself: never change the caller's mask
     if opts.border_px:  # and away from the window's left and right edges (the sub-pixel step is unsure there)
         lve[:, :opts.border_px] = lve[:, -opts.border_px:] = False
     take = ~np.isfinite(d) & np.isfinite(up) & lve

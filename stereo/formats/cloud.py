@@ -331,6 +331,7 @@ class LasWriter:
         try:
             self._w.close()
         except (OSError, RuntimeError) as err:  # RuntimeError: lazrs.LazrsError
+            self._release()
             self._drop_stage()
             raise RasterIOError(f"cannot write {str(self.path)!r}: {write_failure_reason(err, self.path)}") from err
         if self._stage is not None:
@@ -345,7 +346,15 @@ class LasWriter:
             self._closed = True
             with contextlib.suppress(Exception):
                 self._w.close()
+            self._release()
         self._drop_stage()
+
+    def _release(self) -> None:
+        """Close the file laspy holds (its ``close`` stops before that when a flush fails, e.g. a full disk)."""
+        dest = getattr(self._w, "dest", None)
+        if dest is not None:
+            with contextlib.suppress(Exception):
+                dest.close()
 
     def _drop_stage(self) -> None:
         if self._stage is not None:
@@ -470,50 +479,74 @@ def _fix_extra_bytes_vlr(path: Path, header: laspy.LasHeader) -> None:
 
 
 def _write_copc(stage: Path, path: Path, crs_wkt: str | None) -> None:
-    """Build the COPC octree of the staged LAS ``stage`` and write it to ``path`` (copclib)."""
-    assert copclib is not None
+    """Build the COPC octree of the staged LAS ``stage`` and write it to ``path`` (copclib).
+
+    copclib's writer throws from its C++ destructor when a write has failed (a full disk: "Chunk is
+    too large!", then "LasHeader + VLRs are bigger than offset to point data"), which aborts the whole
+    process. Where the system can fork, the copclib part therefore runs in a child process that
+    reports a failure through a pipe and leaves with ``os._exit`` before any destructor runs.
+    """
     with laspy.open(str(stage)) as rd:
         header = rd.header
-        n = int(header.point_count)
-        offset = int(header.offset_to_point_data)
+    if not hasattr(os, "fork"):  # pragma: no cover - not POSIX
+        _copc_body(stage, path, crs_wkt, header)
+    else:
+        rfd, wfd = os.pipe()
+        pid = os.fork()
+        if pid == 0:  # pragma: no cover - the child (its coverage is not collected)
+            os.close(rfd)
+            try:
+                _copc_body(stage, path, crs_wkt, header)
+            except BaseException as err:  # noqa: BLE001 - reported to the parent, then leave at once
+                os.write(wfd, write_failure_reason(err, path).encode("utf-8", "replace")[:4000])
+                os._exit(1)
+            os._exit(0)
+        os.close(wfd)
+        with os.fdopen(rfd, "rb") as fh:
+            reason = fh.read().decode("utf-8", "replace").strip()
+        _, status = os.waitpid(pid, 0)
+        code = os.waitstatus_to_exitcode(status)
+        if code != 0:
+            reason = reason or f"copclib failed (exit status {code})"
+            if "no space left" not in reason:
+                reason = write_failure_reason(RuntimeError(reason), path)
+            raise RasterIOError(f"cannot write {str(path)!r}: {reason}")
+    if header.point_format.num_extra_bytes:
+        _fix_extra_bytes_vlr(path, header)
+
+
+def _copc_body(stage: Path, path: Path, crs_wkt: str | None, header: laspy.LasHeader) -> None:
+    """The copclib part of :func:`_write_copc` (raises on any failure)."""
+    assert copclib is not None
+    n = int(header.point_count)
     rec_dtype = header.point_format.dtype()
     scales, offsets = [float(s) for s in header.scales], [float(o) for o in header.offsets]
-    eb_size = int(header.point_format.num_extra_bytes)
     wkt = ""
     if crs_wkt:
         with contextlib.suppress(Exception):  # as in the LAS: a CRS that cannot be stored is not fatal
             wkt = parse_crs(crs_wkt).to_wkt()
-    try:
-        cfg = copclib.CopcConfigWriter(POINT_FORMAT, copclib.Vector3(*scales), copclib.Vector3(*offsets), wkt,
-                                       copclib.EbVlr(eb_size))
-        w = copclib.FileWriter(str(path), cfg)
-    except Exception as err:  # noqa: BLE001 - copclib raises RuntimeError with the reason
-        raise RasterIOError(f"cannot write {str(path)!r}: {err}") from err
-    try:
-        if n:
-            recs = np.memmap(stage, dtype=rec_dtype, mode="r", offset=offset, shape=(n,))
-            X, Y, Z = np.array(recs["X"]), np.array(recs["Y"]), np.array(recs["Z"])
-            centre, half, nodes = _octree(X, Y, Z)
-            lo = np.array([X.min(), Y.min(), Z.min()]) * scales + offsets
-            hi = np.array([X.max(), Y.max(), Z.max()]) * scales + offsets
-            del X, Y, Z
-            h = w.copc_config.las_header
-            h.min, h.max = copclib.Vector3(*lo.tolist()), copclib.Vector3(*hi.tolist())
-            info = w.copc_config.copc_info
-            c = centre * scales + offsets
-            info.center_x, info.center_y, info.center_z = (float(v) for v in c)
-            info.halfsize = half * scales[0]
-            info.spacing = 2 * half * scales[0] / COPC_GRID
-            for (d, x, y, z), sel in nodes:
-                data = np.ascontiguousarray(recs[np.sort(sel)]).view(np.int8)
-                w.AddNode(copclib.VoxelKey(d, x, y, z), copclib.VectorChar(data))
-            del recs
-        w.Close()
-    except Exception as err:  # noqa: BLE001 - copclib raises RuntimeError; disk errors arrive as OSError
-        reason = write_failure_reason(err, path) if isinstance(err, OSError) else str(err)
-        raise RasterIOError(f"cannot write {str(path)!r}: {reason}") from err
-    if eb_size:
-        _fix_extra_bytes_vlr(path, header)
+    cfg = copclib.CopcConfigWriter(POINT_FORMAT, copclib.Vector3(*scales), copclib.Vector3(*offsets), wkt,
+                                   copclib.EbVlr(int(header.point_format.num_extra_bytes)))
+    w = copclib.FileWriter(str(path), cfg)
+    if n:
+        recs = np.memmap(stage, dtype=rec_dtype, mode="r", offset=int(header.offset_to_point_data), shape=(n,))
+        X, Y, Z = np.array(recs["X"]), np.array(recs["Y"]), np.array(recs["Z"])
+        centre, half, nodes = _octree(X, Y, Z)
+        lo = np.array([X.min(), Y.min(), Z.min()]) * scales + offsets
+        hi = np.array([X.max(), Y.max(), Z.max()]) * scales + offsets
+        del X, Y, Z
+        h = w.copc_config.las_header
+        h.min, h.max = copclib.Vector3(*lo.tolist()), copclib.Vector3(*hi.tolist())
+        info = w.copc_config.copc_info
+        c = centre * scales + offsets
+        info.center_x, info.center_y, info.center_z = (float(v) for v in c)
+        info.halfsize = half * scales[0]
+        info.spacing = 2 * half * scales[0] / COPC_GRID
+        for (d, x, y, z), sel in nodes:
+            data = np.ascontiguousarray(recs[np.sort(sel)]).view(np.int8)
+            w.AddNode(copclib.VoxelKey(d, x, y, z), copclib.VectorChar(data))
+        del recs
+    w.Close()
 
 
 # ---------------------------------------------------------------------- whole clouds

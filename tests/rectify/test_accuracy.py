@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.testing import assert_allclose
+from scipy.special import chdtri
 
 from rectify.errors import InvalidInputError
 from rectify.geometry.accuracy import AccuracyStatement, ce90, rmse_interval
@@ -97,3 +98,20 @@ def test_bad_options():
         AccuracyStatement.from_errors(E, survey_rmse_h=-1)
     with pytest.raises(InvalidInputError, match=r"confidence level must lie in \(0, 1\); got 1.5"):
         rmse_interval(1.0, 3, 1.5)
+
+
+def test_vertical_only_statement_by_hand():
+    """A DSM's statement at check points: RMSE_z, its chi-square interval and LE90 by hand; no horizontal figure."""
+    ez = np.array([0.1, -0.2, 0.3, 0.05])
+    s = AccuracyStatement.vertical(ez)
+    rz = math.sqrt((0.01 + 0.04 + 0.09 + 0.0025) / 4)
+    assert s.rmse_z == pytest.approx(rz, rel=1e-12) and s.le90 == pytest.approx(1.6448536269514722 * rz)
+    lo, hi = s.interval_z
+    assert lo == pytest.approx(rz * math.sqrt(4 / chdtri(4, 0.025)), rel=1e-9)
+    assert hi == pytest.approx(rz * math.sqrt(4 / chdtri(4, 0.975)), rel=1e-9)
+    assert not s.has_plan and math.isnan(s.rmse_r) and math.isnan(s.ce90)
+    text = "\n".join(s.lines())
+    assert "RMSE_H" not in text and "CE90" not in text and "RMSE_V = 18.9 (cm)" in text
+    assert s.to_dict()["asprs_2023"]["rmse_h"] is None
+    with pytest.raises(InvalidInputError, match=r"\(N,\) array"):
+        AccuracyStatement.vertical(np.zeros((3, 2)))

@@ -76,8 +76,9 @@ def test_hole_pass_fills_a_textured_hole_with_the_right_disparity():
     # off, which brings the 7 x 7 ZNCC of this fine texture below 0.5 at some pixels
     assert np.isfinite(hole).mean() >= 0.85, np.isfinite(hole).mean()
     assert np.nanmax(np.abs(hole - 11.5)) <= 1.0, np.nanmax(np.abs(hole - 11.5))
-    # untouched elsewhere, and off by default
+    # untouched elsewhere (and the masks too), and off by default
     np.testing.assert_array_equal(out[~np.isnan(d)], d[~np.isnan(d)])
+    assert ones.all()
     assert np.isnan(_fill_holes_half(d, L, R, ones, ones, 0, 24, MatchOptions())[40:70, 80:120]).all()
 
 

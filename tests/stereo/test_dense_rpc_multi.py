@@ -25,6 +25,7 @@ from stereo.actions.dense_rpc_multi import MultiRpcOptions, pairs_agreement, run
 from stereo.dense.fusion import FUSED_BANDS
 from stereo.dense.rpc_views import intersection_angle_deg, select_rpc_pairs, viewing_direction
 from tests.support.rpc_synthetic import LAT0, LON0, M_LAT, M_LON, dem, measure, render, triplet
+from tests.support.scripts_support import load_script
 
 SIZE, GSD = 384, 0.5
 #: (dc, dr) px per image of the triplet (forward, nadir, backward): the backward image 2 px along the track
@@ -175,6 +176,17 @@ def test_pairs_agreement_closed_form():
     b[0, 0] = np.nan
     ((i, j, med, nmad, n),) = pairs_agreement([a, b])
     assert (i, j, n) == (0, 1, 15) and med == pytest.approx(0.25) and nmad == 0.0
+
+
+def test_bench_roughness_closed_form():
+    """scripts/bench_satellite.py's roughness: 0 on a quadratic surface (constant second differences), and
+    1.4826 x 4a on a checkerboard of +-a (second differences +-4a, median 0); NaN cells left out."""
+    rough = load_script("bench_satellite").roughness
+    i, j = np.mgrid[0:40, 0:50].astype(float)
+    assert rough(0.01 * i ** 2 + 0.3 * j + 2.0) == pytest.approx(0.0, abs=1e-9)
+    z = 0.25 * (-1.0) ** (i + j)
+    z[5:9, 5:9] = np.nan
+    assert rough(z) == pytest.approx(1.4826 * 4 * 0.25)
 
 
 def test_bad_inputs_write_nothing(scene, tmp_path):

@@ -332,3 +332,17 @@ def test_disk_full_one_line_nothing_left(small_disk, fmt):
         write_cloud(p, chunks, extra_dims=["sigma_z", "pair", "count", ID])
     assert "\n" not in str(info.value) and str(p) in str(info.value)
     assert _leftovers(small_disk) == []
+
+
+def test_copc_disk_full_inside_copclib(small_disk):
+    """The staged LAS fits but the COPC does not: copclib fails mid-write (in a child process, as its
+    destructor would abort the process), one line, nothing left, and this process goes on."""
+    _need("copc")
+    xyz, colors, extra = _scene(3500)        # staging 48 B/point = 168 KB of the 200 KiB disk
+    p = small_disk / "c.copc.laz"
+    with pytest.raises(RasterIOError, match="no space left on device") as info:
+        write_cloud(p, xyz, colors=colors, extra=extra, extra_dims=["sigma_z", "pair", "count", ID])
+    assert "\n" not in str(info.value) and str(p) in str(info.value)
+    assert _leftovers(small_disk) == []
+    write_cloud(small_disk / "small.copc.laz", xyz[:100])   # the process and copclib still work
+    assert len(laspy.read(small_disk / "small.copc.laz").points) == 100
