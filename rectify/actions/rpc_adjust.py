@@ -63,9 +63,9 @@ class RpcAdjustOptions:
     """
 
     model: str = "shift"
-    gcps: Path | None = None
+    gcps: str | Path | None = None
     check: tuple[str, ...] = ()
-    ties: Path | None = None
+    ties: str | Path | None = None
     sigma_px: float = 0.5
     prior_px: float = 10.0
     robust: str = "huber"

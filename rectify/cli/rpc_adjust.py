@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import click
 
 from rectify.actions.rpc_adjust import BIAS_MODELS, ROBUST_METHODS, RpcAdjustOptions
@@ -47,9 +45,9 @@ def rpc_adjust(images, outdir, model, gcps, check, ties, sigma_px, prior_px, rob
     residuals.csv. Prints sigma0, the biases with their standard errors, the check-point accuracy and the
     refit error.
     """
-    opts = RpcAdjustOptions(model=model, gcps=Path(gcps) if gcps else None,
+    opts = RpcAdjustOptions(model=model, gcps=gcps or None,
                             check=tuple(c.strip() for c in check.split(",") if c.strip()),
-                            ties=Path(ties) if ties else None, sigma_px=sigma_px, prior_px=prior_px, robust=robust,
+                            ties=ties or None, sigma_px=sigma_px, prior_px=prior_px, robust=robust,
                             refit_tolerance_px=refit_tolerance_px, max_matches=max_matches)
     ws = Workspace(outdir, overwrite=overwrite, report_dir=report_dir)
     with progress("matching pairs") as cb:

@@ -302,11 +302,12 @@ def _collisions(d: NDArray[np.float32], tol: float) -> NDArray[np.bool_]:
     xr = np.arange(W, dtype=np.float32)[None, :] - d
     xr = np.where(np.isfinite(xr), xr, np.float32(np.inf))
     run = np.minimum.accumulate(xr[:, ::-1], axis=1)[:, ::-1]
-    n1 = np.full_like(run, np.inf)
-    n1[:, :-1] = run[:, 1:]
-    n2 = np.full_like(run, np.inf)
-    n2[:, :-2] = run[:, 2:]
-    return np.asarray((n1 < xr - tol) | (n2 < xr + 0.5))
+    hidden = np.zeros(d.shape, bool)
+    if W > 1:
+        hidden[:, :-1] = run[:, 1:] < xr[:, :-1] - tol
+    if W > 2:
+        hidden[:, :-2] |= run[:, 2:] < xr[:, :-2] + 0.5
+    return hidden
 
 
 def _match_window(L: NDArray[np.uint8], R: NDArray[np.uint8], lv: NDArray[np.bool_], rv: NDArray[np.bool_],

@@ -86,7 +86,8 @@ def test_count_and_provenance_bands_on_a_grid():
     assert f.provenance.tolist() == [[1, 2, 2], [-1, 2, 0]]    # [1, 2]: 2 vs 9, equal sigmas: the lower median
     assert np.isnan(f.height[1, 0]) and np.isnan(f.sigma[1, 0])
     assert f.rejected.tolist() == [[0, 0, 0], [0, 0, 1]]
-    assert_allclose(f.height[1, 1], 4.0) and assert_allclose(f.sigma[1, 1], 0.2)
+    assert_allclose(f.height[1, 1], 4.0)
+    assert_allclose(f.sigma[1, 1], 0.2)
 
 
 @settings(max_examples=40, deadline=None)

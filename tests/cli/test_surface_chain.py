@@ -1,0 +1,195 @@
+"""The block -> one DSM + one orthomosaic + one point cloud chain of ``stereo surface`` and ``stereo block
+--surface`` on rendered blocks with known surface and texture (issue 27)."""
+
+from __future__ import annotations
+
+import errno
+import json
+import math
+
+import cv2
+import laspy
+import numpy as np
+import pytest
+import rasterio
+from click.testing import CliRunner
+
+import stereo.actions.surface_outputs as surface_outputs
+from rectify.geometry.accuracy import AccuracyStatement
+from stereo.cli.main import cli
+from tests.support.block_example import write_example_block
+from tests.support.block_surface import GSD, make_surface_block, read_dsm, truth_on
+
+CRS = "EPSG:32633"
+
+
+@pytest.fixture(scope="module")
+def chain(tmp_path_factory):
+    """A 3 x 4 block (true poses, in a projected CRS) with 40 check points on the terrain, run once through
+    ``stereo surface --check --keep-orthophotos``."""
+    root = tmp_path_factory.mktemp("surface_chain")
+    blk = make_surface_block(root / "o", images=root / "img", supersample=1)
+    doc = json.loads((root / "o" / "orientation.json").read_text())
+    doc["crs"] = CRS
+    (root / "o" / "orientation.json").write_text(json.dumps(doc))
+    rng = np.random.default_rng(3)
+    xy = np.column_stack([rng.uniform(10, 120, 40), rng.uniform(-90, 0, 40)])
+    z = blk.terrain.height(xy) + rng.normal(0, 0.05, 40)      # surveyed heights with 5 cm errors
+    lines = ["id,x,y,z"] + [f"c{i},{x:.4f},{y:.4f},{h:.4f}" for i, ((x, y), h) in enumerate(zip(xy, z, strict=True))]
+    (root / "check.csv").write_text("\n".join(lines) + "\n")
+    out = root / "out"
+    r = CliRunner().invoke(cli, ["surface", str(root / "o"), "-o", str(out), "--images", str(root / "img"),
+                                 "--ground-z", "50", "--check", str(root / "check.csv"), "--keep-orthophotos"])
+    assert r.exit_code == 0, r.output
+    return root, blk, out, r.output, np.column_stack([xy, z])
+
+
+def test_one_dsm_within_half_a_ground_pixel(chain):
+    _root, blk, out, text, _chk = chain
+    bands, tr, _desc = read_dsm(out / "dsm.tif")
+    err = bands[0] - truth_on(tr, bands[0].shape, blk.terrain)
+    ok = np.isfinite(err)
+    assert ok.sum() > 50_000
+    assert np.sqrt(np.mean(err[ok] ** 2)) <= 0.5 * GSD
+    assert "orthomosaic: " in text and "point cloud: " in text
+
+
+def test_orthomosaic_against_the_orthophotos_and_the_texture(chain):
+    """Per 48 px patch taken wholly from one image (provenance), the phase-correlation shift of the mosaic
+    against that image's own true orthophoto (same grid alignment) <= 0.1 px; against the rendered texture
+    (the truth) <= 0.5 px. The mosaic is a COG with overviews and a provenance raster."""
+    _root, blk, out, _text, _chk = chain
+    doc = json.loads((out / "pairs.json").read_text())
+    names = doc["ortho"]["images"]
+    assert sorted(doc["ortho"]["kept_orthophotos"]) == sorted(f"ortho_{n[:-4]}.tif" for n in names)
+    with rasterio.open(out / "ortho.tif") as ds:
+        mos = ds.read(1).astype(np.float64)
+        mt = ds.transform
+        assert ds.overviews(1) and ds.tags()["MOSAIC_SEAMS"] == "normal" and ds.crs.to_string() == CRS
+    with rasterio.open(out / "ortho.source.tif") as ds:
+        src = ds.read(1)
+    assert len(np.unique(src[src > 0])) >= 10                   # most images reach the mosaic
+    P = 48
+    win = cv2.createHanningWindow((P, P), cv2.CV_64F)
+    shifts, truth_shifts = [], []
+    for r0 in range(0, mos.shape[0] - P, P):
+        for c0 in range(0, mos.shape[1] - P, P):
+            s = src[r0:r0 + P, c0:c0 + P]
+            k = int(s[0, 0])
+            if k == 0 or not (s == k).all():
+                continue
+            a = mos[r0:r0 + P, c0:c0 + P]
+            x0, y0 = mt * (c0, r0)
+            with rasterio.open(out / f"ortho_{names[k - 1][:-4]}.tif") as ds:
+                t = ds.transform
+                cc, rr = ~t * (x0, y0)
+                assert abs(cc - round(cc)) < 1e-6 and abs(rr - round(rr)) < 1e-6   # grids aligned
+                b = ds.read(1, window=((round(rr), round(rr) + P), (round(cc), round(cc) + P)), boundless=True,
+                            fill_value=0).astype(np.float64)
+            if (b == 0).any() or a.std() < 3:
+                continue
+            (dx, dy), _ = cv2.phaseCorrelate(a, b, win)
+            shifts.append(math.hypot(dx, dy))
+            cx, cy = np.meshgrid(np.arange(P) + 0.5 + c0, np.arange(P) + 0.5 + r0)
+            gx, gy = mt * (cx.ravel(), cy.ravel())
+            tex = blk.terrain._sample(blk.terrain.texture, np.column_stack([gx, gy])).reshape(P, P)
+            (dx, dy), _ = cv2.phaseCorrelate(a, tex.astype(np.float64) * 255, win)
+            truth_shifts.append(math.hypot(dx, dy))
+    assert len(shifts) >= 20
+    assert max(shifts) <= 0.1, shifts
+    assert np.median(truth_shifts) <= 0.5, truth_shifts
+
+
+def test_one_cloud_with_sigma_z_and_pair(chain):
+    _root, _blk, out, _text, _chk = chain
+    bands, tr, _desc = read_dsm(out / "dsm.tif")
+    las = laspy.read(out / "points.laz")
+    dims = set(las.point_format.extra_dimension_names)
+    assert {"sigma_z", "pair", "count"} <= dims
+    ok = np.isfinite(bands[0])
+    assert len(las.points) == ok.sum()
+    # every point is its DSM cell: centre, height, sigma, pair
+    c, r = ~tr * (np.asarray(las.x), np.asarray(las.y))
+    ci, ri = np.floor(c).astype(int), np.floor(r).astype(int)
+    assert np.allclose(c - ci, 0.5) and np.allclose(r - ri, 0.5)
+    assert np.allclose(np.asarray(las.z), bands[0][ri, ci], atol=1e-3)
+    assert np.allclose(np.asarray(las.sigma_z), bands[1][ri, ci], rtol=1e-6)
+    assert np.array_equal(np.asarray(las.pair), bands[3][ri, ci].astype(int))
+    n_pairs = len(json.loads((out / "pairs.json").read_text())["pairs"])
+    assert np.asarray(las.pair).max() < n_pairs and np.asarray(las.count).min() >= 1
+
+
+def test_check_point_statement_by_hand(chain):
+    """The DSM's vertical statement at the check points: bilinear DSM heights by hand, the errors and the
+    statement's figures from them."""
+    _root, _blk, out, text, chk = chain
+    bands, tr, _desc = read_dsm(out / "dsm.tif")
+    z = bands[0]
+    c, r = ~tr * (chk[:, 0], chk[:, 1])
+    c, r = c - 0.5, r - 0.5
+    c0, r0 = np.floor(c).astype(int), np.floor(r).astype(int)
+    fc, fr = c - c0, r - r0
+    h = ((1 - fr) * ((1 - fc) * z[r0, c0] + fc * z[r0, c0 + 1]) + fr * ((1 - fc) * z[r0 + 1, c0] + fc *
+                                                                         z[r0 + 1, c0 + 1]))
+    ok = np.isfinite(h)
+    assert ok.sum() >= 30
+    e = h[ok] - chk[ok, 2]
+    rz = math.sqrt(np.mean(e ** 2))
+    doc = json.loads((out / "pairs.json").read_text())["check_points"]
+    assert doc["outside"] == int((~ok).sum())
+    st = doc["statement"]
+    assert st["rmse_z"] == pytest.approx(rz, rel=1e-5) and st["rmse_r"] is None
+    assert st["le90"] == pytest.approx(1.6448536269514722 * rz, rel=1e-5)
+    assert st["interval_z" if "interval_z" in st else "rmse_interval"]["z"] == pytest.approx(
+        list(AccuracyStatement.vertical(e).interval_z), rel=1e-5)
+    assert rz <= 0.5 * GSD                          # the DSM within half a pixel at the check points too
+    assert "RMSE_z" in text and "LE90" in text and "RMSE_V" in text and "RMSE_H" not in text
+
+
+def test_disk_full_while_writing_the_orthophotos_leaves_nothing(chain, tmp_path, monkeypatch):
+    root, _blk, _out, _text, _chk = chain
+    real = surface_outputs.orthorectify
+    calls = {"n": 0}
+
+    def full(src, dst, *a, **k):
+        calls["n"] += 1
+        if calls["n"] == 3:                          # the third orthophoto: half written, then the disk is full
+            dst.write_bytes(b"II*\0partial")
+            raise OSError(errno.ENOSPC, "No space left on device", str(dst))
+        return real(src, dst, *a, **k)
+
+    monkeypatch.setattr(surface_outputs, "orthorectify", full)
+    out = tmp_path / "out"
+    r = CliRunner().invoke(cli, ["surface", str(root / "o"), "-o", str(out), "--images", str(root / "img"),
+                                 "--ground-z", "50"])
+    assert r.exit_code != 0 and calls["n"] == 3
+    assert "Traceback" not in r.output and len(r.output.strip().splitlines()) == 1, r.output
+    assert "No space left" in r.output
+    assert not out.exists()
+
+
+def test_bad_chain_options(chain, tmp_path):
+    root, _blk, _out, _text, _chk = chain
+    bad = tmp_path / "bad.csv"
+    bad.write_text("id,x,y\nc1,1,2\n")
+    for args, msg in ((["--check", str(tmp_path / "none.csv")], "check points file not found"),
+                      (["--check", str(bad)], "missing column(s) ['z']")):
+        r = CliRunner().invoke(cli, ["surface", str(root / "o"), "-o", str(tmp_path / "o"), "--images",
+                                     str(root / "img"), *args])
+        assert r.exit_code == 1 and msg in r.output and "Traceback" not in r.output, r.output
+        assert not (tmp_path / "o").exists()
+
+
+def test_stereo_block_with_surface(tmp_path):
+    """``stereo block --surface``: the block adjusted from GNSS poses, then its surface in OUTDIR/surface."""
+    images, _poses, _xyz = write_example_block(tmp_path)
+    out = tmp_path / "out"
+    r = CliRunner().invoke(cli, ["block", *map(str, images), "--camera", str(tmp_path / "camera.json"), "--poses",
+                                 str(tmp_path / "poses.csv"), "--gnss-sigma", "0.05", "--no-report", "--surface",
+                                 "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "surface: DSM: " in r.output and "surface: orthomosaic: " in r.output
+    names = sorted(p.name for p in (out / "surface").iterdir())
+    assert names == ["dsm.tif", "ortho.source.tif", "ortho.tif", "pairs.json", "points.laz"]
+    doc = json.loads((out / "surface" / "pairs.json").read_text())
+    assert doc["orientation_sigma"] == "points" and doc["cloud"]["points"] > 10_000
