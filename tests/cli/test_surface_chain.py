@@ -33,7 +33,7 @@ def chain(tmp_path_factory):
     doc["crs"] = CRS
     (root / "o" / "orientation.json").write_text(json.dumps(doc))
     rng = np.random.default_rng(3)
-    xy = np.column_stack([rng.uniform(10, 120, 40), rng.uniform(-90, 0, 40)])
+    xy = np.column_stack([rng.uniform(0, 70, 40), rng.uniform(-60, 0, 40)])
     z = blk.terrain.height(xy) + rng.normal(0, 0.05, 40)      # surveyed heights with 5 cm errors
     lines = ["id,x,y,z"] + [f"c{i},{x:.4f},{y:.4f},{h:.4f}" for i, ((x, y), h) in enumerate(zip(xy, z, strict=True))]
     (root / "check.csv").write_text("\n".join(lines) + "\n")
@@ -41,7 +41,7 @@ def chain(tmp_path_factory):
     r = CliRunner().invoke(cli, ["surface", str(root / "o"), "-o", str(out), "--images", str(root / "img"),
                                  "--ground-z", "50", "--check", str(root / "check.csv"), "--keep-orthophotos"])
     assert r.exit_code == 0, r.output
-    return root, blk, out, r.output, np.column_stack([xy, z])
+    return root, blk, out, r.output, np.round(np.column_stack([xy, z]), 4)   # as written
 
 
 def test_one_dsm_within_half_a_ground_pixel(chain):
@@ -55,7 +55,7 @@ def test_one_dsm_within_half_a_ground_pixel(chain):
 
 
 def test_orthomosaic_against_the_orthophotos_and_the_texture(chain):
-    """Per 48 px patch taken wholly from one image (provenance), the phase-correlation shift of the mosaic
+    """Per 32 px patch taken wholly from one image (provenance), the phase-correlation shift of the mosaic
     against that image's own true orthophoto (same grid alignment) <= 0.1 px; against the rendered texture
     (the truth) <= 0.5 px. The mosaic is a COG with overviews and a provenance raster."""
     _root, blk, out, _text, _chk = chain
@@ -69,7 +69,7 @@ def test_orthomosaic_against_the_orthophotos_and_the_texture(chain):
     with rasterio.open(out / "ortho.source.tif") as ds:
         src = ds.read(1)
     assert len(np.unique(src[src > 0])) >= 10                   # most images reach the mosaic
-    P = 48
+    P = 32
     win = cv2.createHanningWindow((P, P), cv2.CV_64F)
     shifts, truth_shifts = [], []
     for r0 in range(0, mos.shape[0] - P, P):
@@ -128,9 +128,12 @@ def test_check_point_statement_by_hand(chain):
     c, r = ~tr * (chk[:, 0], chk[:, 1])
     c, r = c - 0.5, r - 0.5
     c0, r0 = np.floor(c).astype(int), np.floor(r).astype(int)
+    inside = (c0 >= 0) & (r0 >= 0) & (c0 + 1 < z.shape[1]) & (r0 + 1 < z.shape[0])
+    c0, r0 = np.where(inside, c0, 0), np.where(inside, r0, 0)
     fc, fr = c - c0, r - r0
     h = ((1 - fr) * ((1 - fc) * z[r0, c0] + fc * z[r0, c0 + 1]) + fr * ((1 - fc) * z[r0 + 1, c0] + fc *
                                                                          z[r0 + 1, c0 + 1]))
+    h[~inside] = np.nan
     ok = np.isfinite(h)
     assert ok.sum() >= 30
     e = h[ok] - chk[ok, 2]
@@ -164,7 +167,7 @@ def test_disk_full_while_writing_the_orthophotos_leaves_nothing(chain, tmp_path,
                                  "--ground-z", "50"])
     assert r.exit_code != 0 and calls["n"] == 3
     assert "Traceback" not in r.output and len(r.output.strip().splitlines()) == 1, r.output
-    assert "No space left" in r.output
+    assert "no space left on device" in r.output.lower()
     assert not out.exists()
 
 
@@ -175,7 +178,7 @@ def test_bad_chain_options(chain, tmp_path):
     for args, msg in ((["--check", str(tmp_path / "none.csv")], "check points file not found"),
                       (["--check", str(bad)], "missing column(s) ['z']")):
         r = CliRunner().invoke(cli, ["surface", str(root / "o"), "-o", str(tmp_path / "o"), "--images",
-                                     str(root / "img"), *args])
+                                     str(root / "img"), "--ground-z", "50", *args])
         assert r.exit_code == 1 and msg in r.output and "Traceback" not in r.output, r.output
         assert not (tmp_path / "o").exists()
 
