@@ -9,6 +9,7 @@ command prints the address, opens the browser and then calls :meth:`ViewSession.
 from __future__ import annotations
 
 import threading
+import webbrowser
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -72,6 +73,10 @@ class ViewSession:
 
     def serve_forever(self) -> None:
         self.server.serve_forever(poll_interval=0.2)
+
+    def open_browser(self, delay_s: float = 0.3) -> None:
+        """Open the page in the user's browser shortly after serving starts (a background timer)."""
+        threading.Timer(delay_s, webbrowser.open, args=(self.url,)).start()
 
     def close(self) -> None:
         """Stop serving (from another thread) and release the port."""

@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import threading
-import webbrowser
-
 import click
 
 from rectify.actions.view import ViewOptions, export_view, start_view
@@ -42,7 +39,7 @@ def run_view(outdir, port, no_browser, images, static_dir, max_tiles, overwrite)
     for line in session.summary_lines():
         echo(line)
     if not no_browser:
-        threading.Timer(0.3, webbrowser.open, args=(session.url,)).start()
+        session.open_browser()
     try:
         session.serve_forever()
     except KeyboardInterrupt:
