@@ -25,7 +25,7 @@ is given with and without them), and resampled bilinearly onto our grid for ours
 
 Usage:
     nice python scripts/bench_satellite.py [--out /tmp/bench_satellite] [--cars /path/to/venv/bin/cars]
-                                           [--no-peer] [--reuse-peer]
+                                           [--no-peer] [--reuse-peer] [--fill-holes N]
 """
 
 from __future__ import annotations
@@ -89,11 +89,11 @@ def read_dsm(path: Path) -> tuple[np.ndarray, Any, str]:
         return z, ds.transform, ds.crs.to_string()
 
 
-def ours(images, out: Path, roi, adjust: bool) -> dict:
+def ours(images, out: Path, roi, adjust: bool, fill_holes: int = 0) -> dict:
     t = time.perf_counter()
     r = run_dense_rpc_multi(images, out, roi=roi, overwrite=True,
-                            options=MultiRpcOptions(adjust=adjust, pair=RpcDenseOptions(cloud_format="none",
-                                                                                        stac=False)))
+                            options=MultiRpcOptions(adjust=adjust, pair=RpcDenseOptions(
+                                cloud_format="none", stac=False, fill_holes=fill_holes)))
     sec = time.perf_counter() - t
     z = np.where(r.dsm.valid, r.dsm.height.astype(np.float64), np.nan)
     mask = roi_mask(z, r.dsm.transform, r.crs, rpc_from_raster(images[0]), roi)
@@ -131,6 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cars", default="cars", help="the CARS command (its own environment)")
     ap.add_argument("--no-peer", action="store_true", help="skip CARS")
     ap.add_argument("--reuse-peer", action="store_true", help="use the CARS DSM of an earlier run in OUT/cars")
+    ap.add_argument("--fill-holes", type=int, default=0, help="ours: interpolate holes of at most N cells")
     a = ap.parse_args(argv)
     if not (a.data / "config.json").is_file():
         print(f"no Pleiades triplet at {a.data}", file=sys.stderr)
@@ -138,10 +139,11 @@ def main(argv: list[str] | None = None) -> int:
     cfg = json.loads((a.data / "config.json").read_text())
     roi = tuple(int(cfg["roi"][k]) for k in ("x", "y", "w", "h"))
     images = [a.data / im["img"] for im in cfg["images"]]  # img_02 (the reference), img_01, img_03
-    print(f"Marseille Pleiades triplet, reference {images[0].name}, ROI {roi}")
+    print(f"Marseille Pleiades triplet, reference {images[0].name}, ROI {roi}"
+          + (f"; ours with --fill-holes {a.fill_holes}" if a.fill_holes else ""))
     res = {}
     for name, adjust in (("before", False), ("after", True)):
-        res[name] = o = ours(images, a.out / f"ours_{name}", roi, adjust)
+        res[name] = o = ours(images, a.out / f"ours_{name}", roi, adjust, a.fill_holes)
         print(f"\nours, {'with' if adjust else 'without'} the RPC adjustment ({o['seconds']:.0f} s"
               + (f", of which the adjustment {o['adjust_seconds']:.0f} s" if adjust else "") + "):")
         if adjust:

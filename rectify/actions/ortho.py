@@ -44,6 +44,7 @@ from rectify.errors import CRSError, InvalidInputError
 from rectify.formats.detect import GCP_PIXEL, input_paths, read_frame_source_any, read_gcp_file
 from rectify.formats.rpc import read_rpc, rpc_from_raster
 from rectify.formats.stac import StacAsset
+from rectify.geometry.accuracy import AccuracyStatement
 from rectify.geometry.crs import (
     VerticalDatum,
     geoid_height,
@@ -187,6 +188,7 @@ class OrthoRun:
                 g = self.ground.get(key)
                 if g:
                     out.append(g["line"])
+                    out.extend(g.get("accuracy_statement", {}).get("lines", ()))
         out += self.result.summary_lines()
         if self.report_files:
             out.append(f"report: {', '.join(str(p) for p in self.report_files)}")
@@ -363,12 +365,17 @@ def ground_errors(model: SensorModel, dem: Dem, gcps: GcpTable, ground: NDArray[
     chk = np.asarray(table.check if table.check is not None else np.zeros(len(ids), bool), dtype=bool)
     out: dict[str, Any] = {}
 
+    vectors: dict[int, NDArray[np.float64]] = {}   # (dx, dy) of the last errors() call, metres
+
     def errors(pixels: NDArray[np.float64], rows: NDArray[np.intp]) -> tuple[NDArray[np.float64], int]:
         g = ground_on_dem(model, dem, pixels)
         ok = np.isfinite(g).all(axis=1)
         d = np.full(len(pixels), np.nan)
+        v = np.full((len(pixels), 2), np.nan)
         if ok.any():
-            d[ok] = _distance(model.crs, g[ok, :2], ground[rows[ok], :2])
+            v[ok] = _error_vectors(model.crs, g[ok, :2], ground[rows[ok], :2])
+            d[ok] = np.hypot(v[ok, 0], v[ok, 1])
+        vectors[0] = v
         return d, int((~ok).sum())
 
     rpc = getattr(model, "rpc", None)
@@ -391,13 +398,18 @@ def ground_errors(model: SensorModel, dem: Dem, gcps: GcpTable, ground: NDArray[
         label = "check points on the orthophoto (placed on the DEM by the model)" if rpc is not None \
             else "GCPs on the orthophoto (placed on the DEM by the frame model)"
         out["check"] = _errors_line(label, [ids[i] for i in sel], d, missed)
+        v = vectors[0]
+        full = np.isfinite(v).all(axis=1)
+        if full.any():   # the check points' planimetric accuracy in the standard forms (issue 27)
+            out["check"]["accuracy_statement"] = AccuracyStatement.from_errors(v[full]).to_dict()
     return out
 
 
-def _distance(crs: str, a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Horizontal distances (m) between points a and b of a CRS (in the UTM zone of b's centre when not metric)."""
+def _error_vectors(crs: str, a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Horizontal error vectors a - b (m, east and north) between points of a CRS (in the UTM zone of b's centre
+    when the CRS is not metric)."""
     both = _metric(crs, np.vstack([b, a]))
-    return np.hypot(*(both[len(b):] - both[:len(b)]).T)
+    return np.asarray(both[len(b):] - both[:len(b)], dtype=np.float64)
 
 
 def _height_check(ground: NDArray[np.float64], crs: str, dem: Dem, has_z: bool) -> str | None:

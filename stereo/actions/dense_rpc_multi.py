@@ -74,12 +74,12 @@ from rectify.geometry.rpc_adjust import (
 from rectify.raster.io import MaskPolicy, TiledWriter, raster_info
 from rectify.report.builder import json_safe
 from stereo.actions.dense_rpc import RpcDenseOptions, RpcDenseResult, roi_statistics, run_dense_rpc
-from stereo.dense.dsm import DSM_NODATA, DsmResult
+from stereo.dense.dsm import DSM_NODATA, DsmResult, _fill_holes
 from stereo.dense.fusion import FUSED_BANDS, fuse_heights, fused_band_descriptions, nodata_of, variance_factor
 from stereo.dense.rpc_views import PairCandidate, select_rpc_pairs
 from stereo.report.dense import HeightComparison, compare_with_dem, save_histogram, save_picture
 
-__all__ = ["MultiRpcOptions", "MultiRpcResult", "pairs_agreement", "run_dense_rpc_multi"]
+__all__ = ["MultiRpcOptions", "MultiRpcResult", "fill_fused_holes", "pairs_agreement", "run_dense_rpc_multi"]
 
 StrPath = str | Path
 Progress = Callable[[str, int, int], None]
@@ -94,7 +94,9 @@ class MultiRpcOptions:
     ----------
     pair : RpcDenseOptions
         The pair chain's options (``pair_sigma``, ``stac``, the cloud and the reference DEM are set by the
-        multi-view run; ``dsm_cell`` None: the first pair's default cell for all).
+        multi-view run; ``dsm_cell`` None: the first pair's default cell for all). Its ``fill_holes`` also
+        fills the fused DSM's holes of at most that many cells (:func:`fill_fused_holes`): a height there,
+        sigma_Z nodata, count 0, provenance -1.
     adjust : bool
         Run the RPC block adjustment first.
     bias_model : ``"shift"`` or ``"affine"``
@@ -215,7 +217,9 @@ class MultiRpcResult:
                      f"({self.crs}, heights {HEIGHTS}), {100 * self.roi_stats['coverage']:.1f}% of the ROI cells have "
                      f"a height, median {self.roi_stats['median_m']:.1f} m, 1-99% {self.roi_stats['p01_m']:.1f}-"
                      f"{self.roi_stats['p99_m']:.1f} m; median sigma_Z {self.median_sigma_z:.3f} m (variance factor "
-                     f"{self.variance_factor:.2f})")
+                     f"{self.variance_factor:.2f})"
+                     + (f"; {int(self.dsm.filled.sum())} cells interpolated over holes (--fill-holes)"
+                        if self.dsm.filled.any() else ""))
         if self.comparison is not None:
             lines.append(self.comparison.summary_line(cell=self.cell)
                          + " (the reference DEM's heights taken as they are: the DSM's are ellipsoidal)")
@@ -239,6 +243,17 @@ def pairs_agreement(heights: Sequence[NDArray[np.float64]]) -> list[tuple[int, i
             d = d[np.isfinite(d)]
             out.append((a, b, float(np.median(d)) if len(d) else float("nan"), _nmad(d), int(len(d))))
     return out
+
+
+def fill_fused_holes(height: NDArray[np.float64], max_cells: int) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Holes (NaN) of at most ``max_cells`` cells enclosed by heights, interpolated from their rim (the DSM
+    grid's harmonic fill, :meth:`stereo.dense.dsm.DsmGrid.result`); returns the heights and the filled mask
+    (H, W). Holes touching the grid's border are left."""
+    has = np.isfinite(height)
+    if max_cells <= 0 or not has.any() or has.all():
+        return height, np.zeros(height.shape, bool)
+    hf, filled = _fill_holes(np.where(has, height, 0.0), has, max_cells)
+    return np.where(filled, hf, height), filled
 
 
 def _union(transforms: Sequence[Any], shapes: Sequence[tuple[int, int]], cell: float
@@ -435,7 +450,8 @@ def _run(paths: list[Path], names: list[str], stems: list[str], rpcs: list[RPC],
         agreement = pairs_agreement(list(hs))
         del hs, ss
         count = fused.count.astype(np.uint16)
-        dsm = DsmResult(nodata_of(fused.height), count, np.zeros((H, W), bool), transform, crs, heights=HEIGHTS)
+        height, filled = fill_fused_holes(fused.height, o.pair.fill_holes)
+        dsm = DsmResult(nodata_of(height), count, filled, transform, crs, heights=HEIGHTS)
         stats = roi_statistics(dsm, rpcs[0], box, crs)
         ok = np.isfinite(fused.sigma)
         med_sigma = float(np.median(fused.sigma[ok])) if ok.any() else float("nan")
@@ -450,7 +466,7 @@ def _run(paths: list[Path], names: list[str], stems: list[str], rpcs: list[RPC],
                 with ws.output(out / "dsm.tif") as tmp, TiledWriter(
                         tmp, W, H, len(FUSED_BANDS), "float32", transform, crs, MaskPolicy("nodata", DSM_NODATA),
                         tile=256, descriptions=fused_band_descriptions(HEIGHTS, o.k_sigma)) as wr:
-                    wr.write(np.dstack([nodata_of(fused.height), nodata_of(fused.sigma),
+                    wr.write(np.dstack([nodata_of(height), nodata_of(fused.sigma),
                                         fused.count.astype(np.float32), fused.provenance.astype(np.float32)]), 0, 0)
                 files.append(out / "dsm.tif")
                 for k, name in enumerate(pair_names):
@@ -525,7 +541,7 @@ def _document(names: list[str], paths: list[Path], cands: list[PairCandidate], k
         "dsm": {"file": "dsm.tif", "bands": list(FUSED_BANDS), "width": int(dsm.height.shape[1]),
                 "height": int(dsm.height.shape[0]), "transform": list(dsm.transform)[:6], "heights": HEIGHTS,
                 "roi": stats, "median_sigma_z_m": med_sigma, "variance_factor": factor, "k_sigma": o.k_sigma,
-                "rejected_heights": rejected},
+                "rejected_heights": rejected, "filled_cells": int(dsm.filled.sum())},
         "comparison": None if comparison is None else {
             "reference_dem": str(o.reference_dem),
             **{k: v for k, v in comparison.__dict__.items() if k != "histogram"}},

@@ -62,7 +62,7 @@ def write_orthophotos(orientation: Path, names: list[str], images: list[Path], d
     only (the visibility band must stay exact; the mosaic may be JPEG).
     """
     dem = Dem.from_path(dsm)
-    out = []
+    out: list[Path] = []
     seen: set[str] = set()
     for name, img in zip(names, images, strict=True):
         if progress is not None:

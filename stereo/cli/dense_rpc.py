@@ -37,7 +37,7 @@ def _roi(ctx, param, value):
 @click.option("--dsm-cell", type=float, default=None, help="DSM cell, metres (default: the ground pixel).")
 @click.option("--fill-holes", type=int, default=0, show_default=True,
               help="Interpolate DSM holes of at most this many cells (flagged in band 3); with three or more "
-                   "images, in each pair's DSM file only (the fused DSM is not filled).")
+                   "images in each pair's DSM and the fused one (there: sigma_Z nodata, count 0, provenance -1).")
 @click.option("--cloud", type=click.Choice(["las", "laz", "ply", "none"]), default=_D.cloud_format,
               show_default=True, help="Point cloud format.")
 @click.option("--reference-dem", type=click.Path(dir_okay=False), default=None,

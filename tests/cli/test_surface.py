@@ -43,7 +43,7 @@ def test_surface_end_to_end(block, tmp_path):
     r = _run(root / "orient", "-o", out, "--images", root / "images")
     assert r.exit_code == 0, r.output
     assert "pairs: " in r.output and "DSM: " in r.output and "variance factor" in r.output
-    assert sorted(p.name for p in out.iterdir()) == ["dsm.tif", "pairs.json"]
+    assert sorted(p.name for p in out.iterdir()) == ["dsm.tif", "pairs.json", "points.laz"]   # no CRS: no mosaic
     bands, tr, desc = read_dsm(out / "dsm.tif")
     err = bands[0] - truth_on(tr, bands[0].shape, blk.terrain)
     ok = np.isfinite(err)

@@ -205,6 +205,26 @@ def test_frame_gcp_check_in_metres(block):
     assert _number(r"GCPs on the orthophoto .*?: RMSE ([0-9.]+) m", r.output) < 0.01
 
 
+def test_frame_gcp_check_accuracy_statement(block):
+    """Issue 27: the orthophoto's check points are stated in the standard forms: GCPs moved by a known
+    (+0.30 m, -0.20 m) give RMSE_x 0.30 m, RMSE_y 0.20 m, RMSE_r 0.36 m and the ASPRS sentence."""
+    d = block
+    with rasterio.open(d / "frame.tif") as ds:
+        bands = ds.read()
+    px = np.array([[10, 12], [100, 15], [60, 50], [15, 85], [105, 88]])
+    rows = [f"c{i},{c},{r},{float(bands[0, r, c]) + E0 + 0.3!r},{float(bands[1, r, c]) + N0 - 0.2!r}"
+            for i, (c, r) in enumerate(px.tolist())]
+    (d / "gcps_moved.csv").write_text("\n".join([f"# crs={CRS}", "id,col,row,x,y", *rows]) + "\n")
+    r = _run(d / "frame.tif", "--camera", d / "cam.json", "--exterior", d / "eo.json", "--dem", d / "dem.tif",
+             "--gcps", d / "gcps_moved.csv", "-o", d / "o2.tif", "--resolution", "1")
+    assert r.exit_code == 0, r.output
+    assert "accuracy statement from 5 check points (m;" in r.output
+    assert abs(_number(r"  x: mean ([-+0-9.]+),", r.output) + 0.3) < 0.01
+    assert abs(_number(r"  y: mean ([-+0-9.]+),", r.output) - 0.2) < 0.01
+    assert abs(_number(r"RMSE_r ([0-9.]+) m", r.output) - np.hypot(0.3, 0.2)) < 0.01
+    assert "RMSE_H = 36" in r.output and "produced to meet" in r.output
+
+
 # =========================================================================== item 3: the DEM's declared datum
 def test_dem_declaring_egm2008_without_its_grid_is_refused(scene):
     from pyproj.transformer import TransformerGroup

@@ -21,7 +21,7 @@ from rectify.errors import InvalidInputError, StereoError
 from rectify.geometry.crs import transform_xy
 from rectify.geometry.rpc import RPC
 from stereo.actions.dense_rpc import RpcDenseOptions
-from stereo.actions.dense_rpc_multi import MultiRpcOptions, pairs_agreement, run_dense_rpc_multi
+from stereo.actions.dense_rpc_multi import MultiRpcOptions, fill_fused_holes, pairs_agreement, run_dense_rpc_multi
 from stereo.dense.fusion import FUSED_BANDS
 from stereo.dense.rpc_views import intersection_angle_deg, select_rpc_pairs, viewing_direction
 from tests.support.rpc_synthetic import LAT0, LON0, M_LAT, M_LON, dem, measure, render, triplet
@@ -263,3 +263,20 @@ def test_a_pair_without_points_is_left_out(scene, tmp_path):
     ok = h != -9999.0
     assert ok.mean() > 0.5 and (c[ok] == 1).all() and (p[ok] == 0).all()
     assert not (tmp_path / "o" / "pair_view1__blank_dsm.tif").exists()
+
+
+def test_fill_fused_holes_closed_form():
+    """An enclosed 3 x 2 hole in a plane is filled with the plane (the harmonic fill reproduces a linear
+    surface); a hole larger than the limit and one touching the border are left."""
+    i, j = np.mgrid[0:20, 0:30].astype(float)
+    plane = 100.0 + 0.5 * i - 0.25 * j
+    z = plane.copy()
+    z[5:8, 10:12] = np.nan      # 6 cells
+    z[12:17, 20:26] = np.nan    # 30 cells
+    z[0:2, 0:3] = np.nan        # on the border
+    got, filled = fill_fused_holes(z, 10)
+    assert filled.sum() == 6 and filled[5:8, 10:12].all()
+    assert np.abs(got[5:8, 10:12] - plane[5:8, 10:12]).max() < 1e-3
+    assert np.isnan(got[12:17, 20:26]).all() and np.isnan(got[0:2, 0:3]).all()
+    same, none = fill_fused_holes(z, 0)
+    assert not none.any() and np.array_equal(np.isnan(same), np.isnan(z))
