@@ -190,6 +190,8 @@ class SurfaceOptions:
     check : path or None
         Check points (CSV with ``id, x, y, z``; the block control CSV does): the DSM's vertical accuracy
         statement at them.
+    check_ids : tuple of str
+        Only these ids of ``check`` (``stereo block --check``'s); default all.
     """
 
     images: str | None = None
@@ -216,6 +218,7 @@ class SurfaceOptions:
     feather_px: float = 16.0
     cloud: bool = True
     check: str | None = None
+    check_ids: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         def num(name: str, lo: float, hi: float = math.inf) -> None:
@@ -654,7 +657,7 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
     if opts.reference_dem is not None and not Path(opts.reference_dem).is_file():
         raise InvalidInputError(f"reference DEM not found: {str(opts.reference_dem)!r}")
     if opts.check is not None:
-        read_check_points(opts.check)   # a bad file fails before any work
+        read_check_points(opts.check, tuple(opts.check_ids))   # a bad file fails before any work
     ws = Workspace(out, overwrite=overwrite,
                    inputs=[ofile, *images, *[q for q in (opts.reference_dem, opts.check) if q is not None]])
     if out.exists() and not out.is_dir():
@@ -776,7 +779,9 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
                 del dz, adz
             del full_h, full_n
             unit = ground_unit(bo.crs, "map")
-            check = check_points_accuracy(dsm_tmp, opts.check, unit) if opts.check is not None else None
+            check = None
+            if opts.check is not None:
+                check = check_points_accuracy(dsm_tmp, opts.check, unit, tuple(opts.check_ids))
             n_cloud = 0
             if opts.cloud:
                 if progress is not None:
@@ -786,9 +791,10 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
                 files.append(names["cloud"])
             mos = None
             if do_ortho:
+                ortho_px = default_cell(gsd)   # the images' ground pixel, whatever the DSM cell
                 odir = scratch / "orthophotos"
                 odir.mkdir()
-                orthos = write_orthophotos(ofile, [q.image for q in poses], images, dsm_tmp, odir, cell,
+                orthos = write_orthophotos(ofile, [q.image for q in poses], images, dsm_tmp, odir, ortho_px,
                                            progress=progress)
                 with ws.output(names["ortho"], suffix=".tif") as tmp, \
                         ws.output(names["ortho_source"], suffix=".tif") as tmp_src:
@@ -829,7 +835,7 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
                 "ortho": None if mos is None else {
                     "file": "ortho.tif", "provenance": "ortho.source.tif", "seams": mos.seams,
                     "balance": opts.balance, "feather_px": opts.feather_px, "compress": opts.ortho_compress,
-                    "resolution": cell, "images": [q.image for q in poses],
+                    "resolution": ortho_px, "images": [q.image for q in poses],
                     "share": list(mos.share), "kept_orthophotos": [kept[k].name for k in sorted(kept)]},
                 "ortho_note": ortho_note or None,
                 "cloud": None if not opts.cloud else {"file": names["cloud"].name, "points": n_cloud,

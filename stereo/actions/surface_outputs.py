@@ -154,22 +154,31 @@ class CheckPoints:
                 "statement": None if self.statement is None else self.statement.to_dict()}
 
 
-def read_check_points(path: StrPath) -> tuple[tuple[str, ...], NDArray[np.float64]]:
+def read_check_points(path: StrPath, ids: tuple[str, ...] = ()) -> tuple[tuple[str, ...], NDArray[np.float64]]:
     """Check points of a CSV with the columns ``id, x, y, z`` (a plain table, or the block control CSV whose
-    ids repeat per image measurement: each id once). Ids whose rows differ in x, y, z are refused."""
+    ids repeat per image measurement: each id once; rows of empty x, y, z, tie points, skipped). Ids whose
+    rows differ in x, y, z are refused. ``ids``: only these (all of them must be in the file; default all).
+    Returns (ids, xyz (N, 3))."""
     p = Path(path)
     if not p.is_file():
         raise InvalidInputError(f"check points file not found: {str(path)!r}")
     with TableReader(p) as t:
         need_columns(list(t.fields), ("id", "x", "y", "z"), p)
-        cols = t.read("rows", numbers=("x", "y", "z"), texts=("id",))
+        cols = t.read("rows", numbers=("x", "y", "z"), texts=("id",), empty=("x", "y", "z"))
     xyz = np.column_stack([cols.numbers["x"], cols.numbers["y"], cols.numbers["z"]])
     first: dict[str, int] = {}
     for k, i in enumerate(cols.texts["id"]):
+        if not np.isfinite(xyz[k]).all():     # a tie point of a control file (empty x, y, z)
+            continue
         j = first.setdefault(i, k)
         if j != k and not np.allclose(xyz[j], xyz[k], rtol=0, atol=1e-6):
             raise InvalidInputError(f"{str(path)!r}: check point {i!r} has two positions {xyz[j].tolist()} and "
                                     f"{xyz[k].tolist()}")
+    if ids:
+        missing = [i for i in ids if i not in first]
+        if missing:
+            raise InvalidInputError(f"{str(path)!r}: check point(s) {missing} not in the file (with x, y, z)")
+        first = {i: first[i] for i in ids}
     if not first:
         raise InvalidInputError(f"{str(path)!r} holds no check point")
     keep = list(first.values())
@@ -201,9 +210,9 @@ def heights_at(dsm: StrPath, xy: NDArray[np.float64]) -> NDArray[np.float64]:
     return out
 
 
-def check_points_accuracy(dsm: StrPath, path: StrPath, units: str = "m") -> CheckPoints:
-    """The DSM against the check points of ``path`` (:func:`read_check_points`)."""
-    ids, xyz = read_check_points(path)
+def check_points_accuracy(dsm: StrPath, path: StrPath, units: str = "m", ids: tuple[str, ...] = ()) -> CheckPoints:
+    """The DSM against the check points of ``path`` (:func:`read_check_points`; ``ids``: only these)."""
+    ids, xyz = read_check_points(path, ids)
     z = heights_at(dsm, xyz[:, :2])
     ok = np.isfinite(z)
     st = AccuracyStatement.vertical(z[ok] - xyz[ok, 2], units=units) if ok.any() else None

@@ -16,6 +16,7 @@ from stereo.actions.block_models import ModelMethodOptions
 from stereo.actions.block_projective import ProjectiveBlockOptions, run_block_projective
 from stereo.actions.common import matcher_config
 from stereo.actions.surface import SurfaceOptions, run_surface
+from stereo.actions.surface_outputs import read_check_points
 from stereo.block.bundle.adjust import INTERIOR_NAMES, BundleOptions
 from stereo.block.bundle.robust import ROBUST_SCALES
 from stereo.block.bundle.systematic import BORESIGHT_MODES, DRIFT_MODES
@@ -187,7 +188,7 @@ def _ids(text: str) -> tuple[str, ...]:
                    "CRS) into this folder.")
 @click.option("--surface", "surface", is_flag=True, default=False,
               help="Then run `stereo surface` on OUTDIR into OUTDIR/surface (one DSM with sigma_Z, the true "
-                   "orthomosaic, the point cloud; its defaults).")
+                   "orthomosaic, the point cloud; its defaults; the --check points of a control CSV check the DSM).")
 @matcher_opts(BLOCK_MATCHER)
 @overwrite_opt
 @handle_errors
@@ -235,6 +236,13 @@ def block(images, camera_path, focal_settings, out_dir, poses_path, control_path
     if surface and len(folders) > 1:
         raise InvalidInputError(f"--surface needs the images in one folder; they are in {len(folders)}: "
                                 f"{sorted(folders)[:2]}")
+    surface_check, check_note = None, ""
+    if surface and opts.check_ids and control_path is not None:  # the block's check points check the DSM too
+        try:
+            read_check_points(control_path, opts.check_ids)
+            surface_check = control_path
+        except InvalidInputError as err:   # another control format (ODM, Metashape): the block still uses it
+            check_note = f"no DSM check at the check points: {err}"
     if method in BLOCK_METHODS:  # images without a known camera: stereo.actions.block_projective
         if focal_settings is not None:
             raise InvalidInputError(f"--focal-settings goes with a zoom camera; --method {method} is for images "
@@ -258,7 +266,9 @@ def block(images, camera_path, focal_settings, out_dir, poses_path, control_path
         echo(line)
     if surface:  # stereo surface on the block's output folder (docs/surface.md)
         with progress("surface") as cb:
-            sres = run_surface(out_dir, Path(out_dir) / "surface", options=SurfaceOptions(images=folders.pop()),
-                               overwrite=overwrite, progress=lambda _stage, done, total: cb(done, total))
-        for line in sres.summary_lines():
+            sopts = SurfaceOptions(images=folders.pop(), check=surface_check,
+                                   check_ids=opts.check_ids if surface_check else ())
+            sres = run_surface(out_dir, Path(out_dir) / "surface", options=sopts, overwrite=overwrite,
+                               progress=lambda _stage, done, total: cb(done, total))
+        for line in sres.summary_lines() + ([check_note] if check_note else []):
             echo(f"surface: {line}")

@@ -12,11 +12,17 @@ import laspy
 import numpy as np
 import pytest
 import rasterio
+from affine import Affine
 from click.testing import CliRunner
 
 import stereo.actions.surface_outputs as surface_outputs
+from rectify.errors import InvalidInputError
+from rectify.formats.orthority import read_ext_param, read_int_param
 from rectify.geometry.accuracy import AccuracyStatement
+from rectify.raster.io import write_raster
+from stereo.block.types import Pose
 from stereo.cli.main import cli
+from stereo.formats.block import block_orientation_text
 from tests.support.block_example import write_example_block
 from tests.support.block_surface import GSD, make_surface_block, read_dsm, truth_on
 
@@ -189,10 +195,102 @@ def test_stereo_block_with_surface(tmp_path):
     out = tmp_path / "out"
     r = CliRunner().invoke(cli, ["block", *map(str, images), "--camera", str(tmp_path / "camera.json"), "--poses",
                                  str(tmp_path / "poses.csv"), "--gnss-sigma", "0.05", "--no-report", "--surface",
-                                 "-o", str(out)])
+                                 "--control", str(tmp_path / "control.csv"), "--check", "C1,C6,C10",
+                                 "--control-sigma", "0.01", "-o", str(out)])
     assert r.exit_code == 0, r.output
     assert "surface: DSM: " in r.output and "surface: orthomosaic: " in r.output
+    # the block's check points check the DSM as well
+    chk = json.loads((out / "surface" / "pairs.json").read_text())["check_points"]
+    assert [p["id"] for p in chk["points"]] == ["C1", "C6", "C10"]
+    assert "surface: check points control.csv: 3" in r.output
     names = sorted(p.name for p in (out / "surface").iterdir())
     assert names == ["dsm.tif", "ortho.source.tif", "ortho.tif", "pairs.json", "points.laz"]
     doc = json.loads((out / "surface" / "pairs.json").read_text())
     assert doc["orientation_sigma"] == "points" and doc["cloud"]["points"] > 10_000
+
+
+@pytest.mark.shared
+def test_ngi_pair_as_a_block_of_two_through_the_chain(ngi_pair, tmp_path):
+    """The NGI pair as a block of two (orthority's AT orientations) -> DSM against dem.tif, the orthomosaic
+    against the two single true orthophotos, the cloud (figures in docs/surface.md)."""
+    cams = read_int_param(ngi_pair / "orthority_int_param.yaml")
+    ext = read_ext_param(ngi_pair / "orthority_ext_param.geojson")
+    poses = [Pose(name, e["camera"] or next(iter(cams)), np.asarray(e["position"]), np.asarray(e["rotation"]))
+             for name, e in ext.items()]
+    (tmp_path / "o").mkdir()
+    (tmp_path / "o" / "orientation.json").write_text(
+        block_orientation_text(cams, poses, crs=next(iter(ext.values()))["crs"]))
+    out = tmp_path / "out"
+    r = CliRunner().invoke(cli, ["surface", str(tmp_path / "o"), "-o", str(out), "--images", str(ngi_pair),
+                                 "--ground-z", "429.33", "--reference-dem", str(ngi_pair / "dem.tif"),
+                                 "--keep-orthophotos"])
+    assert r.exit_code == 0, r.output
+    doc = json.loads((out / "pairs.json").read_text())
+    cmp = doc["comparison"]
+    # measured: RMSE 5.19 m, NMAD 3.88 m, coverage 80.7 %, LE90 8.54 m (observed 7.60 m)
+    assert cmp["rmse"] <= 9.0 and cmp["nmad"] <= 5.0 and cmp["coverage"] >= 0.7 and cmp["le90"] <= 15.0, cmp
+    names = doc["ortho"]["images"]
+    with rasterio.open(out / "ortho.tif") as ds:
+        mos = ds.read(1).astype(np.float64)
+        mt = ds.transform
+    with rasterio.open(out / "ortho.source.tif") as ds:
+        src = ds.read(1)
+    P = 32
+    win = cv2.createHanningWindow((P, P), cv2.CV_64F)
+    shifts = []
+    for r0 in range(0, mos.shape[0] - P, P):
+        for c0 in range(0, mos.shape[1] - P, P):
+            s = src[r0:r0 + P, c0:c0 + P]
+            k = int(s[0, 0])
+            if k == 0 or not (s == k).all():
+                continue
+            with rasterio.open(out / f"ortho_{names[k - 1]}.tif") as ds:
+                cc, rr = ~ds.transform * (mt * (c0, r0))
+                b = ds.read(1, window=((round(rr), round(rr) + P), (round(cc), round(cc) + P)), boundless=True,
+                            fill_value=0).astype(np.float64)
+            a = mos[r0:r0 + P, c0:c0 + P]
+            if (b == 0).any() or a.std() < 3:
+                continue
+            (dx, dy), _ = cv2.phaseCorrelate(a, b, win)
+            shifts.append(math.hypot(dx, dy))
+    assert len(shifts) >= 20 and max(shifts) <= 0.1, shifts     # measured: 45 patches, max 0.004 px
+    las = laspy.read(out / "points.laz")
+    assert len(las.points) == cmp["n"] and {"sigma_z", "pair"} <= set(las.point_format.extra_dimension_names)
+
+
+def test_stereo_block_surface_refused_before_work(tmp_path):
+    """--surface with a projective method (no metric block) or images in two folders: refused before any work."""
+    images, _poses, _xyz = write_example_block(tmp_path)
+    other = tmp_path / "b"
+    other.mkdir()
+    moved = other / images[-1].name
+    images[-1].rename(moved)
+    for args, msg in (([*map(str, images[:-1]), "--method", "affine"], "--surface needs a metric block"),
+                      ([*map(str, images[:-1]), str(moved), "--camera", str(tmp_path / "camera.json")],
+                       "--surface needs the images in one folder")):
+        r = CliRunner().invoke(cli, ["block", *args, "--surface", "-o", str(tmp_path / "out")])
+        assert r.exit_code == 1 and msg in r.output and "Traceback" not in r.output, r.output
+        assert not (tmp_path / "out").exists()
+
+
+def test_dsm_heights_at_points_reproduce_a_plane(tmp_path):
+    """Bilinear heights reproduce a plane exactly; a point next to a cell of no height or off the grid is NaN;
+    a check point id with two positions is refused."""
+    H, W = 40, 50
+    cc, rr = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    t = Affine(0.5, 0, 100.0, 0, -0.5, 200.0)
+    x, y = t.c + t.a * cc, t.f + t.e * rr
+    z = 10 + 0.3 * x - 0.2 * y
+    z[30, 40] = -9999.0
+    bands = np.dstack([z, np.full_like(z, 0.1), np.ones_like(z), np.zeros_like(z)]).astype(np.float32)
+    write_raster(tmp_path / "d.tif", bands, t, CRS, nodata=-9999.0)
+    rng = np.random.default_rng(0)
+    pts = np.column_stack([rng.uniform(101, 118, 200), rng.uniform(183, 199, 200)])
+    h = surface_outputs.heights_at(tmp_path / "d.tif", pts)
+    assert np.allclose(h, 10 + 0.3 * pts[:, 0] - 0.2 * pts[:, 1], atol=2e-5)
+    xy_hole = t * (40.5 + 0.3, 30.5 - 0.2)
+    off = (t.c - 1.0, 190.0)
+    assert np.isnan(surface_outputs.heights_at(tmp_path / "d.tif", np.array([xy_hole, off]))).all()
+    (tmp_path / "c.csv").write_text("id,x,y,z\na,110,190,1\na,110,190.5,1\n")
+    with pytest.raises(InvalidInputError, match="check point 'a' has two positions"):
+        surface_outputs.read_check_points(tmp_path / "c.csv")
