@@ -641,7 +641,7 @@ def _match_whole(L, lv, R, rv, cfg: MatcherConfig, progress, names) -> MatchResu
 #: the quarter-turn guess of :func:`_coarse_turns`: the right image reduced to at most this long side (px) and
 #: this many left keypoints (the largest of each grid cell) matched against its keypoints
 COARSE_TURN_PX = 256
-COARSE_TURN_KEYPOINTS = 800
+COARSE_TURN_KEYPOINTS = 400
 
 
 def _coarse_turns(fl: Features, shape_left: tuple[int, int], R: NDArray, rv: NDArray[np.bool_],
@@ -663,7 +663,7 @@ def _coarse_turns(fl: Features, shape_left: tuple[int, int], R: NDArray, rv: NDA
         a = rio.to_uint8(a, rv[:h * f, :w * f], percentiles=cfg.percentiles)     # OpenCV's resize takes these only
     small = cv2.resize(a, (w, h), interpolation=cv2.INTER_AREA)              # NaN spreads over its cell: invalid
     valid = rv[:h * f, :w * f].reshape(h, f, w, f).all(axis=(1, 3))
-    fs = detect(small, valid=valid, detector=cfg.detector, max_keypoints=4 * COARSE_TURN_KEYPOINTS,
+    fs = detect(small, valid=valid, detector=cfg.detector, max_keypoints=3 * COARSE_TURN_KEYPOINTS,
                 cell_cap=cfg.cell_cap, percentiles=cfg.percentiles)
     if len(fs) < 12:
         return 0

@@ -3,20 +3,17 @@
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import click
 
 from rectify.cli.options import echo, handle_errors, matcher_opts, overwrite_opt, progress
-from rectify.errors import InvalidInputError
 from rectify.geometry.mestimate import M_ALGORITHMS, NEWTON_METHODS
 from rectify.geometry.robust import ROBUST_METHODS
 from stereo.actions.block import FRAME_KINDS, BlockExports, BlockOptions, run_block
 from stereo.actions.block_models import ModelMethodOptions
 from stereo.actions.block_projective import ProjectiveBlockOptions, run_block_projective
+from stereo.actions.block_surface import plan_block_surface, refuse_zoom_settings, run_block_surface
 from stereo.actions.common import matcher_config
-from stereo.actions.surface import SurfaceOptions, run_surface
-from stereo.actions.surface_outputs import read_check_points
 from stereo.block.bundle.adjust import INTERIOR_NAMES, BundleOptions
 from stereo.block.bundle.robust import ROBUST_SCALES
 from stereo.block.bundle.systematic import BORESIGHT_MODES, DRIFT_MODES
@@ -230,23 +227,10 @@ def block(images, camera_path, focal_settings, out_dir, poses_path, control_path
         focal_settings=focal_settings,
         models=ModelMethodOptions(strip_polynomial=strip_polynomial, dependent=dependent_models,
                                   robust=robust != "none"))
-    folders = {str(Path(p).resolve().parent) for p in images}
-    if surface and method in BLOCK_METHODS:
-        raise InvalidInputError(f"--surface needs a metric block (a camera); --method {method} has none")
-    if surface and len(folders) > 1:
-        raise InvalidInputError(f"--surface needs the images in one folder; they are in {len(folders)}: "
-                                f"{sorted(folders)[:2]}")
-    surface_check, check_note = None, ""
-    if surface and opts.check_ids and control_path is not None:  # the block's check points check the DSM too
-        try:
-            read_check_points(control_path, opts.check_ids)
-            surface_check = control_path
-        except InvalidInputError as err:   # another control format (ODM, Metashape): the block still uses it
-            check_note = f"no DSM check at the check points: {err}"
+    plan = (plan_block_surface(images, projective=method in BLOCK_METHODS, method=method, control=control_path,
+                               check_ids=opts.check_ids) if surface else None)
     if method in BLOCK_METHODS:  # images without a known camera: stereo.actions.block_projective
-        if focal_settings is not None:
-            raise InvalidInputError(f"--focal-settings goes with a zoom camera; --method {method} is for images "
-                                    "without a known camera")
+        refuse_zoom_settings(method, focal_settings)
         popts = ProjectiveBlockOptions(method=method, check_ids=opts.check_ids, control_sigma_m=control_sigma,
                                        control_sigma_px=control_sigma_px, calibrate=calib or DEFAULT_CALIBRATE,
                                        focal_guess_px=focal_guess, match=opts.match,
@@ -264,11 +248,8 @@ def block(images, camera_path, focal_settings, out_dir, poses_path, control_path
                            observations=observations_path)
     for line in result.summary_lines():
         echo(line)
-    if surface:  # stereo surface on the block's output folder (docs/surface.md)
+    if plan is not None:  # stereo surface on the block's output folder (docs/surface.md)
         with progress("surface") as cb:
-            sopts = SurfaceOptions(images=folders.pop(), check=surface_check,
-                                   check_ids=opts.check_ids if surface_check else ())
-            sres = run_surface(out_dir, Path(out_dir) / "surface", options=sopts, overwrite=overwrite,
-                               progress=lambda _stage, done, total: cb(done, total))
-        for line in sres.summary_lines() + ([check_note] if check_note else []):
+            sres = run_block_surface(out_dir, plan, overwrite=overwrite, progress=cb)
+        for line in sres.summary_lines() + ([plan.note] if plan.note else []):
             echo(f"surface: {line}")

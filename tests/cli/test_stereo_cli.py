@@ -167,7 +167,8 @@ def test_command_modules_are_thin():
     """Every ``stereo`` command module parses options and calls one action: it imports click, the shared
     options, the actions and the modules holding the choice lists, nothing that reads files or draws."""
     actions = {f"stereo.actions.{m}" for m in ("common", "orient", "model", "resect", "run", "demo", "dense", "block",
-                                                 "dense_rpc", "dense_rpc_multi", "block_models", "block_projective")}
+                                                 "dense_rpc", "dense_rpc_multi", "block_models", "block_projective",
+                                                 "block_surface")}
     # the modules holding choice lists and their defaults (robust estimators, frames, systematic unknowns, methods)
     choices = {"rectify.geometry.robust", "rectify.geometry.mestimate", "stereo.block.bundle.robust",
                "stereo.block.bundle.systematic", "stereo.block.projective", "stereo.block.projective_bundle"}
