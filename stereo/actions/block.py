@@ -691,7 +691,7 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
         timings["models_s"] = time.perf_counter() - t1
         res = bf.result_to_map(frame, res, gnss)
         files, report_path = _write(ws, res, all_tracks, inp_map, names, n_tie, initial, timings, gnss_map, opts,
-                                    [*images, cam_input, poses, control, observations])
+                                    [*images, cam_input, poses, control, observations], frame.description())
         return BlockResult(res, all_tracks, n_tie, len(res.control_ids), len(res.check_ids), initial, Path(out_dir),
                            tuple(files), report_path, timings, tie_lines, int(res.determined.sum()), input_lines,
                            mlines)
@@ -746,7 +746,7 @@ def run_block(images: Sequence[StrPath], *, out_dir: StrPath, camera: StrPath | 
     res = bf.result_to_map(frame, res, gnss)
     files, report_path = _write(ws, res, all_tracks, inp_map, names, n_tie, initial, timings, gnss_map, opts,
                                 [*images, camera if isinstance(camera, (str, Path)) else None, poses, control,
-                                 observations])
+                                 observations], frame.description())
     n_written = int(res.determined.sum())
     return BlockResult(res, all_tracks, n_tie, len(res.control_ids), len(res.check_ids), initial, Path(out_dir),
                        tuple(files), report_path, timings, tie_lines, n_written, input_lines)
@@ -765,7 +765,7 @@ def _residual_mm(res: BundleResult, tracks: Tracks, inp: _Inputs) -> NDArray[np.
 
 def _write(ws: Workspace, res: BundleResult, tracks: Tracks, inp: _Inputs, names: tuple[str, ...], n_tie: int,
            initial: str, timings: dict[str, float], gnss: GnssObservations | None, opts: BlockOptions,
-           inputs: Sequence[StrPath | None]) -> tuple[list[Path], Path | None]:
+           inputs: Sequence[StrPath | None], adjustment_frame: str = "") -> tuple[list[Path], Path | None]:
     root = Path(str(ws.root))
     X = np.asarray(res.points, dtype=np.float64)
     # the points determined by the images: at least two rays not flagged as blunders (a point whose rays were
@@ -782,6 +782,7 @@ def _write(ws: Workspace, res: BundleResult, tracks: Tracks, inp: _Inputs, names
                                "rms_image_px": res.rms_px, "sigma0": res.sigma0, "iterations": res.iterations,
                                "iteration_limit": res.iteration_limit, "converged": res.converged,
                                "condition_number": res.condition_number, "frame": inp.frame,
+                               "adjustment_frame": adjustment_frame,
                                "control_points": len(res.control_ids), "control_rejected": list(res.rejected_control),
                                "check_points": len(res.check_ids), "check_rejected": list(res.rejected_check),
                                **timings}

@@ -9,6 +9,7 @@ through the true geocentric geometry, 0.5 px, GNSS 5 cm, INS 0.005 deg in the na
 from __future__ import annotations
 
 import csv
+import json
 import math
 from pathlib import Path
 
@@ -69,6 +70,9 @@ def test_curved_block_from_its_observations_in_the_default_frame(curved, default
     output, out = default_run
     assert "adjustment frame: topocentric" in output
     assert "observations: " in output and "no matching" in output
+    # the orientation records the frame it was adjusted in
+    summ = json.loads((out / "orientation.json").read_text())["summary"]
+    assert summ["adjustment_frame"].startswith("topocentric")
     err, std, _ = _check_errors(blk, out)
     ratio = np.sqrt(np.mean((err / std) ** 2, axis=0))
     assert ((ratio > 0.67) & (ratio < 1.5)).all(), ratio
