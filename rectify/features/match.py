@@ -646,7 +646,7 @@ COARSE_TURN_KEYPOINTS = 400
 
 def _coarse_turns(fl: Features, shape_left: tuple[int, int], R: NDArray, rv: NDArray[np.bool_],
                   cfg: MatcherConfig) -> int:
-    """Quarter turns (0-3, ``np.rot90``) that turn the right image back to the left one, guessed cheaply (2-4 % of
+    """Quarter turns (0-3, ``np.rot90``) that turn the right image back to the left one, guessed cheaply (1-4 % of
     the matching's time): the right image reduced by an integer factor to at most :data:`COARSE_TURN_PX` px (area
     average), its keypoints matched by brute force (ratio test, mutual) with the :data:`COARSE_TURN_KEYPOINTS`
     largest left keypoints spread over the image; the median orientation difference of the matches, when at least
