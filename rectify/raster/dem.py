@@ -298,6 +298,13 @@ class Dem:
         r1 = min(int(math.floor(np.max(y[fin]))) + 2, self.height)
         if c1 <= c0 or r1 <= r0:
             return out
+        data, valid = self._read_window(c0, r0, c1, r1)
+        valid &= np.isfinite(data)
+        out[fin] = bilinear(data, None if valid.all() else valid, x[fin] - c0, y[fin] - r0)
+        return out
+
+    def _read_window(self, c0: int, r0: int, c1: int, r1: int) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        """File heights (float64) and the validity mask of DEM columns c0..c1-1, rows r0..r1-1."""
         try:
             ds = self._ds()
             win = Window(c0, r0, c1 - c0, r1 - r0)
@@ -305,9 +312,7 @@ class Dem:
             valid = ds.read_masks(self.band, window=win) > 0
         except RasterioError as err:
             raise RasterIOError(f"cannot read DEM {self.path!r}: {err}") from err
-        valid &= np.isfinite(data)
-        out[fin] = bilinear(data, None if valid.all() else valid, x[fin] - c0, y[fin] - r0)
-        return out
+        return data, valid
 
     def heights_on_lattice(self, x: NDArray, y: NDArray) -> NDArray[np.float64] | None:
         """File heights on the lattice of DEM pixel columns ``x`` (w,) and rows ``y`` (h,): (h, w).
@@ -328,13 +333,7 @@ class Dem:
         r1 = min(int(math.floor(y.max())) + 2, self.height)
         if c1 <= c0 or r1 <= r0:
             return None
-        try:
-            ds = self._ds()
-            win = Window(c0, r0, c1 - c0, r1 - r0)
-            data = ds.read(self.band, window=win, masked=False).astype(np.float64)
-            valid = ds.read_masks(self.band, window=win) > 0
-        except RasterioError as err:
-            raise RasterIOError(f"cannot read DEM {self.path!r}: {err}") from err
+        data, valid = self._read_window(c0, r0, c1, r1)
         if not (valid.all() and np.isfinite(data).all()):
             return None
         h, w = data.shape
