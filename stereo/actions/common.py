@@ -16,9 +16,10 @@ from typing import Any
 
 from numpy.typing import NDArray
 
+from rectify.errors import InvalidInputError
 from rectify.features import MatcherConfig, match_images
 from rectify.geometry.camera import Camera
-from rectify.geometry.points import ControlTable
+from rectify.geometry.points import ControlTable, Matches
 from rectify.raster.io import ignore_not_georeferenced
 from stereo.relative import RelativeOrientation
 
@@ -76,6 +77,26 @@ def match_photos(left: PathArg, right: PathArg, progress: Progress | None = None
     """Tie points of a photo pair: :data:`PAIR_MATCHER` unless ``matcher`` is given."""
     with ignore_not_georeferenced():  # plain photos have no geotransform, as expected
         return match_images(left, right, config=matcher or PAIR_MATCHER, progress=progress)
+
+
+def pair_tie_points(images: tuple[PathArg, PathArg] | None, matches: PathArg | None,
+                    load: Callable[[PathArg], Matches], matcher: MatcherConfig | None = None
+                    ) -> tuple[Matches, int | None, float | None]:
+    """The tie points of a pair: matched from ``images`` (default :data:`ORIENT_MATCHER`) or read from the
+    ``matches`` CSV by ``load``; with the count and verification RMSE of a matching (None for a CSV).
+    Raises :class:`InvalidInputError` when there is none."""
+    n_matched = rmse = None
+    if images is not None:
+        res = match_photos(images[0], images[1], matcher=matcher or ORIENT_MATCHER)
+        m = res.matches
+        n_matched, rmse = len(m), res.rmse_px
+    else:
+        if matches is None:
+            raise InvalidInputError("give either a matches CSV or the two images LEFT RIGHT")
+        m = load(matches)
+    if len(m) == 0:
+        raise InvalidInputError("no tie points")
+    return m, n_matched, rmse
 
 
 def control_mm(control: ControlTable | None, camera: Camera) -> tuple[NDArray, NDArray] | None:

@@ -10,7 +10,7 @@ from rectify.errors import InvalidInputError
 from rectify.features import MatcherConfig
 from rectify.formats.detect import is_zoom_camera, read_one_camera
 from rectify.geometry.camera import Camera
-from stereo.actions.common import ORIENT_MATCHER, PathArg, given, match_photos, sigma0_text
+from stereo.actions.common import PathArg, given, pair_tie_points, sigma0_text
 from stereo.actions.orient_projective import ProjectiveOrientResult, orient_projective
 from stereo.actions.workspace import PairWorkspace
 from stereo.relative import RelativeOrientation
@@ -151,18 +151,10 @@ def orient(*, camera: PathArg | None, output: PathArg, matches: PathArg | None =
     cam = read_one_camera(camera, focal_setting=focal_settings[0], image=img_l)
     cam_r = read_one_camera(camera_right or camera, focal_setting=focal_settings[1], image=img_r) \
         if camera_right or is_zoom_camera(camera) else None
-    n_matched = rmse = None
     if images is not None:  # check the cameras against the photos before matching
         ws.check_camera_image(cam, images[0], "left")
         ws.check_camera_image(cam_r or cam, images[1], "right")
-        res = match_photos(images[0], images[1], matcher=matcher or ORIENT_MATCHER)
-        m = res.matches
-        n_matched, rmse = len(m), res.rmse_px
-    else:
-        assert matches is not None
-        m = ws.load_matches(matches)
-    if len(m) == 0:
-        raise InvalidInputError("no tie points")
+    m, n_matched, rmse = pair_tie_points(images, matches, ws.load_matches, matcher)
     ws.check_points_in_frame(cam, m.left, m.ids, "left tie points")
     ws.check_points_in_frame(cam_r or cam, m.right, m.ids, "right tie points")
     cam2 = cam_r or cam

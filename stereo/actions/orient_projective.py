@@ -13,7 +13,7 @@ import numpy as np
 
 from rectify.errors import InvalidInputError
 from rectify.features import MatcherConfig
-from stereo.actions.common import ORIENT_MATCHER, PathArg, given, match_photos
+from stereo.actions.common import PathArg, given, pair_tie_points
 from stereo.actions.workspace import PairWorkspace
 from stereo.formats.projective import dump_projective_pair, projective_pair_dict
 from stereo.pair.projective import FundamentalFit, cameras_from_fundamental, fundamental_from_points
@@ -71,16 +71,7 @@ def orient_projective(*, output: PathArg, system: str = "projective", matches: P
         raise InvalidInputError("give either a matches CSV or the two images LEFT RIGHT")
     ws = PairWorkspace(overwrite=overwrite, inputs=given(matches, *(images or ())))
     ws.plan(output, matches_out)
-    n_matched = rmse = None
-    if images is not None:
-        res = match_photos(images[0], images[1], matcher=matcher or ORIENT_MATCHER)
-        m = res.matches
-        n_matched, rmse = len(m), res.rmse_px
-    else:
-        assert matches is not None
-        m = ws.load_matches(matches)
-    if len(m) == 0:
-        raise InvalidInputError("no tie points")
+    m, n_matched, rmse = pair_tie_points(images, matches, ws.load_matches, matcher)
     F, fit = fundamental_from_points(m.left, m.right)
     doc = projective_pair_dict(F, fit, cameras_from_fundamental(F), m.ids)
     with ws.transaction():
