@@ -238,7 +238,7 @@ def write_tiled(engine: Any, dst: str | Path, grid: Grid, windows: Sequence[Wind
                 scheduler: Scheduler, overwrite: bool, progress: Callable[[int, int], None] | None, name: str,
                 cache_bytes: int, colorinterp: Sequence[Any] | None = None, cog_resampling: str | None = None,
                 tags: Mapping[str, str] | None = None, band_descriptions: Mapping[int, str] | None = None,
-                quality: int = JPEG_QUALITY) -> int:
+                quality: int = JPEG_QUALITY, workers: int | None = None) -> int:
     """Write ``engine``'s windows into the GeoTIFF ``dst`` (a COG with ``cog``); return the empty windows.
 
     The engine is closed at the end, on success or error.
@@ -270,6 +270,8 @@ def write_tiled(engine: Any, dst: str | Path, grid: Grid, windows: Sequence[Wind
         Dataset tags and band descriptions (1-based band -> text) recorded before the COG copy.
     quality : int
         JPEG quality, 1..100 (``compress="jpeg"`` only).
+    workers : int, optional
+        Tile threads of the local scheduler (default ``threads``; the compression keeps ``threads``).
 
     Raises
     ------
@@ -297,7 +299,7 @@ def write_tiled(engine: Any, dst: str | Path, grid: Grid, windows: Sequence[Wind
                 with TiledWriter(body, grid.width, grid.height, count, dtype.name, grid.transform, grid.crs, policy,
                                  tile=tile, compress="none" if staged else compress, threads=threads,
                                  colorinterp=colorinterp, raw=not scheduler.is_local_threads) as writer:
-                    n_empty = run_engine(engine, writer, windows, threads, progress, scheduler=scheduler,
+                    n_empty = run_engine(engine, writer, windows, workers or threads, progress, scheduler=scheduler,
                                          workdir=tmp.parent, name=name)
                 if tags or band_descriptions:
                     with rasterio.open(body, "r+") as ds:

@@ -94,18 +94,38 @@ def line_of_sight_reference(Z: NDArray, m: int, d: NDArray, z: NDArray,
 
 def _block_max(Zf: NDArray[np.float64], block: int) -> NDArray[np.float64]:
     """Maximum of ``Zf`` over each ``block`` x ``block`` cell block, then over each 3 x 3 block neighbourhood."""
-    H, W = Zf.shape
-    if block == 1:
-        M = Zf
-    else:
-        nby, nbx = -(-H // block), -(-W // block)
-        pad = np.full((nby * block, nbx * block), -np.inf)
-        pad[:H, :W] = Zf
-        M = pad.reshape(nby, block, nbx, block).max(axis=(1, 3))
-    # 3 x 3 maximum; a replicated border repeats values already in the neighbourhood (the same maximum)
-    out = cv2.dilate(np.ascontiguousarray(M, dtype=np.float64), np.ones((3, 3), np.uint8),
-                     borderType=cv2.BORDER_REPLICATE)
-    return np.asarray(out, dtype=np.float64)
+    # a replicated border (in the 3 x 3 maximum) repeats values already in the neighbourhood (the same maximum)
+    return _block_maxima(Zf, [block])[0][1]
+
+
+def _reduce_max(M: NDArray[np.float64], f: int) -> NDArray[np.float64]:
+    """Maximum over each ``f`` x ``f`` block of ``M`` (padded with -inf to whole blocks)."""
+    H, W = M.shape
+    nby, nbx = -(-H // f), -(-W // f)
+    if nby * f != H or nbx * f != W:
+        pad = np.full((nby * f, nbx * f), -np.inf)
+        pad[:H, :W] = M
+        M = pad
+    # rows first, then columns: two contiguous reductions (the same maxima as one over both axes)
+    return M.reshape(nby, f, nbx * f).max(axis=1).reshape(nby, nbx, f).max(axis=2)
+
+
+def _block_maxima(Zf: NDArray[np.float64], sizes: list[int]) -> list[tuple[int, NDArray[np.float64]]]:
+    """:func:`_block_max` of ``Zf`` for each of the ascending ``sizes`` (each a multiple of the one before).
+
+    A block of a larger size is a whole number of blocks of the smaller one (the -inf padding included), so
+    its maximum is the maximum of theirs: each size is reduced from the previous one's block maxima.
+    """
+    out = []
+    M, prev = Zf, 1
+    for b in sizes:
+        if b != prev:
+            M = _reduce_max(M, b // prev)
+            prev = b
+        d = cv2.dilate(np.ascontiguousarray(M, dtype=np.float64), np.ones((3, 3), np.uint8),
+                       borderType=cv2.BORDER_REPLICATE)
+        out.append((b, np.asarray(d, dtype=np.float64)))
+    return out
 
 
 def line_of_sight(Z: NDArray, m: int, d: NDArray, z: NDArray, inside: NDArray[np.bool_], *,
@@ -124,7 +144,8 @@ def line_of_sight(Z: NDArray, m: int, d: NDArray, z: NDArray, inside: NDArray[np
         return vis
     zmax = float(np.nanmax(Z))
     H, W = Z.shape
-    Zf = np.where(np.isfinite(Z), Z, -np.inf)
+    all_fin = bool(np.isfinite(Z).all())
+    Zf = Z if all_fin else np.where(np.isfinite(Z), Z, -np.inf)  # Zp below is a copy
     # bilinear() of the reference on an edge-padded copy: the clamped neighbour of the last row/column is the
     # padded copy of that row/column, so the four samples (and the sums) are the reference's
     Zp = np.pad(Zf, ((0, 1), (0, 1)), mode="edge").ravel()
@@ -133,7 +154,7 @@ def line_of_sight(Z: NDArray, m: int, d: NDArray, z: NDArray, inside: NDArray[np
     # the highest corner of each bilinear cell (cell (r, c) spans grid rows r, r + 1 and columns c, c + 1)
     Zq = Zp.reshape(H + 1, Wp)
     top = np.maximum(np.maximum(Zq[:-1, :-1], Zq[:-1, 1:]), np.maximum(Zq[1:, :-1], Zq[1:, 1:]))
-    maxima = [(b, _block_max(top, b)) for b in sizes]
+    maxima = _block_maxima(top, sizes)
     # the steepest rise of the bilinear surface per pixel of path in each cell (|d/dx| + |d/dy| bounds), then
     # its maximum over the same block neighbourhoods: a line rising faster than that from a point where it
     # is not under the terrain cannot get under it within the neighbourhood
@@ -141,11 +162,14 @@ def line_of_sight(Z: NDArray, m: int, d: NDArray, z: NDArray, inside: NDArray[np
         ddx = np.abs(np.diff(Zq, axis=1))
         ddy = np.abs(np.diff(Zq, axis=0))
         g = np.maximum(ddx[:-1], ddx[1:]) + np.maximum(ddy[:, :-1], ddy[:, 1:])
-    g = np.where(np.isnan(g), np.inf, g)
-    slopes = [(b, _block_max(g, b)) for b in sizes]
+    if not all_fin:  # a NaN comes only from the -inf of a missing height
+        g = np.where(np.isnan(g), np.inf, g)
+    slopes = _block_maxima(g, sizes)
     occl = np.zeros(len(rows), bool)
     idx = np.arange(len(rows))
     k = np.ones(len(rows), np.int64)
+    # k never grows by more than this a round: the step limit is tested only once some line could reach it
+    k_bound, step_max = 1, max(2 * sizes[-1], chunk + 2 * sizes[-1] - 1)
     while len(idx):
         s = k * STEP_PX
         ray_h = z0 + s / dd
@@ -155,15 +179,14 @@ def line_of_sight(Z: NDArray, m: int, d: NDArray, z: NDArray, inside: NDArray[np
         done = ~inb | (ray_h > zmax)
         xi = np.where(inb, x, 0.0).astype(np.intp)  # floor: x >= 0 inside
         yi = np.where(inb, y, 0.0).astype(np.intp)
-        jump = np.zeros(len(idx), np.int64)
+        step = np.ones(len(idx), np.int64)
         for b, M3 in maxima:  # ascending sizes: a larger block's maximum is never lower
-            clear = inb & (ray_h > M3[yi // b, xi // b])
+            cell = yi * M3.shape[1] + xi if b == 1 else (yi // b) * M3.shape[1] + xi // b
+            clear = ray_h > M3.take(cell)  # out of the block too: such a line is done, its step unused
             if not clear.any():
                 break
-            jump[clear] = 2 * b
-        skip = jump > 0
-        fine = np.flatnonzero(inb & ~skip)
-        step = np.where(skip, jump, 1)
+            step[clear] = 2 * b
+        fine = np.flatnonzero(inb & (step == 1))
         if len(fine):
             # the next `chunk` steps of these lines at once; the first event (hit, out, above all) decides
             kk = k[fine][:, None] + np.arange(chunk)
@@ -180,7 +203,9 @@ def line_of_sight(Z: NDArray, m: int, d: NDArray, z: NDArray, inside: NDArray[np
             with np.errstate(invalid="ignore"):
                 ter = (v00 * (1 - fx) + v01 * fx) * (1 - fy) + (v10 * (1 - fx) + v11 * fx) * fy
                 hit = in2 & (ter > rh + HIT_MARGIN_M)
-                event = hit | ~in2 | (rh > zmax) | (kk > _MAX_STEPS)
+                event = hit | ~in2 | (rh > zmax)
+                if k_bound + chunk - 1 > _MAX_STEPS:
+                    event |= kk > _MAX_STEPS
             any_ev = event.any(axis=1)
             first = event.argmax(axis=1)
             hit_first = any_ev & hit[np.arange(len(fine)), first]
@@ -195,13 +220,15 @@ def line_of_sight(Z: NDArray, m: int, d: NDArray, z: NDArray, inside: NDArray[np
                 rise = 1.0 / dd[fine]
                 extra = np.zeros(len(fine), np.int64)
                 for b, G3 in slopes:
-                    ok = go & (rise >= G3[yl // b, xl // b])
+                    ok = go & (rise >= G3.take((yl // b) * G3.shape[1] + xl // b))
                     if not ok.any():
                         break
                     extra[ok] = 2 * b - 1
                 step[fine] += extra
         k += step
-        done |= k > _MAX_STEPS
+        k_bound += step_max
+        if k_bound > _MAX_STEPS:
+            done |= k > _MAX_STEPS
         if done.any():
             n_done = int(done.sum())
             if 4 * n_done >= len(idx):

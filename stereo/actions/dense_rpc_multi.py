@@ -56,12 +56,14 @@ from typing import Any
 import numpy as np
 from affine import Affine
 from numpy.typing import NDArray
+from scipy import ndimage
 
 from rectify.actions.workspace import Workspace
 from rectify.errors import EstimationError, InvalidInputError, StereoError
 from rectify.features import MatcherConfig, match_images
 from rectify.formats.common import stamp
 from rectify.formats.rpc import read_rpc_gcps, rpc_from_raster, rpc_txt_text
+from rectify.geometry.crs import transform_xy
 from rectify.geometry.rpc import RPC
 from rectify.geometry.rpc_adjust import (
     BIAS_MODELS,
@@ -79,11 +81,15 @@ from stereo.dense.fusion import FUSED_BANDS, fuse_heights, fused_band_descriptio
 from stereo.dense.rpc_views import PairCandidate, select_rpc_pairs
 from stereo.report.dense import HeightComparison, compare_with_dem, save_histogram, save_picture
 
-__all__ = ["MultiRpcOptions", "MultiRpcResult", "fill_fused_holes", "pairs_agreement", "run_dense_rpc_multi"]
+__all__ = ["FUSED_FILL_CELLS", "MultiRpcOptions", "MultiRpcResult", "fill_fused_holes", "pairs_agreement", "roi_cells",
+           "run_dense_rpc_multi"]
 
 StrPath = str | Path
 Progress = Callable[[str, int, int], None]
 HEIGHTS = "m above the WGS 84 ellipsoid"
+#: default largest hole of the fused DSM that is interpolated, cells (50 x 50; 25 m x 25 m at 0.5 m), as CARS
+#: interpolates its DSM's holes by default; ``--fill-holes 0`` turns it off
+FUSED_FILL_CELLS = 2500
 
 
 @dataclass(frozen=True)
@@ -94,9 +100,12 @@ class MultiRpcOptions:
     ----------
     pair : RpcDenseOptions
         The pair chain's options (``pair_sigma``, ``stac``, the cloud and the reference DEM are set by the
-        multi-view run; ``dsm_cell`` None: the first pair's default cell for all). Its ``fill_holes`` also
-        fills the fused DSM's holes of at most that many cells (:func:`fill_fused_holes`): a height there,
-        sigma_Z nodata, count 0, provenance -1.
+        multi-view run; ``dsm_cell`` None: the first pair's default cell for all). Its ``fill_holes`` fills
+        each pair's own DSM only.
+    fill_holes : the fused DSM's holes of at most this many cells are interpolated from their rim
+        (:func:`fill_fused_holes`; default :data:`FUSED_FILL_CELLS`; 0: off): enclosed holes, and the empty
+        cells of the ROI that connect to the grid's empty outside (bounded by the ROI). A filled cell has a
+        height, sigma_Z nodata, count 0 and provenance -1.
     adjust : bool
         Run the RPC block adjustment first.
     bias_model : ``"shift"`` or ``"affine"``
@@ -135,6 +144,7 @@ class MultiRpcOptions:
     gcps: str | Path | None = None
     gcp_sigma_xy: float = 0.5
     gcp_sigma_h: float = 1.0
+    fill_holes: int = FUSED_FILL_CELLS
 
     def __post_init__(self) -> None:
         if not isinstance(self.pair, RpcDenseOptions):
@@ -153,7 +163,7 @@ class MultiRpcOptions:
             raise InvalidInputError(f"`min_overlap` must be in [0, 1]; got {self.min_overlap!r}")
         if self.gcps is not None and not self.adjust:
             raise InvalidInputError("GCPs are used by the RPC adjustment: drop --no-adjust or the GCPs")
-        for name, lo in (("max_pairs", 0), ("max_matches", 20)):
+        for name, lo in (("max_pairs", 0), ("max_matches", 20), ("fill_holes", 0)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < lo:
                 raise InvalidInputError(f"`{name}` must be an integer >= {lo}; got {v!r}")
@@ -190,6 +200,7 @@ class MultiRpcResult:
     seconds: float
     adjust_seconds: float
     comparison: HeightComparison | None = None
+    measured_coverage: float = float("nan")
 
     def summary_lines(self) -> list[str]:
         lines = [f"images: {len(self.names)} ({', '.join(self.names)}); reference {self.names[0]}, ROI "
@@ -218,7 +229,8 @@ class MultiRpcResult:
                      f"a height, median {self.roi_stats['median_m']:.1f} m, 1-99% {self.roi_stats['p01_m']:.1f}-"
                      f"{self.roi_stats['p99_m']:.1f} m; median sigma_Z {self.median_sigma_z:.3f} m (variance factor "
                      f"{self.variance_factor:.2f})"
-                     + (f"; {int(self.dsm.filled.sum())} cells interpolated over holes (--fill-holes)"
+                     + (f"; {int(self.dsm.filled.sum())} cells interpolated over holes (--fill-holes; "
+                        f"{100 * self.measured_coverage:.1f}% of the ROI cells without them)"
                         if self.dsm.filled.any() else ""))
         if self.comparison is not None:
             lines.append(self.comparison.summary_line(cell=self.cell)
@@ -245,15 +257,56 @@ def pairs_agreement(heights: Sequence[NDArray[np.float64]]) -> list[tuple[int, i
     return out
 
 
-def fill_fused_holes(height: NDArray[np.float64], max_cells: int) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """Holes (NaN) of at most ``max_cells`` cells enclosed by heights, interpolated from their rim (the DSM
-    grid's harmonic fill, :meth:`stereo.dense.dsm.DsmGrid.result`); returns the heights and the filled mask
-    (H, W). Holes touching the grid's border are left."""
+def fill_fused_holes(height: NDArray[np.float64], max_cells: int, inside: NDArray[np.bool_] | None = None
+                     ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Holes (NaN) of at most ``max_cells`` cells interpolated from their rim; returns the heights and the
+    filled mask (H, W).
+
+    Filled: every hole enclosed by heights (not touching the grid's border) of at most ``max_cells`` cells
+    and, with ``inside`` (H, W; the ROI's cells), every connected group of empty cells *inside* of at most
+    ``max_cells`` cells even where it joins the empty outside (only its cells inside are filled). The fill
+    starts from the nearest height and is smoothed by 50 sweeps of four-neighbour averaging inside the holes
+    (the DSM grid's harmonic fill, :func:`stereo.dense.dsm._fill_holes`): every filled height lies within the
+    range of the heights around it (maximum principle)."""
     has = np.isfinite(height)
+    none = np.zeros(height.shape, bool)
     if max_cells <= 0 or not has.any() or has.all():
-        return height, np.zeros(height.shape, bool)
-    hf, filled = _fill_holes(np.where(has, height, 0.0), has, max_cells)
-    return np.where(filled, hf, height), filled
+        return height, none
+    hf, target = _fill_holes(np.where(has, height, 0.0), has, max_cells)
+    if inside is not None:
+        lab, n = ndimage.label(~has & inside)
+        if n:
+            small = np.bincount(lab.ravel(), minlength=n + 1) <= max_cells
+            small[0] = False
+            target = target | small[lab]
+    if not target.any():
+        return height, none
+    idx = ndimage.distance_transform_edt(~has, return_distances=False, return_indices=True)
+    out = height[idx[0], idx[1]]
+    for _ in range(50):
+        pad = np.pad(out, 1, mode="edge")
+        avg = 0.25 * (pad[:-2, 1:-1] + pad[2:, 1:-1] + pad[1:-1, :-2] + pad[1:-1, 2:])
+        out[target] = avg[target]
+    return np.where(target, out, height), target
+
+
+def roi_cells(height: NDArray[np.float64], transform: Affine, crs: str, rpc: RPC,
+              roi: tuple[int, int, int, int]) -> NDArray[np.bool_]:
+    """(H, W) True where the cell's centre, at its height (the median where it has none; NaN = none),
+    projects into ``roi`` (x, y, width, height, px) of the RPC's image (as
+    :func:`stereo.actions.dense_rpc.roi_statistics`)."""
+    H, W = height.shape
+    rr, cc = np.mgrid[0:H, 0:W]
+    x = transform.c + (cc.ravel() + 0.5) * transform.a
+    y = transform.f + (rr.ravel() + 0.5) * transform.e
+    z = height.ravel()
+    has = np.isfinite(z)
+    med = float(np.median(z[has])) if has.any() else float(rpc.height_off)
+    p = rpc.project(np.column_stack([transform_xy(crs, "EPSG:4326", np.column_stack([x, y])),
+                                     np.where(has, z, med)]))
+    x0, y0, w, h = roi
+    ok = (p[:, 0] >= x0 - 0.5) & (p[:, 0] < x0 + w - 0.5) & (p[:, 1] >= y0 - 0.5) & (p[:, 1] < y0 + h - 0.5)
+    return ok.reshape(H, W)
 
 
 def _union(transforms: Sequence[Any], shapes: Sequence[tuple[int, int]], cell: float
@@ -450,7 +503,10 @@ def _run(paths: list[Path], names: list[str], stems: list[str], rpcs: list[RPC],
         agreement = pairs_agreement(list(hs))
         del hs, ss
         count = fused.count.astype(np.uint16)
-        height, filled = fill_fused_holes(fused.height, o.pair.fill_holes)
+        measured = roi_statistics(DsmResult(nodata_of(fused.height), count, np.zeros(count.shape, bool), transform,
+                                            crs, heights=HEIGHTS), rpcs[0], box, crs)["coverage"]
+        height, filled = fill_fused_holes(fused.height, o.fill_holes,
+                                          roi_cells(fused.height, transform, crs, rpcs[0], box))
         dsm = DsmResult(nodata_of(height), count, filled, transform, crs, heights=HEIGHTS)
         stats = roi_statistics(dsm, rpcs[0], box, crs)
         ok = np.isfinite(fused.sigma)
@@ -477,7 +533,8 @@ def _run(paths: list[Path], names: list[str], stems: list[str], rpcs: list[RPC],
                     for j, s in enumerate(stems):
                         files.append(ws.write_text(out / f"{s}_RPC.TXT", rpc_txt_text(rpcs[j])))
                 doc = _document(names, paths, cands, kept, results, pair_names, adj, refit_max, agreement, dsm,
-                                stats, cell, crs, box, factor, med_sigma, o, comparison, int(fused.rejected.sum()))
+                                stats, cell, crs, box, factor, med_sigma, o, comparison, int(fused.rejected.sum()),
+                                measured)
                 with ws.output(out / "dense_rpc.json") as tmp:
                     tmp.write_text(json.dumps(json_safe(doc), indent=2) + "\n", encoding="utf-8")
                 files.append(out / "dense_rpc.json")
@@ -502,15 +559,15 @@ def _run(paths: list[Path], names: list[str], stems: list[str], rpcs: list[RPC],
             raise
     return MultiRpcResult(out, tuple(files), tuple(names), tuple(cands), tuple(kept), tuple(results), adj, refit_max,
                           tuple(agreement), dsm, fused.sigma, cell, crs, box, stats, factor, med_sigma,
-                          time.perf_counter() - t0, t_adj, comparison)
+                          time.perf_counter() - t0, t_adj, comparison, measured)
 
 
 def _document(names: list[str], paths: list[Path], cands: list[PairCandidate], kept: list[PairCandidate],
               results: list[RpcDenseResult], pair_names: list[str], adj: RPCBlockAdjustment | None,
               refit_max: float, agreement: list[tuple[int, int, float, float, int]], dsm: DsmResult,
               stats: dict[str, float], cell: float, crs: str, box: tuple[int, int, int, int], factor: float,
-              med_sigma: float, o: MultiRpcOptions, comparison: HeightComparison | None, rejected: int
-              ) -> dict[str, Any]:
+              med_sigma: float, o: MultiRpcOptions, comparison: HeightComparison | None, rejected: int,
+              measured: float) -> dict[str, Any]:
     adjustment = None
     if adj is not None:
         rms = adj.image_rms()
@@ -541,7 +598,8 @@ def _document(names: list[str], paths: list[Path], cands: list[PairCandidate], k
         "dsm": {"file": "dsm.tif", "bands": list(FUSED_BANDS), "width": int(dsm.height.shape[1]),
                 "height": int(dsm.height.shape[0]), "transform": list(dsm.transform)[:6], "heights": HEIGHTS,
                 "roi": stats, "median_sigma_z_m": med_sigma, "variance_factor": factor, "k_sigma": o.k_sigma,
-                "rejected_heights": rejected, "filled_cells": int(dsm.filled.sum())},
+                "rejected_heights": rejected, "filled_cells": int(dsm.filled.sum()),
+                "fill_holes": o.fill_holes, "roi_coverage_without_filled": measured},
         "comparison": None if comparison is None else {
             "reference_dem": str(o.reference_dem),
             **{k: v for k, v in comparison.__dict__.items() if k != "histogram"}},

@@ -35,9 +35,10 @@ def _roi(ctx, param, value):
               help="Nominal tile side, left pixels: the ROI is cut into round(width / tile) x round(height / tile) "
                    "equal tiles (a 700 px ROI gives two tiles of 350 px with 300).")
 @click.option("--dsm-cell", type=float, default=None, help="DSM cell, metres (default: the ground pixel).")
-@click.option("--fill-holes", type=int, default=0, show_default=True,
-              help="Interpolate DSM holes of at most this many cells (flagged in band 3); with three or more "
-                   "images in each pair's DSM and the fused one (there: sigma_Z nodata, count 0, provenance -1).")
+@click.option("--fill-holes", type=click.IntRange(min=0), default=None,
+              help="Interpolate DSM holes of at most this many cells (0: off). Two images: default 0 (filled cells "
+                   f"flagged in band 3). Three or more: the fused DSM's holes, default {_M.fill_holes} cells (filled "
+                   "cells: sigma_Z nodata, count 0, provenance -1), and with a value given each pair's DSM too.")
 @click.option("--cloud", type=click.Choice(["las", "laz", "ply", "none"]), default=_D.cloud_format,
               show_default=True, help="Point cloud format.")
 @click.option("--reference-dem", type=click.Path(dir_okay=False), default=None,
@@ -72,7 +73,7 @@ def dense_rpc(images, out_dir, roi, tile, dsm_cell, fill_holes, cloud, reference
     provenance)."""
     if len(images) < 2:
         raise click.UsageError(f"dense-rpc needs at least two images; got {len(images)}")
-    opts = RpcDenseOptions(tile=tile, dsm_cell=dsm_cell, fill_holes=fill_holes, cloud_format=cloud,
+    opts = RpcDenseOptions(tile=tile, dsm_cell=dsm_cell, fill_holes=fill_holes or 0, cloud_format=cloud,
                            reference_dem=reference_dem, stac=stac)
     result: RpcDenseResult | MultiRpcResult
     if len(images) == 2:
@@ -80,8 +81,9 @@ def dense_rpc(images, out_dir, roi, tile, dsm_cell, fill_holes, cloud, reference
             raise click.UsageError("--gcps needs three or more images (two images: rectify rpc-adjust first)")
         result = run_dense_rpc(images[0], images[1], out_dir, roi=roi, options=opts, overwrite=overwrite)
     else:
-        mopts = MultiRpcOptions(pair=RpcDenseOptions(tile=tile, dsm_cell=dsm_cell, fill_holes=fill_holes,
+        mopts = MultiRpcOptions(pair=RpcDenseOptions(tile=tile, dsm_cell=dsm_cell, fill_holes=fill_holes or 0,
                                                      cloud_format="none", stac=False),
+                                fill_holes=_M.fill_holes if fill_holes is None else fill_holes,
                                 adjust=adjust, bias_model=bias_model, min_angle_deg=min_angle,
                                 max_angle_deg=max_angle, min_overlap=min_overlap, reference_dem=reference_dem,
                                 gcps=gcps)

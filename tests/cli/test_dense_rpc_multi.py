@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -13,6 +14,7 @@ from rasterio.transform import from_origin
 
 from rectify.geometry.crs import transform_xy
 from rectify.geometry.rpc import RPC
+from stereo.actions import dense_rpc_multi
 from stereo.cli.main import cli
 from tests.support.rpc_synthetic import LAT0, LON0, dem, render, triplet
 
@@ -100,3 +102,43 @@ def test_cli_bad_options(triplet_files, tmp_path):
     r = _run(*paths, "-o", tmp_path / "o", "--no-adjust", "--gcps", paths[0])
     assert r.exit_code != 0 and "no-adjust" in r.output and len(r.output.strip().splitlines()) == 1, r.output
     assert not (tmp_path / "o").exists()
+
+
+def test_cli_fused_holes_filled_by_default_and_flagged(triplet_files, tmp_path, monkeypatch):
+    """An interior hole of the fused DSM (a 6 x 5 cell block emptied after the fusion, as where no pair
+    matched) is interpolated by default and flagged (sigma_Z nodata, count 0, provenance -1, height within the
+    heights around it); ``--fill-holes 0`` leaves it empty."""
+    _, paths, _ = triplet_files
+    real = dense_rpc_multi.fuse_heights
+
+    def holed(*args, **kwargs):
+        f = real(*args, **kwargs)
+        r0, c0 = f.height.shape[0] // 2, f.height.shape[1] // 2
+        blk = (slice(r0, r0 + 6), slice(c0, c0 + 5))
+        assert np.isfinite(f.height[r0 - 3:r0 + 9, c0 - 3:c0 + 8]).all()  # the block lies inside the heights
+        h, s, c, p = f.height.copy(), f.sigma.copy(), f.count.copy(), f.provenance.copy()
+        h[blk], s[blk], c[blk], p[blk] = np.nan, np.nan, 0, -1
+        return dataclasses.replace(f, height=h, sigma=s, count=c, provenance=p)
+
+    monkeypatch.setattr(dense_rpc_multi, "fuse_heights", holed)
+    bands = {}
+    for name, extra in (("default", ()), ("off", ("--fill-holes", "0"))):
+        out = tmp_path / name
+        r = _run(*paths, "-o", out, "--no-adjust", "--roi", "64,64,128,128", "--tile", "128", *extra)
+        assert r.exit_code == 0, r.output
+        with rasterio.open(out / "dsm.tif") as ds:
+            bands[name] = ds.read()
+        doc = json.loads((out / "dense_rpc.json").read_text())
+        bands[name + "_doc"] = doc["dsm"]
+    h, s, c, p = bands["default"]
+    r0, c0 = h.shape[0] // 2, h.shape[1] // 2
+    blk = (slice(r0, r0 + 6), slice(c0, c0 + 5))
+    rim = h[r0 - 1:r0 + 7, c0 - 1:c0 + 6].astype(np.float64)
+    rim[1:-1, 1:-1] = np.nan  # the ring of cells around the block
+    assert (h[blk] != -9999.0).all() and (c[blk] == 0).all() and (s[blk] == -9999.0).all() and (p[blk] == -1).all()
+    assert np.nanmin(rim) - 1e-3 <= h[blk].min() and h[blk].max() <= np.nanmax(rim) + 1e-3
+    assert bands["default_doc"]["filled_cells"] >= 30
+    assert bands["default_doc"]["roi"]["coverage"] > bands["default_doc"]["roi_coverage_without_filled"]
+    h0, _s0, c0_, _p0 = bands["off"]
+    assert (h0[blk] == -9999.0).all() and (c0_[blk] == 0).all() and bands["off_doc"]["filled_cells"] == 0
+    assert bands["off_doc"]["roi"]["coverage"] == bands["off_doc"]["roi_coverage_without_filled"]

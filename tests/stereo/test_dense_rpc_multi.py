@@ -246,7 +246,7 @@ def test_pleiades_triplet_pairs_agree_after_the_adjustment(shared_data, tmp_path
 
 def test_a_pair_without_points_is_left_out(scene, tmp_path):
     """A blank third image (its RPC right, no texture): its pair finds no tie points and is left out with its
-    reason; the DSM is the other pair's (count 1, provenance 0)."""
+    reason; the DSM is the other pair's (count 1, provenance 0; the filled cells count 0, provenance -1)."""
     _, paths, rpcs = scene
     blank = tmp_path / "blank.tif"
     with rasterio.open(blank, "w", driver="GTiff", width=SIZE, height=SIZE, count=1, dtype="uint8",
@@ -261,7 +261,9 @@ def test_a_pair_without_points_is_left_out(scene, tmp_path):
     with rasterio.open(tmp_path / "o" / "dsm.tif") as ds:
         h, _s, c, p = ds.read()
     ok = h != -9999.0
-    assert ok.mean() > 0.5 and (c[ok] == 1).all() and (p[ok] == 0).all()
+    meas = ok & ~res.dsm.filled  # the cells interpolated over holes (default fill): count 0, provenance -1
+    assert meas.mean() > 0.5 and (c[meas] == 1).all() and (p[meas] == 0).all()
+    assert (c[res.dsm.filled] == 0).all() and (p[res.dsm.filled] == -1).all() and ok[res.dsm.filled].all()
     assert not (tmp_path / "o" / "pair_view1__blank_dsm.tif").exists()
 
 
@@ -280,3 +282,22 @@ def test_fill_fused_holes_closed_form():
     assert np.isnan(got[12:17, 20:26]).all() and np.isnan(got[0:2, 0:3]).all()
     same, none = fill_fused_holes(z, 0)
     assert not none.any() and np.array_equal(np.isnan(same), np.isnan(z))
+
+
+def test_fill_fused_holes_inside_the_roi():
+    """With the ROI's cells: an empty band joining the grid's border is filled only where it lies inside the
+    ROI (with the plane), and not beyond ``max_cells``; without them it is left."""
+    i, j = np.mgrid[0:20, 0:30].astype(float)
+    plane = 100.0 + 0.5 * i - 0.25 * j
+    z = plane.copy()
+    z[:, 0:4] = np.nan                  # empty along the left border
+    inside = np.zeros(z.shape, bool)
+    inside[5:15, 2:25] = True           # the ROI: 20 of the empty cells
+    _same, none = fill_fused_holes(z, 100)
+    assert not none.any()
+    got, filled = fill_fused_holes(z, 100, inside)
+    assert np.array_equal(filled, inside & np.isnan(z))
+    assert np.isnan(got[~inside & np.isnan(z)]).all()
+    assert plane[filled].min() - 1.0 < got[filled].min() and got[filled].max() <= np.nanmax(z) + 1e-9
+    _g, few = fill_fused_holes(z, 19, inside)
+    assert not few.any()
