@@ -92,12 +92,6 @@ def line_of_sight_reference(Z: NDArray, m: int, d: NDArray, z: NDArray,
     return vis
 
 
-def _block_max(Zf: NDArray[np.float64], block: int) -> NDArray[np.float64]:
-    """Maximum of ``Zf`` over each ``block`` x ``block`` cell block, then over each 3 x 3 block neighbourhood."""
-    # a replicated border (in the 3 x 3 maximum) repeats values already in the neighbourhood (the same maximum)
-    return _block_maxima(Zf, [block])[0][1]
-
-
 def _reduce_max(M: NDArray[np.float64], f: int) -> NDArray[np.float64]:
     """Maximum over each ``f`` x ``f`` block of ``M`` (padded with -inf to whole blocks)."""
     H, W = M.shape
@@ -111,7 +105,9 @@ def _reduce_max(M: NDArray[np.float64], f: int) -> NDArray[np.float64]:
 
 
 def _block_maxima(Zf: NDArray[np.float64], sizes: list[int]) -> list[tuple[int, NDArray[np.float64]]]:
-    """:func:`_block_max` of ``Zf`` for each of the ascending ``sizes`` (each a multiple of the one before).
+    """For each of the ascending ``sizes`` b (each a multiple of the one before): the maximum of ``Zf`` over each
+    b x b cell block, then over each 3 x 3 block neighbourhood (a replicated border repeats values already in
+    the neighbourhood: the same maximum).
 
     A block of a larger size is a whole number of blocks of the smaller one (the -inf padding included), so
     its maximum is the maximum of theirs: each size is reduced from the previous one's block maxima.
