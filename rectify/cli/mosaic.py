@@ -8,7 +8,7 @@ import click
 from rectify.actions.mosaic import COMPRESSIONS, JPEG_QUALITY, MosaicOptions, MosaicRunOptions
 from rectify.actions.mosaic import mosaic as run_mosaic
 from rectify.actions.workspace import Workspace
-from rectify.cli.options import echo, handle_errors, overwrite_opt, progress, scheduler_opt
+from rectify.cli.options import echo, handle_errors, output_opts, overwrite_opt, progress, scheduler_opt
 
 
 @click.command(short_help="Mosaic orthophotos: seamlines (nadir or least-transformed), balancing, feathering.")
@@ -36,12 +36,7 @@ from rectify.cli.options import echo, handle_errors, overwrite_opt, progress, sc
               help="Blend width across seams, output pixels (0: hard seams).")
 @click.option("--provenance", is_flag=True, default=False,
               help="Also write <output stem>.source.tif: the 1-based input number of every pixel (0: none).")
-@click.option("--cog", is_flag=True, default=False, help="Write a Cloud Optimized GeoTIFF (with overviews).")
-@click.option("--compress", type=click.Choice(list(COMPRESSIONS)), default="zstd", show_default=True,
-              help="Output compression: lossless zstd/deflate/lzw (nodata kept) or none; jpeg: lossy JPEG-in-TIFF "
-                   "of 8-bit mosaics with an internal mask.")
-@click.option("--jpeg-quality", type=int, default=JPEG_QUALITY, show_default=True,
-              help="JPEG quality 1..100 (--compress jpeg).")
+@output_opts(COMPRESSIONS, JPEG_QUALITY)
 @click.option("--stac/--no-stac", default=True, show_default=True,
               help="Write the STAC Item <output stem>.stac.json beside the mosaic.")
 @click.option("--threads", type=click.IntRange(1, 256), default=None, help="Worker threads (default: all cores).")

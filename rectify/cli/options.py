@@ -15,7 +15,7 @@ import logging
 import signal
 import sys
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import click
@@ -23,13 +23,30 @@ import click
 from rectify.atomic import write_failure_reason
 from rectify.errors import RectifyError, RectifyWarning, SchedulerError
 
-__all__ = ["overwrite_opt", "verbosity_opts", "report_opt", "scheduler_opt", "handle_errors", "progress",
+__all__ = ["overwrite_opt", "output_opts", "verbosity_opts", "report_opt", "scheduler_opt", "handle_errors", "progress",
            "setup_logging", "VerbosityGroup", "subcommand_verbosity_params"]
 
 overwrite_opt = click.option("--overwrite", is_flag=True, default=False,
                              help="Replace existing outputs (never done without it).")
 report_opt = click.option("--report", "report_dir", type=click.Path(file_okay=False), default=None,
                           help="Write residual tables, plots and an HTML report into this folder.")
+
+
+def output_opts(compressions: Sequence[str], jpeg_quality: int, *,
+                jpeg_note: str = "") -> Callable[[Callable], Callable]:
+    """``--cog``, ``--compress`` and ``--jpeg-quality`` of the commands writing orthophotos and mosaics (the
+    choices and default quality from the output tail, :mod:`rectify.raster.engine`); ``jpeg_note`` adds
+    the command's own limits of JPEG to the help."""
+    def deco(f: Callable) -> Callable:
+        f = click.option("--jpeg-quality", type=int, default=jpeg_quality, show_default=True,
+                         help="JPEG quality 1..100 (--compress jpeg).")(f)
+        f = click.option("--compress", type=click.Choice(list(compressions)), default="zstd", show_default=True,
+                         help="Output compression: lossless zstd/deflate/lzw (predictor, nodata kept) or none; jpeg: "
+                              "JPEG-in-TIFF (YCbCr for RGB) with an internal mask band, 8-bit images only"
+                              + jpeg_note + ".")(f)
+        return click.option("--cog", is_flag=True, default=False,
+                            help="Write a Cloud Optimized GeoTIFF (internal overviews).")(f)
+    return deco
 
 
 def _check_scheduler(ctx: click.Context, param: click.Parameter, value: str | None) -> str | None:

@@ -7,7 +7,7 @@ import click
 from rectify.actions.ortho import COMPRESSIONS, GCP_PIXEL, JPEG_QUALITY, OrthoOptions, OrthoRunOptions
 from rectify.actions.ortho import ortho as run_ortho
 from rectify.actions.workspace import Workspace
-from rectify.cli.options import echo, handle_errors, overwrite_opt, progress, scheduler_opt
+from rectify.cli.options import echo, handle_errors, output_opts, overwrite_opt, progress, scheduler_opt
 
 report_opt = click.option("--report", "report_dir", type=click.Path(file_okay=False), default=None,
                           help="Write report.html (the run's facts, GCP residuals, the relief-shift map), "
@@ -67,12 +67,7 @@ report_opt = click.option("--report", "report_dir", type=click.Path(file_okay=Fa
               show_default=True)
 @click.option("--true-ortho", is_flag=True, default=False,
               help="Occluded ground gets nodata; adds a visibility band (0 outside, 1 occluded, 2 visible).")
-@click.option("--cog", is_flag=True, default=False, help="Write a Cloud Optimized GeoTIFF (internal overviews).")
-@click.option("--compress", type=click.Choice(list(COMPRESSIONS)), default="zstd", show_default=True,
-              help="Output compression: lossless zstd/deflate/lzw (predictor, nodata kept) or none; jpeg: "
-                   "JPEG-in-TIFF (YCbCr for RGB) with an internal mask band, 8-bit images only, not with --true-ortho.")
-@click.option("--jpeg-quality", type=int, default=JPEG_QUALITY, show_default=True,
-              help="JPEG quality 1..100 (--compress jpeg).")
+@output_opts(COMPRESSIONS, JPEG_QUALITY, jpeg_note=', not with --true-ortho')
 @click.option("--stac/--no-stac", default=True, show_default=True,
               help="Write the STAC Item <output stem>.stac.json beside the orthophoto.")
 @click.option("--threads", type=click.IntRange(1, 256), default=None, help="Worker threads (default: all cores).")
