@@ -77,9 +77,13 @@ def test_matches_sigma_round_trip_and_weights(tmp_path):
     assert np.isnan(back.sigma[3])
     w = back.weights()
     assert w is not None
-    # s0 = median sigma of the refined matches with a sigma = 0.075; an unknown sigma weighs as a raw keypoint's
-    assert_allclose(w, [(0.075 / 0.05) ** 2, (0.075 / 0.1) ** 2, (0.075 / 0.5) ** 2, (0.075 / 0.5) ** 2],
-                    rtol=1e-3)
+    # refined matches weigh 1 whatever their own sigma (d has none); the unrefined c weighs (s0 / 0.5)^2,
+    # s0 = 0.075 the median sigma of the refined matches that have one
+    assert_allclose(w, [1.0, 1.0, (0.075 / 0.5) ** 2, 1.0], rtol=1e-3)
+    # no score: nothing says which are refined, so each match by its own sigma (s0 = 0.1, the median);
+    # one without a sigma as a raw keypoint
+    alone = read_matches(write_matches(tmp_path / "s.csv", Matches(ids, pts, pts + 1, None, sigma)))
+    assert_allclose(alone.weights(), [4.0, 1.0, 0.04, 0.04], rtol=1e-3)
     # an older file: scores only, unrefined ones empty -> refined 1, unrefined (0.1 / 0.5)^2
     old = read_matches(write_matches(tmp_path / "o.csv", Matches(ids, pts, pts + 1, score)))
     assert_allclose(old.weights(), [1, 1, 0.04, 1])
