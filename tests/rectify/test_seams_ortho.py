@@ -189,17 +189,22 @@ def test_leave_one_out_in_metres_equals_explicit_refits(scene, model):
         assert got[name] == pytest.approx(float(np.hypot(*(e[0] - e[1]))), abs=0.01), name
 
 
-def test_frame_gcp_check_in_metres(block):
-    """A frame camera is checked by GCPs; their error on the orthophoto is given in metres too."""
-    d = block
+def _frame_gcp_run(d, name: str, shift=(0.0, 0.0)):
+    """``rectify ortho`` of the frame image with 5 GCPs whose map coordinates are the truth moved by ``shift``
+    (m, east and north); the CLI result."""
     with rasterio.open(d / "frame.tif") as ds:
         bands = ds.read()
     px = np.array([[10, 12], [100, 15], [60, 50], [15, 85], [105, 88]])
-    rows = [f"c{i},{c},{r},{float(bands[0, r, c]) + E0!r},{float(bands[1, r, c]) + N0!r}"
+    rows = [f"c{i},{c},{r},{float(bands[0, r, c]) + E0 + shift[0]!r},{float(bands[1, r, c]) + N0 + shift[1]!r}"
             for i, (c, r) in enumerate(px.tolist())]
-    (d / "gcps.csv").write_text("\n".join([f"# crs={CRS}", "id,col,row,x,y", *rows]) + "\n")
-    r = _run(d / "frame.tif", "--camera", d / "cam.json", "--exterior", d / "eo.json", "--dem", d / "dem.tif",
-             "--gcps", d / "gcps.csv", "-o", d / "o.tif", "--resolution", "1")
+    (d / f"{name}.csv").write_text("\n".join([f"# crs={CRS}", "id,col,row,x,y", *rows]) + "\n")
+    return _run(d / "frame.tif", "--camera", d / "cam.json", "--exterior", d / "eo.json", "--dem", d / "dem.tif",
+                "--gcps", d / f"{name}.csv", "-o", d / f"{name}.tif", "--resolution", "1")
+
+
+def test_frame_gcp_check_in_metres(block):
+    """A frame camera is checked by GCPs; their error on the orthophoto is given in metres too."""
+    r = _frame_gcp_run(block, "gcps")
     assert r.exit_code == 0, r.output
     assert "GCP heights: none in the file: taken from the DEM" in r.output
     assert _number(r"GCPs on the orthophoto .*?: RMSE ([0-9.]+) m", r.output) < 0.01
@@ -208,15 +213,7 @@ def test_frame_gcp_check_in_metres(block):
 def test_frame_gcp_check_accuracy_statement(block):
     """Issue 27: the orthophoto's check points are stated in the standard forms: GCPs moved by a known
     (+0.30 m, -0.20 m) give RMSE_x 0.30 m, RMSE_y 0.20 m, RMSE_r 0.36 m and the ASPRS sentence."""
-    d = block
-    with rasterio.open(d / "frame.tif") as ds:
-        bands = ds.read()
-    px = np.array([[10, 12], [100, 15], [60, 50], [15, 85], [105, 88]])
-    rows = [f"c{i},{c},{r},{float(bands[0, r, c]) + E0 + 0.3!r},{float(bands[1, r, c]) + N0 - 0.2!r}"
-            for i, (c, r) in enumerate(px.tolist())]
-    (d / "gcps_moved.csv").write_text("\n".join([f"# crs={CRS}", "id,col,row,x,y", *rows]) + "\n")
-    r = _run(d / "frame.tif", "--camera", d / "cam.json", "--exterior", d / "eo.json", "--dem", d / "dem.tif",
-             "--gcps", d / "gcps_moved.csv", "-o", d / "o2.tif", "--resolution", "1")
+    r = _frame_gcp_run(block, "gcps_moved", (0.3, -0.2))
     assert r.exit_code == 0, r.output
     assert "accuracy statement from 5 check points (m;" in r.output
     assert abs(_number(r"  x: mean ([-+0-9.]+),", r.output) + 0.3) < 0.01
