@@ -365,18 +365,14 @@ def ground_errors(model: SensorModel, dem: Dem, gcps: GcpTable, ground: NDArray[
     chk = np.asarray(table.check if table.check is not None else np.zeros(len(ids), bool), dtype=bool)
     out: dict[str, Any] = {}
 
-    vectors: dict[int, NDArray[np.float64]] = {}   # (dx, dy) of the last errors() call, metres
-
     def errors(pixels: NDArray[np.float64], rows: NDArray[np.intp]) -> tuple[NDArray[np.float64], int]:
+        """(N, 2) error vectors (east, north, m; NaN off the DEM) and the count off the DEM."""
         g = ground_on_dem(model, dem, pixels)
         ok = np.isfinite(g).all(axis=1)
-        d = np.full(len(pixels), np.nan)
         v = np.full((len(pixels), 2), np.nan)
         if ok.any():
             v[ok] = _error_vectors(model.crs, g[ok, :2], ground[rows[ok], :2])
-            d[ok] = np.hypot(v[ok, 0], v[ok, 1])
-        vectors[0] = v
-        return d, int((~ok).sum())
+        return v, int((~ok).sum())
 
     rpc = getattr(model, "rpc", None)
     loo = getattr(rpc, "loo_errors", None)
@@ -388,17 +384,16 @@ def ground_errors(model: SensorModel, dem: Dem, gcps: GcpTable, ground: NDArray[
         use = fit[np.isfinite(e[fit]).all(axis=1)]
         if len(use):
             shifted = obs[use] - ((obs[use] + e[use]) - adj[use])
-            d, missed = errors(shifted, use)
+            v, missed = errors(shifted, use)
             out["leave_one_out"] = _errors_line(
                 "leave-one-out check on the orthophoto (each fit GCP placed on the DEM by the refinement fitted "
-                "without it)", [ids[i] for i in use], d, missed)
+                "without it)", [ids[i] for i in use], np.hypot(v[:, 0], v[:, 1]), missed)
     if chk.any():
         sel = np.flatnonzero(chk)
-        d, missed = errors(obs[sel], sel)
+        v, missed = errors(obs[sel], sel)
         label = "check points on the orthophoto (placed on the DEM by the model)" if rpc is not None \
             else "GCPs on the orthophoto (placed on the DEM by the frame model)"
-        out["check"] = _errors_line(label, [ids[i] for i in sel], d, missed)
-        v = vectors[0]
+        out["check"] = _errors_line(label, [ids[i] for i in sel], np.hypot(v[:, 0], v[:, 1]), missed)
         full = np.isfinite(v).all(axis=1)
         if full.any():   # the check points' planimetric accuracy in the standard forms (issue 27)
             out["check"]["accuracy_statement"] = AccuracyStatement.from_errors(v[full]).to_dict()
