@@ -34,7 +34,8 @@ import numpy as np
 
 from rectify.errors import InvalidInputError, RasterIOError, RectifyError
 
-__all__ = ["check_output", "atomic_output", "atomic_write_text", "read_json", "parse_json", "json_depth",
+__all__ = ["note_termination", "terminated", "raise_if_terminated",
+           "check_output", "atomic_output", "atomic_write_text", "read_json", "parse_json", "json_depth",
            "check_nesting", "read_text",
            "write_failure_reason", "apply_umask", "current_umask", "make_temp", "NO_SPACE", "JSON_MAX_BYTES",
            "JSON_MAX_DEPTH"]
@@ -109,6 +110,32 @@ def check_output(path: str | os.PathLike[str], *, overwrite: bool) -> Path:
     return p
 
 
+_TERMINATED: list[int] = []  # the signal number once SIGTERM (or another terminating signal) arrived
+
+
+def note_termination(signum: int) -> None:
+    """Record that the process was asked to terminate (by the command line's SIGTERM handler).
+
+    The handler also raises ``SystemExit``, but an exception raised while Python runs a callback whose
+    exceptions are only reported (a garbage-collector callback, a ``__del__``) is swallowed; every commit
+    of an output therefore checks this record again with :func:`raise_if_terminated`, so a terminated run
+    never publishes its outputs.
+    """
+    if not _TERMINATED:
+        _TERMINATED.append(int(signum))
+
+
+def terminated() -> bool:
+    """True once :func:`note_termination` was called in this process."""
+    return bool(_TERMINATED)
+
+
+def raise_if_terminated() -> None:
+    """Raise ``SystemExit(128 + signum)`` when :func:`note_termination` was called; else do nothing."""
+    if _TERMINATED:
+        raise SystemExit(128 + _TERMINATED[0])
+
+
 @contextlib.contextmanager
 def atomic_output(path: str | os.PathLike[str], *, overwrite: bool = False,
                   suffix: str | None = None) -> Iterator[Path]:
@@ -120,6 +147,7 @@ def atomic_output(path: str | os.PathLike[str], *, overwrite: bool = False,
     tmp_path = make_temp(p, suffix)
     try:
         yield tmp_path
+        raise_if_terminated()
         if p.exists() and not overwrite:
             raise InvalidInputError(f"output {str(p)!r} appeared while writing; pass --overwrite")
         apply_umask(tmp_path)

@@ -30,7 +30,14 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
-from rectify.atomic import apply_umask, check_output, current_umask, make_temp, write_failure_reason
+from rectify.atomic import (
+    apply_umask,
+    check_output,
+    current_umask,
+    make_temp,
+    raise_if_terminated,
+    write_failure_reason,
+)
 from rectify.errors import CRSError, InvalidInputError, RasterIOError, RectifyError
 from rectify.formats.camera import camera_document, read_camera
 from rectify.formats.gcps import gcps_text, read_gcps
@@ -204,6 +211,7 @@ class Workspace:
         self._staged_dirs = []
         try:
             yield self
+            raise_if_terminated()  # a SIGTERM swallowed by a callback still stops the commit
             # the commit holds a lock on every destination folder, so two runs writing one output set
             # commit one after the other: the set is all from one run, never a mix
             moves = [(tmp, dst) for tmp, dst in self._staged]
@@ -288,6 +296,7 @@ class Workspace:
             self._staged_dirs.append((stage, final))
             return
         try:  # outside a transaction: published at once
+            raise_if_terminated()
             for f in _report_files(stage):
                 self.check_not_input(final / f)
                 if (final / f).exists() and not self.overwrite:
@@ -318,6 +327,7 @@ class Workspace:
             self._staged.append((tmp_path, p))
             return
         try:
+            raise_if_terminated()
             if p.exists() and not self.overwrite:
                 raise InvalidInputError(f"output {str(p)!r} appeared while writing; pass --overwrite")
             os.replace(tmp_path, p)

@@ -20,7 +20,7 @@ from typing import Any
 
 import click
 
-from rectify.atomic import write_failure_reason
+from rectify.atomic import note_termination, raise_if_terminated, terminated, write_failure_reason
 from rectify.errors import RectifyError, RectifyWarning, SchedulerError
 
 __all__ = ["overwrite_opt", "output_opts", "verbosity_opts", "report_opt", "scheduler_opt", "handle_errors", "progress",
@@ -104,13 +104,33 @@ def _hide_library_warnings() -> None:
 
 
 def _sigterm(signum: int, frame: Any) -> None:
+    # recorded first: when the SystemExit is swallowed (raised inside a gc callback of Dask's), the commit of
+    # every output raises it again, and the command's end turns the record into the exit status
+    note_termination(signum)
     raise SystemExit(128 + signum)
 
 
+def _unraisable(hook_args: Any) -> None:
+    """Python's report of an exception it had to drop, but silent for the SIGTERM exit: the handler's
+    ``SystemExit`` raised inside a callback (Dask's gc diagnostics) is not an error to print; the record
+    of :func:`rectify.atomic.note_termination` carries it on to the exit status."""
+    if isinstance(hook_args.exc_value, SystemExit) and terminated():
+        return
+    _DEFAULT_UNRAISABLE(hook_args)
+
+
+_DEFAULT_UNRAISABLE = sys.unraisablehook
+
+
 def install_sigterm_handler() -> None:
-    """Turn SIGTERM into ``SystemExit(143)`` (cleanup runs); a no-op outside the main thread."""
+    """Turn SIGTERM into ``SystemExit(143)`` (cleanup runs); a no-op outside the main thread.
+
+    The signal is also recorded (:func:`rectify.atomic.note_termination`): outputs are not committed after
+    it even when the ``SystemExit`` was swallowed, and the command's end exits 143 then.
+    """
     with contextlib.suppress(ValueError, AttributeError):
         signal.signal(signal.SIGTERM, _sigterm)
+        sys.unraisablehook = _unraisable
 
 
 def verbosity_opts(f: Callable) -> Callable:
@@ -191,6 +211,11 @@ class VerbosityGroup(click.Group):
 
     def list_commands(self, ctx: click.Context) -> list[str]:
         return sorted({*self._lazy, *super().list_commands(ctx)})
+
+    def invoke(self, ctx: click.Context) -> Any:
+        result = super().invoke(ctx)
+        raise_if_terminated()  # SIGTERM arrived but its SystemExit was swallowed: still exit 143
+        return result
 
     def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
         target = self._lazy.get(cmd_name)

@@ -61,6 +61,7 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
+from rectify.atomic import raise_if_terminated
 from rectify.errors import InvalidInputError, SchedulerError
 from rectify.raster import tiles as tilepool
 from rectify.raster.daskpeer import SchedulerIdentity, split_address, wait_for_workers
@@ -537,6 +538,7 @@ def _run_on_client(client: Any, sched: Scheduler, engine: BlockEngine, write: Ca
                 watch.check(len(futures))
                 continue
             watch.progressed()
+            raise_if_terminated()  # SIGTERM's SystemExit dropped inside a Dask callback: stop here all the same
             i = futures.pop(fut)
             path, stats, index = _result(fut, sched)
             if merge is not None and stats is not None:

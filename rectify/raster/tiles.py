@@ -21,6 +21,8 @@ import threading
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from rectify.atomic import raise_if_terminated
+
 __all__ = ["run_tiles"]
 
 Window = tuple[int, int, int, int]
@@ -96,6 +98,7 @@ def run_tiles(tile: Callable[..., Any], write: Callable[[Any, int, int], bool], 
     try:
         while ended < n:
             kind, win, res = results.get()
+            raise_if_terminated()
             if kind == "end":
                 ended += 1
             elif kind == "error":

@@ -225,6 +225,48 @@ def test_sigterm_removes_temporaries(tmp_path):
     assert _hash(src, gcps) == before
 
 
+_SWALLOWED_SIGTERM = """
+import gc, os, signal, sys
+from pathlib import Path
+from rectify.actions.workspace import Workspace
+from rectify.atomic import atomic_output
+from rectify.cli.options import install_sigterm_handler
+install_sigterm_handler()
+def cb(phase, info):  # SIGTERM delivered inside a gc callback: Python reports and drops its SystemExit
+    if phase == "start" and not getattr(cb, "done", False):
+        cb.done = True
+        os.kill(os.getpid(), signal.SIGTERM)
+        sum(range(1000))
+gc.callbacks.append(cb)
+gc.collect()
+gc.callbacks.remove(cb)
+print("ran on", file=sys.stderr)
+out = Path(sys.argv[2])
+if sys.argv[1] == "atomic":
+    with atomic_output(out) as t:
+        t.write_text("x")
+else:
+    ws = Workspace(out.parent)
+    with ws.transaction():
+        ws.write_text(out, "x")
+print("committed")
+"""
+
+
+@pytest.mark.parametrize("how", ["atomic", "transaction"])
+def test_a_swallowed_sigterm_still_stops_the_commit(tmp_path, how):
+    """SIGTERM whose SystemExit Python drops (raised in a gc callback, as Dask's diagnostics run one): the run
+    goes on, but no output is committed, nothing is printed, and the exit status is still 143."""
+    import sys
+
+    out = tmp_path / "o.txt"
+    r = subprocess.run([sys.executable, "-c", _SWALLOWED_SIGTERM, how, str(out)], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 143, r.stderr
+    assert r.stderr == "ran on\n" and r.stdout == ""  # the handler's exception dropped, and not printed
+    assert _entries(tmp_path) == []
+
+
 # --- 7. wrong JSON types, option ranges
 _CAM = {"focal_length_mm": 50.0, "pixel_size_mm": 0.01, "width": 1000, "height": 800}
 
