@@ -20,24 +20,12 @@ Usage::
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from rectify.geometry.rotation import angles_from_matrix
 from stereo.block.bundle.adjust import BundleOptions, adjust_bundle
 from stereo.block.bundle.result import BundleResult
 from stereo.block.types import GnssObservations
-from tests.support.block_synthetic import SyntheticBlock, make_block
-
-SHIFT = np.array([[0.9, -0.6, 0.75], [-0.75, 0.45, -0.9], [0.3, 0.9, 0.6], [-0.6, -0.3, 1.05]])     # m
-DRIFT = np.array([[0.03, -0.015, 0.024], [-0.018, 0.03, 0.012], [0.0, -0.024, 0.03], [0.015, 0.015, -0.03]])  # m/s
-
-
-def strips(names: tuple[str, ...]) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
-    """Strip labels, strip index and exposure time (600 s between strips, 4 s between images)."""
-    strip = tuple(n.split("_")[0] for n in names)
-    lab = np.array([int(s[1:]) for s in strip])
-    order = np.array([int(n.split("_")[1]) for n in names])
-    return strip, lab, 600.0 * lab + 4.0 * order
+from tests.support.block_synthetic import SyntheticBlock
+from tests.support.gnss_scenes import BORESIGHT, DRIFT, SHIFT, boresight_block, correlated_gnss_block, drift_block
 
 
 def run(blk: SyntheticBlock, g: GnssObservations, **kw: str) -> BundleResult:
@@ -52,13 +40,7 @@ def check_text(r: BundleResult) -> str:
 
 
 def drift_study() -> None:
-    blk = make_block(3, strips=4, images_per_strip=8, n_points=900, gnss_noise_m=0.05, ins_noise_rad=2e-4,
-                     n_check=8)
-    g = blk.gnss
-    strip, lab, t = strips(g.images)
-    tm = np.array([t[lab == k].mean() for k in range(4)])
-    pos = g.position + SHIFT[lab] + DRIFT[lab] * (t - tm[lab])[:, None]
-    gg = GnssObservations(g.images, pos, g.sigma_m, g.lever_arm_m, g.angles, g.sigma_rad, time=t, strip=strip)
+    blk, gg = drift_block()
     for mode in ("none", "shift", "shift-drift"):
         r = run(blk, gg, gnss_drift=mode)
         line = f"GNSS shift+drift block, --gnss-drift {mode}: sigma0 {r.sigma0:.3f}, {check_text(r)}"
@@ -70,16 +52,8 @@ def drift_study() -> None:
 
 
 def boresight_study() -> None:
-    blk = make_block(5, strips=3, images_per_strip=8, n_points=900, gnss_noise_m=0.05, ins_noise_rad=2e-4,
-                     n_check=8)
-    g = blk.gnss
-    strip, _, _ = strips(g.images)
-    beta = np.radians([0.05, -0.08, 0.12])
-    R = np.array([p.rotation for p in blk.true_poses])
-    Ro = R @ Rotation.from_rotvec(-beta).as_matrix()
-    ang = np.asarray(angles_from_matrix(Ro, "omega-phi-kappa")).reshape(-1, 3)
-    ang = ang + np.random.default_rng(1).normal(0, 2e-4, ang.shape)
-    gg = GnssObservations(g.images, g.position, g.sigma_m, g.lever_arm_m, ang, g.sigma_rad, strip=strip)
+    blk, gg = boresight_block()
+    beta = BORESIGHT
     for mode, k in (("none", 0), ("block", 1), ("strip", 3)):
         r = run(blk, gg, boresight_unknown=mode)
         line = (f"boresight block, --boresight-unknown {mode}: sigma0 {r.sigma0:.3f}, INS group sigma0 "
@@ -92,23 +66,10 @@ def boresight_study() -> None:
 
 
 def covariance_study() -> None:
-    blk = make_block(11, strips=2, images_per_strip=10, n_points=1500, gnss_noise_m=0.0, ins_noise_rad=2e-5,
-                     control_layout="none", n_check=8, forward_overlap=0.8, side_overlap=0.5)
-    g = blk.gnss
-    _, lab, _ = strips(g.images)
-    rng = np.random.default_rng(4)
-    s, rho = 0.5, 0.995
-    cov = np.zeros((len(lab), 3, 3))
-    err = np.zeros((len(lab), 3))
-    for i, k in enumerate(lab):
-        r_ = rho if k == 0 else -rho
-        cov[i] = [[s * s, r_ * s * s, 0.0], [r_ * s * s, s * s, 0.0], [0.0, 0.0, 0.05 ** 2]]
-        err[i] = np.linalg.cholesky(cov[i]) @ rng.normal(size=3)
-    pos = g.position + err
-    sig = np.sqrt(np.diagonal(cov, axis1=1, axis2=2))
+    blk, g_full, g_diag = correlated_gnss_block()
     tc = np.array([p.position for p in blk.true_poses])
-    for c, name in ((cov, "full covariances"), (None, "diagonal sigmas")):
-        r = run(blk, GnssObservations(g.images, pos, sig, None, g.angles, g.sigma_rad, covariance=c))
+    for gg, name in ((g_full, "full covariances"), (g_diag, "diagonal sigmas")):
+        r = run(blk, gg)
         sh = np.mean(np.array([p.position for p in r.poses]) - tc, axis=0)
         print(f"correlated GNSS, {name}: check plan RMS {np.sqrt(np.mean(r.check_errors[:, :2] ** 2)):.3f} m, "
               f"{check_text(r)}, block shift error x {sh[0]:+.3f} y {sh[1]:+.3f} m")

@@ -42,7 +42,7 @@ from stereo.block.types import BlockControl
 from stereo.cli.main import cli
 from tests.support.block_curved import make_curved_block, write_curved_block
 from tests.support.block_files import write_block_files
-from tests.support.block_synthetic import SyntheticBlock, make_block
+from tests.support.block_synthetic import SyntheticBlock, make_block, strip_control
 
 
 def camera(k1: float = 0.0) -> Camera:
@@ -83,19 +83,7 @@ def strip(k1: float) -> tuple[SyntheticBlock, BlockControl]:
     """The 10-image strip and its control (15 points in 5 stations x 3 rows) and 40 check points."""
     blk = make_block(3, strips=1, images_per_strip=10, camera=camera(k1), n_points=1500, control_layout="none",
                      n_check=0, image_noise_px=0.3)
-    t, X = blk.tracks, blk.true_points
-    cnt = np.bincount(t.obs_point, minlength=t.n_points)
-    ctrl: list[int] = []
-    for x in np.linspace(X[:, 0].min(), X[:, 0].max(), 5):
-        for y in np.linspace(X[:, 1].min(), X[:, 1].max(), 3):
-            d = np.where(cnt >= 3, np.hypot(X[:, 0] - x, X[:, 1] - y), np.inf)
-            ctrl.append(next(int(j) for j in np.argsort(d) if int(j) not in ctrl))
-    rest = np.setdiff1d(np.flatnonzero(cnt >= 3), ctrl)
-    chk = [int(j) for j in np.random.default_rng(0).choice(rest, 40, replace=False)]
-    rows = ctrl + chk
-    return blk, BlockControl(tuple(t.point_ids[j] for j in rows), X[rows], ("full",) * len(rows),
-                             np.full((len(rows), 3), 0.01), np.array([False] * len(ctrl) + [True] * len(chk)))
-
+    return blk, strip_control(blk, 40)
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -76,7 +76,7 @@ from rectify.geometry.rpc_adjust import (
 from rectify.raster.io import MaskPolicy, TiledWriter, raster_info
 from rectify.report.builder import json_safe
 from stereo.actions.dense_rpc import RpcDenseOptions, RpcDenseResult, roi_statistics, run_dense_rpc
-from stereo.dense.dsm import DSM_NODATA, DsmResult, _fill_holes
+from stereo.dense.dsm import DSM_NODATA, DsmResult, fill_holes
 from stereo.dense.fusion import FUSED_BANDS, fuse_heights, fused_band_descriptions, nodata_of, variance_factor
 from stereo.dense.rpc_views import PairCandidate, select_rpc_pairs
 from stereo.report.dense import HeightComparison, compare_with_dem, save_histogram, save_picture
@@ -266,13 +266,13 @@ def fill_fused_holes(height: NDArray[np.float64], max_cells: int, inside: NDArra
     and, with ``inside`` (H, W; the ROI's cells), every connected group of empty cells *inside* of at most
     ``max_cells`` cells even where it joins the empty outside (only its cells inside are filled). The fill
     starts from the nearest height and is smoothed by 50 sweeps of four-neighbour averaging inside the holes
-    (the DSM grid's harmonic fill, :func:`stereo.dense.dsm._fill_holes`): every filled height lies within the
+    (the DSM grid's harmonic fill, :func:`stereo.dense.dsm.fill_holes`): every filled height lies within the
     range of the heights around it (maximum principle)."""
     has = np.isfinite(height)
     none = np.zeros(height.shape, bool)
     if max_cells <= 0 or not has.any() or has.all():
         return height, none
-    hf, target = _fill_holes(np.where(has, height, 0.0), has, max_cells)
+    hf, target = fill_holes(np.where(has, height, 0.0), has, max_cells)
     if inside is not None:
         lab, n = ndimage.label(~has & inside)
         if n:

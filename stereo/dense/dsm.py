@@ -36,7 +36,7 @@ from rectify.raster.io import MaskPolicy, TiledWriter
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["DSM_NODATA", "STATISTICS", "DsmGrid", "DsmResult", "band_descriptions", "default_cell"]
+__all__ = ["DSM_NODATA", "STATISTICS", "DsmGrid", "DsmResult", "band_descriptions", "default_cell", "fill_holes"]
 
 StrPath = str | Path
 
@@ -298,7 +298,7 @@ class DsmGrid:
             has &= ~spike
         filled = np.zeros(h.shape, bool)
         if max_hole_cells > 0 and has.any() and not has.all():
-            hf, filled = _fill_holes(h.astype(np.float64), has, max_hole_cells)
+            hf, filled = fill_holes(h.astype(np.float64), has, max_hole_cells)
             h[filled] = hf[filled]
             del hf
         h[~(has | filled)] = DSM_NODATA
@@ -307,9 +307,17 @@ class DsmGrid:
         return DsmResult(h, count, filled, self.transform, self.crs, self.statistic, self.heights)
 
 
-def _fill_holes(h: NDArray[np.float64], has: NDArray[np.bool_], max_cells: int
-                ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """Fill enclosed holes of at most ``max_cells`` cells by inverse-distance weighting of their rim."""
+def fill_holes(h: NDArray[np.float64], has: NDArray[np.bool_], max_cells: int
+               ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Fill the enclosed holes of a height grid (harmonic fill from their rim).
+
+    ``h`` (rows, cols) heights in metres, read only where ``has`` (same shape, bool) is True. A hole is a
+    4-connected region of missing cells of at most ``max_cells`` cells that does not touch the grid's border
+    (a region touching it is outside the data). Each hole starts from its nearest valid height and is
+    smoothed by 50 rounds of 4-neighbour averaging, so every filled height lies between its rim's extremes.
+    Returns ``(heights, filled)``: the heights (NaN where neither valid nor filled) and the mask of the
+    filled cells.
+    """
     lab, n = ndimage.label(~has)
     if n == 0:
         return h, np.zeros(h.shape, bool)

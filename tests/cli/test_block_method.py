@@ -17,12 +17,11 @@ import pytest
 from click.testing import CliRunner
 
 from rectify.geometry.camera import Camera
-from stereo.block.types import BlockControl
 from stereo.cli.main import cli
 from stereo.formats.block import read_block_orientation
 from stereo.formats.points import read_points_csv
 from tests.support.block_files import write_block_files
-from tests.support.block_synthetic import make_block
+from tests.support.block_synthetic import make_block, strip_control
 
 
 @pytest.fixture(scope="module")
@@ -124,18 +123,7 @@ def test_strip_polynomial_corrects_a_bent_strip(tmp_path) -> None:
                       principal_point_mm=(0.0, 0.0), distortion={"k1": -0.01})
     blk = make_block(3, strips=1, images_per_strip=10, camera=true_cam, n_points=1500, control_layout="none",
                      n_check=0, image_noise_px=0.3)
-    t, X = blk.tracks, blk.true_points
-    cnt = np.bincount(t.obs_point, minlength=t.n_points)
-    ctrl: list[int] = []
-    for x in np.linspace(X[:, 0].min(), X[:, 0].max(), 5):
-        for y in np.linspace(X[:, 1].min(), X[:, 1].max(), 3):
-            d = np.where(cnt >= 3, np.hypot(X[:, 0] - x, X[:, 1] - y), np.inf)
-            ctrl.append(next(int(j) for j in np.argsort(d) if int(j) not in ctrl))
-    chk = [int(j) for j in np.random.default_rng(0).choice(np.setdiff1d(np.flatnonzero(cnt >= 3), ctrl), 30,
-                                                            replace=False)]
-    rows = ctrl + chk
-    control = BlockControl(tuple(t.point_ids[j] for j in rows), X[rows], ("full",) * len(rows),
-                           np.full((len(rows), 3), 0.01), np.array([False] * len(ctrl) + [True] * len(chk)))
+    control = strip_control(blk, 30)
     blk = replace(blk, camera=replace(true_cam, distortion={}), control=control)
     _images, camf, poses, ctrl_path, ties, checks = write_block_files(tmp_path, blk, gnss=False)
     obs = tmp_path / "observations.csv"

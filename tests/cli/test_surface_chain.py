@@ -17,14 +17,12 @@ from click.testing import CliRunner
 
 import stereo.actions.surface_outputs as surface_outputs
 from rectify.errors import InvalidInputError
-from rectify.formats.orthority import read_ext_param, read_int_param
 from rectify.geometry.accuracy import AccuracyStatement
 from rectify.raster.io import write_raster
-from stereo.block.types import Pose
 from stereo.cli.main import cli
-from stereo.formats.block import block_orientation_text
 from tests.support.block_example import write_example_block
 from tests.support.block_surface import GSD, make_surface_block, read_dsm, truth_on
+from tests.support.surface_checks import mosaic_shifts, write_orthority_orientation
 
 CRS = "EPSG:32633"
 
@@ -213,13 +211,7 @@ def test_stereo_block_with_surface(tmp_path):
 def test_ngi_pair_as_a_block_of_two_through_the_chain(ngi_pair, tmp_path):
     """The NGI pair as a block of two (orthority's AT orientations) -> DSM against dem.tif, the orthomosaic
     against the two single true orthophotos, the cloud (figures in docs/surface.md)."""
-    cams = read_int_param(ngi_pair / "orthority_int_param.yaml")
-    ext = read_ext_param(ngi_pair / "orthority_ext_param.geojson")
-    poses = [Pose(name, e["camera"] or next(iter(cams)), np.asarray(e["position"]), np.asarray(e["rotation"]))
-             for name, e in ext.items()]
-    (tmp_path / "o").mkdir()
-    (tmp_path / "o" / "orientation.json").write_text(
-        block_orientation_text(cams, poses, crs=next(iter(ext.values()))["crs"]))
+    write_orthority_orientation(ngi_pair, tmp_path / "o")
     out = tmp_path / "out"
     r = CliRunner().invoke(cli, ["surface", str(tmp_path / "o"), "-o", str(out), "--images", str(ngi_pair),
                                  "--ground-z", "429.33", "--reference-dem", str(ngi_pair / "dem.tif"),
@@ -229,30 +221,7 @@ def test_ngi_pair_as_a_block_of_two_through_the_chain(ngi_pair, tmp_path):
     cmp = doc["comparison"]
     # measured: RMSE 5.19 m, NMAD 3.88 m, coverage 80.7 %, LE90 8.54 m (observed 7.60 m)
     assert cmp["rmse"] <= 9.0 and cmp["nmad"] <= 5.0 and cmp["coverage"] >= 0.7 and cmp["le90"] <= 15.0, cmp
-    names = doc["ortho"]["images"]
-    with rasterio.open(out / "ortho.tif") as ds:
-        mos = ds.read(1).astype(np.float64)
-        mt = ds.transform
-    with rasterio.open(out / "ortho.source.tif") as ds:
-        src = ds.read(1)
-    P = 32
-    win = cv2.createHanningWindow((P, P), cv2.CV_64F)
-    shifts = []
-    for r0 in range(0, mos.shape[0] - P, P):
-        for c0 in range(0, mos.shape[1] - P, P):
-            s = src[r0:r0 + P, c0:c0 + P]
-            k = int(s[0, 0])
-            if k == 0 or not (s == k).all():
-                continue
-            with rasterio.open(out / f"ortho_{names[k - 1]}.tif") as ds:
-                cc, rr = ~ds.transform * (mt * (c0, r0))
-                b = ds.read(1, window=((round(rr), round(rr) + P), (round(cc), round(cc) + P)), boundless=True,
-                            fill_value=0).astype(np.float64)
-            a = mos[r0:r0 + P, c0:c0 + P]
-            if (b == 0).any() or a.std() < 3:
-                continue
-            (dx, dy), _ = cv2.phaseCorrelate(a, b, win)
-            shifts.append(math.hypot(dx, dy))
+    shifts = mosaic_shifts(out)
     assert len(shifts) >= 20 and max(shifts) <= 0.1, shifts     # measured: 45 patches, max 0.004 px
     las = laspy.read(out / "points.laz")
     assert len(las.points) == cmp["n"] and {"sigma_z", "pair"} <= set(las.point_format.extra_dimension_names)

@@ -38,7 +38,7 @@ from stereo.block.strip_adjust import correct_strips
 from stereo.block.strip_polynomial import STRIP_DEGREES, StripPolynomial, find_strips, strip_terms
 from stereo.block.types import BlockControl, GnssObservations
 from tests.support.block_files import write_block_files
-from tests.support.block_synthetic import make_block
+from tests.support.block_synthetic import make_block, strip_control
 
 
 def _camera(k1: float = 0.0) -> Camera:
@@ -169,18 +169,7 @@ def bent_strip():
     """One strip of 10 images (9 models); the camera's radial distortion k1 = -0.01 is not given to the models."""
     blk = make_block(3, strips=1, images_per_strip=10, camera=_camera(-0.01), n_points=1500, control_layout="none",
                      n_check=0, image_noise_px=0.3)
-    t, X = blk.tracks, blk.true_points
-    cnt = np.bincount(t.obs_point, minlength=t.n_points)
-    ctrl: list[int] = []
-    for x in np.linspace(X[:, 0].min(), X[:, 0].max(), 5):          # 5 stations along, 3 rows across
-        for y in np.linspace(X[:, 1].min(), X[:, 1].max(), 3):
-            d = np.where(cnt >= 3, np.hypot(X[:, 0] - x, X[:, 1] - y), np.inf)
-            ctrl.append(next(int(j) for j in np.argsort(d) if int(j) not in ctrl))
-    rest = np.setdiff1d(np.flatnonzero(cnt >= 3), ctrl)
-    chk = [int(j) for j in np.random.default_rng(0).choice(rest, 40, replace=False)]
-    rows = ctrl + chk
-    control = BlockControl(tuple(t.point_ids[j] for j in rows), X[rows], ("full",) * len(rows),
-                           np.full((len(rows), 3), 0.01), np.array([False] * len(ctrl) + [True] * len(chk)))
+    control = strip_control(blk, 40)
     return blk, control
 
 

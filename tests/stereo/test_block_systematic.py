@@ -14,30 +14,14 @@ from stereo.block.bundle.adjust import BundleOptions, _setup, adjust_bundle
 from stereo.block.bundle.model import rotations
 from stereo.block.bundle.systematic import frame_covariance, summary_dict
 from stereo.block.types import GnssObservations
+from tests.support import gnss_scenes
 from tests.support.block_synthetic import make_block
-
-SHIFT = np.array([[0.9, -0.6, 0.75], [-0.75, 0.45, -0.9], [0.3, 0.9, 0.6], [-0.6, -0.3, 1.05]])     # m
-DRIFT = np.array([[0.03, -0.015, 0.024], [-0.018, 0.03, 0.012], [0.0, -0.024, 0.03], [0.015, 0.015, -0.03]])  # m/s
-
-
-def _strips(names: tuple[str, ...]) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
-    """Strip labels, strip index and exposure time (600 s between strips, 4 s between images) of make_block's
-    image names ``s{strip}_{order}``."""
-    strip = tuple(n.split("_")[0] for n in names)
-    lab = np.array([int(s[1:]) for s in strip])
-    order = np.array([int(n.split("_")[1]) for n in names])
-    return strip, lab, 600.0 * lab + 4.0 * order
+from tests.support.gnss_scenes import BORESIGHT, DRIFT, SHIFT
 
 
 @pytest.fixture(scope="module")
 def drift_block():
-    blk = make_block(3, strips=4, images_per_strip=8, n_points=900, gnss_noise_m=0.05, ins_noise_rad=2e-4, n_check=8)
-    g = blk.gnss
-    strip, lab, t = _strips(g.images)
-    tm = np.array([t[lab == k].mean() for k in range(4)])
-    pos = g.position + SHIFT[lab] + DRIFT[lab] * (t - tm[lab])[:, None]
-    gg = GnssObservations(g.images, pos, g.sigma_m, g.lever_arm_m, g.angles, g.sigma_rad, time=t, strip=strip)
-    return blk, gg
+    return gnss_scenes.drift_block()
 
 
 def _run(blk, gnss, **kw):
@@ -80,15 +64,8 @@ def test_shift_only_absorbs_the_shift(drift_block):
 def test_boresight_block_and_strip_recovered():
     """INS angles with a boresight error of (0.05, -0.08, 0.12) deg: recovered within 3 predicted std per angle
     (block and per strip); check points back within their std; without the unknowns they are not."""
-    blk = make_block(5, strips=3, images_per_strip=8, n_points=900, gnss_noise_m=0.05, ins_noise_rad=2e-4, n_check=8)
-    g = blk.gnss
-    strip, _, _ = _strips(g.images)
-    beta = np.radians([0.05, -0.08, 0.12])
-    R = np.array([p.rotation for p in blk.true_poses])
-    Ro = R @ Rotation.from_rotvec(-beta).as_matrix()
-    ang = np.asarray(angles_from_matrix(Ro, "omega-phi-kappa")).reshape(-1, 3)
-    ang = ang + np.random.default_rng(1).normal(0, 2e-4, ang.shape)
-    gg = GnssObservations(g.images, g.position, g.sigma_m, g.lever_arm_m, ang, g.sigma_rad, strip=strip)
+    blk, gg = gnss_scenes.boresight_block()
+    beta = BORESIGHT
     for mode, k in (("block", 1), ("strip", 3)):
         res = _run(blk, gg, boresight_unknown=mode)
         z = (res.systematic - np.tile(beta, k)) / res.systematic_std
@@ -107,25 +84,12 @@ def test_full_covariance_beats_diagonal_weights():
     the direction the other cannot, and the check points are within a few cm and their predicted std; with the
     diagonal sigmas alone the same observations leave them (and the block's translation) 3 times (or more) farther
     off. Tight INS angles (2e-5 rad) tie the cameras' plan positions to the block's rigid geometry."""
-    blk = make_block(11, strips=2, images_per_strip=10, n_points=1500, gnss_noise_m=0.0, ins_noise_rad=2e-5,
-                     control_layout="none", n_check=8, forward_overlap=0.8, side_overlap=0.5)
-    g = blk.gnss
-    _, lab, _ = _strips(g.images)
-    rng = np.random.default_rng(4)
-    s, rho = 0.5, 0.995
-    cov = np.zeros((len(lab), 3, 3))
-    err = np.zeros((len(lab), 3))
-    for i, k in enumerate(lab):
-        r = rho if k == 0 else -rho
-        cov[i] = [[s * s, r * s * s, 0.0], [r * s * s, s * s, 0.0], [0.0, 0.0, 0.05 ** 2]]
-        err[i] = np.linalg.cholesky(cov[i]) @ rng.normal(size=3)
-    pos = g.position + err
-    sig = np.sqrt(np.diagonal(cov, axis1=1, axis2=2))
+    blk, g_full, g_diag = gnss_scenes.correlated_gnss_block()
     full = adjust_bundle(blk.cameras, blk.initial_poses, blk.tracks, blk.initial_points, control=blk.control,
-                         gnss=GnssObservations(g.images, pos, sig, None, g.angles, g.sigma_rad, covariance=cov),
+                         gnss=g_full,
                          options=BundleOptions(image_sigma_px=0.5))
     diag = adjust_bundle(blk.cameras, blk.initial_poses, blk.tracks, blk.initial_points, control=blk.control,
-                         gnss=GnssObservations(g.images, pos, sig, None, g.angles, g.sigma_rad),
+                         gnss=g_diag,
                          options=BundleOptions(image_sigma_px=0.5))
     e_full = np.sqrt(np.mean(full.check_errors[:, :2] ** 2))
     e_diag = np.sqrt(np.mean(diag.check_errors[:, :2] ** 2))

@@ -275,3 +275,21 @@ def _project(cam: Camera, R: F64, C: F64, X: F64) -> F64:
         mm = np.column_stack([-f * p[ok, 0] / p[ok, 2], -f * p[ok, 1] / p[ok, 2]])
         out[ok] = cam.pixel_from_photo(mm)
     return out
+
+
+def strip_control(blk: SyntheticBlock, n_check: int, seed: int = 0) -> BlockControl:
+    """Control for a one-strip block: 15 full control points nearest to a 5 x 3 lattice of stations (5 along
+    the strip, 3 across) among the points seen in 3 or more images, then ``n_check`` check points drawn
+    (``seed``) from the other such points; their true coordinates with std 0.01 m."""
+    t, X = blk.tracks, blk.true_points
+    cnt = np.bincount(t.obs_point, minlength=t.n_points)
+    ctrl: list[int] = []
+    for x in np.linspace(X[:, 0].min(), X[:, 0].max(), 5):
+        for y in np.linspace(X[:, 1].min(), X[:, 1].max(), 3):
+            d = np.where(cnt >= 3, np.hypot(X[:, 0] - x, X[:, 1] - y), np.inf)
+            ctrl.append(next(int(j) for j in np.argsort(d) if int(j) not in ctrl))
+    rest = np.setdiff1d(np.flatnonzero(cnt >= 3), ctrl)
+    chk = [int(j) for j in np.random.default_rng(seed).choice(rest, n_check, replace=False)]
+    rows = ctrl + chk
+    return BlockControl(tuple(t.point_ids[j] for j in rows), X[rows], ("full",) * len(rows),
+                        np.full((len(rows), 3), 0.01), np.array([False] * len(ctrl) + [True] * len(chk)))
