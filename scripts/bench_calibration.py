@@ -17,19 +17,23 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from rectify.errors import CalibrationError
-from stereo.calibration.model import Intrinsics
-from stereo.calibration.result import Calibration
-from stereo.calibration.views import TargetView
-from stereo.calibration.zoom import ZoomModel
-from stereo.features.targets import Chessboard, detect_chessboards
-from tests.support.calibration_synthetic import board_scene, field_scene, zoom_camera
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # the repository's tests.support, run from anywhere
+
+from rectify.errors import CalibrationError  # noqa: E402
+from stereo.calibration.model import Intrinsics  # noqa: E402
+from stereo.calibration.result import Calibration  # noqa: E402
+from stereo.calibration.views import TargetView  # noqa: E402
+from stereo.calibration.zoom import ZoomModel  # noqa: E402
+from stereo.features.targets import Chessboard, detect_chessboards  # noqa: E402
+from tests.support.calibration_synthetic import board_scene, field_scene, zoom_camera  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT / ".." / "shared" / "data"

@@ -12,23 +12,18 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
-import rasterio
-from scipy import ndimage
 
-from rectify.geometry.camera import Camera
-from rectify.geometry.points import ControlTable
-from rectify.geometry.residuals import rms
-from rectify.geometry.rotation import matrix_from_angles
-from stereo.actions.run import run
-from stereo.pair.model import ModelOptions
-from stereo.pair.resection import ExteriorOrientation
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # the repository's tests.support, run from anywhere
 
-LO25 = "+proj=tmerc +lat_0=0 +lon_0=25 +k=1 +x_0=0 +y_0=0 +datum=WGS84 +units=m"
-EO = {"0182": (-55094.504480, -3727407.037480, 5258.307930, -0.349216, 0.298484, -179.086702),
-      "0184": (-57710.435280, -3727433.893020, 5256.764790, 0.269761, -0.281937, -179.027883)}
+from rectify.geometry.residuals import rms  # noqa: E402
+from stereo.actions.run import run  # noqa: E402
+from stereo.pair.model import ModelOptions  # noqa: E402
+from tests.support.ngi_pair import dem_control, dem_sampler, ngi_camera  # noqa: E402
 
 
 def main() -> None:
@@ -39,31 +34,11 @@ def main() -> None:
     ap.add_argument("--frame", default="topocentric")
     a = ap.parse_args()
     d = Path(a.shared) / "ngi_strip05"
-    cam = Camera(focal_length_mm=120.0, pixel_size_mm=0.144, width=640, height=1152)
-    eos = {k: ExteriorOrientation(position=v[:3], rotation=matrix_from_angles(*np.radians(v[3:])),
-                                  focal_length_mm=120.0) for k, v in EO.items()}
-    with rasterio.open(d / "dem.tif") as src:
-        dem = src.read(1).astype(float)
-        T = src.transform
-
-    def dem_h(xy):
-        col, row = ~T * (xy[:, 0], xy[:, 1])
-        return ndimage.map_coordinates(dem, [np.asarray(row) - 0.5, np.asarray(col) - 0.5], order=1,
-                                       mode="constant", cval=np.nan)
-
+    cam = ngi_camera()
+    dem_h = dem_sampler(d)
     # left = 0182: which image is left? 0184 lies west of 0182 and kappa ~ 180: image x points west
     left, right = "0182", "0184"
-    rng = np.random.default_rng(0)
-    pts = []
-    while len(pts) < a.n_control:
-        c = (eos[left].position[:2] + eos[right].position[:2]) / 2 + rng.uniform(-2500, 2500, 2) * [0.6, 1.0]
-        g = np.array([c[0], c[1], dem_h(c[None])[0]])
-        pl = cam.pixel_from_photo(eos[left].project(g[None]))[0]
-        pr = cam.pixel_from_photo(eos[right].project(g[None]))[0]
-        if np.isfinite(g[2]) and all(30 < p[0] < 610 and 30 < p[1] < 1122 for p in (pl, pr)):
-            pts.append((g, pl, pr))
-    ctrl = ControlTable(tuple(f"dem{i}" for i in range(len(pts))), np.array([p[1] for p in pts]),
-                        np.array([p[2] for p in pts]), np.array([p[0] for p in pts]), crs=LO25)
+    ctrl, pts = dem_control(d, a.n_control, left, right)
     out = Path(a.out)
     m = run(d / f"3324c_2015_1004_05_{left}_RGB.tif", d / f"3324c_2015_1004_05_{right}_RGB.tif", camera=cam,
             out_dir=out, control=ctrl, options=ModelOptions(frame=a.frame), overwrite=True,

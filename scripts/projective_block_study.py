@@ -14,15 +14,20 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
-from rectify.errors import RectifyError
-from stereo.block.bundle.adjust import BundleOptions, adjust_bundle
-from stereo.block.projective_bundle import uncalibrated_block
-from tests.stereo.test_block_projective import CAM, SIZES, TRUTH, more_control
-from tests.support.block_synthetic import make_block
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # the repository's tests.support, run from anywhere
+
+from rectify.errors import RectifyError  # noqa: E402
+from stereo.block.bundle.adjust import BundleOptions, adjust_bundle  # noqa: E402
+from stereo.block.projective_bundle import uncalibrated_block  # noqa: E402
+from tests.stereo.test_block_projective import CAM, SIZES, TRUTH, more_control  # noqa: E402
+from tests.support.block_synthetic import make_block  # noqa: E402
 
 
 def main() -> None:

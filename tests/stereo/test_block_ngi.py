@@ -14,11 +14,7 @@ import math
 
 import numpy as np
 import pytest
-import rasterio
-from scipy import ndimage
 
-from rectify.geometry.camera import Camera
-from rectify.geometry.points import ControlTable
 from rectify.geometry.residuals import rms
 from rectify.geometry.rotation import angles_from_matrix, matrix_from_angles
 from stereo.actions.block import BlockOptions, run_block
@@ -26,12 +22,7 @@ from stereo.actions.run import run
 from stereo.formats.block import read_block_orientation
 from stereo.formats.points import read_points_csv
 from stereo.pair.model import ModelOptions
-from stereo.pair.resection import ExteriorOrientation
-
-LO25 = "+proj=tmerc +lat_0=0 +lon_0=25 +k=1 +x_0=0 +y_0=0 +datum=WGS84 +units=m"
-EO = {"0182": (-55094.504480, -3727407.037480, 5258.307930, -0.349216, 0.298484, -179.086702),
-      "0184": (-57710.435280, -3727433.893020, 5256.764790, 0.269761, -0.281937, -179.027883)}
-GROUND_PIXEL_M = 5.6
+from tests.support.ngi_pair import EO, GROUND_PIXEL_M, LO25, dem_control, dem_sampler, ngi_camera
 
 pytestmark = pytest.mark.shared
 
@@ -40,30 +31,10 @@ pytestmark = pytest.mark.shared
 def ngi(ngi_pair, tmp_path_factory):
     d = ngi_pair
     out = tmp_path_factory.mktemp("ngi_block")
-    cam = Camera(focal_length_mm=120.0, pixel_size_mm=0.144, width=640, height=1152)
-    eos = {k: ExteriorOrientation(position=v[:3], rotation=matrix_from_angles(*np.radians(v[3:])),
-                                  focal_length_mm=120.0) for k, v in EO.items()}
-    with rasterio.open(d / "dem.tif") as src:
-        dem = src.read(1).astype(float)
-        T = src.transform
-
-    def dem_h(xy):
-        col, row = ~T * (xy[:, 0], xy[:, 1])
-        return ndimage.map_coordinates(dem, [np.asarray(row) - 0.5, np.asarray(col) - 0.5], order=1,
-                                       mode="constant", cval=np.nan)
-
-    rng = np.random.default_rng(0)
-    pts = []
-    while len(pts) < 8:
-        c = (eos["0182"].position[:2] + eos["0184"].position[:2]) / 2 + rng.uniform(-2500, 2500, 2) * [0.6, 1.0]
-        g = np.array([c[0], c[1], dem_h(c[None])[0]])
-        pl = cam.pixel_from_photo(eos["0182"].project(g[None]))[0]
-        pr = cam.pixel_from_photo(eos["0184"].project(g[None]))[0]
-        if np.isfinite(g[2]) and all(30 < p[0] < 610 and 30 < p[1] < 1122 for p in (pl, pr)):
-            pts.append((g, pl, pr))
-    ids = tuple(f"dem{i}" for i in range(len(pts)))
-    ctrl = ControlTable(ids, np.array([p[1] for p in pts]), np.array([p[2] for p in pts]),
-                        np.array([p[0] for p in pts]), crs=LO25)
+    cam = ngi_camera()
+    dem_h = dem_sampler(d)
+    ctrl, pts = dem_control(d, 8)
+    ids = ctrl.ids
     left, right = d / "3324c_2015_1004_05_0182_RGB.tif", d / "3324c_2015_1004_05_0184_RGB.tif"
     r = run(left, right, camera=cam, out_dir=out / "run", control=ctrl, options=ModelOptions(frame="topocentric"),
             report=False)
