@@ -22,7 +22,7 @@ from rectify.raster.io import write_raster
 from stereo.cli.main import cli
 from tests.support.block_example import write_example_block
 from tests.support.block_surface import GSD, make_surface_block, read_dsm, truth_on
-from tests.support.surface_checks import mosaic_shifts, write_orthority_orientation
+from tests.support.surface_checks import mosaic_patches, mosaic_shifts, write_orthority_orientation
 
 CRS = "EPSG:32633"
 
@@ -67,7 +67,6 @@ def test_orthomosaic_against_the_orthophotos_and_the_texture(chain):
     names = doc["ortho"]["images"]
     assert sorted(doc["ortho"]["kept_orthophotos"]) == sorted(f"ortho_{n[:-4]}.tif" for n in names)
     with rasterio.open(out / "ortho.tif") as ds:
-        mos = ds.read(1).astype(np.float64)
         mt = ds.transform
         assert ds.overviews(1) and ds.tags()["MOSAIC_SEAMS"] == "normal" and ds.crs.to_string() == CRS
     with rasterio.open(out / "ortho.source.tif") as ds:
@@ -76,29 +75,14 @@ def test_orthomosaic_against_the_orthophotos_and_the_texture(chain):
     P = 32
     win = cv2.createHanningWindow((P, P), cv2.CV_64F)
     shifts, truth_shifts = [], []
-    for r0 in range(0, mos.shape[0] - P, P):
-        for c0 in range(0, mos.shape[1] - P, P):
-            s = src[r0:r0 + P, c0:c0 + P]
-            k = int(s[0, 0])
-            if k == 0 or not (s == k).all():
-                continue
-            a = mos[r0:r0 + P, c0:c0 + P]
-            x0, y0 = mt * (c0, r0)
-            with rasterio.open(out / f"ortho_{names[k - 1][:-4]}.tif") as ds:
-                t = ds.transform
-                cc, rr = ~t * (x0, y0)
-                assert abs(cc - round(cc)) < 1e-6 and abs(rr - round(rr)) < 1e-6   # grids aligned
-                b = ds.read(1, window=((round(rr), round(rr) + P), (round(cc), round(cc) + P)), boundless=True,
-                            fill_value=0).astype(np.float64)
-            if (b == 0).any() or a.std() < 3:
-                continue
-            (dx, dy), _ = cv2.phaseCorrelate(a, b, win)
-            shifts.append(math.hypot(dx, dy))
-            cx, cy = np.meshgrid(np.arange(P) + 0.5 + c0, np.arange(P) + 0.5 + r0)
-            gx, gy = mt * (cx.ravel(), cy.ravel())
-            tex = blk.terrain._sample(blk.terrain.texture, np.column_stack([gx, gy])).reshape(P, P)
-            (dx, dy), _ = cv2.phaseCorrelate(a, tex.astype(np.float64) * 255, win)
-            truth_shifts.append(math.hypot(dx, dy))
+    for r0, c0, a, b in mosaic_patches(out, P):
+        (dx, dy), _ = cv2.phaseCorrelate(a, b, win)
+        shifts.append(math.hypot(dx, dy))
+        cx, cy = np.meshgrid(np.arange(P) + 0.5 + c0, np.arange(P) + 0.5 + r0)
+        gx, gy = mt * (cx.ravel(), cy.ravel())
+        tex = blk.terrain._sample(blk.terrain.texture, np.column_stack([gx, gy])).reshape(P, P)
+        (dx, dy), _ = cv2.phaseCorrelate(a, tex.astype(np.float64) * 255, win)
+        truth_shifts.append(math.hypot(dx, dy))
     assert len(shifts) >= 20
     assert max(shifts) <= 0.1, shifts
     assert np.median(truth_shifts) <= 0.5, truth_shifts

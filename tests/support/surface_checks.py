@@ -6,11 +6,13 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
 import numpy as np
 import rasterio
+from numpy.typing import NDArray
 
 from rectify.formats.orthority import read_ext_param, read_int_param
 from stereo.block.types import Pose
@@ -29,18 +31,17 @@ def write_orthority_orientation(folder: Path, out: Path) -> Path:
     return out
 
 
-def mosaic_shifts(out: Path, patch: int = 32) -> list[float]:
-    """Shift (px) of the orthomosaic ``out/ortho.tif`` against each single orthophoto ``out/ortho_<stem>.tif``,
-    by phase correlation of band 1 on every ``patch`` x ``patch`` block of the mosaic taken wholly from one image
-    (``ortho.source.tif``) with texture (std >= 3 DN) and no nodata."""
+def mosaic_patches(out: Path, patch: int = 32) -> Iterator[tuple[int, int, NDArray[np.float64], NDArray[np.float64]]]:
+    """Every ``patch`` x ``patch`` block of the orthomosaic ``out/ortho.tif`` (band 1) taken wholly from one image
+    (``ortho.source.tif``), with texture (std >= 3 DN) and no nodata in that image's single orthophoto
+    ``out/ortho_<stem>.tif`` (``--keep-orthophotos``): ``(row, col, mosaic block, orthophoto block)``, the
+    orthophoto read at the same ground position (its grid must be aligned with the mosaic's: checked)."""
     names = json.loads((out / "pairs.json").read_text())["ortho"]["images"]
     with rasterio.open(out / "ortho.tif") as ds:
         mos = ds.read(1).astype(np.float64)
         mt = ds.transform
     with rasterio.open(out / "ortho.source.tif") as ds:
         src = ds.read(1)
-    win = cv2.createHanningWindow((patch, patch), cv2.CV_64F)
-    shifts = []
     for r0 in range(0, mos.shape[0] - patch, patch):
         for c0 in range(0, mos.shape[1] - patch, patch):
             s = src[r0:r0 + patch, c0:c0 + patch]
@@ -50,10 +51,17 @@ def mosaic_shifts(out: Path, patch: int = 32) -> list[float]:
             a = mos[r0:r0 + patch, c0:c0 + patch]
             with rasterio.open(out / f"ortho_{Path(names[k - 1]).stem}.tif") as ds:
                 cc, rr = ~ds.transform * (mt * (c0, r0))
+                if abs(cc - round(cc)) > 1e-6 or abs(rr - round(rr)) > 1e-6:
+                    raise AssertionError(f"orthophoto grid of {names[k - 1]!r} not aligned with the mosaic's")
                 b = ds.read(1, window=((round(rr), round(rr) + patch), (round(cc), round(cc) + patch)),
                             boundless=True, fill_value=0).astype(np.float64)
             if (b == 0).any() or a.std() < 3:
                 continue
-            (dx, dy), _ = cv2.phaseCorrelate(a, b, win)
-            shifts.append(math.hypot(dx, dy))
-    return shifts
+            yield r0, c0, a, b
+
+
+def mosaic_shifts(out: Path, patch: int = 32) -> list[float]:
+    """Shift (px) of the orthomosaic against the single orthophotos by phase correlation, one per block of
+    :func:`mosaic_patches`."""
+    win = cv2.createHanningWindow((patch, patch), cv2.CV_64F)
+    return [math.hypot(*cv2.phaseCorrelate(a, b, win)[0]) for _r, _c, a, b in mosaic_patches(out, patch)]
