@@ -25,6 +25,7 @@ import rasterio.shutil
 import rasterio.warp
 from affine import Affine
 from numpy.typing import NDArray
+from rasterio._err import CPLE_BaseError
 from rasterio.enums import ColorInterp, MaskFlags, Resampling
 from rasterio.errors import RasterioError
 from rasterio.windows import Window
@@ -733,7 +734,7 @@ def translate_to_cog(src: str | Path, dst: str | Path, *, compress: str = "defla
         verify_geotiff(dst)
     except RasterIOError:
         raise
-    except (RasterioError, OSError) as err:
+    except (RasterioError, CPLE_BaseError, OSError) as err:  # CPLE_*: GDAL's own, e.g. a full disk in the COG copy
         raise RasterIOError(f"cannot write COG {str(dst)!r}: {write_failure_reason(err, dst)}") from err
 
 

@@ -14,9 +14,10 @@ from pathlib import Path
 
 from rectify.errors import InvalidInputError
 from stereo.actions.surface import SurfaceOptions, SurfaceResult, run_surface
-from stereo.actions.surface_outputs import read_check_points
+from stereo.actions.surface_outputs import CLOUD_FORMATS, cloud_output, read_check_points
 
-__all__ = ["SURFACE_FOLDER", "BlockSurfacePlan", "plan_block_surface", "refuse_zoom_settings", "run_block_surface"]
+__all__ = ["CLOUD_FORMATS", "SURFACE_FOLDER", "BlockSurfacePlan", "plan_block_surface", "refuse_zoom_settings",
+           "run_block_surface"]
 
 #: where ``stereo block --surface`` writes the surface, inside the block's output folder
 SURFACE_FOLDER = "surface"
@@ -25,12 +26,14 @@ SURFACE_FOLDER = "surface"
 @dataclass(frozen=True)
 class BlockSurfacePlan:
     """What ``--surface`` will run: the images' folder, the check-point file and ids (None, () when the
-    block's check points cannot check the DSM), and a note saying why not."""
+    block's check points cannot check the DSM), a note saying why not, and the point cloud's format
+    (``laz``, ``las``, ``copc``: :attr:`stereo.actions.surface.SurfaceOptions.cloud_format`)."""
 
     images_dir: str
     check: str | None = None
     check_ids: tuple[str, ...] = ()
     note: str = ""
+    cloud_format: str = "laz"
 
 
 def refuse_zoom_settings(method: str, focal_settings: str | None) -> None:
@@ -41,8 +44,10 @@ def refuse_zoom_settings(method: str, focal_settings: str | None) -> None:
 
 
 def plan_block_surface(images: Sequence[str | Path], *, projective: bool, method: str, control: str | None,
-                       check_ids: Sequence[str]) -> BlockSurfacePlan:
-    """Check that a block can feed ``stereo surface`` (before any work); raises :class:`InvalidInputError`."""
+                       check_ids: Sequence[str], cloud_format: str = "laz") -> BlockSurfacePlan:
+    """Check that a block can feed ``stereo surface`` (before any work); raises :class:`InvalidInputError`
+    (a COPC ``cloud_format`` without ``copclib`` included)."""
+    cloud_output(cloud_format)
     if projective:
         raise InvalidInputError(f"--surface needs a metric block (a camera); --method {method} has none")
     folders = {str(Path(p).resolve().parent) for p in images}
@@ -53,14 +58,16 @@ def plan_block_surface(images: Sequence[str | Path], *, projective: bool, method
         try:
             read_check_points(control, tuple(check_ids))
         except InvalidInputError as err:   # another control format (ODM, Metashape): the block still uses it
-            return BlockSurfacePlan(folders.pop(), note=f"no DSM check at the check points: {err}")
-        return BlockSurfacePlan(folders.pop(), control, tuple(check_ids))
-    return BlockSurfacePlan(folders.pop())
+            return BlockSurfacePlan(folders.pop(), note=f"no DSM check at the check points: {err}",
+                                    cloud_format=cloud_format)
+        return BlockSurfacePlan(folders.pop(), control, tuple(check_ids), cloud_format=cloud_format)
+    return BlockSurfacePlan(folders.pop(), cloud_format=cloud_format)
 
 
 def run_block_surface(out_dir: str | Path, plan: BlockSurfacePlan, *, overwrite: bool = False,
                       progress: Callable[[int, int], None] | None = None) -> SurfaceResult:
-    """``stereo surface OUT_DIR -o OUT_DIR/surface`` with the plan's images and check points."""
-    opts = SurfaceOptions(images=plan.images_dir, check=plan.check, check_ids=plan.check_ids)
+    """``stereo surface OUT_DIR -o OUT_DIR/surface`` with the plan's images, check points and cloud format."""
+    opts = SurfaceOptions(images=plan.images_dir, check=plan.check, check_ids=plan.check_ids,
+                          cloud_format=plan.cloud_format)
     cb = None if progress is None else (lambda _stage, done, total: progress(done, total))
     return run_surface(out_dir, Path(out_dir) / SURFACE_FOLDER, options=opts, overwrite=overwrite, progress=cb)

@@ -27,7 +27,8 @@ Outputs in ``out_dir`` (all written together at the end, or none on an error):
 ``ortho.tif``      (``ortho``, default) the true orthomosaic over the fused DSM: seams of the
                    least-transformed image, COG with overviews (:mod:`stereo.actions.surface_outputs`)
 ``ortho.source.tif`` its provenance: the 1-based number of the image per pixel (order of ``images``)
-``points.laz``     (``cloud``, default; ``.las`` without a LAZ backend) one point per DSM cell with
+``points.laz``     (``cloud``, default; ``.las`` without a LAZ backend; ``points.las`` or
+                   ``points.copc.laz`` by ``cloud_format``) one point per DSM cell with
                    the extra dimensions ``sigma_z``, ``pair``, ``count``
 ``ortho_*.tif``    (``keep_orthophotos``) the true orthophoto of every image
 =================  ==========================================================================
@@ -67,9 +68,13 @@ from rectify.raster.io import (
 from rectify.raster.mosaic import BALANCES, MosaicResult
 from rectify.report.builder import json_safe
 from stereo.actions.surface_outputs import (
+    CLOUD_DIMS,
+    CLOUD_FORMATS,
     CheckPoints,
     check_points_accuracy,
+    cloud_output,
     read_check_points,
+    save_grid,
     write_cloud,
     write_orthomosaic,
     write_orthophotos,
@@ -97,13 +102,12 @@ from stereo.dense.precision import (
 )
 from stereo.dense.triangulate import triangulate_disparity
 from stereo.formats.block import BlockOrientation, read_block_orientation
-from stereo.formats.cloud import laz_available
 from stereo.formats.points import PointsTable, read_points_csv
 from stereo.pair.model import ground_unit
 from stereo.report.dense import HeightComparison, compare_with_dem
 
-__all__ = ["BH_TARGET", "SURFACE_FORMAT", "StereoPair", "SurfaceOptions", "SurfaceResult", "run_surface",
-           "select_pairs"]
+__all__ = ["BH_TARGET", "CLOUD_FORMATS", "SURFACE_FORMAT", "StereoPair", "SurfaceOptions", "SurfaceResult",
+           "run_surface", "select_pairs"]
 
 StrPath = str | Path
 Progress = Callable[[str, int, int], None]
@@ -186,7 +190,10 @@ class SurfaceOptions:
     feather_px : float
         Feathering width of the mosaic's seams, output pixels (``rectify mosaic --feather``).
     cloud : bool
-        Write the point cloud ``points.laz`` (``points.las`` when no LAZ backend is installed).
+        Write the point cloud (one point per DSM cell with ``sigma_z``, ``pair``, ``count``).
+    cloud_format : {"laz", "las", "copc"}
+        ``points.laz`` (``points.las`` when no LAZ backend is installed), ``points.las``, or the Cloud
+        Optimized Point Cloud ``points.copc.laz`` (needs ``copclib``).
     check : path or None
         Check points (CSV with ``id, x, y, z``; the block control CSV does): the DSM's vertical accuracy
         statement at them.
@@ -217,6 +224,7 @@ class SurfaceOptions:
     balance: str = "none"
     feather_px: float = 16.0
     cloud: bool = True
+    cloud_format: str = "laz"
     check: str | None = None
     check_ids: tuple[str, ...] = ()
 
@@ -260,6 +268,8 @@ class SurfaceOptions:
                                     f"{self.ortho_compress!r}")
         if self.balance not in BALANCES:
             raise InvalidInputError(f"`balance` must be one of {list(BALANCES)}; got {self.balance!r}")
+        if self.cloud_format not in CLOUD_FORMATS:
+            raise InvalidInputError(f"`cloud_format` must be one of {list(CLOUD_FORMATS)}; got {self.cloud_format!r}")
         if self.orientation_sigma not in ORIENTATION_SIGMA:
             raise InvalidInputError(f"`orientation_sigma` must be one of {list(ORIENTATION_SIGMA)}; got "
                                     f"{self.orientation_sigma!r}")
@@ -310,6 +320,7 @@ class SurfaceResult:
     ortho_note: str = ""
     cloud_points: int = 0
     check: CheckPoints | None = None
+    cloud_file: str = ""
 
     def summary_lines(self) -> list[str]:
         unit = ground_unit(self.crs, "map")
@@ -342,7 +353,8 @@ class SurfaceResult:
         if self.ortho_note:
             lines.append(self.ortho_note)
         if self.cloud_points:
-            lines.append(f"point cloud: {self.cloud_points} points (one per DSM cell) with sigma_z, pair, count")
+            lines.append(f"point cloud: {self.cloud_points} points (one per DSM cell) with sigma_z, pair, count"
+                         + (f" in {self.cloud_file}" if self.cloud_file else ""))
         lines += [f"outputs in {self.out_dir}: " + ", ".join(p.name for p in self.files),
                   f"time {self.seconds:.1f} s"]
         return lines
@@ -672,9 +684,9 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
     kept = {}
     if do_ortho and opts.keep_orthophotos:
         kept = {k: out / f"ortho_{Path(pose.image).stem}.tif" for k, pose in enumerate(bo.poses)}
-    cloud_fmt = "laz" if laz_available() else "las"
     if opts.cloud:
-        names["cloud"] = out / f"points.{cloud_fmt}"
+        cloud_fmt, cloud_name = cloud_output(opts.cloud_format)   # COPC without copclib: refused here
+        names["cloud"] = out / cloud_name
     ws.plan(*names.values(), *kept.values())
     # the common grid: the union of the chosen pairs' overlaps on the mean height, with a margin
     boxes = []
@@ -719,8 +731,8 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
                 h, s = grid.result()
                 st["coverage"] = float(np.isfinite(h).mean())
                 hp, sp = scratch / f"pair{k}_h.npy", scratch / f"pair{k}_s.npy"
-                np.save(hp, h.astype(np.float32))
-                np.save(sp, s.astype(np.float32))
+                save_grid(hp, h.astype(np.float32))
+                save_grid(sp, s.astype(np.float32))
                 del h, s, grid
                 for n in ("left", "right", "disparity", "confidence"):
                     paths[n].unlink()
@@ -764,6 +776,10 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
             files.append(names["dsm"])
             dsm_tmp = tmp
             del hs, ss
+            for grid_files in used:   # fused: their disk space goes to the cloud and the orthophotos
+                for gf in grid_files:
+                    with contextlib.suppress(OSError):   # else removed with the scratch folder
+                        gf.unlink()
             coverage = n_valid / float(H * W)
             sg = np.concatenate(sig_sample) if sig_sample else np.zeros(0)
             med_sigma = float(np.median(sg)) if sg.size else math.nan
@@ -786,7 +802,7 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
             if opts.cloud:
                 if progress is not None:
                     progress("cloud", 0, 1)
-                with ws.output(names["cloud"], suffix=f".{cloud_fmt}") as tmp:
+                with ws.output(names["cloud"], suffix=".part") as tmp:
                     n_cloud = write_cloud(dsm_tmp, tmp, cloud_fmt, bo.crs)
                 files.append(names["cloud"])
             mos = None
@@ -838,8 +854,8 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
                     "resolution": ortho_px, "images": [q.image for q in poses],
                     "share": list(mos.share), "kept_orthophotos": [kept[k].name for k in sorted(kept)]},
                 "ortho_note": ortho_note or None,
-                "cloud": None if not opts.cloud else {"file": names["cloud"].name, "points": n_cloud,
-                                                      "extra_dims": ["sigma_z", "pair", "count"]},
+                "cloud": None if not opts.cloud else {"file": names["cloud"].name, "format": cloud_fmt,
+                                                      "points": n_cloud, "extra_dims": list(CLOUD_DIMS)},
             }
             with ws.output(names["pairs"]) as tmp:
                 tmp.write_text(json.dumps(json_safe(doc), indent=2) + "\n", encoding="utf-8")
@@ -849,4 +865,5 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
         raise
     return SurfaceResult(out, tuple(files), tuple(pairs), tuple(stats), cell, gsd, (H, W), coverage, med_sigma,
                          n_rej, bo.crs, time.perf_counter() - t0, len(cands), factor, ov_cov, orient_mode,
-                         comparison, le90, mos, ortho_note, n_cloud, check)
+                         comparison, le90, mos, ortho_note, n_cloud, check,
+                         names["cloud"].name if opts.cloud else "")

@@ -13,7 +13,8 @@ caller's workspace transaction renames everything into place at the end, or noth
   defaults unless given, a provenance raster, a COG with overviews;
 - :func:`write_cloud`: one point per valid DSM cell (the cell centre, the fused height) with the extra
   dimensions ``sigma_z`` (m, float32), ``pair`` (the provenance pair's index in ``pairs.json``, uint16)
-  and ``count`` (agreeing pairs, uint16) (:class:`stereo.formats.cloud.LasWriter`), streamed by rows;
+  and ``count`` (agreeing pairs, uint16) (:class:`stereo.formats.cloud.LasWriter`), streamed by rows, as
+  ``points.laz``, ``points.las`` or ``points.copc.laz`` (:func:`cloud_output` names it);
 - :func:`check_points_accuracy`: the DSM height at check points (bilinear over the 4 cells about each
   point; a point with a cell of no height among them is counted as outside) against their surveyed
   height: :meth:`rectify.geometry.accuracy.AccuracyStatement.vertical`.
@@ -30,7 +31,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from rectify.errors import InvalidInputError
+from rectify.atomic import write_failure_reason
+from rectify.errors import InvalidInputError, RasterIOError
 from rectify.formats.common import TableReader, need_columns
 from rectify.formats.detect import read_frame_source_any
 from rectify.geometry.accuracy import AccuracyStatement
@@ -39,14 +41,16 @@ from rectify.raster.io import WindowReader, gdal_wkt, raster_info
 from rectify.raster.mosaic import MosaicOptions, MosaicResult, mosaic
 from rectify.raster.ortho import OrthoOptions, orthorectify
 from stereo.dense.dsm import DSM_NODATA
-from stereo.formats.cloud import LasWriter
+from stereo.formats.cloud import CLOUD_FORMATS, LasWriter, copc_available, laz_available
 
-__all__ = ["CLOUD_DIMS", "CheckPoints", "check_points_accuracy", "heights_at", "read_check_points", "write_cloud",
-           "write_orthomosaic", "write_orthophotos"]
+__all__ = ["CLOUD_DIMS", "CLOUD_FORMATS", "CheckPoints", "check_points_accuracy", "cloud_output", "heights_at",
+           "read_check_points", "save_grid", "write_cloud", "write_orthomosaic", "write_orthophotos"]
 
 StrPath = str | Path
-#: the extra dimensions of ``points.laz``
+#: the extra dimensions of the point cloud (``points.laz``, ``points.las``, ``points.copc.laz``)
 CLOUD_DIMS = ("sigma_z", "pair", "count")
+#: the cloud's file name per format
+CLOUD_NAMES = {"las": "points.las", "laz": "points.laz", "copc": "points.copc.laz"}
 #: DSM rows per chunk of the point cloud
 CLOUD_ROWS = 256
 
@@ -93,18 +97,49 @@ def write_orthomosaic(orthos: list[Path], dsm: Path, dst: Path, provenance: Path
 
 
 # --------------------------------------------------------------------------- the point cloud
+def cloud_output(fmt: str) -> tuple[str, str]:
+    """The cloud's format and file name for the option ``fmt`` (:data:`CLOUD_FORMATS`): ``laz`` ->
+    ``points.laz`` (``las``, ``points.las``, when laspy has no LAZ backend), ``las`` -> ``points.las``,
+    ``copc`` -> ``points.copc.laz``; a COPC without ``copclib`` installed is refused in one line (before
+    any work)."""
+    if fmt not in CLOUD_FORMATS:
+        raise InvalidInputError(f"`cloud_format` must be one of {list(CLOUD_FORMATS)}; got {fmt!r}")
+    if fmt == "laz" and not laz_available():
+        fmt = "las"
+    if fmt == "copc" and not copc_available():
+        raise InvalidInputError("--cloud-format copc needs the copclib package, not installed (pip install copclib, "
+                                "or the rectify-stereo[copc] extra); choose laz or las")
+    return fmt, CLOUD_NAMES[fmt]
+
+
+def save_grid(path: Path, values: NDArray) -> None:
+    """``np.save`` to a scratch file; a failed write (a full disk) is a one-line :class:`RasterIOError`
+    naming the file and the reason, and the partial file is removed."""
+    try:
+        np.save(path, values)
+    except OSError as err:   # numpy's own "N requested and M written" carries no errno
+        path.unlink(missing_ok=True)
+        raise RasterIOError(f"cannot write {str(path)!r}: {write_failure_reason(err, path)}") from err
+
+
 def write_cloud(dsm: Path, dst: Path, fmt: str, crs: str | None) -> int:
     """One point per valid DSM cell (cell centre x, y; height z) with ``sigma_z``, ``pair`` and ``count``;
-    written to ``dst`` as ``fmt`` (``las`` or ``laz``), by blocks of :data:`CLOUD_ROWS` rows. Returns the
-    number of points."""
+    written to ``dst`` as ``fmt`` (``las``, ``laz`` or ``copc``), by blocks of :data:`CLOUD_ROWS` rows.
+    Returns the number of points.
+
+    LAS and LAZ stream straight to ``dst``; a COPC is staged as a hidden LAS beside ``dst`` and built at
+    the end (:class:`stereo.formats.cloud.LasWriter`: about 60 bytes of memory per point up to
+    :data:`stereo.formats.cloud.COPC_BATCH` points, by batches of whole octree nodes beyond). On any
+    error the staging file is removed (``dst`` is the caller's to remove); a failed write is a one-line
+    :class:`RasterIOError` naming ``dst`` and the reason.
+    """
     info = raster_info(dsm)
     t = info.transform
     rd = WindowReader(dsm)
     try:
         offset = (t.c + 0.5 * t.a * info.width, t.f + 0.5 * t.e * info.height, 0.0)
-        wr = LasWriter(dst, offset, crs_wkt=gdal_wkt(crs) if crs else None, fmt=fmt, extra_dims=list(CLOUD_DIMS))
-        try:
-            c0 = 0
+        with LasWriter(dst, offset, crs_wkt=gdal_wkt(crs) if crs else None, fmt=fmt,
+                       extra_dims=list(CLOUD_DIMS)) as wr:
             for r0 in range(0, info.height, CLOUD_ROWS):
                 a, _ = rd.read(0, r0, info.width, min(CLOUD_ROWS, info.height - r0))
                 z, s, n, p = (a[:, :, k].astype(np.float64) for k in range(4))
@@ -112,12 +147,10 @@ def write_cloud(dsm: Path, dst: Path, fmt: str, crs: str | None) -> int:
                 if not ok.any():
                     continue
                 rr, cc = np.nonzero(ok)
-                x = t.c + t.a * (cc + c0 + 0.5)
+                x = t.c + t.a * (cc + 0.5)
                 y = t.f + t.e * (rr + r0 + 0.5)
                 wr.write(np.column_stack([x, y, z[ok]]),
                          extra={"sigma_z": s[ok], "pair": p[ok], "count": n[ok]})
-        finally:
-            wr.close()
         return int(wr.count)
     finally:
         rd.close()

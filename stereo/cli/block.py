@@ -12,7 +12,7 @@ from rectify.geometry.robust import ROBUST_METHODS
 from stereo.actions.block import FRAME_KINDS, BlockExports, BlockOptions, run_block
 from stereo.actions.block_models import ModelMethodOptions
 from stereo.actions.block_projective import ProjectiveBlockOptions, run_block_projective
-from stereo.actions.block_surface import plan_block_surface, refuse_zoom_settings, run_block_surface
+from stereo.actions.block_surface import CLOUD_FORMATS, plan_block_surface, refuse_zoom_settings, run_block_surface
 from stereo.actions.common import matcher_config
 from stereo.block.bundle.adjust import INTERIOR_NAMES, BundleOptions
 from stereo.block.bundle.robust import ROBUST_SCALES
@@ -186,6 +186,9 @@ def _ids(text: str) -> tuple[str, ...]:
 @click.option("--surface", "surface", is_flag=True, default=False,
               help="Then run `stereo surface` on OUTDIR into OUTDIR/surface (one DSM with sigma_Z, the true "
                    "orthomosaic, the point cloud; its defaults; the --check points of a control CSV check the DSM).")
+@click.option("--surface-cloud-format", type=click.Choice(list(CLOUD_FORMATS)), default="laz", show_default=True,
+              help="With --surface: the point cloud's file (as stereo surface --cloud-format): points.laz, "
+                   "points.las or points.copc.laz.")
 @matcher_opts(BLOCK_MATCHER)
 @overwrite_opt
 @handle_errors
@@ -197,8 +200,8 @@ def block(images, camera_path, focal_settings, out_dir, poses_path, control_path
           variance_components, blunder_threshold,
           max_iterations, free_network, lever_arm, boresight, trajectory_path, gnss_drift, boresight_unknown,
           ground_z, pair_strategy, report, rematch, stac,
-          colmap_dir, opensfm_dir, orthority_dir, surface, detector, verify, refine, max_matches, max_keypoints,
-          overwrite):
+          colmap_dir, opensfm_dir, orthority_dir, surface, surface_cloud_format, detector, verify, refine, max_matches,
+          max_keypoints, overwrite):
     """Orient the block IMAGES... (or the measurements of --observations) into OUTDIR: orientation.json,
     poses.csv, points (PLY, CSV, LAS), observations.csv and the report."""
     calib: tuple[str, ...] = ()
@@ -228,7 +231,7 @@ def block(images, camera_path, focal_settings, out_dir, poses_path, control_path
         models=ModelMethodOptions(strip_polynomial=strip_polynomial, dependent=dependent_models,
                                   robust=robust != "none"))
     plan = (plan_block_surface(images, projective=method in BLOCK_METHODS, method=method, control=control_path,
-                               check_ids=opts.check_ids) if surface else None)
+                               check_ids=opts.check_ids, cloud_format=surface_cloud_format) if surface else None)
     if method in BLOCK_METHODS:  # images without a known camera: stereo.actions.block_projective
         refuse_zoom_settings(method, focal_settings)
         popts = ProjectiveBlockOptions(method=method, check_ids=opts.check_ids, control_sigma_m=control_sigma,

@@ -7,7 +7,7 @@ import click
 from rectify.cli.options import echo, handle_errors, overwrite_opt, scheduler_opt
 from rectify.raster.engine import COMPRESSIONS
 from rectify.raster.mosaic import BALANCES
-from stereo.actions.surface import ORIENTATION_SIGMA, SurfaceOptions, run_surface
+from stereo.actions.surface import CLOUD_FORMATS, ORIENTATION_SIGMA, SurfaceOptions, run_surface
 
 _D = SurfaceOptions()
 
@@ -16,7 +16,7 @@ _D = SurfaceOptions()
 @click.argument("orientation", type=click.Path())
 @click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False),
               help="Output folder (dsm.tif: height, sigma_Z, count, provenance; pairs.json; ortho.tif and "
-                   "ortho.source.tif; points.laz).")
+                   "ortho.source.tif; points.laz, .las or .copc.laz).")
 @click.option("--images", type=click.Path(file_okay=False), default=None,
               help="Folder of the images named in the orientation [default: the orientation's folder].")
 @click.option("--cell", type=float, default=None,
@@ -57,14 +57,16 @@ _D = SurfaceOptions()
 @click.option("--feather", "feather_px", type=click.FloatRange(0, 4096), default=_D.feather_px, show_default=True,
               help="Feathering width of the orthomosaic's seams, output pixels.")
 @click.option("--cloud/--no-cloud", default=_D.cloud, show_default=True,
-              help="Write points.laz (points.las without a LAZ backend): one point per DSM cell with sigma_z, "
-                   "pair and count.")
+              help="Write the point cloud: one point per DSM cell with sigma_z, pair and count.")
+@click.option("--cloud-format", type=click.Choice(list(CLOUD_FORMATS)), default=_D.cloud_format, show_default=True,
+              help="The cloud's file: laz = points.laz (points.las without a LAZ backend), las = points.las, "
+                   "copc = points.copc.laz (Cloud Optimized Point Cloud; needs copclib).")
 @scheduler_opt
 @overwrite_opt
 @handle_errors
 def surface(orientation, out_dir, images, cell, ground_z, relief, min_overlap, base_height, angle, pairs_per_area,
             k_sigma, reference_dem, orientation_sigma, check, ortho, keep_orthophotos, ortho_compress, balance,
-            feather_px, cloud, scheduler, overwrite):
+            feather_px, cloud, cloud_format, scheduler, overwrite):
     """Fuse the dense surfaces of a block's stereo pairs into one DSM, then the true orthomosaic over it
     and the point cloud of it. ORIENTATION is the output folder of
     `stereo block` (its orientation.json) or a block orientation JSON; the images are found by the names
@@ -74,7 +76,8 @@ def surface(orientation, out_dir, images, cell, ground_z, relief, min_overlap, b
                           max_angle_deg=angle[1], pairs_per_area=pairs_per_area, k_sigma=k_sigma,
                           reference_dem=reference_dem, orientation_sigma=orientation_sigma,
                           scheduler=scheduler, check=check, ortho=ortho, keep_orthophotos=keep_orthophotos,
-                          ortho_compress=ortho_compress, balance=balance, feather_px=feather_px, cloud=cloud)
+                          ortho_compress=ortho_compress, balance=balance, feather_px=feather_px, cloud=cloud,
+                          cloud_format=cloud_format)
     result = run_surface(orientation, out_dir, options=opts, overwrite=overwrite)
     for line in result.summary_lines():
         echo(line)

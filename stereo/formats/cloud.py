@@ -29,8 +29,9 @@ every chunk of points; integer values must be integral and within the type's ran
 
 :class:`LasWriter` streams: ``write`` appends a chunk (LAS/LAZ go straight to the file through
 laspy). A COPC octree needs all points, so for ``.copc.laz`` the chunks go to a hidden uncompressed
-LAS beside the output first; ``close`` builds the octree from it (memory-mapped records, but about
-110 bytes per point of coordinates and indices in memory) and writes the COPC through ``copclib``. :func:`write_cloud`
+LAS beside the output first; ``close`` builds the octree from it (memory-mapped records; about 60
+bytes per point of coordinates and indices in memory up to :data:`COPC_BATCH` points, beyond that by
+batches of whole octree nodes: :func:`_octree_streamed`) and writes the COPC through ``copclib``. :func:`write_cloud`
 writes a whole cloud (an (N, 3) array or an iterable of :class:`CloudChunk`) atomically.
 """
 
@@ -41,8 +42,9 @@ import logging
 import math
 import os
 import re
+import signal
 import struct
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
@@ -78,6 +80,13 @@ COPC_GRID = 128
 COPC_MAX_NODE = 100_000
 #: COPC octree: the deepest level (a node of a 2000 km cloud is still 30 m wide)
 COPC_MAX_DEPTH = 16
+#: COPC octree: points per chunk of the per-point arithmetic (bounds its temporaries)
+OCTREE_CHUNK = 1 << 20
+#: COPC octree: a cloud of more points is built by batches of whole nodes of one level of at most this many
+#: points (:func:`_octree_streamed`), so that the build's memory does not grow with the cloud
+COPC_BATCH = 4_000_000
+#: COPC octree: the deepest level of those batch nodes (a cell of every level above lies inside one of them)
+COPC_PARTITION_DEPTH = 7
 
 
 @dataclass(frozen=True)
@@ -372,62 +381,206 @@ class LasWriter:
 
 # ---------------------------------------------------------------------- COPC
 def _octree(X: NDArray[np.int32], Y: NDArray[np.int32], Z: NDArray[np.int32]
-            ) -> tuple[NDArray[np.float64], float, list[tuple[tuple[int, int, int, int], NDArray[np.int64]]]]:
+            ) -> tuple[NDArray[np.float64], float, list[tuple[tuple[int, int, int, int], NDArray[np.integer]]]]:
     """The COPC octree of integer LAS coordinates: (cube centre in counts, half size in counts, nodes).
 
     Each level keeps one point per cell of a ``COPC_GRID``-cell grid of each node (the first in file
     order) and passes the rest down; a node of at most ``COPC_MAX_NODE`` points, or one at the
     deepest level (:data:`COPC_MAX_DEPTH`, or where a cell would be smaller than a count), keeps all of
     its points. Every node with points has a parent with points, and each point lies inside its node's cube.
+    Memory: the point indices are int32 (below 2**31 points) and the per-point arithmetic runs by chunks of
+    :data:`OCTREE_CHUNK` points: about 45 bytes per point besides the coordinates (measured on 4 million
+    points of a grid; 57 on 1 million, where one chunk is the whole cloud).
     """
     lo = np.array([X.min(), Y.min(), Z.min()], dtype=np.float64)
     hi = np.array([X.max(), Y.max(), Z.max()], dtype=np.float64)
+    centre, half, max_depth = _cube(lo, hi)
+    return centre, half, _octree_nodes(X, Y, Z, centre - half, 2 * half, max_depth)
+
+
+def _cube(lo: NDArray[np.float64], hi: NDArray[np.float64]) -> tuple[NDArray[np.float64], float, int]:
+    """The octree's cube about the bounds ``lo``, ``hi`` (counts): centre, half size, deepest level."""
     centre = (lo + hi) / 2
     half = float((hi - lo).max()) / 2 + 1.0
     max_depth = max(0, min(COPC_MAX_DEPTH, math.ceil(math.log2(max(2 * half / COPC_GRID, 1.0)))))
-    corner = centre - half
-    side = 2 * half
+    return centre, half, max_depth
+
+
+def _octree_nodes(X: NDArray[np.int32], Y: NDArray[np.int32], Z: NDArray[np.int32], corner: NDArray[np.float64],
+                  side: float, max_depth: int, sample_above: int = 0
+                  ) -> list[tuple[tuple[int, int, int, int], NDArray[np.integer]]]:
+    """The nodes of :func:`_octree` in the cube of ``corner`` and ``side`` (counts); the levels above
+    ``sample_above`` keep one point per cell whatever their nodes' counts (:func:`_octree_streamed`)."""
     axes = ((X, corner[0]), (Y, corner[1]), (Z, corner[2]))
-    rem = np.arange(len(X), dtype=np.int64)
-    nodes: list[tuple[tuple[int, int, int, int], NDArray[np.int64]]] = []
+    itype = np.int32 if len(X) < np.iinfo(np.int32).max else np.int64
+    rem = np.arange(len(X), dtype=itype)
+    nodes: list[tuple[tuple[int, int, int, int], NDArray[np.integer]]] = []
     m19 = (1 << 19) - 1
     for d in range(max_depth + 1):
         if rem.size == 0:
             break
         n = 1 << d
-        # node of each remaining point, axis by axis (x << 38 | y << 19 | z), to keep the temporaries small
+        # node of each remaining point (x << 38 | y << 19 | z)
         nkey = np.zeros(len(rem), np.int64)
         for (A, c0), shift in zip(axes, (38, 19, 0), strict=True):
-            k = np.floor((A[rem] - c0) * (n / side)).astype(np.int64)
-            nkey |= np.clip(k, 0, n - 1) << shift
+            _add_index(nkey, A, c0, rem, None, n / side, n, shift, 0)
         order = np.argsort(nkey, kind="stable")
         sk = nkey[order]
-        new = np.r_[True, sk[1:] != sk[:-1]]
-        rank = np.empty(len(rem), np.int64)
-        rank[order] = np.cumsum(new) - 1               # node number of each point
-        del sk, order
-        counts = np.bincount(rank)
-        take = (counts[rank] <= COPC_MAX_NODE) if d < max_depth else np.ones(len(rem), bool)
-        big = np.flatnonzero(~take)
+        new = np.empty(len(rem), bool)
+        new[0] = True
+        np.not_equal(sk[1:], sk[:-1], out=new[1:])
+        del sk
+        rank = np.empty(len(rem), itype)
+        rank[order] = np.cumsum(new, dtype=itype) - 1       # node number of each point
+        del order, new
+        if d < sample_above:
+            take = np.zeros(len(rem), bool)
+        elif d < max_depth:
+            take = (np.bincount(rank) <= COPC_MAX_NODE)[rank]
+        else:
+            take = np.ones(len(rem), bool)
+        big = np.flatnonzero(~take).astype(itype)
         if big.size:
             # one point per cell of the node's COPC_GRID^3 grid: the first in file order
-            cell = rank[big] << 21
+            cell = rank[big].astype(np.int64) << 21
             for (A, c0), shift in zip(axes, (14, 7, 0), strict=True):
-                g = np.floor((A[rem[big]] - c0) * (n * COPC_GRID / side)).astype(np.int64)
-                cell |= np.clip(g - (np.clip(g // COPC_GRID, 0, n - 1)) * COPC_GRID, 0, COPC_GRID - 1) << shift
-            _, first = np.unique(cell, return_index=True)
-            take[big[first]] = True
-            del cell, first
+                _add_index(cell, A, c0, rem, big, n * COPC_GRID / side, n, shift, COPC_GRID)
+            o = np.argsort(cell, kind="stable")             # within a cell: file order
+            sc = cell[o]
+            del cell
+            first = np.empty(len(o), bool)
+            first[0] = True
+            np.not_equal(sc[1:], sc[:-1], out=first[1:])
+            del sc
+            take[big[o[first]]] = True
+            del o, first
+        del big, rank
         tk, ti = nkey[take], rem[take]
         rem = rem[~take]
-        del nkey, rank, take
+        del nkey, take
         o = np.argsort(tk, kind="stable")
         tk, ti = tk[o], ti[o]
         starts = np.flatnonzero(np.r_[True, tk[1:] != tk[:-1]])
         for s, e in zip(starts, np.r_[starts[1:], len(tk)], strict=True):
             k = int(tk[s])
             nodes.append(((d, (k >> 38) & m19, (k >> 19) & m19, k & m19), ti[s:e]))
-    return centre, half, nodes
+    return nodes
+
+
+def _octree_streamed(X: NDArray[np.int32], Y: NDArray[np.int32], Z: NDArray[np.int32], scratch: Path
+                     ) -> tuple[NDArray[np.float64], float, NDArray[np.float64], NDArray[np.float64],
+                                Iterator[tuple[tuple[int, int, int, int], NDArray[np.int64]]]]:
+    """A COPC octree built by batches: (centre, half size, lo, hi (counts), nodes (key, point indices)).
+
+    ``X``, ``Y``, ``Z``: the coordinates (counts), read by chunks and by index (e.g. the fields of a
+    memory-mapped LAS). The cube is split into the nodes of the shallowest level P (at most
+    :data:`COPC_PARTITION_DEPTH`) that holds at most :data:`COPC_BATCH` points per node; whole nodes are
+    grouped into batches of at most that many points (a node of more is a batch of its own), whose point
+    indices are written to the file ``<scratch>.octree``, grouped by batch, in one pass (8 bytes per
+    point on disk) and read back one batch at a time. Each batch is built in memory as :func:`_octree`
+    does; at the levels above P each keeps one point per cell of its node's grid (a cell of such a level
+    lies inside one node of level P, so the first point of each cell in file order is the same as in one
+    build), and those points are gathered over the batches and yielded last. Unlike :func:`_octree`, a
+    node above P of at most :data:`COPC_MAX_NODE` points does not keep all of them. Memory: one batch
+    (about 60 bytes per point) and the points of the levels above P. The file is removed after the last
+    batch (and by the caller on an error: :func:`_drop_octree_files`).
+    """
+    n_pts = len(X)
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for i in range(0, n_pts, OCTREE_CHUNK):
+        for a, A in enumerate((X, Y, Z)):
+            c = np.asarray(A[i:i + OCTREE_CHUNK])
+            lo[a], hi[a] = min(lo[a], float(c.min())), max(hi[a], float(c.max()))
+    centre, half, max_depth = _cube(lo, hi)
+    corner, side = centre - half, 2 * half
+    part, counts = 0, np.zeros(1, np.int64)
+    first = max(1, math.ceil(math.log(max(n_pts / COPC_BATCH, 1.0), 8)))   # fewer nodes cannot hold the points
+    for p in range(min(first, COPC_PARTITION_DEPTH, max_depth), min(COPC_PARTITION_DEPTH, max_depth) + 1):
+        counts = np.zeros(8 ** p, np.int64)
+        for i in range(0, n_pts, OCTREE_CHUNK):
+            counts += np.bincount(_partition_keys(X, Y, Z, i, p, corner, side), minlength=8 ** p)
+        part = p
+        if counts.max() <= COPC_BATCH:
+            break
+    if part == 0:   # a cube of less than one grid: one node, built in memory
+        nodes = _octree_nodes(np.asarray(X), np.asarray(Y), np.asarray(Z), corner, side, max_depth)
+        return centre, half, lo, hi, iter([(k, np.asarray(v, np.int64)) for k, v in nodes])
+    batch_of = np.zeros(len(counts), np.int64)
+    b, acc = 0, 0
+    for k in np.flatnonzero(counts):
+        if acc and acc + counts[k] > COPC_BATCH:
+            b, acc = b + 1, 0
+        batch_of[k] = b
+        acc += int(counts[k])
+    # the point indices grouped by batch, in file order within each, in one file (8 bytes per point)
+    size = np.bincount(batch_of, weights=counts, minlength=b + 1).astype(np.int64)
+    start = np.r_[0, np.cumsum(size)[:-1]]
+    pos = start.copy()
+    index_file = Path(f"{scratch}.octree")
+    with open(index_file, "wb") as fh:
+        fh.truncate(8 * n_pts)
+        for i in range(0, n_pts, OCTREE_CHUNK):
+            bk = batch_of[_partition_keys(X, Y, Z, i, part, corner, side)]
+            o = np.argsort(bk, kind="stable")
+            sb = bk[o]
+            starts = np.flatnonzero(np.r_[True, sb[1:] != sb[:-1]])
+            for s, e in zip(starts, np.r_[starts[1:], len(sb)], strict=True):
+                kb = int(sb[s])
+                data = (i + o[s:e]).astype("<i8").tobytes()
+                done = 0
+                while done < len(data):   # pwrite may write less (a full disk: then it raises)
+                    done += os.pwrite(fh.fileno(), data[done:], 8 * int(pos[kb]) + done)
+                pos[kb] += e - s
+    if not np.array_equal(pos, start + size):  # pragma: no cover - the two passes agree by construction
+        raise RasterIOError(f"cannot write the COPC octree of {str(scratch)!r}: inconsistent batch sizes")
+
+    def nodes_by_batch() -> Iterator[tuple[tuple[int, int, int, int], NDArray[np.int64]]]:
+        upper: dict[tuple[int, int, int, int], list[NDArray[np.int64]]] = {}
+        for k in range(b + 1):
+            ids = np.fromfile(index_file, dtype="<i8", count=int(size[k]), offset=8 * int(start[k])).astype(np.int64)
+            if k == b:
+                index_file.unlink()
+            for key, sel in _octree_nodes(np.asarray(X[ids]), np.asarray(Y[ids]), np.asarray(Z[ids]), corner, side,
+                                          max_depth, sample_above=part):
+                if key[0] < part:
+                    upper.setdefault(key, []).append(ids[sel])
+                else:
+                    yield key, ids[sel]
+        for key in sorted(upper):
+            yield key, np.sort(np.concatenate(upper.pop(key)))
+
+    return centre, half, lo, hi, nodes_by_batch()
+
+
+def _partition_keys(X: NDArray[np.int32], Y: NDArray[np.int32], Z: NDArray[np.int32], i: int, p: int,
+                    corner: NDArray[np.float64], side: float) -> NDArray[np.int64]:
+    """The level-``p`` node (x 4^p + y 2^p + z) of the points ``i`` to ``i + OCTREE_CHUNK``, computed as
+    :func:`_octree_nodes` computes it."""
+    n = 1 << p
+    key = np.zeros(len(X[i:i + OCTREE_CHUNK]), np.int64)
+    for A, c0 in ((X, corner[0]), (Y, corner[1]), (Z, corner[2])):
+        g = np.floor((np.asarray(A[i:i + OCTREE_CHUNK]) - c0) * (n / side)).astype(np.int64)
+        key = key * n + np.clip(g, 0, n - 1)
+    return key
+
+
+def _drop_octree_files(scratch: Path) -> None:
+    """Remove the index file of :func:`_octree_streamed` left by a failure."""
+    Path(f"{scratch}.octree").unlink(missing_ok=True)
+
+
+def _add_index(key: NDArray[np.int64], A: NDArray[np.int32], c0: float, rem: NDArray[np.integer],
+               sel: NDArray[np.integer] | None, scale: float, n: int, shift: int, grid: int) -> None:
+    """``key |= index << shift`` for the points ``rem`` (or ``rem[sel]``), by chunks of :data:`OCTREE_CHUNK`:
+    the index ``floor((A - c0) scale)`` clipped to the ``n`` nodes of a level (``grid`` 0), or the cell in
+    its node of a ``grid``-cell grid per node."""
+    m = len(key)
+    for i in range(0, m, OCTREE_CHUNK):
+        idx = rem[i:i + OCTREE_CHUNK] if sel is None else rem[sel[i:i + OCTREE_CHUNK]]
+        g = np.floor((A[idx] - c0) * scale).astype(np.int64)
+        g = np.clip(g - np.clip(g // grid, 0, n - 1) * grid, 0, grid - 1) if grid else np.clip(g, 0, n - 1)
+        key[i:i + OCTREE_CHUNK] |= g << shift
 
 
 _VLR_HEADER = struct.Struct("<H16sHH32s")
@@ -488,6 +641,16 @@ def _write_copc(stage: Path, path: Path, crs_wkt: str | None) -> None:
     """
     with laspy.open(str(stage)) as rd:
         header = rd.header
+    try:
+        _copc_in_child(stage, path, crs_wkt, header)
+    finally:
+        _drop_octree_files(stage)
+    if header.point_format.num_extra_bytes:
+        _fix_extra_bytes_vlr(path, header)
+
+
+def _copc_in_child(stage: Path, path: Path, crs_wkt: str | None, header: laspy.LasHeader) -> None:
+    """:func:`_copc_body` in a forked child process where the system can fork (:func:`_write_copc`)."""
     if not hasattr(os, "fork"):  # pragma: no cover - not POSIX
         _copc_body(stage, path, crs_wkt, header)
     else:
@@ -502,17 +665,21 @@ def _write_copc(stage: Path, path: Path, crs_wkt: str | None) -> None:
                 os._exit(1)
             os._exit(0)
         os.close(wfd)
-        with os.fdopen(rfd, "rb") as fh:
-            reason = fh.read().decode("utf-8", "replace").strip()
-        _, status = os.waitpid(pid, 0)
+        try:
+            with os.fdopen(rfd, "rb") as fh:
+                reason = fh.read().decode("utf-8", "replace").strip()
+            _, status = os.waitpid(pid, 0)
+        except BaseException:   # SIGTERM or Ctrl-C while waiting: stop the child before the files are removed
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGKILL)
+                os.waitpid(pid, 0)
+            raise
         code = os.waitstatus_to_exitcode(status)
         if code != 0:
             reason = reason or f"copclib failed (exit status {code})"
             if "no space left" not in reason:
                 reason = write_failure_reason(RuntimeError(reason), path)
             raise RasterIOError(f"cannot write {str(path)!r}: {reason}")
-    if header.point_format.num_extra_bytes:
-        _fix_extra_bytes_vlr(path, header)
 
 
 def _copc_body(stage: Path, path: Path, crs_wkt: str | None, header: laspy.LasHeader) -> None:
@@ -530,11 +697,16 @@ def _copc_body(stage: Path, path: Path, crs_wkt: str | None, header: laspy.LasHe
     w = copclib.FileWriter(str(path), cfg)
     if n:
         recs = np.memmap(stage, dtype=rec_dtype, mode="r", offset=int(header.offset_to_point_data), shape=(n,))
-        X, Y, Z = np.array(recs["X"]), np.array(recs["Y"]), np.array(recs["Z"])
-        centre, half, nodes = _octree(X, Y, Z)
-        lo = np.array([X.min(), Y.min(), Z.min()]) * scales + offsets
-        hi = np.array([X.max(), Y.max(), Z.max()]) * scales + offsets
-        del X, Y, Z
+        nodes: Iterable[tuple[tuple[int, int, int, int], NDArray[np.integer]]]
+        if n <= COPC_BATCH:
+            X, Y, Z = np.array(recs["X"]), np.array(recs["Y"]), np.array(recs["Z"])
+            centre, half, nodes = _octree(X, Y, Z)
+            lo = np.array([X.min(), Y.min(), Z.min()]) * scales + offsets
+            hi = np.array([X.max(), Y.max(), Z.max()]) * scales + offsets
+            del X, Y, Z
+        else:   # by batches, in bounded memory
+            centre, half, lo_c, hi_c, nodes = _octree_streamed(recs["X"], recs["Y"], recs["Z"], stage)
+            lo, hi = lo_c * scales + offsets, hi_c * scales + offsets
         h = w.copc_config.las_header
         h.min, h.max = copclib.Vector3(*lo.tolist()), copclib.Vector3(*hi.tolist())
         info = w.copc_config.copc_info
