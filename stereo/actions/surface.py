@@ -2,8 +2,9 @@
 
 Steps (``docs/surface.md``):
 
-1. the block orientation (``orientation.json`` of ``stereo block``, or any block orientation JSON)
-   and its images, found by the names it records in ``images`` (default: the orientation's folder);
+1. the block orientation (``orientation.json`` of ``stereo block``, any block orientation JSON, or
+   another tool's poses and cameras, :mod:`stereo.actions.surface_inputs`) and its images, found by
+   the names it records in ``images`` (default: the orientation's folder);
    every image is checked before any work;
 2. pairs (:func:`select_pairs`): every two images whose footprints on the mean terrain height
    overlap enough, with a base-to-height ratio and an intersection angle in the documented ranges;
@@ -67,6 +68,7 @@ from rectify.raster.io import (
 )
 from rectify.raster.mosaic import BALANCES, MosaicResult
 from rectify.report.builder import json_safe
+from stereo.actions.surface_inputs import SurfaceOrientation, dem_ground_z, load_orientation
 from stereo.actions.surface_outputs import (
     CLOUD_DIMS,
     CLOUD_FORMATS,
@@ -101,7 +103,7 @@ from stereo.dense.precision import (
     height_sigma_orientation,
 )
 from stereo.dense.triangulate import triangulate_disparity
-from stereo.formats.block import BlockOrientation, read_block_orientation
+from stereo.formats.block import BlockOrientation, block_orientation_text
 from stereo.formats.points import PointsTable, read_points_csv
 from stereo.pair.model import ground_unit
 from stereo.report.dense import HeightComparison, compare_with_dem
@@ -138,6 +140,9 @@ class SurfaceOptions:
     ----------
     images : path or None
         Folder of the images (default: the orientation's folder).
+    camera : path or None
+        The camera file of another tool's pose file that holds no cameras (any kind ``--camera`` reads;
+        :mod:`stereo.actions.surface_inputs`).
     cell : float or None
         DSM cell (ground units); default the median ground sampling distance to 2 significant
         digits. At least a tenth of it.
@@ -202,6 +207,7 @@ class SurfaceOptions:
     """
 
     images: str | None = None
+    camera: str | None = None
     cell: float | None = None
     ground_z: float | None = None
     relief: float | None = None
@@ -361,17 +367,6 @@ class SurfaceResult:
 
 
 # --------------------------------------------------------------------------- inputs
-def _orientation_file(path: StrPath) -> Path:
-    p = Path(path)
-    if p.is_dir():
-        p = p / "orientation.json"
-        if not p.is_file():
-            raise InvalidInputError(f"no orientation.json in the orientation folder {str(path)!r}")
-    elif not p.is_file():
-        raise InvalidInputError(f"orientation not found: {str(path)!r}")
-    return p
-
-
 def find_images(bo: BlockOrientation, folder: Path) -> list[Path]:
     """The file of each image of the block: ``folder / name``, else a file of the name's stem with an
     image suffix. Raises naming the first image not found."""
@@ -401,12 +396,13 @@ def _camera(bo: BlockOrientation, pose: Pose) -> Camera:
     return cam
 
 
-def _ground_z(folder: Path, opts: SurfaceOptions) -> tuple[float, float | None, PointsTable | None]:
-    """Mean terrain height, the block points' height range (None: no points file) and the points."""
-    pts = folder / "points.csv"
+def _ground_z(so: SurfaceOrientation, opts: SurfaceOptions) -> tuple[float, float | None, PointsTable | None]:
+    """Mean terrain height, the block points' height range (None: no points file) and the points: from
+    ``--ground-z``, else the block's ``points.csv``, else the reference DEM under the images' nadir points."""
+    pts = so.folder / "points.csv"
     z = None
     t = None
-    if pts.is_file():
+    if so.ours and pts.is_file():
         t = read_points_csv(pts)
         zz = np.asarray(t.xyz, dtype=np.float64)[:, 2]
         zz = zz[np.isfinite(zz)]
@@ -417,8 +413,14 @@ def _ground_z(folder: Path, opts: SurfaceOptions) -> tuple[float, float | None, 
     elif z is not None:
         g = float(np.median(z))
     else:
-        raise InvalidInputError(f"no points.csv beside the orientation in {str(folder)!r} to take the terrain height "
-                                "from: pass --ground-z")
+        gd = None if opts.reference_dem is None else dem_ground_z(
+            opts.reference_dem, np.array([p.position[:2] for p in so.orientation.poses]), so.orientation.crs)
+        if gd is None:
+            where = f"no points.csv beside the orientation in {str(so.folder)!r}" if so.ours else \
+                f"the {so.source} {str(so.path)!r} has no points"
+            raise InvalidInputError(f"{where} to take the terrain height from: pass --ground-z (or a --reference-dem "
+                                    "under the images)")
+        g = gd
     rng = None if z is None else float(np.percentile(z, 99) - np.percentile(z, 1))
     return g, rng, t
 
@@ -621,7 +623,8 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
     Parameters
     ----------
     orientation : path
-        The output folder of ``stereo block`` (its ``orientation.json``) or a block orientation JSON.
+        The output folder of ``stereo block`` (its ``orientation.json``), a block orientation JSON, or another
+        tool's pose file (with ``options.camera`` when it holds no cameras; ``KIND:PATH`` names a kind).
     out_dir : path
         Output folder (``dsm.tif``, ``pairs.json``).
     options : SurfaceOptions, optional
@@ -640,9 +643,8 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
     opts = options or SurfaceOptions()
     if not isinstance(opts, SurfaceOptions):
         raise InvalidInputError(f"`options` must be a SurfaceOptions; got {type(opts).__name__}")
-    ofile = _orientation_file(orientation)
-    bo = read_block_orientation(ofile)
-    folder = ofile.parent
+    so = load_orientation(orientation, camera=opts.camera)
+    ofile, bo, folder = so.path, so.orientation, so.folder
     images = find_images(bo, Path(opts.images) if opts.images is not None else folder)
     for pose, img in zip(bo.poses, images, strict=True):
         cam = _camera(bo, pose)
@@ -651,7 +653,7 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
         if (info.width, info.height) != (cam.width, cam.height):
             raise InvalidInputError(f"image {str(img)!r} is {info.width} x {info.height} px; its camera says "
                                     f"{cam.width} x {cam.height}")
-    ground_z, zrange, block_points = _ground_z(folder, opts)
+    ground_z, zrange, block_points = _ground_z(so, opts)
     orient_mode, orient_field = _orientation_term(bo, block_points, opts.orientation_sigma)
     scheduler = resolve_scheduler(opts.scheduler)  # a bad value fails before any work
     pairs, cands, _polys = select_pairs(bo, ground_z, opts)
@@ -671,7 +673,7 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
     if opts.check is not None:
         read_check_points(opts.check, tuple(opts.check_ids))   # a bad file fails before any work
     ws = Workspace(out, overwrite=overwrite,
-                   inputs=[ofile, *images, *[q for q in (opts.reference_dem, opts.check) if q is not None]])
+                   inputs=[*so.inputs, *images, *[q for q in (opts.reference_dem, opts.check) if q is not None]])
     if out.exists() and not out.is_dir():
         raise InvalidInputError(f"output {str(out)!r} exists and is not a folder")
     names = {"dsm": out / "dsm.tif", "pairs": out / "pairs.json"}
@@ -810,7 +812,10 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
                 ortho_px = default_cell(gsd)   # the images' ground pixel, whatever the DSM cell
                 odir = scratch / "orthophotos"
                 odir.mkdir()
-                orthos = write_orthophotos(ofile, [q.image for q in poses], images, dsm_tmp, odir, ortho_px,
+                src = ofile if so.ours else scratch / "orientation.json"   # a peer's poses, as the DSM used them
+                if not so.ours:
+                    src.write_text(block_orientation_text(bo.cameras, poses, crs=bo.crs), encoding="utf-8")
+                orthos = write_orthophotos(src, [q.image for q in poses], images, dsm_tmp, odir, ortho_px,
                                            progress=progress)
                 with ws.output(names["ortho"], suffix=".tif") as tmp, \
                         ws.output(names["ortho_source"], suffix=".tif") as tmp_src:

@@ -19,10 +19,14 @@ _D = SurfaceOptions()
                    "ortho.source.tif; points.laz, .las or .copc.laz).")
 @click.option("--images", type=click.Path(file_okay=False), default=None,
               help="Folder of the images named in the orientation [default: the orientation's folder].")
+@click.option("--camera", type=click.Path(), default=None,
+              help="Camera file for another tool's pose file that holds no cameras (orthority int_param, "
+                   "camera JSON, OpenCV, COLMAP, Metashape; KIND:PATH names a kind).")
 @click.option("--cell", type=float, default=None,
               help="DSM cell, ground units [default: the ground pixel, 2 significant digits; at least a tenth of it].")
 @click.option("--ground-z", type=float, default=None,
-              help="Mean terrain height [default: the median height of the block's points.csv].")
+              help="Mean terrain height [default: the median height of the block's points.csv, else of "
+                   "--reference-dem under the images].")
 @click.option("--relief", type=float, default=None,
               help="Height range about --ground-z for the disparity search [default: the block points' range plus a "
                    "tenth of the flying height].")
@@ -64,14 +68,16 @@ _D = SurfaceOptions()
 @scheduler_opt
 @overwrite_opt
 @handle_errors
-def surface(orientation, out_dir, images, cell, ground_z, relief, min_overlap, base_height, angle, pairs_per_area,
-            k_sigma, reference_dem, orientation_sigma, check, ortho, keep_orthophotos, ortho_compress, balance,
-            feather_px, cloud, cloud_format, scheduler, overwrite):
+def surface(orientation, out_dir, images, camera, cell, ground_z, relief, min_overlap, base_height, angle,
+            pairs_per_area, k_sigma, reference_dem, orientation_sigma, check, ortho, keep_orthophotos, ortho_compress,
+            balance, feather_px, cloud, cloud_format, scheduler, overwrite):
     """Fuse the dense surfaces of a block's stereo pairs into one DSM, then the true orthomosaic over it
     and the point cloud of it. ORIENTATION is the output folder of
-    `stereo block` (its orientation.json) or a block orientation JSON; the images are found by the names
-    it records, in --images."""
-    opts = SurfaceOptions(images=images, cell=cell, ground_z=ground_z, relief=relief, min_overlap=min_overlap,
+    `stereo block` (its orientation.json), a block orientation JSON, or another tool's poses (orthority
+    ext_param or CSV, COLMAP model, Metashape XML, OpenSfM/ODM reconstruction.json, pose CSV; with --camera
+    when they hold no cameras); the images are found by the names it records, in --images."""
+    opts = SurfaceOptions(images=images, camera=camera, cell=cell, ground_z=ground_z, relief=relief,
+                          min_overlap=min_overlap,
                           min_base_height=base_height[0], max_base_height=base_height[1], min_angle_deg=angle[0],
                           max_angle_deg=angle[1], pairs_per_area=pairs_per_area, k_sigma=k_sigma,
                           reference_dem=reference_dem, orientation_sigma=orientation_sigma,

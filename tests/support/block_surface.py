@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 
 from rectify.geometry.camera import Camera
 from rectify.geometry.rotation import matrix_from_angles
+from stereo.block.types import Pose
 from stereo.formats.block import block_orientation_text
 from tests.support.block_render import BlockTerrain, make_terrain, render_block, strip_poses
 
@@ -30,6 +31,7 @@ class SurfaceBlock:
     images: Path
     terrain: BlockTerrain
     names: tuple[str, ...]
+    true_poses: tuple[Pose, ...] = ()   # the poses the images were rendered with (names as ``names``)
 
 
 def make_surface_block(folder: str | Path, *, strips: int = 3, per_strip: int = 4, seed: int = 5,
@@ -64,7 +66,8 @@ def make_surface_block(folder: str | Path, *, strips: int = 3, per_strip: int = 
     std = None if sa == 0 and sp == 0 else np.tile([sa, sa, sa, sp, sp, sp], (len(named), 1))
     (out / "orientation.json").write_text(block_orientation_text({"cam": CAMERA}, named, crs=None, std_errors=std),
                                           encoding="utf-8")
-    return SurfaceBlock(out, img_dir, terrain, tuple(p.image for p in named))
+    truth = tuple(type(p)(q.image, p.camera, p.position, p.rotation) for p, q in zip(poses, named, strict=True))
+    return SurfaceBlock(out, img_dir, terrain, tuple(p.image for p in named), truth)
 
 
 def read_dsm(path: str | Path) -> tuple[NDArray[np.float64], Affine, list[str]]:
