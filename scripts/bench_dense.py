@@ -23,8 +23,11 @@ is written to ``--work`` as tiled GeoTIFFs, strip by strip, then matched tile by
 nadir frame photos (normal case, matching, points to LAS, DSM with a cell of ``--dsm-cell`` ground
 pixels), in a child process that prints its peak resident memory.
 
+``--stages``: only the CPU time of each stage of ``match_pair`` (coarse pass, tests, depth-edge step,
+median, sub-pixel step, confidence) beside SGBM's, with one OpenCV thread.
+
 Usage:
-    nice python scripts/bench_dense.py [--repeat 7] [--no-ngi] [--work DIR] [--pandora]
+    nice python scripts/bench_dense.py [--repeat 7] [--no-ngi] [--work DIR] [--pandora] [--stages]
     nice python scripts/bench_dense.py --size 10000 [--work /tmp/bench_dense] [--chain [--dsm-cell 2]]
 """
 
@@ -53,6 +56,7 @@ SHARED = Path(os.environ.get("RECTIFY_SHARED_DATA", ROOT / ".." / "shared" / "da
 CONES = SHARED / "dense_cones"
 NGI = SHARED / "ngi_strip05"
 PANDORA = False  # --pandora
+STAGES_ONLY = False  # --stages
 
 
 def _rgb(path: Path) -> np.ndarray:
@@ -73,7 +77,7 @@ def _grey_png(path: Path) -> np.ndarray:
 
 
 def alternate(fns: dict, repeat: int) -> dict[str, tuple[object, float]]:
-    """Run each function ``repeat`` times, alternating; the last output and the fastest time of each."""
+    """Run each function ``repeat`` times, alternating; the last output and the fastest wall time of each."""
     best = {k: float("inf") for k in fns}
     out: dict[str, object] = {}
     for _ in range(repeat):
@@ -82,6 +86,25 @@ def alternate(fns: dict, repeat: int) -> dict[str, tuple[object, float]]:
             out[k] = f()
             best[k] = min(best[k], time.perf_counter() - t)
     return {k: (out[k], best[k]) for k in fns}
+
+
+def alternate_cpu(fns: dict, repeat: int) -> dict[str, float]:
+    """The fastest CPU time (``time.process_time``) of each function, alternating, with one OpenCV
+    thread (so that SGBM's own threads do not count as the machine's load)."""
+    import cv2
+
+    n = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        best = {k: float("inf") for k in fns}
+        for _ in range(repeat):
+            for k, f in fns.items():
+                t = time.process_time()
+                f()
+                best[k] = min(best[k], time.process_time() - t)
+    finally:
+        cv2.setNumThreads(n)
+    return best
 
 
 def roughness(z: np.ndarray) -> float:
@@ -116,7 +139,9 @@ def compare(name: str, left: np.ndarray, right: np.ndarray, gt: np.ndarray, nocc
     fns = {k: ((lambda: sgbm_baseline(left, right)) if o is None else (lambda o=o: match_pair(left, right, options=o)))
            for k, o in CASES.items()}
     res = alternate(fns, repeat)
+    cpu = alternate_cpu(fns, repeat)
     t_sgbm = res["OpenCV StereoSGBM (sample settings)"][1]
+    c_sgbm = cpu["OpenCV StereoSGBM (sample settings)"]
     dens0, bad0 = PREVIOUS[name]
     for k, (out, t) in res.items():
         d = out if isinstance(out, np.ndarray) else out.disparity  # type: ignore[attr-defined]
@@ -130,8 +155,9 @@ def compare(name: str, left: np.ndarray, right: np.ndarray, gt: np.ndarray, nocc
             at = f"{100 * err[idx].mean():.2f} %"
         print(f"{name} {k}: density {100 * v.sum() / nocc.sum():.1f} %, bad-{thr:.1f} {100 * err.mean():.2f} % "
               f"(at the previous density {100 * dens0:.1f} %: {at}; previous {100 * bad0:.2f} %), roughness "
-              f"{roughness(np.where(nocc, d, np.nan)):.3f} px, time {t:.3f} s = {t / t_sgbm:.2f} x SGBM")
-    print(f"{name}: fastest of {repeat} alternating runs each; {load()}")
+              f"{roughness(np.where(nocc, d, np.nan)):.3f} px, time {t:.3f} s = {t / t_sgbm:.2f} x SGBM, "
+              f"CPU time (one OpenCV thread) {cpu[k]:.3f} s = {cpu[k] / c_sgbm:.2f} x SGBM")
+    print(f"{name}: fastest of {repeat} alternating runs each (wall, then CPU); {load()}")
 
 
 def pandora_case(name: str, left: np.ndarray, right: np.ndarray, gt: np.ndarray, nocc: np.ndarray, thr: float,
@@ -188,11 +214,78 @@ def pandora_case(name: str, left: np.ndarray, right: np.ndarray, gt: np.ndarray,
           f"ours at its density: bad-{thr:.1f} {100 * err[idx].mean():.2f} %")
 
 
+#: the stages of :func:`stereo.dense.matching.match_pair` timed by ``--stages`` (names in that module)
+STAGES = {"_coarse": "coarse pass (with its SGBM)", "_tests": "tests after SGBM (both passes)",
+          "_post": "post-processing", "edge_classify": "  depth-edge step", "_median_valid": "  median",
+          "refine_subpixel": "  sub-pixel step", "_confidence": "  confidence"}
+
+
+def stages(name: str, left: np.ndarray, right: np.ndarray, repeat: int) -> None:
+    """CPU time of each stage of ``match_pair`` (one OpenCV thread, fastest of ``repeat``) beside SGBM's."""
+    import functools
+
+    import cv2
+
+    import stereo.dense.matching as mm
+
+    spent: dict[str, float] = {}
+    saved = {k: getattr(mm, k) for k in STAGES if hasattr(mm, k)}
+    saved_sgbm = mm._sgbm
+
+    def timed(key: str, f):
+        @functools.wraps(f)
+        def g(*a, **kw):
+            t = time.process_time()
+            try:
+                return f(*a, **kw)
+            finally:
+                spent[key] = spent.get(key, 0.0) + time.process_time() - t
+        return g
+
+    class Sgbm:
+        def __init__(self, m: object) -> None:
+            self.m = m
+
+        def compute(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+            return timed("sgbm", self.m.compute)(a, b)  # type: ignore[attr-defined]
+
+    n = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    best: dict[str, float] = {}
+    try:
+        for k, f in saved.items():
+            setattr(mm, k, timed(k, f))
+        mm._sgbm = lambda *a, **kw: Sgbm(saved_sgbm(*a, **kw))  # type: ignore[assignment]
+        for _ in range(repeat):
+            spent.clear()
+            t = time.process_time()
+            match_pair(left, right)
+            spent["total"] = time.process_time() - t
+            t = time.process_time()
+            sgbm_baseline(left, right)
+            spent["baseline"] = time.process_time() - t
+            for k, v in spent.items():
+                best[k] = min(best.get(k, float("inf")), v)
+    finally:
+        for k, f in saved.items():
+            setattr(mm, k, f)
+        mm._sgbm = saved_sgbm
+        cv2.setNumThreads(n)
+    print(f"{name} match_pair stages, CPU time with one OpenCV thread, fastest of {repeat}: total "
+          f"{1000 * best['total']:.1f} ms = {best['total'] / best['baseline']:.2f} x OpenCV's sample SGBM "
+          f"({1000 * best['baseline']:.1f} ms); SGBM compute (coarse and full) {1000 * best.get('sgbm', 0):.1f} ms; "
+          + "; ".join(f"{label.strip()} {1000 * best[k]:.1f} ms" for k, label in STAGES.items() if k in best)
+          + f"; {load()}")
+
+
 def motorcycle(repeat: int) -> None:
     from skimage import data
 
     left, right, gt = data.stereo_motorcycle()
     nocc = ~occlusion_from_truth(gt)
+    if STAGES_ONLY:
+        stages("Motorcycle", left, right, repeat)
+        return
     compare("Motorcycle", left, right, gt, nocc, 2.0, repeat)
     if PANDORA:
         pandora_case("Motorcycle", left, right, gt, nocc, 2.0, 72)
@@ -209,6 +302,9 @@ def cones(repeat: int) -> None:
     with rasterio.open(CONES / "disp_left.tif") as ds:
         gt = ds.read(1)
     nocc = (_grey_png(CONES / "occlusion.png") > 0) & (gt > 0)
+    if STAGES_ONLY:
+        stages("Cones", L, R, repeat)
+        return
     compare("Cones", L, R, gt, nocc, 1.0, repeat)
     if PANDORA:
         pandora_case("Cones", L, R, gt, nocc, 1.0, 60)
@@ -437,6 +533,8 @@ def main() -> None:
                     help="with --size: the whole run_dense chain (normal case, matching, points, LAS, DSM)")
     ap.add_argument("--dsm-cell", type=float, default=2.0, help="with --chain: DSM cell in ground pixels")
     ap.add_argument("--no-ngi", action="store_true", help="skip the NGI strip DSM (shared data)")
+    ap.add_argument("--stages", action="store_true",
+                    help="only the CPU time of match_pair's stages on Motorcycle and Cones (one OpenCV thread)")
     ap.add_argument("--pandora", action="store_true",
                     help="also CNES pandora + libSGM (census) when installed, one run each (slow)")
     a = ap.parse_args()
@@ -452,12 +550,13 @@ def main() -> None:
             with tempfile.TemporaryDirectory() as tmp:
                 go(Path(tmp))
         return
-    global PANDORA
+    global PANDORA, STAGES_ONLY
     PANDORA = a.pandora
+    STAGES_ONLY = a.stages
     print(load())
     motorcycle(a.repeat)
     cones(a.repeat)
-    if not a.no_ngi:
+    if not a.no_ngi and not a.stages:
         if a.work is not None:
             ngi(a.work)
         else:

@@ -1,4 +1,5 @@
-"""Issue 30, dense matching: the hole pass, the sub-pixel window, and the real-data figures with tolerances.
+"""Issue 30, dense matching: the hole pass, the sub-pixel window, the depth-edge classification, the
+strip-wise post-processing, and the real-data figures with tolerances.
 
 Figures measured with ``nice python scripts/bench_dense.py`` (docs/dense.md, "Figures measured"); the
 tolerances leave room for OpenCV's thread scheduling and the shared machine, not for a lost method.
@@ -14,11 +15,14 @@ import numpy as np
 import pytest
 import rasterio
 
-from rectify.errors import InvalidInputError
+import stereo.dense.checks as checks
+from rectify.errors import InvalidInputError, ShapeError
 from rectify.geometry.camera import Camera
 from rectify.geometry.rotation import matrix_from_angles
 from stereo.actions.dense import DenseOptions, run_dense
+from stereo.dense.checks import row_tests
 from stereo.dense.matching import MatchOptions, _fill_holes_half, match_pair
+from stereo.dense.refine import edge_classify, median_valid
 from stereo.formats.orientation import write_exterior
 from stereo.pair.resection import ExteriorOrientation
 from tests.support.shared_data import SHARED_DATA
@@ -114,22 +118,122 @@ def test_refine_window_default():
     assert abs(float(np.median(e))) < 0.03 and float(np.percentile(np.abs(e), 95)) < 0.15
 
 
+def _edge_scene(seed: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A bright textured square (disparity 20) on a dark textured ground (disparity 10): the grey
+    photo, the true disparity and a disparity fattened by 3 px around the square (as SGM leaves it)."""
+    rng = np.random.default_rng(seed)
+    H, W = 80, 120
+    near = np.zeros((H, W), bool)
+    near[25:55, 40:80] = True
+    grey = np.where(near, 180, 60) + rng.normal(0, 8, (H, W))
+    grey = np.clip(grey, 0, 255).astype(np.uint8)
+    truth = np.where(near, 20.0, 10.0).astype(np.float32) + rng.uniform(-0.3, 0.3, (H, W)).astype(np.float32)
+    fat = cv2.dilate(near.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+    d = np.where(fat, np.where(near, truth, 20.0), truth).astype(np.float32)
+    return grey, truth, d
+
+
+def test_edge_classify_moves_a_fattened_edge_onto_the_photo_edge():
+    """The 3-px band of near disparity around the square goes back to the ground's (at least 95 % of it
+    within 0.5 px of the truth; the rest, isolated pixels, is what the 3 x 3 median after it removes);
+    no pixel is made worse, the pixels away from the edge and the NaN are unchanged."""
+    grey, truth, d = _edge_scene()
+    d[5, 5] = np.nan
+    band = (d - truth) > 5
+    assert band.sum() > 300
+    out = edge_classify(d, grey, radius=4)
+    assert np.isnan(out[5, 5])
+    ok = np.abs(out - truth)[band] < 0.5
+    assert ok.mean() >= 0.95, ok.mean()
+    # a ground pixel whose grey is 2-3 sigma off the ground's can join the near surface (whose grey
+    # spread, band and square, is wide): isolated pixels, which the 3 x 3 median then removes
+    worse = np.abs(out - truth) > np.abs(d - truth) + 0.5
+    assert worse.sum() <= 3, worse.sum()
+    far = cv2.dilate(band.astype(np.uint8), np.ones((19, 19), np.uint8)) == 0
+    assert np.array_equal(out[far & np.isfinite(d)], d[far & np.isfinite(d)])
+    med = median_valid(out)
+    assert (np.abs(med - truth) > 0.5)[band].sum() <= 2  # of 456: corners of the square
+    off, off0 = (np.abs(med - truth) > 0.5).sum(), (np.abs(median_valid(d) - truth) > 0.5).sum()
+    assert off0 > 300 and off <= 0.03 * off0, (off, off0)  # with the median alone: the whole band (8 of 457)
+    assert np.array_equal(edge_classify(d, grey, radius=0), d, equal_nan=True)
+    assert edge_classify(d, grey, radius=4) is not d and np.isnan(d[5, 5])  # the input is not changed
+
+
+def test_edge_classify_leaves_a_slanted_surface_and_a_true_edge_unchanged():
+    """No jump above 2 px in any window: nothing changes; a correct depth edge stays where the photo's is."""
+    grey, truth, _ = _edge_scene(4)
+    slope = (np.arange(120, dtype=np.float32)[None, :] * 0.02 + np.zeros((80, 1), np.float32))
+    assert np.array_equal(edge_classify(slope, grey), slope)
+    out = edge_classify(truth, grey)
+    assert (np.abs(out - truth) > 1).sum() == 0
+
+
+def test_edge_classify_bad_input():
+    grey, _, d = _edge_scene()
+    with pytest.raises(ShapeError, match="one shape"):
+        edge_classify(d, grey[:, :-1])
+    with pytest.raises(ShapeError, match="one shape"):
+        edge_classify(d[0], grey[0])
+    for kw in ({"radius": -1}, {"radius": 2.5}, {"strip": 0}, {"noise": 0.0}, {"jump": float("nan")}):
+        with pytest.raises(InvalidInputError, match=next(iter(kw))):
+            edge_classify(d, grey, **kw)
+
+
+def test_edge_radius_option_bad_input():
+    for v in (-1, 1.5, True):
+        with pytest.raises(InvalidInputError, match="edge_radius"):
+            MatchOptions(edge_radius=v)  # type: ignore[arg-type]
+    assert MatchOptions().edge_radius == 4
+
+
+def test_strips_give_the_whole_window_result(monkeypatch):
+    """The post-processing by strips of rows (halo rows either side) equals the whole window's, bit for bit."""
+    L, R = _pair(11.3)
+    whole = match_pair(L, R, disparity_range=(0, 24), options=MatchOptions(hole_p2=128.0))
+    monkeypatch.setattr(checks, "_STRIP_PX", 16 * 200)  # strips of 16 rows
+    assert checks.strip_rows(200) == 16
+    strips = match_pair(L, R, disparity_range=(0, 24), options=MatchOptions(hole_p2=128.0))
+    assert np.array_equal(whole.disparity, strips.disparity, equal_nan=True)
+    assert np.array_equal(whole.confidence, strips.confidence)
+    rows = checks.strips(100, 3, 200)
+    assert rows[0][0] == 0 and rows[-1][1] == 100 and all(a[1] == b[0] for a, b in zip(rows, rows[1:], strict=False))
+    assert all(a0 == max(0, r0 - 3) and a1 == min(100, r1 + 3) for r0, r1, a0, a1 in rows)
+
+
+def test_row_tests_column_interval_equals_the_lookup():
+    """The border rule as a column interval (nodata only beyond the right photo's edges) gives the same
+    disparities as the pixel-by-pixel lookup."""
+    rng = np.random.default_rng(5)
+    raw = rng.integers(-16, 40 * 16, (20, 90)).astype(np.int16)
+    lve = np.ones((20, 90), bool)
+    rve = np.zeros((20, 90), bool)
+    rve[:, 7:71] = True
+    a = row_tests(raw, lve, rve, None, 1.0, 1)
+    b = row_tests(raw, lve, rve, None, 1.0, 1, (7, 70))
+    assert np.array_equal(a, b, equal_nan=True) and np.isfinite(a).sum() > 100
+
+
 def test_motorcycle_precision_not_below_the_recorded_figure():
-    """Motorcycle: bad-2.0 2.61 % at 95.9 % density measured (2.64 % at 95.9 % before issue 30)."""
+    """Motorcycle: bad-2.0 2.31 % at 95.9 % density measured (2.29 % at the previous density, the most
+    confident pixels; 2.60 % before the depth-edge classification, 2.64 % before issue 30; the issue
+    asks <= 2.38 %)."""
     from skimage import data
 
     left, right, gt = data.stereo_motorcycle()
     res = match_pair(left, right)
     m = ~occlusion_from_truth(gt)
     v = res.valid & m
-    density, bad2 = v.sum() / m.sum(), (np.abs(res.disparity - gt) > 2)[v].mean()
-    assert density >= 0.955 and bad2 <= 0.0275, (density, bad2)
+    err = (np.abs(res.disparity - gt) > 2)[v]
+    density, bad2 = v.sum() / m.sum(), err.mean()
+    assert density >= 0.955 and bad2 <= 0.0245, (density, bad2)
+    top = np.argsort(-res.confidence[v], kind="stable")[:int(round(0.959 * m.sum()))]
+    assert err[top].mean() <= 0.0238, err[top].mean()
 
 
 @pytest.mark.shared
 def test_cones_precision_at_the_previous_density():
-    """Cones: bad-1.0 2.83 % at 95.3 % density; at the previous round's density (93.2 %, the most
-    confident pixels) 2.26 %, against 2.76 % before issue 30 (the issue asks 10 % less: <= 2.48 %)."""
+    """Cones: bad-1.0 2.59 % at 95.3 % density; at the previous round's density (93.2 %, the most
+    confident pixels) 2.11 % (2.26 % before the depth-edge classification, 2.76 % before issue 30)."""
     d = SHARED_DATA / "dense_cones"
     if not d.is_dir():
         pytest.skip(f"shared data absent: {d}")
@@ -141,10 +245,10 @@ def test_cones_precision_at_the_previous_density():
     res = match_pair(L, R)
     v = res.valid & nocc
     err = (np.abs(res.disparity - gt) > 1)[v]
-    assert v.sum() / nocc.sum() >= 0.945 and err.mean() <= 0.031, (v.sum() / nocc.sum(), err.mean())
+    assert v.sum() / nocc.sum() >= 0.945 and err.mean() <= 0.028, (v.sum() / nocc.sum(), err.mean())
     n = int(round(0.932 * nocc.sum()))
     top = np.argsort(-res.confidence[v], kind="stable")[:n]
-    assert err[top].mean() <= 0.0248, err[top].mean()
+    assert err[top].mean() <= 0.0226, err[top].mean()
 
 
 @pytest.mark.shared
