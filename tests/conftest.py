@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import gc
-import os
-import subprocess
 from pathlib import Path
 
 import matplotlib
 import pytest
 
+from tests.support.disks import mounted_tmpfs
 from tests.support.shared_data import shared_data_dir
 
 matplotlib.use("Agg")
@@ -45,16 +43,5 @@ def dewitt(shared_data: Path) -> Path:
 @pytest.fixture()
 def small_disk(tmp_path: Path):
     """A 200 KiB tmpfs (root only; skipped otherwise); unmounted at teardown."""
-    if os.geteuid() != 0:
-        pytest.skip("a small tmpfs needs root")
-    d = tmp_path / "small_disk"
-    d.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=200k", "tmpfs", str(d)], capture_output=True, text=True)
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs: {r.stderr.strip()}")
-    try:
+    with mounted_tmpfs(tmp_path / "small_disk", "200k") as d:
         yield d
-    finally:
-        gc.collect()  # a test's exception info keeps writers' frames (and their files) alive in cycles
-        if subprocess.run(["umount", str(d)], capture_output=True).returncode != 0:
-            subprocess.run(["umount", "-l", str(d)], capture_output=True)  # still busy: detach it anyway

@@ -11,7 +11,9 @@ import functools
 import importlib
 import importlib.machinery
 import importlib.util
+import io
 import logging
+import os
 import signal
 import sys
 import warnings
@@ -89,11 +91,45 @@ def setup_logging(verbose: int, quiet: int) -> None:
     that temporary files and half-written outputs are removed as on any other error.
     """
     level = logging.WARNING - 10 * verbose + 10 * quiet
+    _native_stderr(shown=verbose > 0)
     logging.basicConfig(level=max(level, logging.DEBUG), format="%(levelname)s %(name)s: %(message)s",
                         stream=sys.stderr, force=True)
     if verbose <= 0:
         _hide_library_warnings()
     install_sigterm_handler()
+
+
+_SAVED_STDERR_FD: list[int] = []   # the process's standard error, kept while fd 2 is silenced
+
+
+def _native_stderr(*, shown: bool) -> None:
+    """Silence what C libraries write straight to file descriptor 2 unless -v (libtiff's
+    ``_tiffWriteProc: No space left on device.`` before our one-line error, GDAL's default handler in
+    threads without rasterio's): fd 2 goes to the null device, and Python's ``sys.stderr`` (our messages,
+    logging, tracebacks) to a copy of the original descriptor. Only in a real process whose ``sys.stderr``
+    is fd 2 (not under click's test runner or a capturing test harness); -v restores fd 2."""
+    if shown:
+        if _SAVED_STDERR_FD:
+            sys.stderr.flush()
+            os.dup2(_SAVED_STDERR_FD[0], 2)
+        return
+    if _SAVED_STDERR_FD:
+        return
+    try:
+        if sys.stderr is None or sys.stderr.fileno() != 2:
+            return
+    except (AttributeError, OSError, ValueError, io.UnsupportedOperation):
+        return
+    sys.stderr.flush()
+    saved = os.dup(2)
+    os.set_inheritable(saved, False)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 2)
+    os.close(devnull)
+    _SAVED_STDERR_FD.append(saved)
+    enc = getattr(sys.stderr, "encoding", None) or "utf-8"
+    sys.stderr = io.TextIOWrapper(io.FileIO(saved, "w", closefd=False), encoding=enc, errors="backslashreplace",
+                                  line_buffering=True, write_through=True)
 
 
 def _hide_library_warnings() -> None:

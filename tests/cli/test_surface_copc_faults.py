@@ -25,6 +25,7 @@ from stereo.cli.main import cli
 from stereo.formats.cloud import copc_available
 from stereo.formats.points import points_csv_text
 from tests.support.block_surface import make_surface_block, read_dsm
+from tests.support.disks import mounted_tmpfs
 
 CRS = "EPSG:32633"
 DIMS = ("sigma_z", "pair", "count")
@@ -140,18 +141,8 @@ def test_bad_cloud_format(block, tmp_path, monkeypatch):
 def disk_900k(tmp_path):
     """A 900 KiB tmpfs (root only; skipped otherwise): the surface's scratch and DSM fit, its COPC does not
     (staging LAS 46 bytes per point: 1.1 MB). Measured: this block's COPC run fails between 600 and 1350 KiB."""
-    if os.geteuid() != 0:
-        pytest.skip("a tmpfs needs root")
-    d = tmp_path / "disk"
-    d.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=900k", "tmpfs", str(d)], capture_output=True, text=True)
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs: {r.stderr.strip()}")
-    try:
+    with mounted_tmpfs(tmp_path / "disk", "900k") as d:
         yield d
-    finally:
-        if subprocess.run(["umount", str(d)], capture_output=True).returncode != 0:
-            subprocess.run(["umount", "-l", str(d)], capture_output=True)
 
 
 def _one_error_line(output: str, name: str) -> None:
@@ -169,6 +160,22 @@ def test_disk_full_in_the_first_pair(block, small_disk):
     _one_error_line(r.output, "pair0_")
     assert os.listdir(small_disk) == []
     assert _digest(block) == before
+
+
+def test_disk_full_as_a_process_prints_one_line(block, small_disk):
+    """The real command in its own process: libtiff's own messages on the standard error (``_tiffWriteProc: No
+    space left on device.``, written by C code to fd 2) are not shown without -v; the one error line is."""
+    import sys
+
+    args = [sys.executable, "-c", "from stereo.cli.main import cli; cli()", "surface", str(block / "orient"),
+            "--images", str(block / "images"), "--ground-z", "50", "-o", str(small_disk / "out")]
+    r = subprocess.run(args, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 1 and r.stdout == "", (r.stdout, r.stderr)
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("Error: RasterIOError: ") and "no space left" in lines[0], r.stderr
+    assert os.listdir(small_disk) == []
+    r = subprocess.run([*args, "-v"], capture_output=True, text=True, timeout=300)   # -v: everything shown
+    assert r.returncode == 1 and "_tiffWriteProc" in r.stderr and "INFO " in r.stderr, r.stderr[-2000:]
 
 
 @needs_copc
