@@ -27,13 +27,14 @@ SURFACE_FOLDER = "surface"
 class BlockSurfacePlan:
     """What ``--surface`` will run: the images' folder, the check-point file and ids (None, () when the
     block's check points cannot check the DSM), a note saying why not, and the point cloud's format
-    (``laz``, ``las``, ``copc``: :attr:`stereo.actions.surface.SurfaceOptions.cloud_format`)."""
+    (``laz``, ``las``, ``copc``: :attr:`stereo.actions.surface.SurfaceOptions.cloud_format`) and colours."""
 
     images_dir: str
     check: str | None = None
     check_ids: tuple[str, ...] = ()
     note: str = ""
     cloud_format: str = "laz"
+    cloud_colors: bool = True
 
 
 def refuse_zoom_settings(method: str, focal_settings: str | None) -> None:
@@ -44,7 +45,8 @@ def refuse_zoom_settings(method: str, focal_settings: str | None) -> None:
 
 
 def plan_block_surface(images: Sequence[str | Path], *, projective: bool, method: str, control: str | None,
-                       check_ids: Sequence[str], cloud_format: str = "laz") -> BlockSurfacePlan:
+                       check_ids: Sequence[str], cloud_format: str = "laz", cloud_colors: bool = True
+                       ) -> BlockSurfacePlan:
     """Check that a block can feed ``stereo surface`` (before any work); raises :class:`InvalidInputError`
     (a COPC ``cloud_format`` without ``copclib`` included)."""
     cloud_output(cloud_format)
@@ -59,15 +61,16 @@ def plan_block_surface(images: Sequence[str | Path], *, projective: bool, method
             read_check_points(control, tuple(check_ids))
         except InvalidInputError as err:   # another control format (ODM, Metashape): the block still uses it
             return BlockSurfacePlan(folders.pop(), note=f"no DSM check at the check points: {err}",
-                                    cloud_format=cloud_format)
-        return BlockSurfacePlan(folders.pop(), control, tuple(check_ids), cloud_format=cloud_format)
-    return BlockSurfacePlan(folders.pop(), cloud_format=cloud_format)
+                                    cloud_format=cloud_format, cloud_colors=cloud_colors)
+        return BlockSurfacePlan(folders.pop(), control, tuple(check_ids), cloud_format=cloud_format,
+                                cloud_colors=cloud_colors)
+    return BlockSurfacePlan(folders.pop(), cloud_format=cloud_format, cloud_colors=cloud_colors)
 
 
 def run_block_surface(out_dir: str | Path, plan: BlockSurfacePlan, *, overwrite: bool = False,
                       progress: Callable[[int, int], None] | None = None) -> SurfaceResult:
     """``stereo surface OUT_DIR -o OUT_DIR/surface`` with the plan's images, check points and cloud format."""
     opts = SurfaceOptions(images=plan.images_dir, check=plan.check, check_ids=plan.check_ids,
-                          cloud_format=plan.cloud_format)
+                          cloud_format=plan.cloud_format, cloud_colors=plan.cloud_colors)
     cb = None if progress is None else (lambda _stage, done, total: progress(done, total))
     return run_surface(out_dir, Path(out_dir) / SURFACE_FOLDER, options=opts, overwrite=overwrite, progress=cb)

@@ -30,7 +30,7 @@ Outputs in ``out_dir`` (all written together at the end, or none on an error):
 ``ortho.source.tif`` its provenance: the 1-based number of the image per pixel (order of ``images``)
 ``points.laz``     (``cloud``, default; ``.las`` without a LAZ backend; ``points.las`` or
                    ``points.copc.laz`` by ``cloud_format``) one point per DSM cell with
-                   the extra dimensions ``sigma_z``, ``pair``, ``count``
+                   the extra dimensions ``sigma_z``, ``pair``, ``count`` and RGB (``cloud_colors``)
 ``ortho_*.tif``    (``keep_orthophotos``) the true orthophoto of every image
 =================  ==========================================================================
 """
@@ -73,6 +73,8 @@ from stereo.actions.surface_outputs import (
     CLOUD_DIMS,
     CLOUD_FORMATS,
     CheckPoints,
+    CloudWritten,
+    PairView,
     check_points_accuracy,
     cloud_output,
     read_check_points,
@@ -199,6 +201,8 @@ class SurfaceOptions:
     cloud_format : {"laz", "las", "copc"}
         ``points.laz`` (``points.las`` when no LAZ backend is installed), ``points.las``, or the Cloud
         Optimized Point Cloud ``points.copc.laz`` (needs ``copclib``).
+    cloud_colors : bool
+        The cloud's RGB: from the orthomosaic, else the left image of each point's pair (else RGB 0).
     check : path or None
         Check points (CSV with ``id, x, y, z``; the block control CSV does): the DSM's vertical accuracy
         statement at them.
@@ -231,6 +235,7 @@ class SurfaceOptions:
     feather_px: float = 16.0
     cloud: bool = True
     cloud_format: str = "laz"
+    cloud_colors: bool = True
     check: str | None = None
     check_ids: tuple[str, ...] = ()
 
@@ -327,6 +332,7 @@ class SurfaceResult:
     cloud_points: int = 0
     check: CheckPoints | None = None
     cloud_file: str = ""
+    cloud_colors: str = ""
 
     def summary_lines(self) -> list[str]:
         unit = ground_unit(self.crs, "map")
@@ -360,7 +366,8 @@ class SurfaceResult:
             lines.append(self.ortho_note)
         if self.cloud_points:
             lines.append(f"point cloud: {self.cloud_points} points (one per DSM cell) with sigma_z, pair, count"
-                         + (f" in {self.cloud_file}" if self.cloud_file else ""))
+                         + (f" in {self.cloud_file}" if self.cloud_file else "")
+                         + (f"; {self.cloud_colors}" if self.cloud_colors else ""))
         lines += [f"outputs in {self.out_dir}: " + ", ".join(p.name for p in self.files),
                   f"time {self.seconds:.1f} s"]
         return lines
@@ -800,14 +807,7 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
             check = None
             if opts.check is not None:
                 check = check_points_accuracy(dsm_tmp, opts.check, unit, tuple(opts.check_ids))
-            n_cloud = 0
-            if opts.cloud:
-                if progress is not None:
-                    progress("cloud", 0, 1)
-                with ws.output(names["cloud"], suffix=".part") as tmp:
-                    n_cloud = write_cloud(dsm_tmp, tmp, cloud_fmt, bo.crs)
-                files.append(names["cloud"])
-            mos = None
+            mos, ortho_tmp, cloud = None, None, CloudWritten(0)
             if do_ortho:
                 ortho_px = default_cell(gsd)   # the images' ground pixel, whatever the DSM cell
                 odir = scratch / "orthophotos"
@@ -819,6 +819,7 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
                                            progress=progress)
                 with ws.output(names["ortho"], suffix=".tif") as tmp, \
                         ws.output(names["ortho_source"], suffix=".tif") as tmp_src:
+                    ortho_tmp = tmp
                     if progress is not None:
                         progress("mosaic", 0, 1)
                     mos = write_orthomosaic(orthos, dsm_tmp, tmp, tmp_src, balance=opts.balance,
@@ -831,6 +832,14 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
                         files.append(kept[k])
                     else:
                         q.unlink()
+            if opts.cloud:   # after the mosaic: its colours (docs/surface.md)
+                if progress is not None:
+                    progress("cloud", 0, 1)
+                on = opts.cloud_colors
+                views = [PairView(images[p.i], _camera(bo, poses[p.i]), poses[p.i]) for p in pairs] if on else None
+                with ws.output(names["cloud"], suffix=".part") as tmp:
+                    cloud = write_cloud(dsm_tmp, tmp, cloud_fmt, bo.crs, mosaic=ortho_tmp if on else None, views=views)
+                files.append(names["cloud"])
             doc = {
                 "format": SURFACE_FORMAT, "version": 1, "orientation": str(ofile), "crs": bo.crs,
                 "dsm": "dsm.tif", "bands": list(FUSED_BANDS),
@@ -860,7 +869,8 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
                     "share": list(mos.share), "kept_orthophotos": [kept[k].name for k in sorted(kept)]},
                 "ortho_note": ortho_note or None,
                 "cloud": None if not opts.cloud else {"file": names["cloud"].name, "format": cloud_fmt,
-                                                      "points": n_cloud, "extra_dims": list(CLOUD_DIMS)},
+                                                      "points": cloud.points, "extra_dims": list(CLOUD_DIMS),
+                                                      "colors": cloud.to_dict()},
             }
             with ws.output(names["pairs"]) as tmp:
                 tmp.write_text(json.dumps(json_safe(doc), indent=2) + "\n", encoding="utf-8")
@@ -870,5 +880,5 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
         raise
     return SurfaceResult(out, tuple(files), tuple(pairs), tuple(stats), cell, gsd, (H, W), coverage, med_sigma,
                          n_rej, bo.crs, time.perf_counter() - t0, len(cands), factor, ov_cov, orient_mode,
-                         comparison, le90, mos, ortho_note, n_cloud, check,
-                         names["cloud"].name if opts.cloud else "")
+                         comparison, le90, mos, ortho_note, cloud.points, check,
+                         names["cloud"].name if opts.cloud else "", cloud.note() if opts.cloud else "")

@@ -14,7 +14,9 @@ caller's workspace transaction renames everything into place at the end, or noth
 - :func:`write_cloud`: one point per valid DSM cell (the cell centre, the fused height) with the extra
   dimensions ``sigma_z`` (m, float32), ``pair`` (the provenance pair's index in ``pairs.json``, uint16)
   and ``count`` (agreeing pairs, uint16) (:class:`stereo.formats.cloud.LasWriter`), streamed by rows, as
-  ``points.laz``, ``points.las`` or ``points.copc.laz`` (:func:`cloud_output` names it);
+  ``points.laz``, ``points.las`` or ``points.copc.laz`` (:func:`cloud_output` names it); its RGB from the
+  orthomosaic (the nearest pixel to the cell centre) or, without one, from the left image of the point's
+  provenance pair (the point projected with the block's camera model, bilinear): :class:`PairView`;
 - :func:`check_points_accuracy`: the DSM height at check points (bilinear over the 4 cells about each
   point; a point with a cell of no height among them is counted as outside) against their surveyed
   height: :meth:`rectify.geometry.accuracy.AccuracyStatement.vertical`.
@@ -36,15 +38,18 @@ from rectify.errors import InvalidInputError, RasterIOError
 from rectify.formats.common import TableReader, need_columns
 from rectify.formats.detect import read_frame_source_any
 from rectify.geometry.accuracy import AccuracyStatement
+from rectify.geometry.camera import Camera
 from rectify.raster.dem import Dem
-from rectify.raster.io import WindowReader, gdal_wkt, raster_info
+from rectify.raster.io import WindowReader, gdal_wkt, ignore_not_georeferenced, raster_info
 from rectify.raster.mosaic import MosaicOptions, MosaicResult, mosaic
 from rectify.raster.ortho import OrthoOptions, orthorectify
+from stereo.block.types import Pose
 from stereo.dense.dsm import DSM_NODATA
 from stereo.formats.cloud import CLOUD_FORMATS, LasWriter, copc_available, laz_available
 
-__all__ = ["CLOUD_DIMS", "CLOUD_FORMATS", "CheckPoints", "check_points_accuracy", "cloud_output", "heights_at",
-           "read_check_points", "save_grid", "write_cloud", "write_orthomosaic", "write_orthophotos"]
+__all__ = ["CLOUD_DIMS", "CLOUD_FORMATS", "CheckPoints", "CloudWritten", "PairView", "check_points_accuracy",
+           "cloud_output", "heights_at", "read_check_points", "save_grid", "write_cloud", "write_orthomosaic",
+           "write_orthophotos"]
 
 StrPath = str | Path
 #: the extra dimensions of the point cloud (``points.laz``, ``points.las``, ``points.copc.laz``)
@@ -53,6 +58,12 @@ CLOUD_DIMS = ("sigma_z", "pair", "count")
 CLOUD_NAMES = {"las": "points.las", "laz": "points.laz", "copc": "points.copc.laz"}
 #: DSM rows per chunk of the point cloud
 CLOUD_ROWS = 256
+#: pixels of one window read to colour the points (a band of whole rows: bounds the colours' memory)
+COLOR_WINDOW_PIXELS = 1 << 22
+#: images kept open at once to colour the points (the least recently opened is closed beyond)
+COLOR_OPEN_IMAGES = 16
+#: how a point's colour is sampled, per source
+COLOR_SAMPLING = {"orthomosaic": "nearest", "images": "bilinear"}
 
 
 # --------------------------------------------------------------------------- orthophotos and mosaic
@@ -122,10 +133,109 @@ def save_grid(path: Path, values: NDArray) -> None:
         raise RasterIOError(f"cannot write {str(path)!r}: {write_failure_reason(err, path)}") from err
 
 
-def write_cloud(dsm: Path, dst: Path, fmt: str, crs: str | None) -> int:
+@dataclass(frozen=True)
+class PairView:
+    """The left image of one stereo pair, to colour its points when no orthomosaic is made: the image file,
+    its camera and pose in the block (:meth:`stereo.block.types.Pose.pixel_from_ground`)."""
+
+    image: Path
+    camera: Camera
+    pose: Pose
+
+
+@dataclass(frozen=True)
+class CloudWritten:
+    """What :func:`write_cloud` wrote: ``points``; the colours' ``source`` (``orthomosaic``, ``images`` or
+    ``none``); ``uncolored``: points whose colour is unknown (nodata in the mosaic, outside the image), RGB 0;
+    ``bits``: the source's depth (8: scaled x 257 to LAS's 16 bits; 16: as read; 0 without colours)."""
+
+    points: int
+    source: str = "none"
+    uncolored: int = 0
+    bits: int = 0
+
+    def note(self) -> str:
+        """The colours in one phrase of the summary."""
+        if self.source == "none":
+            return "no colours (RGB 0)"
+        how = ("the orthomosaic (nearest pixel)" if self.source == "orthomosaic"
+               else "the left image of each point's pair (bilinear)")
+        return f"RGB from {how}, {self.uncolored} without a colour (RGB 0)"
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"source": self.source, "sampling": COLOR_SAMPLING.get(self.source), "bits": self.bits or None,
+                "uncolored": self.uncolored}
+
+
+class _Colors:
+    """The colours of one raster at pixel positions (x = column, y = row, pixel centres at integers), read by
+    bands of whole rows of at most :data:`COLOR_WINDOW_PIXELS` pixels. RGB from bands 1-3 (an alpha band left
+    out); a raster of one or two bands gives grey (band 1) to R = G = B. Values on LAS's 16-bit scale: uint8
+    x 257, other types rounded and clipped to 0..65535 by the writer."""
+
+    def __init__(self, path: Path):
+        with ignore_not_georeferenced():   # a frame image has no georeference
+            self.rd = WindowReader(path)
+        pol = self.rd.policy
+        bands = [k for k in range(self.rd.count) if not (pol.kind == "alpha" and k == pol.alpha_band)]
+        self.bands = bands[:3] if len(bands) >= 3 else [bands[0]] * 3
+        self.bits = 8 if self.rd.dtype == np.uint8 else 16
+
+    def close(self) -> None:
+        self.rd.close()
+
+    def sample(self, x: NDArray[np.float64], y: NDArray[np.float64], bilinear: bool
+               ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        """(rgb (N, 3) on the 16-bit scale, 0 where unknown; known (N,) bool) at ``x``, ``y`` (N,).
+
+        ``bilinear``: between the 4 pixel centres about each position (the image edge replicated); where one
+        of them is invalid, the nearest pixel. Else the nearest pixel. Unknown: outside the raster, or an
+        invalid (nodata, masked) nearest pixel."""
+        W, H = self.rd.width, self.rd.height
+        out, known = np.zeros((len(x), 3)), np.zeros(len(x), bool)
+        inside = np.isfinite(x) & np.isfinite(y) & (x >= -0.5) & (x < W - 0.5) & (y >= -0.5) & (y < H - 0.5)
+        idx = np.flatnonzero(inside)
+        if not idx.size:
+            return out, known
+        rows = max(1, COLOR_WINDOW_PIXELS // W - 2)
+        part_of = np.clip(np.floor(y[idx] + 0.5), 0, H - 1).astype(np.int64) // rows
+        order = np.argsort(part_of, kind="stable")
+        idx, part_of = idx[order], part_of[order]
+        for sel in np.split(idx, np.flatnonzero(np.diff(part_of)) + 1):
+            xs, ys = x[sel], y[sel]
+            c0, r0 = max(0, int(np.floor(xs.min()))), max(0, int(np.floor(ys.min())))
+            c1, r1 = min(W, int(np.floor(xs.max())) + 2), min(H, int(np.floor(ys.max())) + 2)
+            a, valid = self.rd.read(c0, r0, c1 - c0, r1 - r0)
+            a = a[:, :, self.bands].astype(np.float64) * (257.0 if self.bits == 8 else 1.0)
+            ok = np.ones(a.shape[:2], bool) if valid is None else valid
+            cn = np.clip(np.floor(xs + 0.5), 0, W - 1).astype(np.int64) - c0
+            rn = np.clip(np.floor(ys + 0.5), 0, H - 1).astype(np.int64) - r0
+            v, k = a[rn, cn], ok[rn, cn]
+            if bilinear:
+                xc, yc = np.clip(xs, 0, W - 1), np.clip(ys, 0, H - 1)
+                xa, ya = np.floor(xc).astype(np.int64), np.floor(yc).astype(np.int64)
+                xb, yb = np.minimum(xa + 1, W - 1), np.minimum(ya + 1, H - 1)
+                fx, fy = (xc - xa)[:, None], (yc - ya)[:, None]
+                xa, xb, ya, yb = xa - c0, xb - c0, ya - r0, yb - r0
+                four = ok[ya, xa] & ok[ya, xb] & ok[yb, xa] & ok[yb, xb]
+                bl = (1 - fy) * ((1 - fx) * a[ya, xa] + fx * a[ya, xb]) + fy * ((1 - fx) * a[yb, xa] + fx * a[yb, xb])
+                v = np.where(four[:, None], bl, v)
+                k = k | four
+            out[sel] = np.where(k[:, None], v, 0.0)
+            known[sel] = k
+        return out, known
+
+
+def write_cloud(dsm: Path, dst: Path, fmt: str, crs: str | None, *, mosaic: Path | None = None,
+                views: list[PairView] | None = None) -> CloudWritten:
     """One point per valid DSM cell (cell centre x, y; height z) with ``sigma_z``, ``pair`` and ``count``;
     written to ``dst`` as ``fmt`` (``las``, ``laz`` or ``copc``), by blocks of :data:`CLOUD_ROWS` rows.
-    Returns the number of points.
+
+    Colours (LAS RGB, 16 bits; :class:`_Colors`): from the orthomosaic ``mosaic`` when given, its pixel
+    nearest to the cell centre (the DSM and the mosaic grids lie on whole multiples of their cells, so at
+    the default cell a cell centre is a pixel centre); else from ``views`` (one per pair of ``pairs.json``,
+    indexed by the DSM's provenance band): the cell's point projected into the left image of its pair,
+    bilinear; else none (RGB 0). Memory: one block of DSM rows and one colour window at a time.
 
     LAS and LAZ stream straight to ``dst``; a COPC is staged as a hidden LAS beside ``dst`` and built at
     the end (:class:`stereo.formats.cloud.LasWriter`: about 60 bytes of memory per point up to
@@ -136,10 +246,18 @@ def write_cloud(dsm: Path, dst: Path, fmt: str, crs: str | None) -> int:
     info = raster_info(dsm)
     t = info.transform
     rd = WindowReader(dsm)
+    source = "orthomosaic" if mosaic is not None else "images" if views else "none"
+    readers: dict[Path, _Colors] = {}
+    unknown = 0
+    bits: set[int] = set()
+    inv = None
     try:
+        if mosaic is not None:
+            readers[mosaic] = _Colors(mosaic)
+            inv = ~raster_info(mosaic).transform
         offset = (t.c + 0.5 * t.a * info.width, t.f + 0.5 * t.e * info.height, 0.0)
         with LasWriter(dst, offset, crs_wkt=gdal_wkt(crs) if crs else None, fmt=fmt,
-                       extra_dims=list(CLOUD_DIMS)) as wr:
+                       extra_dims=list(CLOUD_DIMS), color_bits=16) as wr:
             for r0 in range(0, info.height, CLOUD_ROWS):
                 a, _ = rd.read(0, r0, info.width, min(CLOUD_ROWS, info.height - r0))
                 z, s, n, p = (a[:, :, k].astype(np.float64) for k in range(4))
@@ -149,11 +267,46 @@ def write_cloud(dsm: Path, dst: Path, fmt: str, crs: str | None) -> int:
                 rr, cc = np.nonzero(ok)
                 x = t.c + t.a * (cc + 0.5)
                 y = t.f + t.e * (rr + r0 + 0.5)
-                wr.write(np.column_stack([x, y, z[ok]]),
-                         extra={"sigma_z": s[ok], "pair": p[ok], "count": n[ok]})
-        return int(wr.count)
+                xyz = np.column_stack([x, y, z[ok]])
+                rgb = None
+                if source != "none":
+                    rgb, known = _point_colors(xyz, p[ok], mosaic, inv, views, readers, bits)
+                    unknown += int((~known).sum())
+                wr.write(xyz, rgb, extra={"sigma_z": s[ok], "pair": p[ok], "count": n[ok]})
+        bits.update(c.bits for c in readers.values())
+        return CloudWritten(int(wr.count), source, unknown if source != "none" else 0, max(bits, default=0))
     finally:
         rd.close()
+        for c in readers.values():
+            c.close()
+
+
+def _point_colors(xyz: NDArray[np.float64], pair: NDArray[np.float64], mosaic: Path | None, inv: Any,
+                  views: list[PairView] | None, readers: dict[Path, _Colors], bits: set[int]
+                  ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """The colours of the points ``xyz`` (N, 3) of :func:`write_cloud` (``pair``: their provenance pairs) and
+    whether each is known; the rasters open in ``readers`` (at most :data:`COLOR_OPEN_IMAGES` images: the
+    first opened is closed beyond, its depth kept in ``bits``)."""
+    if mosaic is not None:
+        c, r = inv * (xyz[:, 0], xyz[:, 1])
+        return readers[mosaic].sample(np.asarray(c) - 0.5, np.asarray(r) - 0.5, bilinear=False)
+    assert views is not None
+    rgb, known = np.zeros((len(xyz), 3)), np.zeros(len(xyz), bool)
+    pk = pair.astype(np.int64)
+    for k in np.unique(pk):
+        if not 0 <= k < len(views):
+            continue
+        sel = pk == k
+        v = views[k]
+        if v.image not in readers:
+            if len(readers) >= COLOR_OPEN_IMAGES:
+                old = readers.pop(next(iter(readers)))
+                bits.add(old.bits)
+                old.close()
+            readers[v.image] = _Colors(v.image)
+        px = v.pose.pixel_from_ground(v.camera, xyz[sel])
+        rgb[sel], known[sel] = readers[v.image].sample(px[:, 0], px[:, 1], bilinear=True)
+    return rgb, known
 
 
 # --------------------------------------------------------------------------- check points

@@ -189,6 +189,8 @@ def _ids(text: str) -> tuple[str, ...]:
 @click.option("--surface-cloud-format", type=click.Choice(list(CLOUD_FORMATS)), default="laz", show_default=True,
               help="With --surface: the point cloud's file (as stereo surface --cloud-format): points.laz, "
                    "points.las or points.copc.laz.")
+@click.option("--surface-cloud-colors/--no-surface-cloud-colors", default=True, show_default=True,
+              help="With --surface: the cloud's RGB (as stereo surface --cloud-colors).")
 @matcher_opts(BLOCK_MATCHER)
 @overwrite_opt
 @handle_errors
@@ -200,7 +202,8 @@ def block(images, camera_path, focal_settings, out_dir, poses_path, control_path
           variance_components, blunder_threshold,
           max_iterations, free_network, lever_arm, boresight, trajectory_path, gnss_drift, boresight_unknown,
           ground_z, pair_strategy, report, rematch, stac,
-          colmap_dir, opensfm_dir, orthority_dir, surface, surface_cloud_format, detector, verify, refine, max_matches,
+          colmap_dir, opensfm_dir, orthority_dir, surface, surface_cloud_format,
+          surface_cloud_colors, detector, verify, refine, max_matches,
           max_keypoints, overwrite):
     """Orient the block IMAGES... (or the measurements of --observations) into OUTDIR: orientation.json,
     poses.csv, points (PLY, CSV, LAS), observations.csv and the report."""
@@ -231,7 +234,8 @@ def block(images, camera_path, focal_settings, out_dir, poses_path, control_path
         models=ModelMethodOptions(strip_polynomial=strip_polynomial, dependent=dependent_models,
                                   robust=robust != "none"))
     plan = (plan_block_surface(images, projective=method in BLOCK_METHODS, method=method, control=control_path,
-                               check_ids=opts.check_ids, cloud_format=surface_cloud_format) if surface else None)
+                               check_ids=opts.check_ids, cloud_format=surface_cloud_format,
+                               cloud_colors=surface_cloud_colors) if surface else None)
     if method in BLOCK_METHODS:  # images without a known camera: stereo.actions.block_projective
         refuse_zoom_settings(method, focal_settings)
         popts = ProjectiveBlockOptions(method=method, check_ids=opts.check_ids, control_sigma_m=control_sigma,

@@ -65,12 +65,15 @@ _D = SurfaceOptions()
 @click.option("--cloud-format", type=click.Choice(list(CLOUD_FORMATS)), default=_D.cloud_format, show_default=True,
               help="The cloud's file: laz = points.laz (points.las without a LAZ backend), las = points.las, "
                    "copc = points.copc.laz (Cloud Optimized Point Cloud; needs copclib).")
+@click.option("--cloud-colors/--no-cloud-colors", default=_D.cloud_colors, show_default=True,
+              help="The cloud's RGB: from the orthomosaic (nearest pixel), else from the left image of each point's "
+                   "pair (bilinear).")
 @scheduler_opt
 @overwrite_opt
 @handle_errors
 def surface(orientation, out_dir, images, camera, cell, ground_z, relief, min_overlap, base_height, angle,
             pairs_per_area, k_sigma, reference_dem, orientation_sigma, check, ortho, keep_orthophotos, ortho_compress,
-            balance, feather_px, cloud, cloud_format, scheduler, overwrite):
+            balance, feather_px, cloud, cloud_format, cloud_colors, scheduler, overwrite):
     """Fuse the dense surfaces of a block's stereo pairs into one DSM, then the true orthomosaic over it
     and the point cloud of it. ORIENTATION is the output folder of
     `stereo block` (its orientation.json), a block orientation JSON, or another tool's poses (orthority
@@ -83,7 +86,7 @@ def surface(orientation, out_dir, images, camera, cell, ground_z, relief, min_ov
                           reference_dem=reference_dem, orientation_sigma=orientation_sigma,
                           scheduler=scheduler, check=check, ortho=ortho, keep_orthophotos=keep_orthophotos,
                           ortho_compress=ortho_compress, balance=balance, feather_px=feather_px, cloud=cloud,
-                          cloud_format=cloud_format)
+                          cloud_format=cloud_format, cloud_colors=cloud_colors)
     result = run_surface(orientation, out_dir, options=opts, overwrite=overwrite)
     for line in result.summary_lines():
         echo(line)

@@ -12,7 +12,9 @@ file (suffix)                              layout
 Coordinates are stored as int32 counts of ``scale`` (default 0.001: one millimetre in a metric CRS)
 from ``offset`` (a point near the data), so a cloud may span +-2147 km around its offset at the
 default scale; a point outside that range is refused. The CRS is an OGC WKT VLR (EVLR in COPC) with
-the WKT bit of the global encoding set.
+the WKT bit of the global encoding set. RGB is 16 bits per channel (LAS): 8-bit colours are scaled by
+257 (255 -> 65535, as PDAL and OpenDroneMap write them), 16-bit ones (``color_bits=16``) are stored as
+given; points written without colours have 0.
 
 Extra dimensions (LAS 1.4 "extra bytes", each with a name and a description in the file):
 
@@ -116,7 +118,8 @@ EXTRA_DIMS: dict[str, ExtraDim] = {
 
 @dataclass(frozen=True, eq=False)
 class CloudChunk:
-    """A chunk of points for :func:`write_cloud`: ``xyz`` (N, 3), ``colors`` (N, 3) 0..255 or None,
+    """A chunk of points for :func:`write_cloud`: ``xyz`` (N, 3), ``colors`` (N, 3) (0..255, or 0..65535 with
+    ``color_bits=16``) or None,
     ``extra`` name -> (N,) values of each declared extra dimension."""
 
     xyz: ArrayLike
@@ -223,6 +226,9 @@ class LasWriter:
     extra_dims : sequence of str or ExtraDim
         Extra dimensions (``"sigma_z"``, ``"pair"``, ``"count"`` or :class:`ExtraDim`), given to every
         :meth:`write`.
+    color_bits : {8, 16}
+        The depth of the colours given to :meth:`write`: 8 (0..255, scaled by 257 to LAS's 16-bit RGB, as
+        PDAL and OpenDroneMap do: 255 -> 65535) or 16 (0..65535, stored as given).
 
     Raises
     ------
@@ -234,8 +240,11 @@ class LasWriter:
 
     def __init__(self, path: StrPath, offset: ArrayLike, *, scale: float = 0.001, crs_wkt: str | None = None,
                  compress: bool | None = None, fmt: str | None = None,
-                 extra_dims: Sequence[str | ExtraDim] = ()):
+                 extra_dims: Sequence[str | ExtraDim] = (), color_bits: int = 8):
         self.path = Path(path)
+        if color_bits not in (8, 16):
+            raise InvalidInputError(f"`color_bits` must be 8 or 16; got {color_bits!r}")
+        self.color_bits = color_bits
         if fmt is None:
             fmt = ("laz" if compress else "las") if compress is not None else cloud_format(self.path)
         if fmt not in CLOUD_FORMATS:
@@ -258,7 +267,8 @@ class LasWriter:
     # ---------------------------------------------------------------- writing
     def write(self, xyz: ArrayLike, colors: ArrayLike | None = None,
               extra: Mapping[str, ArrayLike] | None = None) -> None:
-        """Append points: ``xyz`` (N, 3) finite, ``colors`` (N, 3) 0..255 (clipped), ``extra`` name -> (N,)."""
+        """Append points: ``xyz`` (N, 3) finite, ``colors`` (N, 3) 0..255 (``color_bits`` 8; x 257 to 16 bits)
+        or 0..65535 (16), rounded and clipped to that range, ``extra`` name -> (N,)."""
         p = np.asarray(xyz, dtype=np.float64)
         if p.ndim != 2 or p.shape[1] != 3:
             raise ShapeError(f"points must have shape (N, 3); got {p.shape}", actual_shape=p.shape,
@@ -274,7 +284,9 @@ class LasWriter:
             if c.shape != (len(p), 3):
                 raise ShapeError(f"colors must have shape ({len(p)}, 3); got {c.shape}", actual_shape=c.shape,
                                  expected_shape=(len(p), 3))
-            c = np.clip(c, 0, 255).astype(np.uint16) * 257
+            top = 255 if self.color_bits == 8 else 65535
+            c = np.clip(np.rint(np.nan_to_num(c.astype(np.float64))), 0, top).astype(np.uint16)
+            c = c * np.uint16(65535 // top)
         if len(p) == 0:
             return
         h = self._header
@@ -725,7 +737,7 @@ def _copc_body(stage: Path, path: Path, crs_wkt: str | None, header: laspy.LasHe
 def write_cloud(path: StrPath, xyz: ArrayLike | Iterable[CloudChunk], *, colors: ArrayLike | None = None,
                 extra: Mapping[str, ArrayLike] | None = None, extra_dims: Sequence[str | ExtraDim] | None = None,
                 crs_wkt: str | None = None, offset: ArrayLike | None = None, scale: float = 0.001,
-                fmt: str | None = None, overwrite: bool = False) -> Path:
+                fmt: str | None = None, overwrite: bool = False, color_bits: int = 8) -> Path:
     """Write a point cloud (LAS, LAZ or COPC by the name of ``path``) atomically; return ``path``.
 
     Parameters
@@ -736,7 +748,8 @@ def write_cloud(path: StrPath, xyz: ArrayLike | Iterable[CloudChunk], *, colors:
         The points (CRS units), whole or as chunks (streamed: only one chunk in memory at a time for
         LAS and LAZ).
     colors : (N, 3) array_like, optional
-        0..255 per channel (whole clouds only; chunks carry their own).
+        0..255 per channel, stored x 257 as LAS's 16-bit RGB (whole clouds only; chunks carry their own);
+        0..65535, stored as given, with ``color_bits=16``.
     extra : mapping name -> (N,) array_like, optional
         Extra dimension values (whole clouds only). Their names declare the dimensions unless
         ``extra_dims`` does (required with chunks that carry extra values).
@@ -784,11 +797,12 @@ def write_cloud(path: StrPath, xyz: ArrayLike | Iterable[CloudChunk], *, colors:
                     if offset is None:
                         first = np.asarray(ch.xyz, dtype=np.float64).reshape(-1)[:3]
                         offset = np.round(first) if first.size == 3 and np.isfinite(first).all() else np.zeros(3)
-                    writer = LasWriter(tmp, offset, scale=scale, crs_wkt=crs_wkt, fmt=f, extra_dims=dims)
+                    writer = LasWriter(tmp, offset, scale=scale, crs_wkt=crs_wkt, fmt=f, extra_dims=dims,
+                                       color_bits=color_bits)
                 writer.write(ch.xyz, ch.colors, ch.extra)
             if writer is None:
                 writer = LasWriter(tmp, np.zeros(3) if offset is None else offset, scale=scale, crs_wkt=crs_wkt, fmt=f,
-                                   extra_dims=dims)
+                                   extra_dims=dims, color_bits=color_bits)
             writer.close()
         except BaseException:
             if writer is not None:

@@ -100,7 +100,8 @@ def test_copc_cloud_equals_the_laz_cloud(block, tmp_path, monkeypatch):
     assert np.allclose(np.asarray(copc.z), bands[0][ri, ci], atol=1e-3)
     assert np.allclose(np.asarray(copc.sigma_z), bands[1][ri, ci], rtol=1e-6)
     doc = json.loads((tmp_path / "copc" / "pairs.json").read_text())["cloud"]
-    assert doc == {"file": "points.copc.laz", "format": "copc", "points": len(copc), "extra_dims": list(DIMS)}
+    assert doc == {"file": "points.copc.laz", "format": "copc", "points": len(copc), "extra_dims": list(DIMS),
+                   "colors": {"source": "images", "sampling": "bilinear", "bits": 8, "uncolored": 0}}
 
 
 @needs_copc
