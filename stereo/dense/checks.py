@@ -72,17 +72,17 @@ def collisions(d: NDArray[np.float32], tol: float) -> NDArray[np.bool_]:
     on the row maps left of that by more than ``tol`` (the nearer surface covers it), or when a pixel
     at least two columns further right maps within half a pixel of it: then that pixel's disparity
     exceeds d by more than 1.5 px and both claim one right pixel, which belongs to the nearer one.
-    This is a z-buffer of the right pixels computed with two running minima per row.
+    This is a z-buffer of the right pixels computed with two running minima per row (NaN-ignoring:
+    pixels without a disparity hide nothing and are never marked).
     """
     W = d.shape[1]
     xr = np.arange(W, dtype=np.float32)[None, :] - d
-    xr = np.where(np.isfinite(xr), xr, np.float32(np.inf))
-    run = np.minimum.accumulate(xr[:, ::-1], axis=1)[:, ::-1]
+    run = np.fmin.accumulate(xr[:, ::-1], axis=1)[:, ::-1]
     hidden = np.zeros(d.shape, bool)
     if W > 1:
-        hidden[:, :-1] = run[:, 1:] < xr[:, :-1] - tol
+        np.less(run[:, 1:], xr[:, :-1] - np.float32(tol), out=hidden[:, :-1])
     if W > 2:
-        hidden[:, :-2] |= run[:, 2:] < xr[:, :-2] + 0.5
+        hidden[:, :-2] |= run[:, 2:] < xr[:, :-2] + np.float32(0.5)
     return hidden
 
 

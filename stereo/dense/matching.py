@@ -43,16 +43,15 @@ from rectify.raster.io import (
     raster_info,
     read_overview,
 )
-from stereo.dense.checks import collisions as _collisions
 from stereo.dense.checks import erode_valid as _erode
 from stereo.dense.checks import noise_fill as _noise_fill
 from stereo.dense.checks import row_tests as _tests
 from stereo.dense.checks import strip_rows as _strip_rows
 from stereo.dense.checks import strips as _strips
+from stereo.dense.holes import fill_holes_half
 from stereo.dense.refine import confidence as _confidence
 from stereo.dense.refine import edge_classify, fill_background, refine_subpixel
 from stereo.dense.refine import median_valid as _median_valid
-from stereo.dense.refine import zncc as _zncc
 
 logger = logging.getLogger(__name__)
 
@@ -121,16 +120,20 @@ class MatchOptions:
         nearer surface hides it); ``sgbm`` runs a second SGBM with the right photo as reference
         and keeps disparities that agree within ``lr_max_diff`` (twice the time).
     hole_p2 : float
-        0 (the default): off. Else the holes left by the tests above are matched again at half
-        resolution with ``P2 = hole_p2`` (per ``channels * block_size**2``; a stronger smoothness
-        penalty fills low-texture and steep areas), with the same tests at half resolution; a
-        hole pixel takes the doubled half-resolution disparity when the 7 x 7 ZNCC of the left
-        photo and the right photo warped by it is at least ``hole_zncc``; the sub-pixel step then
-        refines it at full resolution. :class:`stereo.actions.dense.DenseOptions` uses 128 / 0.5
-        (NGI strip DSM coverage 87.2 -> 91.0 % of the overlap); it lowers the Middlebury precision
-        at their higher density, so :func:`match_pair` leaves it off.
+        0 (the default): off. Else the large holes left by the tests above (at least
+        :data:`stereo.dense.holes.MIN_HOLE` half-resolution pixels that can be matched) are matched
+        again at half resolution, each on a box around it over the range of the disparities around
+        it, with ``P2 = hole_p2`` (per ``channels * block_size**2``; a stronger smoothness penalty
+        fills low-texture and steep areas) and the same tests at half resolution; a hole pixel takes
+        the doubled half-resolution disparity when the 7 x 7 ZNCC of the half-resolution left photo
+        and right photo warped by the box's disparities is at least ``hole_zncc`` and its right
+        pixel passes the full-resolution border rule; the sub-pixel step then refines it at full
+        resolution (:func:`stereo.dense.holes.fill_holes_half`). :class:`stereo.actions.dense.
+        DenseOptions` uses 128 (NGI strip DSM coverage 87.3 -> 91.6 % of the overlap); on
+        Middlebury, with its higher density, :func:`match_pair` leaves it off.
     hole_zncc : float
-        The ZNCC a hole pixel's half-resolution disparity must reach, in [-1, 1].
+        The ZNCC a hole pixel's half-resolution disparity must reach, in [-1, 1] (default 0.7; 0.5
+        with the full-resolution window of the whole-window pass before).
     """
 
     block_size: int = 3
@@ -154,7 +157,7 @@ class MatchOptions:
     border_px: int = 4
     right_check: str = "collision"
     hole_p2: float = 0.0
-    hole_zncc: float = 0.5
+    hole_zncc: float = 0.7
 
     def __post_init__(self) -> None:
         if not isinstance(self.block_size, int) or self.block_size < 1 or self.block_size > 11 \
@@ -281,7 +284,8 @@ def _sgbm(opts: MatchOptions, channels: int, min_disp: int, num_disp: int) -> cv
 
 
 def _match_window(L: NDArray[np.uint8], R: NDArray[np.uint8], lv: NDArray[np.bool_], rv: NDArray[np.bool_],
-                  dmin: int, dmax: int, opts: MatchOptions, *, lr_check: bool = True) -> NDArray[np.float32]:
+                  dmin: int, dmax: int, opts: MatchOptions, *, lr_check: bool = True, pad: int | None = None
+                  ) -> NDArray[np.float32]:
     """SGBM of one window pair whose columns coincide; d in [dmin, dmax]; NaN where none.
 
     The caller passes the right window already moved by ``dmin`` (``R[:, x] = right[:, x - dmin]``),
@@ -295,6 +299,9 @@ def _match_window(L: NDArray[np.uint8], R: NDArray[np.uint8], lv: NDArray[np.boo
       outside of, the right photo, which SGBM's built-in check lets through next to image borders;
     - disparities whose left pixel or right pixel lies within ``opts.border_px`` of an invalid pixel
       are dropped (the window's left and right edges count as invalid, its top and bottom ones not).
+
+    ``pad``: columns reflected onto the left of both windows before SGBM (default ``num + 1``: SGBM
+    leaves its first ``num`` columns unmatched); fewer when the windows' first columns are context.
     """
     if L.ndim == 3 and not opts.colour:
         L = np.asarray(cv2.cvtColor(np.ascontiguousarray(L), cv2.COLOR_RGB2GRAY), dtype=np.uint8)
@@ -304,12 +311,12 @@ def _match_window(L: NDArray[np.uint8], R: NDArray[np.uint8], lv: NDArray[np.boo
     rve = _erode(rv, opts.border_px)
     L = _noise_fill(L, lv, 1)
     R = _noise_fill(R, rv, 2)
-    pad = num + 1
+    pad = num + 1 if pad is None else max(0, int(pad))
     # SGBM leaves the first ``num`` columns of its reference photo unmatched: padded on the left, and
     # on the right too for the mirrored (right-reference) pass
     two_pass = lr_check and opts.lr_max_diff >= 0 and opts.right_check == "sgbm"
-    Lp = cv2.copyMakeBorder(L, 0, 0, pad, pad if two_pass else 0, cv2.BORDER_REFLECT_101)
-    Rp = cv2.copyMakeBorder(R, 0, 0, pad, pad if two_pass else 0, cv2.BORDER_REFLECT_101)
+    Lp = cv2.copyMakeBorder(L, 0, 0, pad, num + 1 if two_pass else 0, cv2.BORDER_REFLECT_101)
+    Rp = cv2.copyMakeBorder(R, 0, 0, pad, num + 1 if two_pass else 0, cv2.BORDER_REFLECT_101)
     ch = 1 if L.ndim == 2 else L.shape[2]
     sgbm = _sgbm(opts, ch, 0, num)
     raw = sgbm.compute(Lp, Rp)[:, pad:pad + W]
@@ -339,70 +346,10 @@ def _match_window(L: NDArray[np.uint8], R: NDArray[np.uint8], lv: NDArray[np.boo
 
 def _fill_holes_half(d: NDArray[np.float32], L: NDArray[np.uint8], R: NDArray[np.uint8], lv: NDArray[np.bool_],
                      rv: NDArray[np.bool_], lo: int, hi: int, opts: MatchOptions) -> NDArray[np.float32]:
-    """Holes of ``d`` matched again at half resolution with a stronger smoothness penalty.
-
-    ``R`` is the right window moved by ``lo`` (as for :func:`_match_window`). The half-resolution
-    pair is matched over ``[0, (hi - lo) / 2 + 1]`` with ``P2 = opts.hole_p2`` and the same tests
-    (at half resolution); its disparities, doubled and moved back by ``lo``, are taken where ``d``
-    has none. The sub-pixel step that follows refines them at full resolution.
-    """
-    if opts.hole_p2 <= 0 or np.isfinite(d).all():
-        return d
-    H, W = d.shape
-    size = (max(8, W // 2), max(8, H // 2))
-    if min(size) < 16:
-        return d
-    Lh = np.asarray(cv2.resize(L[: 2 * size[1], : 2 * size[0]], size, interpolation=cv2.INTER_AREA), dtype=np.uint8)
-    Rh = np.asarray(cv2.resize(R[: 2 * size[1], : 2 * size[0]], size, interpolation=cv2.INTER_AREA), dtype=np.uint8)
-
-    def half_mask(m: NDArray[np.bool_]) -> NDArray[np.bool_]:
-        m = m[: 2 * size[1], : 2 * size[0]]
-        return np.asarray(m[0::2, 0::2] & m[1::2, 0::2] & m[0::2, 1::2] & m[1::2, 1::2])
-
-    ho = MatchOptions(block_size=opts.block_size, p1=opts.p1, p2=opts.hole_p2, uniqueness=opts.uniqueness,
-                      lr_max_diff=opts.lr_max_diff, speckle_window=max(1, opts.speckle_window // 4),
-                      speckle_range=opts.speckle_range, colour=opts.colour,
-                      border_px=max(1, opts.border_px // 2), right_check=opts.right_check)
-    dh = _match_window(Lh, Rh, half_mask(lv), half_mask(rv), 0, int(math.ceil((hi - lo) / 2.0)) + 1, ho)
-    up = np.full((H, W), np.nan, np.float32)
-    up[: 2 * size[1], : 2 * size[0]] = cv2.resize(2.0 * dh + float(lo), (2 * size[0], 2 * size[1]),
-                                                  interpolation=cv2.INTER_NEAREST)
-    lve = _erode(lv, opts.border_px).copy()  # _erode may return ``lv`` itself: never change the caller's mask
-    if opts.border_px:  # and away from the window's left and right edges (the sub-pixel step is unsure there)
-        lve[:, :opts.border_px] = lve[:, -opts.border_px:] = False
-    rve = _erode(rv, opts.border_px)
-    gl, gr = _grey(L), _grey(R)
-    out = d.copy()
-    took = np.zeros((H, W), bool)
-    xs0 = np.arange(W, dtype=np.float32)[None, :]
-    for r0, r1, a0, a1 in _strips(H, 3, W):  # by strips of rows (3: the ZNCC window's radius)
-        ds, ups = d[a0:a1], up[a0:a1]
-        take = ~np.isfinite(ds) & np.isfinite(ups) & lve[a0:a1]
-        if not take[r0 - a0:r1 - a0].any():
-            continue
-        # the full-resolution border rule: the right pixel inside the window, away from nodata
-        ci = np.rint(xs0 - np.nan_to_num(ups - float(lo), nan=1e6)).astype(np.int64)
-        inside = (ci >= 0) & (ci < W)
-        take &= inside & rve[a0:a1][np.arange(a1 - a0)[:, None], np.clip(ci, 0, W - 1)]
-        if not take[r0 - a0:r1 - a0].any():
-            continue
-        # a hole's new disparity must make the two photos alike: ZNCC of 7 x 7 windows, the right
-        # photo warped by each pixel's own disparity
-        xs = xs0 - (np.where(take, ups, 0) - float(lo))
-        ys = np.repeat(np.arange(a0, a1, dtype=np.float32)[:, None], W, axis=1)
-        rw = np.asarray(cv2.remap(gr, np.ascontiguousarray(xs, dtype=np.float32), ys, cv2.INTER_LINEAR,
-                                  borderMode=cv2.BORDER_REPLICATE), dtype=np.float32)
-        core = slice(r0 - a0, r1 - a0)
-        t = take[core] & (_zncc(gl[a0:a1], rw, 3)[core] >= opts.hole_zncc)
-        out[r0:r1][t] = ups[core][t]
-        took[r0:r1] = t
-    if not took.any():
-        return d
-    if opts.lr_max_diff >= 0:  # a new pixel hidden by a nearer surface (collision test) is dropped again
-        for r0, r1, _, _ in _strips(H, 0, W):
-            o = out[r0:r1]
-            o[took[r0:r1] & _collisions(o, float(opts.lr_max_diff))] = np.nan
-    return out
+    """Holes of ``d`` matched again at half resolution with a stronger smoothness penalty, in place
+    (:func:`stereo.dense.holes.fill_holes_half`: on boxes around the large holes only); ``R`` is the
+    right window moved by ``lo`` (as for :func:`_match_window`)."""
+    return fill_holes_half(d, L, R, lv, rv, lo, hi, opts, _match_window)
 
 
 #: the coarse pass of :func:`match_pair` is at most 1/4 of the resolution

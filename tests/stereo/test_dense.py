@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from rectify.errors import InvalidInputError, ShapeError, StereoError
 from rectify.geometry.camera import Camera
 from rectify.geometry.rotation import matrix_from_angles
+from stereo.dense.checks import collisions
 from stereo.dense.dsm import DsmGrid
 from stereo.dense.epipolar import normal_frame, rectify_pair
 from stereo.dense.matching import MatchOptions, fill_background, match_pair
@@ -139,13 +140,13 @@ def test_match_pair_bad_input():
 def test_collisions_mark_the_hidden_background():
     """Background (d 2) left of a foreground (d 6): the background pixels whose right pixels the
     foreground covers are hidden; the first one (right pixel -2, claimed by nobody else) is not."""
-    from stereo.dense.matching import _collisions
-
     d = np.array([[2, 2, 2, 2, 2, 6, 6, 6, 6, 6]], np.float32)
-    hidden = _collisions(d, 1.0)
+    hidden = collisions(d, 1.0)
     assert hidden.tolist() == [[False, True, True, True, True, False, False, False, False, False]]
-    # a smooth slope hides nothing
-    assert not _collisions(np.linspace(2, 6, 40, dtype=np.float32)[None, :], 1.0).any()
+    # a smooth slope hides nothing; a pixel without a disparity hides nothing and is not marked
+    assert not collisions(np.linspace(2, 6, 40, dtype=np.float32)[None, :], 1.0).any()
+    d[0, 7] = d[0, 2] = np.nan
+    assert collisions(d, 1.0).tolist() == [[False, True, False, True, True, False, False, False, False, False]]
 
 
 def test_right_reference_check_and_border_rule():

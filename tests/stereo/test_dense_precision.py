@@ -21,6 +21,7 @@ from rectify.geometry.camera import Camera
 from rectify.geometry.rotation import matrix_from_angles
 from stereo.actions.dense import DenseOptions, run_dense
 from stereo.dense.checks import row_tests
+from stereo.dense.holes import RANGE_MARGIN, hole_boxes
 from stereo.dense.matching import MatchOptions, _fill_holes_half, match_pair
 from stereo.dense.refine import edge_classify, median_valid
 from stereo.formats.orientation import write_exterior
@@ -66,38 +67,81 @@ def _pair(d: float, flat: tuple[slice, slice] | None = None) -> tuple[np.ndarray
     return L, np.asarray(R)
 
 
-def test_hole_pass_fills_a_textured_hole_with_the_right_disparity():
-    """A 30 x 40 hole punched into a correct disparity map of a textured plane (d = 11.5 px) is
-    filled by the half-resolution pass to within 1 px (before the sub-pixel step)."""
+def test_hole_pass_fills_a_large_textured_hole_with_the_right_disparity():
+    """A 50 x 64 hole punched into a correct disparity map of a textured plane (d = 11.5 px) is filled
+    by the half-resolution pass to within 1 px (before the sub-pixel step); a 20 x 20 hole (100
+    half-resolution px, below ``MIN_HOLE``) is left; every pixel that had a disparity keeps it, bit
+    for bit, and the masks are not changed."""
     L, R = _pair(11.5)
     H, W = L.shape
     d = np.full((H, W), 11.5, np.float32)
-    d[40:70, 80:120] = np.nan
+    d[35:85, 70:134] = np.nan
+    d[5:25, 160:180] = np.nan
+    before = d.copy()
     ones = np.ones((H, W), bool)
     out = _fill_holes_half(d, L, R, ones, ones, 0, 24, MatchOptions(hole_p2=128.0))
-    hole = out[40:70, 80:120]
-    # measured 0.92: before the sub-pixel step the doubled half-resolution disparity is up to 0.5 px
-    # off, which brings the 7 x 7 ZNCC of this fine texture below 0.5 at some pixels
-    assert np.isfinite(hole).mean() >= 0.85, np.isfinite(hole).mean()
+    hole = out[35:85, 70:134]
+    assert np.isfinite(hole).mean() >= 0.9, np.isfinite(hole).mean()  # measured 0.96
     assert np.nanmax(np.abs(hole - 11.5)) <= 1.0, np.nanmax(np.abs(hole - 11.5))
-    # untouched elsewhere (and the masks too), and off by default
-    np.testing.assert_array_equal(out[~np.isnan(d)], d[~np.isnan(d)])
-    assert ones.all()
-    assert np.isnan(_fill_holes_half(d, L, R, ones, ones, 0, 24, MatchOptions())[40:70, 80:120]).all()
+    assert np.isnan(out[5:25, 160:180]).all()
+    had = np.isfinite(before)
+    assert np.array_equal(out[had], before[had]) and ones.all()
+    assert np.isnan(_fill_holes_half(before.copy(), L, R, ones, ones, 0, 24, MatchOptions())[35:85, 70:134]).all()
 
 
 def test_hole_pass_leaves_a_textureless_hole_empty():
     """Where both photos are constant nothing can be matched: the ZNCC test keeps such a hole empty
     (SGBM's own paths carry a disparity into it; the hole pass adds none)."""
-    L, R = _pair(11.5, (slice(30, 90), slice(90, 160)))  # constant in the left photo at cols 70..140
+    L, R = _pair(11.5, (slice(25, 95), slice(80, 170)))  # constant in the left photo at cols 60..150
     H, W = L.shape
     d = np.full((H, W), 11.5, np.float32)
-    d[40:80, 80:130] = np.nan
+    d[35:85, 70:134] = np.nan
     ones = np.ones((H, W), bool)
     out = _fill_holes_half(d, L, R, ones, ones, 0, 24, MatchOptions(hole_p2=128.0))
-    assert not np.isfinite(out[40:80, 80:130]).any()
+    assert not np.isfinite(out[35:85, 70:134]).any()
     res = match_pair(L, R, disparity_range=(0, 24), options=MatchOptions(hole_p2=128.0))
-    assert np.abs(res.disparity[res.valid] - 11.5).max() < 1.0 and res.density > 0.6
+    assert np.abs(res.disparity[res.valid] - 11.5).max() < 1.0 and res.density > 0.5
+
+
+def test_hole_boxes_skip_the_left_edge_band_and_small_holes():
+    """The holes' boxes (half resolution): the band at the window's left edge whose matches lie beyond
+    the right photo's edge (x - d < 4 px, the right window's first usable column) is no hole, though
+    large enough; a 40 x 60 hole is one box covering it, with the range of the disparities around it
+    (10 and 30 px) widened by ``RANGE_MARGIN``; a 10 x 10 hole (25 half-resolution px) is one only
+    when ``min_hole`` allows."""
+    H, W = 200, 240
+    d = np.full((H, W), 10.0, np.float32)
+    d[:, 120:] = 30.0
+    d[60:100, 100:160] = np.nan
+    d[10:20, 200:210] = np.nan
+    band = d.copy()
+    band[:, :12] = np.nan  # 600 half-resolution px
+    labels, boxes = hole_boxes(~np.isfinite(band), band, 0, 40, 4)
+    assert labels.shape == (H // 2, W // 2) and len(boxes) == 1
+    _, y0, y1, x0, x1, dl, dh = (int(v) for v in boxes[0])
+    assert (y0, y1, x0, x1) == (30, 50, 50, 80)
+    assert (dl, dh) == (10 - RANGE_MARGIN, 30 + RANGE_MARGIN)
+    assert len(hole_boxes(~np.isfinite(band), band, 0, 40, 4, min_hole=20)[1]) == 2
+    # a band whose pixels can be matched (x - d >= 4 from x = 14 on) is a hole
+    band[:, :40] = np.nan
+    assert len(hole_boxes(~np.isfinite(band), band, 0, 40, 4)[1]) == 2
+
+
+def test_hole_pass_changes_nothing_away_from_the_pixels_it_fills():
+    """Motorcycle with and without the hole pass: disparity and confidence are equal, bit for bit,
+    farther than 24 px (the post-processing's reach: depth-edge step 12, median 1, sub-pixel step 7,
+    confidence 1) from every pixel the hole pass added; it adds some."""
+    from skimage import data
+
+    left, right, _ = data.stereo_motorcycle()
+    a = match_pair(left, right)
+    b = match_pair(left, right, options=MatchOptions(hole_p2=128.0))
+    added = b.valid & ~a.valid
+    assert added.sum() > 1000, added.sum()
+    near = cv2.dilate(added.astype(np.uint8), np.ones((49, 49), np.uint8)) > 0
+    assert (~near).mean() > 0.3
+    assert np.array_equal(a.disparity[~near], b.disparity[~near], equal_nan=True)
+    assert np.array_equal(a.confidence[~near], b.confidence[~near])
 
 
 def test_hole_options_bad_input():
@@ -251,11 +295,47 @@ def test_cones_precision_at_the_previous_density():
     assert err[top].mean() <= 0.0226, err[top].mean()
 
 
+def _precision(res, gt: np.ndarray, nocc: np.ndarray, thr: float, density0: float) -> tuple[float, float, float]:
+    """Density, bad-thr and bad-thr at ``density0`` (the most confident pixels) on the non-occluded pixels."""
+    v = res.valid & nocc
+    err = (np.abs(res.disparity - gt) > thr)[v]
+    top = np.argsort(-res.confidence[v], kind="stable")[:int(round(density0 * nocc.sum()))]
+    return float(v.sum() / nocc.sum()), float(err.mean()), float(err[top].mean())
+
+
+def test_motorcycle_hole_pass_precision():
+    """The hole pass of ``stereo dense`` (``hole_p2=128``) on Motorcycle: bad-2.0 2.34 % at the
+    previous density (95.9 %) measured, at 96.4 % density 2.49 % (the whole-window pass before: 2.41 %
+    and 2.56 % at 96.4 %): at least as precise at equal density."""
+    from skimage import data
+
+    left, right, gt = data.stereo_motorcycle()
+    density, bad, at0 = _precision(match_pair(left, right, options=MatchOptions(hole_p2=128.0)), gt,
+                                   ~occlusion_from_truth(gt), 2.0, 0.959)
+    assert density >= 0.962 and bad <= 0.0256 and at0 <= 0.0241, (density, bad, at0)
+
+
+@pytest.mark.shared
+def test_cones_hole_pass_precision():
+    """The hole pass on Cones: bad-1.0 2.19 % at the previous density (93.2 %) measured, 2.69 % at
+    95.4 % (the whole-window pass before: 2.26 %, and 2.81 % at 95.6 %)."""
+    d = SHARED_DATA / "dense_cones"
+    if not d.is_dir():
+        pytest.skip(f"shared data absent: {d}")
+    with rasterio.open(d / "disp_left.tif") as ds:
+        gt = ds.read(1)
+    nocc = (_grey_png(d / "occlusion.png") > 0) & (gt > 0)
+    res = match_pair(_rgb(d / "left.png"), _rgb(d / "right.png"), options=MatchOptions(hole_p2=128.0))
+    density, bad, at0 = _precision(res, gt, nocc, 1.0, 0.932)
+    assert density >= 0.952 and bad <= 0.0281 and at0 <= 0.0226, (density, bad, at0)
+
+
 @pytest.mark.shared
 def test_ngi_strip_dsm_coverage_and_rmse(ngi_pair, tmp_path):
     """The NGI strip DSM (aero-triangulated EOs, ``stereo dense`` defaults) against dem.tif: at least
-    90 % of the overlap within 1.5 cells RMSE (issue 30; measured 91.0 % and 1.00 cells; before
-    issue 30 87.1 % and 1.03 cells), and smoother than before (second-difference NMAD 1.17 m, was 1.67 m)."""
+    90 % of the overlap within 1.5 cells RMSE (issue 30; measured 91.6 % and 1.01 cells with the hole
+    pass on the large holes' boxes, 91.1 % and 1.02 cells with the whole-window pass; before issue 30
+    87.1 % and 1.03 cells), and smoother than before (second-difference NMAD 1.17 m, was 1.67 m)."""
     cam = Camera.from_dict(CAMERA)
     paths = []
     for k, v in EO.items():
