@@ -512,8 +512,8 @@ def ortho(ws: Workspace, src: str | Path, dst: str | Path, dem_path: str | Path 
     target = model_heights(use_rpc, eo_vertical, dem)
     heights = {"heights": f"{dem.datum}; the model takes {target.label}"}
     ground_check = None
-    info = raster_info(src)
     if use_rpc:
+        info = raster_info(src)
         r = rpc_from_raster(src) if rpc is True else read_rpc(rpc)  # type: ignore[arg-type]
         model_rpc: Any = r
         if gs is not None:

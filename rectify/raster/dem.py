@@ -133,6 +133,8 @@ class Dem:
     constant : float or None
         A constant height (m, the model's heights) instead of a file (:meth:`constant_height`); then
         ``path`` is a label, not a file.
+    count : int or None
+        Bands of the file (:meth:`from_path`; None: not known).
     """
 
     path: str
@@ -147,6 +149,7 @@ class Dem:
     declared: VerticalDatum | None = None
     datum: str = "DEM heights used as they are"
     constant: float | None = None
+    count: int | None = None
 
     @classmethod
     def constant_height(cls, height: float, crs: str) -> Dem:
@@ -230,7 +233,7 @@ class Dem:
         else:
             datum = "DEM heights used as they are (its CRS declares no vertical datum)"
         dem = cls(name, horizontal_crs(info.crs), info.transform, info.width, info.height, info.nodata, n_const,
-                  vcrs, band, declared, datum)
+                  vcrs, band, declared, datum, count=info.count)
         if vcrs is not None:  # fail early, with the clear message
             try:
                 dem.offset(dem._lonlat_lattice(1))
@@ -304,7 +307,16 @@ class Dem:
         return out
 
     def _read_window(self, c0: int, r0: int, c1: int, r1: int) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-        """File heights (float64) and the validity mask of DEM columns c0..c1-1, rows r0..r1-1."""
+        """File heights (float64) and the validity mask of DEM columns c0..c1-1, rows r0..r1-1.
+
+        A one-band DEM of at most 512 px a side is its own :meth:`overview` (read once per file version,
+        for :meth:`range`): the window is cut from it (the same values and mask: the dataset mask of one
+        band is its mask), with no dataset opened on this thread.
+        """
+        if self.count == 1 and max(self.width, self.height) <= 512:
+            data, valid, scale = self.overview(512)
+            if scale == 1.0 and data.shape[:2] == (self.height, self.width):
+                return data[r0:r1, c0:c1, 0].astype(np.float64), valid[r0:r1, c0:c1].copy()
         try:
             ds = self._ds()
             win = Window(c0, r0, c1 - c0, r1 - r0)

@@ -349,15 +349,20 @@ def mask_policy(path: str | Path) -> MaskPolicy:
     """How a raster on disk stores validity (nodata, internal mask, alpha or none)."""
 
     with open_raster(path) as ds:
-        flags = ds.mask_flag_enums
-        if ds.nodata is not None:
-            return MaskPolicy("nodata", float(ds.nodata))
-        if any(MaskFlags.alpha in f for f in flags):
-            ci = list(ds.colorinterp)
-            idx = ci.index(ColorInterp.alpha) if ColorInterp.alpha in ci else ds.count - 1
-            return MaskPolicy("alpha", None, idx)
-        if any(MaskFlags.per_dataset in f for f in flags):
-            return MaskPolicy("mask")
+        return _mask_policy_of(ds)
+
+
+def _mask_policy_of(ds) -> MaskPolicy:
+    """:func:`mask_policy` of an open dataset."""
+    flags = ds.mask_flag_enums
+    if ds.nodata is not None:
+        return MaskPolicy("nodata", float(ds.nodata))
+    if any(MaskFlags.alpha in f for f in flags):
+        ci = list(ds.colorinterp)
+        idx = ci.index(ColorInterp.alpha) if ColorInterp.alpha in ci else ds.count - 1
+        return MaskPolicy("alpha", None, idx)
+    if any(MaskFlags.per_dataset in f for f in flags):
+        return MaskPolicy("mask")
     return MaskPolicy("none")
 
 
@@ -376,7 +381,7 @@ class WindowReader:
     def __init__(self, path: str | Path):
         self.path = str(path)
         self._ds = _open(self.path)
-        self.policy = mask_policy(self.path)
+        self.policy = _mask_policy_of(self._ds)  # (the open dataset's: no second open)
         self.width, self.height, self.count = self._ds.width, self._ds.height, self._ds.count
         self.dtype = np.dtype(self._ds.dtypes[0])
 

@@ -1,10 +1,13 @@
 """The fast paths of the orthophoto engine against the straightforward ones (issue 27, speed).
 
-- :func:`rectify.raster.visibility.line_of_sight` (skipping steps above the block maxima) gives the
-  reference line-of-sight march's visibility cell for cell, on DEM blocks with walls, holes and any
-  direction; the true orthophoto written with either is byte-identical.
+- :func:`rectify.raster.visibility.line_of_sight` (skipping the steps its height and slope bounds clear,
+  on the box the lines reach, in batches of lines) gives the reference line-of-sight march's visibility
+  cell for cell, on DEM blocks with walls, holes, hills, side margins and any direction; the true
+  orthophoto written with either is byte-identical, and so is the one with the tiles' side margins and
+  the one with the grid's margin on every side.
 - :meth:`rectify.raster.dem.Dem.heights_on_lattice` (separable sampling) equals the point-by-point
   :meth:`Dem.heights_at_dem_pixels` bit for bit, outside cells included; a window with nodata falls back.
+- A small one-band DEM's windows cut from its cached overview equal the reads of the file.
 - The interpolated projection of a tile (matrix form) stays within ``PROJECTION_TOLERANCE_PX`` of the
   exact projection of every pixel.
 - ``--dem-height H`` (:meth:`Dem.constant_height`) writes the same orthophoto as a flat DEM file of height H.
@@ -12,6 +15,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +26,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import rectify.raster.ortho as ortho_mod
+import rectify.raster.visibility as vis_mod
 from rectify.errors import InvalidInputError
 from rectify.geometry.camera import Camera
 from rectify.geometry.rotation import matrix_from_angles
@@ -136,6 +141,33 @@ def test_line_of_sight_finds_the_occlusion_behind_a_wall():
     assert not vis[:, 10:15].any() and vis[:, 15:17].all() and vis[:, 17:].all()
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_line_of_sight_equals_reference_on_smooth_terrain_and_steep_lines(seed):
+    """The regime of an aerial frame over hills (the NGI pair): lines rising faster than the terrain, which
+    the march skips from their first sample and by their height above the terrain (slope bounds along x
+    and y); a few walls, a hole and lines along the axes (|ux| or |uy| = 0) keep every branch honest."""
+    rng = np.random.default_rng(100 + seed)
+    m, h, w = 48, 40, 36
+    n = 2 * m + max(h, w)
+    yy, xx = np.mgrid[0:n, 0:n]
+    Z = 300 + 40 * np.sin(xx / 23.0 + seed) * np.cos(yy / 17.0) + 0.02 * xx * yy + rng.normal(0, 0.2, (n, n))
+    for _ in range(seed):
+        r, c = rng.integers(m - 10, m + 30, 2)
+        Z[r:r + 3, c:c + 4] += rng.uniform(20, 120)
+    if seed % 2:
+        Z[m + 5:m + 8, m + 20:m + 23] = np.nan
+    Z = Z[:h + 2 * m, :w + 2 * m]
+    z = Z[m:m + h, m:m + w]
+    ang = [0.0, np.pi / 2, np.pi, rng.uniform(0, 2 * np.pi)][seed % 4]
+    mag = rng.uniform(0.02, 0.3, (h, w))  # 3..50 m of rise a pixel: steeper than the hills, not the walls
+    d = np.dstack([mag * np.cos(ang), mag * np.sin(ang)])
+    inside = rng.random((h, w)) > 0.05
+    ref = line_of_sight_reference(Z, m, d, z, inside)
+    for block, levels, chunk in ((1, 3, 1), (1, 4, 1), (2, 3, 3)):
+        np.testing.assert_array_equal(line_of_sight(Z, m, d, z, inside, block=block, levels=levels, chunk=chunk),
+                                      ref, err_msg=f"seed {seed}, block {block}, levels {levels}, chunk {chunk}")
+
+
 def test_true_ortho_file_identical_with_the_reference_march(scene, tmp_path, monkeypatch):
     d, model = scene
     dem = Dem.from_path(d / "dem.tif")
@@ -146,6 +178,61 @@ def test_true_ortho_file_identical_with_the_reference_march(scene, tmp_path, mon
     assert fast.n_occluded == ref.n_occluded > 100  # the scene hides ground
     with rasterio.open(tmp_path / "fast.tif") as a, rasterio.open(tmp_path / "ref.tif") as b:
         np.testing.assert_array_equal(a.read(), b.read())
+
+
+def test_true_ortho_tile_margins_give_the_file_of_the_full_margin(scene, tmp_path, monkeypatch):
+    """Each tile's line-of-sight block reaches only as far on each side as its ground points move towards the
+    sensor over the DEM's height range (x 1.5 + 4): the same file as with the grid's margin on every side."""
+    d, model = scene
+    dem = Dem.from_path(d / "dem.tif")
+    opts = OrthoOptions(true_ortho=True, threads=1, tile_px=64)
+    seen = []
+    margins = ortho_mod._Engine._margins
+
+    def spy(self, c0, r0, w, h):
+        seen.append((self.margin, margins(self, c0, r0, w, h)))
+        return seen[-1][1]
+    monkeypatch.setattr(ortho_mod._Engine, "_margins", spy)
+    tight = orthorectify(d / "img.tif", tmp_path / "tight.tif", model, dem, resolution=1.0, options=opts)
+    assert seen and all(max(s) <= m for m, s in seen) and any(min(s) < m for m, s in seen)  # tighter somewhere
+    monkeypatch.setattr(ortho_mod._Engine, "_margins", lambda self, *a: (self.margin,) * 4)
+    full = orthorectify(d / "img.tif", tmp_path / "full.tif", model, dem, resolution=1.0, options=opts)
+    assert tight.n_occluded == full.n_occluded > 100
+    with rasterio.open(tmp_path / "tight.tif") as a, rasterio.open(tmp_path / "full.tif") as b:
+        np.testing.assert_array_equal(a.read(), b.read())
+
+
+def test_line_of_sight_in_small_batches_equals_reference(monkeypatch):
+    """Lines marched in batches (a batch of 37 here, many per block, the last one short): the same cells."""
+    monkeypatch.setattr(vis_mod, "RAYS_PER_BATCH", 37)
+    for seed in range(4):
+        rng = np.random.default_rng(200 + seed)
+        m, h, w = 20, 24, 28
+        Z = _block(rng, 2 * m + max(h, w), 10, seed % 2 == 1)[:h + 2 * m, :w + 2 * m]
+        z = Z[m:m + h, m:m + w]
+        ang = rng.uniform(0, 2 * np.pi)
+        d = np.dstack([np.full((h, w), np.cos(ang)), np.full((h, w), np.sin(ang))]) * rng.uniform(0.05, 2.0, (h, w, 1))
+        inside = rng.random((h, w)) > 0.1
+        ref = line_of_sight_reference(Z, m, d, z, inside)
+        assert (~ref).sum() > 0
+        np.testing.assert_array_equal(line_of_sight(Z, m, d, z, inside, chunk=1 + seed % 3), ref)
+
+
+def test_line_of_sight_with_side_margins_equals_reference():
+    """A block with its own margin on each side (the tile at (mx, my)), as the engine makes them."""
+    rng = np.random.default_rng(7)
+    h, w, (mx, my), (rx, ry) = 24, 28, (5, 31), (26, 3)
+    Z = _block(rng, max(h + my + ry, w + mx + rx), 9, True)[:h + my + ry, :w + mx + rx]
+    z = Z[my:my + h, mx:mx + w]
+    mag = rng.uniform(0.05, 2.0, (h, w))
+    hidden = 0
+    for ang in (0.4, 2.0, 3.5, 5.5):
+        dd = np.dstack([mag * np.cos(ang), mag * np.sin(ang)])
+        inside = rng.random((h, w)) > 0.1
+        ref = line_of_sight_reference(Z, (mx, my), dd, z, inside)
+        np.testing.assert_array_equal(line_of_sight(Z, (mx, my), dd, z, inside), ref)
+        hidden += int((~ref).sum())
+    assert hidden > 20  # the walls hide ground: not an empty case
 
 
 # ------------------------------------------------------------------------------------------- DEM sampling
@@ -165,6 +252,26 @@ def test_heights_on_lattice_bit_identical(tmp_path, hole):
     assert lat is not None
     np.testing.assert_array_equal(lat, pts)  # NaN at the same places, the same bits elsewhere
     assert np.isnan(lat).any() and np.isfinite(lat).any()
+
+
+@pytest.mark.parametrize("hole", [False, True])
+def test_small_dem_windows_cut_from_its_overview_equal_the_file_reads(tmp_path, hole):
+    """A one-band DEM of at most 512 px a side is read once (its overview, for the height range); the
+    tiles' windows cut from it hold the values and the mask of a read of the file, bit for bit."""
+    _write_dem(tmp_path / "dem.tif", _buildings, res=3.0, hole=hole)
+    dem = Dem.from_path(tmp_path / "dem.tif")
+    assert dem.count == 1 and max(dem.width, dem.height) <= 512
+    direct = dataclasses.replace(dem, count=None)  # count unknown: the file is read
+    rng = np.random.default_rng(3)
+    for _ in range(40):
+        c0, r0 = (int(v) for v in rng.integers(0, [dem.width - 1, dem.height - 1]))
+        c1, r1 = int(rng.integers(c0 + 1, dem.width + 1)), int(rng.integers(r0 + 1, dem.height + 1))
+        a, va = dem._read_window(c0, r0, c1, r1)
+        b, vb = direct._read_window(c0, r0, c1, r1)
+        assert a.dtype == b.dtype == np.float64
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(va, vb)
+    assert (~dem._read_window(0, 0, dem.width, dem.height)[1]).any() == hole
 
 
 def test_projection_matrix_form_within_tolerance(scene):
