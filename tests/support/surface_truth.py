@@ -16,7 +16,7 @@ field that ``stereo surface`` takes.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -98,15 +98,22 @@ def realised_orientation_error(blk: SurfaceBlock, camera: Camera, orientation: s
     xy = X[:, :2]
     dz = np.full(len(X), np.nan)
     pv = np.asarray(provenance)[cells].astype(int)
-    for k, (left, right) in enumerate(pairs):
-        m = pv == k
-        if not m.any():
-            continue
-        pa = true[left].pixel_from_ground(camera, X[m])
-        pb = true[right].pixel_from_ground(camera, X[m])
+    for _k, left, right, m, pa, pb in _pair_pixels(pairs, pv, true, camera, X):
         ea, eb = est[left], est[right]
         dz[m] = _intersect(ea.position, _rays(camera, ea, pa), eb.position, _rays(camera, eb, pb))[:, 2] - X[m, 2]
     return dz, xy
+
+
+def _pair_pixels(pairs: Sequence[tuple[str, str]], provenance: NDArray[np.int_], true: dict[str, Pose],
+                 camera: Camera, X: NDArray[np.float64]
+                 ) -> Iterator[tuple[int, str, str, NDArray[np.bool_], NDArray[np.float64], NDArray[np.float64]]]:
+    """Per pair k with cells (provenance == k): k, its images, the cells' mask and their true pixels (N, 2) in the
+    left and the right image (the true poses)."""
+    for k, (left, right) in enumerate(pairs):
+        m = provenance == k
+        if m.any():
+            yield k, left, right, m, true[left].pixel_from_ground(camera, X[m]), true[right].pixel_from_ground(camera,
+                                                                                                            X[m])
 
 
 def _cells_xyz(blk: SurfaceBlock, transform: Affine, cells: NDArray[np.bool_]) -> NDArray[np.float64]:
@@ -155,12 +162,7 @@ def orientation_sigma_from_covariance(blk: SurfaceBlock, camera: Camera, poses: 
         d[k] = h
         return Pose(p.image, p.camera, p.position + d[3:], matrix_from_angles(*(np.asarray(p.angles) + d[:3])))
 
-    for n, (left, right) in enumerate(pairs):
-        m = pv == n
-        if not m.any():
-            continue
-        pa = true[left].pixel_from_ground(camera, X[m])
-        pb = true[right].pixel_from_ground(camera, X[m])
+    for _n, left, right, m, pa, pb in _pair_pixels(pairs, pv, true, camera, X):
 
         J = np.zeros((int(m.sum()), 12))
         for k in range(6):
