@@ -68,7 +68,7 @@ from rectify.raster.io import (
 )
 from rectify.raster.mosaic import BALANCES, MosaicResult
 from rectify.report.builder import json_safe
-from stereo.actions.surface_inputs import SurfaceOrientation, dem_ground_z, load_orientation
+from stereo.actions.surface_inputs import SurfaceOrientation, dem_ground_z, load_orientation, read_block_points
 from stereo.actions.surface_outputs import (
     CLOUD_DIMS,
     CLOUD_FORMATS,
@@ -106,7 +106,7 @@ from stereo.dense.precision import (
 )
 from stereo.dense.triangulate import triangulate_disparity
 from stereo.formats.block import BlockOrientation, block_orientation_text
-from stereo.formats.points import PointsTable, read_points_csv
+from stereo.formats.points import PointsTable
 from stereo.pair.model import ground_unit
 from stereo.report.dense import HeightComparison, compare_with_dem
 
@@ -333,6 +333,7 @@ class SurfaceResult:
     check: CheckPoints | None = None
     cloud_file: str = ""
     cloud_colors: str = ""
+    frame_note: str = ""   # the orientation converted into a map CRS (stereo.actions.surface_inputs.to_map_frame)
 
     def summary_lines(self) -> list[str]:
         unit = ground_unit(self.crs, "map")
@@ -362,6 +363,8 @@ class SurfaceResult:
             lines.append(f"orthomosaic: {m.grid.width} x {m.grid.height} px of {m.grid.resolution[0]:.4g} {unit}, "
                          f"{len(m.inputs)} true orthophotos, seams of the least-transformed image ({regions} "
                          f"regions), balance {m.balance.mode if m.balance else 'none'}")
+        if self.frame_note:
+            lines.append(self.frame_note)
         if self.ortho_note:
             lines.append(self.ortho_note)
         if self.cloud_points:
@@ -406,11 +409,9 @@ def _camera(bo: BlockOrientation, pose: Pose) -> Camera:
 def _ground_z(so: SurfaceOrientation, opts: SurfaceOptions) -> tuple[float, float | None, PointsTable | None]:
     """Mean terrain height, the block points' height range (None: no points file) and the points: from
     ``--ground-z``, else the block's ``points.csv``, else the reference DEM under the images' nadir points."""
-    pts = so.folder / "points.csv"
     z = None
-    t = None
-    if so.ours and pts.is_file():
-        t = read_points_csv(pts)
+    t = read_block_points(so)
+    if t is not None:
         zz = np.asarray(t.xyz, dtype=np.float64)[:, 2]
         zz = zz[np.isfinite(zz)]
         if zz.size:
@@ -867,7 +868,7 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
                     "balance": opts.balance, "feather_px": opts.feather_px, "compress": opts.ortho_compress,
                     "resolution": ortho_px, "images": [q.image for q in poses],
                     "share": list(mos.share), "kept_orthophotos": [kept[k].name for k in sorted(kept)]},
-                "ortho_note": ortho_note or None,
+                "ortho_note": ortho_note or None, "frame": bo.frame,
                 "cloud": None if not opts.cloud else {"file": names["cloud"].name, "format": cloud_fmt,
                                                       "points": cloud.points, "extra_dims": list(CLOUD_DIMS),
                                                       "colors": cloud.to_dict()},
@@ -881,4 +882,5 @@ def run_surface(orientation: StrPath, out_dir: StrPath, *, options: SurfaceOptio
     return SurfaceResult(out, tuple(files), tuple(pairs), tuple(stats), cell, gsd, (H, W), coverage, med_sigma,
                          n_rej, bo.crs, time.perf_counter() - t0, len(cands), factor, ov_cov, orient_mode,
                          comparison, le90, mos, ortho_note, cloud.points, check,
-                         names["cloud"].name if opts.cloud else "", cloud.note() if opts.cloud else "")
+                         names["cloud"].name if opts.cloud else "", cloud.note() if opts.cloud else "",
+                         f"orientation in {bo.frame}" if so.converted_from else "")

@@ -11,12 +11,18 @@
 
 Another tool's orientation carries no standard errors and no points: the orientation's share of sigma_Z
 is then none (``auto``), and the terrain height is ``--ground-z``, or else the median of the reference
-DEM under the images' footprint centres.
+DEM under the images' nadir points.
+
+An orientation in OpenSfM's topocentric frame (an ODM/OpenSfM reconstruction, or a ``stereo block`` run
+on one), which a GeoTIFF cannot record as its CRS, is converted into the WGS 84 UTM zone of the block's
+centre (:func:`to_map_frame`: positions through pyproj, rotations turned by the frame's local rotation;
+heights become ellipsoidal), and so are the block's points, so that the DSM, the orthomosaic and the cloud
+carry a CRS.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -25,12 +31,19 @@ from rectify.errors import InvalidInputError
 from rectify.formats.common import StrPath
 from rectify.formats.detect import read_camera_file
 from rectify.geometry.camera import Camera
+from rectify.geometry.crs import transform_xyz
 from rectify.raster.dem import Dem
 from stereo.block.types import Pose
 from stereo.formats.block import BlockOrientation, read_block_orientation
 from stereo.formats.detect import read_pose_file
+from stereo.formats.opensfm import OpenSfMReconstruction
+from stereo.formats.points import PointsTable, read_points_csv
 
-__all__ = ["SurfaceOrientation", "load_orientation", "dem_ground_z"]
+__all__ = ["SurfaceOrientation", "load_orientation", "dem_ground_z", "to_map_frame", "read_block_points",
+           "TOPOCENTRIC_METHOD"]
+
+#: the conversion method of OpenSfM's topocentric frame in its WKT2 (EPSG method 9837)
+TOPOCENTRIC_METHOD = "Geographic/topocentric conversions"
 
 
 @dataclass(frozen=True, eq=False)
@@ -49,6 +62,8 @@ class SurfaceOrientation:
         What was read, for the summary: ``"block orientation"`` or the other tool's kind label.
     inputs : tuple of Path
         Every file read (kept from being overwritten by an output).
+    converted_from : str or None
+        The CRS the orientation was converted from (:func:`to_map_frame`); None when read as it is.
     """
 
     orientation: BlockOrientation
@@ -56,6 +71,7 @@ class SurfaceOrientation:
     folder: Path
     source: str
     inputs: tuple[Path, ...]
+    converted_from: str | None = None
 
     @property
     def ours(self) -> bool:
@@ -104,7 +120,7 @@ def load_orientation(path: StrPath, *, camera: StrPath | None = None, crs: str |
         if camera is not None:
             raise InvalidInputError(f"--camera is for another tool's pose file; the block orientation {str(p)!r} "
                                     "holds its cameras")
-        return SurfaceOrientation(read_block_orientation(p), p, p.parent, "block orientation", (p,))
+        return to_map_frame(SurfaceOrientation(read_block_orientation(p), p, p.parent, "block orientation", (p,)))
     if not p.is_file() and ":" not in text:
         raise InvalidInputError(f"orientation not found: {text!r}")
     pf = read_pose_file(text, crs=crs)
@@ -124,7 +140,48 @@ def load_orientation(path: StrPath, *, camera: StrPath | None = None, crs: str |
         raise InvalidInputError(f"{pf.kind.label} {str(pf.path)!r} holds no camera {missing[0]!r}: pass --camera")
     poses: list[Pose] = list(pf.poses)
     bo = BlockOrientation(cams, poses, np.full((len(poses), 6), np.nan), crs=pf.crs, frame=pf.frame or None)
-    return SurfaceOrientation(bo, pf.path, pf.path.parent, pf.kind.label, tuple(inputs))
+    return to_map_frame(SurfaceOrientation(bo, pf.path, pf.path.parent, pf.kind.label, tuple(inputs)))
+
+
+def _utm_zone(lon: float, lat: float) -> str:
+    zone = int(np.floor((lon + 180.0) / 6.0)) % 60 + 1
+    return f"EPSG:{32600 + zone if lat >= 0 else 32700 + zone}"
+
+
+def to_map_frame(so: SurfaceOrientation) -> SurfaceOrientation:
+    """``so`` converted into the WGS 84 UTM zone of its centre when its CRS is OpenSfM's topocentric frame
+    (module docstring); else ``so`` itself."""
+    bo = so.orientation
+    if bo.crs is None or TOPOCENTRIC_METHOD not in bo.crs:
+        return so
+    C = np.array([p.position for p in bo.poses], dtype=np.float64).reshape(-1, 3)
+    lon, lat = (float(v) for v in transform_xyz(bo.crs, "EPSG:4979", C.mean(axis=0, keepdims=True))[0, :2])
+    utm = _utm_zone(lon, lat)
+    n = len(bo.poses)
+    rec = OpenSfMReconstruction(cameras=bo.cameras, poses=tuple(bo.poses), point_ids=(), points=np.zeros((0, 3)),
+                                colors=None, reference_lonlat_h=None, frame=bo.frame or "OpenSfM's topocentric frame",
+                                gps_position=np.full((n, 3), np.nan), gps_dop=np.full(n, np.nan),
+                                crs=bo.crs).to_crs(utm)
+    out = replace(bo, poses=list(rec.poses), crs=utm, frame=rec.frame)
+    return replace(so, orientation=out, converted_from=bo.crs)
+
+
+def read_block_points(so: SurfaceOrientation) -> PointsTable | None:
+    """The block's ``points.csv`` beside a ``stereo block`` orientation (None: another tool's, or no file), in the
+    orientation's frame (converted as the poses were; the standard errors kept: the conversion is a rotation
+    and a translation to within the projection's scale, 1.0004 at most in a UTM zone)."""
+    pts = so.folder / "points.csv"
+    if not so.ours or not pts.is_file():
+        return None
+    t = read_points_csv(pts)
+    if so.converted_from is None or so.orientation.crs is None:
+        return t
+    xyz = np.asarray(t.xyz, dtype=np.float64)
+    ok = np.isfinite(xyz).all(axis=1)
+    conv = np.full_like(xyz, np.nan)
+    if ok.any():
+        conv[ok] = transform_xyz(so.converted_from, so.orientation.crs, xyz[ok])
+    return replace(t, xyz=conv, crs=so.orientation.crs)
 
 
 def dem_ground_z(dem_path: StrPath, xy: np.ndarray, crs: str | None) -> float | None:

@@ -8,6 +8,7 @@ import json
 
 import numpy as np
 import pytest
+import rasterio
 from affine import Affine
 from click.testing import CliRunner
 
@@ -16,7 +17,7 @@ from rectify.raster.io import write_raster
 from stereo.block.types import Pose
 from stereo.cli.main import cli
 from stereo.formats.block import block_orientation_text
-from tests.support.block_example import CAM, CRS, E0, N0, Z0, write_example_block
+from tests.support.block_example import CAM, CRS, E0, N0, Z0, write_example_block, write_example_reconstruction
 from tests.support.block_surface import read_dsm
 
 FAST = ["--no-ortho", "--no-cloud", "--pairs-per-area", "1"]
@@ -26,6 +27,7 @@ FAST = ["--no-ortho", "--no-cloud", "--pairs-per-area", "1"]
 def block(tmp_path_factory):
     d = tmp_path_factory.mktemp("peer_block")
     images, poses, xyz = write_example_block(d)
+    write_example_reconstruction(d, images, poses)   # OpenSfM's topocentric frame, poses 0.5 deg and 5 cm off
     mapped = [Pose(img.name, "dmc", p.position + [E0, N0, 0.0], p.rotation) for p, img in zip(poses, images,
                                                                                                 strict=True)]
     ext = write_ext_param(d / "ext_param.geojson", {p.image: {"position": p.position, "rotation": p.rotation,
@@ -88,3 +90,16 @@ def test_peer_orientation_errors_are_one_line(block, tmp_path, extra, message):
     assert r.exit_code == 1 and message in r.output and "Traceback" not in r.output, r.output
     assert len([ln for ln in r.output.splitlines() if ln.startswith("Error")]) == 1
     assert not (tmp_path / "o").exists()
+
+
+def test_an_odm_reconstruction_gives_a_dsm_with_a_crs(block, tmp_path):
+    """OpenSfM/ODM reconstruction.json (its cameras inside, topocentric frame): the DSM and the orthomosaic are
+    written in the UTM zone (EPSG:32633 here) and the summary says the orientation was converted."""
+    d, _ext, _intr, _ = block
+    r = _run(d / "reconstruction.json", "--images", d, "--ground-z", Z0, "--no-cloud", "--pairs-per-area", "1",
+             "-o", tmp_path / "o")
+    assert r.exit_code == 0, r.output
+    assert "orientation in EPSG:32633, converted from topocentric" in r.output
+    for name in ("dsm.tif", "ortho.tif"):
+        with rasterio.open(tmp_path / "o" / name) as ds:
+            assert ds.crs is not None and ds.crs.to_epsg() == 32633
