@@ -152,14 +152,11 @@ def atomic_output(path: str | os.PathLike[str], *, overwrite: bool = False,
             raise InvalidInputError(f"output {str(p)!r} appeared while writing; pass --overwrite")
         apply_umask(tmp_path)
         os.replace(tmp_path, p)
-    except RasterIOError as err:
+    except RectifyError as err:
         _remove(tmp_path)
         msg = str(err)
         if str(tmp_path) in msg:  # name the destination, not the hidden temporary file
-            raise RasterIOError(re.sub(re.escape(str(tmp_path)) + r"[^'\"]*", str(p), msg)) from err
-        raise
-    except RectifyError:
-        _remove(tmp_path)
+            raise type(err)(re.sub(re.escape(str(tmp_path)) + r"[^'\"]*", str(p), msg)) from err
         raise
     except OSError as err:
         _remove(tmp_path)

@@ -322,8 +322,8 @@ class Workspace:
             with contextlib.suppress(OSError):
                 tmp_path.unlink()
             _reraise_os_error(err, p)
-            if isinstance(err, RasterIOError) and str(tmp_path) in str(err):  # name the output, not its temporary
-                raise RasterIOError(str(err).replace(str(tmp_path), str(p))) from err
+            if isinstance(err, RectifyError) and str(tmp_path) in str(err):  # name the output, not its temporary
+                raise type(err)(str(err).replace(str(tmp_path), str(p))) from err
             raise
         if self._staged is not None:
             self._staged.append((tmp_path, p))

@@ -500,6 +500,7 @@ class TiledWriter:
         if tile % 16:
             raise InvalidInputError(f"tile size must be a multiple of 16; got {tile}")
         self.policy = policy
+        self.crs = crs
         self.path = str(path)
         self.raw = bool(raw)
         self.width, self.tile = int(width), int(tile)
@@ -611,7 +612,7 @@ class TiledWriter:
             if self._appender.closed:
                 return
             self._appender.close()
-            verify_geotiff(self.path)
+            verify_geotiff(self.path, crs=self.crs)
             return
         if self._ds.closed:
             return
@@ -619,7 +620,7 @@ class TiledWriter:
             self._ds.close()
         except (RasterioError, OSError) as err:
             raise RasterIOError(f"cannot write {self.path!r}: {write_failure_reason(err, self.path)}") from err
-        verify_geotiff(self.path)
+        verify_geotiff(self.path, crs=self.crs)
 
     def __enter__(self) -> TiledWriter:
         return self
@@ -635,16 +636,25 @@ class TiledWriter:
                 self._ds.close()
 
 
-def verify_geotiff(path: str | Path) -> None:
-    """Raise :class:`RasterIOError` unless the GeoTIFF ``path`` opens and holds every block it indexes.
+def verify_geotiff(path: str | Path, *, crs: str | None = None) -> None:
+    """Raise :class:`RasterIOError` unless the GeoTIFF ``path`` opens and holds every block it indexes, and
+    :class:`CRSError` when it was written with ``crs`` but records none.
 
     Catches files left truncated by a write failure GDAL did not raise (a full disk at close); the
-    reason names "no space left on device" when the file system is (nearly) full.
+    reason names "no space left on device" when the file system is (nearly) full. GDAL drops a CRS that
+    GeoTIFF keys cannot express (a topocentric frame, for instance) without an error: such a raster would
+    lose its georeferencing silently.
     """
     p = str(path)
     try:
         size = os.path.getsize(p)
-        with rasterio.open(p) as ds:
+        with rasterio.Env(GDAL_PAM_ENABLED=False), rasterio.open(p) as ds:   # the file's own keys, no sidecar
+            if crs is not None and ds.crs is None:
+                with contextlib.suppress(OSError):   # where GDAL put the CRS instead: beside a temporary name
+                    os.unlink(p + ".aux.xml")
+                short = crs if len(crs) <= 80 else crs[:77] + "..."
+                raise CRSError(f"cannot write {p!r}: a GeoTIFF cannot record its CRS {short!r} (convert to a map "
+                               "projection such as UTM)")
             bh, bw = ds.block_shapes[0]
             nbx, nby = math.ceil(ds.width / bw), math.ceil(ds.height / bh)
             for j in range(nby):
@@ -654,7 +664,7 @@ def verify_geotiff(path: str | Path) -> None:
                     if off is not None and n is not None and int(off) + int(n) > size:
                         raise RasterIOError(f"cannot write {p!r}: {write_failure_reason(None, p)} "
                                             f"(block {i},{j} ends past the end of the file)")
-    except RasterIOError:
+    except (RasterIOError, CRSError):
         raise
     except (RasterioError, OSError) as err:
         raise RasterIOError(f"cannot write {p!r}: {write_failure_reason(err, p)} (the written file does not "

@@ -7,8 +7,8 @@ import pytest
 import rasterio
 from rasterio.transform import from_origin
 
-from rectify.errors import InvalidInputError, RasterIOError
-from rectify.raster.io import iter_windows, raster_info, read_overview, read_window, to_uint8
+from rectify.errors import CRSError, InvalidInputError, RasterIOError
+from rectify.raster.io import iter_windows, raster_info, read_overview, read_window, to_uint8, write_raster
 
 
 @pytest.fixture()
@@ -83,3 +83,25 @@ def test_to_uint8_stretch():
     assert to_uint8(np.zeros((4, 4))).max() == 0
     with pytest.raises(InvalidInputError):
         to_uint8(np.zeros((2, 2, 2, 2)))
+
+
+TOPOCENTRIC = ('PROJCRS["Topocentric ENU",BASEGEOGCRS["WGS 84",DATUM["World Geodetic System 1984",ELLIPSOID["WGS 84",'
+               '6378137,298.257223563,LENGTHUNIT["metre",1]]],PRIMEM["Greenwich",0,ANGLEUNIT["degree",'
+               '0.0174532925199433]]],CONVERSION["Topocentric",METHOD["Geographic/topocentric conversions",'
+               'ID["EPSG",9837]],PARAMETER["Latitude of topocentric origin",45,ANGLEUNIT["degree",0.0174532925199433],'
+               'ID["EPSG",8834]],PARAMETER["Longitude of topocentric origin",15,ANGLEUNIT["degree",'
+               '0.0174532925199433],ID["EPSG",8835]],PARAMETER["Ellipsoidal height of topocentric origin",0,'
+               'LENGTHUNIT["metre",1],ID["EPSG",8836]]],CS[Cartesian,3],AXIS["(E)",east,ORDER[1],LENGTHUNIT["metre",'
+               '1]],AXIS["(N)",north,ORDER[2],LENGTHUNIT["metre",1]],AXIS["(U)",up,ORDER[3],LENGTHUNIT["metre",1]]]')
+
+
+def test_a_crs_geotiff_cannot_record_is_refused_not_lost(tmp_path):
+    """GDAL keeps a CRS that GeoTIFF keys cannot express in a sidecar named after the temporary file, so the
+    renamed output had no CRS: now one CRSError naming the output, and nothing left (no file, no sidecar)."""
+    a = np.zeros((8, 8), np.float32)
+    with pytest.raises(CRSError, match=r"cannot write '.*/a\.tif': a GeoTIFF cannot record its CRS") as info:
+        write_raster(tmp_path / "a.tif", a, from_origin(0, 16, 2, 2), TOPOCENTRIC)
+    assert "\n" not in str(info.value) and sorted(p.name for p in tmp_path.iterdir()) == []
+    write_raster(tmp_path / "b.tif", a, from_origin(0, 16, 2, 2), "EPSG:32633+5773")   # compound: recorded
+    with rasterio.open(tmp_path / "b.tif") as ds:
+        assert ds.crs is not None
