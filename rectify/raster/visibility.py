@@ -119,7 +119,8 @@ def line_of_sight_reference(Z: NDArray, m: int | tuple[int, int], d: NDArray, z:
         inb = (x >= 0) & (y >= 0) & (x <= Z.shape[1] - 1) & (y <= Z.shape[0] - 1)
         ter = np.full(len(a), -np.inf)
         if inb.any():
-            ter[inb] = bilinear(Zf, None, x[inb], y[inb])
+            with np.errstate(invalid="ignore"):   # -inf (a hole) times a zero weight: NaN, no hit, as intended
+                ter[inb] = bilinear(Zf, None, x[inb], y[inb])
         hit = ter > ray_h + HIT_MARGIN_M
         occl[a[hit]] = True
         stop = hit | ~inb | (ray_h > zmax)
