@@ -52,6 +52,7 @@ from rectify.geometry.crs import (
     same_crs,
     transform_xy,
     unit_label,
+    utm_crs,
     vertical_datum,
 )
 from rectify.geometry.points import GcpTable
@@ -335,8 +336,7 @@ def _metric(crs: str, xy: NDArray[np.float64]) -> NDArray[np.float64]:
         return xy
     ll = xy if same_crs(crs, "EPSG:4326") else transform_xy(crs, "EPSG:4326", xy)
     lon, lat = (float(v) for v in np.nanmean(ll, axis=0))
-    zone = int(np.floor((lon + 180.0) / 6.0)) % 60 + 1
-    return transform_xy("EPSG:4326", f"EPSG:{(32600 if lat >= 0 else 32700) + zone}", ll)
+    return transform_xy("EPSG:4326", utm_crs(lon, lat), ll)
 
 
 def _errors_line(what: str, ids: list[str], d: NDArray[np.float64], n_missed: int) -> dict[str, Any]:

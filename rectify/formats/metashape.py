@@ -50,7 +50,7 @@ from rectify.errors import CRSError, InvalidInputError, RectifyError
 from rectify.formats.camera import camera_from_focals
 from rectify.formats.common import StrPath, finite_number, read_table_text
 from rectify.geometry.camera import Camera
-from rectify.geometry.crs import crs_to_string, parse_crs, transform_xyz
+from rectify.geometry.crs import crs_to_string, parse_crs, transform_xyz, utm_crs
 from rectify.geometry.geodesy import enu_rotation, geocentric_crs, geodetic_from_ecef
 from rectify.geometry.mapframe import grid_from_enu
 from rectify.geometry.points import GcpTable
@@ -247,12 +247,6 @@ def _reference_crs(chunk: ET.Element, where: str) -> str | None:
     return crs_to_string(c)
 
 
-def _utm_of(lonlat: NDArray[np.float64]) -> str:
-    lon, lat = np.mean(lonlat, axis=0)
-    zone = int(math.floor((lon + 180.0) / 6.0) % 60) + 1
-    return f"EPSG:{(32600 if lat >= 0 else 32700) + zone}"
-
-
 # --------------------------------------------------------------------------- the reader
 def read_metashape_chunk(path: StrPath, *, crs: str | None = None, chunk: int = 0) -> MetashapeChunk:
     """Read a Metashape cameras or markers XML (see the module docstring).
@@ -402,12 +396,12 @@ def _georeference(ref: str, crs: str | None, pos: NDArray[np.float64], rot: list
     elif parse_crs(ref).is_projected:
         target = ref
     elif len(lonlat):
-        target = _utm_of(lonlat[:, :2])
+        target = utm_crs(*np.mean(lonlat[:, :2], axis=0))
     else:
         good = mk_ref[np.isfinite(mk_ref).all(axis=1)]
         if not len(good):
             raise CRSError(f"{where}: nothing georeferenced to place a UTM zone; give crs=")
-        target = _utm_of(transform_xyz(ref, "EPSG:4979", good)[:, :2])
+        target = utm_crs(*np.mean(transform_xyz(ref, "EPSG:4979", good)[:, :2], axis=0))
     if not parse_crs(target).is_projected:
         raise CRSError(f"{where}: poses need a projected CRS; got {target!r}")
     out = transform_xyz(geocentric_crs(ref), target, pos) if len(pos) else pos

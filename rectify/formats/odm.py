@@ -40,7 +40,7 @@ from numpy.typing import NDArray
 
 from rectify.errors import CRSError, InvalidInputError
 from rectify.formats.common import StrPath, finite_number, read_table_text
-from rectify.geometry.crs import crs_to_string, is_geographic, parse_crs, transform_xyz
+from rectify.geometry.crs import crs_to_string, is_geographic, parse_crs, transform_xyz, utm_crs
 from rectify.geometry.points import GcpTable
 
 __all__ = ["OdmGcpList", "odm_crs", "odm_lines", "odm_number", "odm_ground", "read_odm_gcp_list",
@@ -95,18 +95,13 @@ def odm_number(cell: str, label: str, *, allow_nan: bool = False) -> float:
     return finite_number(cell, label)
 
 
-def _utm_of(lon: float, lat: float) -> str:
-    zone = int(math.floor((lon + 180.0) / 6.0) % 60) + 1
-    return f"EPSG:{(32600 if lat >= 0 else 32700) + zone}"
-
-
 def odm_ground(xyz: NDArray[np.float64], src: str, crs: str | None) -> tuple[NDArray[np.float64], str]:
     """Coordinates from the file's CRS into ``crs`` (default: the file's if projected, else its UTM zone)."""
     if crs is None:
         if not is_geographic(src):
             return xyz, src
         lonlat = transform_xyz(src, "EPSG:4326", np.nan_to_num(xyz[:1]))[0]
-        crs = _utm_of(lonlat[0], lonlat[1])
+        crs = utm_crs(lonlat[0], lonlat[1])
     dst = crs_to_string(parse_crs(crs))
     if is_geographic(dst):
         raise CRSError(f"the ground CRS must be projected (a Cartesian frame); got {dst!r}")

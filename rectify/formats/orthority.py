@@ -75,7 +75,7 @@ from rectify.atomic import atomic_write_text, check_nesting, parse_json
 from rectify.errors import CalibrationError, CRSError, InvalidInputError, RasterIOError
 from rectify.formats.common import StrPath, finite_number, read_table_text
 from rectify.geometry.camera import Camera
-from rectify.geometry.crs import crs_to_string, parse_crs, same_crs, transform_xyz
+from rectify.geometry.crs import crs_to_string, parse_crs, same_crs, transform_xyz, utm_crs
 from rectify.geometry.mapframe import grid_from_enu
 from rectify.geometry.points import GcpTable
 from rectify.geometry.rotation import angles_from_matrix, check_rotation, matrix_from_angles, rot_x, rot_y, rot_z
@@ -493,12 +493,6 @@ def _csv_crs(path: Path, line_crs: str | None, crs: str | None) -> tuple[str | N
     return (given[0][0], given[0][1]) if given else (None, None)
 
 
-def _utm_zone(lonlat: NDArray[np.float64]) -> str:
-    lon, lat = np.mean(lonlat, axis=0)
-    zone = int(np.floor((lon + 180.0) / 6.0) % 60) + 1
-    return f"EPSG:{(32600 if lat >= 0 else 32700) + zone}"
-
-
 def _rotation_from_rpy(rpy_rad: Sequence[float], crs: str, lonlat: Sequence[float]) -> NDArray[np.float64]:
     roll, pitch, yaw = rpy_rad
     ned_from_body = rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
@@ -588,7 +582,7 @@ def read_frame_csv(path: StrPath, *, crs: str | None = None, radians: bool | Non
     world, source = _csv_crs(p, line_crs, crs)
     kind = f"{'xyz' if xyz_cols else 'lla'}_{'opk' if ang_cols else 'rpy'}"
     if world is None and kind == "lla_rpy":
-        world, source = _utm_zone(pos_a[:, :2]), "the UTM zone of the positions"
+        world, source = utm_crs(*np.mean(pos_a[:, :2], axis=0)), "the UTM zone of the positions"
     if world is None and kind != "xyz_opk":
         raise CRSError(f"{_where(p)} ({kind}) needs the world CRS: give a .prj beside it, a '# crs=' line or crs=")
     if world is not None:

@@ -37,7 +37,7 @@ from rectify.geometry.points import as_points
 
 __all__ = ["unit_label", "parse_crs", "crs_to_string", "get_transformer", "transform_xy", "transform_xyz",
            "transform_arrays", "geographic3d_wkt", "geocentric_wkt", "same_crs", "is_geographic", "check_area_of_use",
-           "VerticalDatum", "vertical_datum", "horizontal_crs", "geoid_height", "grid_undulation"]
+           "VerticalDatum", "vertical_datum", "horizontal_crs", "geoid_height", "grid_undulation", "utm_crs"]
 
 logger = logging.getLogger(__name__)
 
@@ -92,6 +92,12 @@ def _crs_to_string_text(text: str) -> str:
     c = parse_crs(text)
     epsg = c.to_epsg(min_confidence=100)
     return f"EPSG:{epsg}" if epsg else c.to_wkt()
+
+
+def utm_crs(lon: float, lat: float) -> str:
+    """``"EPSG:326zz"`` (north) or ``"EPSG:327zz"`` (south): the WGS 84 UTM zone of a point (degrees)."""
+    zone = int(np.floor((float(lon) + 180.0) / 6.0)) % 60 + 1
+    return f"EPSG:{(32600 if float(lat) >= 0 else 32700) + zone}"
 
 
 def same_crs(a, b) -> bool:

@@ -50,7 +50,7 @@ from threadpoolctl import ThreadpoolController
 
 from rectify.atomic import check_output
 from rectify.errors import CRSError, InvalidInputError, RasterIOError, SchedulerError
-from rectify.geometry.crs import crs_to_string, same_crs, transform_xy, unit_label
+from rectify.geometry.crs import crs_to_string, same_crs, transform_xy, unit_label, utm_crs
 from rectify.geometry.sensors import SensorModel
 from rectify.raster.coverage import check_coverage
 from rectify.raster.dem import Dem
@@ -203,11 +203,6 @@ class OrthoResult:
 
 
 # =========================================================================== grids
-def _utm_for(lon: float, lat: float) -> str:
-    zone = int(math.floor((lon + 180.0) / 6.0)) % 60 + 1
-    return f"EPSG:{32600 + zone if lat >= 0 else 32700 + zone}"
-
-
 def ortho_grid(model: SensorModel, dem: Dem, *, dst_crs: str | None = None, resolution: float | None = None,
                max_pixels: float = 4e10) -> Grid:
     """The north-up output grid covering the image footprint between the DEM's lowest and highest heights.
@@ -231,7 +226,7 @@ def ortho_grid(model: SensorModel, dem: Dem, *, dst_crs: str | None = None, reso
     if dst_crs is None:
         if model.crs in ("EPSG:4326", "EPSG:4979"):
             c = world.mean(axis=0)
-            dst_crs = _utm_for(float(c[0]), float(c[1]))
+            dst_crs = utm_crs(float(c[0]), float(c[1]))
         else:
             dst_crs = model.crs
     dst = crs_to_string(dst_crs)

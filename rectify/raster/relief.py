@@ -15,7 +15,7 @@ from affine import Affine
 from numpy.typing import NDArray
 
 from rectify.errors import CRSError
-from rectify.geometry.crs import same_crs, transform_xy, unit_label
+from rectify.geometry.crs import same_crs, transform_xy, unit_label, utm_crs
 from rectify.geometry.sensors import SensorModel
 from rectify.raster.georef import Grid
 
@@ -25,11 +25,6 @@ __all__ = ["ReliefShift", "relief_shift", "relief_stride"]
 def _gt(transform: Any) -> tuple[float, ...]:
     """The six geotransform numbers (a, b, c, d, e, f) of a rasterio Affine."""
     return tuple(float(v) for v in tuple(transform)[:6])
-
-
-def _utm_for(lon: float, lat: float) -> str:
-    zone = int(math.floor((lon + 180.0) / 6.0)) % 60 + 1
-    return f"EPSG:{32600 + zone if lat >= 0 else 32700 + zone}"
 
 
 def relief_stride(grid: Grid, max_size: int = 256) -> int:
@@ -149,7 +144,7 @@ def relief_shift(model: SensorModel, grid: Grid, samples: NDArray[np.float64], s
             here = world[idx]
             if unit_label(gcrs) != "m":  # measure in metres: the UTM zone of the cells
                 c = transform_xy(gcrs, "EPSG:4326", here[:1])[0]
-                utm = _utm_for(float(c[0]), float(c[1]))
+                utm = utm_crs(float(c[0]), float(c[1]))
                 plane, here = _xy_or_nan(gcrs, utm, plane), _xy_or_nan(gcrs, utm, here)
             dist[idx] = np.hypot(*(plane - here).T)
     fin = np.isfinite(dist)

@@ -61,7 +61,7 @@ from rectify.features import MatcherConfig
 from rectify.features.match import match_arrays
 from rectify.formats.rpc import rpc_from_raster
 from rectify.formats.stac import StacAsset
-from rectify.geometry.crs import transform_xy
+from rectify.geometry.crs import transform_xy, utm_crs
 from rectify.geometry.rpc import RPC
 from rectify.raster.io import gdal_cache_limit, gdal_wkt, raster_info, read_window
 from rectify.report.builder import json_safe
@@ -83,20 +83,13 @@ from stereo.report.dense import HeightComparison, compare_with_dem, save_histogr
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["RpcDenseOptions", "RpcDenseResult", "RpcTile", "roi_statistics", "run_dense_rpc", "triangulate_rpc",
-           "utm_crs"]
+__all__ = ["RpcDenseOptions", "RpcDenseResult", "RpcTile", "roi_statistics", "run_dense_rpc", "triangulate_rpc"]
 
 StrPath = str | Path
 Progress = Callable[[str, int, int], None]
 
 #: GDAL block cache while the tiles are read, MB
 GDAL_CACHE_MB = 64
-
-
-def utm_crs(lon: float, lat: float) -> str:
-    """The EPSG code of the WGS 84 UTM zone of a point."""
-    zone = int(math.floor((lon + 180.0) / 6.0)) % 60 + 1
-    return f"EPSG:{32600 + zone if lat >= 0 else 32700 + zone}"
 
 
 @dataclass(frozen=True)

@@ -31,7 +31,7 @@ from rectify.errors import InvalidInputError
 from rectify.formats.common import StrPath
 from rectify.formats.detect import read_camera_file
 from rectify.geometry.camera import Camera
-from rectify.geometry.crs import transform_xyz
+from rectify.geometry.crs import transform_xyz, utm_crs
 from rectify.raster.dem import Dem
 from stereo.block.types import Pose
 from stereo.formats.block import BlockOrientation, read_block_orientation
@@ -143,11 +143,6 @@ def load_orientation(path: StrPath, *, camera: StrPath | None = None, crs: str |
     return to_map_frame(SurfaceOrientation(bo, pf.path, pf.path.parent, pf.kind.label, tuple(inputs)))
 
 
-def _utm_zone(lon: float, lat: float) -> str:
-    zone = int(np.floor((lon + 180.0) / 6.0)) % 60 + 1
-    return f"EPSG:{32600 + zone if lat >= 0 else 32700 + zone}"
-
-
 def to_map_frame(so: SurfaceOrientation) -> SurfaceOrientation:
     """``so`` converted into the WGS 84 UTM zone of its centre when its CRS is OpenSfM's topocentric frame
     (module docstring); else ``so`` itself."""
@@ -156,7 +151,7 @@ def to_map_frame(so: SurfaceOrientation) -> SurfaceOrientation:
         return so
     C = np.array([p.position for p in bo.poses], dtype=np.float64).reshape(-1, 3)
     lon, lat = (float(v) for v in transform_xyz(bo.crs, "EPSG:4979", C.mean(axis=0, keepdims=True))[0, :2])
-    utm = _utm_zone(lon, lat)
+    utm = utm_crs(lon, lat)
     n = len(bo.poses)
     rec = OpenSfMReconstruction(cameras=bo.cameras, poses=tuple(bo.poses), point_ids=(), points=np.zeros((0, 3)),
                                 colors=None, reference_lonlat_h=None, frame=bo.frame or "OpenSfM's topocentric frame",

@@ -13,6 +13,7 @@ from rectify.geometry.crs import (
     same_crs,
     transform_xy,
     transform_xyz,
+    utm_crs,
 )
 
 
@@ -82,3 +83,10 @@ def test_unit_label():
     assert "foot" in unit_label("EPSG:2263")
     assert unit_label(None) == "map units"
     assert unit_label("not a crs", default="ground units") == "ground units"
+
+
+@pytest.mark.parametrize("lon, lat, code", [(15.0, 45.13, "EPSG:32633"), (-0.1, -1.0, "EPSG:32730"),
+                                            (-180.0, 10.0, "EPSG:32601"), (180.0, 10.0, "EPSG:32601"),
+                                            (25.0, -33.9, "EPSG:32735"), (-77.03, 38.9, "EPSG:32618")])
+def test_utm_crs_known_zones(lon, lat, code):
+    assert utm_crs(lon, lat) == code
