@@ -34,7 +34,7 @@ import numpy as np
 
 from rectify.errors import InvalidInputError, RasterIOError, RectifyError
 
-__all__ = ["note_termination", "terminated", "raise_if_terminated",
+__all__ = ["note_termination", "terminated", "raise_if_terminated", "naming_destination",
            "check_output", "atomic_output", "atomic_write_text", "read_json", "parse_json", "json_depth",
            "check_nesting", "read_text",
            "write_failure_reason", "apply_umask", "current_umask", "make_temp", "NO_SPACE", "JSON_MAX_BYTES",
@@ -154,9 +154,9 @@ def atomic_output(path: str | os.PathLike[str], *, overwrite: bool = False,
         os.replace(tmp_path, p)
     except RectifyError as err:
         _remove(tmp_path)
-        msg = str(err)
-        if str(tmp_path) in msg:  # name the destination, not the hidden temporary file
-            raise type(err)(re.sub(re.escape(str(tmp_path)) + r"[^'\"]*", str(p), msg)) from err
+        renamed = naming_destination(err, tmp_path, p)
+        if renamed is not None:
+            raise renamed from err
         raise
     except OSError as err:
         _remove(tmp_path)
@@ -164,6 +164,15 @@ def atomic_output(path: str | os.PathLike[str], *, overwrite: bool = False,
     except BaseException:
         _remove(tmp_path)
         raise
+
+
+def naming_destination(err: BaseException, tmp: Path, dst: Path) -> RectifyError | None:
+    """The project error ``err`` (of the same class) naming ``dst`` where its message names the hidden temporary
+    file ``tmp`` written for it (with anything GDAL appended to that name, up to the closing quote); None when
+    ``err`` is not a project error or does not name ``tmp``."""
+    if not isinstance(err, RectifyError) or str(tmp) not in str(err):
+        return None
+    return type(err)(re.sub(re.escape(str(tmp)) + r"[^'\"]*", str(dst), str(err)))
 
 
 def make_temp(path: Path, suffix: str | None = None) -> Path:

@@ -35,6 +35,7 @@ from rectify.atomic import (
     check_output,
     current_umask,
     make_temp,
+    naming_destination,
     raise_if_terminated,
     write_failure_reason,
 )
@@ -322,8 +323,9 @@ class Workspace:
             with contextlib.suppress(OSError):
                 tmp_path.unlink()
             _reraise_os_error(err, p)
-            if isinstance(err, RectifyError) and str(tmp_path) in str(err):  # name the output, not its temporary
-                raise type(err)(str(err).replace(str(tmp_path), str(p))) from err
+            renamed = naming_destination(err, tmp_path, p)   # name the output, not its temporary
+            if renamed is not None:
+                raise renamed from err
             raise
         if self._staged is not None:
             self._staged.append((tmp_path, p))
