@@ -37,7 +37,6 @@ import numpy as np
 import rasterio
 import rasterio.shutil
 from numpy.typing import NDArray
-from rasterio.enums import Resampling
 from rasterio.errors import RasterioError
 
 from rectify.atomic import atomic_output, write_failure_reason
@@ -48,6 +47,7 @@ from rectify.raster.io import (
     MaskPolicy,
     TiledWriter,
     WindowReader,
+    build_overviews,
     cog_driver_available,
     translate_to_cog,
     verify_geotiff,
@@ -214,13 +214,7 @@ def _copy_jpeg(body: Path, dst: Path, *, cog: bool, tile: int, threads: int, qua
                                  OVERVIEW_RESAMPLING=resampling.upper(), BIGTIFF="IF_SAFER")
         else:
             if cog:  # GDAL without the COG driver: overviews on the body, copied into the tiled file
-                with rasterio.open(body, "r+") as ds:
-                    levels, n = [], 2
-                    while max(ds.width, ds.height) / n >= tile:
-                        levels.append(n)
-                        n *= 2
-                    if levels:
-                        ds.build_overviews(levels, Resampling[resampling])
+                build_overviews(body, tile, resampling)
             extra = {"PHOTOMETRIC": "YCBCR"} if count == 3 else {}
             rasterio.shutil.copy(str(body), str(dst), driver="GTiff", TILED="YES", BLOCKXSIZE=str(tile),
                                  BLOCKYSIZE=str(tile), COMPRESS="JPEG", JPEG_QUALITY=str(int(quality)),

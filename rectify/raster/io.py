@@ -636,6 +636,18 @@ class TiledWriter:
                 self._ds.close()
 
 
+def build_overviews(path: str | Path, tile: int, resampling: str) -> None:
+    """Add internal overviews to the raster ``path`` (opened for update): factors 2, 4, ... while the
+    reduced raster's long side is at least ``tile`` pixels; none for a raster smaller than two tiles."""
+    with rasterio.open(path, "r+") as ds:
+        levels, n = [], 2
+        while max(ds.width, ds.height) / n >= tile:
+            levels.append(n)
+            n *= 2
+        if levels:
+            ds.build_overviews(levels, Resampling[resampling])
+
+
 def verify_geotiff(path: str | Path, *, crs: str | None = None) -> None:
     """Raise :class:`RasterIOError` unless the GeoTIFF ``path`` opens and holds every block it indexes, and
     :class:`CRSError` when it was written with ``crs`` but records none.
@@ -736,13 +748,7 @@ def translate_to_cog(src: str | Path, dst: str | Path, *, compress: str = "defla
             verify_geotiff(dst)
             return
 
-        with rasterio.open(src, "r+") as ds:
-            levels, n = [], 2
-            while max(ds.width, ds.height) / n >= tile:
-                levels.append(n)
-                n *= 2
-            if levels:
-                ds.build_overviews(levels, Resampling[resampling])
+        build_overviews(src, tile, resampling)
         rasterio.shutil.copy(str(src), str(dst), driver="GTiff", COPY_SRC_OVERVIEWS="YES", TILED="YES",
                              BLOCKXSIZE=str(tile), BLOCKYSIZE=str(tile), COMPRESS=compress.upper(),
                              BIGTIFF="IF_SAFER")
