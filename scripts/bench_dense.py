@@ -51,30 +51,13 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from stereo.dense.matching import MatchOptions, match_pair, sgbm_baseline  # noqa: E402  (after the sys.path set-up)
-from tests.support.stereo_support import occlusion_from_truth  # noqa: E402
+from tests.support.stereo_support import occlusion_from_truth, read_grey, read_rgb  # noqa: E402
 
 SHARED = Path(os.environ.get("RECTIFY_SHARED_DATA", ROOT / ".." / "shared" / "data"))
 CONES = SHARED / "dense_cones"
 NGI = SHARED / "ngi_strip05"
 PANDORA = False  # --pandora
 STAGES_ONLY = False  # --stages
-
-
-def _rgb(path: Path) -> np.ndarray:
-    """An RGB PNG as (H, W, 3) uint8."""
-    import cv2
-
-    img = cv2.imread(str(path))
-    assert img is not None, path
-    return np.asarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB))
-
-
-def _grey_png(path: Path) -> np.ndarray:
-    import cv2
-
-    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    assert img is not None, path
-    return np.asarray(img)
 
 
 def alternate(fns: dict, repeat: int) -> dict[str, tuple[object, float]]:
@@ -303,11 +286,11 @@ def cones(repeat: int) -> None:
         return
     import rasterio
 
-    L = _rgb(CONES / "left.png")
-    R = _rgb(CONES / "right.png")
+    L = read_rgb(CONES / "left.png")
+    R = read_rgb(CONES / "right.png")
     with rasterio.open(CONES / "disp_left.tif") as ds:
         gt = ds.read(1)
-    nocc = (_grey_png(CONES / "occlusion.png") > 0) & (gt > 0)
+    nocc = (read_grey(CONES / "occlusion.png") > 0) & (gt > 0)
     if STAGES_ONLY:
         stages("Cones", L, R, repeat)
         return

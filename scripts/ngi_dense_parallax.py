@@ -19,21 +19,15 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import sys
 from pathlib import Path
 
-import numpy as np
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # the repository's tests.support, run from anywhere
 
-from rectify.geometry.camera import Camera
-from rectify.geometry.rotation import matrix_from_angles
-from stereo.actions.dense import DenseOptions, run_dense
-from stereo.actions.run import run
-from stereo.formats.orientation import write_exterior
-from stereo.pair.resection import ExteriorOrientation
-
-LO25 = "+proj=tmerc +lat_0=0 +lon_0=25 +k=1 +x_0=0 +y_0=0 +datum=WGS84 +units=m"
-EO = {"0182": (-55094.504480, -3727407.037480, 5258.307930, -0.349216, 0.298484, -179.086702),
-      "0184": (-57710.435280, -3727433.893020, 5256.764790, 0.269761, -0.281937, -179.027883)}
-CAMERA = {"focal_length_mm": 120.0, "pixel_size_mm": 0.144, "width": 640, "height": 1152}
+from stereo.actions.dense import DenseOptions, run_dense  # noqa: E402
+from stereo.actions.run import run  # noqa: E402
+from tests.support.ngi_pair import ngi_camera, write_ngi_exteriors  # noqa: E402
 
 
 def photos(d: Path) -> tuple[Path, Path]:
@@ -53,7 +47,7 @@ def main() -> None:
         shutil.rmtree(work)
     work.mkdir(parents=True)
     cam_path = work / "cam.json"
-    cam_path.write_text(json.dumps(CAMERA))
+    cam_path.write_text(json.dumps(ngi_camera().to_dict()))
 
     res = run(left, right, camera=cam_path, out_dir=work / "run", dense=DenseOptions(), report=False)
     s = res.ro.summary()
@@ -67,12 +61,7 @@ def main() -> None:
     print("2. the run's orientation as given:", r2.parallax.summary_line())
 
     if not a.no_exterior:
-        cam = Camera.from_dict(CAMERA)
-        paths = []
-        for k, v in EO.items():
-            eo = ExteriorOrientation(position=np.array(v[:3]), rotation=matrix_from_angles(*np.radians(v[3:])),
-                                     focal_length_mm=120.0, crs=LO25)
-            paths.append(write_exterior(work / f"eo_{k}.json", eo, camera=cam.to_dict()))
+        paths = write_ngi_exteriors(work)
         r3 = run_dense(paths[0], left, right, work / "exterior", right_orientation=paths[1],
                        options=DenseOptions(cloud_format="none", reference_dem=str(d / "dem.tif")))
         print("3. aero-triangulated EOs:", r3.parallax.summary_line())

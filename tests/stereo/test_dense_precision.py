@@ -8,8 +8,6 @@ The shared-data tests skip when ``../shared/data`` (``$RECTIFY_SHARED_DATA``) is
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
@@ -17,35 +15,14 @@ import rasterio
 
 import stereo.dense.checks as checks
 from rectify.errors import InvalidInputError, ShapeError
-from rectify.geometry.camera import Camera
-from rectify.geometry.rotation import matrix_from_angles
 from stereo.actions.dense import DenseOptions, run_dense
 from stereo.dense.checks import row_tests
 from stereo.dense.holes import RANGE_MARGIN, hole_boxes
 from stereo.dense.matching import MatchOptions, _fill_holes_half, match_pair
 from stereo.dense.refine import edge_classify, median_valid
-from stereo.formats.orientation import write_exterior
-from stereo.pair.resection import ExteriorOrientation
+from tests.support.ngi_pair import write_ngi_exteriors
 from tests.support.shared_data import SHARED_DATA
-from tests.support.stereo_support import occlusion_from_truth
-
-LO25 = "+proj=tmerc +lat_0=0 +lon_0=25 +k=1 +x_0=0 +y_0=0 +datum=WGS84 +units=m"
-EO = {"0182": (-55094.504480, -3727407.037480, 5258.307930, -0.349216, 0.298484, -179.086702),
-      "0184": (-57710.435280, -3727433.893020, 5256.764790, 0.269761, -0.281937, -179.027883)}
-CAMERA = {"focal_length_mm": 120.0, "pixel_size_mm": 0.144, "width": 640, "height": 1152}
-
-
-def _rgb(path: Path) -> np.ndarray:
-    """An RGB PNG as (H, W, 3) uint8."""
-    img = cv2.imread(str(path))
-    assert img is not None, path
-    return np.asarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB))
-
-
-def _grey_png(path: Path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    assert img is not None, path
-    return np.asarray(img)
+from tests.support.stereo_support import occlusion_from_truth, read_grey, read_rgb
 
 
 def _texture(h: int, w: int, seed: int) -> np.ndarray:
@@ -281,11 +258,11 @@ def test_cones_precision_at_the_previous_density():
     d = SHARED_DATA / "dense_cones"
     if not d.is_dir():
         pytest.skip(f"shared data absent: {d}")
-    L = _rgb(d / "left.png")
-    R = _rgb(d / "right.png")
+    L = read_rgb(d / "left.png")
+    R = read_rgb(d / "right.png")
     with rasterio.open(d / "disp_left.tif") as ds:
         gt = ds.read(1)
-    nocc = (_grey_png(d / "occlusion.png") > 0) & (gt > 0)
+    nocc = (read_grey(d / "occlusion.png") > 0) & (gt > 0)
     res = match_pair(L, R)
     v = res.valid & nocc
     err = (np.abs(res.disparity - gt) > 1)[v]
@@ -324,8 +301,8 @@ def test_cones_hole_pass_precision():
         pytest.skip(f"shared data absent: {d}")
     with rasterio.open(d / "disp_left.tif") as ds:
         gt = ds.read(1)
-    nocc = (_grey_png(d / "occlusion.png") > 0) & (gt > 0)
-    res = match_pair(_rgb(d / "left.png"), _rgb(d / "right.png"), options=MatchOptions(hole_p2=128.0))
+    nocc = (read_grey(d / "occlusion.png") > 0) & (gt > 0)
+    res = match_pair(read_rgb(d / "left.png"), read_rgb(d / "right.png"), options=MatchOptions(hole_p2=128.0))
     density, bad, at0 = _precision(res, gt, nocc, 1.0, 0.932)
     assert density >= 0.952 and bad <= 0.0281 and at0 <= 0.0226, (density, bad, at0)
 
@@ -336,12 +313,7 @@ def test_ngi_strip_dsm_coverage_and_rmse(ngi_pair, tmp_path):
     90 % of the overlap within 1.5 cells RMSE (issue 30; measured 91.6 % and 1.01 cells with the hole
     pass on the large holes' boxes, 91.1 % and 1.02 cells with the whole-window pass; before issue 30
     87.1 % and 1.03 cells), and smoother than before (second-difference NMAD 1.17 m, was 1.67 m)."""
-    cam = Camera.from_dict(CAMERA)
-    paths = []
-    for k, v in EO.items():
-        eo = ExteriorOrientation(position=np.array(v[:3]), rotation=matrix_from_angles(*np.radians(v[3:])),
-                                 focal_length_mm=120.0, crs=LO25)
-        paths.append(write_exterior(tmp_path / f"eo_{k}.json", eo, camera=cam.to_dict()))
+    paths = write_ngi_exteriors(tmp_path)
     r = run_dense(paths[0], ngi_pair / "3324c_2015_1004_05_0182_RGB.tif", ngi_pair / "3324c_2015_1004_05_0184_RGB.tif",
                   tmp_path / "out", right_orientation=paths[1],
                   options=DenseOptions(cloud_format="none", reference_dem=str(ngi_pair / "dem.tif"),

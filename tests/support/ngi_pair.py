@@ -18,6 +18,7 @@ from scipy import ndimage
 from rectify.geometry.camera import Camera
 from rectify.geometry.points import ControlTable
 from rectify.geometry.rotation import matrix_from_angles
+from stereo.formats.orientation import write_exterior
 from stereo.pair.resection import ExteriorOrientation
 
 LO25 = "+proj=tmerc +lat_0=0 +lon_0=25 +k=1 +x_0=0 +y_0=0 +datum=WGS84 +units=m"
@@ -32,10 +33,17 @@ def ngi_camera() -> Camera:
     return Camera(focal_length_mm=120.0, pixel_size_mm=0.144, width=640, height=1152)
 
 
-def ngi_orientations() -> dict[str, ExteriorOrientation]:
-    """The aero-triangulated exterior orientations of frames '0182' and '0184'."""
-    return {k: ExteriorOrientation(position=v[:3], rotation=matrix_from_angles(*np.radians(v[3:])),
-                                   focal_length_mm=120.0) for k, v in EO.items()}
+def ngi_orientations(crs: str | None = None) -> dict[str, ExteriorOrientation]:
+    """The aero-triangulated exterior orientations of frames '0182' and '0184' (``crs``: the one they record)."""
+    return {k: ExteriorOrientation(position=np.array(v[:3]), rotation=matrix_from_angles(*np.radians(v[3:])),
+                                   focal_length_mm=120.0, crs=crs) for k, v in EO.items()}
+
+
+def write_ngi_exteriors(folder: Path) -> list[Path]:
+    """``folder/eo_0182.json`` and ``eo_0184.json``: the aero-triangulated orientations in LO25 with the camera
+    (exterior orientation JSON, as ``stereo dense`` reads); their paths, left first."""
+    cam = ngi_camera().to_dict()
+    return [write_exterior(folder / f"eo_{k}.json", eo, camera=cam) for k, eo in ngi_orientations(LO25).items()]
 
 
 def dem_sampler(folder: Path) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:

@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -138,3 +140,17 @@ def occlusion_from_truth(gt: NDArray[np.float64]) -> NDArray[np.bool_]:
     occ = np.ones((H, W), bool)
     occ[ok] = zb[yy[ok], xt[ok]] > d[ok] + 1.0
     return occ | ~known
+
+
+def read_rgb(path: Path) -> NDArray[np.uint8]:
+    """An RGB image file (a Middlebury PNG) as (H, W, 3) uint8, in RGB order."""
+    img = cv2.imread(str(path))
+    assert img is not None, path
+    return np.asarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB))
+
+
+def read_grey(path: Path) -> NDArray[np.uint8]:
+    """A one-band image file (a Middlebury occlusion mask) as (H, W) uint8."""
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    assert img is not None, path
+    return np.asarray(img)
