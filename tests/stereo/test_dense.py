@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 
 import cv2
@@ -21,7 +20,7 @@ from stereo.dense.matching import MatchOptions, fill_background, match_pair
 from stereo.dense.triangulate import triangulate_disparity
 from stereo.formats.points import PlyWriter, point_writer
 from tests.support.shared_data import SHARED_DATA
-from tests.support.stereo_support import occlusion_from_truth
+from tests.support.stereo_support import occlusion_from_truth, write_known_pair
 
 CAM = Camera(focal_length_mm=120.0, pixel_size_mm=0.144, width=320, height=240)
 DATA = SHARED_DATA  # $RECTIFY_SHARED_DATA, else ../shared/data
@@ -301,20 +300,8 @@ def test_synthetic_dsm_within_half_gsd(tmp_path):
     (measured 0.26) and no cell off by more than 3 GSD (matching blunders).
     """
     from stereo.actions.dense import DenseOptions, run_dense
-    from stereo.actions.scene import make_scene, render
-    from stereo.formats.orientation import write_exterior
 
-    sc = make_scene(3, size_px=320)
-    cv2.imwrite(str(tmp_path / "l.png"), render(sc, "left"))
-    cv2.imwrite(str(tmp_path / "r.png"), render(sc, "right"))
-    cam = sc.camera.to_dict()
-    # known orientations: sigma0 0 (not adjusted), so that the JSON holds no NaN
-    write_exterior(tmp_path / "l.json", dataclasses.replace(sc.left, sigma0=0.0), camera=cam)
-    write_exterior(tmp_path / "r.json", dataclasses.replace(sc.right, sigma0=0.0), camera=cam)
-    g = sc.random_ground_points(60, np.random.default_rng(0))
-    pl, pr = sc.pixel_from_ground(sc.left, g), sc.pixel_from_ground(sc.right, g)
-    (tmp_path / "m.csv").write_text("id,col_left,row_left,col_right,row_right\n" + "".join(
-        f"{i},{a[0]},{a[1]},{b[0]},{b[1]}\n" for i, (a, b) in enumerate(zip(pl, pr, strict=True))))
+    sc = write_known_pair(tmp_path)   # known orientations: sigma0 0 (not adjusted), so the JSON holds no NaN
     res = run_dense(tmp_path / "l.json", tmp_path / "l.png", tmp_path / "r.png", tmp_path / "out",
                     right_orientation=tmp_path / "r.json", matches=tmp_path / "m.csv",
                     options=DenseOptions(cloud_format="ply"))

@@ -11,7 +11,6 @@ errors; the trial counts and the measured values are given with each test.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from pathlib import Path
 
@@ -34,6 +33,7 @@ from stereo.pair.resection import resect
 from stereo.relative.result import RelativeGeometry
 from tests.support.block_synthetic import make_block
 from tests.support.calibration_synthetic import board_scene, field_scene
+from tests.support.stereo_support import write_known_pair
 
 DOCS = Path(__file__).resolve().parents[2] / "docs"
 
@@ -367,21 +367,8 @@ def test_dsm_geotiff_cells_are_centred_where_the_geotransform_says(tmp_path):
 @pytest.fixture(scope="module")
 def dense_pair(tmp_path_factory):
     """A 320 px synthetic pair with exact exterior orientations and 40 exact tie points."""
-    from stereo.actions.scene import make_scene, render
-    from stereo.formats.orientation import write_exterior
-
     d = tmp_path_factory.mktemp("field_dense")
-    sc = make_scene(3, size_px=320)
-    cv2.imwrite(str(d / "l.png"), render(sc, "left"))
-    cv2.imwrite(str(d / "r.png"), render(sc, "right"))
-    cam = sc.camera.to_dict()
-    write_exterior(d / "l.json", dataclasses.replace(sc.left, sigma0=0.0, crs=sc.crs), camera=cam)
-    write_exterior(d / "r.json", dataclasses.replace(sc.right, sigma0=0.0, crs=sc.crs), camera=cam)
-    g = sc.random_ground_points(40, np.random.default_rng(0), margin_px=10.0)
-    pl, pr = sc.pixel_from_ground(sc.left, g), sc.pixel_from_ground(sc.right, g)
-    (d / "m.csv").write_text("id,col_left,row_left,col_right,row_right\n" + "".join(
-        f"{i},{a[0]},{a[1]},{b[0]},{b[1]}\n" for i, (a, b) in enumerate(zip(pl, pr, strict=True))))
-    return d, sc
+    return d, write_known_pair(d, n_ties=40, margin_px=10.0, with_crs=True)
 
 
 def _run_dense(d: Path, out: Path, **options):

@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 
-import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -15,12 +13,11 @@ from hypothesis import strategies as st
 import stereo.formats.cloud as cloud
 from rectify.errors import InvalidInputError, RasterIOError, ShapeError
 from rectify.geometry.crs import parse_crs
-from stereo.actions.scene import make_scene, render
 from stereo.cli.main import cli
 from stereo.dense.precision import height_sigma_disparity
 from stereo.formats.cloud import CloudChunk, ExtraDim, LasWriter, cloud_format, write_cloud
-from stereo.formats.orientation import write_exterior
 from stereo.formats.points import point_writer
+from tests.support.stereo_support import write_known_pair
 
 laspy = pytest.importorskip("laspy")
 
@@ -273,16 +270,7 @@ def test_stereo_dense_cloud_carries_sigma_z(tmp_path):
     the RMS of (height error / sigma_z) lies in the issue's 0.67-1.5 (measured 1.42)."""
     fmt = "copc" if cloud.copc_available() else "laz"
     _need(fmt)
-    sc = make_scene(3, size_px=320)
-    cv2.imwrite(str(tmp_path / "l.png"), render(sc, "left"))
-    cv2.imwrite(str(tmp_path / "r.png"), render(sc, "right"))
-    cam = sc.camera.to_dict()
-    write_exterior(tmp_path / "l.json", dataclasses.replace(sc.left, sigma0=0.0), camera=cam)
-    write_exterior(tmp_path / "r.json", dataclasses.replace(sc.right, sigma0=0.0), camera=cam)
-    g = sc.random_ground_points(60, np.random.default_rng(0))
-    pl, pr = sc.pixel_from_ground(sc.left, g), sc.pixel_from_ground(sc.right, g)
-    (tmp_path / "m.csv").write_text("id,col_left,row_left,col_right,row_right\n" + "".join(
-        f"{i},{a[0]},{a[1]},{b[0]},{b[1]}\n" for i, (a, b) in enumerate(zip(pl, pr, strict=True))))
+    sc = write_known_pair(tmp_path)
     out = tmp_path / "out"
     r = CliRunner().invoke(cli, ["dense", str(tmp_path / "l.json"), str(tmp_path / "l.png"), str(tmp_path / "r.png"),
                                  "-o", str(out), "--right-orientation", str(tmp_path / "r.json"),

@@ -5,6 +5,7 @@ Moved out of the library (``stereo.relative``) in issue 11: only tests and ``scr
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,6 +16,8 @@ from numpy.typing import NDArray
 
 from rectify.errors import EstimationError, InvalidInputError
 from rectify.geometry.rotation import matrix_from_angles
+from stereo.actions.scene import SyntheticScene, make_scene, render
+from stereo.formats.orientation import write_exterior
 from stereo.relative import SYSTEMS
 
 __all__ = ["SimulatedPair", "simulate_pair"]
@@ -154,3 +157,23 @@ def read_grey(path: Path) -> NDArray[np.uint8]:
     img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     assert img is not None, path
     return np.asarray(img)
+
+
+def write_known_pair(folder: Path, *, n_ties: int = 60, margin_px: float = 20.0,
+                     with_crs: bool = False) -> SyntheticScene:
+    """The 320 px synthetic pair of ``make_scene(3)`` with exact orientations, for ``stereo dense``: ``l.png`` and
+    ``r.png``, their exterior orientations ``l.json`` and ``r.json`` (sigma0 0: not adjusted; the scene's CRS
+    when ``with_crs``) with the camera, and ``m.csv``: ``n_ties`` exact tie points (``margin_px`` inside both
+    photos). Returns the scene (its surface is the truth)."""
+    sc = make_scene(3, size_px=320)
+    cv2.imwrite(str(folder / "l.png"), render(sc, "left"))
+    cv2.imwrite(str(folder / "r.png"), render(sc, "right"))
+    cam = sc.camera.to_dict()
+    extra = {"crs": sc.crs} if with_crs else {}
+    write_exterior(folder / "l.json", dataclasses.replace(sc.left, sigma0=0.0, **extra), camera=cam)
+    write_exterior(folder / "r.json", dataclasses.replace(sc.right, sigma0=0.0, **extra), camera=cam)
+    g = sc.random_ground_points(n_ties, np.random.default_rng(0), margin_px=margin_px)
+    pl, pr = sc.pixel_from_ground(sc.left, g), sc.pixel_from_ground(sc.right, g)
+    (folder / "m.csv").write_text("id,col_left,row_left,col_right,row_right\n" + "".join(
+        f"{i},{a[0]},{a[1]},{b[0]},{b[1]}\n" for i, (a, b) in enumerate(zip(pl, pr, strict=True))))
+    return sc
